@@ -1,0 +1,349 @@
+"""Batched pair-contraction builder: a whole batch of independent collapses per
+vectorized step (DESIGN §5). The output is a :class:`pmjax.PMData`."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import math
+import time
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pmjax._pmfile import METRICS, PMData
+
+from . import _quadrics as qd
+from ._attributes import refinement_attributes
+from ._independent import domain_of_independent, select_independent
+from ._metrics import CACHEABLE, METRIC_NAMES, evaluate_metric
+from ._topology import VertexFaces, contains_edge, edge_keys, unique_edges
+from ._validity import collapse_is_valid
+
+
+# Candidate count under which validity is checked for all candidates up front
+# rather than lazily for greedy winners.
+EAGER_VALIDITY = 20_000
+
+
+@dataclasses.dataclass(frozen=True)
+class BuildOptions:
+    """Parameters of :func:`build_pm`.
+
+    Attributes:
+        metric: a metric name, or a schedule ``"edge:2,quadric"`` (metric
+            ``edge`` for the first 2 batches, then ``quadric``). Names:
+            quadric, quadric-memoryless, edge, pm, hybrid.
+        pair_distance: vertex pairs closer than this fraction of the
+            bounding-box diagonal that share no edge are candidates too
+            (Visualizer's virtual pairs; topology may change). 0: edges only.
+        target_faces: stop once at most this many faces are left (0: no target).
+        target_vertices: stop once at most this many vertices are left.
+        max_error: collapses costing more than this are never taken.
+        batch_share: share of the cheapest candidates a batch may take from
+            (quality knob, ``0 < s <= 1``).
+        linear: one collapse per batch in strict cost order (slow reference).
+        allow_topology_change: skip the link test for edges too.
+        boundary_weight: weight of the border-preserving quadric planes.
+        max_batches: safety cap on the number of batches.
+    """
+
+    metric: str = "quadric"
+    pair_distance: float = 0.0
+    target_faces: int = 0
+    target_vertices: int = 0
+    max_error: float = math.inf
+    batch_share: float = 0.5
+    linear: bool = False
+    allow_topology_change: bool = False
+    boundary_weight: float = 1.0
+    max_batches: int = 100_000
+
+    def schedule(self) -> list[tuple[str, int | None]]:
+        """Parsed metric schedule: ``[(name, batches or None for the rest)]``."""
+        out = []
+        parts = [p.strip() for p in self.metric.split(",") if p.strip()]
+        for i, part in enumerate(parts):
+            name, _, count = part.partition(":")
+            if name not in METRIC_NAMES:
+                raise ValueError(f"unknown metric {name!r}; choose from {', '.join(METRIC_NAMES)}")
+            if count:
+                if not count.isdigit() or int(count) < 1:
+                    raise ValueError(f"metric schedule {part!r}: batch count must be a positive integer")
+                out.append((name, int(count)))
+            elif i != len(parts) - 1:
+                raise ValueError(f"metric schedule {self.metric!r}: only the last entry may omit ':N'")
+            else:
+                out.append((name, None))
+        if not out:
+            raise ValueError("empty metric schedule")
+        return out
+
+    def metric_for_batch(self, batch: int) -> str:
+        start = 0
+        for name, count in self.schedule():
+            if count is None or batch < start + count:
+                return name
+            start += count
+        return self.schedule()[-1][0]
+
+    def validate(self) -> None:
+        self.schedule()
+        if not 0 < self.batch_share <= 1:
+            raise ValueError(f"batch_share must be in (0, 1], got {self.batch_share}")
+        if self.pair_distance < 0:
+            raise ValueError(f"pair_distance must be >= 0, got {self.pair_distance}")
+        if self.target_faces < 0 or self.target_vertices < 0:
+            raise ValueError("targets must be >= 0")
+
+
+def vertex_normals(pos: np.ndarray, faces: np.ndarray, n: int) -> np.ndarray:
+    """Area-weighted unit vertex normals (zero where a vertex has no face)."""
+    _, _, cross = qd.face_geometry(pos, faces)
+    acc = np.stack([np.bincount(faces.ravel(), np.repeat(cross[:, k], 3), minlength=n) for k in range(3)], 1)
+    length = np.linalg.norm(acc, axis=1)
+    return acc / np.where(length > 0, length, 1.0)[:, None]
+
+
+def build_pm(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    options: BuildOptions = BuildOptions(),
+    *,
+    progress: bool = False,
+    source_sha256: str | None = None,
+) -> PMData:
+    """Build a progressive mesh by batched pair contraction.
+
+    Args:
+        vertices: ``(V0, 3)`` positions of a cleaned mesh (see
+            :func:`pmjax.clean_mesh`), model units.
+        faces: ``(F, 3)`` int vertex ids, no degenerate or duplicate faces.
+        options: see :class:`BuildOptions`.
+        progress: show a tqdm bar (batch, faces, elapsed).
+        source_sha256: checksum of the source file, stored in the header.
+
+    Returns:
+        :class:`pmjax.PMData` with monotone attributes and per-face killers.
+    """
+    options.validate()
+    t0 = time.perf_counter()
+    v0 = np.asarray(vertices, np.float64)
+    f0 = np.asarray(faces, np.int64)
+    V0, F = len(v0), len(f0)
+    cap = 2 * V0  # every pcol consumes two vertices and makes one: P < V0
+    pos = np.zeros((cap, 3))
+    pos[:V0] = v0
+    normals = np.zeros((cap, 3))
+    normals[:V0] = vertex_normals(v0, f0, V0)
+    diag = float(np.linalg.norm(np.ptp(v0, axis=0)))
+    quadric = np.zeros((cap, 10))
+    quadric[:V0] = qd.vertex_quadrics(v0, f0, V0, options.boundary_weight)
+    # Doubled-area² under which a face counts as degenerate.
+    min_area2 = (1e-12 * diag * diag) ** 2
+
+    cur = f0.copy()  # current faces, in current vertex ids
+    fid = np.arange(F)  # their original face ids
+    killer = np.full(F, -1, np.int32)
+    v1s, v2s, costs, metric_ids, offsets = [], [], [], [], [0]
+    next_id = V0
+    cache = None
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=F, unit="face", desc="build", dynamic_ncols=True)
+
+    for batch in range(options.max_batches):
+        n_faces = len(cur)
+        n_verts = int(np.count_nonzero(np.bincount(cur.ravel(), minlength=next_id))) if n_faces else 0
+        if n_faces == 0 or n_faces <= options.target_faces or n_verts <= options.target_vertices:
+            break
+        metric = options.metric_for_batch(batch)
+
+        # Candidates: every edge, plus close vertex pairs that share no edge.
+        ea, eb, ecount = unique_edges(cur, next_id)
+        a, b = ea, eb
+        if options.pair_distance > 0:
+            live = np.unique(cur)
+            near = cKDTree(pos[live]).query_pairs(options.pair_distance * diag, output_type="ndarray")
+            if len(near):
+                pa, pb = live[near[:, 0]], live[near[:, 1]]
+                new = ~contains_edge(ea, eb, pa, pb, next_id)
+                a = np.concatenate([ea, np.minimum(pa, pb)[new]])
+                b = np.concatenate([eb, np.maximum(pa, pb)[new]])
+        is_edge = np.arange(len(a)) < len(ea)
+
+        # Cost and placement under this batch's metric. Memory-resident costs
+        # depend only on the two endpoints, so pairs seen last batch (same ids,
+        # hence same quadrics) keep theirs.
+        keys = edge_keys(a, b, cap)
+        if metric in CACHEABLE and cache is not None and cache[0] == metric:
+            x, cost = _cached_costs(cache, keys, metric, pos, cur, quadric, a, b, options.boundary_weight)
+        else:
+            x, cost = evaluate_metric(metric, pos, cur, quadric, a, b, options.boundary_weight)
+        cache = (metric, *_sorted_by_key(keys, x, cost)) if metric in CACHEABLE else None
+
+        # Eligible: the cheapest share (linear mode keeps them all and takes
+        # the cheapest valid one), in cost order so index = priority.
+        order = np.argsort(cost, kind="stable")
+        order = order[cost[order] <= options.max_error]
+        share = 1.0 if options.linear else options.batch_share
+        elig = order[: max(1, int(math.ceil(share * len(order))))]
+        if len(elig) == 0:
+            break
+        a, b, x, cost, is_edge = a[elig], b[elig], x[elig], cost[elig], is_edge[elig]
+
+        boundary_vertex = np.zeros(next_id, bool)
+        boundary_vertex[ea[ecount == 1]] = True
+        boundary_vertex[eb[ecount == 1]] = True
+        link_test = is_edge & (not options.allow_topology_change)
+
+        def is_valid(idx, pair, face):
+            return collapse_is_valid(
+                pos, cur, a[idx], b[idx], x[idx], pair, face,
+                min_area2=min_area2, link_test=link_test[idx], boundary_vertex=boundary_vertex,
+            )
+
+        if options.linear:
+            chosen = _first_valid(is_valid, a, b, cur, next_id)
+        else:
+            if len(a) <= EAGER_VALIDITY:
+                # Small sets: check everything at once, so permanently invalid
+                # candidates (closed fragments, pinches) cost no greedy rounds.
+                ok = is_valid(np.arange(len(a)), *VertexFaces(cur, next_id).of_pairs(a, b, cur))
+                a, b, x, cost, link_test = a[ok], b[ok], x[ok], cost[ok], link_test[ok]
+            chosen = select_independent(a, b, cur, next_id, is_valid)
+        if len(chosen) == 0:
+            break
+
+        # Stop exactly at a face or vertex target: keep the cheapest prefix.
+        ca, cb = a[chosen], b[chosen]
+        keep = len(chosen)
+        if options.target_faces:
+            pair, face = domain_of_independent(ca, cb, cur, np.arange(n_faces), np.full(next_id, -1))
+            tri = cur[face]
+            both = np.any(tri == ca[pair, None], 1) & np.any(tri == cb[pair, None], 1)
+            left = n_faces - np.cumsum(np.bincount(pair, both, minlength=keep))
+            keep = min(keep, int(np.searchsorted(-left, -options.target_faces)) + 1)
+        if options.target_vertices:
+            keep = min(keep, max(1, n_verts - options.target_vertices))
+        chosen, ca, cb = chosen[:keep], ca[:keep], cb[:keep]
+
+        # Apply the batch: new vertices, remapped faces, killers.
+        k = len(chosen)
+        new = next_id + np.arange(k)
+        pos[new] = x[chosen]
+        quadric[new] = quadric[ca] + quadric[cb]
+        remap = np.arange(next_id + k)
+        remap[ca] = new
+        remap[cb] = new
+        cur = remap[cur]
+        c0, c1, c2 = cur[:, 0], cur[:, 1], cur[:, 2]
+        dead = (c0 == c1) | (c1 == c2) | (c0 == c2)
+        merged = np.where((c0 == c1) | (c0 == c2), c0, c1)
+        killer[fid[dead]] = (merged[dead] - V0).astype(np.int32)
+        cur, fid = cur[~dead], fid[~dead]
+        # Normals of the new vertices, from the faces around them only.
+        around = cur[np.any(cur >= next_id, axis=1)]
+        vn = _new_vertex_normals(pos, around, next_id, k)
+        # A vertex left without faces inherits its children's mean normal.
+        lonely = np.linalg.norm(vn, axis=1) == 0
+        if lonely.any():
+            s = normals[ca[lonely]] + normals[cb[lonely]]
+            sl = np.linalg.norm(s, axis=1)
+            vn[lonely] = np.where(sl[:, None] > 0, s / np.where(sl > 0, sl, 1)[:, None], [0.0, 0.0, 1.0])
+        normals[new] = vn
+        v1s.append(ca)
+        v2s.append(cb)
+        costs.append(cost[chosen])
+        metric_ids.append(np.full(k, METRICS.index(metric), np.uint8))
+        next_id += k
+        offsets.append(next_id - V0)
+        if bar is not None:
+            bar.update(n_faces - len(cur))
+            bar.set_postfix(batch=batch, faces=len(cur), metric=metric)
+    if bar is not None:
+        bar.close()
+
+    P = next_id - V0
+    v1 = np.concatenate(v1s).astype(np.int32) if v1s else np.zeros(0, np.int32)
+    v2 = np.concatenate(v2s).astype(np.int32) if v2s else np.zeros(0, np.int32)
+    batch_offsets = np.asarray(offsets, np.int64)
+    attrs = refinement_attributes(pos[:next_id], normals[:next_id], f0, v1, v2, batch_offsets)
+    header = dict(
+        build=dict(
+            dataclasses.asdict(options),
+            seconds=round(time.perf_counter() - t0, 3),
+            base_faces=int(len(cur)),
+        ),
+        source_sha256=source_sha256,
+        bbox_diagonal=diag,
+    )
+    header["build"]["max_error"] = None if math.isinf(options.max_error) else options.max_error
+    return PMData(
+        vertices=pos[:next_id].astype(np.float32),
+        normals=normals[:next_id].astype(np.float32),
+        faces=f0.astype(np.int32),
+        v1=v1,
+        v2=v2,
+        radius=attrs["radius"].astype(np.float32),
+        alpha=attrs["alpha"].astype(np.float32),
+        delta=attrs["delta"].astype(np.float32),
+        mu=attrs["mu"].astype(np.float32),
+        cost=np.concatenate(costs).astype(np.float64) if costs else np.zeros(0),
+        metric=np.concatenate(metric_ids) if metric_ids else np.zeros(0, np.uint8),
+        batch_offsets=batch_offsets,
+        killer=killer,
+        header=header,
+    )
+
+
+def _new_vertex_normals(pos, faces, first, k):
+    """Area-weighted unit normals of vertices ``first .. first+k-1``."""
+    _, _, cross = qd.face_geometry(pos, faces)
+    corner = faces.ravel() - first
+    new = corner >= 0
+    w = np.repeat(cross, 3, axis=0)[new]
+    acc = np.stack([np.bincount(corner[new], w[:, j], minlength=k) for j in range(3)], 1)
+    length = np.linalg.norm(acc, axis=1)
+    return acc / np.where(length > 0, length, 1.0)[:, None]
+
+
+def _sorted_by_key(keys, x, cost):
+    order = np.argsort(keys)
+    return keys[order], x[order], cost[order]
+
+
+def _cached_costs(cache, keys, metric, pos, cur, quadric, a, b, boundary_weight):
+    """Costs from ``cache = (metric, keys, x, cost)`` where the pair is known."""
+    _, old_keys, old_x, old_cost = cache
+    i = np.minimum(np.searchsorted(old_keys, keys), len(old_keys) - 1)
+    known = old_keys[i] == keys
+    x = old_x[i]
+    cost = old_cost[i]
+    fresh = ~known
+    if fresh.any():
+        x[fresh], cost[fresh] = evaluate_metric(metric, pos, cur, quadric, a[fresh], b[fresh], boundary_weight)
+    return x, cost
+
+
+def _first_valid(is_valid, a, b, cur, n_vertices) -> np.ndarray:
+    """The cheapest valid candidate (linear mode); candidates are in cost order."""
+    every_face = np.arange(len(cur))
+    owner = np.full(n_vertices, -1)
+    for i in range(len(a)):
+        idx = np.array([i])
+        pair, face = domain_of_independent(a[idx], b[idx], cur, every_face, owner)
+        if is_valid(idx, pair, face)[0]:
+            return idx
+    return np.zeros(0, np.int64)
+
+
+def file_sha256(path) -> str:
+    """SHA-256 of a file's bytes (stored as the PM's source checksum)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()

@@ -1,0 +1,177 @@
+"""Garland–Heckbert quadrics as packed struct-of-arrays (float64).
+
+A quadric is the symmetric 4×4 matrix ``K = Σ w p pᵀ`` over planes
+``p = (a, b, c, d)``; we keep its 10 distinct coefficients
+``[aa, ab, ac, ad, bb, bc, bd, cc, cd, dd]`` so that summing two quadrics is a
+vector add and a whole mesh's quadrics are one ``float64[N, 10]`` array.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_I, _J = np.triu_indices(4)  # packed order above
+
+
+def plane_quadrics(normals: np.ndarray, offsets: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Packed quadrics ``w · p pᵀ`` of planes ``n·x + d = 0``.
+
+    Args:
+        normals: ``(N, 3)`` unit plane normals.
+        offsets: ``(N,)`` plane offsets ``d``.
+        weights: ``(N,)`` weights (area for faces).
+
+    Returns:
+        ``float64[N, 10]``.
+    """
+    p = np.concatenate([normals, offsets[:, None]], axis=1)
+    return p[:, _I] * p[:, _J] * weights[:, None]
+
+
+def face_geometry(pos: np.ndarray, faces: np.ndarray):
+    """Unit normals, areas and raw cross products of triangles.
+
+    Returns:
+        ``(unit_normals (F, 3), areas (F,), cross (F, 3))``; degenerate faces get
+        a zero normal.
+    """
+    tri = pos[faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(cross, axis=1)
+    unit = cross / np.where(length > 0, length, 1.0)[:, None]
+    return unit, 0.5 * length, cross
+
+
+def vertex_quadrics(
+    pos: np.ndarray, faces: np.ndarray, n_vertices: int, boundary_weight: float = 1.0
+) -> np.ndarray:
+    """Area-weighted face quadrics summed per vertex, plus boundary planes.
+
+    Boundary edges (used by one face) get a plane through the edge,
+    perpendicular to the face, weighted by ``boundary_weight · |edge|²``, so
+    open borders do not shrink (Garland–Heckbert §6.1).
+
+    Args:
+        pos: ``(V, 3)`` positions, model units.
+        faces: ``(F, 3)`` vertex ids into ``pos``.
+        n_vertices: length of the result (ids ``>= V`` get zero quadrics).
+        boundary_weight: 0 disables the boundary planes.
+
+    Returns:
+        ``float64[n_vertices, 10]``.
+    """
+    unit, area, _ = face_geometry(pos, faces)
+    d = -np.einsum("ij,ij->i", unit, pos[faces[:, 0]])
+    kf = plane_quadrics(unit, d, area)
+    q = _scatter_add(np.repeat(kf, 3, axis=0), faces.ravel(), n_vertices)
+    if boundary_weight > 0:
+        a, b, face = boundary_edges(faces)
+        if len(a):
+            e = pos[b] - pos[a]
+            m = np.cross(e, unit[face])
+            mlen = np.linalg.norm(m, axis=1)
+            ok = mlen > 0
+            m = m[ok] / mlen[ok, None]
+            a, b, e = a[ok], b[ok], e[ok]
+            kb = plane_quadrics(
+                m, -np.einsum("ij,ij->i", m, pos[a]), boundary_weight * np.einsum("ij,ij->i", e, e)
+            )
+            q += _scatter_add(np.concatenate([kb, kb]), np.concatenate([a, b]), n_vertices)
+    return q
+
+
+def _scatter_add(values: np.ndarray, index: np.ndarray, n: int) -> np.ndarray:
+    # bincount per column is much faster than np.add.at for wide arrays.
+    return np.stack([np.bincount(index, values[:, k], minlength=n) for k in range(values.shape[1])], 1)
+
+
+def boundary_edges(faces: np.ndarray):
+    """Directed boundary edges: those used by exactly one face.
+
+    Returns:
+        ``(a, b, face)`` int arrays: the edge goes ``a -> b`` inside ``face``.
+    """
+    a = faces.ravel()
+    b = faces[:, [1, 2, 0]].ravel()
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    key = lo.astype(np.int64) * (int(faces.max()) + 1) + hi
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    single = counts[inverse] == 1
+    return a[single], b[single], np.repeat(np.arange(len(faces)), 3)[single]
+
+
+def evaluate(q: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``xᵀ A x + 2 bᵀ x + c`` for packed quadrics ``q (N, 10)`` at ``x (N, 3)``."""
+    X, Y, Z = x[:, 0], x[:, 1], x[:, 2]
+    return (
+        q[:, 0] * X * X
+        + 2 * q[:, 1] * X * Y
+        + 2 * q[:, 2] * X * Z
+        + 2 * q[:, 3] * X
+        + q[:, 4] * Y * Y
+        + 2 * q[:, 5] * Y * Z
+        + 2 * q[:, 6] * Y
+        + q[:, 7] * Z * Z
+        + 2 * q[:, 8] * Z
+        + q[:, 9]
+    )
+
+
+def optimal_placement(q: np.ndarray, a: np.ndarray, b: np.ndarray):
+    """Minimiser of each quadric, falling back to the best of a, b, midpoint.
+
+    The 3×3 system ``A x = -b`` is solved by the adjugate. When ``A`` is
+    ill-conditioned (flat or straight regions) or the solution lands far from
+    the pair (more than the pair's length from its midpoint), the best of the
+    two endpoints and their midpoint is used instead.
+
+    Args:
+        q: ``(N, 10)`` packed quadrics.
+        a, b: ``(N, 3)`` endpoint positions.
+
+    Returns:
+        ``(position (N, 3), cost (N,))`` with cost ``>= 0``.
+    """
+    a00, a01, a02, b0, a11, a12, b1, a22, b2 = (q[:, k] for k in (0, 1, 2, 3, 4, 5, 6, 7, 8))
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    c22 = a00 * a11 - a01 * a01
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    scale = (a00 + a11 + a22) / 3.0
+    solvable = np.abs(det) > 1e-9 * scale**3
+    inv_det = np.where(solvable, 1.0 / np.where(solvable, det, 1.0), 0.0)
+    x = -np.stack(
+        [
+            c00 * b0 + c01 * b1 + c02 * b2,
+            c01 * b0 + c11 * b1 + c12 * b2,
+            c02 * b0 + c12 * b1 + c22 * b2,
+        ],
+        1,
+    ) * inv_det[:, None]
+    mid = 0.5 * (a + b)
+    length = np.linalg.norm(b - a, axis=1)
+    solvable &= np.linalg.norm(x - mid, axis=1) <= length
+    pos = x
+    cost = evaluate(q, x)
+    # Fallback where the optimum is unreliable, or (through rounding) no
+    # better than the pair's own points.
+    fall = ~solvable | (cost > np.minimum(evaluate(q, a), evaluate(q, b)))
+    if fall.any():
+        pos[fall], cost[fall] = subset_placement(q[fall], a[fall], b[fall], include_midpoint=True)
+    return pos, np.maximum(cost, 0.0)
+
+
+def subset_placement(q: np.ndarray, a: np.ndarray, b: np.ndarray, include_midpoint: bool = False):
+    """Best of the endpoints (and optionally the midpoint) under quadric ``q``.
+
+    Returns:
+        ``(position (N, 3), cost (N,))``.
+    """
+    options = [a, b] + ([0.5 * (a + b)] if include_midpoint else [])
+    costs = np.stack([evaluate(q, o) for o in options], 1)
+    pick = np.argmin(costs, axis=1)
+    pos = np.choose(pick[:, None], options)
+    return pos, np.maximum(costs[np.arange(len(pick)), pick], 0.0)

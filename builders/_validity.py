@@ -1,0 +1,76 @@
+"""Which collapses keep the surface sane: no flips, no degenerate faces, and
+(for edges, unless topology change is allowed) the link condition."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def collapse_is_valid(
+    pos: np.ndarray,
+    faces: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    x: np.ndarray,
+    pair: np.ndarray,
+    face: np.ndarray,
+    *,
+    min_area2: float,
+    link_test: np.ndarray,
+    boundary_vertex: np.ndarray,
+) -> np.ndarray:
+    """Validity of moving ``a[i]`` and ``b[i]`` to ``x[i]``.
+
+    Args:
+        pos: ``(N, 3)`` positions; faces: ``(F, 3)`` current faces.
+        a, b, x: candidate pairs and their placements ``(C, 3)``.
+        pair, face: the domain incidence, each domain face once per pair.
+        min_area2: squared doubled area under which a face is degenerate.
+        link_test: ``(C,)`` whether to apply the link condition (edges whose
+            topology must be kept).
+        boundary_vertex: ``(N,)`` whether a vertex lies on a border.
+
+    Returns:
+        ``bool[C]``.
+    """
+    tri = faces[face]
+    has_a = tri == a[pair, None]
+    has_b = tri == b[pair, None]
+    # Faces holding both endpoints vanish with the collapse: nothing to check.
+    on_edge = has_a.any(1) & has_b.any(1)
+    old = pos[tri]
+    old_cross = np.cross(old[:, 1] - old[:, 0], old[:, 2] - old[:, 0])
+    corners = np.where((has_a | has_b)[..., None], x[pair, None, :], old)
+    new_cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    # A flip: the normal turns by more than 90 degrees.
+    flips = np.einsum("ij,ij->i", new_cross, old_cross) <= 0.0
+    degenerate = np.einsum("ij,ij->i", new_cross, new_cross) <= min_area2
+    bad = ~on_edge & (flips | degenerate)
+    ok = np.bincount(pair, bad, minlength=len(a)) == 0
+    if link_test.any():
+        # Link condition: the common neighbours of a and b are exactly the
+        # apexes of the faces on edge ab; an interior edge between two border
+        # vertices would pinch the surface.
+        apexes = np.bincount(pair, on_edge, minlength=len(a))
+        common = _common_neighbours(tri, has_a, has_b, pair, len(a))
+        pinch = (apexes >= 2) & boundary_vertex[a] & boundary_vertex[b]
+        ok &= ~link_test | ((common == apexes) & ~pinch)
+    return ok
+
+
+def _common_neighbours(tri, has_a, has_b, pair, n_pairs) -> np.ndarray:
+    """Per pair, the vertices sharing a face with both endpoints."""
+    other = ~(has_a | has_b)
+    span = np.int64(tri.max()) + 1 if len(tri) else 1
+    key = pair[:, None].astype(np.int64) * span + tri
+    side_a = _distinct(key[other & has_a.any(1, keepdims=True)])
+    side_b = _distinct(key[other & has_b.any(1, keepdims=True)])
+    # A key in both distinct lists appears exactly twice in their union.
+    both = np.sort(np.concatenate([side_a, side_b]))
+    twice = both[1:][both[1:] == both[:-1]]
+    return np.bincount(twice // span, minlength=n_pairs)
+
+
+def _distinct(keys: np.ndarray) -> np.ndarray:
+    keys = np.sort(keys)
+    return keys[np.r_[True, keys[1:] != keys[:-1]]] if len(keys) else keys

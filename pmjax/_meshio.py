@@ -1,0 +1,168 @@
+"""Reading and cleaning input meshes.
+
+Any format trimesh reads is accepted. The cleaning is explicit and reported, so
+a user knows what was changed: non-finite coordinates, out-of-range indices,
+degenerate and duplicate faces and unreferenced vertices are either removed
+(with a count in the report) or, when nothing usable is left, refused with a
+:class:`MeshError` that names the file and the element.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import numpy as np
+
+
+class MeshError(ValueError):
+    """An input mesh cannot be used; the message names the file and element."""
+
+
+@dataclasses.dataclass(frozen=True)
+class CleanReport:
+    """What :func:`clean_mesh` changed. All counts are of removed elements."""
+
+    nonfinite_vertices: int = 0
+    out_of_range_faces: int = 0
+    faces_on_nonfinite_vertices: int = 0
+    degenerate_faces: int = 0
+    duplicate_faces: int = 0
+    unreferenced_vertices: int = 0
+
+    def messages(self) -> list[str]:
+        """Human-readable lines, one per non-zero count."""
+        out = []
+        for field in dataclasses.fields(self):
+            n = getattr(self, field.name)
+            if n:
+                out.append(f"removed {n} {field.name.replace('_', ' ')}")
+        return out
+
+
+def clean_mesh(
+    vertices, faces, *, source: str = "<array>"
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, CleanReport]:
+    """Validate and clean a triangle mesh.
+
+    Args:
+        vertices: ``(V, 3)`` coordinates, any real dtype.
+        faces: ``(F, 3)`` integer vertex indices.
+        source: name used in error messages (usually the file path).
+
+    Returns:
+        ``(vertices float64[V', 3], faces int32[F', 3], kept int64[V'], report)``
+        where ``kept[i]`` is the input index of output vertex ``i``.
+
+    Raises:
+        MeshError: wrong shapes or dtypes, or no valid face left.
+    """
+    v = np.asarray(vertices)
+    f = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise MeshError(f"{source}: vertices must have shape (V, 3), got {v.shape}")
+    if f.size == 0:
+        raise MeshError(f"{source}: mesh has no faces")
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise MeshError(
+            f"{source}: faces must be triangles with shape (F, 3), got {f.shape}"
+        )
+    if not np.issubdtype(v.dtype, np.number) or np.iscomplexobj(v):
+        raise MeshError(f"{source}: vertex coordinates must be real numbers, got {v.dtype}")
+    if not np.issubdtype(f.dtype, np.integer):
+        raise MeshError(f"{source}: face indices must be integers, got {f.dtype}")
+    v = v.astype(np.float64)
+    f = f.astype(np.int64)
+    nv = len(v)
+
+    # Faces pointing outside the vertex array cannot be repaired: drop them.
+    in_range = np.all((f >= 0) & (f < nv), axis=1)
+    out_of_range = int((~in_range).sum())
+    f = f[in_range]
+
+    # Non-finite coordinates poison every quadric they touch: drop the vertex
+    # and the faces that use it.
+    finite = np.all(np.isfinite(v), axis=1)
+    nonfinite = int((~finite).sum())
+    on_bad = ~np.all(finite[f], axis=1)
+    f = f[~on_bad]
+
+    # Degenerate faces: repeated corners or (numerically) zero area.
+    repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
+    tri = v[f]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    diag = np.linalg.norm(np.ptp(v[finite], axis=0)) if finite.any() else 0.0
+    zero_area = np.linalg.norm(cross, axis=1) <= (1e-14 * diag * diag)
+    degenerate = repeated | zero_area
+    f = f[~degenerate]
+
+    # Duplicate faces: the same corner set, whatever the order or winding.
+    if len(f):
+        key = np.sort(f, axis=1)
+        _, first = np.unique(key, axis=0, return_index=True)
+        first.sort()
+        duplicates = len(f) - len(first)
+        f = f[first]
+    else:
+        duplicates = 0
+
+    if len(f) == 0:
+        raise MeshError(
+            f"{source}: no valid face left after cleaning "
+            f"({out_of_range} out of range, {nonfinite} non-finite vertices, "
+            f"{int(degenerate.sum())} degenerate)"
+        )
+
+    # Unreferenced vertices carry no surface: compact them away.
+    used = np.zeros(nv, bool)
+    used[f.ravel()] = True
+    kept = np.flatnonzero(used)
+    remap = np.full(nv, -1, np.int64)
+    remap[kept] = np.arange(len(kept))
+    report = CleanReport(
+        nonfinite_vertices=nonfinite,
+        out_of_range_faces=out_of_range,
+        faces_on_nonfinite_vertices=int(on_bad.sum()),
+        degenerate_faces=int(degenerate.sum()),
+        duplicate_faces=int(duplicates),
+        # Non-finite vertices lose all their faces, so they are never kept.
+        unreferenced_vertices=int(nv - len(kept) - nonfinite),
+    )
+    return v[kept], remap[f].astype(np.int32), kept, report
+
+
+def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a triangle mesh with trimesh, without any processing.
+
+    Args:
+        path: any file trimesh can load (PLY, OBJ, STL, OFF, GLB, ...).
+
+    Returns:
+        ``(vertices float64[V, 3], faces int64[F, 3])`` as stored in the file.
+
+    Raises:
+        MeshError: missing file, unreadable file, or no triangle geometry.
+    """
+    import trimesh
+
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise MeshError(f"{path}: no such file")
+    try:
+        loaded = trimesh.load(path, process=False, force="mesh")
+    except Exception as exc:  # trimesh raises many types for bad files
+        raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from exc
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise MeshError(f"{path}: file holds no triangle mesh")
+    return np.asarray(loaded.vertices, np.float64), np.asarray(loaded.faces, np.int64)
+
+
+def load_clean_mesh(path):
+    """:func:`read_mesh` followed by :func:`clean_mesh` (see both)."""
+    v, f = read_mesh(path)
+    return clean_mesh(v, f, source=os.fspath(path))
+
+
+def default_model_path() -> str:
+    """Path of the model shipped in the package (Keenan Crane's Spot, public domain)."""
+    return os.path.join(os.path.dirname(__file__), "data", "spot.ply")

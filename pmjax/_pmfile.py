@@ -1,0 +1,245 @@
+"""The ``.pmz`` progressive-mesh file: flat arrays plus a JSON header.
+
+A ``.pmz`` is a zip archive (numpy's ``.npz`` layout) holding one ``.npy`` per
+array and ``header.json``. The header carries a magic string, a format version,
+the counts, the build parameters, a SHA-256 of the source mesh and a SHA-256 of
+every array (in :data:`ARRAY_SPECS` order), so truncation or tampering is caught
+on load. See ``docs/format.md``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import io
+import json
+import os
+import tempfile
+import zipfile
+from typing import Any
+
+import numpy as np
+
+MAGIC = "pmjax.progressive-mesh"
+VERSION = 1
+
+# name -> (dtype, shape in terms of the counts V (all vertices), V0, F, P, B1)
+ARRAY_SPECS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "vertices": ("float32", ("V", "3")),
+    "normals": ("float32", ("V", "3")),
+    "faces": ("int32", ("F", "3")),
+    "v1": ("int32", ("P",)),
+    "v2": ("int32", ("P",)),
+    "radius": ("float32", ("P",)),
+    "alpha": ("float32", ("P",)),
+    "delta": ("float32", ("P",)),
+    "mu": ("float32", ("P",)),
+    "cost": ("float64", ("P",)),
+    "metric": ("uint8", ("P",)),
+    "batch_offsets": ("int64", ("B1",)),
+    "killer": ("int32", ("F",)),
+}
+
+# Metric ids stored per pcol.
+METRICS = ("quadric", "quadric-memoryless", "edge", "pm", "hybrid")
+
+
+class PMFormatError(ValueError):
+    """A ``.pmz`` file is missing, truncated, forged or inconsistent."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PMData:
+    """A progressive mesh as host (NumPy) arrays; see ``docs/format.md``.
+
+    Vertices ``0..V0-1`` are the original mesh; pcol ``p`` creates vertex
+    ``V0 + p``. Pcols are sorted fine-to-coarse, batch by batch, and
+    ``batch_offsets[b]:batch_offsets[b+1]`` is batch ``b``.
+    """
+
+    vertices: np.ndarray  # float32[V0+P, 3]
+    normals: np.ndarray  # float32[V0+P, 3], unit
+    faces: np.ndarray  # int32[F, 3], original vertex ids
+    v1: np.ndarray  # int32[P]
+    v2: np.ndarray  # int32[P]
+    radius: np.ndarray  # float32[P], bounding-sphere radius (model units)
+    alpha: np.ndarray  # float32[P], normal-cone half-angle (radians)
+    delta: np.ndarray  # float32[P], deviation along the normal (model units)
+    mu: np.ndarray  # float32[P], uniform deviation (model units)
+    cost: np.ndarray  # float64[P], metric cost when collapsed
+    metric: np.ndarray  # uint8[P], index into METRICS
+    batch_offsets: np.ndarray  # int64[B+1]
+    killer: np.ndarray  # int32[F], pcol that removes the face, -1 if none
+    header: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def n_original_vertices(self) -> int:
+        return int(len(self.vertices) - len(self.v1))
+
+    @property
+    def n_pcols(self) -> int:
+        return int(len(self.v1))
+
+    @property
+    def n_batches(self) -> int:
+        return int(len(self.batch_offsets) - 1)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """All arrays by name, in :data:`ARRAY_SPECS` order."""
+        return {name: getattr(self, name) for name in ARRAY_SPECS}
+
+
+def _sha256(a: np.ndarray) -> str:
+    return hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()
+
+
+def save_pm(pm: PMData, path: str | os.PathLike) -> None:
+    """Write ``pm`` to ``path`` atomically (temporary file, then rename).
+
+    The arrays are first checked with :func:`validate_pm`, so an inconsistent
+    progressive mesh is never written.
+    """
+    path = os.fspath(path)
+    validate_pm(pm, source=path)
+    header = dict(pm.header)
+    header.update(
+        magic=MAGIC,
+        version=VERSION,
+        counts=dict(
+            V0=pm.n_original_vertices,
+            F=int(len(pm.faces)),
+            P=pm.n_pcols,
+            B=pm.n_batches,
+        ),
+        array_sha256={name: _sha256(a) for name, a in pm.arrays().items()},
+    )
+    directory = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".pmz", dir=directory)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            with zipfile.ZipFile(fh, "w", compression=zipfile.ZIP_STORED) as zf:
+                zf.writestr("header.json", json.dumps(header, indent=1, sort_keys=True))
+                for name, a in pm.arrays().items():
+                    buf = io.BytesIO()
+                    np.save(buf, np.ascontiguousarray(a), allow_pickle=False)
+                    zf.writestr(name + ".npy", buf.getvalue())
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def read_pm(path: str | os.PathLike) -> PMData:
+    """Read and fully validate a ``.pmz`` file.
+
+    Raises:
+        PMFormatError: naming the file and what is wrong (magic, version, a
+            missing array, a dtype or shape, an index range, a checksum).
+    """
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise PMFormatError(f"{path}: no such file")
+    try:
+        zf = zipfile.ZipFile(path, "r")
+    except (zipfile.BadZipFile, OSError) as exc:
+        raise PMFormatError(f"{path}: not a pmjax file (not a zip archive: {exc})") from exc
+    with zf:
+        names = set(zf.namelist())
+        if "header.json" not in names:
+            raise PMFormatError(f"{path}: not a pmjax file (no header.json)")
+        try:
+            header = json.loads(zf.read("header.json"))
+        except (ValueError, zipfile.BadZipFile, OSError) as exc:
+            raise PMFormatError(f"{path}: header.json is unreadable ({exc})") from exc
+        if not isinstance(header, dict) or header.get("magic") != MAGIC:
+            raise PMFormatError(f"{path}: bad magic (expected {MAGIC!r})")
+        if header.get("version") != VERSION:
+            raise PMFormatError(
+                f"{path}: unsupported format version {header.get('version')!r} "
+                f"(this pmjax reads version {VERSION})"
+            )
+        sums = header.get("array_sha256", {})
+        arrays: dict[str, Any] = {}
+        for name in ARRAY_SPECS:
+            if name + ".npy" not in names:
+                raise PMFormatError(f"{path}: array {name!r} is missing")
+            try:
+                raw = zf.read(name + ".npy")
+                a = np.load(io.BytesIO(raw), allow_pickle=False)
+            except Exception as exc:
+                raise PMFormatError(f"{path}: array {name!r} is unreadable ({exc})") from exc
+            if _sha256(a) != sums.get(name):
+                raise PMFormatError(f"{path}: checksum mismatch in array {name!r}")
+            arrays[name] = a
+    meta = {k: v for k, v in header.items() if k not in ("array_sha256",)}
+    pm = PMData(**arrays, header=meta)
+    validate_pm(pm, source=path)
+    counts = header.get("counts", {})
+    expected = dict(V0=pm.n_original_vertices, F=len(pm.faces), P=pm.n_pcols, B=pm.n_batches)
+    for key, value in expected.items():
+        if counts.get(key) != value:
+            raise PMFormatError(
+                f"{path}: header count {key}={counts.get(key)!r} but arrays give {value}"
+            )
+    return pm
+
+
+def validate_pm(pm: PMData, *, source: str = "<memory>") -> None:
+    """Check dtypes, shapes, index ranges and the hierarchy rules of DESIGN §2.
+
+    Checks the structure that every consumer relies on: created vertices are
+    made by earlier batches, each vertex is consumed at most once, killers and
+    batch offsets are in range, attributes are finite and non-negative.
+
+    Raises:
+        PMFormatError: naming ``source`` and the first offending element.
+    """
+    P = len(pm.v1)
+    V = len(pm.vertices)
+    V0 = V - P
+    F = len(pm.faces)
+    sizes = dict(V=V, F=F, P=P, B1=len(pm.batch_offsets), **{"3": 3})
+    for name, (dtype, shape) in ARRAY_SPECS.items():
+        a = getattr(pm, name)
+        if not isinstance(a, np.ndarray):
+            raise PMFormatError(f"{source}: {name} is not an array")
+        if a.dtype != np.dtype(dtype):
+            raise PMFormatError(f"{source}: {name} has dtype {a.dtype}, expected {dtype}")
+        want = tuple(sizes[s] for s in shape)
+        if a.shape != want:
+            raise PMFormatError(f"{source}: {name} has shape {a.shape}, expected {want}")
+    if V0 < 1 or F < 1:
+        raise PMFormatError(f"{source}: empty mesh (V0={V0}, F={F})")
+
+    def first_bad(mask, what):
+        bad = np.flatnonzero(mask)
+        if len(bad):
+            raise PMFormatError(f"{source}: {what} (first at index {int(bad[0])})")
+
+    first_bad(~np.all(np.isfinite(pm.vertices), axis=1), "non-finite vertex position")
+    first_bad(~np.all(np.isfinite(pm.normals), axis=1), "non-finite vertex normal")
+    first_bad(np.any((pm.faces < 0) | (pm.faces >= V0), axis=1), "face index out of range [0, V0)")
+    off = pm.batch_offsets
+    if off[0] != 0 or off[-1] != P or np.any(np.diff(off) < 0):
+        raise PMFormatError(f"{source}: batch_offsets must rise from 0 to P={P}")
+    # A pcol of batch b may only use vertices created before batch b starts.
+    batch_of = np.repeat(np.arange(len(off) - 1), np.diff(off))
+    limit = V0 + off[batch_of]
+    for name in ("v1", "v2"):
+        idx = getattr(pm, name)
+        first_bad((idx < 0) | (idx >= limit), f"{name} refers to a vertex not created before its batch")
+    first_bad(pm.v1 == pm.v2, "pcol with v1 == v2")
+    used = np.concatenate([pm.v1, pm.v2])
+    if len(np.unique(used)) != len(used):
+        counts = np.bincount(used)
+        raise PMFormatError(
+            f"{source}: vertex {int(np.argmax(counts))} is consumed by more than one pcol"
+        )
+    first_bad((pm.killer < -1) | (pm.killer >= P), "killer out of range [-1, P)")
+    for name in ("radius", "alpha", "delta", "mu"):
+        a = getattr(pm, name)
+        first_bad(~np.isfinite(a) | (a < 0), f"{name} negative or non-finite")
+    first_bad(pm.metric >= len(METRICS), "unknown metric id")

@@ -1,0 +1,1 @@
+"""pmjax.render: pyrender display of refinement results (see docs/)."""
