@@ -30,35 +30,21 @@ def sample_surface(vertices, faces, n: int, seed: int = 0) -> np.ndarray:
 def point_triangle_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     """Exact Euclidean distance from points ``p`` to triangles ``abc`` (rows).
 
-    Ericson, Real-Time Collision Detection §5.1.5 (Voronoi regions), with
-    degenerate triangles handled by the edge cases.
+    When the point projects inside the triangle the distance is to its plane;
+    otherwise the closest point lies on the border, so it is the nearest of the
+    three edge segments (this also covers degenerate triangles).
     """
     ab, ac, ap = b - a, c - a, p - a
-    d1, d2 = _dot(ab, ap), _dot(ac, ap)
-    bp = p - b
-    d3, d4 = _dot(ab, bp), _dot(ac, bp)
-    cp = p - c
-    d5, d6 = _dot(ab, cp), _dot(ac, cp)
-    va = d3 * d6 - d5 * d4
-    vb = d5 * d2 - d1 * d6
-    vc = d1 * d4 - d3 * d2
-    denom = va + vb + vc
-    safe = np.where(np.abs(denom) > 0, denom, 1.0)
-    # Face region by default, then overwrite with edge and vertex regions.
-    q = a + ab * (vb / safe)[:, None] + ac * (vc / safe)[:, None]
-    region_ab = (vc <= 0) & (d1 >= 0) & (d3 <= 0)
-    region_ac = (vb <= 0) & (d2 >= 0) & (d6 <= 0)
-    region_bc = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)
-    q = np.where(region_bc[:, None], _on_segment(p, b, c), q)
-    q = np.where(region_ac[:, None], _on_segment(p, a, c), q)
-    q = np.where(region_ab[:, None], _on_segment(p, a, b), q)
-    flat = np.abs(denom) <= 0
-    if flat.any():
-        best = np.minimum(
-            np.minimum(_seg_dist(p, a, b), _seg_dist(p, a, c)), _seg_dist(p, b, c)
-        )
-        return np.where(flat, best, np.linalg.norm(p - q, axis=1))
-    return np.linalg.norm(p - q, axis=1)
+    n = np.cross(ab, ac)
+    nn = _dot(n, n)
+    safe = np.where(nn > 0, nn, 1.0)
+    # Barycentric weights of the projection, from signed sub-areas.
+    w_b = _dot(np.cross(ap, ac), n) / safe
+    w_c = _dot(np.cross(ab, ap), n) / safe
+    inside = (nn > 0) & (w_b >= 0) & (w_c >= 0) & (w_b + w_c <= 1)
+    plane = np.abs(_dot(ap, n)) / np.sqrt(safe)
+    border = np.minimum(np.minimum(_seg_dist(p, a, b), _seg_dist(p, a, c)), _seg_dist(p, b, c))
+    return np.where(inside, plane, border)
 
 
 def _dot(x, y):

@@ -1,0 +1,176 @@
+"""The ``pmjax`` command line: build, info, lod, refine, path, demo."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+
+import numpy as np
+
+
+def _write_mesh(path: str, vertices, faces) -> None:
+    """Write a mesh with trimesh, atomically (temporary file, then rename)."""
+    import tempfile
+
+    import trimesh
+
+    ext = os.path.splitext(path)[1].lower().lstrip(".") or "ply"
+    directory = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix="." + ext, dir=directory)
+    os.close(fd)
+    try:
+        trimesh.Trimesh(np.asarray(vertices), np.asarray(faces), process=False).export(tmp, file_type=ext)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def cmd_build(args) -> int:
+    from pmjax import load_clean_mesh, save_pm
+    from pmjax.builders import BuildOptions, build_pm, file_sha256
+
+    vertices, faces, _, report = load_clean_mesh(args.mesh)
+    for line in report.messages():
+        print(f"{args.mesh}: {line}", file=sys.stderr)
+    options = BuildOptions(
+        metric=args.metric,
+        pair_distance=args.pair_distance,
+        target_faces=args.target_faces,
+        target_vertices=args.target_vertices,
+        max_error=args.max_error,
+        batch_share=args.batch_share,
+        linear=args.linear,
+        allow_topology_change=args.allow_topology_change,
+        boundary_weight=args.boundary_weight,
+    )
+    pm = build_pm(vertices, faces, options, progress=not args.quiet, source_sha256=file_sha256(args.mesh))
+    pm.header["source"] = os.path.basename(args.mesh)
+    save_pm(pm, args.output)
+    b = pm.header["build"]
+    print(
+        f"{args.output}: {len(faces)} faces -> base {b['base_faces']} faces, "
+        f"{pm.n_pcols} pcols in {pm.n_batches} batches, {b['seconds']:.2f} s"
+    )
+    return 0
+
+
+def info_dict(pm, path: str) -> dict:
+    """Counts, per-batch face counts, sizes and build parameters of a PM."""
+    from pmjax._replay import active_faces, prefix_executed
+
+    kills = np.bincount(pm.killer[pm.killer >= 0], minlength=pm.n_pcols)
+    per_batch = np.add.reduceat(kills, pm.batch_offsets[:-1]) if pm.n_pcols else np.zeros(0, int)
+    faces_after = len(pm.faces) - np.cumsum(per_batch)
+    base = int(active_faces(pm, prefix_executed(pm, pm.n_pcols)).sum())
+    return dict(
+        file=path,
+        file_bytes=os.path.getsize(path),
+        original_vertices=pm.n_original_vertices,
+        original_faces=int(len(pm.faces)),
+        pcols=pm.n_pcols,
+        batches=pm.n_batches,
+        base_vertices=pm.n_original_vertices - pm.n_pcols,
+        base_faces=base,
+        batches_detail=[
+            dict(batch=b, pcols=int(pm.batch_offsets[b + 1] - pm.batch_offsets[b]), faces_after=int(faces_after[b]))
+            for b in range(pm.n_batches)
+        ],
+        array_bytes={k: int(a.nbytes) for k, a in pm.arrays().items()},
+        header={k: v for k, v in pm.header.items() if k not in ("counts",)},
+    )
+
+
+def cmd_info(args) -> int:
+    from pmjax import read_pm
+
+    pm = read_pm(args.pm)
+    info = info_dict(pm, args.pm)
+    if args.json:
+        print(json.dumps(info, indent=1))
+        return 0
+    print(f"{args.pm} ({info['file_bytes'] / 1e6:.2f} MB)")
+    print(f"  original: {info['original_vertices']} vertices, {info['original_faces']} faces")
+    print(f"  base:     {info['base_vertices']} vertices, {info['base_faces']} faces")
+    print(f"  pcols:    {info['pcols']} in {info['batches']} batches")
+    build = info["header"].get("build", {})
+    if build:
+        print(f"  build:    metric={build.get('metric')} pair_distance={build.get('pair_distance')} "
+              f"batch_share={build.get('batch_share')} ({build.get('seconds')} s)")
+    print("  batch   pcols   faces after")
+    for row in info["batches_detail"]:
+        print(f"  {row['batch']:5d} {row['pcols']:7d} {row['faces_after']:13d}")
+    return 0
+
+
+def cmd_lod(args) -> int:
+    from pmjax import read_pm
+    from pmjax._replay import lod_mesh
+
+    pm = read_pm(args.pm)
+    batch = pm.n_batches - 1 if args.batch is None else args.batch
+    vertices, faces, _ = lod_mesh(pm, batch)
+    _write_mesh(args.output, vertices, faces)
+    print(f"{args.output}: LOD after batch {batch}: {len(vertices)} vertices, {len(faces)} faces")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="pmjax",
+        description="View-dependent refinement of progressive meshes (JAX).",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("build", help="build a progressive mesh (.pmz) from a mesh file",
+                       description="Batched pair-contraction simplification into a .pmz progressive mesh.")
+    p.add_argument("mesh", help="input mesh (any format trimesh reads)")
+    p.add_argument("-o", "--output", required=True, help="output .pmz path")
+    p.add_argument("--metric", default="quadric",
+                   help="metric or schedule, e.g. 'quadric' or 'edge:2,quadric' "
+                        "(quadric, quadric-memoryless, edge, pm, hybrid)")
+    p.add_argument("--pair-distance", type=float, default=0.0,
+                   help="also pair vertices closer than t × bbox diagonal (0: edges only)")
+    p.add_argument("--target-faces", type=int, default=0, help="stop at this many faces (0: as far as possible)")
+    p.add_argument("--target-vertices", type=int, default=0, help="stop at this many vertices")
+    p.add_argument("--max-error", type=float, default=math.inf, help="never take a collapse costing more")
+    p.add_argument("--batch-share", type=float, default=0.5,
+                   help="share of the cheapest candidates a batch may take from (quality knob, (0, 1])")
+    p.add_argument("--linear", action="store_true", help="one collapse per batch, strict cost order (slow reference)")
+    p.add_argument("--allow-topology-change", action="store_true", help="skip the link test for edges")
+    p.add_argument("--boundary-weight", type=float, default=1.0, help="weight of border-preserving planes")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_build)
+
+    p = sub.add_parser("info", help="describe a .pmz file", description="Counts, batches, sizes and build parameters.")
+    p.add_argument("pm", help=".pmz file")
+    p.add_argument("--json", action="store_true", help="machine-readable output")
+    p.set_defaults(func=cmd_info)
+
+    p = sub.add_parser("lod", help="export the discrete LOD after a batch",
+                       description="Replay pcols of batches 0..k and write the mesh.")
+    p.add_argument("pm", help=".pmz file")
+    p.add_argument("--batch", type=int, default=None, help="last batch to execute (-1: original; default: all)")
+    p.add_argument("-o", "--output", required=True, help="output mesh (.ply, .obj, .stl, ...)")
+    p.set_defaults(func=cmd_lod)
+    return parser
+
+
+def main(argv=None) -> int:
+    from pmjax import MeshError, PMFormatError
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except (MeshError, PMFormatError, ValueError, OSError) as exc:
+        print(f"pmjax {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

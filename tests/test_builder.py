@@ -1,0 +1,184 @@
+"""The batched builder on real models: invariants, replay, topology change, options."""
+
+import numpy as np
+import pytest
+import scipy.sparse
+import scipy.sparse.csgraph
+
+import pmjax
+from pmjax.builders import METRIC_NAMES, BuildOptions, build_pm
+from pmjax._replay import active_faces, representatives
+
+
+def components(vertices, faces) -> int:
+    """Connected components of the faces (through shared vertices)."""
+    n = len(vertices)
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
+    g = scipy.sparse.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+    _, labels = scipy.sparse.csgraph.connected_components(g, directed=False)
+    return len(np.unique(labels[faces.ravel()]))
+
+
+@pytest.mark.parametrize(
+    "name, pair_distance", [("cow.ply", 0.0), ("bunny.ply", 0.0), ("cessna.ply", 0.02), ("motor.ply", 0.02),
+                            ("terrain_gcanyon.ply", 0.0), ("footbones.ply", 0.0)]
+)
+def test_invariants_hold_on_real_models(built, name, pair_distance):
+    pm = built(name, pair_distance)
+    pmjax.check_invariants(pm)
+    assert pm.n_batches > 5
+    # Each batch is a real batch, not one collapse at a time.
+    assert np.diff(pm.batch_offsets)[0] > 0.05 * pm.n_original_vertices
+
+
+def test_killer_check_catches_a_wrong_killer(built):
+    pm = built("cow.ply")
+    forged = pmjax.PMData(**{**pm.arrays(), "killer": np.roll(pm.killer, 1)}, header=pm.header)
+    with pytest.raises(pmjax.PMFormatError, match="killer"):
+        pmjax.check_invariants(forged)
+
+
+def test_replay_all_pcols_gives_the_base_mesh_and_vertex_count_drops_by_P(built):
+    pm = built("bunny.ply")
+    v, f, ids = pmjax.lod_mesh(pm, pm.n_batches - 1)
+    assert len(f) == pm.header["build"]["base_faces"]
+    for k in (0, 3, pm.n_batches // 2, pm.n_batches - 1):
+        n = int(pm.batch_offsets[k + 1])
+        executed = pmjax.prefix_executed(pm, n)
+        rep = representatives(pm, executed)
+        # Every executed pcol removes exactly one vertex from the front.
+        assert len(np.unique(rep[: pm.n_original_vertices])) == pm.n_original_vertices - n
+        lv, lf, _ = pmjax.lod_mesh(pm, k)
+        assert len(lf) == int(active_faces(pm, executed).sum())
+
+
+def test_replay_never_flips_a_face(built):
+    pm = built("bunny.ply")
+    V0 = pm.n_original_vertices
+    x = pm.vertices.astype(np.float64)
+    prev = None
+    for k in range(-1, pm.n_batches):
+        n = int(pm.batch_offsets[k + 1])
+        executed = pmjax.prefix_executed(pm, n)
+        alive = active_faces(pm, executed)
+        tri = x[representatives(pm, executed)[pm.faces]]
+        normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        if prev is not None:
+            both = alive & prev_alive
+            dots = np.einsum("ij,ij->i", normal[both], prev[both])
+            assert np.all(dots > 0), f"batch {k}: {int((dots <= 0).sum())} faces flipped"
+        prev, prev_alive = normal, alive
+    assert V0 > 0
+
+
+def test_pair_distance_merges_separate_parts(data_path):
+    v, f, _, _ = pmjax.load_clean_mesh(data_path("cessna.ply"))
+    assert components(v, f) == 11
+    target = 600
+    counts = {}
+    for t in (0.0, 0.05):
+        pm = build_pm(v, f, BuildOptions(pair_distance=t, target_faces=target))
+        lv, lf, _ = pmjax.lod_mesh(pm, pm.n_batches - 1)
+        assert len(lf) <= target
+        counts[t] = components(lv, lf)
+    assert counts[0.05] < counts[0.0], counts
+
+
+@pytest.mark.parametrize("metric", METRIC_NAMES)
+def test_every_metric_builds_a_valid_hierarchy(metric, data_path):
+    v, f, _, _ = pmjax.load_clean_mesh(data_path("cow.ply"))
+    pm = build_pm(v, f, BuildOptions(metric=metric))
+    pmjax.check_invariants(pm)
+    assert np.all(pm.metric == pmjax.METRICS.index(metric))
+    assert pm.header["build"]["base_faces"] < 0.05 * len(f)
+
+
+def test_metric_schedule_switches_between_batches(data_path):
+    v, f, _, _ = pmjax.load_clean_mesh(data_path("cow.ply"))
+    pm = build_pm(v, f, BuildOptions(metric="edge:2,quadric"))
+    first_two = pm.batch_offsets[2]
+    assert np.all(pm.metric[:first_two] == pmjax.METRICS.index("edge"))
+    assert np.all(pm.metric[first_two:] == pmjax.METRICS.index("quadric"))
+    pmjax.check_invariants(pm)
+    with pytest.raises(ValueError, match="unknown metric"):
+        BuildOptions(metric="edge:2,nope").validate()
+    with pytest.raises(ValueError, match="only the last"):
+        BuildOptions(metric="edge,quadric").validate()
+
+
+def test_subset_metrics_place_at_an_endpoint(data_path):
+    v, f, _, _ = pmjax.load_clean_mesh(data_path("cow.ply"))
+    for metric in ("pm", "hybrid"):
+        pm = build_pm(v, f, BuildOptions(metric=metric, target_faces=4000))
+        x = pm.vertices[pm.n_original_vertices:]
+        at_end = np.all(x == pm.vertices[pm.v1], 1) | np.all(x == pm.vertices[pm.v2], 1)
+        assert at_end.all()
+    pm = build_pm(v, f, BuildOptions(metric="edge", target_faces=4000))
+    mid = 0.5 * (pm.vertices[pm.v1].astype(np.float64) + pm.vertices[pm.v2])
+    assert np.allclose(pm.vertices[pm.n_original_vertices:], mid, atol=1e-5)
+
+
+def test_targets_stop_where_asked(data_path):
+    v, f, _, _ = pmjax.load_clean_mesh(data_path("cow.ply"))
+    pm = build_pm(v, f, BuildOptions(target_faces=1000))
+    base = pm.header["build"]["base_faces"]
+    assert 990 <= base <= 1000
+    pm = build_pm(v, f, BuildOptions(target_vertices=700))
+    assert pm.n_original_vertices - pm.n_pcols == 700
+    pm = build_pm(v, f, BuildOptions(max_error=1e-9))
+    assert np.all(pm.cost <= 1e-9)
+
+
+def test_linear_mode_takes_the_cheapest_valid_collapse_each_step(data_path):
+    v, f, _, _ = pmjax.load_clean_mesh(data_path("cow.ply"))
+    linear = build_pm(v, f, BuildOptions(linear=True, target_vertices=len(v) - 40))
+    batched = build_pm(v, f, BuildOptions(target_faces=len(f) - 2))
+    assert linear.n_pcols == 40 and np.all(np.diff(linear.batch_offsets) == 1)
+    # The first step of both is the globally cheapest valid collapse.
+    assert {linear.v1[0], linear.v2[0]} == {batched.v1[0], batched.v2[0]}
+    pmjax.check_invariants(linear)
+
+
+def test_batch_share_caps_each_batch(data_path):
+    v, f, _, _ = pmjax.load_clean_mesh(data_path("cow.ply"))
+    small = build_pm(v, f, BuildOptions(batch_share=0.05, target_faces=3000))
+    large = build_pm(v, f, BuildOptions(batch_share=1.0, target_faces=3000))
+    assert np.diff(small.batch_offsets)[0] < np.diff(large.batch_offsets)[0]
+    assert small.n_batches > large.n_batches
+    with pytest.raises(ValueError, match="batch_share"):
+        BuildOptions(batch_share=0).validate()
+
+
+def test_tiny_and_odd_inputs(data_path):
+    tri_v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
+    pm = build_pm(tri_v, np.array([[0, 1, 2]]))
+    pmjax.check_invariants(pm)
+    assert pm.n_pcols == 1 and pm.killer[0] == 0
+    # Two triangles sharing only a vertex (non-manifold bow tie).
+    bow_v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0]], float)
+    pm = build_pm(bow_v, np.array([[0, 1, 2], [0, 3, 4]]))
+    pmjax.check_invariants(pm)
+    # Duplicate vertex positions (unmerged seams) are fine.
+    v, f, _, _ = pmjax.load_clean_mesh(data_path("motor.ply"))
+    pm = build_pm(v, f, BuildOptions(pair_distance=0.0))
+    pmjax.check_invariants(pm)
+
+
+def test_attributes_bound_what_they_claim(built):
+    pm = built("bunny.ply")
+    V0 = pm.n_original_vertices
+    x = pm.vertices.astype(np.float64)
+    # Every original vertex lies in the sphere of each of its ancestors.
+    parent = pmjax._replay.parents(pm)
+    v = np.arange(V0)
+    up = parent[v]
+    diag = np.linalg.norm(np.ptp(x[:V0], 0))
+    while np.any(up >= 0):
+        ok = up >= 0
+        p = up[ok] - V0
+        d = np.linalg.norm(x[v[ok]] - x[up[ok]], axis=1)
+        assert np.all(d <= pm.radius[p] + 1e-5 * diag)
+        # Tangent-plane deviation is bounded by delta.
+        h = np.abs(np.einsum("ij,ij->i", pm.normals[up[ok]].astype(np.float64), x[v[ok]] - x[up[ok]]))
+        assert np.all(h <= pm.delta[p] + 1e-5 * diag)
+        up = np.where(ok, parent[np.maximum(up, 0)], -1)

@@ -1,0 +1,48 @@
+"""The command line, run in-process: build, info, lod, and clear errors."""
+
+import json
+
+import numpy as np
+import trimesh
+
+import pmjax
+from pmjax._cli import main
+
+
+def test_build_info_lod(tmp_path, data_path, capsys):
+    out = tmp_path / "cow.pmz"
+    assert main(["build", data_path("cow.ply"), "-o", str(out), "-q", "--metric", "edge:1,quadric"]) == 0
+    pm = pmjax.read_pm(out)
+    assert pm.header["source"] == "cow.ply" and pm.header["source_sha256"]
+    capsys.readouterr()
+    assert main(["info", str(out), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["pcols"] == pm.n_pcols and info["batches"] == pm.n_batches
+    assert info["original_faces"] == 5804
+    assert sum(row["pcols"] for row in info["batches_detail"]) == pm.n_pcols
+    k = 4
+    lod = tmp_path / "lod.ply"
+    assert main(["lod", str(out), "--batch", str(k), "-o", str(lod)]) == 0
+    mesh = trimesh.load(lod, process=False)
+    v, f, _ = pmjax.lod_mesh(pm, k)
+    assert len(mesh.faces) == len(f) == info["batches_detail"][k]["faces_after"]
+    assert np.allclose(np.sort(mesh.vertices, axis=0), np.sort(v, axis=0))
+
+
+def test_errors_are_clear_and_leave_no_output(tmp_path, capsys):
+    bad = tmp_path / "bad.obj"
+    bad.write_text("v 0 0 0\nv 1 0 0\nf 1 2 2\n")
+    out = tmp_path / "o.pmz"
+    assert main(["build", str(bad), "-o", str(out), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "bad.obj" in err and "no valid face" in err
+    assert not out.exists()
+    assert main(["lod", str(tmp_path / "missing.pmz"), "-o", str(tmp_path / "x.ply")]) == 2
+    assert "no such file" in capsys.readouterr().err
+
+
+def test_lod_batch_out_of_range(tmp_path, capsys):
+    out = tmp_path / "spot.pmz"
+    assert main(["build", pmjax.default_model_path(), "-o", str(out), "-q"]) == 0
+    assert main(["lod", str(out), "--batch", "999", "-o", str(tmp_path / "x.ply")]) == 2
+    assert "batch 999 outside" in capsys.readouterr().err
