@@ -1,0 +1,272 @@
+"""Cameras as pytrees; a batch of K cameras is the same pytree with a leading axis.
+
+Convention (OpenGL): ``rotation`` is camera-to-world, its columns are the
+camera's right, up and backward axes, so the camera looks along
+``-rotation[:, 2]``. Angles are radians, distances model units, sizes pixels.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import tempfile
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+
+class Camera(eqx.Module):
+    """A pinhole (or orthographic) camera.
+
+    Attributes:
+        eye: ``[..., 3]`` position.
+        rotation: ``[..., 3, 3]`` camera-to-world rotation (columns right, up, back).
+        fov_y: ``[...]`` vertical field of view, radians (perspective).
+        near, far: ``[...]`` clip distances along the view direction.
+        ortho_height: ``[...]`` view height in model units (orthographic).
+        width, height: image size in pixels (static).
+        orthographic: static flag.
+    """
+
+    eye: Float[Array, "*K 3"]
+    rotation: Float[Array, "*K 3 3"]
+    fov_y: Float[Array, "*K"]
+    near: Float[Array, "*K"]
+    far: Float[Array, "*K"]
+    ortho_height: Float[Array, "*K"]
+    width: int = eqx.field(static=True, default=800)
+    height: int = eqx.field(static=True, default=600)
+    orthographic: bool = eqx.field(static=True, default=False)
+
+    @property
+    def forward(self):
+        return -self.rotation[..., :, 2]
+
+    def pose(self) -> np.ndarray:
+        """4×4 camera-to-world matrix (as pyrender wants it), float64."""
+        m = np.eye(4)
+        m[:3, :3] = np.asarray(self.rotation)
+        m[:3, 3] = np.asarray(self.eye)
+        return m
+
+    def frustum_planes(self) -> Float[Array, "*K 6 4"]:
+        """Six inward planes ``(n, d)``: a point ``x`` is inside when ``n·x + d >= 0``."""
+        r = self.rotation[..., :, 0]
+        u = self.rotation[..., :, 1]
+        f = -self.rotation[..., :, 2]
+        e = self.eye
+        aspect = self.width / self.height
+
+        def plane(n, d):
+            return jnp.concatenate([n, d[..., None]], axis=-1)
+
+        dot = lambda a, b: jnp.sum(a * b, axis=-1)
+        near = plane(f, -(dot(f, e) + self.near))
+        far = plane(-f, dot(f, e) + self.far)
+        if self.orthographic:
+            hy = 0.5 * self.ortho_height
+            hx = hy * aspect
+            sides = [
+                plane(-r, dot(r, e) + hx),
+                plane(r, -dot(r, e) + hx),
+                plane(-u, dot(u, e) + hy),
+                plane(u, -dot(u, e) + hy),
+            ]
+        else:
+            ty = jnp.tan(0.5 * self.fov_y)[..., None]
+            tx = ty * aspect
+            sides = []
+            for n in (f * tx - r, f * tx + r, f * ty - u, f * ty + u):
+                n = n / jnp.linalg.norm(n, axis=-1, keepdims=True)
+                sides.append(plane(n, -dot(n, e)))
+        return jnp.stack([near, far] + sides, axis=-2)
+
+
+def look_at(eye, target, up=(0.0, 1.0, 0.0), *, fov_y_deg=45.0, width=800, height=600, near=None, far=None,
+            orthographic=False, ortho_height=1.0) -> Camera:
+    """Camera at ``eye`` looking at ``target`` (numpy inputs, one camera).
+
+    ``near``/``far`` default to 1e-3 and 1e3 times the eye–target distance.
+    """
+    eye = np.asarray(eye, np.float64)
+    target = np.asarray(target, np.float64)
+    back = eye - target
+    dist = np.linalg.norm(back)
+    if not dist > 0:
+        raise ValueError("look_at: eye and target coincide")
+    back /= dist
+    right = np.cross(np.asarray(up, np.float64), back)
+    if np.linalg.norm(right) < 1e-9:  # looking along up: pick another up
+        right = np.cross([0.0, 0.0, 1.0] if abs(back[2]) < 0.9 else [1.0, 0.0, 0.0], back)
+    right /= np.linalg.norm(right)
+    true_up = np.cross(back, right)
+    rotation = np.stack([right, true_up, back], axis=1)
+    return Camera(
+        eye=jnp.asarray(eye, jnp.float32),
+        rotation=jnp.asarray(rotation, jnp.float32),
+        fov_y=jnp.asarray(math.radians(fov_y_deg), jnp.float32),
+        near=jnp.asarray(near if near is not None else 1e-3 * dist, jnp.float32),
+        far=jnp.asarray(far if far is not None else 1e3 * dist, jnp.float32),
+        ortho_height=jnp.asarray(ortho_height, jnp.float32),
+        width=int(width),
+        height=int(height),
+        orthographic=bool(orthographic),
+    )
+
+
+def stack_cameras(cameras: list[Camera]) -> Camera:
+    """K single cameras (same image size and kind) -> one camera batch."""
+    if not cameras:
+        raise ValueError("no cameras to stack")
+    first = cameras[0]
+    for c in cameras:
+        if (c.width, c.height, c.orthographic) != (first.width, first.height, first.orthographic):
+            raise ValueError("cameras in a batch must share width, height and projection")
+    return Camera(
+        *(jnp.stack([getattr(c, k) for c in cameras]) for k in ("eye", "rotation", "fov_y", "near", "far", "ortho_height")),
+        width=first.width, height=first.height, orthographic=first.orthographic,
+    )
+
+
+def camera_count(camera: Camera) -> int:
+    """K for a batch, 0 for a single camera."""
+    return int(camera.eye.shape[0]) if camera.eye.ndim == 2 else 0
+
+
+def index_camera(camera: Camera, i) -> Camera:
+    """Camera ``i`` (or a slice) of a batch."""
+    import jax
+
+    return jax.tree_util.tree_map(lambda a: a[i], camera)
+
+
+def standard_orbit(vertices, n_frames: int = 240, *, elevation_deg=20.0, width=800, height=600,
+                   fov_y_deg=45.0) -> Camera:
+    """The standard orbit of DESIGN §7 as a batch of ``n_frames`` cameras.
+
+    Orbits the bounding-box centre at distance ``r / sin(22.5°)`` (``r`` = half
+    the bounding-box diagonal) at 20° elevation, up axis +y.
+    """
+    v = np.asarray(vertices, np.float64)
+    lo, hi = v.min(0), v.max(0)
+    centre = 0.5 * (lo + hi)
+    r = 0.5 * np.linalg.norm(hi - lo)
+    dist = r / math.sin(math.radians(22.5))
+    el = math.radians(elevation_deg)
+    cams = []
+    for k in range(n_frames):
+        az = 2 * math.pi * k / n_frames
+        offset = dist * np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
+        cams.append(look_at(centre + offset, centre, fov_y_deg=fov_y_deg, width=width, height=height,
+                            near=0.01 * r, far=dist + 2 * r))
+    return stack_cameras(cams)
+
+
+def random_views(vertices, n: int, *, seed=0, min_scale=0.05, max_scale=4.0, width=800, height=600,
+                 fov_y_deg=45.0) -> Camera:
+    """``n`` cameras at random directions and distances around the model,
+    each looking at a random point near it (inside, outside, close-up, far)."""
+    rng = np.random.default_rng(seed)
+    v = np.asarray(vertices, np.float64)
+    lo, hi = v.min(0), v.max(0)
+    centre, r = 0.5 * (lo + hi), 0.5 * np.linalg.norm(hi - lo)
+    cams = []
+    for _ in range(n):
+        d = rng.normal(size=3)
+        d /= np.linalg.norm(d)
+        dist = r * math.exp(rng.uniform(math.log(min_scale), math.log(max_scale)))
+        eye = centre + d * dist
+        target = centre + rng.normal(scale=0.5 * r, size=3)
+        if np.linalg.norm(target - eye) < 1e-6 * r:
+            target = centre
+        cams.append(look_at(eye, target, fov_y_deg=fov_y_deg, width=width, height=height,
+                            near=1e-3 * r, far=10 * r + dist))
+    return stack_cameras(cams)
+
+
+def fly_through(keyframes: list[tuple], n_frames: int, **kw) -> Camera:
+    """Cameras interpolated linearly between keyframes ``(eye, target)``."""
+    if len(keyframes) < 2:
+        raise ValueError("a fly-through needs at least two keyframes")
+    keys = np.asarray([[np.asarray(e, float), np.asarray(t, float)] for e, t in keyframes])
+    s = np.linspace(0, len(keys) - 1, n_frames)
+    i = np.minimum(s.astype(int), len(keys) - 2)
+    w = (s - i)[:, None, None]
+    pose = keys[i] * (1 - w) + keys[i + 1] * w
+    return stack_cameras([look_at(p[0], p[1], **kw) for p in pose])
+
+
+_FIELDS = ("eye", "rotation", "fov_y", "near", "far", "ortho_height")
+
+
+def save_cameras(camera: Camera, path) -> None:
+    """Write cameras to JSON (``.json``) or CSV (``.csv``), atomically."""
+    path = os.fspath(path)
+    K = camera_count(camera)
+    cams = [camera] if K == 0 else [index_camera(camera, i) for i in range(K)]
+    rows = [
+        dict(eye=np.asarray(c.eye).tolist(), rotation=np.asarray(c.rotation).tolist(),
+             fov_y_deg=math.degrees(float(c.fov_y)), near=float(c.near), far=float(c.far),
+             ortho_height=float(c.ortho_height))
+        for c in cams
+    ]
+    meta = dict(width=camera.width, height=camera.height, orthographic=camera.orthographic)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=os.path.dirname(os.path.abspath(path)))
+    with os.fdopen(fd, "w", newline="") as fh:
+        if path.endswith(".csv"):
+            w = csv.writer(fh)
+            w.writerow(["ex", "ey", "ez"] + [f"r{i}{j}" for i in range(3) for j in range(3)]
+                       + ["fov_y_deg", "near", "far", "ortho_height", "width", "height", "orthographic"])
+            for row in rows:
+                w.writerow(row["eye"] + sum(row["rotation"], []) + [row["fov_y_deg"], row["near"], row["far"],
+                           row["ortho_height"], meta["width"], meta["height"], int(meta["orthographic"])])
+        else:
+            json.dump(dict(meta, cameras=rows), fh, indent=1)
+    os.replace(tmp, path)
+
+
+def load_cameras(path) -> Camera:
+    """Read cameras written by :func:`save_cameras` (or by hand: JSON with
+    ``cameras: [{eye, target | rotation, fov_y_deg, ...}]``). Always a batch."""
+    path = os.fspath(path)
+    try:
+        if path.endswith(".csv"):
+            with open(path, newline="") as fh:
+                rows = list(csv.DictReader(fh))
+            meta = dict(width=int(rows[0]["width"]), height=int(rows[0]["height"]),
+                        orthographic=bool(int(rows[0]["orthographic"])))
+            items = [dict(eye=[float(r[k]) for k in ("ex", "ey", "ez")],
+                          rotation=np.array([float(r[f"r{i}{j}"]) for i in range(3) for j in range(3)]).reshape(3, 3),
+                          fov_y_deg=float(r["fov_y_deg"]), near=float(r["near"]), far=float(r["far"]),
+                          ortho_height=float(r["ortho_height"])) for r in rows]
+        else:
+            with open(path) as fh:
+                doc = json.load(fh)
+            meta = dict(width=int(doc.get("width", 800)), height=int(doc.get("height", 600)),
+                        orthographic=bool(doc.get("orthographic", False)))
+            items = doc["cameras"] if "cameras" in doc else [doc]
+    except (OSError, ValueError, KeyError, IndexError, TypeError) as exc:
+        raise ValueError(f"{path}: cannot read cameras ({type(exc).__name__}: {exc})") from exc
+    cams = []
+    for i, it in enumerate(items):
+        try:
+            eye = np.asarray(it["eye"], float)
+            if "rotation" in it:
+                rot = np.asarray(it["rotation"], float)
+                if rot.shape != (3, 3) or not np.allclose(rot.T @ rot, np.eye(3), atol=1e-4):
+                    raise ValueError("rotation is not a 3×3 rotation matrix")
+                cam = look_at(eye, eye - rot[:, 2], rot[:, 1], fov_y_deg=it.get("fov_y_deg", 45.0), **meta,
+                              near=it.get("near"), far=it.get("far"), ortho_height=it.get("ortho_height", 1.0))
+            else:
+                cam = look_at(eye, it["target"], it.get("up", (0, 1, 0)), fov_y_deg=it.get("fov_y_deg", 45.0),
+                              **meta, near=it.get("near"), far=it.get("far"), ortho_height=it.get("ortho_height", 1.0))
+            if not np.all(np.isfinite(np.asarray(cam.eye))):
+                raise ValueError("non-finite eye")
+        except (KeyError, ValueError, TypeError) as exc:
+            raise ValueError(f"{path}: camera {i}: {exc}") from exc
+        cams.append(cam)
+    return stack_cameras(cams)

@@ -1,0 +1,167 @@
+"""The three refinement tests of DESIGN §3, one vectorized predicate over pcols.
+
+``collapse_mask`` is THE definition of "this pcol may be collapsed for this
+view": the engine and the sequential oracle both call it, so they cannot
+disagree on float ties. Everything is float32 (the speed path).
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+from ._camera import Camera
+from ._model import PcolAttributes
+
+
+class Tests(eqx.Module):
+    """Which tests may collapse a pcol (ablations switch them off).
+
+    Attributes:
+        frustum: sphere entirely outside one of the six frustum planes.
+        orientation: whole normal cone faces away from the eye.
+        screen: screen-space deviation below ``tau`` pixels.
+    """
+
+    frustum: bool = eqx.field(static=True, default=True)
+    orientation: bool = eqx.field(static=True, default=True)
+    screen: bool = eqx.field(static=True, default=True)
+
+
+ALL_TESTS = Tests()
+
+# A user predicate: (attributes, context) -> bool[P]; True = may collapse.
+UserPredicate = Callable[[PcolAttributes, object], Bool[Array, " P"]]
+
+
+def _dot(a, b):
+    return jnp.sum(a * b, axis=-1)
+
+
+def outside_frustum(attrs: PcolAttributes, camera: Camera) -> Bool[Array, " P"]:
+    """Sphere entirely on the outer side of one of the six planes."""
+    planes = camera.frustum_planes()  # [6, 4]
+    signed = attrs.position @ planes[:, :3].T + planes[:, 3]  # [P, 6]
+    return jnp.any(signed < -attrs.radius[:, None], axis=1)
+
+
+def oriented_away(attrs: PcolAttributes, camera: Camera) -> Bool[Array, " P"]:
+    """Every normal in the cone faces away from every eye ray into the sphere.
+
+    With ``theta`` the angle between the axis and ``x − e`` and ``beta =
+    asin(r / d)`` the sphere's angular radius, all such dot products are
+    positive iff ``theta + alpha + beta < π/2``.
+    """
+    if camera.orthographic:
+        view = jnp.broadcast_to(camera.forward, attrs.position.shape)
+        d = jnp.ones_like(attrs.radius)
+        sin_beta = jnp.zeros_like(attrs.radius)
+    else:
+        view = attrs.position - camera.eye
+        d = jnp.linalg.norm(view, axis=-1)
+        sin_beta = attrs.radius / jnp.maximum(d, 1e-30)
+    beta = jnp.arcsin(jnp.minimum(sin_beta, 1.0))
+    spread = attrs.alpha + beta
+    cos_theta = _dot(attrs.normal, view) / jnp.maximum(d, 1e-30)
+    return (sin_beta < 1.0) & (spread < 0.5 * jnp.pi) & (cos_theta > jnp.sin(spread))
+
+
+def _screen_terms(attrs: PcolAttributes, camera: Camera):
+    """``(uniform², normal², scale²)``: refine iff ``uniform² ≥ κ²·scale²`` or
+    ``normal² ≥ κ²·scale²``, with ``κ = 2 tan(φ/2) τ / H`` (perspective) or the
+    world size of ``τ`` pixels (orthographic, ``κ = τ · ortho_height / H``)."""
+    mu2 = attrs.mu * attrs.mu
+    delta2 = attrs.delta * attrs.delta
+    if camera.orthographic:
+        h = _dot(camera.forward, attrs.normal)
+        return mu2, delta2 * (1.0 - h * h), jnp.ones_like(mu2)
+    v = attrs.position - camera.eye
+    d2 = _dot(v, v)
+    h = _dot(v, attrs.normal)
+    # Hoppe 1997: mu² ≥ κ²d²  or  delta²(d² − h²) ≥ κ²d⁴; divide the second by d².
+    return mu2, delta2 * (d2 - h * h) / jnp.maximum(d2, 1e-30), d2
+
+
+def kappa(camera: Camera, tau) -> Float[Array, ""]:
+    """Screen-space tolerance ``tau`` pixels as an angle (or a world size)."""
+    if camera.orthographic:
+        return tau * camera.ortho_height / camera.height
+    return 2.0 * jnp.tan(0.5 * camera.fov_y) * tau / camera.height
+
+
+def screen_tolerance(attrs: PcolAttributes, camera: Camera) -> Float[Array, " P"]:
+    """Per pcol, the pixel tolerance ``t_p`` of the screen-space test.
+
+    ``NOT(mu² ≥ κ²d² or delta²(d² − h²) ≥ κ²d⁴)`` holds exactly when
+    ``κ > sqrt(max(mu²/d², delta²(d² − h²)/d⁴))``, i.e. ``tau > t_p`` with
+    ``κ`` linear in ``tau``. Computing the test through ``t_p`` makes the
+    critical tolerances of :func:`critical_tau` agree with it bit for bit.
+    """
+    uniform2, normal2, scale2 = _screen_terms(attrs, camera)
+    return jnp.sqrt(jnp.maximum(uniform2, normal2) / scale2) / kappa(camera, 1.0)
+
+
+def small_on_screen(attrs: PcolAttributes, camera: Camera, tau) -> Bool[Array, " P"]:
+    """Screen-space error below ``tau`` pixels (DESIGN §3): ``tau > t_p``."""
+    return tau > screen_tolerance(attrs, camera)
+
+
+def collapse_mask(
+    attrs: PcolAttributes,
+    camera: Camera,
+    tau,
+    tests: Tests = ALL_TESTS,
+    predicate: Optional[UserPredicate] = None,
+    context=None,
+    combine: str = "or",
+) -> Bool[Array, " P"]:
+    """Per pcol: may it be collapsed for this view? (one camera)
+
+    Args:
+        attrs: :class:`PcolAttributes` of the pcols.
+        camera: one :class:`Camera`.
+        tau: screen-space tolerance, pixels of the image height.
+        tests: which of the three tests apply.
+        predicate: optional user test ``predicate(attrs, context) -> bool[P]``.
+        context: passed to ``predicate`` (any pytree).
+        combine: ``"or"`` (OR-ed with the tests) or ``"replace"``.
+
+    Returns:
+        ``bool[P]``.
+    """
+    out = jnp.zeros(attrs.radius.shape, bool)
+    if predicate is None or combine == "or":
+        if tests.frustum:
+            out = out | outside_frustum(attrs, camera)
+        if tests.orientation:
+            out = out | oriented_away(attrs, camera)
+        if tests.screen:
+            out = out | small_on_screen(attrs, camera, tau)
+    if predicate is not None:
+        if combine not in ("or", "replace"):
+            raise ValueError(f"combine must be 'or' or 'replace', got {combine!r}")
+        out = out | jnp.asarray(predicate(attrs, context), bool)
+    return out
+
+
+def critical_tau(attrs: PcolAttributes, camera: Camera, tests: Tests = ALL_TESTS) -> Float[Array, " P"]:
+    """Per pcol, the tolerance above which it collapses: ``collapse ⇔ tau > t_p``
+    exactly (same float32 values as :func:`collapse_mask`).
+
+    ``-1`` where the frustum or orientation test already collapses it (any
+    ``tau >= 0``), ``+inf`` where nothing can (screen test off).
+    """
+    t = screen_tolerance(attrs, camera) if tests.screen else jnp.full(attrs.radius.shape, jnp.inf)
+    cull = jnp.zeros(t.shape, bool)
+    if tests.frustum:
+        cull = cull | outside_frustum(attrs, camera)
+    if tests.orientation:
+        cull = cull | oriented_away(attrs, camera)
+    return jnp.where(cull, -1.0, t)
+
+
+collapse_mask_jit = jax.jit(collapse_mask, static_argnames=("tests", "predicate", "combine"))

@@ -1,0 +1,267 @@
+"""View-dependent refinement: the Visualizer's inverse traversal, batch by batch.
+
+``executed(p) = collapse(p) and exists(v1) and exists(v2)`` (DESIGN §3). Pcols
+of one batch only depend on earlier batches, so the sequential loop becomes
+one vectorized predicate over all pcols plus one gather per batch, each batch
+a static slice under ``jit``.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
+
+from ._camera import Camera, camera_count, index_camera
+from ._model import ProgressiveMesh
+from ._predicate import ALL_TESTS, Tests, UserPredicate, collapse_mask, critical_tau
+
+
+def propagate(pm: ProgressiveMesh, collapse: Bool[Array, " P"]) -> Bool[Array, " P"]:
+    """Executed set from the per-pcol collapse decisions (one camera).
+
+    A pcol runs if it may collapse and both its vertices exist: originals
+    always exist, a created vertex exists iff the pcol making it ran.
+    """
+    executed = jnp.zeros_like(collapse)
+    for lo, hi in zip(pm.batch_offsets[:-1], pm.batch_offsets[1:]):
+        if lo == hi:
+            continue
+        c1, c2 = pm.child1[lo:hi], pm.child2[lo:hi]
+        exists1 = (c1 < 0) | executed[jnp.maximum(c1, 0)]
+        exists2 = (c2 < 0) | executed[jnp.maximum(c2, 0)]
+        executed = executed.at[lo:hi].set(collapse[lo:hi] & exists1 & exists2)
+    return executed
+
+
+def representatives(pm: ProgressiveMesh, executed: Bool[Array, " P"]) -> Int[Array, " V"]:
+    """``vref``: each vertex's current representative (two-phase referencing).
+
+    Resolved coarse to fine: a created vertex of batch b takes its parent's
+    representative (already final) if the parent ran, then the originals.
+    """
+    V0 = pm.n_original_vertices
+    V = pm.vertices.shape[0]
+    rep = jnp.arange(V, dtype=jnp.int32)
+    bounds = list(zip(pm.batch_offsets[:-1], pm.batch_offsets[1:]))
+    for lo, hi in reversed(bounds):
+        if lo == hi:
+            continue
+        ids = slice(V0 + lo, V0 + hi)
+        rep = rep.at[ids].set(_climb(pm.parent[ids], executed, rep, V0, rep[ids]))
+    return rep.at[:V0].set(_climb(pm.parent[:V0], executed, rep, V0, rep[:V0]))
+
+
+def _climb(parent, executed, rep, V0, own):
+    ran = (parent >= 0) & executed[jnp.maximum(parent, 0)]
+    return jnp.where(ran, rep[V0 + jnp.maximum(parent, 0)], own)
+
+
+class Refinement(eqx.Module):
+    """The result of refining a progressive mesh for one view.
+
+    Attributes:
+        executed: ``bool[P]`` pcols executed.
+        active: ``bool[F]`` faces drawn.
+        rep: ``int32[V0 + P]`` representative of every vertex (``vref``).
+        n_faces, n_vertices, n_executed: counts (``n_vertices`` = V0 − executed,
+            the vertex front).
+    """
+
+    executed: Bool[Array, " P"]
+    active: Bool[Array, " F"]
+    rep: Int[Array, " V"]
+    n_faces: Int[Array, ""]
+    n_vertices: Int[Array, ""]
+    n_executed: Int[Array, ""]
+
+    def mesh(self, pm: ProgressiveMesh):
+        """Compacted refined mesh as plain arrays.
+
+        Returns:
+            ``(vertices float32[n, 3], faces int32[m, 3], vertex_ids int64[n])``.
+        """
+        active = np.asarray(self.active)
+        faces = np.asarray(self.rep)[np.asarray(pm.faces)[active]]
+        ids, inverse = np.unique(faces, return_inverse=True)
+        return np.asarray(pm.vertices)[ids], inverse.reshape(-1, 3).astype(np.int32), ids
+
+    def to_trimesh(self, pm: ProgressiveMesh):
+        """The refined mesh as a ``trimesh.Trimesh`` (not processed)."""
+        import trimesh
+
+        v, f, _ = self.mesh(pm)
+        return trimesh.Trimesh(v, f, process=False)
+
+
+def _finish(pm: ProgressiveMesh, executed) -> Refinement:
+    k = pm.killer
+    active = (k < 0) | ~executed[jnp.maximum(k, 0)]
+    n_exec = jnp.sum(executed, dtype=jnp.int32)
+    return Refinement(
+        executed=executed,
+        active=active,
+        rep=representatives(pm, executed),
+        n_faces=jnp.sum(active, dtype=jnp.int32),
+        n_vertices=jnp.int32(pm.n_original_vertices) - n_exec,
+        n_executed=n_exec,
+    )
+
+
+def refine(
+    pm: ProgressiveMesh,
+    camera: Camera,
+    tau=1.0,
+    tests: Tests = ALL_TESTS,
+    predicate: Optional[UserPredicate] = None,
+    context=None,
+    combine: str = "or",
+) -> Refinement:
+    """Refine ``pm`` for one camera.
+
+    Args:
+        pm: :class:`ProgressiveMesh` (``pmjax.load``).
+        camera: one :class:`Camera`.
+        tau: screen-space tolerance in pixels of the image height.
+        tests: :class:`Tests` to switch tests off (ablations).
+        predicate, context, combine: optional user test, see
+            :func:`pmjax.collapse_mask`.
+
+    Returns:
+        :class:`Refinement` (device arrays; ``.mesh(pm)`` gives NumPy arrays).
+    """
+    # tau as an array, so a new value does not recompile.
+    return _refine(pm, camera, jnp.asarray(tau, jnp.float32), tests, predicate, context, combine)
+
+
+@eqx.filter_jit
+def _refine(pm, camera, tau, tests, predicate, context, combine):
+    tau = eqx.error_if(tau, ~(tau >= 0), "tau must be >= 0 (and not NaN)")
+    collapse = collapse_mask(pm.attributes, camera, tau, tests, predicate, context, combine)
+    return _finish(pm, propagate(pm, collapse))
+
+
+def counts_from_executed(pm: ProgressiveMesh, executed):
+    """``(faces, vertices, executed)`` counts without building face masks."""
+    n_exec = jnp.sum(executed, axis=-1, dtype=jnp.int32)
+    faces = pm.n_faces - jnp.sum(jnp.where(executed, pm.kills, 0), axis=-1, dtype=jnp.int32)
+    return faces, pm.n_original_vertices - n_exec, n_exec
+
+
+def _counts_one(pm, camera, tau, tests, predicate, context, combine, want_masks):
+    executed = propagate(pm, collapse_mask(pm.attributes, camera, tau, tests, predicate, context, combine))
+    out = counts_from_executed(pm, executed)
+    return out + ((executed,) if want_masks else ())
+
+
+@eqx.filter_jit
+def _counts_chunk(pm, cameras, tau, tests, predicate, context, combine, want_masks):
+    return jax.vmap(lambda c: _counts_one(pm, c, tau, tests, predicate, context, combine, want_masks))(cameras)
+
+
+def refine_batch(
+    pm: ProgressiveMesh,
+    cameras: Camera,
+    tau=1.0,
+    *,
+    tests: Tests = ALL_TESTS,
+    predicate: Optional[UserPredicate] = None,
+    context=None,
+    combine: str = "or",
+    chunk: int = 256,
+    return_masks: bool = False,
+    progress: bool = False,
+) -> dict:
+    """Refine for K cameras at once (vmap), ``chunk`` cameras per kernel call so
+    memory stays bounded for any K.
+
+    Args:
+        pm: :class:`ProgressiveMesh`.
+        cameras: a camera batch (leading axis K).
+        tau: tolerance in pixels (shared by all cameras).
+        chunk: cameras per vmapped call; the last chunk is padded.
+        return_masks: also return ``executed`` masks ``bool[K, P]``.
+
+    Returns:
+        dict of NumPy arrays: ``faces``, ``vertices``, ``executed_count``
+        (``int32[K]``) and, on request, ``executed`` (``bool[K, P]``).
+    """
+    K = camera_count(cameras)
+    if K == 0:
+        raise ValueError("refine_batch needs a camera batch (leading axis); use refine for one camera")
+    if not (np.isfinite(tau) and tau >= 0):
+        raise ValueError(f"tau must be >= 0 and finite, got {tau}")
+    chunk = max(1, min(int(chunk), K))
+    outs = []
+    starts = range(0, K, chunk)
+    if progress:
+        from tqdm import tqdm
+
+        starts = tqdm(starts, unit="chunk", desc="refine")
+    tau32 = jnp.float32(tau)
+    for s in starts:
+        idx = np.minimum(np.arange(s, s + chunk), K - 1)  # pad by repeating the last
+        part = index_camera(cameras, jnp.asarray(idx))
+        res = _counts_chunk(pm, part, tau32, tests, predicate, context, combine, return_masks)
+        n = min(chunk, K - s)
+        outs.append([np.asarray(r)[:n] for r in res])
+    cols = [np.concatenate(c) for c in zip(*outs)]
+    out = dict(faces=cols[0], vertices=cols[1], executed_count=cols[2])
+    if return_masks:
+        out["executed"] = cols[3]
+    return out
+
+
+# -- critical tolerances ----------------------------------------------------------
+
+
+@eqx.filter_jit
+def critical_tolerances(pm: ProgressiveMesh, camera: Camera, tests: Tests = ALL_TESTS) -> Float[Array, " P"]:
+    """``eps[P]`` such that, for this view, ``executed(p) ⇔ tau > eps(p)``.
+
+    ``eps(p) = max(t_p, eps(children))`` with ``t_p`` from
+    :func:`pmjax.critical_tau` (DESIGN §3): the whole family of refinements of
+    one view in one array.
+    """
+    t = critical_tau(pm.attributes, camera, tests)
+    eps = jnp.zeros_like(t)
+    for lo, hi in zip(pm.batch_offsets[:-1], pm.batch_offsets[1:]):
+        if lo == hi:
+            continue
+        c1, c2 = pm.child1[lo:hi], pm.child2[lo:hi]
+        e1 = jnp.where(c1 < 0, -jnp.inf, eps[jnp.maximum(c1, 0)])
+        e2 = jnp.where(c2 < 0, -jnp.inf, eps[jnp.maximum(c2, 0)])
+        eps = eps.at[lo:hi].set(jnp.maximum(t[lo:hi], jnp.maximum(e1, e2)))
+    return eps
+
+
+def faces_for_budget(pm: ProgressiveMesh, camera: Camera, budget: int, tests: Tests = ALL_TESTS):
+    """The smallest ``tau`` whose face count is the largest not above ``budget``.
+
+    One sort of the critical tolerances: the face count for ``tau`` is ``F``
+    minus the faces killed by pcols with ``eps < tau``.
+
+    Returns:
+        ``(tau, faces)``: ``tau`` (pixels, float32) and the face count there.
+        If no tolerance meets the budget, the coarsest (``tau = inf``) count.
+    """
+    eps = np.asarray(critical_tolerances(pm, camera, tests), np.float32)
+    kills = np.asarray(pm.kills)
+    order = np.argsort(eps, kind="stable")
+    e = eps[order]
+    faces_after = pm.n_faces - np.cumsum(kills[order])
+    # All pcols with equal eps switch together: look at the end of each tie.
+    ends = np.searchsorted(e, e, side="right") - 1
+    faces_at = faces_after[ends]
+    if pm.n_faces <= budget:
+        return np.float32(0.0), int(pm.n_faces)
+    ok = np.flatnonzero((faces_at <= budget) & np.isfinite(e))
+    if len(ok) == 0:
+        return np.float32(np.inf), int(faces_after[-1] if len(e) else pm.n_faces)
+    k = ok[0]
+    tau = np.nextafter(np.float32(max(e[k], 0.0)), np.float32(np.inf)) if e[k] >= 0 else np.float32(0.0)
+    return np.float32(tau), int(faces_at[k])

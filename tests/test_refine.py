@@ -1,0 +1,201 @@
+"""The refinement engine against a plain sequential oracle (the paper's Fig. 6)."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import pmjax
+from pmjax._camera import index_camera
+from pmjax._predicate import collapse_mask_jit
+
+
+def oracle(pm, collapse):
+    """Sequential inverse traversal: for each pcol in order, if both vertices
+    are active and refine() allows it, execute it. Faces are active when their
+    corners' representatives are pairwise distinct (no killer used)."""
+    V0, P = pm.n_original_vertices, pm.n_pcols
+    v1, v2 = pm.v1.tolist(), pm.v2.tolist()
+    active = [True] * V0 + [False] * P
+    vref = list(range(V0 + P))
+    executed = np.zeros(P, bool)
+    for p in range(P):
+        a, b = v1[p], v2[p]
+        if active[a] and active[b] and collapse[p]:
+            executed[p] = True
+            active[a] = active[b] = False
+            active[V0 + p] = True
+            vref[a] = vref[b] = V0 + p
+    rep = np.array(vref)
+    while True:  # follow vref chains to the active vertex
+        nxt = rep[rep]
+        if np.array_equal(nxt, rep):
+            break
+        rep = nxt
+    corners = rep[pm.faces]
+    alive = (corners[:, 0] != corners[:, 1]) & (corners[:, 1] != corners[:, 2]) & (corners[:, 0] != corners[:, 2])
+    return executed, corners[alive]
+
+
+def face_set(faces):
+    return set(map(tuple, np.sort(faces, axis=1).tolist()))
+
+
+CASES = [("cow.ply", 0.0), ("bunny.ply", 0.0), ("cessna.ply", 0.02), ("terrain_gcanyon.ply", 0.0)]
+
+
+@pytest.mark.parametrize("name, pair_distance", CASES)
+def test_engine_equals_oracle_on_50_random_views(built, name, pair_distance):
+    data = built(name, pair_distance)
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = pmjax.random_views(data.vertices[: data.n_original_vertices], 50, seed=len(name))
+    seen_partial = 0
+    for i in range(50):
+        cam = index_camera(cams, i)
+        tau = [0.5, 1.0, 3.0][i % 3]
+        collapse = np.asarray(collapse_mask_jit(pm.attributes, cam, jnp.float32(tau)))
+        want_exec, want_faces = oracle(data, collapse)
+        r = pmjax.refine(pm, cam, tau)
+        assert np.array_equal(np.asarray(r.executed), want_exec), f"camera {i}"
+        got = np.asarray(r.rep)[data.faces[np.asarray(r.active)]]
+        assert face_set(got) == face_set(want_faces), f"camera {i}"
+        assert int(r.n_faces) == len(want_faces)
+        seen_partial += 0 < want_exec.sum() < data.n_pcols
+    assert seen_partial > 10  # the views really exercise partial refinements
+
+
+def test_tau_zero_with_tests_off_is_the_original_mesh(built):
+    data = built("bunny.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cam = index_camera(pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 4), 1)
+    r = pmjax.refine(pm, cam, 0.0, tests=pmjax.Tests(frustum=False, orientation=False))
+    assert int(r.n_executed) == 0 and int(r.n_faces) == len(data.faces)
+    v, f, _ = r.mesh(pm)
+    assert len(f) == len(data.faces) and len(v) == data.n_original_vertices
+
+
+def test_camera_seeing_nothing_collapses_to_the_base_mesh(built):
+    data = built("bunny.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    V0 = data.n_original_vertices
+    centre = data.vertices[:V0].mean(0)
+    cam = pmjax.look_at(centre + [0, 0, 1.0], centre + [0, 0, 2.0])  # looking away
+    r = pmjax.refine(pm, cam, 1.0, tests=pmjax.Tests(orientation=False, screen=False))
+    assert int(r.n_executed) == data.n_pcols
+    assert int(r.n_faces) == data.header["build"]["base_faces"]
+
+
+def test_ablations_and_monotonicity_in_tau(built):
+    data = built("bunny.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cam = index_camera(pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 4), 0)
+    faces = [int(pmjax.refine(pm, cam, t).n_faces) for t in (0.25, 0.5, 1, 2, 4, 8)]
+    assert faces == sorted(faces, reverse=True) and faces[0] > faces[-1]
+    full = int(pmjax.refine(pm, cam, 1.0).n_faces)
+    for tests in (pmjax.Tests(frustum=False), pmjax.Tests(orientation=False), pmjax.Tests(screen=False)):
+        assert int(pmjax.refine(pm, cam, 1.0, tests=tests).n_faces) >= full
+    # Orbit view with the model in frame: the back faces are culled.
+    no_orient = int(pmjax.refine(pm, cam, 1.0, tests=pmjax.Tests(orientation=False)).n_faces)
+    assert no_orient > full
+
+
+def test_user_predicate_or_and_replace(built):
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cam = index_camera(pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 4), 0)
+    # Collision-detection style: collapse everything farther than a plane.
+    cut = float(np.median(data.vertices[:, 0]))
+    far_side = lambda attrs, ctx: attrs.position[:, 0] - attrs.radius > ctx
+    base = pmjax.refine(pm, cam, 1.0)
+    ored = pmjax.refine(pm, cam, 1.0, predicate=far_side, context=jnp.float32(cut))
+    only = pmjax.refine(pm, cam, 0.0, predicate=far_side, context=jnp.float32(cut), combine="replace")
+    assert int(ored.n_faces) < int(base.n_faces)
+    e_only = np.asarray(only.executed)
+    assert e_only.any()
+    assert np.all(data.vertices[data.n_original_vertices:][e_only, 0] > cut)
+
+
+def test_critical_tolerances_reproduce_every_tau(built):
+    data = built("bunny.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = pmjax.random_views(data.vertices[: data.n_original_vertices], 6, seed=3)
+    for i in range(6):
+        cam = index_camera(cams, i)
+        eps = np.asarray(pmjax.critical_tolerances(pm, cam))
+        for tau in (0.3, 1.0, 2.5):
+            executed = np.asarray(pmjax.refine(pm, cam, tau).executed)
+            # Exact: the hard test is computed through the same tolerances.
+            assert np.array_equal(executed, np.float32(tau) > eps)
+
+
+def test_faces_for_budget_is_exact(built):
+    data = built("bunny.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cam = index_camera(pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 4), 2)
+    for budget in (800, 3000, 10000):
+        tau, faces = pmjax.faces_for_budget(pm, cam, budget)
+        assert faces <= budget
+        assert int(pmjax.refine(pm, cam, float(tau)).n_faces) == faces
+        # Any smaller tau gives more faces than the budget.
+        below = np.nextafter(np.float32(tau), np.float32(0))
+        assert int(pmjax.refine(pm, cam, float(below)).n_faces) > budget
+
+
+def test_refine_batch_equals_single_refines(built):
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = pmjax.random_views(data.vertices[: data.n_original_vertices], 37, seed=5)
+    out = pmjax.refine_batch(pm, cams, 1.0, chunk=8, return_masks=True)
+    for i in range(37):
+        r = pmjax.refine(pm, index_camera(cams, i), 1.0)
+        assert out["faces"][i] == int(r.n_faces)
+        assert out["vertices"][i] == int(r.n_vertices)
+        assert np.array_equal(out["executed"][i], np.asarray(r.executed))
+
+
+def test_bad_tau_and_camera_batches_are_refused(built):
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = pmjax.random_views(data.vertices[: data.n_original_vertices], 2)
+    with pytest.raises(ValueError, match="tau"):
+        pmjax.refine_batch(pm, cams, -1.0)
+    with pytest.raises(ValueError, match="camera batch"):
+        pmjax.refine_batch(pm, index_camera(cams, 0), 1.0)
+    with pytest.raises(Exception, match="tau must be >= 0"):
+        pmjax.refine(pm, index_camera(cams, 0), float("nan"))
+
+
+def test_refined_mesh_covers_the_same_screen_area(built):
+    """Projected coverage of refined vs original (software raster of the silhouette)."""
+    data = built("bunny.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cam = index_camera(pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 4), 0)
+    r = pmjax.refine(pm, cam, 0.5)
+    v, f, _ = r.mesh(pm)
+    ref = coverage(cam, data.vertices[: data.n_original_vertices], data.faces)
+    got = coverage(cam, v, f)
+    assert len(f) < 0.3 * len(data.faces)
+    assert np.sum(ref != got) / max(1, ref.sum()) < 0.02
+
+
+def coverage(cam, vertices, faces, w=200, h=150):
+    """Boolean image of pixels covered by any triangle (centre sampling)."""
+    R = np.asarray(cam.rotation, np.float64)
+    p = (np.asarray(vertices, np.float64) - np.asarray(cam.eye)) @ R  # camera coordinates
+    t = np.tan(0.5 * float(cam.fov_y))
+    x = p[:, 0] / (-p[:, 2] * t * cam.width / cam.height)
+    y = p[:, 1] / (-p[:, 2] * t)
+    px = (x + 1) * 0.5 * w
+    py = (1 - y) * 0.5 * h
+    img = np.zeros((h, w), bool)
+    gy, gx = np.mgrid[0:h, 0:w] + 0.5
+    for tri in faces:
+        xs, ys = px[tri], py[tri]
+        x0, x1 = int(max(0, np.floor(xs.min()))), int(min(w, np.ceil(xs.max())))
+        y0, y1 = int(max(0, np.floor(ys.min()))), int(min(h, np.ceil(ys.max())))
+        if x0 >= x1 or y0 >= y1:
+            continue
+        X, Y = gx[y0:y1, x0:x1], gy[y0:y1, x0:x1]
+        d = [(xs[(k + 1) % 3] - xs[k]) * (Y - ys[k]) - (ys[(k + 1) % 3] - ys[k]) * (X - xs[k]) for k in range(3)]
+        inside = ((d[0] >= 0) & (d[1] >= 0) & (d[2] >= 0)) | ((d[0] <= 0) & (d[1] <= 0) & (d[2] <= 0))
+        img[y0:y1, x0:x1] |= inside
+    return img
