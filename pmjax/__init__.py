@@ -12,6 +12,7 @@ from ._camera import Camera, fly_through, load_cameras, look_at, random_views, s
 from ._model import PcolAttributes, ProgressiveMesh, load
 from ._predicate import ALL_TESTS, Tests, collapse_mask, critical_tau, kappa, oriented_away, outside_frustum, small_on_screen
 from ._refine import Refinement, critical_tolerances, faces_for_budget, propagate, refine, refine_batch
+from ._oracle import oracle_refine
 from ._distance import distance_to_surface, point_triangle_distance, sample_surface, surface_distance
 
 __all__ = [
@@ -64,5 +65,6 @@ __all__ = [
     "propagate",
     "refine",
     "refine_batch",
+    "oracle_refine",
 ]
 __version__ = "0.1.0"

@@ -119,6 +119,117 @@ def cmd_lod(args) -> int:
     return 0
 
 
+def _stats(r, ms=None) -> dict:
+    out = dict(faces=int(r.n_faces), vertices=int(r.n_vertices), executed=int(r.n_executed))
+    if ms is not None:
+        out["milliseconds"] = round(ms, 4)
+    return out
+
+
+def _tests(args):
+    from pmjax import Tests
+
+    off = set(args.no or [])
+    return Tests(frustum="frustum" not in off, orientation="orientation" not in off, screen="screen" not in off)
+
+
+def cmd_refine(args) -> int:
+    import time
+
+    import pmjax
+
+    pm = pmjax.load(args.pm)
+    cams = pmjax.load_cameras(args.camera)
+    cam = pmjax._camera.index_camera(cams, 0)
+    r = pmjax.refine(pm, cam, args.tau, tests=_tests(args))
+    r.n_faces.block_until_ready()
+    t = time.perf_counter()
+    r = pmjax.refine(pm, cam, args.tau, tests=_tests(args))
+    r.n_faces.block_until_ready()
+    ms = 1e3 * (time.perf_counter() - t)
+    v, f, _ = r.mesh(pm)
+    _write_mesh(args.output, v, f)
+    stats = _stats(r, ms)
+    if args.stats_json:
+        _write_text(args.stats_json, json.dumps(stats, indent=1))
+    print(f"{args.output}: {stats['faces']} faces, {stats['vertices']} vertices ({ms:.2f} ms)")
+    return 0
+
+
+def _write_text(path, text):
+    import tempfile
+
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=os.path.dirname(os.path.abspath(path)))
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)
+    os.replace(tmp, path)
+
+
+def cmd_path(args) -> int:
+    import time
+
+    import jax
+
+    import pmjax
+    from tqdm import tqdm
+
+    pm = pmjax.load(args.pm)
+    if args.path:
+        cams = pmjax.load_cameras(args.path)
+    else:
+        cams = pmjax.standard_orbit(pm.vertices[: pm.n_original_vertices], args.orbit)
+    tests = _tests(args)
+    K = pmjax._camera.camera_count(cams)
+    rows = []
+    first = pmjax.refine(pm, pmjax._camera.index_camera(cams, 0), args.tau, tests=tests)
+    first.n_faces.block_until_ready()  # compile once, outside the timings
+    for i in tqdm(range(K), unit="frame", desc="path", disable=args.quiet):
+        cam = pmjax._camera.index_camera(cams, i)
+        t = time.perf_counter()
+        r = pmjax.refine(pm, cam, args.tau, tests=tests)
+        jax.block_until_ready(r)
+        rows.append(dict(frame=i, **_stats(r, 1e3 * (time.perf_counter() - t))))
+    lines = ["frame,faces,vertices,executed,milliseconds"]
+    lines += [f"{r['frame']},{r['faces']},{r['vertices']},{r['executed']},{r['milliseconds']}" for r in rows]
+    if args.csv:
+        _write_text(args.csv, "\n".join(lines) + "\n")
+    faces = np.array([r["faces"] for r in rows])
+    ms = np.array([r["milliseconds"] for r in rows])
+    print(f"{K} frames at tau={args.tau}: faces median {int(np.median(faces))} "
+          f"(min {faces.min()}, max {faces.max()}), median {np.median(ms):.3f} ms/frame")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    """Build the bundled model, refine it along the standard orbit, export results."""
+    import pmjax
+    from pmjax.builders import build_pm, file_sha256
+
+    os.makedirs(args.out, exist_ok=True)
+    src = args.mesh or pmjax.default_model_path()
+    v, f, _, report = pmjax.load_clean_mesh(src)
+    print(f"model: {src} ({len(v)} vertices, {len(f)} faces)")
+    data = build_pm(v, f, progress=True, source_sha256=file_sha256(src))
+    data.header["source"] = os.path.basename(src)
+    pmz = os.path.join(args.out, "model.pmz")
+    pmjax.save_pm(data, pmz)
+    print(f"built {pmz}: {data.n_pcols} pcols in {data.n_batches} batches "
+          f"({data.header['build']['seconds']} s), base mesh {data.header['build']['base_faces']} faces")
+    pm = pmjax.load(pmz)
+    cams = pmjax.standard_orbit(v, 240)
+    out = pmjax.refine_batch(pm, cams, 1.0, progress=True)
+    print(f"standard orbit, 240 frames, tau = 1 px: faces median {int(np.median(out['faces']))} "
+          f"({np.median(out['faces']) / len(f):.1%} of the original)")
+    cam = pmjax._camera.index_camera(cams, 0)
+    for tau in (0.5, 1.0, 4.0):
+        r = pmjax.refine(pm, cam, tau)
+        path = os.path.join(args.out, f"refined_tau{tau:g}.ply")
+        _write_mesh(path, *r.mesh(pm)[:2])
+        print(f"{path}: frame 0 refined at tau = {tau:g} px: {int(r.n_faces)} faces")
+    pmjax.save_cameras(cam, os.path.join(args.out, "camera0.json"))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="pmjax",
@@ -157,6 +268,37 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=int, default=None, help="last batch to execute (-1: original; default: all)")
     p.add_argument("-o", "--output", required=True, help="output mesh (.ply, .obj, .stl, ...)")
     p.set_defaults(func=cmd_lod)
+
+    def add_view_args(p):
+        p.add_argument("--tau", type=float, default=1.0, help="screen-space tolerance in pixels (default 1)")
+        p.add_argument("--no", action="append", choices=("frustum", "orientation", "screen"),
+                       help="switch a test off (repeatable)")
+
+    p = sub.add_parser("refine", help="refine for one camera and write the mesh",
+                       description="View-dependent refinement for the first camera of a camera file.")
+    p.add_argument("pm", help=".pmz file")
+    p.add_argument("--camera", required=True, help="camera file (.json or .csv, see docs/cameras.md)")
+    p.add_argument("-o", "--output", required=True, help="output mesh")
+    p.add_argument("--stats-json", help="write counts and timing as JSON")
+    add_view_args(p)
+    p.set_defaults(func=cmd_refine)
+
+    p = sub.add_parser("path", help="refine along a camera path, one CSV row per camera",
+                       description="Per-camera faces, vertices, executed pcols and milliseconds.")
+    p.add_argument("pm", help=".pmz file")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--orbit", type=int, help="standard orbit with N frames (DESIGN §7)")
+    g.add_argument("--path", help="camera file (.json or .csv)")
+    p.add_argument("--csv", help="output CSV")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_view_args(p)
+    p.set_defaults(func=cmd_path)
+
+    p = sub.add_parser("demo", help="build the bundled model and refine it along the standard orbit",
+                       description="The main job on the bundled model (Spot, public domain) or --mesh.")
+    p.add_argument("--mesh", help="use this mesh instead of the bundled one")
+    p.add_argument("--out", default="pmjax-demo", help="output folder (default ./pmjax-demo)")
+    p.set_defaults(func=cmd_demo)
     return parser
 
 

@@ -21,21 +21,31 @@ from ._model import ProgressiveMesh
 from ._predicate import ALL_TESTS, Tests, UserPredicate, collapse_mask, critical_tau
 
 
+def up_the_batches(pm: ProgressiveMesh, own, leaf, join):
+    """Fold a per-pcol value up the hierarchy, batch by batch (static slices).
+
+    ``out[p] = join(own[p], value(v1), value(v2))`` where ``value`` is ``leaf``
+    for an original vertex and ``out`` of the pcol that made a created one;
+    children always come from earlier batches, so one gather per batch.
+    """
+    out = jnp.zeros_like(own)
+    for lo, hi in zip(pm.batch_offsets[:-1], pm.batch_offsets[1:]):
+        if lo == hi:
+            continue
+        c1, c2 = pm.child1[lo:hi], pm.child2[lo:hi]
+        e1 = jnp.where(c1 < 0, leaf, out[jnp.maximum(c1, 0)])
+        e2 = jnp.where(c2 < 0, leaf, out[jnp.maximum(c2, 0)])
+        out = out.at[lo:hi].set(join(own[lo:hi], e1, e2))
+    return out
+
+
 def propagate(pm: ProgressiveMesh, collapse: Bool[Array, " P"]) -> Bool[Array, " P"]:
     """Executed set from the per-pcol collapse decisions (one camera).
 
     A pcol runs if it may collapse and both its vertices exist: originals
     always exist, a created vertex exists iff the pcol making it ran.
     """
-    executed = jnp.zeros_like(collapse)
-    for lo, hi in zip(pm.batch_offsets[:-1], pm.batch_offsets[1:]):
-        if lo == hi:
-            continue
-        c1, c2 = pm.child1[lo:hi], pm.child2[lo:hi]
-        exists1 = (c1 < 0) | executed[jnp.maximum(c1, 0)]
-        exists2 = (c2 < 0) | executed[jnp.maximum(c2, 0)]
-        executed = executed.at[lo:hi].set(collapse[lo:hi] & exists1 & exists2)
-    return executed
+    return up_the_batches(pm, collapse, True, lambda own, a, b: own & a & b)
 
 
 def representatives(pm: ProgressiveMesh, executed: Bool[Array, " P"]) -> Int[Array, " V"]:
@@ -228,15 +238,7 @@ def critical_tolerances(pm: ProgressiveMesh, camera: Camera, tests: Tests = ALL_
     one view in one array.
     """
     t = critical_tau(pm.attributes, camera, tests)
-    eps = jnp.zeros_like(t)
-    for lo, hi in zip(pm.batch_offsets[:-1], pm.batch_offsets[1:]):
-        if lo == hi:
-            continue
-        c1, c2 = pm.child1[lo:hi], pm.child2[lo:hi]
-        e1 = jnp.where(c1 < 0, -jnp.inf, eps[jnp.maximum(c1, 0)])
-        e2 = jnp.where(c2 < 0, -jnp.inf, eps[jnp.maximum(c2, 0)])
-        eps = eps.at[lo:hi].set(jnp.maximum(t[lo:hi], jnp.maximum(e1, e2)))
-    return eps
+    return up_the_batches(pm, t, -jnp.inf, lambda own, a, b: jnp.maximum(own, jnp.maximum(a, b)))
 
 
 def faces_for_budget(pm: ProgressiveMesh, camera: Camera, budget: int, tests: Tests = ALL_TESTS):

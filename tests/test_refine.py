@@ -6,34 +6,8 @@ import pytest
 
 import pmjax
 from pmjax._camera import index_camera
+from pmjax._oracle import oracle_refine as oracle
 from pmjax._predicate import collapse_mask_jit
-
-
-def oracle(pm, collapse):
-    """Sequential inverse traversal: for each pcol in order, if both vertices
-    are active and refine() allows it, execute it. Faces are active when their
-    corners' representatives are pairwise distinct (no killer used)."""
-    V0, P = pm.n_original_vertices, pm.n_pcols
-    v1, v2 = pm.v1.tolist(), pm.v2.tolist()
-    active = [True] * V0 + [False] * P
-    vref = list(range(V0 + P))
-    executed = np.zeros(P, bool)
-    for p in range(P):
-        a, b = v1[p], v2[p]
-        if active[a] and active[b] and collapse[p]:
-            executed[p] = True
-            active[a] = active[b] = False
-            active[V0 + p] = True
-            vref[a] = vref[b] = V0 + p
-    rep = np.array(vref)
-    while True:  # follow vref chains to the active vertex
-        nxt = rep[rep]
-        if np.array_equal(nxt, rep):
-            break
-        rep = nxt
-    corners = rep[pm.faces]
-    alive = (corners[:, 0] != corners[:, 1]) & (corners[:, 1] != corners[:, 2]) & (corners[:, 0] != corners[:, 2])
-    return executed, corners[alive]
 
 
 def face_set(faces):

@@ -1,0 +1,89 @@
+"""Builder benchmark: time, memory, hierarchy size and LOD quality vs fast-simplification.
+
+Usage: python benchmarks/build.py [--models bunny,dragon,terrain_sthelens] [--repeats 3] [--samples 200000]
+
+Each model is built in a fresh subprocess (so peak RSS is that build's alone);
+quality is the symmetric Hausdorff and RMS distance / bbox diagonal between the
+original and the LOD at ~10 % and ~1 % of the faces, next to fast-simplification
+at the same face counts, in the same run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+
+import numpy as np
+
+sys.path.insert(0, __file__.rsplit("/", 1)[0])
+from _common import DATA, machine, median_time  # noqa: E402
+
+
+def one_model(name: str, repeats: int, samples: int) -> dict:
+    import resource
+
+    import pmjax
+    from pmjax.builders import build_pm
+
+    v, f, _, _ = pmjax.load_clean_mesh(DATA / f"{name}.ply")
+    holder = {}
+    med, times = median_time(lambda: holder.update(pm=build_pm(v, f)), repeats)
+    pm = holder["pm"]
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    diag = float(np.linalg.norm(np.ptp(v, 0)))
+    row = dict(model=name, faces=len(f), vertices=len(v), build_s=med, build_runs_s=times, peak_rss_mb=peak_mb,
+               pcols=pm.n_pcols, batches=pm.n_batches, base_faces=pm.header["build"]["base_faces"], quality=[])
+    try:
+        import fast_simplification
+    except ImportError:
+        fast_simplification = None
+    for frac in (0.1, 0.01):
+        n = pmjax.pcols_for_faces(pm, int(frac * len(f)))
+        lv, lf, _ = pmjax.mesh_for_executed(pm, pmjax.prefix_executed(pm, n))
+        d = pmjax.surface_distance((v, f), (lv, lf), samples)
+        q = dict(fraction=frac, faces=len(lf), rms=d["rms"] / diag, hausdorff=d["hausdorff"] / diag)
+        if fast_simplification is not None:
+            fv, ff = fast_simplification.simplify(v.astype(np.float32), f.astype(np.int32),
+                                                  target_reduction=1 - len(lf) / len(f))
+            fd = pmjax.surface_distance((v, f), (fv, ff), samples)
+            q.update(fs_faces=len(ff), fs_rms=fd["rms"] / diag, fs_hausdorff=fd["hausdorff"] / diag)
+        row["quality"].append(q)
+    return row
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--models", default="bunny,dragon,terrain_sthelens")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--samples", type=int, default=200_000)
+    ap.add_argument("--one", help=argparse.SUPPRESS)
+    ap.add_argument("--json", help="also write the rows as JSON")
+    args = ap.parse_args()
+    if args.one:
+        print(json.dumps(one_model(args.one, args.repeats, args.samples)))
+        return
+    print(f"machine: {machine()}")
+    rows = []
+    for name in args.models.split(","):
+        out = subprocess.run([sys.executable, __file__, "--one", name, "--repeats", str(args.repeats),
+                              "--samples", str(args.samples)], capture_output=True, text=True, check=True)
+        rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+        r = rows[-1]
+        print(f"\n{name}: {r['faces']} faces -> {r['pcols']} pcols, {r['batches']} batches, base {r['base_faces']} faces")
+        print(f"  build median of {args.repeats}: {r['build_s']:.2f} s  (runs: {', '.join(f'{t:.2f}' for t in r['build_runs_s'])})"
+              f"  peak RSS {r['peak_rss_mb']:.0f} MB")
+        for q in r["quality"]:
+            line = f"  {q['fraction']:>4.0%}: {q['faces']} faces  RMS/diag {q['rms']:.3e}  Hausdorff/diag {q['hausdorff']:.3e}"
+            if "fs_rms" in q:
+                line += (f"  | fast-simplification {q['fs_faces']} faces  RMS/diag {q['fs_rms']:.3e}  "
+                         f"Hausdorff/diag {q['fs_hausdorff']:.3e}  (RMS ratio pmjax/fs {q['rms'] / q['fs_rms']:.2f})")
+            print(line)
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(dict(machine=machine(), rows=rows), fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,138 @@
+"""Refinement benchmark: the paper's Table 1, vectorized vs oracle, batched throughput,
+compile/load time and memory.
+
+Usage: python benchmarks/refine.py [--models cow,bunny,dragon,terrain_gcanyon,terrain_sthelens]
+       [--frames 240] [--tau 1] [--batched bunny,dragon] [--ks 1,16,256,4096]
+
+Standard orbit of DESIGN §7 (800×600, 45° fov, 240 frames). PM files are built
+once into benchmarks/.cache. Per-frame times are full single-camera refines
+(executed set, vref, face mask, counts) after compilation; medians over frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import statistics
+import sys
+import time
+
+import jax
+import numpy as np
+
+sys.path.insert(0, __file__.rsplit("/", 1)[0])
+from _common import DATA, machine, median_time  # noqa: E402
+
+import pmjax  # noqa: E402
+from pmjax._camera import index_camera  # noqa: E402
+from pmjax._predicate import collapse_mask_jit  # noqa: E402
+
+CACHE = os.path.join(os.path.dirname(os.path.abspath(__file__)), ".cache")
+
+
+def pm_file(name: str) -> str:
+    from pmjax.builders import build_pm
+
+    os.makedirs(CACHE, exist_ok=True)
+    path = os.path.join(CACHE, f"{name}.pmz")
+    if not os.path.exists(path):
+        v, f, _, _ = pmjax.load_clean_mesh(DATA / f"{name}.ply")
+        pmjax.save_pm(build_pm(v, f), path)
+    return path
+
+
+def table1(names, frames, tau):
+    rows = []
+    for name in names:
+        path = pm_file(name)
+        t_load, _ = median_time(lambda: pmjax.load(path), 3)
+        pm = pmjax.load(path)
+        data = pmjax.read_pm(path)
+        cams = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], frames)
+        t = time.perf_counter()
+        jax.block_until_ready(pmjax.refine(pm, index_camera(cams, 0), tau))
+        compile_s = time.perf_counter() - t
+        faces, verts, ms = [], [], []
+        for i in range(frames):
+            cam = index_camera(cams, i)
+            t = time.perf_counter()
+            r = jax.block_until_ready(pmjax.refine(pm, cam, tau))
+            ms.append(1e3 * (time.perf_counter() - t))
+            faces.append(int(r.n_faces))
+            verts.append(int(r.n_vertices))
+        row = dict(model=name, V=data.n_original_vertices, F=len(data.faces), pcols=data.n_pcols,
+                   batches=data.n_batches, refined_V=int(np.median(verts)), refined_F=int(np.median(faces)),
+                   reduction=float(np.median(faces)) / len(data.faces), ms=statistics.median(ms),
+                   load_ms=1e3 * t_load, compile_s=compile_s)
+        rows.append(row)
+        print(f"{name:18s} V {row['V']:7d} F {row['F']:7d} pcols {row['pcols']:7d} B {row['batches']:3d} | "
+              f"refined V {row['refined_V']:6d} F {row['refined_F']:6d} ({row['reduction']:6.2%}) | "
+              f"{row['ms']:7.3f} ms/frame {1e3 / row['ms']:8.1f} fps | load {row['load_ms']:6.1f} ms "
+              f"compile {row['compile_s']:.2f} s", flush=True)
+    return rows
+
+
+def versus_oracle(name, tau, frames=5):
+    path = pm_file(name)
+    pm, data = pmjax.load(path), pmjax.read_pm(path)
+    cams = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], frames)
+    eng, orc = [], []
+    for i in range(frames):
+        cam = index_camera(cams, i)
+        jax.block_until_ready(pmjax.refine(pm, cam, tau))
+        t = time.perf_counter()
+        jax.block_until_ready(pmjax.refine(pm, cam, tau))
+        eng.append(time.perf_counter() - t)
+        collapse = np.asarray(collapse_mask_jit(pm.attributes, cam, np.float32(tau)))
+        t = time.perf_counter()
+        pmjax.oracle_refine(data, collapse)
+        orc.append(time.perf_counter() - t)
+    e, o = statistics.median(eng), statistics.median(orc)
+    print(f"{name}: engine {1e3 * e:.3f} ms, sequential oracle {1e3 * o:.1f} ms -> {o / e:.0f}x", flush=True)
+    return dict(model=name, engine_ms=1e3 * e, oracle_ms=1e3 * o, ratio=o / e)
+
+
+def batched(name, ks, tau, chunk):
+    path = pm_file(name)
+    pm, data = pmjax.load(path), pmjax.read_pm(path)
+    rows = []
+    for K in ks:
+        cams = pmjax.random_views(data.vertices[: data.n_original_vertices], K, seed=K, min_scale=0.8, max_scale=3)
+        c = min(chunk, K)
+        pmjax.refine_batch(pm, cams, tau, chunk=c)  # compile
+        med, _ = median_time(lambda: pmjax.refine_batch(pm, cams, tau, chunk=c), 3)
+        rows.append(dict(model=name, K=K, chunk=c, seconds=med, cameras_per_s=K / med))
+        print(f"{name} K={K:5d} chunk={c:4d}: {med * 1e3:9.1f} ms  {K / med:9.0f} cameras/s "
+              f"({1e3 * med / K:.3f} ms/camera)", flush=True)
+    return rows
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--models", default="cow,bunny,dragon,terrain_gcanyon,terrain_sthelens")
+    ap.add_argument("--frames", type=int, default=240)
+    ap.add_argument("--tau", type=float, default=1.0)
+    ap.add_argument("--batched", default="bunny,dragon")
+    ap.add_argument("--ks", default="1,16,256,4096")
+    ap.add_argument("--chunk", type=int, default=256)
+    ap.add_argument("--json", help="also write results as JSON")
+    args = ap.parse_args()
+    print(f"machine: {machine()}\n")
+    print(f"Table 1 (standard orbit, {args.frames} frames, tau = {args.tau} px, 800x600, 45 deg):")
+    t1 = table1(args.models.split(","), args.frames, args.tau)
+    print("\nVectorized engine vs sequential oracle (single camera, median of 5 frames):")
+    vo = [versus_oracle(n, args.tau) for n in ("bunny", "dragon") if n in args.models.split(",")]
+    print("\nBatched throughput (random views around the model, counts only):")
+    bt = []
+    for n in args.batched.split(","):
+        bt += batched(n, [int(k) for k in args.ks.split(",")], args.tau, args.chunk)
+    print(f"\npeak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(dict(machine=machine(), table1=t1, oracle=vo, batched=bt), fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()
