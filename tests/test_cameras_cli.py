@@ -1,0 +1,81 @@
+"""Camera files and the refine/path commands."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+import pmjax
+from pmjax._camera import camera_count, index_camera
+from pmjax._cli import main
+
+
+@pytest.mark.parametrize("ext", ["json", "csv"])
+def test_camera_files_round_trip(tmp_path, ext):
+    cams = pmjax.random_views(np.random.default_rng(0).normal(size=(50, 3)), 5, seed=1)
+    path = tmp_path / f"cams.{ext}"
+    pmjax.save_cameras(cams, path)
+    back = pmjax.load_cameras(path)
+    assert camera_count(back) == 5
+    for name in ("eye", "rotation", "fov_y", "near", "far"):
+        assert np.allclose(np.asarray(getattr(back, name)), np.asarray(getattr(cams, name)), atol=1e-5), name
+
+
+def test_bad_camera_files_name_the_camera(tmp_path):
+    p = tmp_path / "c.json"
+    p.write_text(json.dumps({"cameras": [{"eye": [0, 0, 1], "target": [0, 0, 0]}, {"eye": [1, 2]}]}))
+    with pytest.raises(ValueError, match="camera 1"):
+        pmjax.load_cameras(p)
+    p.write_text("{not json")
+    with pytest.raises(ValueError, match="c.json"):
+        pmjax.load_cameras(p)
+    p.write_text(json.dumps({"cameras": [{"eye": [0, 0, 1], "rotation": [[2, 0, 0], [0, 1, 0], [0, 0, 1]]}]}))
+    with pytest.raises(ValueError, match="not a 3×3 rotation"):
+        pmjax.load_cameras(p)
+
+
+def test_fly_through_and_orthographic_views(built):
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    v = data.vertices[: data.n_original_vertices]
+    c = v.mean(0)
+    path = pmjax.fly_through([(c + [0, 0, 40], c), (c + [40, 0, 0], c)], 5)
+    eyes = np.asarray(path.eye)
+    assert np.allclose(eyes[0], c + [0, 0, 40], atol=1e-4) and np.allclose(eyes[-1], c + [40, 0, 0], atol=1e-4)
+    ortho = pmjax.look_at(c + [0, 0, 40], c, orthographic=True, ortho_height=20.0)
+    r_small = pmjax.refine(pm, ortho, 1.0)
+    tight = pmjax.look_at(c + [0, 0, 40], c, orthographic=True, ortho_height=2.0)  # zoomed in: more detail inside
+    r_zoom = pmjax.refine(pm, tight, 1.0, tests=pmjax.Tests(frustum=False, orientation=False))
+    r_wide = pmjax.refine(pm, ortho, 1.0, tests=pmjax.Tests(frustum=False, orientation=False))
+    assert int(r_zoom.n_faces) > int(r_wide.n_faces)
+    assert 0 < int(r_small.n_faces) < len(data.faces)
+
+
+def test_refine_and_path_commands(tmp_path, built, capsys):
+    data = built("cow.ply")
+    pmz = tmp_path / "cow.pmz"
+    pmjax.save_pm(data, pmz)
+    cams = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 6)
+    pmjax.save_cameras(cams, tmp_path / "path.json")
+    pmjax.save_cameras(index_camera(cams, 2), tmp_path / "one.json")
+    out = tmp_path / "view.ply"
+    assert main(["refine", str(pmz), "--camera", str(tmp_path / "one.json"), "--tau", "2", "-o", str(out),
+                 "--stats-json", str(tmp_path / "s.json")]) == 0
+    stats = json.loads((tmp_path / "s.json").read_text())
+    r = pmjax.refine(pmjax.ProgressiveMesh.from_data(data), index_camera(cams, 2), 2.0)
+    assert stats["faces"] == int(r.n_faces)
+    import trimesh
+
+    assert len(trimesh.load(out, process=False).faces) == stats["faces"]
+    assert main(["path", str(pmz), "--path", str(tmp_path / "path.json"), "--csv", str(tmp_path / "p.csv"), "-q",
+                 "--no", "orientation"]) == 0
+    rows = list(csv.DictReader(open(tmp_path / "p.csv")))
+    assert len(rows) == 6 and all(float(row["milliseconds"]) > 0 for row in rows)
+    got = [int(row["faces"]) for row in rows]
+    want = pmjax.refine_batch(pmjax.ProgressiveMesh.from_data(data), cams, 1.0,
+                              tests=pmjax.Tests(orientation=False))["faces"]
+    assert got == list(want)
+    assert main(["path", str(pmz), "--orbit", "3", "-q"]) == 0
+    assert main(["refine", str(pmz), "--camera", str(tmp_path / "missing.json"), "-o", str(out)]) == 2
+    assert "cannot read cameras" in capsys.readouterr().err
