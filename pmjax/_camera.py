@@ -11,12 +11,13 @@ import csv
 import json
 import math
 import os
-import tempfile
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
+
+from ._atomic import atomic_path
 
 
 class Camera(eqx.Module):
@@ -215,8 +216,7 @@ def save_cameras(camera: Camera, path) -> None:
         for c in cams
     ]
     meta = dict(width=camera.width, height=camera.height, orthographic=camera.orthographic)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=os.path.dirname(os.path.abspath(path)))
-    with os.fdopen(fd, "w", newline="") as fh:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
         if path.endswith(".csv"):
             w = csv.writer(fh)
             w.writerow(["ex", "ey", "ez"] + [f"r{i}{j}" for i in range(3) for j in range(3)]
@@ -226,7 +226,6 @@ def save_cameras(camera: Camera, path) -> None:
                            row["ortho_height"], meta["width"], meta["height"], int(meta["orthographic"])])
         else:
             json.dump(dict(meta, cameras=rows), fh, indent=1)
-    os.replace(tmp, path)
 
 
 def load_cameras(path) -> Camera:

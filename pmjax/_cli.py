@@ -10,24 +10,21 @@ import sys
 
 import numpy as np
 
+from pmjax._atomic import atomic_path
+
 
 def _write_mesh(path: str, vertices, faces) -> None:
     """Write a mesh with trimesh, atomically (temporary file, then rename)."""
-    import tempfile
-
     import trimesh
 
     ext = os.path.splitext(path)[1].lower().lstrip(".") or "ply"
-    directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix="." + ext, dir=directory)
-    os.close(fd)
-    try:
+    with atomic_path(path, "." + ext) as tmp:
         trimesh.Trimesh(np.asarray(vertices), np.asarray(faces), process=False).export(tmp, file_type=ext)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+
+
+def _write_text(path, text):
+    with atomic_path(path) as tmp, open(tmp, "w") as fh:
+        fh.write(text)
 
 
 def cmd_build(args) -> int:
@@ -154,15 +151,6 @@ def cmd_refine(args) -> int:
         _write_text(args.stats_json, json.dumps(stats, indent=1))
     print(f"{args.output}: {stats['faces']} faces, {stats['vertices']} vertices ({ms:.2f} ms)")
     return 0
-
-
-def _write_text(path, text):
-    import tempfile
-
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=os.path.dirname(os.path.abspath(path)))
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text)
-    os.replace(tmp, path)
 
 
 def cmd_path(args) -> int:

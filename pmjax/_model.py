@@ -7,7 +7,7 @@ import os
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, Float, Int
 
 from ._pmfile import PMData, read_pm
 
@@ -107,5 +107,3 @@ def load(path: str | os.PathLike) -> ProgressiveMesh:
     """
     return ProgressiveMesh.from_data(read_pm(path))
 
-
-ExecutedMask = Bool[Array, "*K P"]

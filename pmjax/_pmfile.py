@@ -14,11 +14,12 @@ import hashlib
 import io
 import json
 import os
-import tempfile
 import zipfile
 from typing import Any
 
 import numpy as np
+
+from ._atomic import atomic_path
 
 MAGIC = "pmjax.progressive-mesh"
 VERSION = 1
@@ -113,10 +114,8 @@ def save_pm(pm: PMData, path: str | os.PathLike) -> None:
         ),
         array_sha256={name: _sha256(a) for name, a in pm.arrays().items()},
     )
-    directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".pmz", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as fh:
+    with atomic_path(path, ".pmz") as tmp:
+        with open(tmp, "wb") as fh:
             with zipfile.ZipFile(fh, "w", compression=zipfile.ZIP_STORED) as zf:
                 zf.writestr("header.json", json.dumps(header, indent=1, sort_keys=True))
                 for name, a in pm.arrays().items():
@@ -125,11 +124,6 @@ def save_pm(pm: PMData, path: str | os.PathLike) -> None:
                     zf.writestr(name + ".npy", buf.getvalue())
             fh.flush()
             os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def read_pm(path: str | os.PathLike) -> PMData:

@@ -79,3 +79,12 @@ def test_refine_and_path_commands(tmp_path, built, capsys):
     assert main(["path", str(pmz), "--orbit", "3", "-q"]) == 0
     assert main(["refine", str(pmz), "--camera", str(tmp_path / "missing.json"), "-o", str(out)]) == 2
     assert "cannot read cameras" in capsys.readouterr().err
+
+
+def test_failed_camera_write_leaves_nothing(tmp_path):
+    cams = pmjax.random_views(np.random.default_rng(0).normal(size=(20, 3)), 2)
+    bad = pmjax.Camera(eye=cams.eye, rotation=cams.rotation, fov_y=cams.fov_y, near=cams.near, far=cams.far,
+                       ortho_height=None, width=cams.width, height=cams.height)
+    with pytest.raises(TypeError):
+        pmjax.save_cameras(bad, tmp_path / "c.json")
+    assert list(tmp_path.iterdir()) == []
