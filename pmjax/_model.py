@@ -13,23 +13,56 @@ from ._pmfile import PMData, read_pm
 
 
 class PcolAttributes(eqx.Module):
-    """What the refinement tests see of each pcol (float32).
+    """What the refinement tests see of each pcol (float32 on the speed path).
+
+    Struct of arrays: coordinates are rows (``[3, P]``), so every test is a
+    fused elementwise loop over contiguous memory; the cone's sine and cosine
+    are stored so no test needs trigonometry per view.
 
     Attributes:
-        position: ``[P, 3]`` the pcol vertex (sphere and cone centre).
-        normal: ``[P, 3]`` unit cone axis.
+        center: ``[3, P]`` the pcol vertex (sphere and cone centre), rows x, y, z.
+        axis: ``[3, P]`` unit cone axis.
         radius: ``[P]`` bounding-sphere radius, model units.
         alpha: ``[P]`` cone half-angle, radians.
+        sin_alpha, cos_alpha: ``[P]`` its sine and cosine.
         delta: ``[P]`` deviation along the normal, model units.
         mu: ``[P]`` uniform deviation, model units.
     """
 
-    position: Float[Array, "P 3"]
-    normal: Float[Array, "P 3"]
+    center: Float[Array, "3 P"]
+    axis: Float[Array, "3 P"]
     radius: Float[Array, " P"]
     alpha: Float[Array, " P"]
+    sin_alpha: Float[Array, " P"]
+    cos_alpha: Float[Array, " P"]
     delta: Float[Array, " P"]
     mu: Float[Array, " P"]
+
+    @property
+    def position(self) -> Float[Array, "P 3"]:
+        """``[P, 3]`` sphere centres (a transposed view of ``center``)."""
+        return self.center.T
+
+    @property
+    def normal(self) -> Float[Array, "P 3"]:
+        """``[P, 3]`` cone axes."""
+        return self.axis.T
+
+    @staticmethod
+    def from_arrays(position, normal, radius, alpha, delta, mu, dtype=np.float32) -> "PcolAttributes":
+        """Attributes from per-pcol arrays (``position``/``normal`` ``[P, 3]``)."""
+        alpha = np.asarray(alpha, np.float64)
+        arr = lambda x: jnp.asarray(np.ascontiguousarray(x, dtype=dtype))
+        return PcolAttributes(
+            center=arr(np.asarray(position).T),
+            axis=arr(np.asarray(normal).T),
+            radius=arr(radius),
+            alpha=arr(alpha),
+            sin_alpha=arr(np.sin(alpha)),
+            cos_alpha=arr(np.cos(alpha)),
+            delta=arr(delta),
+            mu=arr(mu),
+        )
 
 
 class ProgressiveMesh(eqx.Module):
@@ -48,6 +81,8 @@ class ProgressiveMesh(eqx.Module):
         attributes: :class:`PcolAttributes`.
         batch_offsets: static tuple ``(0, ..., P)``.
         n_original_vertices: static V0.
+        max_kills: static, the most faces one pcol removes (sizes the bit
+            planes of the batched face count).
     """
 
     vertices: Float[Array, "V 3"]
@@ -60,6 +95,7 @@ class ProgressiveMesh(eqx.Module):
     attributes: PcolAttributes
     batch_offsets: tuple = eqx.field(static=True)
     n_original_vertices: int = eqx.field(static=True)
+    max_kills: int = eqx.field(static=True, default=0)
 
     @property
     def n_pcols(self) -> int:
@@ -86,16 +122,10 @@ class ProgressiveMesh(eqx.Module):
             parent=jnp.asarray(parent),
             killer=jnp.asarray(pm.killer),
             kills=jnp.asarray(kills),
-            attributes=PcolAttributes(
-                position=jnp.asarray(created),
-                normal=jnp.asarray(pm.normals[V0:]),
-                radius=jnp.asarray(pm.radius),
-                alpha=jnp.asarray(pm.alpha),
-                delta=jnp.asarray(pm.delta),
-                mu=jnp.asarray(pm.mu),
-            ),
+            attributes=PcolAttributes.from_arrays(created, pm.normals[V0:], pm.radius, pm.alpha, pm.delta, pm.mu),
             batch_offsets=tuple(int(o) for o in pm.batch_offsets),
             n_original_vertices=V0,
+            max_kills=int(kills.max(initial=0)),
         )
 
 

@@ -38,36 +38,44 @@ ALL_TESTS = Tests()
 UserPredicate = Callable[[PcolAttributes, object], Bool[Array, " P"]]
 
 
-def _dot(a, b):
-    return jnp.sum(a * b, axis=-1)
+def _rows_dot(a, b):
+    """Per column dot product of ``[3, P]`` rows with ``[3, P]`` rows or a 3-vector."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _eye_offset(attrs: PcolAttributes, camera: Camera):
+    """``(d², h)``: squared distance eye→centre and its component along the axis."""
+    v = attrs.center - camera.eye[:, None]
+    return _rows_dot(v, v), _rows_dot(v, attrs.axis)
 
 
 def outside_frustum(attrs: PcolAttributes, camera: Camera) -> Bool[Array, " P"]:
     """Sphere entirely on the outer side of one of the six planes."""
     planes = camera.frustum_planes()  # [6, 4]
-    signed = attrs.position @ planes[:, :3].T + planes[:, 3]  # [P, 6]
-    return jnp.any(signed < -attrs.radius[:, None], axis=1)
+    out = jnp.zeros(attrs.radius.shape, bool)
+    for i in range(6):
+        out = out | (_rows_dot(attrs.center, planes[i, :3]) + planes[i, 3] < -attrs.radius)
+    return out
 
 
 def oriented_away(attrs: PcolAttributes, camera: Camera) -> Bool[Array, " P"]:
     """Every normal in the cone faces away from every eye ray into the sphere.
 
-    With ``theta`` the angle between the axis and ``x − e`` and ``beta =
-    asin(r / d)`` the sphere's angular radius, all such dot products are
-    positive iff ``theta + alpha + beta < π/2``.
+    With ``theta`` the angle between the axis and ``x − e`` (length ``d``) and
+    ``beta = asin(r / d)`` the sphere's angular radius, all such dot products
+    are positive iff ``theta + alpha + beta < π/2``. Without trigonometry:
+    ``alpha + beta < π/2 ⇔ cos α·√(d² − r²) > sin α·r`` and then
+    ``cos θ > sin(α + β) ⇔ h > sin α·√(d² − r²) + cos α·r`` (``h = d cos θ``).
+    Orthographic views are the limit ``d = 1, r = 0`` along the view direction.
     """
+    sa, ca = attrs.sin_alpha, attrs.cos_alpha
     if camera.orthographic:
-        view = jnp.broadcast_to(camera.forward, attrs.position.shape)
-        d = jnp.ones_like(attrs.radius)
-        sin_beta = jnp.zeros_like(attrs.radius)
-    else:
-        view = attrs.position - camera.eye
-        d = jnp.linalg.norm(view, axis=-1)
-        sin_beta = attrs.radius / jnp.maximum(d, 1e-30)
-    beta = jnp.arcsin(jnp.minimum(sin_beta, 1.0))
-    spread = attrs.alpha + beta
-    cos_theta = _dot(attrs.normal, view) / jnp.maximum(d, 1e-30)
-    return (sin_beta < 1.0) & (spread < 0.5 * jnp.pi) & (cos_theta > jnp.sin(spread))
+        h = _rows_dot(attrs.axis, camera.forward)
+        return (ca > 0) & (h > sa)
+    d2, h = _eye_offset(attrs, camera)
+    r = attrs.radius
+    tangent = jnp.sqrt(jnp.maximum(d2 - r * r, 0.0))  # d·cos(beta)
+    return (r * r < d2) & (ca * tangent > sa * r) & (h > sa * tangent + ca * r)
 
 
 def _screen_terms(attrs: PcolAttributes, camera: Camera):
@@ -77,11 +85,9 @@ def _screen_terms(attrs: PcolAttributes, camera: Camera):
     mu2 = attrs.mu * attrs.mu
     delta2 = attrs.delta * attrs.delta
     if camera.orthographic:
-        h = _dot(camera.forward, attrs.normal)
+        h = _rows_dot(attrs.axis, camera.forward)
         return mu2, delta2 * (1.0 - h * h), jnp.ones_like(mu2)
-    v = attrs.position - camera.eye
-    d2 = _dot(v, v)
-    h = _dot(v, attrs.normal)
+    d2, h = _eye_offset(attrs, camera)
     # Hoppe 1997: mu² ≥ κ²d²  or  delta²(d² − h²) ≥ κ²d⁴; divide the second by d².
     return mu2, delta2 * (d2 - h * h) / jnp.maximum(d2, 1e-30), d2
 
