@@ -177,7 +177,9 @@ def _refine(pm, camera, tau, tests, predicate, context, combine):
 @eqx.filter_jit
 def _counts_chunk(pm, cameras, tau, tests, predicate, context, combine, want_masks):
     # Collapse decisions per camera, then 32 cameras per word through the hierarchy.
-    collapse = jax.vmap(lambda c: collapse_mask(pm.attributes, c, tau, tests, predicate, context, combine))(cameras)
+    collapse = jax.vmap(
+        lambda c: collapse_mask(pm.attributes, c, tau, tests, predicate, context, combine, rows=False)
+    )(cameras)
     words = propagate(pm, pack_cameras(collapse))
     n_exec = weighted_counts(words, jnp.ones_like(pm.kills), 1)
     killed = weighted_counts(words, pm.kills, weight_bits_for(pm.max_kills))
