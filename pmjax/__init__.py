@@ -8,7 +8,7 @@ from ._meshio import CleanReport, MeshError, clean_mesh, default_model_path, loa
 from ._pmfile import METRICS, PMData, PMFormatError, read_pm, save_pm, validate_pm
 from ._invariants import check_invariants, direct_killers
 from ._replay import active_faces, lod_mesh, mesh_for_executed, pcols_for_faces, prefix_executed, representatives
-from ._camera import Camera, fly_through, load_cameras, look_at, random_views, save_cameras, stack_cameras, standard_orbit
+from ._camera import Camera, camera_count, fly_through, index_camera, load_cameras, look_at, random_views, save_cameras, stack_cameras, standard_orbit
 from ._model import PcolAttributes, ProgressiveMesh, load
 from ._predicate import ALL_TESTS, Tests, collapse_mask, critical_tau, kappa, oriented_away, outside_frustum, small_on_screen
 from ._refine import Refinement, critical_tolerances, faces_for_budget, propagate, refine, refine_batch
@@ -26,6 +26,8 @@ __all__ = [
     "PMData",
     "PMFormatError",
     "read_pm",
+    "camera_count",
+    "index_camera",
     "save_pm",
     "validate_pm",
     "check_invariants",

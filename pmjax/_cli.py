@@ -162,10 +162,7 @@ def cmd_path(args) -> int:
     from tqdm import tqdm
 
     pm = pmjax.load(args.pm)
-    if args.path:
-        cams = pmjax.load_cameras(args.path)
-    else:
-        cams = pmjax.standard_orbit(pm.vertices[: pm.n_original_vertices], args.orbit)
+    cams = _path_cameras(pm, args)
     tests = _tests(args)
     K = pmjax._camera.camera_count(cams)
     rows = []
@@ -177,14 +174,68 @@ def cmd_path(args) -> int:
         r = pmjax.refine(pm, cam, args.tau, tests=tests)
         jax.block_until_ready(r)
         rows.append(dict(frame=i, **_stats(r, 1e3 * (time.perf_counter() - t))))
-    lines = ["frame,faces,vertices,executed,milliseconds"]
-    lines += [f"{r['frame']},{r['faces']},{r['vertices']},{r['executed']},{r['milliseconds']}" for r in rows]
+    cols = ["frame", "faces", "vertices", "executed", "milliseconds"]
+    if args.fidelity:
+        from pmjax.render import path_fidelity
+
+        for row, fid in zip(rows, path_fidelity(pm, cams, args.tau, tests=tests, progress=not args.quiet)):
+            row.update({k: round(float(fid[k]), 6) for k in FIDELITY_COLUMNS})
+        cols += list(FIDELITY_COLUMNS)
+    lines = [",".join(cols)] + [",".join(str(r[c]) for c in cols) for r in rows]
     if args.csv:
         _write_text(args.csv, "\n".join(lines) + "\n")
     faces = np.array([r["faces"] for r in rows])
     ms = np.array([r["milliseconds"] for r in rows])
     print(f"{K} frames at tau={args.tau}: faces median {int(np.median(faces))} "
           f"(min {faces.min()}, max {faces.max()}), median {np.median(ms):.3f} ms/frame")
+    if args.fidelity:
+        share = np.array([r["differing_share"] for r in rows])
+        pop = np.array([r["popping_share"] for r in rows[1:]]) if K > 1 else np.zeros(1)
+        print(f"fidelity: median {np.median(share):.3%} of the model's pixels differ from the original "
+              f"(max {share.max():.3%}); popping median {np.median(pop):.3%} per frame")
+    return 0
+
+
+FIDELITY_COLUMNS = ("differing_share", "psnr", "popping_share", "render_ms")
+
+
+def _path_cameras(pm, args):
+    import pmjax
+
+    if getattr(args, "path", None):
+        return pmjax.load_cameras(args.path)
+    return pmjax.standard_orbit(pm.vertices[: pm.n_original_vertices], args.orbit)
+
+
+def cmd_render(args) -> int:
+    import pmjax
+    from pmjax.render import overview_camera, render_path
+
+    pm = pmjax.load(args.pm)
+    cams = _path_cameras(pm, args)
+    view = None
+    if args.phantom:
+        view = overview_camera(np.asarray(pm.vertices)[: pm.n_original_vertices], pmjax.index_camera(cams, 0))
+    out = render_path(pm, cams, args.tau, args.output, tests=_tests(args), wireframe=args.wireframe,
+                      color_levels=args.levels, phantom=view, fps=args.fps, progress=not args.quiet)
+    print(f"{args.output}: {out['frames']} frames, faces median {int(np.median(out['faces']))}")
+    return 0
+
+
+def cmd_figures(args) -> int:
+    import pmjax
+    from pmjax.render import paper_figures
+
+    out = paper_figures(pmjax.load(args.pm), args.output)
+    for name, (path, faces) in out.items():
+        print(f"{path}: {faces} faces")
+    return 0
+
+
+def cmd_view(args) -> int:
+    from pmjax.render import run_viewer
+
+    run_viewer(args.pm, tau=args.tau, size=tuple(args.size), close_after=args.close_after)
     return 0
 
 
@@ -215,6 +266,16 @@ def cmd_demo(args) -> int:
         _write_mesh(path, *r.mesh(pm)[:2])
         print(f"{path}: frame 0 refined at tau = {tau:g} px: {int(r.n_faces)} faces")
     pmjax.save_cameras(cam, os.path.join(args.out, "camera0.json"))
+    try:
+        from pmjax.render import paper_figures, render_path
+
+        gif = os.path.join(args.out, "orbit.gif")
+        render_path(pm, pmjax.standard_orbit(v, 48, width=400, height=300), 1.0, gif, wireframe=True)
+        print(f"{gif}: 48-frame orbit at tau = 1 px (wireframe)")
+        for name, (path, faces) in paper_figures(pm, os.path.join(args.out, "figures")).items():
+            print(f"{path}: {faces} faces")
+    except RuntimeError as exc:  # no OpenGL here: the meshes above are still written
+        print(f"rendering skipped: {exc}")
     return 0
 
 
@@ -278,9 +339,43 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--orbit", type=int, help="standard orbit with N frames (DESIGN §7)")
     g.add_argument("--path", help="camera file (.json or .csv)")
     p.add_argument("--csv", help="output CSV")
+    p.add_argument("--fidelity", action="store_true",
+                   help="also render each frame and the original: differing-pixel share, PSNR, popping")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_view_args(p)
     p.set_defaults(func=cmd_path)
+
+    p = sub.add_parser("render", help="render a camera path to .mp4, .gif or PNG frames (headless)",
+                       description="Refine and render every camera of a path offscreen (EGL or OSMesa).")
+    p.add_argument("pm", help=".pmz file")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--orbit", type=int, help="standard orbit with N frames (DESIGN §7)")
+    g.add_argument("--path", help="camera file (.json or .csv)")
+    p.add_argument("-o", "--output", required=True, help="output .mp4, .gif, or a folder for PNG frames")
+    p.add_argument("--wireframe", action="store_true", help="overlay the edges")
+    p.add_argument("--levels", action="store_true", help="colour faces by batch level (blue fine, red coarse)")
+    p.add_argument("--phantom", action="store_true",
+                   help="watch from a fixed overview camera, with each path camera's frustum drawn")
+    p.add_argument("--fps", type=int, default=30, help="frames per second of the video")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_view_args(p)
+    p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("figures", help="the paper's figures as PNGs",
+                       description="Frustum, orientation and screen-space effects and the phantom camera.")
+    p.add_argument("pm", help=".pmz file")
+    p.add_argument("-o", "--output", required=True, help="output folder")
+    p.set_defaults(func=cmd_figures)
+
+    p = sub.add_parser("view", help="interactive viewer (needs a display)",
+                       description="pyrender Viewer, re-refined as the camera moves. Keys: '=' / '-' raise / "
+                                   "lower tau, 'p' freeze or release a phantom camera, '1' '2' '3' toggle the "
+                                   "frustum / orientation / screen test, 'e' wireframe overlay, 'q' quit.")
+    p.add_argument("pm", help=".pmz file")
+    p.add_argument("--tau", type=float, default=1.0, help="initial tolerance in pixels")
+    p.add_argument("--size", type=int, nargs=2, default=(800, 600), metavar=("W", "H"), help="window size")
+    p.add_argument("--close-after", type=float, default=0.0, help="close after this many seconds (0: never)")
+    p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("demo", help="build the bundled model and refine it along the standard orbit",
                        description="The main job on the bundled model (Spot, public domain) or --mesh.")
@@ -297,7 +392,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (MeshError, PMFormatError, ValueError, OSError) as exc:
+    except (MeshError, PMFormatError, ValueError, OSError, RuntimeError) as exc:
         print(f"pmjax {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -1,1 +1,50 @@
-"""pmjax.render: pyrender display of refinement results (see docs/)."""
+"""pmjax.render: pyrender display of refinement results.
+
+Headless rendering (EGL by default, or ``PYOPENGL_PLATFORM=osmesa``) of single
+views, camera paths (MP4/GIF/PNG), the paper's figures and image-space
+fidelity; an interactive viewer under a display. pyrender is imported lazily.
+"""
+
+from ._gl import RenderError, pyrender_module
+from ._scene import batch_levels, build_scene, face_levels, frustum_lines, level_colors, vertex_normals
+from ._offscreen import (
+    Renderer,
+    original_arrays,
+    refined_arrays,
+    render_path,
+    render_refinement,
+    write_frames,
+    write_png,
+)
+from ._fidelity import DIFF_THRESHOLD, image_difference, path_fidelity
+from ._figures import FIGURES, overview_camera, paper_figures, phantom
+from ._viewer import KEYS, ViewerState, camera_from_pose, run_viewer
+
+__all__ = [
+    "RenderError",
+    "pyrender_module",
+    "batch_levels",
+    "build_scene",
+    "face_levels",
+    "frustum_lines",
+    "level_colors",
+    "vertex_normals",
+    "Renderer",
+    "original_arrays",
+    "refined_arrays",
+    "render_path",
+    "render_refinement",
+    "write_frames",
+    "write_png",
+    "DIFF_THRESHOLD",
+    "image_difference",
+    "path_fidelity",
+    "FIGURES",
+    "overview_camera",
+    "paper_figures",
+    "phantom",
+    "KEYS",
+    "ViewerState",
+    "camera_from_pose",
+    "run_viewer",
+]

@@ -1,0 +1,82 @@
+"""Image-space fidelity: refined vs original renders, and popping between frames."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from pmjax import ALL_TESTS, Camera, ProgressiveMesh, Tests, camera_count, index_camera, refine
+
+
+from ._offscreen import Renderer, original_arrays, refined_arrays
+
+# A pixel "differs" when some 8-bit channel differs by more than this.
+DIFF_THRESHOLD = 8
+
+
+def image_difference(rgb_a, depth_a, rgb_b, depth_b, threshold: int = DIFF_THRESHOLD) -> dict:
+    """Compare two renders of the same model from the same camera.
+
+    The model's pixels are those covered in either render (``depth > 0``).
+
+    Returns:
+        dict: ``model_pixels``, ``differing`` (count), ``differing_share``
+        (of the model's pixels), ``psnr`` (dB over the model's pixels; ``inf``
+        if identical).
+    """
+    a = np.asarray(rgb_a, np.int16)
+    b = np.asarray(rgb_b, np.int16)
+    if a.shape != b.shape:
+        raise ValueError(f"image shapes differ: {a.shape} vs {b.shape}")
+    model = (np.asarray(depth_a) > 0) | (np.asarray(depth_b) > 0)
+    n = int(model.sum())
+    diff = np.abs(a - b)
+    differing = int(((diff.max(axis=-1) > threshold) & model).sum())
+    mse = float((diff[model].astype(np.float64) ** 2).mean()) if n else 0.0
+    psnr = float("inf") if mse == 0 else 10 * np.log10(255.0**2 / mse)
+    return dict(model_pixels=n, differing=differing, differing_share=differing / n if n else 0.0, psnr=psnr)
+
+
+def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Tests = ALL_TESTS,
+                  progress: bool = False, refinements=None) -> list[dict]:
+    """Per frame: faces, share of the model's pixels that differ from the
+    original mesh's render (and PSNR), and popping — the share of pixels that
+    change at this frame's camera only because the refinement changed since
+    the previous frame (render with the previous refinement vs this one).
+
+    Args:
+        refinements: optional precomputed list of per-frame vertex/face arrays
+            ``(vertices, faces)`` to evaluate instead of ``refine`` (used for
+            geomorphed sequences).
+
+    Returns:
+        list of dicts (one per camera) with ``faces``, ``differing_share``,
+        ``psnr``, ``popping_share`` (0 for the first frame) and ``render_ms``.
+    """
+    K = camera_count(cameras)
+    first = index_camera(cameras, 0)
+    ov, of = original_arrays(pm)
+    rows, previous = [], None
+    it = range(K)
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, unit="frame", desc="fidelity")
+    with Renderer(first.width, first.height) as r:
+        for i in it:
+            cam = index_camera(cameras, i)
+            if refinements is None:
+                v, f, _ = refined_arrays(pm, refine(pm, cam, tau, tests))
+            else:
+                v, f = refinements[i]
+            t = time.perf_counter()
+            rgb, depth = r.render_mesh(v, f, cam)
+            render_ms = 1e3 * (time.perf_counter() - t)
+            row = image_difference(*r.render_mesh(ov, of, cam), rgb, depth)
+            row.update(frame=i, faces=int(len(f)), render_ms=render_ms, popping_share=0.0)
+            if previous is not None:
+                row["popping_share"] = image_difference(*r.render_mesh(*previous, cam), rgb, depth)["differing_share"]
+            previous = (v, f)
+            rows.append(row)
+    return rows

@@ -1,0 +1,138 @@
+"""Interactive viewer: pyrender's Viewer, re-refined whenever the camera moves."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import jax
+import numpy as np
+
+from pmjax import Camera, Tests, index_camera, load, refine, standard_orbit
+
+from ._gl import pyrender_module
+from ._scene import add_mesh, build_scene, frustum_lines, lines_mesh
+
+KEYS = {
+    "=": "raise tau (x2)",
+    "-": "lower tau (/2)",
+    "p": "freeze / release a phantom camera",
+    "1": "toggle the frustum test",
+    "2": "toggle the orientation test",
+    "3": "toggle the screen-space test",
+    "e": "toggle the wireframe overlay",
+}
+
+
+@dataclasses.dataclass
+class ViewerState:
+    """What the keys change; the refinement loop reads it."""
+
+    tau: float = 1.0
+    frustum: bool = True
+    orientation: bool = True
+    screen: bool = True
+    wireframe: bool = False
+    phantom: Camera | None = None
+    freeze_requested: bool = False
+    dirty: bool = True
+
+    def tests(self) -> Tests:
+        return Tests(frustum=self.frustum, orientation=self.orientation, screen=self.screen)
+
+
+def _key_actions(state: ViewerState) -> dict:
+    def change(**kw):
+        def act(viewer):
+            for k, v in kw.items():
+                setattr(state, k, v(getattr(state, k)))
+            state.dirty = True
+
+        return act
+
+    def freeze(viewer):
+        state.freeze_requested = True
+        state.dirty = True
+
+    return {
+        "=": (change(tau=lambda t: t * 2.0),),
+        "-": (change(tau=lambda t: t / 2.0),),
+        "p": (freeze,),
+        "1": (change(frustum=lambda b: not b),),
+        "2": (change(orientation=lambda b: not b),),
+        "3": (change(screen=lambda b: not b),),
+        "e": (change(wireframe=lambda b: not b),),
+    }
+
+
+def camera_from_pose(pose, like: Camera, width: int, height: int) -> Camera:
+    """A :class:`pmjax.Camera` at a 4×4 camera-to-world ``pose`` with ``like``'s fov and clip planes."""
+    return Camera(
+        eye=np.asarray(pose[:3, 3], np.float32), rotation=np.asarray(pose[:3, :3], np.float32),
+        fov_y=like.fov_y, near=like.near, far=like.far, ortho_height=like.ortho_height,
+        width=int(width), height=int(height),
+    )
+
+
+def run_viewer(path: str, *, tau: float = 1.0, size=(800, 600), close_after: float = 0.0) -> None:
+    """Open ``pmjax view``: an interactive window (needs a display, e.g. Xvfb).
+
+    Args:
+        path: ``.pmz`` file.
+        tau: initial tolerance in pixels.
+        size: window ``(width, height)``.
+        close_after: close after this many seconds (0: when the user quits).
+    """
+    pyrender = pyrender_module(offscreen=False)
+    pm = load(path)
+    W, H = int(size[0]), int(size[1])
+    verts = np.asarray(pm.vertices)[: pm.n_original_vertices]
+    start = index_camera(standard_orbit(verts, 240, width=W, height=H), 0)
+    state = ViewerState(tau=float(tau))
+    first = refine(pm, start, state.tau)
+    v, f, _ = first.mesh(pm)
+    scene, nodes = build_scene(v, f, start, light=False)
+    caption = dict(location=pyrender.constants.TextAlign.TOP_LEFT, font_name="OpenSans-Regular", font_pt=16,
+                   color=np.array([0.1, 0.1, 0.1, 1.0]), scale=1.0)
+    viewer = pyrender.Viewer(
+        scene, viewport_size=(W, H), run_in_thread=True, registered_keys=_key_actions(state),
+        use_direct_lighting=True, window_title=f"pmjax view {path}",
+        caption=[dict(caption, text="pmjax")],
+    )
+    began, last_pose, frustum_node = time.time(), None, None
+    while viewer.is_active:
+        with viewer.render_lock:
+            pose = np.array(scene.get_pose(viewer._camera_node))
+        if state.dirty or last_pose is None or not np.allclose(pose, last_pose):
+            last_pose = pose
+            current = camera_from_pose(pose, start, W, H)
+            if state.freeze_requested:
+                state.phantom = None if state.phantom is not None else current
+                state.freeze_requested = False
+            state.dirty = False
+            target = state.phantom if state.phantom is not None else current
+            t = time.perf_counter()
+            ref = refine(pm, target, state.tau, state.tests())
+            jax.block_until_ready(ref.n_faces)
+            ms = 1e3 * (time.perf_counter() - t)
+            v, f, _ = ref.mesh(pm)
+            text = (f"faces {int(ref.n_faces)}  refine {ms:.1f} ms  tau {state.tau:g} px  tests "
+                    f"{'F' if state.frustum else '-'}{'O' if state.orientation else '-'}"
+                    f"{'S' if state.screen else '-'}{'  phantom' if state.phantom is not None else ''}")
+            with viewer.render_lock:
+                for n in nodes:
+                    scene.remove_node(n)
+                nodes = add_mesh(scene, v, f, wireframe=state.wireframe)
+                if frustum_node is not None:
+                    scene.remove_node(frustum_node)
+                    frustum_node = None
+                if state.phantom is not None:
+                    lines = frustum_lines(state.phantom, float(np.linalg.norm(verts - np.asarray(state.phantom.eye),
+                                                                                  axis=1).max()))
+                    frustum_node = scene.add(lines_mesh(lines), name="phantom-frustum")
+                viewer.viewer_flags["caption"] = [dict(caption, text=text)]
+        if close_after and time.time() - began > close_after:
+            viewer.close_external()
+            break
+        time.sleep(0.03)
+

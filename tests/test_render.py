@@ -1,0 +1,191 @@
+"""Headless rendering checked on real pixels: silhouette coverage, phantom
+frustum lines, batch-level colours, videos, figures, fidelity, and the
+interactive viewer in a real X window (Xvfb)."""
+
+from __future__ import annotations
+
+import csv
+import os
+import shutil
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+import pmjax
+
+
+@pytest.fixture(scope="module")
+def cow(built, tmp_path_factory):
+    data = built("cow.ply")
+    path = str(tmp_path_factory.mktemp("render") / "cow.pmz")
+    pmjax.save_pm(data, path)
+    return path, pmjax.load(path), data
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    from pmjax.render import Renderer
+
+    with Renderer(320, 240) as r:
+        yield r
+
+
+def _camera(data, frame=0, n=8):
+    return pmjax.index_camera(pmjax.standard_orbit(data.vertices[: data.n_original_vertices], n, width=320,
+                                                   height=240), frame)
+
+
+def _red(rgb):
+    return (rgb[..., 0] > 180) & (rgb[..., 1] < 110) & (rgb[..., 2] < 110)
+
+
+def test_small_tau_covers_the_original_silhouette(cow, renderer):
+    from pmjax.render import image_difference, original_arrays, render_refinement
+
+    _, pm, data = cow
+    cam = _camera(data)
+    ref_rgb, ref_depth = renderer.render_mesh(*original_arrays(pm), cam)
+    assert 0.05 < (ref_depth > 0).mean() < 0.9  # the model is in view
+    fine = image_difference(ref_rgb, ref_depth, *render_refinement(renderer, pm, pmjax.refine(pm, cam, 0.25), cam))
+    coarse = image_difference(ref_rgb, ref_depth, *render_refinement(renderer, pm, pmjax.refine(pm, cam, 8.0), cam))
+    _, fine_depth = render_refinement(renderer, pm, pmjax.refine(pm, cam, 0.25), cam)
+    iou = ((fine_depth > 0) & (ref_depth > 0)).sum() / ((fine_depth > 0) | (ref_depth > 0)).sum()
+    assert iou > 0.98
+    assert fine["differing_share"] < coarse["differing_share"]
+    assert fine["psnr"] > coarse["psnr"]
+    same = image_difference(ref_rgb, ref_depth, ref_rgb, ref_depth)
+    assert same["differing"] == 0 and same["psnr"] == float("inf")
+
+
+def test_phantom_shows_the_frustum_lines(cow, renderer):
+    from pmjax.render import overview_camera, phantom, render_refinement
+
+    _, pm, data = cow
+    cam = _camera(data)
+    view = overview_camera(data.vertices[: data.n_original_vertices], cam)
+    v, f, lines = phantom(pm, cam, 1.0)
+    assert lines.shape == (16, 3) and len(f) == int(pmjax.refine(pm, cam, 1.0).n_faces)
+    ref = pmjax.refine(pm, cam, 1.0)
+    with_lines, _ = render_refinement(renderer, pm, ref, view, phantom=cam)
+    without, _ = render_refinement(renderer, pm, ref, view)
+    assert _red(with_lines).sum() > 100
+    assert _red(without).sum() == 0
+
+
+def test_batch_level_colours_and_wireframe(cow, renderer):
+    from pmjax.render import render_refinement
+
+    _, pm, data = cow
+    cam = _camera(data)
+    ref = pmjax.refine(pm, cam, 2.0)
+    plain, depth = render_refinement(renderer, pm, ref, cam)
+    levels, _ = render_refinement(renderer, pm, ref, cam, color_levels=True)
+    wire, _ = render_refinement(renderer, pm, ref, cam, wireframe=True)
+    model = depth > 0
+    # grey shading has equal channels; level colours are blue to red
+    assert np.abs(plain[model].astype(int)[:, 2] - plain[model].astype(int)[:, 0]).mean() < 12
+    assert np.abs(levels[model].astype(int)[:, 2] - levels[model].astype(int)[:, 0]).mean() > 20
+    dark = lambda im: (im[model].astype(int).sum(-1) < 200).sum()
+    assert dark(wire) > dark(plain) + 200
+
+
+@pytest.mark.parametrize("ext", [".gif", ".mp4"])
+def test_video_has_one_frame_per_camera(cow, tmp_path, ext):
+    import imageio.v2 as imageio
+
+    path, _, _ = cow
+    out = tmp_path / f"orbit{ext}"
+    r = subprocess.run([sys.executable, "-m", "pmjax", "render", path, "--orbit", "7", "-o", str(out), "-q"],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    reader = imageio.get_reader(str(out))
+    frames = [np.asarray(f) for f in reader]
+    assert len(frames) == 7
+    assert frames[0].shape[:2] == (600, 800)
+    assert not np.array_equal(frames[0], frames[3])  # the camera moves
+
+
+def test_figures_command(cow, tmp_path):
+    import imageio.v2 as imageio
+
+    from pmjax.render import paper_figures
+
+    _, pm, _ = cow
+    out = paper_figures(pm, str(tmp_path), width=320, height=240)
+    assert set(out) == {"frustum", "orientation", "screen_tau1", "screen_tau4", "screen_tau16", "phantom"}
+    faces = [out[f"screen_tau{t}"][1] for t in (1, 4, 16)]
+    assert faces[0] > faces[1] > faces[2]
+    for name, (path, _) in out.items():
+        img = imageio.imread(path)
+        assert img.shape[:2] == (240, 320) and (img.sum(-1) < 700).mean() > 0.01, name
+    assert _red(imageio.imread(out["phantom"][0])).sum() > 50
+
+
+def test_path_fidelity_columns(cow, tmp_path):
+    path, _, _ = cow
+    out = tmp_path / "stats.csv"
+    r = subprocess.run([sys.executable, "-m", "pmjax", "path", path, "--orbit", "4", "--fidelity", "--csv",
+                        str(out), "-q"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    rows = list(csv.DictReader(open(out)))
+    assert len(rows) == 4
+    assert {"differing_share", "psnr", "popping_share", "render_ms"} <= set(rows[0])
+    assert float(rows[0]["popping_share"]) == 0.0
+    assert all(0 <= float(r["differing_share"]) < 0.5 for r in rows)
+
+
+@pytest.mark.skipif(not (shutil.which("Xvfb") and shutil.which("xdotool")), reason="needs Xvfb and xdotool")
+def test_viewer_in_a_real_window_reacts_to_keys(cow):
+    from PIL import ImageGrab
+
+    path, _, _ = cow
+    display = f":{90 + os.getpid() % 100}"
+    xvfb = subprocess.Popen(["Xvfb", display, "-screen", "0", "640x480x24", "-nolisten", "tcp"],
+                            stderr=subprocess.DEVNULL)
+    env = dict(os.environ, DISPLAY=display)
+    env.pop("PYOPENGL_PLATFORM", None)  # the viewer needs the X display, not EGL
+    viewer = None
+    try:
+        time.sleep(1.0)
+        viewer = subprocess.Popen([sys.executable, "-m", "pmjax", "view", path, "--size", "400", "300",
+                                   "--close-after", "90"], env=env, stderr=subprocess.PIPE, text=True)
+
+        def window():
+            r = subprocess.run(["xdotool", "search", "--name", "pmjax view"], env=env, capture_output=True,
+                               text=True)
+            return r.stdout.split()
+
+        def shot():
+            return np.asarray(ImageGrab.grab(xdisplay=display)).astype(int)[:300, :400]
+
+        start = time.time()
+        while not window():
+            assert viewer.poll() is None, viewer.stderr.read()
+            assert time.time() - start < 60, "no viewer window"
+            time.sleep(0.5)
+        # wait until the model is drawn (white background, grey model)
+        while (shot().sum(-1) < 700).mean() < 0.05:
+            assert time.time() - start < 60, "model never appeared"
+            time.sleep(0.5)
+        time.sleep(1.0)
+        before = shot()
+        assert 0.05 < (before.sum(-1) < 700).mean() < 0.8
+        subprocess.run(["xdotool", "key", "--window", window()[0], "e"], env=env, check=True)
+        deadline = time.time() + 20
+        while True:
+            after = shot()
+            changed = (np.abs(after - before).max(-1) > 40).sum()
+            if changed > 1000 or time.time() > deadline:
+                break
+            time.sleep(0.5)
+        # the wireframe overlay darkens the edges of the model
+        assert changed > 1000
+        assert (after.sum(-1) < 200).sum() > (before.sum(-1) < 200).sum() + 150
+    finally:
+        if viewer is not None:
+            viewer.terminate()
+            viewer.wait(10)
+        xvfb.terminate()
