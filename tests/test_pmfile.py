@@ -132,3 +132,18 @@ def test_failed_write_leaves_the_old_file(saved):
     with pytest.raises(PMFormatError, match="alpha negative"):
         save_pm(broken, path)
     assert path.read_bytes() == before
+
+
+def test_atomic_writes_get_normal_permissions(tmp_path):
+    import os
+
+    from pmjax._atomic import atomic_path
+
+    umask = os.umask(0o022)
+    try:
+        target = tmp_path / "out.txt"
+        with atomic_path(target) as tmp:
+            open(tmp, "w").write("x")
+        assert (os.stat(target).st_mode & 0o777) == 0o644
+    finally:
+        os.umask(umask)
