@@ -51,18 +51,25 @@ def _transpose32(a: UInt32[Array, "... 32"]) -> UInt32[Array, "... 32"]:
     return a
 
 
-def weighted_counts(words: UInt32[Array, "P W"], weights: Int[Array, " P"], weight_bits: int) -> Int[Array, " K"]:
-    """``out[k] = sum_p weights[p] * bit(words[p], k)`` for ``0 <= weights < 2**weight_bits``.
+def camera_major(words: UInt32[Array, "P W"]) -> UInt32[Array, "N W 32"]:
+    """Bit-transpose pcol-major words so each camera's bits run over 32 pcols.
 
-    Words are bit-transposed so each camera's bits run over 32 pcols; the sum
-    is then ``sum_b 2**b * popcount(camera word & weight bit-plane b)``.
+    ``out[n, w, 31 - c]`` bit ``31 - i`` is camera ``32w + c`` at pcol ``32n + i``
+    (``P`` padded with zero bits to a multiple of 32).
     """
     P, W = words.shape
     padded = -(-P // WORD) * WORD
     words = jnp.pad(words, ((0, padded - P), (0, 0)))
-    weights = jnp.pad(weights, (0, padded - P))
-    # blocks[n, w, i]: pcol 32n+i, cameras 32w..32w+31 -> rows per camera.
-    by_camera = _transpose32(words.reshape(padded // WORD, WORD, W).transpose(0, 2, 1))
+    return _transpose32(words.reshape(padded // WORD, WORD, W).transpose(0, 2, 1))
+
+
+def weighted_counts(by_camera: UInt32[Array, "N W 32"], weights: Int[Array, " P"], weight_bits: int) -> Int[Array, " K"]:
+    """``out[k] = sum_p weights[p] * bit(words[p], k)`` for ``0 <= weights < 2**weight_bits``,
+    from ``by_camera = camera_major(words)``:
+    ``sum_b 2**b * popcount(camera word & weight bit-plane b)``.
+    """
+    padded = by_camera.shape[0] * WORD
+    weights = jnp.pad(weights, (0, padded - weights.shape[0]))
     pcol_bit = (WORD - 1) - _bit_ids()  # pcol i sits at bit 31 - i
     total = jnp.zeros(by_camera.shape[1:], jnp.int32)
     for b in range(weight_bits):

@@ -60,7 +60,7 @@ def info_dict(pm, path: str) -> dict:
     """Counts, per-batch face counts, sizes and build parameters of a PM."""
     from pmjax._replay import active_faces, prefix_executed
 
-    kills = np.bincount(pm.killer[pm.killer >= 0], minlength=pm.n_pcols)
+    kills = pm.kills
     per_batch = np.add.reduceat(kills, pm.batch_offsets[:-1]) if pm.n_pcols else np.zeros(0, int)
     faces_after = len(pm.faces) - np.cumsum(per_batch)
     base = int(active_faces(pm, prefix_executed(pm, pm.n_pcols)).sum())
@@ -266,15 +266,15 @@ def cmd_demo(args) -> int:
         _write_mesh(path, *r.mesh(pm)[:2])
         print(f"{path}: frame 0 refined at tau = {tau:g} px: {int(r.n_faces)} faces")
     pmjax.save_cameras(cam, os.path.join(args.out, "camera0.json"))
-    try:
-        from pmjax.render import paper_figures, render_path
+    from pmjax.render import RenderError, paper_figures, render_path
 
+    try:
         gif = os.path.join(args.out, "orbit.gif")
         render_path(pm, pmjax.standard_orbit(v, 48, width=400, height=300), 1.0, gif, wireframe=True)
         print(f"{gif}: 48-frame orbit at tau = 1 px (wireframe)")
         for name, (path, faces) in paper_figures(pm, os.path.join(args.out, "figures")).items():
             print(f"{path}: {faces} faces")
-    except RuntimeError as exc:  # no OpenGL here: the meshes above are still written
+    except RenderError as exc:  # no OpenGL here: the meshes above are still written
         print(f"rendering skipped: {exc}")
     return 0
 
@@ -318,6 +318,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="output mesh (.ply, .obj, .stl, ...)")
     p.set_defaults(func=cmd_lod)
 
+    def add_path_args(p):
+        # read by _path_cameras
+        g = p.add_mutually_exclusive_group(required=True)
+        g.add_argument("--orbit", type=int, help="standard orbit with N frames (DESIGN §7)")
+        g.add_argument("--path", help="camera file (.json or .csv)")
+
     def add_view_args(p):
         p.add_argument("--tau", type=float, default=1.0, help="screen-space tolerance in pixels (default 1)")
         p.add_argument("--no", action="append", choices=("frustum", "orientation", "screen"),
@@ -335,9 +341,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("path", help="refine along a camera path, one CSV row per camera",
                        description="Per-camera faces, vertices, executed pcols and milliseconds.")
     p.add_argument("pm", help=".pmz file")
-    g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--orbit", type=int, help="standard orbit with N frames (DESIGN §7)")
-    g.add_argument("--path", help="camera file (.json or .csv)")
+    add_path_args(p)
     p.add_argument("--csv", help="output CSV")
     p.add_argument("--fidelity", action="store_true",
                    help="also render each frame and the original: differing-pixel share, PSNR, popping")
@@ -348,9 +352,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("render", help="render a camera path to .mp4, .gif or PNG frames (headless)",
                        description="Refine and render every camera of a path offscreen (EGL or OSMesa).")
     p.add_argument("pm", help=".pmz file")
-    g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--orbit", type=int, help="standard orbit with N frames (DESIGN §7)")
-    g.add_argument("--path", help="camera file (.json or .csv)")
+    add_path_args(p)
     p.add_argument("-o", "--output", required=True, help="output .mp4, .gif, or a folder for PNG frames")
     p.add_argument("--wireframe", action="store_true", help="overlay the edges")
     p.add_argument("--levels", action="store_true", help="colour faces by batch level (blue fine, red coarse)")
@@ -387,12 +389,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     from pmjax import MeshError, PMFormatError
+    from pmjax.render import RenderError
 
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (MeshError, PMFormatError, ValueError, OSError, RuntimeError) as exc:
+    except (MeshError, PMFormatError, ValueError, OSError, RenderError) as exc:
         print(f"pmjax {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -112,7 +112,7 @@ class ProgressiveMesh(eqx.Module):
         parent = np.full(V0 + P, -1, np.int32)
         parent[pm.v1] = np.arange(P)
         parent[pm.v2] = np.arange(P)
-        kills = np.bincount(pm.killer[pm.killer >= 0], minlength=P).astype(np.int32)
+        kills = pm.kills.astype(np.int32)
         created = pm.vertices[V0:]
         return ProgressiveMesh(
             vertices=jnp.asarray(pm.vertices),

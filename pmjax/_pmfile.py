@@ -86,6 +86,11 @@ class PMData:
     def n_batches(self) -> int:
         return int(len(self.batch_offsets) - 1)
 
+    @property
+    def kills(self) -> np.ndarray:
+        """int64[P]: faces each pcol removes (derived from ``killer``)."""
+        return np.bincount(self.killer[self.killer >= 0], minlength=self.n_pcols)
+
     def arrays(self) -> dict[str, np.ndarray]:
         """All arrays by name, in :data:`ARRAY_SPECS` order."""
         return {name: getattr(self, name) for name in ARRAY_SPECS}

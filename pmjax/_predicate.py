@@ -149,11 +149,7 @@ def collapse_mask(
     if predicate is None or combine == "or":
 
         def builtin(a):
-            hit = jnp.zeros(a.radius.shape, bool)
-            if tests.frustum:
-                hit = hit | outside_frustum(a, camera)
-            if tests.orientation:
-                hit = hit | oriented_away(a, camera)
+            hit = _culled(a, camera, tests)
             if tests.screen:
                 hit = hit | small_on_screen(a, camera, tau)
             return hit
@@ -176,14 +172,19 @@ def critical_tau(attrs: PcolAttributes, camera: Camera, tests: Tests = ALL_TESTS
 
     def per_pcol(a):
         t = screen_tolerance(a, camera) if tests.screen else jnp.full(a.radius.shape, jnp.inf)
-        cull = jnp.zeros(t.shape, bool)
-        if tests.frustum:
-            cull = cull | outside_frustum(a, camera)
-        if tests.orientation:
-            cull = cull | oriented_away(a, camera)
-        return jnp.where(cull, -1.0, t)
+        return jnp.where(_culled(a, camera, tests), -1.0, t)
 
     return _in_rows(per_pcol, attrs)
+
+
+def _culled(attrs: PcolAttributes, camera: Camera, tests: Tests) -> Bool[Array, " P"]:
+    """The tests that collapse a pcol whatever ``tau``: frustum or orientation."""
+    out = jnp.zeros(attrs.radius.shape, bool)
+    if tests.frustum:
+        out = out | outside_frustum(attrs, camera)
+    if tests.orientation:
+        out = out | oriented_away(attrs, camera)
+    return out
 
 
 ROW = 1024

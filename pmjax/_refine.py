@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._bitsets import WORD, pack_cameras, unpack_cameras, weight_bits_for, weighted_counts
+from ._bitsets import WORD, camera_major, pack_cameras, unpack_cameras, weight_bits_for, weighted_counts
 from ._camera import Camera, camera_count, index_camera
 from ._model import ProgressiveMesh
 from ._predicate import ALL_TESTS, Tests, UserPredicate, collapse_mask, critical_tau
@@ -181,8 +181,9 @@ def _counts_chunk(pm, cameras, tau, tests, predicate, context, combine, want_mas
         lambda c: collapse_mask(pm.attributes, c, tau, tests, predicate, context, combine, rows=False)
     )(cameras)
     words = propagate(pm, pack_cameras(collapse))
-    n_exec = weighted_counts(words, jnp.ones_like(pm.kills), 1)
-    killed = weighted_counts(words, pm.kills, weight_bits_for(pm.max_kills))
+    by_camera = camera_major(words)
+    n_exec = weighted_counts(by_camera, jnp.ones_like(pm.kills), 1)
+    killed = weighted_counts(by_camera, pm.kills, weight_bits_for(pm.max_kills))
     out = (pm.n_faces - killed, pm.n_original_vertices - n_exec, n_exec)
     return out + ((unpack_cameras(words),) if want_masks else ())
 

@@ -89,6 +89,6 @@ def lod_mesh(pm: PMData, batch: int):
 def pcols_for_faces(pm: PMData, target_faces: int) -> int:
     """Smallest pcol prefix whose mesh has at most ``target_faces`` faces
     (all pcols if the base mesh has more)."""
-    kills = np.bincount(pm.killer[pm.killer >= 0], minlength=pm.n_pcols)
+    kills = pm.kills
     left = len(pm.faces) - np.cumsum(kills)
     return int(min(np.searchsorted(-left, -target_faces) + 1, pm.n_pcols)) if target_faces < len(pm.faces) else 0

@@ -6,7 +6,15 @@ fidelity; an interactive viewer under a display. pyrender is imported lazily.
 """
 
 from ._gl import RenderError, pyrender_module
-from ._scene import batch_levels, build_scene, face_levels, frustum_lines, level_colors, vertex_normals
+from ._scene import (
+    batch_levels,
+    build_scene,
+    face_levels,
+    frustum_lines,
+    frustum_past_model,
+    level_colors,
+    vertex_normals,
+)
 from ._offscreen import (
     Renderer,
     original_arrays,
@@ -27,6 +35,7 @@ __all__ = [
     "build_scene",
     "face_levels",
     "frustum_lines",
+    "frustum_past_model",
     "level_colors",
     "vertex_normals",
     "Renderer",

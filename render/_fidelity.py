@@ -39,16 +39,11 @@ def image_difference(rgb_a, depth_a, rgb_b, depth_b, threshold: int = DIFF_THRES
 
 
 def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Tests = ALL_TESTS,
-                  progress: bool = False, refinements=None) -> list[dict]:
+                  progress: bool = False) -> list[dict]:
     """Per frame: faces, share of the model's pixels that differ from the
     original mesh's render (and PSNR), and popping — the share of pixels that
     change at this frame's camera only because the refinement changed since
     the previous frame (render with the previous refinement vs this one).
-
-    Args:
-        refinements: optional precomputed list of per-frame vertex/face arrays
-            ``(vertices, faces)`` to evaluate instead of ``refine`` (used for
-            geomorphed sequences).
 
     Returns:
         list of dicts (one per camera) with ``faces``, ``differing_share``,
@@ -66,10 +61,7 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
     with Renderer(first.width, first.height) as r:
         for i in it:
             cam = index_camera(cameras, i)
-            if refinements is None:
-                v, f, _ = refined_arrays(pm, refine(pm, cam, tau, tests))
-            else:
-                v, f = refinements[i]
+            v, f, _ = refined_arrays(pm, refine(pm, cam, tau, tests))
             t = time.perf_counter()
             rgb, depth = r.render_mesh(v, f, cam)
             render_ms = 1e3 * (time.perf_counter() - t)

@@ -10,7 +10,7 @@ import numpy as np
 from pmjax import ALL_TESTS, Camera, ProgressiveMesh, Tests, index_camera, look_at, refine, standard_orbit
 
 from ._offscreen import Renderer, render_refinement, write_png
-from ._scene import frustum_lines
+from ._scene import frustum_past_model
 
 
 def overview_camera(vertices, camera: Camera, *, distance_scale: float = 2.5, lift: float = 0.6) -> Camera:
@@ -37,11 +37,8 @@ def phantom(pm: ProgressiveMesh, refine_for: Camera, tau=1.0, tests: Tests = ALL
         the refined mesh and ``refine_for``'s view pyramid as 8 line segments
         reaching past the model.
     """
-    ref = refine(pm, refine_for, tau, tests)
-    v, f, _ = ref.mesh(pm)
-    verts = np.asarray(pm.vertices)[: pm.n_original_vertices]
-    reach = float(np.linalg.norm(verts - np.asarray(refine_for.eye), axis=1).max())
-    return v, f, frustum_lines(refine_for, reach)
+    v, f, _ = refine(pm, refine_for, tau, tests).mesh(pm)
+    return v, f, frustum_past_model(pm, refine_for)
 
 
 FIGURES = ("frustum", "orientation", "screen", "phantom")

@@ -12,7 +12,7 @@ from pmjax._atomic import atomic_path
 
 
 from ._gl import RenderError, pyrender_module
-from ._scene import batch_levels, build_scene, face_levels, frustum_lines
+from ._scene import batch_levels, build_scene, face_levels, frustum_past_model
 
 
 _CONTEXTS: dict = {}
@@ -74,7 +74,7 @@ class Renderer:
 def refined_arrays(pm: ProgressiveMesh, refinement: Refinement, *, color_levels=False):
     """``(vertices, faces, face levels or None)`` of a refinement, ready to draw."""
     v, f, ids = refinement.mesh(pm)
-    levels = face_levels(f, batch_levels(pm, refinement, ids)) if color_levels else None
+    levels = face_levels(f, batch_levels(pm, ids)) if color_levels else None
     return v, f, levels
 
 
@@ -97,11 +97,7 @@ def render_refinement(renderer: Renderer, pm: ProgressiveMesh, refinement: Refin
         ``(rgb uint8[H, W, 3], depth float32[H, W])``.
     """
     v, f, levels = refined_arrays(pm, refinement, color_levels=color_levels)
-    lines = None
-    if phantom is not None:
-        verts = np.asarray(pm.vertices)[: pm.n_original_vertices]
-        reach = np.linalg.norm(verts - np.asarray(phantom.eye), axis=1).max()
-        lines = frustum_lines(phantom, float(reach))
+    lines = frustum_past_model(pm, phantom) if phantom is not None else None
     return renderer.render_mesh(v, f, camera, levels=levels, n_batches=len(pm.batch_offsets) - 1,
                                 wireframe=wireframe, lines=lines)
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pmjax import Camera, ProgressiveMesh, Refinement
+from pmjax import Camera, ProgressiveMesh
 
 from ._gl import pyrender_module
 
@@ -29,7 +29,7 @@ def vertex_normals(vertices, faces) -> np.ndarray:
     return (n / np.where(length > 0, length, 1.0)).astype(np.float32)
 
 
-def batch_levels(pm: ProgressiveMesh, refinement: Refinement, vertex_ids) -> np.ndarray:
+def batch_levels(pm: ProgressiveMesh, vertex_ids) -> np.ndarray:
     """How coarse each output vertex is: 0 for an original vertex, ``b + 1`` for
     one created in batch ``b`` (``vertex_ids`` from :meth:`Refinement.mesh`)."""
     ids = np.asarray(vertex_ids, np.int64)
@@ -119,6 +119,14 @@ def frustum_lines(camera: Camera, depth: float) -> np.ndarray:
     for i in range(4):
         segs += [near_c[i], far_c[i], far_c[i], far_c[(i + 1) % 4]]
     return np.asarray(segs, np.float32)
+
+
+def frustum_past_model(pm: ProgressiveMesh, camera: Camera) -> np.ndarray:
+    """:func:`frustum_lines` of ``camera`` reaching just past the farthest
+    original vertex, so the whole model lies inside the drawn pyramid."""
+    verts = np.asarray(pm.vertices)[: pm.n_original_vertices]
+    reach = float(np.linalg.norm(verts - np.asarray(camera.eye), axis=1).max())
+    return frustum_lines(camera, reach)
 
 
 def build_scene(vertices, faces, camera: Camera, *, levels=None, n_batches=1, wireframe=False, extra_lines=None,

@@ -11,7 +11,7 @@ import numpy as np
 from pmjax import Camera, Tests, index_camera, load, refine, standard_orbit
 
 from ._gl import pyrender_module
-from ._scene import add_mesh, build_scene, frustum_lines, lines_mesh
+from ._scene import add_mesh, build_scene, frustum_past_model, lines_mesh
 
 KEYS = {
     "=": "raise tau (x2)",
@@ -127,9 +127,8 @@ def run_viewer(path: str, *, tau: float = 1.0, size=(800, 600), close_after: flo
                     scene.remove_node(frustum_node)
                     frustum_node = None
                 if state.phantom is not None:
-                    lines = frustum_lines(state.phantom, float(np.linalg.norm(verts - np.asarray(state.phantom.eye),
-                                                                                  axis=1).max()))
-                    frustum_node = scene.add(lines_mesh(lines), name="phantom-frustum")
+                    frustum_node = scene.add(lines_mesh(frustum_past_model(pm, state.phantom)),
+                                             name="phantom-frustum")
                 viewer.viewer_flags["caption"] = [dict(caption, text=text)]
         if close_after and time.time() - began > close_after:
             viewer.close_external()

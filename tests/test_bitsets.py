@@ -4,7 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pmjax._bitsets import pack_cameras, unpack_cameras, weight_bits_for, weighted_counts
+from pmjax._bitsets import camera_major, pack_cameras, unpack_cameras, weight_bits_for, weighted_counts
 
 
 @pytest.mark.parametrize("K,P", [(32, 1), (32, 45), (64, 1000), (96, 33)])
@@ -15,7 +15,7 @@ def test_pack_roundtrip_and_weighted_counts(K, P):
     words = pack_cameras(jnp.asarray(mask))
     assert words.shape == (P, K // 32) and words.dtype == jnp.uint32
     np.testing.assert_array_equal(np.asarray(unpack_cameras(words)), mask)
-    got = weighted_counts(words, jnp.asarray(weights), weight_bits_for(int(weights.max())))
+    got = weighted_counts(camera_major(words), jnp.asarray(weights), weight_bits_for(int(weights.max())))
     np.testing.assert_array_equal(np.asarray(got), mask.astype(np.int64) @ weights)
 
 

@@ -189,3 +189,13 @@ def test_viewer_in_a_real_window_reacts_to_keys(cow):
             viewer.terminate()
             viewer.wait(10)
         xvfb.terminate()
+
+
+def test_render_refuses_an_unknown_video_format(cow, tmp_path):
+    path, _, _ = cow
+    out = tmp_path / "orbit.avi"
+    r = subprocess.run([sys.executable, "-m", "pmjax", "render", path, "--orbit", "3", "-o", str(out), "-q"],
+                       capture_output=True, text=True)
+    assert r.returncode == 2
+    assert "must be .mp4, .gif or a directory" in r.stderr
+    assert not out.exists() and not list(tmp_path.glob(".tmp-*"))
