@@ -13,6 +13,9 @@ from ._model import PcolAttributes, ProgressiveMesh, load
 from ._predicate import ALL_TESTS, Tests, collapse_mask, critical_tau, kappa, oriented_away, outside_frustum, small_on_screen
 from ._refine import Refinement, critical_tolerances, faces_for_budget, propagate, refine, refine_batch
 from ._oracle import oracle_refine
+from ._soft import SoftRefinement, geomorph_positions, soft_refine, soft_tests, soft_weights
+from ._budget import BudgetSolution, soft_tau_for_budget
+from ._geomorph import Geomorph, geomorph_mesh, geomorph_start, geomorph_step
 from ._distance import distance_to_surface, point_triangle_distance, sample_surface, surface_distance
 
 __all__ = [
@@ -68,5 +71,16 @@ __all__ = [
     "refine",
     "refine_batch",
     "oracle_refine",
+    "SoftRefinement",
+    "geomorph_positions",
+    "soft_refine",
+    "soft_tests",
+    "soft_weights",
+    "BudgetSolution",
+    "soft_tau_for_budget",
+    "Geomorph",
+    "geomorph_mesh",
+    "geomorph_start",
+    "geomorph_step",
 ]
 __version__ = "0.1.0"

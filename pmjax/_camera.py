@@ -13,6 +13,7 @@ import math
 import os
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -46,6 +47,10 @@ class Camera(eqx.Module):
     @property
     def forward(self):
         return -self.rotation[..., :, 2]
+
+    def astype(self, dtype) -> "Camera":
+        """The same camera with its array fields in ``dtype``."""
+        return jax.tree.map(lambda x: x.astype(dtype), self)
 
     def pose(self) -> np.ndarray:
         """4×4 camera-to-world matrix (as pyrender wants it), float64."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
@@ -104,6 +105,12 @@ class ProgressiveMesh(eqx.Module):
     @property
     def n_faces(self) -> int:
         return int(self.faces.shape[0])
+
+    def astype(self, dtype) -> "ProgressiveMesh":
+        """The same mesh with positions and pcol attributes in ``dtype``
+        (``jnp.float64`` for gradient checks; needs ``jax.enable_x64``)."""
+        attrs = jax.tree.map(lambda x: x.astype(dtype), self.attributes)
+        return eqx.tree_at(lambda m: (m.vertices, m.attributes), self, (self.vertices.astype(dtype), attrs))
 
     @staticmethod
     def from_data(pm: PMData) -> "ProgressiveMesh":

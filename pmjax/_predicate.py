@@ -80,6 +80,12 @@ def oriented_away(attrs: PcolAttributes, camera: Camera) -> Bool[Array, " P"]:
     return (r * r < d2) & (ca * tangent > sa * r) & (h > sa * tangent + ca * r)
 
 
+def safe_sqrt(x):
+    """``sqrt(x)`` for ``x >= 0`` (bit for bit) whose gradient at 0 is 0, not NaN."""
+    positive = x > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
+
+
 def _screen_terms(attrs: PcolAttributes, camera: Camera):
     """``(uniform², normal², scale²)``: refine iff ``uniform² ≥ κ²·scale²`` or
     ``normal² ≥ κ²·scale²``, with ``κ = 2 tan(φ/2) τ / H`` (perspective) or the
@@ -110,7 +116,7 @@ def screen_tolerance(attrs: PcolAttributes, camera: Camera) -> Float[Array, " P"
     critical tolerances of :func:`critical_tau` agree with it bit for bit.
     """
     uniform2, normal2, scale2 = _screen_terms(attrs, camera)
-    return jnp.sqrt(jnp.maximum(uniform2, normal2) / scale2) / kappa(camera, 1.0)
+    return safe_sqrt(jnp.maximum(uniform2, normal2) / scale2) / kappa(camera, 1.0)
 
 
 def small_on_screen(attrs: PcolAttributes, camera: Camera, tau) -> Bool[Array, " P"]:
@@ -195,18 +201,19 @@ def _in_rows(per_pcol, attrs: PcolAttributes):
 
     XLA's CPU backend splits 2-D loops over both cores and vectorizes the rows;
     the same kernel over a 1-D ``[P]`` array ran 7x slower (dragon, measured).
-    The ``P % ROW`` remainder is evaluated as a short 1-D tail.
+    The ``P % ROW`` remainder is evaluated as a short 1-D tail. ``per_pcol``
+    may return a pytree of per-pcol arrays.
     """
     P = attrs.radius.shape[0]
     body = (P // ROW) * ROW
     if body == 0:
         return per_pcol(attrs)
     rows = jax.tree.map(lambda x: x[..., :body].reshape(x.shape[:-1] + (body // ROW, ROW)), attrs)
-    out = per_pcol(rows).reshape(body)
+    out = jax.tree.map(lambda y: y.reshape(body), per_pcol(rows))
     if body == P:
         return out
-    tail = jax.tree.map(lambda x: x[..., body:], attrs)
-    return jnp.concatenate([out, per_pcol(tail)])
+    tail = per_pcol(jax.tree.map(lambda x: x[..., body:], attrs))
+    return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), out, tail)
 
 
 collapse_mask_jit = jax.jit(collapse_mask, static_argnames=("tests", "predicate", "combine", "rows"))

@@ -7,6 +7,7 @@ import time
 import numpy as np
 
 from pmjax import ALL_TESTS, Camera, ProgressiveMesh, Tests, camera_count, index_camera, refine
+from pmjax import geomorph_mesh, geomorph_start, geomorph_step
 
 
 from ._offscreen import Renderer, original_arrays, refined_arrays
@@ -39,11 +40,16 @@ def image_difference(rgb_a, depth_a, rgb_b, depth_b, threshold: int = DIFF_THRES
 
 
 def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Tests = ALL_TESTS,
-                  progress: bool = False) -> list[dict]:
+                  geomorph: int = 0, progress: bool = False) -> list[dict]:
     """Per frame: faces, share of the model's pixels that differ from the
     original mesh's render (and PSNR), and popping — the share of pixels that
     change at this frame's camera only because the refinement changed since
-    the previous frame (render with the previous refinement vs this one).
+    the previous frame (render with the previous frame's geometry vs this one's).
+
+    Args:
+        geomorph: blend refinement changes over this many frames
+            (:func:`pmjax.geomorph_step`); 0 or 1 draws each frame's hard
+            refinement.
 
     Returns:
         list of dicts (one per camera) with ``faces``, ``differing_share``,
@@ -52,7 +58,7 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
     K = camera_count(cameras)
     first = index_camera(cameras, 0)
     ov, of = original_arrays(pm)
-    rows, previous = [], None
+    rows, previous, morph = [], None, None
     it = range(K)
     if progress:
         from tqdm import tqdm
@@ -61,7 +67,13 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
     with Renderer(first.width, first.height) as r:
         for i in it:
             cam = index_camera(cameras, i)
-            v, f, _ = refined_arrays(pm, refine(pm, cam, tau, tests))
+            refinement = refine(pm, cam, tau, tests)
+            if geomorph > 1:
+                morph = geomorph_start(refinement.executed) if morph is None else \
+                    geomorph_step(morph, refinement.executed, geomorph)
+                v, f, _ = geomorph_mesh(pm, morph)
+            else:
+                v, f, _ = refined_arrays(pm, refinement)
             t = time.perf_counter()
             rgb, depth = r.render_mesh(v, f, cam)
             render_ms = 1e3 * (time.perf_counter() - t)

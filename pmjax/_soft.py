@@ -1,0 +1,200 @@
+"""Soft refinement: the three tests as smooth margins, differentiable (DESIGN §4).
+
+Each hard test ``a > b`` becomes ``sigmoid((a − b) / (s · T))``: the margin
+``a − b`` is the very difference the hard test compares (same float
+expressions, so its sign is exact), ``s`` converts it to pixels and ``T`` is
+the temperature in pixels. As ``T → 0`` every sigmoid becomes the hard
+decision and the soft result equals :func:`pmjax.refine`'s.
+
+The dtype follows the mesh: float32 for speed, float64 (``pm.astype``) for
+gradient checks.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ._camera import Camera
+from ._model import PcolAttributes, ProgressiveMesh
+from ._predicate import ALL_TESTS, Tests, _eye_offset, _in_rows, _rows_dot, kappa, safe_sqrt, screen_tolerance
+from ._refine import down_the_batches, up_the_batches
+
+
+class SoftRefinement(eqx.Module):
+    """A soft (differentiable) refinement for one view.
+
+    Attributes:
+        collapse: ``[P]`` soft collapse decision of each pcol's own tests.
+        visible: ``[P]`` soft "neither outside the frustum nor facing away".
+        weight: ``[P]`` soft executed: ``collapse`` times the weights of the
+            pcols that made its two vertices (1 for original vertices).
+        positions: ``[V0, 3]`` geomorphed position of every original vertex.
+        face_weight: ``[F]`` soft "face is drawn": ``1 − weight[killer]``.
+        faces: soft face count, ``Σ face_weight``.
+        error: soft screen-space error in pixels: ``Σ_p weight·visible·t_p``,
+            the summed deviation of the executed, visible collapses.
+    """
+
+    collapse: Float[Array, " P"]
+    visible: Float[Array, " P"]
+    weight: Float[Array, " P"]
+    positions: Float[Array, "V0 3"]
+    face_weight: Float[Array, " F"]
+    faces: Float[Array, ""]
+    error: Float[Array, ""]
+
+
+def _above(margin, unit, temperature):
+    """Soft ``margin > 0`` for a margin measured in ``unit`` per pixel."""
+    return jax.nn.sigmoid(margin / (unit * temperature))
+
+
+def soft_tests(attrs: PcolAttributes, camera: Camera, tau, temperature, scale=None, tests: Tests = ALL_TESTS):
+    """Per pcol ``(collapse, visible, t_p)`` as smooth functions of the view.
+
+    Margins are converted to pixels before the temperature applies: a world
+    distance at the pcol by ``d·κ₁`` (one pixel at distance ``d``), an angle
+    (cosine difference) by ``κ₁`` (one pixel's angle), so one temperature
+    serves all three tests. ``κ₁ = 2 tan(φ/2) / H``.
+
+    Args:
+        attrs: :class:`PcolAttributes` (``[3, P]``, ``[P]`` rows; or row views).
+        camera: one perspective :class:`Camera`.
+        tau: tolerance, pixels.
+        temperature: ``T`` in pixels (> 0).
+        scale: ``[P]`` per-pcol factors on ``tau`` (per-region tolerances), or None.
+        tests: :class:`Tests`.
+
+    Returns:
+        ``(collapse, visible, t_p)``, each shaped like ``attrs.radius``.
+    """
+    one_px = kappa(camera, 1.0)
+    d2, h = _eye_offset(attrs, camera)
+    d = safe_sqrt(d2)
+    r = attrs.radius
+    visible = jnp.ones_like(r)
+    if tests.frustum:
+        # Outside plane i: n·c + w < −r. Inside all six is a product.
+        planes = camera.frustum_planes()
+        for i in range(6):
+            x = _rows_dot(attrs.center, planes[i, :3]) + planes[i, 3]
+            visible = visible * (1.0 - _above(-r - x, d * one_px, temperature))
+    if tests.orientation:
+        # The three conditions of pmjax.oriented_away (same expressions), ANDed.
+        sa, ca = attrs.sin_alpha, attrs.cos_alpha
+        tangent = safe_sqrt(jnp.maximum(d2 - r * r, 0.0))
+        away = (
+            _above(d2 - r * r, d2 * one_px, temperature)
+            * _above(ca * tangent - sa * r, d * one_px, temperature)
+            * _above(h - (sa * tangent + ca * r), d * one_px, temperature)
+        )
+        visible = visible * (1.0 - away)
+    t = screen_tolerance(attrs, camera)
+    collapse = 1.0 - visible
+    if tests.screen:
+        limit = tau if scale is None else tau * scale
+        collapse = 1.0 - visible * (1.0 - _above(limit - t, 1.0, temperature))
+    return collapse, visible, t
+
+
+def soft_weights(pm: ProgressiveMesh, collapse: Float[Array, " P"]) -> Float[Array, " P"]:
+    """Soft executed: each pcol's collapse times its children's weights."""
+    return up_the_batches(pm, collapse, 1.0, lambda own, a, b: own * a * b)
+
+
+def geomorph_positions(pm: ProgressiveMesh, weight: Float[Array, " P"], *, created: bool = False):
+    """Blended positions of the original vertices for per-pcol weights in [0, 1].
+
+    ``x_v + Σ_k w(a_k)·(x(a_k) − x(a_{k−1}))`` along the vertex's ancestor
+    chain ``a_0 = v, a_1, …`` (DESIGN §4): with 0/1 weights of an executed set
+    this is the position of ``v``'s representative.
+
+    Args:
+        weight: ``[P]`` per-pcol weights.
+        created: also return the created vertices' blended positions.
+
+    Returns:
+        ``[V0, 3]`` (or ``[V0 + P, 3]`` with ``created``), dtype of the mesh.
+    """
+    V0 = pm.n_original_vertices
+    x = pm.vertices
+
+    # offset(u) = w(p)·(x(p) − x(u)) + offset(p) for p = the pcol consuming u.
+    def climb(parent, start, ids, coarser):
+        up = jnp.maximum(parent, 0)
+        step = weight[start + up][:, None] * (x[V0 + start + up] - x[ids]) + coarser[up]
+        return jnp.where((parent >= 0)[:, None], step, 0.0)
+
+    offset = down_the_batches(pm, lambda ids: jnp.zeros((ids.shape[0], 3), x.dtype), climb)
+    return x + offset if created else x[:V0] + offset[:V0]
+
+
+def soft_refine(
+    pm: ProgressiveMesh,
+    camera: Camera,
+    tau=1.0,
+    temperature=0.1,
+    scale: Optional[Float[Array, " P"]] = None,
+    tests: Tests = ALL_TESTS,
+) -> SoftRefinement:
+    """Refine ``pm`` softly for one view; differentiable in every array input.
+
+    Pure JAX: compose with ``jax.grad`` (eye, rotation, fov, ``tau``,
+    ``scale``, ``temperature``), ``jax.vmap`` (cameras) and ``jax.jit``.
+
+    Args:
+        pm: :class:`ProgressiveMesh`; its dtype is the computation's.
+        camera: one perspective :class:`Camera`.
+        tau: tolerance, pixels of the image height.
+        temperature: softness ``T`` in pixels (``→ 0``: the hard refinement).
+        scale: optional ``[P]`` factors on ``tau`` per pcol (per region: gather
+            a per-region array by each pcol's region id).
+        tests: :class:`Tests` (ablations).
+
+    Returns:
+        :class:`SoftRefinement`.
+    """
+    if camera.orthographic:
+        raise ValueError("soft_refine supports perspective cameras only")
+    # Arrays, not Python floats, so a new value does not recompile.
+    dtype = pm.attributes.radius.dtype
+    tau, temperature = jnp.asarray(tau, dtype), jnp.asarray(temperature, dtype)
+    return _soft_refine_checked(pm, camera, tau, temperature, scale, tests)
+
+
+@eqx.filter_jit
+def _soft_refine_checked(pm, camera, tau, temperature, scale, tests):
+    temperature = eqx.error_if(temperature, ~(temperature > 0), "temperature must be > 0")
+    return soft_refine_unchecked(pm, camera, tau, temperature, scale, tests)
+
+
+def soft_refine_unchecked(pm, camera, tau, temperature, scale=None, tests: Tests = ALL_TESTS) -> SoftRefinement:
+    """:func:`soft_refine` without the argument checks (for solvers, whose
+    trial points may be anything; a bad one gives NaN in its own lane instead
+    of an error for the whole batch)."""
+    dtype = pm.attributes.radius.dtype
+    tau = jnp.asarray(tau, dtype)
+    temperature = jnp.asarray(temperature, dtype)
+    attrs = pm.attributes
+    if scale is None:
+        collapse, visible, t = _in_rows(lambda a: soft_tests(a, camera, tau, temperature, None, tests), attrs)
+    else:
+        collapse, visible, t = soft_tests(attrs, camera, tau, temperature, jnp.asarray(scale, dtype), tests)
+    weight = soft_weights(pm, collapse)
+    killer = pm.killer
+    face_weight = jnp.where(killer < 0, 1.0, 1.0 - weight[jnp.maximum(killer, 0)])
+    return SoftRefinement(
+        collapse=collapse,
+        visible=visible,
+        weight=weight,
+        positions=geomorph_positions(pm, weight),
+        face_weight=face_weight,
+        # Sum the survivors, not F minus the collapsed: no cancellation in float32.
+        faces=(pm.n_faces - jnp.sum(pm.kills)) + jnp.sum(pm.kills * (1.0 - weight)),
+        error=jnp.sum(weight * visible * t),
+    )
