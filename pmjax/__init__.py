@@ -13,7 +13,8 @@ from ._model import PcolAttributes, ProgressiveMesh, load
 from ._predicate import ALL_TESTS, Tests, collapse_mask, critical_tau, kappa, oriented_away, outside_frustum, small_on_screen
 from ._refine import Refinement, critical_tolerances, faces_for_budget, propagate, refine, refine_batch
 from ._oracle import oracle_refine
-from ._soft import SoftRefinement, geomorph_positions, soft_refine, soft_tests, soft_weights
+from ._soft import SoftRefinement, geomorph_blend, geomorph_positions, soft_refine, soft_tests, soft_weights
+from ._normals import hierarchy_normals
 from ._budget import BudgetSolution, soft_tau_for_budget
 from ._geomorph import Geomorph, geomorph_mesh, geomorph_start, geomorph_step
 from ._distance import distance_to_surface, point_triangle_distance, sample_surface, surface_distance
@@ -72,7 +73,9 @@ __all__ = [
     "refine_batch",
     "oracle_refine",
     "SoftRefinement",
+    "geomorph_blend",
     "geomorph_positions",
+    "hierarchy_normals",
     "soft_refine",
     "soft_tests",
     "soft_weights",

@@ -178,7 +178,8 @@ def cmd_path(args) -> int:
     if args.fidelity:
         from pmjax.render import path_fidelity
 
-        for row, fid in zip(rows, path_fidelity(pm, cams, args.tau, tests=tests, progress=not args.quiet)):
+        fidelity = path_fidelity(pm, cams, args.tau, tests=tests, geomorph=args.geomorph, progress=not args.quiet)
+        for row, fid in zip(rows, fidelity):
             row.update({k: round(float(fid[k]), 6) for k in FIDELITY_COLUMNS})
         cols += list(FIDELITY_COLUMNS)
     lines = [",".join(cols)] + [",".join(str(r[c]) for c in cols) for r in rows]
@@ -196,7 +197,7 @@ def cmd_path(args) -> int:
     return 0
 
 
-FIDELITY_COLUMNS = ("differing_share", "psnr", "popping_share", "render_ms")
+FIDELITY_COLUMNS = ("differing_share", "psnr", "popping_share", "popping_mse", "render_ms")
 
 
 def _path_cameras(pm, args):
@@ -217,7 +218,8 @@ def cmd_render(args) -> int:
     if args.phantom:
         view = overview_camera(np.asarray(pm.vertices)[: pm.n_original_vertices], pmjax.index_camera(cams, 0))
     out = render_path(pm, cams, args.tau, args.output, tests=_tests(args), wireframe=args.wireframe,
-                      color_levels=args.levels, phantom=view, fps=args.fps, progress=not args.quiet)
+                      color_levels=args.levels, phantom=view, geomorph=args.geomorph, fps=args.fps,
+                      progress=not args.quiet)
     print(f"{args.output}: {out['frames']} frames, faces median {int(np.median(out['faces']))}")
     return 0
 
@@ -324,6 +326,10 @@ def build_parser() -> argparse.ArgumentParser:
         g.add_argument("--orbit", type=int, help="standard orbit with N frames (DESIGN §7)")
         g.add_argument("--path", help="camera file (.json or .csv)")
 
+    def add_geomorph_arg(p):
+        p.add_argument("--geomorph", type=int, default=0, metavar="N",
+                       help="blend refinement changes over N frames instead of popping (default 0: off)")
+
     def add_view_args(p):
         p.add_argument("--tau", type=float, default=1.0, help="screen-space tolerance in pixels (default 1)")
         p.add_argument("--no", action="append", choices=("frustum", "orientation", "screen"),
@@ -345,6 +351,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--csv", help="output CSV")
     p.add_argument("--fidelity", action="store_true",
                    help="also render each frame and the original: differing-pixel share, PSNR, popping")
+    add_geomorph_arg(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_view_args(p)
     p.set_defaults(func=cmd_path)
@@ -359,6 +366,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--phantom", action="store_true",
                    help="watch from a fixed overview camera, with each path camera's frustum drawn")
     p.add_argument("--fps", type=int, default=30, help="frames per second of the video")
+    add_geomorph_arg(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_view_args(p)
     p.set_defaults(func=cmd_render)

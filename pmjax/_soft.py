@@ -107,31 +107,38 @@ def soft_weights(pm: ProgressiveMesh, collapse: Float[Array, " P"]) -> Float[Arr
     return up_the_batches(pm, collapse, 1.0, lambda own, a, b: own * a * b)
 
 
-def geomorph_positions(pm: ProgressiveMesh, weight: Float[Array, " P"], *, created: bool = False):
-    """Blended positions of the original vertices for per-pcol weights in [0, 1].
+def geomorph_blend(pm: ProgressiveMesh, weight: Float[Array, " P"], values: Float[Array, "V k"]):
+    """Blend a per-vertex attribute along every vertex's ancestor chain.
 
-    ``x_v + Σ_k w(a_k)·(x(a_k) − x(a_{k−1}))`` along the vertex's ancestor
-    chain ``a_0 = v, a_1, …`` (DESIGN §4): with 0/1 weights of an executed set
-    this is the position of ``v``'s representative.
+    ``value(v) + Σ_k w(a_k)·(value(a_k) − value(a_{k−1}))`` over the chain
+    ``a_0 = v, a_1, …`` of vertices made by the pcols consuming them (DESIGN
+    §4). With the 0/1 weights of an executed set this is the value of ``v``'s
+    representative; in between, a straight blend toward it.
 
     Args:
-        weight: ``[P]`` per-pcol weights.
-        created: also return the created vertices' blended positions.
+        weight: ``[P]`` per-pcol weights in [0, 1].
+        values: ``[V0 + P, k]`` per-vertex values (positions, normals, ...).
 
     Returns:
-        ``[V0, 3]`` (or ``[V0 + P, 3]`` with ``created``), dtype of the mesh.
+        ``[V0 + P, k]`` blended values of every vertex.
     """
     V0 = pm.n_original_vertices
-    x = pm.vertices
 
-    # offset(u) = w(p)·(x(p) − x(u)) + offset(p) for p = the pcol consuming u.
+    # offset(u) = w(p)·(value(p) − value(u)) + offset(p) for p = the pcol consuming u.
     def climb(parent, start, ids, coarser):
         up = jnp.maximum(parent, 0)
-        step = weight[start + up][:, None] * (x[V0 + start + up] - x[ids]) + coarser[up]
+        step = weight[start + up][:, None] * (values[V0 + start + up] - values[ids]) + coarser[up]
         return jnp.where((parent >= 0)[:, None], step, 0.0)
 
-    offset = down_the_batches(pm, lambda ids: jnp.zeros((ids.shape[0], 3), x.dtype), climb)
-    return x + offset if created else x[:V0] + offset[:V0]
+    none = lambda ids: jnp.zeros((ids.shape[0],) + values.shape[1:], values.dtype)
+    return values + down_the_batches(pm, none, climb)
+
+
+def geomorph_positions(pm: ProgressiveMesh, weight: Float[Array, " P"]) -> Float[Array, "V0 3"]:
+    """Blended positions of the original vertices (:func:`geomorph_blend` of
+    the vertex positions): with the 0/1 weights of an executed set, the
+    position of each vertex's representative."""
+    return geomorph_blend(pm, weight, pm.vertices)[: pm.n_original_vertices]
 
 
 def soft_refine(

@@ -10,7 +10,7 @@ from pmjax import ALL_TESTS, Camera, ProgressiveMesh, Tests, camera_count, index
 from pmjax import geomorph_mesh, geomorph_start, geomorph_step
 
 
-from ._offscreen import Renderer, original_arrays, refined_arrays
+from ._offscreen import Renderer, original_arrays, refined_arrays, shading_normals
 
 # A pixel "differs" when some 8-bit channel differs by more than this.
 DIFF_THRESHOLD = 8
@@ -23,8 +23,8 @@ def image_difference(rgb_a, depth_a, rgb_b, depth_b, threshold: int = DIFF_THRES
 
     Returns:
         dict: ``model_pixels``, ``differing`` (count), ``differing_share``
-        (of the model's pixels), ``psnr`` (dB over the model's pixels; ``inf``
-        if identical).
+        (of the model's pixels), ``mse`` (mean squared 8-bit difference over
+        the model's pixels and channels) and ``psnr`` (dB; ``inf`` if identical).
     """
     a = np.asarray(rgb_a, np.int16)
     b = np.asarray(rgb_b, np.int16)
@@ -36,11 +36,11 @@ def image_difference(rgb_a, depth_a, rgb_b, depth_b, threshold: int = DIFF_THRES
     differing = int(((diff.max(axis=-1) > threshold) & model).sum())
     mse = float((diff[model].astype(np.float64) ** 2).mean()) if n else 0.0
     psnr = float("inf") if mse == 0 else 10 * np.log10(255.0**2 / mse)
-    return dict(model_pixels=n, differing=differing, differing_share=differing / n if n else 0.0, psnr=psnr)
+    return dict(model_pixels=n, differing=differing, differing_share=differing / n if n else 0.0, mse=mse, psnr=psnr)
 
 
 def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Tests = ALL_TESTS,
-                  geomorph: int = 0, progress: bool = False) -> list[dict]:
+                  geomorph: int = 0, supersample: int = 2, progress: bool = False) -> list[dict]:
     """Per frame: faces, share of the model's pixels that differ from the
     original mesh's render (and PSNR), and popping — the share of pixels that
     change at this frame's camera only because the refinement changed since
@@ -50,37 +50,45 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
         geomorph: blend refinement changes over this many frames
             (:func:`pmjax.geomorph_step`); 0 or 1 draws each frame's hard
             refinement.
+        supersample: render at this many times the size and average down
+            (anti-aliasing: without it an edge moving by a fraction of a pixel
+            flips whole pixels, and every small motion counts as popping).
 
     Returns:
         list of dicts (one per camera) with ``faces``, ``differing_share``,
-        ``psnr``, ``popping_share`` (0 for the first frame) and ``render_ms``.
+        ``psnr``, ``popping_share`` (visibly changed pixels, see
+        :data:`DIFF_THRESHOLD`), ``popping_mse`` (mean squared change: a
+        change spread over ``n`` frames counts ``1/n`` as much per frame),
+        both 0 for the first frame, and ``render_ms``.
     """
     K = camera_count(cameras)
     first = index_camera(cameras, 0)
-    ov, of = original_arrays(pm)
+    ov, of, on = original_arrays(pm)
     rows, previous, morph = [], None, None
     it = range(K)
     if progress:
         from tqdm import tqdm
 
         it = tqdm(it, unit="frame", desc="fidelity")
-    with Renderer(first.width, first.height) as r:
+    with Renderer(first.width, first.height, supersample) as r:
         for i in it:
             cam = index_camera(cameras, i)
             refinement = refine(pm, cam, tau, tests)
             if geomorph > 1:
                 morph = geomorph_start(refinement.executed) if morph is None else \
                     geomorph_step(morph, refinement.executed, geomorph)
-                v, f, _ = geomorph_mesh(pm, morph)
+                v, f, _, n = geomorph_mesh(pm, morph, shading_normals(pm))
             else:
-                v, f, _ = refined_arrays(pm, refinement)
+                v, f, _, n = refined_arrays(pm, refinement)
             t = time.perf_counter()
-            rgb, depth = r.render_mesh(v, f, cam)
+            rgb, depth = r.render_mesh(v, f, cam, normals=n)
             render_ms = 1e3 * (time.perf_counter() - t)
-            row = image_difference(*r.render_mesh(ov, of, cam), rgb, depth)
-            row.update(frame=i, faces=int(len(f)), render_ms=render_ms, popping_share=0.0)
+            row = image_difference(*r.render_mesh(ov, of, cam, normals=on), rgb, depth)
+            row.update(frame=i, faces=int(len(f)), render_ms=render_ms, popping_share=0.0, popping_mse=0.0)
             if previous is not None:
-                row["popping_share"] = image_difference(*r.render_mesh(*previous, cam), rgb, depth)["differing_share"]
-            previous = (v, f)
+                pv, pf, pn = previous
+                pop = image_difference(*r.render_mesh(pv, pf, cam, normals=pn), rgb, depth)
+                row.update(popping_share=pop["differing_share"], popping_mse=pop["mse"])
+            previous = (v, f, n)
             rows.append(row)
     return rows

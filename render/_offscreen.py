@@ -8,6 +8,7 @@ from typing import Optional
 import numpy as np
 
 from pmjax import ALL_TESTS, Camera, ProgressiveMesh, Refinement, Tests, camera_count, index_camera, refine
+from pmjax import geomorph_mesh, geomorph_start, geomorph_step, hierarchy_normals
 from pmjax._atomic import atomic_path
 
 
@@ -26,9 +27,12 @@ class Renderer:
     context, so they are never deleted early. Usable as a context manager.
     """
 
-    def __init__(self, width: int, height: int):
+    def __init__(self, width: int, height: int, supersample: int = 1):
         pyrender = pyrender_module(offscreen=True)
-        key = (int(width), int(height))
+        if int(supersample) < 1:
+            raise ValueError(f"supersample must be >= 1, got {supersample}")
+        self.supersample = int(supersample)
+        key = (int(width) * self.supersample, int(height) * self.supersample)
         if key not in _CONTEXTS:
             try:
                 _CONTEXTS[key] = pyrender.OffscreenRenderer(*key)
@@ -38,26 +42,40 @@ class Renderer:
                     f"PYOPENGL_PLATFORM={os.environ.get('PYOPENGL_PLATFORM')!r}: {exc}"
                 ) from exc
         self._gl = _CONTEXTS[key]
-        self.width, self.height = key
+        self.width, self.height = int(width), int(height)
 
     def render_scene(self, scene):
-        """``(rgb uint8[H, W, 3], depth float32[H, W])``; depth 0 where empty."""
+        """``(rgb uint8[H, W, 3], depth float32[H, W])``; depth 0 where empty.
+
+        With ``supersample = s`` the scene is drawn at ``s×`` the size and each
+        ``s × s`` block averaged (depth: nearest covered sample), so an edge
+        moving by a fraction of a pixel changes the pixel by that fraction.
+        """
         color, depth = self._gl.render(scene)
-        return np.ascontiguousarray(color[..., :3]), depth
+        color = color[..., :3]
+        s = self.supersample
+        if s > 1:
+            H, W = self.height, self.width
+            color = color.reshape(H, s, W, s, 3).mean(axis=(1, 3)).round().astype(np.uint8)
+            blocks = depth.reshape(H, s, W, s)
+            depth = np.where(blocks > 0, blocks, np.inf).min(axis=(1, 3))
+            depth = np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
+        return np.ascontiguousarray(color), depth
 
     def render_mesh(self, vertices, faces, camera: Camera, *, levels=None, n_batches=1, wireframe=False,
-                    lines=None):
+                    lines=None, normals=None):
         """Render plain arrays seen from ``camera`` (whose size must match).
 
         Args:
             levels, n_batches: optional per-face batch levels to colour by.
             wireframe: overlay the edges.
             lines: optional ``[2n, 3]`` line segments (drawn red).
+            normals: optional ``[V, 3]`` vertex normals (default: from the faces).
         """
         if (camera.width, camera.height) != (self.width, self.height):
             raise ValueError(f"camera is {camera.width}x{camera.height}, renderer {self.width}x{self.height}")
         scene, _ = build_scene(vertices, faces, camera, levels=levels, n_batches=n_batches, wireframe=wireframe,
-                               extra_lines=lines)
+                               extra_lines=lines, normals=normals)
         return self.render_scene(scene)
 
     def close(self):
@@ -71,17 +89,31 @@ class Renderer:
         self.close()
 
 
+_NORMALS: dict = {}
+
+
+def shading_normals(pm: ProgressiveMesh) -> np.ndarray:
+    """:func:`pmjax.hierarchy_normals` of ``pm``, computed once per mesh."""
+    key = id(pm)
+    if key not in _NORMALS or _NORMALS[key][0] is not pm:
+        _NORMALS.clear()  # one mesh at a time; keeps the mesh alive while cached
+        _NORMALS[key] = (pm, hierarchy_normals(pm))
+    return _NORMALS[key][1]
+
+
 def refined_arrays(pm: ProgressiveMesh, refinement: Refinement, *, color_levels=False):
-    """``(vertices, faces, face levels or None)`` of a refinement, ready to draw."""
+    """``(vertices, faces, face levels or None, normals)`` of a refinement,
+    ready to draw; each vertex is shaded with the normal of the original
+    surface it stands for (:func:`pmjax.hierarchy_normals`)."""
     v, f, ids = refinement.mesh(pm)
     levels = face_levels(f, batch_levels(pm, ids)) if color_levels else None
-    return v, f, levels
+    return v, f, levels, shading_normals(pm)[ids]
 
 
 def original_arrays(pm: ProgressiveMesh):
-    """``(vertices, faces)`` of the original (full-resolution) mesh."""
+    """``(vertices, faces, normals)`` of the original (full-resolution) mesh."""
     V0 = pm.n_original_vertices
-    return np.asarray(pm.vertices)[:V0], np.asarray(pm.faces)
+    return np.asarray(pm.vertices)[:V0], np.asarray(pm.faces), shading_normals(pm)[:V0]
 
 
 def render_refinement(renderer: Renderer, pm: ProgressiveMesh, refinement: Refinement, camera: Camera, *,
@@ -96,10 +128,10 @@ def render_refinement(renderer: Renderer, pm: ProgressiveMesh, refinement: Refin
     Returns:
         ``(rgb uint8[H, W, 3], depth float32[H, W])``.
     """
-    v, f, levels = refined_arrays(pm, refinement, color_levels=color_levels)
+    v, f, levels, normals = refined_arrays(pm, refinement, color_levels=color_levels)
     lines = frustum_past_model(pm, phantom) if phantom is not None else None
     return renderer.render_mesh(v, f, camera, levels=levels, n_batches=len(pm.batch_offsets) - 1,
-                                wireframe=wireframe, lines=lines)
+                                wireframe=wireframe, lines=lines, normals=normals)
 
 
 def write_frames(frames, path: str, fps: int = 30) -> None:
@@ -133,13 +165,15 @@ def write_png(path: str, image) -> None:
 
 
 def render_path(pm: ProgressiveMesh, cameras: Camera, tau: float, out: str, *, tests: Tests = ALL_TESTS,
-                wireframe=False, color_levels=False, phantom: Optional[Camera] = None, fps: int = 30,
-                progress: bool = True) -> dict:
+                wireframe=False, color_levels=False, phantom: Optional[Camera] = None, geomorph: int = 0,
+                fps: int = 30, progress: bool = True) -> dict:
     """Refine and render every camera of a path; write ``out`` (.mp4/.gif/PNG folder).
 
     Args:
         phantom: if given, every frame is refined for its path camera but seen
             from this fixed overview camera, with the path camera's frustum drawn.
+        geomorph: blend refinement changes over this many frames instead of
+            popping (:func:`pmjax.geomorph_step`); 0 or 1: off.
 
     Returns:
         dict with ``faces`` (int per frame) and ``frames`` (count).
@@ -147,9 +181,11 @@ def render_path(pm: ProgressiveMesh, cameras: Camera, tau: float, out: str, *, t
     K = camera_count(cameras)
     first = index_camera(cameras, 0)
     view = phantom if phantom is not None else first
+    n_batches = len(pm.batch_offsets) - 1
     faces = []
 
     def frames():
+        morph = None
         with Renderer(view.width, view.height) as r:
             it = range(K)
             if progress:
@@ -159,12 +195,17 @@ def render_path(pm: ProgressiveMesh, cameras: Camera, tau: float, out: str, *, t
             for i in it:
                 cam = index_camera(cameras, i)
                 ref = refine(pm, cam, tau, tests)
-                faces.append(int(ref.n_faces))
-                if phantom is None:
-                    yield render_refinement(r, pm, ref, cam, wireframe=wireframe, color_levels=color_levels)[0]
+                if geomorph > 1:
+                    morph = geomorph_start(ref.executed) if morph is None else \
+                        geomorph_step(morph, ref.executed, geomorph)
+                    v, f, ids, normals = geomorph_mesh(pm, morph, shading_normals(pm))
+                    levels = face_levels(f, batch_levels(pm, ids)) if color_levels else None
                 else:
-                    yield render_refinement(r, pm, ref, phantom, wireframe=wireframe, color_levels=color_levels,
-                                            phantom=cam)[0]
+                    v, f, levels, normals = refined_arrays(pm, ref, color_levels=color_levels)
+                faces.append(len(f))
+                lines = frustum_past_model(pm, cam) if phantom is not None else None
+                yield r.render_mesh(v, f, view if phantom is not None else cam, levels=levels, n_batches=n_batches,
+                                    wireframe=wireframe, lines=lines, normals=normals)[0]
 
     write_frames(frames(), out, fps=fps)
     return dict(faces=np.asarray(faces), frames=len(faces))

@@ -65,7 +65,7 @@ def pyrender_camera(camera: Camera):
                                       znear=near, zfar=far)
 
 
-def mesh_node_geometry(vertices, faces, *, levels=None, n_batches=1, wireframe=False):
+def mesh_node_geometry(vertices, faces, *, levels=None, n_batches=1, wireframe=False, normals=None):
     """A ``pyrender.Mesh`` of a triangle mesh with smooth per-vertex normals.
 
     Args:
@@ -75,11 +75,13 @@ def mesh_node_geometry(vertices, faces, *, levels=None, n_batches=1, wireframe=F
             vertex colours bypass its lighting, so they are not used).
         n_batches: the level of the coarsest batch (colour scale).
         wireframe: draw the overlay edges instead of filled faces.
+        normals: optional ``[V, 3]`` unit vertex normals (default: from the
+            faces, area-weighted).
     """
     pyrender = pyrender_module()
     v = np.asarray(vertices, np.float32)
     f = np.asarray(faces, np.uint32).reshape(-1, 3)
-    normals = vertex_normals(v, f)
+    normals = vertex_normals(v, f) if normals is None else np.asarray(normals, np.float32)
 
     def primitive(face_subset, color):
         material = pyrender.MetallicRoughnessMaterial(
@@ -130,7 +132,7 @@ def frustum_past_model(pm: ProgressiveMesh, camera: Camera) -> np.ndarray:
 
 
 def build_scene(vertices, faces, camera: Camera, *, levels=None, n_batches=1, wireframe=False, extra_lines=None,
-                light=True):
+                light=True, normals=None):
     """Scene with the mesh, an optional wireframe overlay, optional line
     segments (``[2n, 3]``), the camera and (``light``) one directional light at the eye.
 
@@ -139,7 +141,7 @@ def build_scene(vertices, faces, camera: Camera, *, levels=None, n_batches=1, wi
     """
     pyrender = pyrender_module()
     scene = pyrender.Scene(bg_color=BACKGROUND, ambient_light=(0.12, 0.12, 0.12))
-    nodes = add_mesh(scene, vertices, faces, levels=levels, n_batches=n_batches, wireframe=wireframe)
+    nodes = add_mesh(scene, vertices, faces, levels=levels, n_batches=n_batches, wireframe=wireframe, normals=normals)
     if extra_lines is not None and len(extra_lines):
         scene.add(lines_mesh(extra_lines), name="frustum")
     pose = camera.pose()
@@ -149,11 +151,11 @@ def build_scene(vertices, faces, camera: Camera, *, levels=None, n_batches=1, wi
     return scene, nodes
 
 
-def add_mesh(scene, vertices, faces, *, levels=None, n_batches=1, wireframe=False) -> list:
+def add_mesh(scene, vertices, faces, *, levels=None, n_batches=1, wireframe=False, normals=None) -> list:
     """Add the shaded mesh (and the overlay) to ``scene``; returns the new nodes."""
     nodes = []
     if len(np.asarray(faces).reshape(-1, 3)):
-        geometry = mesh_node_geometry(vertices, faces, levels=levels, n_batches=n_batches)
+        geometry = mesh_node_geometry(vertices, faces, levels=levels, n_batches=n_batches, normals=normals)
         nodes.append(scene.add(geometry, name="mesh"))
         if wireframe:
             nodes.append(scene.add(mesh_node_geometry(vertices, faces, wireframe=True), name="wireframe"))

@@ -11,6 +11,7 @@ import numpy as np
 from pmjax import Camera, Tests, index_camera, load, refine, standard_orbit
 
 from ._gl import pyrender_module
+from ._offscreen import refined_arrays
 from ._scene import add_mesh, build_scene, frustum_past_model, lines_mesh
 
 KEYS = {
@@ -90,8 +91,8 @@ def run_viewer(path: str, *, tau: float = 1.0, size=(800, 600), close_after: flo
     start = index_camera(standard_orbit(verts, 240, width=W, height=H), 0)
     state = ViewerState(tau=float(tau))
     first = refine(pm, start, state.tau)
-    v, f, _ = first.mesh(pm)
-    scene, nodes = build_scene(v, f, start, light=False)
+    v, f, _, normals = refined_arrays(pm, first)
+    scene, nodes = build_scene(v, f, start, light=False, normals=normals)
     caption = dict(location=pyrender.constants.TextAlign.TOP_LEFT, font_name="OpenSans-Regular", font_pt=16,
                    color=np.array([0.1, 0.1, 0.1, 1.0]), scale=1.0)
     viewer = pyrender.Viewer(
@@ -115,14 +116,14 @@ def run_viewer(path: str, *, tau: float = 1.0, size=(800, 600), close_after: flo
             ref = refine(pm, target, state.tau, state.tests())
             jax.block_until_ready(ref.n_faces)
             ms = 1e3 * (time.perf_counter() - t)
-            v, f, _ = ref.mesh(pm)
+            v, f, _, normals = refined_arrays(pm, ref)
             text = (f"faces {int(ref.n_faces)}  refine {ms:.1f} ms  tau {state.tau:g} px  tests "
                     f"{'F' if state.frustum else '-'}{'O' if state.orientation else '-'}"
                     f"{'S' if state.screen else '-'}{'  phantom' if state.phantom is not None else ''}")
             with viewer.render_lock:
                 for n in nodes:
                     scene.remove_node(n)
-                nodes = add_mesh(scene, v, f, wireframe=state.wireframe)
+                nodes = add_mesh(scene, v, f, wireframe=state.wireframe, normals=normals)
                 if frustum_node is not None:
                     scene.remove_node(frustum_node)
                     frustum_node = None

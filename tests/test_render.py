@@ -47,7 +47,8 @@ def test_small_tau_covers_the_original_silhouette(cow, renderer):
 
     _, pm, data = cow
     cam = _camera(data)
-    ref_rgb, ref_depth = renderer.render_mesh(*original_arrays(pm), cam)
+    ov, of, on = original_arrays(pm)
+    ref_rgb, ref_depth = renderer.render_mesh(ov, of, cam, normals=on)
     assert 0.05 < (ref_depth > 0).mean() < 0.9  # the model is in view
     fine = image_difference(ref_rgb, ref_depth, *render_refinement(renderer, pm, pmjax.refine(pm, cam, 0.25), cam))
     coarse = image_difference(ref_rgb, ref_depth, *render_refinement(renderer, pm, pmjax.refine(pm, cam, 8.0), cam))
@@ -199,3 +200,48 @@ def test_render_refuses_an_unknown_video_format(cow, tmp_path):
     assert r.returncode == 2
     assert "must be .mp4, .gif or a directory" in r.stderr
     assert not out.exists() and not list(tmp_path.glob(".tmp-*"))
+
+
+def test_geomorph_spreads_a_refinement_change(cow, renderer):
+    """At a fixed camera, a jump from tau 0.5 to tau 6 rendered at once vs blended
+    over 4 frames: every blended step changes the image less than the jump, and
+    the squared change summed over the steps is smaller too (the same change
+    spread over frames)."""
+    from pmjax.render import image_difference
+    from pmjax.render._offscreen import refined_arrays, shading_normals
+
+    _, pm, data = cow
+    cam = _camera(data)
+    fine, coarse = pmjax.refine(pm, cam, 0.5), pmjax.refine(pm, cam, 6.0)
+
+    def draw(v, f, _, n):
+        return renderer.render_mesh(v, f, cam, normals=n)
+
+    jump = image_difference(*draw(*refined_arrays(pm, fine)), *draw(*refined_arrays(pm, coarse)))
+    assert jump["differing"] > 100
+    state, previous, steps = pmjax.geomorph_start(fine.executed), draw(*refined_arrays(pm, fine)), []
+    for _ in range(4):
+        state = pmjax.geomorph_step(state, coarse.executed, 4)
+        current = draw(*pmjax.geomorph_mesh(pm, state, shading_normals(pm)))
+        steps.append(image_difference(*previous, *current))
+        previous = current
+    assert np.array_equal(previous[0], draw(*refined_arrays(pm, coarse))[0])  # arrived
+    assert all(s["mse"] < jump["mse"] for s in steps)
+    assert sum(s["mse"] for s in steps) < jump["mse"]
+
+
+def test_render_and_path_with_geomorphs(cow, tmp_path):
+    path, _, _ = cow
+    out = tmp_path / "stats.csv"
+    r = subprocess.run([sys.executable, "-m", "pmjax", "path", path, "--orbit", "5", "--fidelity", "--geomorph", "4",
+                        "--csv", str(out), "-q"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    rows = list(csv.DictReader(open(out)))
+    assert len(rows) == 5 and float(rows[0]["popping_mse"]) == 0.0 and float(rows[1]["popping_mse"]) > 0.0
+    gif = tmp_path / "g.gif"
+    r = subprocess.run([sys.executable, "-m", "pmjax", "render", path, "--orbit", "5", "--geomorph", "4", "-o",
+                        str(gif), "-q"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    import imageio.v2 as imageio
+
+    assert len(list(imageio.get_reader(str(gif)))) == 5

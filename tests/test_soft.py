@@ -10,6 +10,13 @@ import pmjax
 from pmjax._camera import index_camera
 
 
+# jax.enable_x64 is the newer spelling of jax.experimental.enable_x64.
+if hasattr(jax, "enable_x64"):
+    ENABLE_X64 = jax.enable_x64
+else:  # older jax
+    from jax.experimental import enable_x64 as ENABLE_X64
+
+
 def _pm(built, name):
     data = built(name)
     return data, pmjax.ProgressiveMesh.from_data(data)
@@ -76,7 +83,7 @@ def test_gradients_match_central_differences(built):
     data, pm32 = _pm(built, "bunny.ply")
     centre, diag = _bounds(data)
     rng = np.random.default_rng(1)
-    with jax.enable_x64(True):
+    with ENABLE_X64(True):
         pm = pm32.astype(jnp.float64)
         # Close and off-centre, so the frustum, orientation and screen tests all bite.
         cam0 = pmjax.look_at(centre + np.array([0.3, 0.1, 1.0]) * 0.6 * diag, centre + [0.35 * diag, 0, 0])
