@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Float, Int
 
-from ._camera import Camera, camera_count
+from ._camera import Camera, camera_count, index_camera
 from ._model import ProgressiveMesh
 from ._predicate import ALL_TESTS, Tests
 from ._soft import soft_refine_unchecked
@@ -67,6 +67,7 @@ def soft_tau_for_budget(
     max_steps: int = 20,
     rtol: float = 1e-4,
     tests: Tests = ALL_TESTS,
+    chunk: int = 16,
 ) -> BudgetSolution:
     """Solve ``soft_faces(tau) = budget`` per camera (Newton, optimistix).
 
@@ -86,6 +87,7 @@ def soft_tau_for_budget(
         rtol: tolerance on ``log tau`` steps (relative change of ``tau``) and
             on ``log faces`` (relative face-count error).
         tests: :class:`Tests`.
+        chunk: cameras solved per vmapped call (memory grows with it).
 
     Returns:
         :class:`BudgetSolution` (device arrays, shape ``[K]``).
@@ -95,8 +97,16 @@ def soft_tau_for_budget(
         raise ValueError("soft_tau_for_budget needs a camera batch (leading axis)")
     dtype = pm.attributes.radius.dtype
     budget = jnp.broadcast_to(jnp.asarray(budget, dtype), (K,))
-    return _solve(pm, cameras, budget, jnp.asarray(temperature, dtype), jnp.asarray(tau_range, dtype), max_steps,
-                  rtol, tests)
+    # Chunks of cameras keep memory bounded (each camera holds ~GRID soft
+    # refinements at once); the last chunk is padded so one compile serves all.
+    chunk = max(1, min(int(chunk), K))
+    parts = []
+    for start in range(0, K, chunk):
+        idx = jnp.minimum(jnp.arange(start, start + chunk), K - 1)
+        part = _solve(pm, index_camera(cameras, idx), budget[idx], jnp.asarray(temperature, dtype),
+                      jnp.asarray(tau_range, dtype), max_steps, rtol, tests)
+        parts.append(jax.tree.map(lambda x: x[: min(chunk, K - start)], part))
+    return jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts)
 
 
 # Log-spaced tolerances evaluated first to bracket the root (cells of ~2.9x).

@@ -107,16 +107,18 @@ def kappa(camera: Camera, tau) -> Float[Array, ""]:
     return 2.0 * jnp.tan(0.5 * camera.fov_y) * tau / camera.height
 
 
-def screen_tolerance(attrs: PcolAttributes, camera: Camera) -> Float[Array, " P"]:
+def screen_tolerance(attrs: PcolAttributes, camera: Camera, sqrt=jnp.sqrt) -> Float[Array, " P"]:
     """Per pcol, the pixel tolerance ``t_p`` of the screen-space test.
 
     ``NOT(mu² ≥ κ²d² or delta²(d² − h²) ≥ κ²d⁴)`` holds exactly when
     ``κ > sqrt(max(mu²/d², delta²(d² − h²)/d⁴))``, i.e. ``tau > t_p`` with
     ``κ`` linear in ``tau``. Computing the test through ``t_p`` makes the
     critical tolerances of :func:`critical_tau` agree with it bit for bit.
+    ``sqrt``: :func:`safe_sqrt` where gradients are needed (same values; the
+    plain one keeps the hard kernels fast).
     """
     uniform2, normal2, scale2 = _screen_terms(attrs, camera)
-    return safe_sqrt(jnp.maximum(uniform2, normal2) / scale2) / kappa(camera, 1.0)
+    return sqrt(jnp.maximum(uniform2, normal2) / scale2) / kappa(camera, 1.0)
 
 
 def small_on_screen(attrs: PcolAttributes, camera: Camera, tau) -> Bool[Array, " P"]:

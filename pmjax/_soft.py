@@ -94,7 +94,7 @@ def soft_tests(attrs: PcolAttributes, camera: Camera, tau, temperature, scale=No
             * _above(h - (sa * tangent + ca * r), d * one_px, temperature)
         )
         visible = visible * (1.0 - away)
-    t = screen_tolerance(attrs, camera)
+    t = screen_tolerance(attrs, camera, safe_sqrt)
     collapse = 1.0 - visible
     if tests.screen:
         limit = tau if scale is None else tau * scale
