@@ -18,6 +18,7 @@ from ._scene import (
 from ._offscreen import (
     Renderer,
     original_arrays,
+    path_geometry,
     refined_arrays,
     render_path,
     render_refinement,
@@ -40,6 +41,7 @@ __all__ = [
     "vertex_normals",
     "Renderer",
     "original_arrays",
+    "path_geometry",
     "refined_arrays",
     "render_path",
     "render_refinement",

@@ -6,11 +6,10 @@ import time
 
 import numpy as np
 
-from pmjax import ALL_TESTS, Camera, ProgressiveMesh, Tests, camera_count, index_camera, refine
-from pmjax import geomorph_mesh, geomorph_start, geomorph_step
+from pmjax import ALL_TESTS, Camera, ProgressiveMesh, Tests, index_camera
 
 
-from ._offscreen import Renderer, original_arrays, refined_arrays, shading_normals
+from ._offscreen import Renderer, original_arrays, path_geometry
 
 # A pixel "differs" when some 8-bit channel differs by more than this.
 DIFF_THRESHOLD = 8
@@ -61,25 +60,12 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
         change spread over ``n`` frames counts ``1/n`` as much per frame),
         both 0 for the first frame, and ``render_ms``.
     """
-    K = camera_count(cameras)
     first = index_camera(cameras, 0)
     ov, of, on = original_arrays(pm)
-    rows, previous, morph = [], None, None
-    it = range(K)
-    if progress:
-        from tqdm import tqdm
-
-        it = tqdm(it, unit="frame", desc="fidelity")
+    rows, previous = [], None
     with Renderer(first.width, first.height, supersample) as r:
-        for i in it:
-            cam = index_camera(cameras, i)
-            refinement = refine(pm, cam, tau, tests)
-            if geomorph > 1:
-                morph = geomorph_start(refinement.executed) if morph is None else \
-                    geomorph_step(morph, refinement.executed, geomorph)
-                v, f, _, n = geomorph_mesh(pm, morph, shading_normals(pm))
-            else:
-                v, f, _, n = refined_arrays(pm, refinement)
+        frames = path_geometry(pm, cameras, tau, tests=tests, geomorph=geomorph, progress=progress, desc="fidelity")
+        for i, (cam, v, f, _, n) in enumerate(frames):
             t = time.perf_counter()
             rgb, depth = r.render_mesh(v, f, cam, normals=n)
             render_ms = 1e3 * (time.perf_counter() - t)

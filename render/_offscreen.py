@@ -164,6 +164,35 @@ def write_png(path: str, image) -> None:
         imageio.imwrite(tmp, np.asarray(image), format="PNG")
 
 
+def path_geometry(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Tests = ALL_TESTS, geomorph: int = 0,
+                  color_levels=False, progress: bool = False, desc: str = "frames"):
+    """Refine every camera of a path and yield what to draw, frame by frame.
+
+    Args:
+        geomorph: blend refinement changes over this many frames
+            (:func:`pmjax.geomorph_step`); 0 or 1 draws each hard refinement.
+
+    Yields:
+        ``(camera, vertices, faces, face levels or None, normals)``.
+    """
+    morph = None
+    it = range(camera_count(cameras))
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, unit="frame", desc=desc)
+    for i in it:
+        cam = index_camera(cameras, i)
+        ref = refine(pm, cam, tau, tests)
+        if geomorph > 1:
+            morph = geomorph_start(ref.executed) if morph is None else geomorph_step(morph, ref.executed, geomorph)
+            v, f, ids, normals = geomorph_mesh(pm, morph, shading_normals(pm))
+            levels = face_levels(f, batch_levels(pm, ids)) if color_levels else None
+        else:
+            v, f, levels, normals = refined_arrays(pm, ref, color_levels=color_levels)
+        yield cam, v, f, levels, normals
+
+
 def render_path(pm: ProgressiveMesh, cameras: Camera, tau: float, out: str, *, tests: Tests = ALL_TESTS,
                 wireframe=False, color_levels=False, phantom: Optional[Camera] = None, geomorph: int = 0,
                 fps: int = 30, progress: bool = True) -> dict:
@@ -178,30 +207,15 @@ def render_path(pm: ProgressiveMesh, cameras: Camera, tau: float, out: str, *, t
     Returns:
         dict with ``faces`` (int per frame) and ``frames`` (count).
     """
-    K = camera_count(cameras)
-    first = index_camera(cameras, 0)
-    view = phantom if phantom is not None else first
+    view = phantom if phantom is not None else index_camera(cameras, 0)
     n_batches = len(pm.batch_offsets) - 1
     faces = []
 
     def frames():
-        morph = None
         with Renderer(view.width, view.height) as r:
-            it = range(K)
-            if progress:
-                from tqdm import tqdm
-
-                it = tqdm(it, unit="frame", desc="render")
-            for i in it:
-                cam = index_camera(cameras, i)
-                ref = refine(pm, cam, tau, tests)
-                if geomorph > 1:
-                    morph = geomorph_start(ref.executed) if morph is None else \
-                        geomorph_step(morph, ref.executed, geomorph)
-                    v, f, ids, normals = geomorph_mesh(pm, morph, shading_normals(pm))
-                    levels = face_levels(f, batch_levels(pm, ids)) if color_levels else None
-                else:
-                    v, f, levels, normals = refined_arrays(pm, ref, color_levels=color_levels)
+            for cam, v, f, levels, normals in path_geometry(pm, cameras, tau, tests=tests, geomorph=geomorph,
+                                                            color_levels=color_levels, progress=progress,
+                                                            desc="render"):
                 faces.append(len(f))
                 lines = frustum_past_model(pm, cam) if phantom is not None else None
                 yield r.render_mesh(v, f, view if phantom is not None else cam, levels=levels, n_batches=n_batches,
