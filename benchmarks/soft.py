@@ -2,7 +2,8 @@
 hard engine, exact vs soft face budgets, and popping with and without geomorphs.
 
 Usage: python benchmarks/soft.py [--models bunny,dragon] [--repeats 5] [--batch 256]
-       [--budgets 2000,8000] [--popping-frames 240] [--geomorph 8,16] [--json OUT]
+       [--budgets 2000,8000] [--popping-frames 240] [--geomorph 8,16] [--supersample 4]
+       [--parts cost,budgets,popping] [--json OUT]
 
 Cost (standard orbit, tau = 1 px, temperature 0.1 px, float32; medians over
 ``--repeats`` after one compile call):
@@ -94,13 +95,13 @@ def budgets(pm, cams, budget, K):
                 tau_ratio_median=statistics.median(ratio) if ratio else float("nan"))
 
 
-def popping(pm, cams, geomorphs, tau=1.0):
+def popping(pm, cams, geomorphs, supersample, tau=1.0):
     from pmjax.render import path_fidelity
 
     rows = []
     for g in [0] + geomorphs:
-        fid = path_fidelity(pm, cams, tau, geomorph=g)[1:]
-        rows.append(dict(geomorph=g, popping_share=statistics.mean(r["popping_share"] for r in fid),
+        fid = path_fidelity(pm, cams, tau, geomorph=g, supersample=supersample, progress=True)[1:]
+        rows.append(dict(geomorph=g, supersample=supersample, popping_share=statistics.mean(r["popping_share"] for r in fid),
                          popping_mse=statistics.mean(r["popping_mse"] for r in fid),
                          differing_share=statistics.median(r["differing_share"] for r in fid),
                          faces=statistics.median(r["faces"] for r in fid)))
@@ -118,8 +119,12 @@ def main():
     ap.add_argument("--budgets", default="2000,8000")
     ap.add_argument("--popping-frames", type=int, default=240)
     ap.add_argument("--geomorph", default="8,16")
+    ap.add_argument("--supersample", type=int, default=4,
+                    help="popping renders: s×s samples per pixel (sub-pixel motion needs >= 4)")
+    ap.add_argument("--parts", default="cost,budgets,popping", help="which measurements to run")
     ap.add_argument("--json")
     args = ap.parse_args()
+    parts = set(args.parts.split(","))
     print(f"machine: {machine()}\n")
     report = dict(machine=machine(), cost=[], budgets=[], popping=[])
     for name in args.models.split(","):
@@ -127,15 +132,16 @@ def main():
         pm = pmjax.load(path)
         verts = np.asarray(pm.vertices)[: pm.n_original_vertices]
         cams = pmjax.standard_orbit(verts, 240)
-        c = dict(model=name, K=args.batch, **cost(pm, cams, args.batch, args.repeats))
-        report["cost"].append(c)
-        print(f"{name}: single camera hard {c['hard_ms']:.2f} ms | soft {c['soft_ms']:.2f} ms "
-              f"({c['soft_ms'] / c['hard_ms']:.1f}x) | soft gradient {c['soft_grad_ms']:.2f} ms "
-              f"({c['soft_grad_ms'] / c['hard_ms']:.1f}x)", flush=True)
-        print(f"{name}: K={args.batch} hard {c['hard_batch_cams_per_s']:.0f} cams/s | soft "
-              f"{c['soft_batch_cams_per_s']:.0f} cams/s | soft gradient {c['soft_grad_batch_cams_per_s']:.0f} cams/s",
-              flush=True)
-        for budget in [int(b) for b in args.budgets.split(",")]:
+        if "cost" in parts:
+            c = dict(model=name, K=args.batch, **cost(pm, cams, args.batch, args.repeats))
+            report["cost"].append(c)
+            print(f"{name}: single camera hard {c['hard_ms']:.2f} ms | soft {c['soft_ms']:.2f} ms "
+                  f"({c['soft_ms'] / c['hard_ms']:.1f}x) | soft gradient {c['soft_grad_ms']:.2f} ms "
+                  f"({c['soft_grad_ms'] / c['hard_ms']:.1f}x)", flush=True)
+            print(f"{name}: K={args.batch} hard {c['hard_batch_cams_per_s']:.0f} cams/s | soft "
+                  f"{c['soft_batch_cams_per_s']:.0f} cams/s | soft gradient "
+                  f"{c['soft_grad_batch_cams_per_s']:.0f} cams/s", flush=True)
+        for budget in [int(b) for b in args.budgets.split(",")] if "budgets" in parts else []:
             b = dict(model=name, **budgets(pm, cams, budget, min(args.batch, 64)))
             report["budgets"].append(b)
             print(f"{name}: budget {budget}: exact {b['exact_ms_per_camera']:.2f} ms/camera, soft "
@@ -143,9 +149,9 @@ def main():
                   f"{b['steps_max']}, converged {b['converged']:.0%}; hard faces at soft tau median "
                   f"{b['hard_faces_at_soft_tau_median']:.0f} (error {b['hard_faces_error_median']:.1%}), exact "
                   f"{b['exact_faces_median']:.0f}; tau soft/exact {b['tau_ratio_median']:.3f}", flush=True)
-        if args.popping_frames and name == args.models.split(",")[0]:
+        if "popping" in parts and args.popping_frames and name == args.models.split(",")[0]:
             frames = pmjax.standard_orbit(verts, args.popping_frames)
-            for r in popping(pm, frames, [int(g) for g in args.geomorph.split(",")]):
+            for r in popping(pm, frames, [int(g) for g in args.geomorph.split(",")], args.supersample):
                 r.update(model=name, frames=args.popping_frames)
                 report["popping"].append(r)
                 print(f"{name}: {args.popping_frames} frames, geomorph {r['geomorph']:2d}: popping share "

@@ -26,6 +26,8 @@ from typing import Callable
 
 import numpy as np
 
+from ._rows import any3, max3, min3
+
 _NONE = np.iinfo(np.int64).max
 
 
@@ -46,7 +48,7 @@ def domain_of_independent(
     """
     owner[a] = np.arange(len(a))
     owner[b] = np.arange(len(b))
-    of_face = owner[faces].max(axis=1)
+    of_face = max3(owner[faces])
     owner[a] = -1
     owner[b] = -1
     hit = of_face >= 0
@@ -97,7 +99,7 @@ def select_independent(
         # Only faces at a remaining endpoint matter from now on.
         mark[ra] = True
         mark[rb] = True
-        keep = mark[faces].any(axis=1)
+        keep = any3(mark[faces])
         mark[ra] = False
         mark[rb] = False
         faces, face_ids = faces[keep], face_ids[keep]
@@ -105,7 +107,7 @@ def select_independent(
         # Cheapest remaining candidate at each vertex, then at each face.
         np.minimum.at(at_vertex, ra, remaining)
         np.minimum.at(at_vertex, rb, remaining)
-        at_face = at_vertex[faces].min(axis=1)
+        at_face = min3(at_vertex[faces])
         # Cheapest over the faces around each vertex = over each domain half.
         np.minimum.at(around, corner, np.repeat(at_face, 3))
         winners = remaining[np.minimum(around[ra], around[rb]) == remaining]
@@ -119,7 +121,7 @@ def select_independent(
         # Faces touched by a taken candidate are used; so is every vertex of them.
         mark[a[taken]] = True
         mark[b[taken]] = True
-        used = mark[faces].any(axis=1)
+        used = any3(mark[faces])
         mark[a[taken]] = False
         mark[b[taken]] = False
         vertex_blocked[faces[used].ravel()] = True

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import _rows as rows
+
 _I, _J = np.triu_indices(4)  # packed order above
 
 
@@ -36,7 +38,7 @@ def face_geometry(pos: np.ndarray, faces: np.ndarray):
         a zero normal.
     """
     tri = pos[faces]
-    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    cross = rows.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     length = np.linalg.norm(cross, axis=1)
     unit = cross / np.where(length > 0, length, 1.0)[:, None]
     return unit, 0.5 * length, cross
@@ -68,7 +70,7 @@ def vertex_quadrics(
         a, b, face = boundary_edges(faces)
         if len(a):
             e = pos[b] - pos[a]
-            m = np.cross(e, unit[face])
+            m = rows.cross(e, unit[face])
             mlen = np.linalg.norm(m, axis=1)
             ok = mlen > 0
             m = m[ok] / mlen[ok, None]

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._rows import any3, cross, dot
+
 
 def collapse_is_valid(
     pos: np.ndarray,
@@ -37,16 +39,24 @@ def collapse_is_valid(
     has_a = tri == a[pair, None]
     has_b = tri == b[pair, None]
     # Faces holding both endpoints vanish with the collapse: nothing to check.
-    on_edge = has_a.any(1) & has_b.any(1)
-    old = pos[tri]
-    old_cross = np.cross(old[:, 1] - old[:, 0], old[:, 2] - old[:, 0])
-    corners = np.where((has_a | has_b)[..., None], x[pair, None, :], old)
-    new_cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    on_edge = any3(has_a) & any3(has_b)
+    # Every other domain face has exactly one moving corner. Rotate it to the
+    # front (a cyclic shift keeps the orientation) and compare the face's
+    # doubled-area normal before and after the corner moves to x.
+    check = ~on_edge
+    t, moving, at = tri[check], (has_a | has_b)[check], pair[check]
+    first = np.where(moving[:, 0], 0, np.where(moving[:, 1], 1, 2))
+    rows = np.arange(len(t))
+    q0 = pos[t[rows, first]]
+    q1 = pos[t[rows, (first + 1) % 3]]
+    q2 = pos[t[rows, (first + 2) % 3]]
+    moved = x[at]
+    old_cross = cross(q1 - q0, q2 - q0)
+    new_cross = cross(q1 - moved, q2 - moved)
     # A flip: the normal turns by more than 90 degrees.
-    flips = np.einsum("ij,ij->i", new_cross, old_cross) <= 0.0
-    degenerate = np.einsum("ij,ij->i", new_cross, new_cross) <= min_area2
-    bad = ~on_edge & (flips | degenerate)
-    ok = np.bincount(pair, bad, minlength=len(a)) == 0
+    flips = dot(new_cross, old_cross) <= 0.0
+    degenerate = dot(new_cross, new_cross) <= min_area2
+    ok = np.bincount(at, flips | degenerate, minlength=len(a)) == 0
     if link_test.any():
         # Link condition: the common neighbours of a and b are exactly the
         # apexes of the faces on edge ab; an interior edge between two border
@@ -63,8 +73,8 @@ def _common_neighbours(tri, has_a, has_b, pair, n_pairs) -> np.ndarray:
     other = ~(has_a | has_b)
     span = np.int64(tri.max()) + 1 if len(tri) else 1
     key = pair[:, None].astype(np.int64) * span + tri
-    side_a = _distinct(key[other & has_a.any(1, keepdims=True)])
-    side_b = _distinct(key[other & has_b.any(1, keepdims=True)])
+    side_a = _distinct(key[other & any3(has_a)[:, None]])
+    side_b = _distinct(key[other & any3(has_b)[:, None]])
     # A key in both distinct lists appears exactly twice in their union.
     both = np.sort(np.concatenate([side_a, side_b]))
     twice = both[1:][both[1:] == both[:-1]]

@@ -16,7 +16,7 @@ from ._oracle import oracle_refine
 from ._soft import SoftRefinement, geomorph_blend, geomorph_positions, soft_refine, soft_tests, soft_weights
 from ._normals import hierarchy_normals
 from ._budget import BudgetSolution, soft_tau_for_budget
-from ._geomorph import Geomorph, geomorph_mesh, geomorph_start, geomorph_step
+from ._geomorph import Geomorph, geomorph_mesh, geomorph_start, geomorph_step, hidden_pcols
 from ._distance import distance_to_surface, point_triangle_distance, sample_surface, surface_distance
 
 __all__ = [
@@ -85,5 +85,6 @@ __all__ = [
     "geomorph_mesh",
     "geomorph_start",
     "geomorph_step",
+    "hidden_pcols",
 ]
 __version__ = "0.1.0"

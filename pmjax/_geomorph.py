@@ -7,9 +7,14 @@ weight in [0, 1] that walks toward its target (1 executed, 0 not) by
 :func:`pmjax.geomorph_blend` of those weights, the same blend as the soft refinement's (DESIGN §4) driven by
 time instead of temperature.
 
-A pcol's weight never exceeds its children's: both start consistent (the
-executed set contains the children of every member) and the step is monotone
-in the weight and in the target.
+Only visible changes are blended. A pcol that the frustum or orientation
+test culls, in this frame or the previous one, jumps to its target: its
+geometry is out of sight, and blending it would keep coarse geometry around
+while a region turns into view (on an orbit that lag was most of what still
+popped; docs/soft.md).
+
+A pcol's weight never exceeds its children's (the blend assumes it): after
+each step the weights are clamped by their children's, up the batches.
 """
 
 from __future__ import annotations
@@ -19,8 +24,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from ._camera import Camera
 from ._model import ProgressiveMesh
-from ._refine import representatives
+from ._predicate import ALL_TESTS, Tests
+from ._refine import critical_tolerances, representatives, up_the_batches
 from ._soft import geomorph_blend
 
 
@@ -29,31 +36,53 @@ class Geomorph(eqx.Module):
 
     Attributes:
         weight: ``[P]`` float32 in [0, 1]: 0 not collapsed, 1 fully collapsed.
+        hidden: ``[P]`` bool, the pcols culled in the last frame
+            (:func:`hidden_pcols`); all False when unknown.
     """
 
     weight: Float[Array, " P"]
-
-
-def geomorph_start(executed: Bool[Array, " P"]) -> Geomorph:
-    """A geomorph at rest on an executed set (``Refinement.executed``)."""
-    return Geomorph(weight=jnp.asarray(executed, jnp.float32))
+    hidden: Bool[Array, " P"]
 
 
 @eqx.filter_jit
-def geomorph_step(state: Geomorph, executed: Bool[Array, " P"], frames) -> Geomorph:
+def hidden_pcols(pm: ProgressiveMesh, camera: Camera, tests: Tests = ALL_TESTS) -> Bool[Array, " P"]:
+    """``bool[P]``: pcols whose geometry is out of sight for ``camera`` (the
+    frustum or orientation test collapses them whatever ``tau``)."""
+    return critical_tolerances(pm, camera, tests) < 0
+
+
+def geomorph_start(executed: Bool[Array, " P"], hidden=None) -> Geomorph:
+    """A geomorph at rest on an executed set (``Refinement.executed``);
+    ``hidden``: this frame's :func:`hidden_pcols`, if known."""
+    executed = jnp.asarray(executed)
+    hidden = jnp.zeros(executed.shape, bool) if hidden is None else jnp.asarray(hidden, bool)
+    return Geomorph(weight=executed.astype(jnp.float32), hidden=hidden)
+
+
+@eqx.filter_jit
+def geomorph_step(pm: ProgressiveMesh, state: Geomorph, executed: Bool[Array, " P"], frames, hidden=None) -> Geomorph:
     """One frame toward a new executed set.
 
     Args:
+        pm: the progressive mesh.
         state: the current :class:`Geomorph`.
         executed: ``bool[P]`` this frame's hard refinement.
         frames: frames a full blend takes (``1`` = no geomorph: jump).
+        hidden: ``bool[P]`` this frame's :func:`hidden_pcols`, or None
+            (then every change is blended).
 
     Returns:
         the next :class:`Geomorph`.
     """
     rate = 1.0 / jnp.maximum(jnp.asarray(frames, jnp.float32), 1.0)
     target = jnp.asarray(executed, jnp.float32)
-    return Geomorph(weight=state.weight + jnp.clip(target - state.weight, -rate, rate))
+    hidden = jnp.zeros(target.shape, bool) if hidden is None else jnp.asarray(hidden, bool)
+    # Out-of-sight changes (now or a frame ago) jump; visible ones walk.
+    jump = hidden | state.hidden
+    weight = jnp.where(jump, target, state.weight + jnp.clip(target - state.weight, -rate, rate))
+    # A child that jumped open must not leave its parent more collapsed than itself.
+    weight = up_the_batches(pm, weight, 1.0, lambda own, a, b: jnp.minimum(own, jnp.minimum(a, b)))
+    return Geomorph(weight=weight, hidden=hidden)
 
 
 @eqx.filter_jit

@@ -25,8 +25,8 @@ def image_difference(rgb_a, depth_a, rgb_b, depth_b, threshold: int = DIFF_THRES
         (of the model's pixels), ``mse`` (mean squared 8-bit difference over
         the model's pixels and channels) and ``psnr`` (dB; ``inf`` if identical).
     """
-    a = np.asarray(rgb_a, np.int16)
-    b = np.asarray(rgb_b, np.int16)
+    a = np.asarray(rgb_a, np.float32)
+    b = np.asarray(rgb_b, np.float32)
     if a.shape != b.shape:
         raise ValueError(f"image shapes differ: {a.shape} vs {b.shape}")
     model = (np.asarray(depth_a) > 0) | (np.asarray(depth_b) > 0)
@@ -39,7 +39,8 @@ def image_difference(rgb_a, depth_a, rgb_b, depth_b, threshold: int = DIFF_THRES
 
 
 def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Tests = ALL_TESTS,
-                  geomorph: int = 0, supersample: int = 2, progress: bool = False) -> list[dict]:
+                  geomorph: int = 0, supersample: int = 2, float_color: bool = True,
+                  progress: bool = False) -> list[dict]:
     """Per frame: faces, share of the model's pixels that differ from the
     original mesh's render (and PSNR), and popping — the share of pixels that
     change at this frame's camera only because the refinement changed since
@@ -52,6 +53,10 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
         supersample: render at this many times the size and average down
             (anti-aliasing: without it an edge moving by a fraction of a pixel
             flips whole pixels, and every small motion counts as popping).
+            Popping measurements want 4 or more (docs/soft.md).
+        float_color: compare the unrounded supersampled averages
+            (:class:`Renderer`), so changes below one 8-bit level count as
+            their size, not as a 0-or-1 rounding flip.
 
     Returns:
         list of dicts (one per camera) with ``faces``, ``differing_share``,
@@ -63,7 +68,7 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
     first = index_camera(cameras, 0)
     ov, of, on = original_arrays(pm)
     rows, previous = [], None
-    with Renderer(first.width, first.height, supersample) as r:
+    with Renderer(first.width, first.height, supersample, float_color) as r:
         frames = path_geometry(pm, cameras, tau, tests=tests, geomorph=geomorph, progress=progress, desc="fidelity")
         for i, (cam, v, f, _, n) in enumerate(frames):
             t = time.perf_counter()

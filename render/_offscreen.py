@@ -8,7 +8,7 @@ from typing import Optional
 import numpy as np
 
 from pmjax import ALL_TESTS, Camera, ProgressiveMesh, Refinement, Tests, camera_count, index_camera, refine
-from pmjax import geomorph_mesh, geomorph_start, geomorph_step, hierarchy_normals
+from pmjax import geomorph_mesh, geomorph_start, geomorph_step, hidden_pcols, hierarchy_normals
 from pmjax._atomic import atomic_path
 
 
@@ -27,7 +27,7 @@ class Renderer:
     context, so they are never deleted early. Usable as a context manager.
     """
 
-    def __init__(self, width: int, height: int, supersample: int = 1):
+    def __init__(self, width: int, height: int, supersample: int = 1, float_color: bool = False):
         pyrender = pyrender_module(offscreen=True)
         if int(supersample) < 1:
             raise ValueError(f"supersample must be >= 1, got {supersample}")
@@ -43,6 +43,7 @@ class Renderer:
                 ) from exc
         self._gl = _CONTEXTS[key]
         self.width, self.height = int(width), int(height)
+        self.float_color = bool(float_color)
 
     def render_scene(self, scene):
         """``(rgb uint8[H, W, 3], depth float32[H, W])``; depth 0 where empty.
@@ -50,13 +51,19 @@ class Renderer:
         With ``supersample = s`` the scene is drawn at ``s×`` the size and each
         ``s × s`` block averaged (depth: nearest covered sample), so an edge
         moving by a fraction of a pixel changes the pixel by that fraction.
+        With ``float_color`` the average is not rounded: rgb is float32 in
+        [0, 255], so measurements see changes smaller than one 8-bit level
+        (rounding turns a change of ``x < 1`` level into a 0-or-1 flip whose
+        mean square is ``x``, not ``x²``).
         """
         color, depth = self._gl.render(scene)
         color = color[..., :3]
         s = self.supersample
-        if s > 1:
+        if s > 1 or self.float_color:
             H, W = self.height, self.width
-            color = color.reshape(H, s, W, s, 3).mean(axis=(1, 3)).round().astype(np.uint8)
+            color = color.reshape(H, s, W, s, 3).mean(axis=(1, 3), dtype=np.float32)
+            if not self.float_color:
+                color = color.round().astype(np.uint8)
             blocks = depth.reshape(H, s, W, s)
             depth = np.where(blocks > 0, blocks, np.inf).min(axis=(1, 3))
             depth = np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
@@ -185,7 +192,11 @@ def path_geometry(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
         cam = index_camera(cameras, i)
         ref = refine(pm, cam, tau, tests)
         if geomorph > 1:
-            morph = geomorph_start(ref.executed) if morph is None else geomorph_step(morph, ref.executed, geomorph)
+            hidden = hidden_pcols(pm, cam, tests)
+            if morph is None:
+                morph = geomorph_start(ref.executed, hidden)
+            else:
+                morph = geomorph_step(pm, morph, ref.executed, geomorph, hidden)
             v, f, ids, normals = geomorph_mesh(pm, morph, shading_normals(pm))
             levels = face_levels(f, batch_levels(pm, ids)) if color_levels else None
         else:

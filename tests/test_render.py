@@ -221,7 +221,7 @@ def test_geomorph_spreads_a_refinement_change(cow, renderer):
     assert jump["differing"] > 100
     state, previous, steps = pmjax.geomorph_start(fine.executed), draw(*refined_arrays(pm, fine)), []
     for _ in range(4):
-        state = pmjax.geomorph_step(state, coarse.executed, 4)
+        state = pmjax.geomorph_step(pm, state, coarse.executed, 4)
         current = draw(*pmjax.geomorph_mesh(pm, state, shading_normals(pm)))
         steps.append(image_difference(*previous, *current))
         previous = current

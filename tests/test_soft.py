@@ -177,7 +177,7 @@ def test_geomorph_at_rest_is_the_hard_mesh_and_reaches_its_target(built):
     state, frames = pmjax.geomorph_start(a.executed), 4
     child = np.stack([data.v1, data.v2]) - data.n_original_vertices
     for k in range(frames):
-        state = pmjax.geomorph_step(state, b.executed, frames)
+        state = pmjax.geomorph_step(pm, state, b.executed, frames)
         w = np.asarray(state.weight)
         moving = np.asarray(a.executed) != np.asarray(b.executed)
         if k < frames - 1:
@@ -190,3 +190,33 @@ def test_geomorph_at_rest_is_the_hard_mesh_and_reaches_its_target(built):
     gv, gf, gids = pmjax.geomorph_mesh(pm, state)
     assert np.array_equal(ids, gids) and np.array_equal(f, gf)
     np.testing.assert_allclose(gv, v, atol=1e-6)
+
+
+def test_geomorph_jumps_out_of_sight_and_stays_a_valid_state(built):
+    """Pcols culled in this frame or the last jump to their target (they are
+    out of sight); the visible ones walk; the clamp keeps every pcol no more
+    collapsed than its children; after ``frames`` steps the state is the target."""
+    data, pm = _pm(built, "bunny.ply")
+    cams = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 24)
+    ca, cb = index_camera(cams, 0), index_camera(cams, 6)
+    a, b = pmjax.refine(pm, ca, 1.0), pmjax.refine(pm, cb, 0.5)
+    ha, hb = np.asarray(pmjax.hidden_pcols(pm, ca)), np.asarray(pmjax.hidden_pcols(pm, cb))
+    # Hidden means collapsed whatever tau, so hidden pcols are executed.
+    assert ha.any() and np.all(np.asarray(a.executed)[ha]) and np.all(np.asarray(b.executed)[hb])
+    target = np.asarray(b.executed, np.float32)
+    moving = np.asarray(a.executed) != np.asarray(b.executed)
+    jump = ha | hb
+    assert (moving & jump).sum() > 10 and (moving & ~jump).sum() > 10
+    child = np.stack([data.v1, data.v2]) - data.n_original_vertices
+    state, frames = pmjax.geomorph_start(a.executed, ha), 4
+    for k in range(frames):
+        state = pmjax.geomorph_step(pm, state, b.executed, frames, hb)
+        w = np.asarray(state.weight)
+        assert np.array_equal(w[jump], target[jump])
+        kids = np.where(child >= 0, w[np.maximum(child, 0)], 1.0)
+        assert np.all(w <= kids.min(0))
+        if k == 0:
+            # The visible changes walk (or are held open by a child that jumped open).
+            walked = moving & ~jump & (w > 0) & (w < 1)
+            assert walked.sum() > 0.5 * (moving & ~jump).sum()
+    assert np.array_equal(np.asarray(state.weight), target)
