@@ -186,10 +186,9 @@ def build_pm(
 
         # Eligible: the cheapest share (linear mode keeps them all and takes
         # the cheapest valid one), in cost order so index = priority.
-        order = np.argsort(cost, kind="stable")
-        order = order[cost[order] <= options.max_error]
+        within = np.flatnonzero(cost <= options.max_error)
         share = 1.0 if options.linear else options.batch_share
-        elig = order[: max(1, int(math.ceil(share * len(order))))]
+        elig = within[_cheapest(cost[within], max(1, int(math.ceil(share * len(within)))))]
         if len(elig) == 0:
             break
         a, b, x, cost, is_edge = a[elig], b[elig], x[elig], cost[elig], is_edge[elig]
@@ -308,6 +307,22 @@ def _new_vertex_normals(pos, faces, first, k):
     acc = np.stack([np.bincount(corner[new], w[:, j], minlength=k) for j in range(3)], 1)
     length = np.linalg.norm(acc, axis=1)
     return acc / np.where(length > 0, length, 1.0)[:, None]
+
+
+def _cheapest(cost: np.ndarray, k: int) -> np.ndarray:
+    """Indices of the ``k`` cheapest entries in stable cost order: the first
+    ``k`` of ``np.argsort(cost, kind="stable")``, without sorting the rest
+    (a batch takes the cheapest share; sorting all candidates was the
+    builder's largest single cost on the dragon)."""
+    if k >= len(cost):
+        return np.argsort(cost, kind="stable")
+    kth = np.partition(cost, k - 1)[k - 1]
+    # Everything cheaper than the k-th cost, then its ties by index.
+    below = np.flatnonzero(cost < kth)
+    ties = np.flatnonzero(cost == kth)[: k - len(below)]
+    pick = np.concatenate([below, ties])
+    pick.sort()
+    return pick[np.argsort(cost[pick], kind="stable")]
 
 
 def _sorted_by_key(keys, x, cost):

@@ -178,7 +178,8 @@ def cmd_path(args) -> int:
     if args.fidelity:
         from pmjax.render import path_fidelity
 
-        fidelity = path_fidelity(pm, cams, args.tau, tests=tests, geomorph=args.geomorph, progress=not args.quiet)
+        fidelity = path_fidelity(pm, cams, args.tau, tests=tests, geomorph=args.geomorph,
+                                 supersample=args.supersample, progress=not args.quiet)
         for row, fid in zip(rows, fidelity):
             row.update({k: round(float(fid[k]), 6) for k in FIDELITY_COLUMNS})
         cols += list(FIDELITY_COLUMNS)
@@ -351,6 +352,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--csv", help="output CSV")
     p.add_argument("--fidelity", action="store_true",
                    help="also render each frame and the original: differing-pixel share, PSNR, popping")
+    p.add_argument("--supersample", type=int, default=2, metavar="S",
+                   help="fidelity renders: S×S samples per pixel (default 2; popping wants 4, docs/soft.md)")
     add_geomorph_arg(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_view_args(p)

@@ -46,8 +46,20 @@ class Geomorph(eqx.Module):
 
 @eqx.filter_jit
 def hidden_pcols(pm: ProgressiveMesh, camera: Camera, tests: Tests = ALL_TESTS) -> Bool[Array, " P"]:
-    """``bool[P]``: pcols whose geometry is out of sight for ``camera`` (the
-    frustum or orientation test collapses them whatever ``tau``)."""
+    """Pcols whose geometry is out of sight for ``camera``.
+
+    A pcol is hidden when the frustum or orientation test collapses it and
+    every pcol below it, whatever ``tau`` (critical tolerance < 0,
+    :func:`pmjax.critical_tolerances`). Hidden pcols are always executed.
+
+    Args:
+        pm: the progressive mesh.
+        camera: one :class:`Camera`.
+        tests: :class:`Tests` (ablations), as given to ``refine``.
+
+    Returns:
+        ``bool[P]``.
+    """
     return critical_tolerances(pm, camera, tests) < 0
 
 

@@ -182,3 +182,14 @@ def test_attributes_bound_what_they_claim(built):
         h = np.abs(np.einsum("ij,ij->i", pm.normals[up[ok]].astype(np.float64), x[v[ok]] - x[up[ok]]))
         assert np.all(h <= pm.delta[p] + 1e-5 * diag)
         up = np.where(ok, parent[np.maximum(up, 0)], -1)
+
+
+def test_cheapest_is_the_stable_sort_prefix():
+    """The batch's eligible candidates (partial selection) equal the first k of
+    a full stable sort, ties included."""
+    from pmjax.builders._build import _cheapest
+
+    rng = np.random.default_rng(3)
+    for n, k in [(1, 1), (10, 3), (1000, 500), (1000, 1000), (50, 1), (200, 199)]:
+        cost = rng.integers(0, 7, n).astype(np.float64)  # many ties
+        assert np.array_equal(_cheapest(cost, k), np.argsort(cost, kind="stable")[:k]), (n, k)
