@@ -245,3 +245,23 @@ def test_render_and_path_with_geomorphs(cow, tmp_path):
     import imageio.v2 as imageio
 
     assert len(list(imageio.get_reader(str(gif)))) == 5
+
+
+def test_float_color_is_the_unrounded_supersampled_render(cow):
+    """``float_color`` keeps the box average of the samples: rounding it gives the
+    8-bit render exactly, and it holds fractional levels (edge pixels partly
+    covered), which is what lets popping see sub-level changes."""
+    from pmjax.render import Renderer
+    from pmjax.render._offscreen import original_arrays
+
+    _, pm, data = cow
+    cam = _camera(data)
+    v, f, n = original_arrays(pm)
+    with Renderer(320, 240, 2) as r8:
+        rgb8, depth8 = r8.render_mesh(v, f, cam, normals=n)
+    with Renderer(320, 240, 2, float_color=True) as rf:
+        rgbf, depthf = rf.render_mesh(v, f, cam, normals=n)
+    assert rgb8.dtype == np.uint8 and rgbf.dtype == np.float32
+    assert np.array_equal(np.round(rgbf).astype(np.uint8), rgb8) and np.array_equal(depth8, depthf)
+    assert 0.0 <= rgbf.min() and rgbf.max() <= 255.0
+    assert np.any(rgbf != np.round(rgbf))  # some pixels are between levels
