@@ -315,14 +315,35 @@ def _cheapest(cost: np.ndarray, k: int) -> np.ndarray:
     (a batch takes the cheapest share; sorting all candidates was the
     builder's largest single cost on the dragon)."""
     if k >= len(cost):
-        return np.argsort(cost, kind="stable")
+        return _stable_argsort(cost)
     kth = np.partition(cost, k - 1)[k - 1]
     # Everything cheaper than the k-th cost, then its ties by index.
     below = np.flatnonzero(cost < kth)
     ties = np.flatnonzero(cost == kth)[: k - len(below)]
     pick = np.concatenate([below, ties])
     pick.sort()
-    return pick[np.argsort(cost[pick], kind="stable")]
+    return pick[_stable_argsort(cost[pick])]
+
+
+def _stable_argsort(x: np.ndarray) -> np.ndarray:
+    """``np.argsort(x, kind="stable")`` for floats, faster: NumPy's SIMD
+    quicksort (6x faster than its merge sort on 650k float64 costs), then each
+    run of equal values put back in index order."""
+    order = np.argsort(x, kind="quicksort")
+    if len(order) < 2:
+        return order
+    same = x[order[1:]] == x[order[:-1]]
+    if not same.any():
+        return order
+    # Positions inside runs of equal values; sort them by (run, index).
+    in_run = np.zeros(len(order), bool)
+    in_run[1:] |= same
+    in_run[:-1] |= same
+    run = np.cumsum(np.r_[True, ~same])  # run number of every position
+    pos = np.flatnonzero(in_run)
+    key = run[pos].astype(np.int64) * len(order) + order[pos]
+    order[pos] = order[pos][np.argsort(key)]
+    return order
 
 
 def _sorted_by_key(keys, x, cost):

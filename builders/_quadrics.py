@@ -26,8 +26,13 @@ def plane_quadrics(normals: np.ndarray, offsets: np.ndarray, weights: np.ndarray
     Returns:
         ``float64[N, 10]``.
     """
-    p = np.concatenate([normals, offsets[:, None]], axis=1)
-    return p[:, _I] * p[:, _J] * weights[:, None]
+    # Column by column: fancy-indexing p[:, _I] * p[:, _J] built two (N, 10)
+    # temporaries (0.3 s on the dragon's faces).
+    p = [normals[:, 0], normals[:, 1], normals[:, 2], offsets]
+    out = np.empty((len(offsets), len(_I)))
+    for k, (i, j) in enumerate(zip(_I, _J)):
+        out[:, k] = p[i] * p[j] * weights
+    return out
 
 
 def face_geometry(pos: np.ndarray, faces: np.ndarray):

@@ -190,6 +190,6 @@ def test_cheapest_is_the_stable_sort_prefix():
     from pmjax.builders._build import _cheapest
 
     rng = np.random.default_rng(3)
-    for n, k in [(1, 1), (10, 3), (1000, 500), (1000, 1000), (50, 1), (200, 199)]:
-        cost = rng.integers(0, 7, n).astype(np.float64)  # many ties
-        assert np.array_equal(_cheapest(cost, k), np.argsort(cost, kind="stable")[:k]), (n, k)
+    for n, k in [(1, 1), (10, 3), (1000, 500), (1000, 1000), (50, 1), (200, 199), (5000, 5000)]:
+        for cost in (rng.integers(0, 7, n).astype(np.float64), rng.random(n), np.zeros(n)):  # ties, none, all
+            assert np.array_equal(_cheapest(cost, k), np.argsort(cost, kind="stable")[:k]), (n, k)
