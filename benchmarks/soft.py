@@ -101,7 +101,8 @@ def popping(pm, cams, geomorphs, supersample, tau=1.0):
     rows = []
     for g in [0] + geomorphs:
         fid = path_fidelity(pm, cams, tau, geomorph=g, supersample=supersample, progress=True)[1:]
-        rows.append(dict(geomorph=g, supersample=supersample, popping_share=statistics.mean(r["popping_share"] for r in fid),
+        rows.append(dict(geomorph=g, supersample=supersample,
+                         popping_share=statistics.mean(r["popping_share"] for r in fid),
                          popping_mse=statistics.mean(r["popping_mse"] for r in fid),
                          differing_share=statistics.median(r["differing_share"] for r in fid),
                          faces=statistics.median(r["faces"] for r in fid)))

@@ -25,6 +25,13 @@ class Renderer:
     Contexts are cached per size for the life of the process: pyrender's EGL
     teardown terminates the shared display, which breaks every other live
     context, so they are never deleted early. Usable as a context manager.
+
+    Args:
+        width, height: output image size, pixels.
+        supersample: draw ``s×`` larger and average each ``s × s`` block.
+        float_color: return the averaged colour unrounded (float32 in
+            [0, 255]) instead of uint8, for measurements (see
+            :meth:`render_scene`).
     """
 
     def __init__(self, width: int, height: int, supersample: int = 1, float_color: bool = False):
