@@ -17,6 +17,7 @@ from . import _quadrics as qd
 from ._attributes import refinement_attributes
 from ._independent import domain_of_independent, select_independent
 from ._metrics import CACHEABLE, METRIC_NAMES, evaluate_metric
+from ._rows import any3
 from ._topology import VertexFaces, contains_edge, edge_keys, unique_edges
 from ._validity import collapse_is_valid
 
@@ -156,8 +157,12 @@ def build_pm(
 
     for batch in range(options.max_batches):
         n_faces = len(cur)
-        n_verts = int(np.count_nonzero(np.bincount(cur.ravel(), minlength=next_id))) if n_faces else 0
-        if n_faces == 0 or n_faces <= options.target_faces or n_verts <= options.target_vertices:
+        # Live vertices (those with a face) matter only for a vertex target.
+        n_verts = 0
+        if options.target_vertices and n_faces:
+            n_verts = int(np.count_nonzero(np.bincount(cur.ravel(), minlength=next_id)))
+        enough_vertices = options.target_vertices and n_verts <= options.target_vertices
+        if n_faces == 0 or n_faces <= options.target_faces or enough_vertices:
             break
         metric = options.metric_for_batch(batch)
 
@@ -244,7 +249,7 @@ def build_pm(
         killer[fid[dead]] = (merged[dead] - V0).astype(np.int32)
         cur, fid = cur[~dead], fid[~dead]
         # Normals of the new vertices, from the faces around them only.
-        around = cur[np.any(cur >= next_id, axis=1)]
+        around = cur[any3(cur >= next_id)]
         vn = _new_vertex_normals(pos, around, next_id, k)
         # A vertex left without faces inherits its children's mean normal.
         lonely = np.linalg.norm(vn, axis=1) == 0

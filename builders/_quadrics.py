@@ -70,7 +70,7 @@ def vertex_quadrics(
     unit, area, _ = face_geometry(pos, faces)
     d = -np.einsum("ij,ij->i", unit, pos[faces[:, 0]])
     kf = plane_quadrics(unit, d, area)
-    q = _scatter_add(np.repeat(kf, 3, axis=0), faces.ravel(), n_vertices)
+    q = _scatter_add(kf, faces.ravel(), n_vertices, repeat=3)
     if boundary_weight > 0:
         a, b, face = boundary_edges(faces)
         if len(a):
@@ -87,9 +87,17 @@ def vertex_quadrics(
     return q
 
 
-def _scatter_add(values: np.ndarray, index: np.ndarray, n: int) -> np.ndarray:
-    # bincount per column is much faster than np.add.at for wide arrays.
-    return np.stack([np.bincount(index, values[:, k], minlength=n) for k in range(values.shape[1])], 1)
+def _scatter_add(values: np.ndarray, index: np.ndarray, n: int, repeat: int = 1) -> np.ndarray:
+    """``out[index[i]] += values[i // repeat]`` for ``(N, k)`` values.
+
+    bincount per column is much faster than np.add.at for wide arrays;
+    columns are made contiguous and repeated one at a time (a 2-D repeat and
+    strided column reads cost 2-5x more on the dragon), same sums bit for bit.
+    """
+    columns = np.ascontiguousarray(values.T)
+    if repeat > 1:
+        return np.stack([np.bincount(index, np.repeat(c, repeat), minlength=n) for c in columns], 1)
+    return np.stack([np.bincount(index, c, minlength=n) for c in columns], 1)
 
 
 def boundary_edges(faces: np.ndarray):
