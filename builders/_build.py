@@ -17,7 +17,7 @@ from . import _quadrics as qd
 from ._attributes import refinement_attributes
 from ._independent import domain_of_independent, select_independent
 from ._metrics import CACHEABLE, METRIC_NAMES, evaluate_metric
-from ._rows import any3
+from ._rows import any3, norm
 from ._topology import VertexFaces, contains_edge, edge_keys, unique_edges
 from ._validity import collapse_is_valid
 
@@ -310,7 +310,7 @@ def _new_vertex_normals(pos, faces, first, k):
     new = corner >= 0
     w = np.repeat(cross, 3, axis=0)[new]
     acc = np.stack([np.bincount(corner[new], w[:, j], minlength=k) for j in range(3)], 1)
-    length = np.linalg.norm(acc, axis=1)
+    length = norm(acc)
     return acc / np.where(length > 0, length, 1.0)[:, None]
 
 

@@ -44,7 +44,7 @@ def face_geometry(pos: np.ndarray, faces: np.ndarray):
     """
     tri = pos[faces]
     cross = rows.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    length = np.linalg.norm(cross, axis=1)
+    length = rows.norm(cross)
     unit = cross / np.where(length > 0, length, 1.0)[:, None]
     return unit, 0.5 * length, cross
 
@@ -167,8 +167,8 @@ def optimal_placement(q: np.ndarray, a: np.ndarray, b: np.ndarray):
         1,
     ) * inv_det[:, None]
     mid = 0.5 * (a + b)
-    length = np.linalg.norm(b - a, axis=1)
-    solvable &= np.linalg.norm(x - mid, axis=1) <= length
+    length = rows.norm(b - a)
+    solvable &= rows.norm(x - mid) <= length
     pos = x
     cost = evaluate(q, x)
     # Fallback where the optimum is unreliable, or (through rounding) no

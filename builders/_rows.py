@@ -37,3 +37,9 @@ def cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
 def dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Row-wise dot product of ``[N, 3]`` arrays."""
     return u[:, 0] * v[:, 0] + u[:, 1] * v[:, 1] + u[:, 2] * v[:, 2]
+
+
+def norm(u: np.ndarray) -> np.ndarray:
+    """Row-wise Euclidean length of an ``[N, 3]`` array (``np.linalg.norm(u,
+    axis=1)``, the same sums in the same order)."""
+    return np.sqrt(dot(u, u))
