@@ -18,6 +18,7 @@ from ._attributes import refinement_attributes
 from ._independent import domain_of_independent, select_independent
 from ._metrics import CACHEABLE, METRIC_NAMES, evaluate_metric
 from ._rows import any3, norm
+from ._threads import split_pairs
 from ._topology import VertexFaces, contains_edge, edge_keys, unique_edges
 from ._validity import collapse_is_valid
 
@@ -203,11 +204,14 @@ def build_pm(
         boundary_vertex[eb[ecount == 1]] = True
         link_test = is_edge & (not options.allow_topology_change)
 
-        def is_valid(idx, pair, face):
+        def is_valid_one(idx, pair, face):
             return collapse_is_valid(
                 pos, cur, a[idx], b[idx], x[idx], pair, face,
                 min_area2=min_area2, link_test=link_test[idx], boundary_vertex=boundary_vertex,
             )
+
+        def is_valid(idx, pair, face):
+            return split_pairs(is_valid_one, idx, pair, face)
 
         if options.linear:
             chosen = _first_valid(is_valid, a, b, cur, next_id)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import _quadrics as qd
+from ._threads import split_rows
 from ._topology import VertexFaces
 
 METRIC_NAMES = ("quadric", "quadric-memoryless", "edge", "pm", "hybrid")
@@ -50,7 +51,7 @@ def evaluate_metric(
     """
     pa, pb = pos[a], pos[b]
     if metric == "quadric":
-        return qd.optimal_placement(quadric[a] + quadric[b], pa, pb)
+        return split_rows(qd.optimal_placement, quadric[a] + quadric[b], pa, pb)
     if metric == "edge":
         return 0.5 * (pa + pb), np.linalg.norm(pb - pa, axis=1)
     if metric in ("quadric-memoryless", "pm"):

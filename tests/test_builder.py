@@ -193,3 +193,30 @@ def test_cheapest_is_the_stable_sort_prefix():
     for n, k in [(1, 1), (10, 3), (1000, 500), (1000, 1000), (50, 1), (200, 199), (5000, 5000)]:
         for cost in (rng.integers(0, 7, n).astype(np.float64), rng.random(n), np.zeros(n)):  # ties, none, all
             assert np.array_equal(_cheapest(cost, k), np.argsort(cost, kind="stable")[:k]), (n, k)
+
+
+def test_threaded_splits_equal_one_call(monkeypatch):
+    """Row halves on two threads give the same bits as one call: placements of
+    random quadrics, and a per-pair check over its incidence rows."""
+    from pmjax.builders import _quadrics as qd
+    from pmjax.builders import _threads
+
+    monkeypatch.setattr(_threads, "MIN_ROWS", 10)
+    monkeypatch.setattr(_threads, "_two_cores", lambda: True)
+    rng = np.random.default_rng(5)
+    n = 1001
+    q = rng.random((n, 10))
+    q[:, [0, 4, 7]] += 3.0
+    a, b = rng.random((n, 3)), rng.random((n, 3))
+    whole = qd.optimal_placement(q, a, b)
+    halves = _threads.split_rows(qd.optimal_placement, q, a, b)
+    assert all(np.array_equal(u, v) for u, v in zip(whole, halves))
+
+    ids = np.arange(50, 150)
+    pair = rng.integers(0, len(ids), 5000)
+    face = rng.integers(0, 10_000, 5000)
+
+    def check(i, p, f):  # per id: its id plus the sum of its faces' ids, odd?
+        return (i + np.bincount(p, f, minlength=len(i)).astype(np.int64)) % 2 == 1
+
+    assert np.array_equal(_threads.split_pairs(check, ids, pair, face), check(ids, pair, face))
