@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._threads import split_rows
+
 
 def _angle(n1: np.ndarray, n2: np.ndarray) -> np.ndarray:
     return np.arccos(np.clip(np.einsum("ij,ij->i", n1, n2), -1.0, 1.0))
@@ -31,7 +33,7 @@ def original_cone_angles(vertices, normals, faces) -> np.ndarray:
     fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     fn /= np.maximum(np.linalg.norm(fn, axis=1), 1e-300)[:, None]
     corner = faces.ravel()
-    ang = _angle(normals[corner], np.repeat(fn, 3, axis=0))
+    ang = split_rows(lambda c, f: _angle(normals[c], fn[f]), corner, np.repeat(np.arange(len(faces)), 3))
     out = np.zeros(len(vertices))
     np.maximum.at(out, corner, ang)
     return out

@@ -49,9 +49,10 @@ def evaluate_metric(
     Returns:
         ``(placement (C, 3), cost (C,))``, cost ``>= 0``.
     """
-    pa, pb = pos[a], pos[b]
     if metric == "quadric":
-        return split_rows(qd.optimal_placement, quadric[a] + quadric[b], pa, pb)
+        # Gathers included: the halves also fetch their own rows in parallel.
+        return split_rows(lambda a, b: qd.optimal_placement(quadric[a] + quadric[b], pos[a], pos[b]), a, b)
+    pa, pb = pos[a], pos[b]
     if metric == "edge":
         return 0.5 * (pa + pb), np.linalg.norm(pb - pa, axis=1)
     if metric in ("quadric-memoryless", "pm"):
