@@ -101,7 +101,7 @@ class BuildOptions:
 
 def vertex_normals(pos: np.ndarray, faces: np.ndarray, n: int) -> np.ndarray:
     """Area-weighted unit vertex normals (zero where a vertex has no face)."""
-    _, _, cross = qd.face_geometry(pos, faces)
+    cross = qd.face_cross(pos, faces)
     acc = np.stack([np.bincount(faces.ravel(), np.repeat(cross[:, k], 3), minlength=n) for k in range(3)], 1)
     length = np.linalg.norm(acc, axis=1)
     return acc / np.where(length > 0, length, 1.0)[:, None]
@@ -309,7 +309,7 @@ def build_pm(
 
 def _new_vertex_normals(pos, faces, first, k):
     """Area-weighted unit normals of vertices ``first .. first+k-1``."""
-    _, _, cross = qd.face_geometry(pos, faces)
+    cross = qd.face_cross(pos, faces)
     corner = faces.ravel() - first
     new = corner >= 0
     w = np.repeat(cross, 3, axis=0)[new]

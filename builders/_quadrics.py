@@ -35,6 +35,13 @@ def plane_quadrics(normals: np.ndarray, offsets: np.ndarray, weights: np.ndarray
     return out
 
 
+def face_cross(pos: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``(F, 3)`` cross products of the triangles' edges (twice the area times
+    the unit normal)."""
+    tri = pos[faces]
+    return rows.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+
+
 def face_geometry(pos: np.ndarray, faces: np.ndarray):
     """Unit normals, areas and raw cross products of triangles.
 
@@ -42,8 +49,7 @@ def face_geometry(pos: np.ndarray, faces: np.ndarray):
         ``(unit_normals (F, 3), areas (F,), cross (F, 3))``; degenerate faces get
         a zero normal.
     """
-    tri = pos[faces]
-    cross = rows.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    cross = face_cross(pos, faces)
     length = rows.norm(cross)
     unit = cross / np.where(length > 0, length, 1.0)[:, None]
     return unit, 0.5 * length, cross
