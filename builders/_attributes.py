@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._quadrics import face_cross
 from ._threads import split_rows
 
 
@@ -29,8 +30,7 @@ def _angle(n1: np.ndarray, n2: np.ndarray) -> np.ndarray:
 
 def original_cone_angles(vertices, normals, faces) -> np.ndarray:
     """Half-angle of the cone at each original vertex covering its face normals."""
-    tri = vertices[faces]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    fn = face_cross(vertices, faces)
     fn /= np.maximum(np.linalg.norm(fn, axis=1), 1e-300)[:, None]
     corner = faces.ravel()
     ang = split_rows(lambda c, f: _angle(normals[c], fn[f]), corner, np.repeat(np.arange(len(faces)), 3))

@@ -17,7 +17,7 @@ from . import _quadrics as qd
 from ._attributes import refinement_attributes
 from ._independent import domain_of_independent, select_independent
 from ._metrics import CACHEABLE, METRIC_NAMES, evaluate_metric
-from ._rows import any3, norm
+from ._rows import any3, unit
 from ._threads import split_pairs
 from ._topology import VertexFaces, contains_edge, edge_keys, unique_edges
 from ._validity import collapse_is_valid
@@ -101,10 +101,7 @@ class BuildOptions:
 
 def vertex_normals(pos: np.ndarray, faces: np.ndarray, n: int) -> np.ndarray:
     """Area-weighted unit vertex normals (zero where a vertex has no face)."""
-    cross = qd.face_cross(pos, faces)
-    acc = np.stack([np.bincount(faces.ravel(), np.repeat(cross[:, k], 3), minlength=n) for k in range(3)], 1)
-    length = np.linalg.norm(acc, axis=1)
-    return acc / np.where(length > 0, length, 1.0)[:, None]
+    return unit(qd.scatter_add(qd.face_cross(pos, faces), faces.ravel(), n, repeat=3))
 
 
 def build_pm(
@@ -309,13 +306,10 @@ def build_pm(
 
 def _new_vertex_normals(pos, faces, first, k):
     """Area-weighted unit normals of vertices ``first .. first+k-1``."""
-    cross = qd.face_cross(pos, faces)
     corner = faces.ravel() - first
     new = corner >= 0
-    w = np.repeat(cross, 3, axis=0)[new]
-    acc = np.stack([np.bincount(corner[new], w[:, j], minlength=k) for j in range(3)], 1)
-    length = norm(acc)
-    return acc / np.where(length > 0, length, 1.0)[:, None]
+    cross = np.repeat(qd.face_cross(pos, faces), 3, axis=0)
+    return unit(qd.scatter_add(cross[new], corner[new], k))
 
 
 def _cheapest(cost: np.ndarray, k: int) -> np.ndarray:

@@ -76,7 +76,7 @@ def vertex_quadrics(
     unit, area, _ = face_geometry(pos, faces)
     d = -np.einsum("ij,ij->i", unit, pos[faces[:, 0]])
     kf = plane_quadrics(unit, d, area)
-    q = _scatter_add(kf, faces.ravel(), n_vertices, repeat=3)
+    q = scatter_add(kf, faces.ravel(), n_vertices, repeat=3)
     if boundary_weight > 0:
         a, b, face = boundary_edges(faces)
         if len(a):
@@ -89,11 +89,11 @@ def vertex_quadrics(
             kb = plane_quadrics(
                 m, -np.einsum("ij,ij->i", m, pos[a]), boundary_weight * np.einsum("ij,ij->i", e, e)
             )
-            q += _scatter_add(np.concatenate([kb, kb]), np.concatenate([a, b]), n_vertices)
+            q += scatter_add(np.concatenate([kb, kb]), np.concatenate([a, b]), n_vertices)
     return q
 
 
-def _scatter_add(values: np.ndarray, index: np.ndarray, n: int, repeat: int = 1) -> np.ndarray:
+def scatter_add(values: np.ndarray, index: np.ndarray, n: int, repeat: int = 1) -> np.ndarray:
     """``out[index[i]] += values[i // repeat]`` for ``(N, k)`` values.
 
     bincount per column is much faster than np.add.at for wide arrays;

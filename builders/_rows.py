@@ -43,3 +43,9 @@ def norm(u: np.ndarray) -> np.ndarray:
     """Row-wise Euclidean length of an ``[N, 3]`` array (``np.linalg.norm(u,
     axis=1)``, the same sums in the same order)."""
     return np.sqrt(dot(u, u))
+
+
+def unit(u: np.ndarray) -> np.ndarray:
+    """Rows of ``u`` scaled to unit length; zero rows stay zero."""
+    length = norm(u)
+    return u / np.where(length > 0, length, 1.0)[:, None]
