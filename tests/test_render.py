@@ -238,6 +238,9 @@ def test_render_and_path_with_geomorphs(cow, tmp_path):
     assert r.returncode == 0, r.stderr
     rows = list(csv.DictReader(open(out)))
     assert len(rows) == 5 and float(rows[0]["popping_mse"]) == 0.0 and float(rows[1]["popping_mse"]) > 0.0
+    r = subprocess.run([sys.executable, "-m", "pmjax", "path", path, "--orbit", "2", "--fidelity", "--supersample", "0",
+                        "-q"], capture_output=True, text=True)
+    assert r.returncode == 2 and "supersample must be >= 1, got 0" in r.stderr
     gif = tmp_path / "g.gif"
     r = subprocess.run([sys.executable, "-m", "pmjax", "render", path, "--orbit", "5", "--geomorph", "4", "-o",
                         str(gif), "-q"], capture_output=True, text=True)
