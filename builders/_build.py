@@ -187,38 +187,24 @@ def build_pm(
             x, cost = evaluate_metric(metric, pos, cur, quadric, a, b, options.boundary_weight)
         cache = (metric, *_sorted_by_key(keys, x, cost)) if metric in CACHEABLE else None
 
-        # Eligible: the cheapest share (linear mode keeps them all and takes
-        # the cheapest valid one), in cost order so index = priority.
-        within = np.flatnonzero(cost <= options.max_error)
-        share = 1.0 if options.linear else options.batch_share
-        elig = within[_cheapest(cost[within], max(1, int(math.ceil(share * len(within)))))]
-        if len(elig) == 0:
-            break
-        a, b, x, cost, is_edge = a[elig], b[elig], x[elig], cost[elig], is_edge[elig]
-
         boundary_vertex = np.zeros(next_id, bool)
         boundary_vertex[ea[ecount == 1]] = True
         boundary_vertex[eb[ecount == 1]] = True
-        link_test = is_edge & (not options.allow_topology_change)
-
-        def is_valid_one(idx, pair, face):
-            return collapse_is_valid(
-                pos, cur, a[idx], b[idx], x[idx], pair, face,
-                min_area2=min_area2, link_test=link_test[idx], boundary_vertex=boundary_vertex,
+        candidates = (a, b, x, cost, is_edge & (not options.allow_topology_change))
+        within = np.flatnonzero(cost <= options.max_error)
+        if len(within) == 0:
+            break
+        # A batch takes from the cheapest share. When none of those is valid,
+        # the dearer rest may still hold valid collapses: try all of them
+        # before giving up (stopping there left the dragon at 2,891 faces).
+        shares = [1.0] if options.linear else sorted({options.batch_share, 1.0})
+        for share in shares:
+            elig = within[_cheapest(candidates[3][within], max(1, int(math.ceil(share * len(within)))))]
+            a, b, x, cost, chosen = _select_batch(
+                [c[elig] for c in candidates], cur, next_id, pos, min_area2, boundary_vertex, options.linear
             )
-
-        def is_valid(idx, pair, face):
-            return split_pairs(is_valid_one, idx, pair, face)
-
-        if options.linear:
-            chosen = _first_valid(is_valid, a, b, cur, next_id)
-        else:
-            if len(a) <= EAGER_VALIDITY:
-                # Small sets: check everything at once, so permanently invalid
-                # candidates (closed fragments, pinches) cost no greedy rounds.
-                ok = is_valid(np.arange(len(a)), *VertexFaces(cur, next_id).of_pairs(a, b, cur))
-                a, b, x, cost, link_test = a[ok], b[ok], x[ok], cost[ok], link_test[ok]
-            chosen = select_independent(a, b, cur, next_id, is_valid)
+            if len(chosen):
+                break
         if len(chosen) == 0:
             break
 
@@ -302,6 +288,41 @@ def build_pm(
         killer=killer,
         header=header,
     )
+
+
+def _select_batch(candidates, cur, n_vertices, pos, min_area2, boundary_vertex, linear):
+    """Independent valid collapses among ``candidates`` (in cost order).
+
+    Args:
+        candidates: ``(a, b, x, cost, link_test)`` arrays of the eligible
+            pairs, cheapest first (index = priority).
+        cur: ``(F, 3)`` current faces; n_vertices: ids in use.
+        linear: take only the cheapest valid candidate.
+
+    Returns:
+        ``(a, b, x, cost, chosen)``: the candidates that were considered
+        (invalid ones may have been dropped up front) and the positions of
+        the chosen ones among them.
+    """
+    a, b, x, cost, link_test = candidates
+
+    def is_valid_one(idx, pair, face):
+        return collapse_is_valid(
+            pos, cur, a[idx], b[idx], x[idx], pair, face,
+            min_area2=min_area2, link_test=link_test[idx], boundary_vertex=boundary_vertex,
+        )
+
+    def is_valid(idx, pair, face):
+        return split_pairs(is_valid_one, idx, pair, face)
+
+    if linear:
+        return a, b, x, cost, _first_valid(is_valid, a, b, cur, n_vertices)
+    if len(a) <= EAGER_VALIDITY:
+        # Small sets: check everything at once, so permanently invalid
+        # candidates (closed fragments, pinches) cost no greedy rounds.
+        ok = is_valid(np.arange(len(a)), *VertexFaces(cur, n_vertices).of_pairs(a, b, cur))
+        a, b, x, cost, link_test = a[ok], b[ok], x[ok], cost[ok], link_test[ok]
+    return a, b, x, cost, select_independent(a, b, cur, n_vertices, is_valid)
 
 
 def _new_vertex_normals(pos, faces, first, k):
