@@ -39,6 +39,69 @@ def original_cone_angles(vertices, normals, faces) -> np.ndarray:
     return out
 
 
+class HierarchyAttributes:
+    """Refinement attributes filled in batch by batch, as the builder makes
+    the batches (so the work can run beside it).
+
+    Args:
+        vertices, normals: ``float64[N, 3]`` buffers of all vertex ids the
+            build may make (model units; unit normals). A batch's rows must be
+            written before :meth:`add_batch` is called for it; rows are only read.
+        faces: ``int[F, 3]`` original faces.
+        n_original: ``V0``, the number of original vertices.
+    """
+
+    def __init__(self, vertices, normals, faces, n_original: int):
+        n, V0 = len(vertices), n_original
+        self.vertices, self.normals, self.V0 = vertices, normals, V0
+        self.radius = np.zeros(n)  # per vertex; originals stay 0
+        self.alpha = np.zeros(n)
+        self.alpha[:V0] = original_cone_angles(vertices[:V0], normals[:V0], faces)
+        self.delta = np.zeros(n)
+        self.mu = np.zeros(n)
+        self.parent = np.full(n, -1, np.int64)
+        # Topmost vertex reached so far from each original vertex (its leaf chain).
+        self.top = np.arange(V0)
+
+    def add_batch(self, lo: int, c1: np.ndarray, c2: np.ndarray) -> None:
+        """Attributes of vertex ids ``lo .. lo+len(c1)-1``, made from ``c1[i]``
+        and ``c2[i]`` (children always come from earlier batches)."""
+        hi = lo + len(c1)
+        if lo == hi:
+            return
+        vertices, normals = self.vertices, self.normals
+        radius, alpha, delta, mu = self.radius, self.alpha, self.delta, self.mu
+        ids = np.arange(lo, hi)
+        self.parent[c1] = ids
+        self.parent[c2] = ids
+        x, n = vertices[ids], normals[ids]
+        # Spheres and cones that contain the children's.
+        radius[ids] = np.maximum(
+            np.linalg.norm(x - vertices[c1], axis=1) + radius[c1],
+            np.linalg.norm(x - vertices[c2], axis=1) + radius[c2],
+        )
+        alpha[ids] = np.minimum(
+            np.pi,
+            np.maximum(_angle(n, normals[c1]) + alpha[c1], _angle(n, normals[c2]) + alpha[c2]),
+        )
+        # Leaves that climb into this batch: their distance from the tangent plane.
+        up = self.parent[self.top]
+        moving = np.flatnonzero(up >= lo)
+        self.top[moving] = up[moving]
+        owner = self.top[moving]
+        height = np.abs(np.einsum("ij,ij->i", normals[owner], vertices[moving] - vertices[owner]))
+        d = np.zeros(hi - lo)
+        np.maximum.at(d, owner - lo, height)
+        delta[ids] = np.maximum(d, np.maximum(delta[c1], delta[c2]))
+        spread = np.sin(np.minimum(alpha[ids], np.pi / 2))
+        mu[ids] = np.maximum(d * spread, np.maximum(mu[c1], mu[c2]))
+
+    def result(self, n_pcols: int) -> dict:
+        """``float64[P]`` arrays ``radius``, ``alpha``, ``delta``, ``mu`` of the pcols."""
+        ids = slice(self.V0, self.V0 + n_pcols)
+        return dict(radius=self.radius[ids], alpha=self.alpha[ids], delta=self.delta[ids], mu=self.mu[ids])
+
+
 def refinement_attributes(vertices, normals, faces, v1, v2, batch_offsets):
     """Sphere radius, cone half-angle and deviations for every pcol.
 
@@ -55,41 +118,7 @@ def refinement_attributes(vertices, normals, faces, v1, v2, batch_offsets):
     """
     P = len(v1)
     V0 = len(vertices) - P
-    radius = np.zeros(V0 + P)  # per vertex; originals stay 0
-    alpha = np.zeros(V0 + P)
-    alpha[:V0] = original_cone_angles(vertices[:V0], normals[:V0], faces)
-    delta = np.zeros(V0 + P)
-    mu = np.zeros(V0 + P)
-    parent = np.full(V0 + P, -1, np.int64)
-    parent[v1] = V0 + np.arange(P)
-    parent[v2] = V0 + np.arange(P)
-    # Topmost vertex reached so far from each original vertex (its leaf chain).
-    top = np.arange(V0)
-    for b in range(len(batch_offsets) - 1):
-        lo, hi = V0 + batch_offsets[b], V0 + batch_offsets[b + 1]
-        if lo == hi:
-            continue
-        ids = np.arange(lo, hi)
-        x, n = vertices[ids], normals[ids]
-        c1, c2 = v1[ids - V0], v2[ids - V0]
-        # Spheres and cones that contain the children's.
-        radius[ids] = np.maximum(
-            np.linalg.norm(x - vertices[c1], axis=1) + radius[c1],
-            np.linalg.norm(x - vertices[c2], axis=1) + radius[c2],
-        )
-        alpha[ids] = np.minimum(
-            np.pi,
-            np.maximum(_angle(n, normals[c1]) + alpha[c1], _angle(n, normals[c2]) + alpha[c2]),
-        )
-        # Leaves that climb into this batch: their distance from the tangent plane.
-        up = parent[top]
-        moving = np.flatnonzero((up >= lo) & (up < hi))
-        top[moving] = up[moving]
-        owner = top[moving]
-        height = np.abs(np.einsum("ij,ij->i", normals[owner], vertices[moving] - vertices[owner]))
-        d = np.zeros(hi - lo)
-        np.maximum.at(d, owner - lo, height)
-        delta[ids] = np.maximum(d, np.maximum(delta[c1], delta[c2]))
-        spread = np.sin(np.minimum(alpha[ids], np.pi / 2))
-        mu[ids] = np.maximum(d * spread, np.maximum(mu[c1], mu[c2]))
-    return {k: a[V0:] for k, a in dict(radius=radius, alpha=alpha, delta=delta, mu=mu).items()}
+    attrs = HierarchyAttributes(vertices, normals, faces, V0)
+    for lo, hi in zip(batch_offsets[:-1], batch_offsets[1:]):
+        attrs.add_batch(V0 + int(lo), v1[lo:hi], v2[lo:hi])
+    return attrs.result(P)

@@ -64,7 +64,7 @@ def unique_edges(faces: np.ndarray, n: int):
     a = faces.ravel()
     b = faces[:, [1, 2, 0]].ravel()
     keys, counts = np.unique(edge_keys(a, b, n), return_counts=True)
-    return keys // n, keys % n, counts
+    return (keys // n).astype(faces.dtype), (keys % n).astype(faces.dtype), counts
 
 
 def contains_edge(ea: np.ndarray, eb: np.ndarray, a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:

@@ -84,3 +84,44 @@ def _common_neighbours(tri, has_a, has_b, pair, n_pairs) -> np.ndarray:
 def _distinct(keys: np.ndarray) -> np.ndarray:
     keys = np.sort(keys)
     return keys[np.r_[True, keys[1:] != keys[:-1]]] if len(keys) else keys
+
+
+class KnownInvalid:
+    """Pairs found invalid whose domain has not changed since.
+
+    A collapse's validity depends only on its domain faces, their vertices'
+    positions, the placement and the endpoints' border flags. Pair keys name
+    vertex ids, and an id's position and quadric (hence the placement) never
+    change, so a verdict holds until a collapse touches a face around an
+    endpoint. Late batches of the dragon re-check the same few thousand stuck
+    candidates otherwise.
+
+    Args:
+        cap: the bound on vertex ids used in the keys (``edge_keys``).
+    """
+
+    def __init__(self, cap: int):
+        self.cap = cap
+        self.keys = np.zeros(0, np.int64)  # sorted
+
+    def of(self, keys: np.ndarray) -> np.ndarray:
+        """``bool`` mask: which of ``keys`` are known invalid."""
+        if len(self.keys) == 0:
+            return np.zeros(len(keys), bool)
+        i = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
+        return self.keys[i] == keys
+
+    def add(self, keys: np.ndarray) -> None:
+        if len(keys):
+            self.keys = np.union1d(self.keys, keys)
+
+    def forget_around(self, faces: np.ndarray, collapsed: np.ndarray, n_vertices: int) -> None:
+        """Drop the verdicts of pairs with an endpoint on a face (of ``faces``,
+        before the batch) that holds a ``collapsed`` vertex."""
+        if len(self.keys) == 0:
+            return
+        hit = np.zeros(n_vertices, bool)
+        hit[collapsed] = True
+        moved = np.zeros(n_vertices, bool)
+        moved[faces[any3(hit[faces])].ravel()] = True
+        self.keys = self.keys[~(moved[self.keys // self.cap] | moved[self.keys % self.cap])]

@@ -229,3 +229,23 @@ def test_threaded_splits_equal_one_call(monkeypatch):
         return (i + np.bincount(p, f, minlength=len(i)).astype(np.int64)) % 2 == 1
 
     assert np.array_equal(_threads.split_pairs(check, ids, pair, face), check(ids, pair, face))
+
+
+def test_validity_shortcuts_change_nothing(monkeypatch, data_path):
+    """Checking validity up front or only for greedy winners, and reusing
+    verdicts of pairs whose domain did not change, give the same hierarchy
+    as checking everything afresh."""
+    from pmjax.builders import _build, _validity
+
+    v, f, _, _ = pmjax.load_clean_mesh(data_path("bunny.ply"))
+    reference = build_pm(v, f)
+    # Up front for every batch small enough, never remembering a verdict.
+    monkeypatch.setattr(_build, "EAGER_INVALID_SHARE", 0.0)
+    monkeypatch.setattr(_validity.KnownInvalid, "of", lambda self, keys: np.zeros(len(keys), bool))
+    eager = build_pm(v, f)
+    # Only for winners, always.
+    monkeypatch.setattr(_build, "EAGER_INVALID_SHARE", 2.0)
+    lazy = build_pm(v, f)
+    for other in (eager, lazy):
+        for key, value in reference.arrays().items():
+            assert np.array_equal(getattr(other, key), value), key
