@@ -204,7 +204,7 @@ def build_pm(
             boundary_vertex = np.zeros(next_id, bool)
             boundary_vertex[ea[ecount == 1]] = True
             boundary_vertex[eb[ecount == 1]] = True
-            candidates = (a, b, x, cost, is_edge & (not options.allow_topology_change))
+            link_test = is_edge & (not options.allow_topology_change)
             within = np.flatnonzero(cost <= options.max_error)
             if len(within) == 0:
                 break
@@ -213,14 +213,14 @@ def build_pm(
             # before giving up (stopping there left the dragon at 2,891 faces).
             shares = [1.0] if options.linear else sorted({options.batch_share, 1.0})
             for share in shares:
-                elig = within[_cheapest(candidates[3][within], max(1, int(math.ceil(share * len(within)))))]
-                eager = len(elig) <= EAGER_VALIDITY and invalid_share >= EAGER_INVALID_SHARE
+                elig = within[_cheapest(cost[within], max(1, int(math.ceil(share * len(within)))))]
+                eager = not options.linear and len(elig) <= EAGER_VALIDITY and invalid_share >= EAGER_INVALID_SHARE
                 skip = known_invalid.of(keys[elig]) if eager else None
-                a, b, x, cost, chosen, invalid, invalid_share = _select_batch(
-                    [c[elig] for c in candidates], cur, next_id, pos, min_area2, boundary_vertex,
-                    options.linear, skip,
+                chosen, invalid, invalid_share = _select_batch(
+                    a, b, x, link_test, elig, cur, next_id, pos, min_area2, boundary_vertex, options.linear, skip
                 )
-                known_invalid.add(keys[elig[invalid]])
+                if eager:
+                    known_invalid.add(keys[invalid])
                 if len(chosen):
                     break
             if len(chosen) == 0:
@@ -303,26 +303,24 @@ def build_pm(
     )
 
 
-def _select_batch(candidates, cur, n_vertices, pos, min_area2, boundary_vertex, linear, eager_skip):
-    """Independent valid collapses among ``candidates`` (in cost order).
+def _select_batch(a, b, x, link_test, elig, cur, n_vertices, pos, min_area2, boundary_vertex, linear, eager_skip):
+    """Independent valid collapses among the eligible candidates.
 
     Args:
-        candidates: ``(a, b, x, cost, link_test)`` arrays of the eligible
-            pairs, cheapest first (index = priority).
+        a, b, x, link_test: all candidates' endpoints, placements ``(C, 3)``
+            and whether the link test applies.
+        elig: ids of the eligible candidates, cheapest first (order = priority).
         cur: ``(F, 3)`` current faces; n_vertices: ids in use.
         linear: take only the cheapest valid candidate.
         eager_skip: ``None`` to check only the greedy winners' validity;
-            else every candidate's is checked up front, except where this
-            ``bool`` mask says it is known invalid.
+            else every eligible candidate's is checked up front, except where
+            this ``bool`` mask over ``elig`` says it is known invalid.
 
     Returns:
-        ``(a, b, x, cost, chosen, invalid, invalid_share)``: the candidates
-        that were considered (invalid ones are dropped up front when eager),
-        the positions of the chosen ones among them, the positions in
-        ``candidates`` of those found invalid, and the share of the checked
-        candidates that were invalid (known invalid ones included).
+        ``(chosen, invalid, invalid_share)``: ids of the chosen candidates,
+        cheapest first; ids of those found invalid; and the share of the
+        checked candidates that were invalid (known invalid ones included).
     """
-    a, b, x, cost, link_test = candidates
     checked, invalid = [0], [np.zeros(0, np.int64)]
 
     def is_valid_one(idx, pair, face):
@@ -337,21 +335,21 @@ def _select_batch(candidates, cur, n_vertices, pos, min_area2, boundary_vertex, 
         invalid.append(idx[~ok])
         return ok
 
-    if linear:
-        chosen = _first_valid(is_valid, a, b, cur, n_vertices)
-    elif eager_skip is not None:
-        ok = ~eager_skip
-        idx = np.flatnonzero(ok)
-        ok[idx] = is_valid(idx, *VertexFaces(cur, n_vertices).of_pairs(a[idx], b[idx], cur))
-        a, b, x, cost = a[ok], b[ok], x[ok], cost[ok]
+    check = is_valid
+    skipped = 0
+    if eager_skip is not None:
+        skipped = int(np.count_nonzero(eager_skip))
+        idx = elig[~eager_skip]
+        elig = idx[is_valid(idx, *VertexFaces(cur, n_vertices).of_pairs(a[idx], b[idx], cur))]
         # All left are valid: the greedy need not check them again.
-        chosen = select_independent(a, b, cur, n_vertices, lambda idx, pair, face: np.ones(len(idx), bool))
+        check = lambda idx, pair, face: np.ones(len(idx), bool)  # noqa: E731
+    ea, eb = a[elig], b[elig]
+    if linear:
+        chosen = _first_valid(lambda i, p, f: check(elig[i], p, f), ea, eb, cur, n_vertices)
     else:
-        chosen = select_independent(a, b, cur, n_vertices, is_valid)
+        chosen = select_independent(ea, eb, cur, n_vertices, lambda i, p, f: check(elig[i], p, f))
     invalid = np.concatenate(invalid)
-    # Known invalid candidates count as checked and invalid.
-    skipped = 0 if eager_skip is None else int(np.count_nonzero(eager_skip))
-    return a, b, x, cost, chosen, invalid, (len(invalid) + skipped) / max(checked[0] + skipped, 1)
+    return elig[chosen], invalid, (len(invalid) + skipped) / max(checked[0] + skipped, 1)
 
 
 def _start_attributes(pos, normals, faces, V0):
@@ -423,6 +421,9 @@ def _stable_argsort(x: np.ndarray) -> np.ndarray:
 
 
 def _sorted_by_key(keys, x, cost):
+    # Edge-only candidates come out of unique_edges already in key order.
+    if np.all(keys[1:] > keys[:-1]):
+        return keys, x, cost
     order = np.argsort(keys)
     return keys[order], x[order], cost[order]
 
