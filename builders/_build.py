@@ -166,7 +166,7 @@ def build_pm(
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="pmjax-attributes") as beside:
         jobs = [beside.submit(_start_attributes, pos, normals, f0, V0)]
         invalid_share = 0.0  # of the last validity checks
-        known_invalid = KnownInvalid(cap)
+        known_invalid = KnownInvalid()
         for batch in range(options.max_batches):
             n_faces = len(cur)
             # Live vertices (those with a face) matter only for a vertex target.
@@ -179,22 +179,23 @@ def build_pm(
             metric = options.metric_for_batch(batch)
 
             # Candidates: every edge, plus close vertex pairs that share no edge.
-            ea, eb, ecount = unique_edges(cur, next_id)
+            ea, eb, ecount, keys = unique_edges(cur)
             a, b = ea, eb
             if options.pair_distance > 0:
                 live = np.unique(cur)
                 near = cKDTree(pos[live]).query_pairs(options.pair_distance * diag, output_type="ndarray")
                 if len(near):
                     pa, pb = live[near[:, 0]], live[near[:, 1]]
-                    new = ~contains_edge(ea, eb, pa, pb, next_id)
+                    pkeys = edge_keys(pa, pb)
+                    new = ~contains_edge(keys, pkeys)
                     a = np.concatenate([ea, np.minimum(pa, pb)[new]])
                     b = np.concatenate([eb, np.maximum(pa, pb)[new]])
+                    keys = np.concatenate([keys, pkeys[new]])
             is_edge = np.arange(len(a)) < len(ea)
 
             # Cost and placement under this batch's metric. Memory-resident costs
             # depend only on the two endpoints, so pairs seen last batch (same ids,
             # hence same quadrics) keep theirs.
-            keys = edge_keys(a, b, cap)
             if metric in CACHEABLE and cache is not None and cache[0] == metric:
                 x, cost = _cached_costs(cache, keys, metric, pos, cur, quadric, a, b, options.boundary_weight)
             else:

@@ -48,31 +48,38 @@ class VertexFaces:
         return pair, face
 
 
-def edge_keys(a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
-    """Order-free int64 key of vertex pairs (``min * n + max``)."""
+def edge_keys(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Order-free int64 key of vertex pairs: ``min << 32 | max`` (ids below
+    2**31). Keys sort like the pairs ``(min, max)``, and, unlike ``min * n +
+    max``, split back into ids with a shift and a mask instead of a division."""
     lo, hi = np.minimum(a, b).astype(np.int64), np.maximum(a, b).astype(np.int64)
-    return lo * n + hi
+    return (lo << 32) | hi
 
 
-def unique_edges(faces: np.ndarray, n: int):
+def key_ends(keys: np.ndarray):
+    """``(min, max)`` vertex ids of :func:`edge_keys` keys."""
+    return keys >> 32, keys & 0xFFFFFFFF
+
+
+def unique_edges(faces: np.ndarray):
     """Undirected edges of a triangle soup.
 
     Returns:
-        ``(a, b, face_count)`` with ``a < b``; ``face_count`` is how many faces
-        use the edge (1 on a boundary, 2 inside a manifold).
+        ``(a, b, face_count, keys)`` in key order, with ``a < b`` (of the
+        faces' integer type); ``face_count`` is how many faces use the edge
+        (1 on a boundary, 2 inside a manifold); ``keys`` their :func:`edge_keys`.
     """
     a = faces.ravel()
     b = faces[:, [1, 2, 0]].ravel()
-    keys, counts = np.unique(edge_keys(a, b, n), return_counts=True)
-    return (keys // n).astype(faces.dtype), (keys % n).astype(faces.dtype), counts
+    keys, counts = np.unique(edge_keys(a, b), return_counts=True)
+    lo, hi = key_ends(keys)
+    return lo.astype(faces.dtype), hi.astype(faces.dtype), counts, keys
 
 
-def contains_edge(ea: np.ndarray, eb: np.ndarray, a: np.ndarray, b: np.ndarray, n: int) -> np.ndarray:
-    """Whether each pair ``(a[i], b[i])`` is among the edges ``(ea, eb)``.
-
-    ``(ea, eb)`` must come from :func:`unique_edges` (sorted by key).
-    """
-    keys = edge_keys(ea, eb, n)
-    k = edge_keys(a, b, n)
-    i = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
-    return keys[i] == k
+def contains_edge(edge_keys_sorted: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """Whether each key of ``keys`` is among ``edge_keys_sorted`` (ascending,
+    as :func:`unique_edges` gives them)."""
+    if len(edge_keys_sorted) == 0:
+        return np.zeros(len(keys), bool)
+    i = np.minimum(np.searchsorted(edge_keys_sorted, keys), len(edge_keys_sorted) - 1)
+    return edge_keys_sorted[i] == keys

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._rows import any3, cross, dot
+from ._topology import key_ends
 
 
 def collapse_is_valid(
@@ -95,13 +96,10 @@ class KnownInvalid:
     change, so a verdict holds until a collapse touches a face around an
     endpoint. Late batches of the dragon re-check the same few thousand stuck
     candidates otherwise.
-
-    Args:
-        cap: the bound on vertex ids used in the keys (``edge_keys``).
+    Keys are :func:`edge_keys`.
     """
 
-    def __init__(self, cap: int):
-        self.cap = cap
+    def __init__(self):
         self.keys = np.zeros(0, np.int64)  # sorted
 
     def of(self, keys: np.ndarray) -> np.ndarray:
@@ -124,4 +122,5 @@ class KnownInvalid:
         hit[collapsed] = True
         moved = np.zeros(n_vertices, bool)
         moved[faces[any3(hit[faces])].ravel()] = True
-        self.keys = self.keys[~(moved[self.keys // self.cap] | moved[self.keys % self.cap])]
+        lo, hi = key_ends(self.keys)
+        self.keys = self.keys[~(moved[lo] | moved[hi])]
