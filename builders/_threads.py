@@ -54,3 +54,16 @@ def split_pairs(check, ids: np.ndarray, pair: np.ndarray, face: np.ndarray) -> n
     first = _pool().submit(check, ids[:h], pair[low], face[low])
     second = check(ids[h:], pair[~low] - h, face[~low])
     return np.concatenate([first.result(), second])
+
+
+def split_items(fn, items: list) -> None:
+    """``fn(items)`` as two halves of the list, one on the worker thread (for
+    work that writes its own disjoint outputs and returns nothing)."""
+    if len(items) < 2 or not _two_cores():
+        if items:
+            fn(items)
+        return
+    h = len(items) // 2
+    first = _pool().submit(fn, items[:h])
+    fn(items[h:])
+    first.result()
