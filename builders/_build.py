@@ -231,7 +231,7 @@ def build_pm(
             ca, cb = a[chosen], b[chosen]
             keep = len(chosen)
             if options.target_faces:
-                pair, face = domain_of_independent(ca, cb, cur, np.arange(n_faces), np.full(next_id, -1))
+                pair, face = domain_of_independent(ca, cb, cur, np.arange(n_faces), np.full(next_id, -1, np.int32))
                 tri = cur[face]
                 both = np.any(tri == ca[pair, None], 1) & np.any(tri == cb[pair, None], 1)
                 left = n_faces - np.cumsum(np.bincount(pair, both, minlength=keep))
@@ -445,7 +445,7 @@ def _cached_costs(cache, keys, metric, pos, cur, quadric, a, b, boundary_weight)
 def _first_valid(is_valid, a, b, cur, n_vertices) -> np.ndarray:
     """The cheapest valid candidate (linear mode); candidates are in cost order."""
     every_face = np.arange(len(cur))
-    owner = np.full(n_vertices, -1)
+    owner = np.full(n_vertices, -1, np.int32)
     for i in range(len(a)):
         idx = np.array([i])
         pair, face = domain_of_independent(a[idx], b[idx], cur, every_face, owner)

@@ -28,7 +28,9 @@ import numpy as np
 
 from ._rows import any3, max3, min3
 
-_NONE = np.iinfo(np.int64).max
+# Candidate ids and scratch values are int32 (fewer bytes per gather and
+# scatter in every round); _NONE is above every id.
+_NONE = np.iinfo(np.int32).max
 
 
 def domain_of_independent(
@@ -39,15 +41,15 @@ def domain_of_independent(
     Args:
         a, b: ``(K,)`` endpoints of independent pairs.
         faces: ``(F, 3)`` faces to search; ``face_ids`` their ids.
-        owner: ``int64[n_vertices]`` scratch buffer filled with -1; it is
+        owner: ``int32[n_vertices]`` scratch buffer filled with -1; it is
             left filled with -1 again.
 
     Returns:
         ``(pair, face)``: for every face touching a pair, the pair number and
         the face id (each face at most once).
     """
-    owner[a] = np.arange(len(a))
-    owner[b] = np.arange(len(b))
+    owner[a] = np.arange(len(a), dtype=np.int32)
+    owner[b] = np.arange(len(b), dtype=np.int32)
     of_face = max3(owner[faces])
     owner[a] = -1
     owner[b] = -1
@@ -79,13 +81,13 @@ def select_independent(
     Returns:
         Chosen candidate ids, ascending (cheapest first).
     """
-    remaining = np.arange(len(a))
+    remaining = np.arange(len(a), dtype=np.int32)
     face_ids = np.arange(len(faces))
     # Scratch buffers over vertex ids, reset after each use (only the touched
     # entries), so a round costs O(remaining work), not O(vertices).
-    at_vertex = np.full(n_vertices, _NONE)
-    around = np.full(n_vertices, _NONE)
-    owner = np.full(n_vertices, -1, np.int64)
+    at_vertex = np.full(n_vertices, _NONE, np.int32)
+    around = np.full(n_vertices, _NONE, np.int32)
+    owner = np.full(n_vertices, -1, np.int32)
     mark = np.zeros(n_vertices, bool)
     vertex_blocked = np.zeros(n_vertices, bool)
     chosen = []
@@ -128,4 +130,4 @@ def select_independent(
         alive = ~(vertex_blocked[ra] | vertex_blocked[rb])
         alive[np.searchsorted(remaining, winners)] = False
         remaining = remaining[alive]
-    return np.sort(np.concatenate(chosen)) if chosen else np.zeros(0, np.int64)
+    return np.sort(np.concatenate(chosen)) if chosen else np.zeros(0, np.int32)
