@@ -46,11 +46,11 @@ def collapse_is_valid(
     # doubled-area normal before and after the corner moves to x.
     check = ~on_edge
     t, moving, at = tri[check], (has_a | has_b)[check], pair[check]
-    first = np.where(moving[:, 0], 0, np.where(moving[:, 1], 1, 2))
-    rows = np.arange(len(t))
-    q0 = pos[t[rows, first]]
-    q1 = pos[t[rows, (first + 1) % 3]]
-    q2 = pos[t[rows, (first + 2) % 3]]
+    m0, m1 = moving[:, 0], moving[:, 1]
+    t0, t1, t2 = t[:, 0], t[:, 1], t[:, 2]
+    q0 = pos[np.where(m0, t0, np.where(m1, t1, t2))]
+    q1 = pos[np.where(m0, t1, np.where(m1, t2, t0))]
+    q2 = pos[np.where(m0, t2, np.where(m1, t0, t1))]
     moved = x[at]
     old_cross = cross(q1 - q0, q2 - q0)
     new_cross = cross(q1 - moved, q2 - moved)
