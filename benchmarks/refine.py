@@ -5,19 +5,21 @@ Usage: python benchmarks/refine.py [--models cow,bunny,dragon,terrain_gcanyon,te
        [--frames 240] [--tau 1] [--batched bunny,dragon] [--ks 1,16,256,4096]
 
 Standard orbit of DESIGN §7 (800×600, 45° fov, 240 frames). PM files are built
-once into benchmarks/.cache. Per-frame times are full single-camera refines
+once into benchmarks/.cache (per builder version). Per-frame times are full single-camera refines
 (executed set, vref, face mask, counts) after compilation; medians over frames.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import resource
 import statistics
 import sys
 import time
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -33,10 +35,18 @@ CACHE = os.path.join(os.path.dirname(os.path.abspath(__file__)), ".cache")
 
 
 def pm_file(name: str) -> str:
+    """Path of the default build of ``name``, cached per builder version (a
+    digest of the builder's source, so a changed builder never reuses an old
+    hierarchy)."""
+    import pmjax.builders
     from pmjax.builders import build_pm
 
+    digest = hashlib.sha256()
+    for folder in pmjax.builders.__path__:
+        for source in sorted(Path(folder).glob("*.py")):
+            digest.update(source.read_bytes())
     os.makedirs(CACHE, exist_ok=True)
-    path = os.path.join(CACHE, f"{name}.pmz")
+    path = os.path.join(CACHE, f"{name}-{digest.hexdigest()[:12]}.pmz")
     if not os.path.exists(path):
         v, f, _, _ = pmjax.load_clean_mesh(DATA / f"{name}.ply")
         pmjax.save_pm(build_pm(v, f), path)
