@@ -8,7 +8,7 @@ from typing import Optional
 import numpy as np
 
 from pmjax import ALL_TESTS, Camera, ProgressiveMesh, Refinement, Tests, camera_count, index_camera, refine
-from pmjax import geomorph_mesh, geomorph_start, geomorph_step, hidden_pcols, hierarchy_normals
+from pmjax import critical_tolerances, geomorph_mesh, geomorph_start, geomorph_step, hierarchy_normals
 from pmjax._atomic import atomic_path
 
 
@@ -189,6 +189,8 @@ def path_geometry(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
     Yields:
         ``(camera, vertices, faces, face levels or None, normals)``.
     """
+    if not tau >= 0:
+        raise ValueError(f"tau must be >= 0 (and not NaN), got {tau}")
     morph = None
     it = range(camera_count(cameras))
     if progress:
@@ -197,17 +199,20 @@ def path_geometry(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
         it = tqdm(it, unit="frame", desc=desc)
     for i in it:
         cam = index_camera(cameras, i)
-        ref = refine(pm, cam, tau, tests)
         if geomorph > 1:
-            hidden = hidden_pcols(pm, cam, tests)
+            # One predicate pass gives both the executed set (exactly
+            # ``tau > eps``, as refine's) and the hidden pcols (``eps < 0``,
+            # as hidden_pcols).
+            eps = critical_tolerances(pm, cam, tests)
+            executed, hidden = np.float32(tau) > eps, eps < 0
             if morph is None:
-                morph = geomorph_start(ref.executed, hidden)
+                morph = geomorph_start(executed, hidden)
             else:
-                morph = geomorph_step(pm, morph, ref.executed, geomorph, hidden)
+                morph = geomorph_step(pm, morph, executed, geomorph, hidden)
             v, f, ids, normals = geomorph_mesh(pm, morph, shading_normals(pm))
             levels = face_levels(f, batch_levels(pm, ids)) if color_levels else None
         else:
-            v, f, levels, normals = refined_arrays(pm, ref, color_levels=color_levels)
+            v, f, levels, normals = refined_arrays(pm, refine(pm, cam, tau, tests), color_levels=color_levels)
         yield cam, v, f, levels, normals
 
 
