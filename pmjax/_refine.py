@@ -192,6 +192,10 @@ def refine(
 def _refine(pm, camera, tau, tests, predicate, context, combine):
     tau = eqx.error_if(tau, ~(tau >= 0), "tau must be >= 0 (and not NaN)")
     collapse = collapse_mask(pm.attributes, camera, tau, tests, predicate, context, combine)
+    # Materialize the decisions once: fused into the per-batch slices of the
+    # propagation, the predicate ran 20 % slower overall (dragon 5.1 -> 4.1 ms
+    # per refine with the barrier, same bits).
+    collapse = jax.lax.optimization_barrier(collapse)
     return _finish(pm, propagate(pm, collapse))
 
 
