@@ -278,7 +278,8 @@ def critical_tolerances(pm: ProgressiveMesh, camera: Camera, tests: Tests = ALL_
     :func:`pmjax.critical_tau` (DESIGN §3): the whole family of refinements of
     one view in one array.
     """
-    t = critical_tau(pm.attributes, camera, tests)
+    # Materialized once, as in refine (dragon 3.5 -> 2.9 ms).
+    t = jax.lax.optimization_barrier(critical_tau(pm.attributes, camera, tests))
     return up_the_batches(pm, t, -jnp.inf, lambda own, a, b: jnp.maximum(own, jnp.maximum(a, b)))
 
 
