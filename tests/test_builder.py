@@ -249,3 +249,17 @@ def test_validity_shortcuts_change_nothing(monkeypatch, data_path):
     for other in (eager, lazy):
         for key, value in reference.arrays().items():
             assert np.array_equal(getattr(other, key), value), key
+
+
+def test_an_error_on_the_attribute_thread_reaches_the_caller(monkeypatch, data_path):
+    """Normals and attributes are computed on a second thread; a failure there
+    must surface from build_pm, not be lost or hang the build."""
+    from pmjax.builders import _attributes
+
+    def fail(self, lo, c1, c2):
+        raise FloatingPointError(f"attributes of batch at {lo}")
+
+    monkeypatch.setattr(_attributes.HierarchyAttributes, "add_batch", fail)
+    v, f, _, _ = pmjax.load_clean_mesh(data_path("cow.ply"))
+    with pytest.raises(FloatingPointError, match="attributes of batch"):
+        build_pm(v, f)
