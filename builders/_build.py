@@ -269,6 +269,9 @@ def build_pm(
         for job in jobs:
             job.result()  # re-raises what failed on the second thread
     if bar is not None:
+        # The base mesh keeps some faces: end the bar at what was removed.
+        bar.total = bar.n
+        bar.refresh()
         bar.close()
 
     P = next_id - V0
