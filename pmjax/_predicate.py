@@ -49,15 +49,36 @@ def _eye_offset(attrs: PcolAttributes, camera: Camera):
     return _rows_dot(v, v), _rows_dot(v, attrs.axis)
 
 
-def outside_frustum(attrs: PcolAttributes, camera: Camera) -> Bool[Array, " P"]:
-    """Sphere entirely on the outer side of one of the six planes."""
-    # The barrier materializes the 24 plane coefficients once; fused into the
+def frustum_margins(attrs: PcolAttributes, camera: Camera):
+    """Per pcol, what the frustum test compares (:meth:`Camera.frustum_frame`).
+
+    Returns:
+        ``(x, y, z, sx, sy, lx, ly, near, far)``: the centre in camera
+        coordinates (``z`` the depth along the view direction); ``sx = z·a_x +
+        b_x`` and ``sy`` (a sphere is outside a side plane when ``s − |x| <
+        −r·l``); ``lx``, ``ly`` the plane scales. The sphere is outside the
+        near or far plane when ``z + r < near`` or ``z − r > far``.
+    """
+    # The barrier materializes the per-camera constants once; fused into the
     # per-pcol loop, XLA recomputed them (tan, norms) per pcol (8x slower).
-    planes = jax.lax.optimization_barrier(camera.frustum_planes())  # [6, 4]
-    out = jnp.zeros(attrs.radius.shape, bool)
-    for i in range(6):
-        out = out | (_rows_dot(attrs.center, planes[i, :3]) + planes[i, 3] < -attrs.radius)
-    return out
+    axes, k = jax.lax.optimization_barrier(camera.frustum_frame())
+    x = _rows_dot(attrs.center, axes[0]) - k[0]
+    y = _rows_dot(attrs.center, axes[1]) - k[1]
+    z = _rows_dot(attrs.center, axes[2]) - k[2]
+    return x, y, z, z * k[3] + k[5], z * k[4] + k[6], k[7], k[8], k[9], k[10]
+
+
+def outside_frustum(attrs: PcolAttributes, camera: Camera) -> Bool[Array, " P"]:
+    """Sphere entirely on the outer side of one of the six planes.
+
+    Tested in camera coordinates (:meth:`Camera.frustum_frame`): a third fewer
+    operations per pcol than six general plane tests (the batched predicate
+    is bound by this test; 0.32 -> 0.26 ms per camera on the dragon).
+    """
+    x, y, z, sx, sy, lx, ly, near, far = frustum_margins(attrs, camera)
+    r = attrs.radius
+    out = (z + r < near) | (z - r > far)
+    return out | (sx - jnp.abs(x) < -r * lx) | (sy - jnp.abs(y) < -r * ly)
 
 
 def oriented_away(attrs: PcolAttributes, camera: Camera) -> Bool[Array, " P"]:

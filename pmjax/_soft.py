@@ -21,7 +21,7 @@ from jaxtyping import Array, Float
 
 from ._camera import Camera
 from ._model import PcolAttributes, ProgressiveMesh
-from ._predicate import ALL_TESTS, Tests, _eye_offset, _in_rows, _rows_dot, kappa, safe_sqrt, screen_tolerance
+from ._predicate import ALL_TESTS, Tests, _eye_offset, _in_rows, frustum_margins, kappa, safe_sqrt, screen_tolerance
 from ._refine import down_the_batches, up_the_batches
 
 
@@ -79,11 +79,20 @@ def soft_tests(attrs: PcolAttributes, camera: Camera, tau, temperature, scale=No
     r = attrs.radius
     visible = jnp.ones_like(r)
     if tests.frustum:
-        # Outside plane i: n·c + w < −r. Inside all six is a product.
-        planes = camera.frustum_planes()
-        for i in range(6):
-            x = _rows_dot(attrs.center, planes[i, :3]) + planes[i, 3]
-            visible = visible * (1.0 - _above(-r - x, d * one_px, temperature))
+        # The hard test's comparisons (pmjax.outside_frustum), each made soft;
+        # inside all six planes is a product. Side margins are in units of l.
+        x, y, z, sx, sy, lx, ly, near, far = frustum_margins(attrs, camera)
+        unit = d * one_px
+        outside = [
+            _above(near - (z + r), unit, temperature),
+            _above((z - r) - far, unit, temperature),
+            _above(-r * lx - (sx - x), unit * lx, temperature),
+            _above(-r * lx - (sx + x), unit * lx, temperature),
+            _above(-r * ly - (sy - y), unit * ly, temperature),
+            _above(-r * ly - (sy + y), unit * ly, temperature),
+        ]
+        for o in outside:
+            visible = visible * (1.0 - o)
     if tests.orientation:
         # The three conditions of pmjax.oriented_away (same expressions), ANDed.
         sa, ca = attrs.sin_alpha, attrs.cos_alpha

@@ -173,3 +173,29 @@ def coverage(cam, vertices, faces, w=200, h=150):
         inside = ((d[0] >= 0) & (d[1] >= 0) & (d[2] >= 0)) | ((d[0] <= 0) & (d[1] <= 0) & (d[2] <= 0))
         img[y0:y1, x0:x1] |= inside
     return img
+
+
+@pytest.mark.parametrize("orthographic", [False, True])
+def test_frustum_test_is_the_six_planes(orthographic):
+    """The camera-space sphere test (one |x| test per pair of side planes)
+    decides as the six frustum planes do, in float64, away from float ties."""
+    from pmjax._model import PcolAttributes
+
+    rng = np.random.default_rng(11)
+    target = np.array([0.5, -0.2, 1.0])
+    cam = pmjax.look_at(target + [3.0, 1.0, 4.0], target, fov_y_deg=50, width=640, height=400, near=2.0,
+                        far=9.0, orthographic=orthographic, ortho_height=3.0)
+    n = 40_000
+    centers = target + rng.normal(scale=3.0, size=(n, 3))
+    radius = rng.uniform(0.0, 1.5, n)
+    planes = np.asarray(cam.frustum_planes(), np.float64)
+    signed = centers @ planes[:, :3].T + planes[:, 3]  # [n, 6], positive inside
+    beyond = signed < -radius[:, None]
+    unit = np.zeros((n, 3))
+    attrs = PcolAttributes.from_arrays(centers, unit, radius, np.zeros(n), np.zeros(n), np.zeros(n))
+    got = np.asarray(pmjax.outside_frustum(attrs, cam))
+    clear = np.min(np.abs(signed + radius[:, None]), axis=1) > 1e-4
+    assert clear.mean() > 0.99
+    # Every plane culls some spheres on its own, and some spheres are inside.
+    assert np.all((beyond & (beyond.sum(1) == 1)[:, None]).any(0)) and (~beyond.any(1)).any()
+    assert np.array_equal(got[clear], beyond.any(1)[clear])
