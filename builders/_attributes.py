@@ -101,24 +101,3 @@ class HierarchyAttributes:
         ids = slice(self.V0, self.V0 + n_pcols)
         return dict(radius=self.radius[ids], alpha=self.alpha[ids], delta=self.delta[ids], mu=self.mu[ids])
 
-
-def refinement_attributes(vertices, normals, faces, v1, v2, batch_offsets):
-    """Sphere radius, cone half-angle and deviations for every pcol.
-
-    Args:
-        vertices: ``float64[V0 + P, 3]`` all positions (model units).
-        normals: ``float64[V0 + P, 3]`` unit normals.
-        faces: ``int[F, 3]`` original faces.
-        v1, v2: ``int[P]`` pcol endpoints.
-        batch_offsets: ``int[B + 1]``.
-
-    Returns:
-        dict of ``float64[P]`` arrays ``radius`` (model units), ``alpha``
-        (radians), ``delta``, ``mu`` (model units).
-    """
-    P = len(v1)
-    V0 = len(vertices) - P
-    attrs = HierarchyAttributes(vertices, normals, faces, V0)
-    for lo, hi in zip(batch_offsets[:-1], batch_offsets[1:]):
-        attrs.add_batch(V0 + int(lo), v1[lo:hi], v2[lo:hi])
-    return attrs.result(P)

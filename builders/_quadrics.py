@@ -12,7 +12,7 @@ import numpy as np
 
 from . import _rows as rows
 from ._threads import MIN_ROWS, split_items
-from ._topology import edge_keys
+from ._topology import contains_edge, edge_keys
 
 _I, _J = np.triu_indices(4)  # packed order above
 
@@ -137,8 +137,7 @@ def boundary_edges(faces: np.ndarray):
     if len(lonely) == 0:
         empty = np.zeros(0, a.dtype)
         return empty, empty, np.zeros(0, np.int64)
-    i = np.minimum(np.searchsorted(lonely, key), len(lonely) - 1)
-    single = lonely[i] == key
+    single = contains_edge(lonely, key)
     return a[single], b[single], np.repeat(np.arange(len(faces)), 3)[single]
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._rows import any3, cross, dot
-from ._topology import key_ends
+from ._topology import contains_edge, key_ends
 
 
 def collapse_is_valid(
@@ -104,10 +104,7 @@ class KnownInvalid:
 
     def of(self, keys: np.ndarray) -> np.ndarray:
         """``bool`` mask: which of ``keys`` are known invalid."""
-        if len(self.keys) == 0:
-            return np.zeros(len(keys), bool)
-        i = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
-        return self.keys[i] == keys
+        return contains_edge(self.keys, keys)
 
     def add(self, keys: np.ndarray) -> None:
         if len(keys):
