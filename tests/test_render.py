@@ -268,3 +268,15 @@ def test_float_color_is_the_unrounded_supersampled_render(cow):
     assert np.array_equal(np.round(rgbf).astype(np.uint8), rgb8) and np.array_equal(depth8, depthf)
     assert 0.0 <= rgbf.min() and rgbf.max() <= 255.0
     assert np.any(rgbf != np.round(rgbf))  # some pixels are between levels
+
+
+def test_path_geometry_refuses_a_bad_tau(cow):
+    """With geomorphs the path skips refine (one critical-tolerance pass per
+    frame), so it checks tau itself, before any frame."""
+    from pmjax.render._offscreen import path_geometry
+
+    _, pm, data = cow
+    cams = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 3)
+    for tau in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="tau must be >= 0"):
+            next(path_geometry(pm, cams, tau, geomorph=4))
