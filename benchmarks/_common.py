@@ -23,8 +23,11 @@ def machine() -> str:
                 break
     except OSError:
         pass
+    backend = jax.default_backend()
+    if backend != "cpu":
+        backend += ": " + jax.devices()[0].device_kind
     return (f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, numpy {numpy.__version__}, "
-            f"jax {jax.__version__} ({jax.default_backend()})")
+            f"jax {jax.__version__} ({backend})")
 
 
 def median_time(fn, repeats: int) -> tuple[float, list[float]]:

@@ -31,7 +31,8 @@ import pmjax  # noqa: E402
 from pmjax._camera import index_camera  # noqa: E402
 from pmjax._predicate import collapse_mask_jit  # noqa: E402
 
-CACHE = os.path.join(os.path.dirname(os.path.abspath(__file__)), ".cache")
+# PMJAX_BENCH_CACHE moves the cache (to carry prebuilt PM files to another machine).
+CACHE = os.environ.get("PMJAX_BENCH_CACHE", os.path.join(os.path.dirname(os.path.abspath(__file__)), ".cache"))
 
 
 def pm_file(name: str) -> str:
@@ -139,17 +140,25 @@ def main():
     ap.add_argument("--batched", default="bunny,dragon")
     ap.add_argument("--ks", default="1,16,256,4096")
     ap.add_argument("--chunk", type=int, default=256)
+    ap.add_argument("--parts", default="table1,oracle,batched",
+                    help="comma-separated subset of table1,oracle,batched")
     ap.add_argument("--json", help="also write results as JSON")
     args = ap.parse_args()
+    parts = set(args.parts.split(","))
+    if parts - {"table1", "oracle", "batched"}:
+        ap.error(f"unknown part(s) {sorted(parts - {'table1', 'oracle', 'batched'})}")
     print(f"machine: {machine()}\n")
-    print(f"Table 1 (standard orbit, {args.frames} frames, tau = {args.tau} px, 800x600, 45 deg):")
-    t1 = table1(args.models.split(","), args.frames, args.tau)
-    print("\nVectorized engine vs sequential oracle (single camera, median of 5 frames):")
-    vo = [versus_oracle(n, args.tau) for n in ("bunny", "dragon") if n in args.models.split(",")]
-    print("\nBatched throughput (random views around the model, counts only):")
-    bt = []
-    for n in args.batched.split(","):
-        bt += batched(n, [int(k) for k in args.ks.split(",")], args.tau, args.chunk)
+    t1, vo, bt = [], [], []
+    if "table1" in parts:
+        print(f"Table 1 (standard orbit, {args.frames} frames, tau = {args.tau} px, 800x600, 45 deg):")
+        t1 = table1(args.models.split(","), args.frames, args.tau)
+    if "oracle" in parts:
+        print("\nVectorized engine vs sequential oracle (single camera, median of 5 frames):")
+        vo = [versus_oracle(n, args.tau) for n in ("bunny", "dragon") if n in args.models.split(",")]
+    if "batched" in parts:
+        print("\nBatched throughput (random views around the model, counts only):")
+        for n in args.batched.split(","):
+            bt += batched(n, [int(k) for k in args.ks.split(",")], args.tau, args.chunk)
     print(f"\npeak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
     if args.json:
         with open(args.json, "w") as fh:
