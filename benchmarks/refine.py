@@ -29,7 +29,7 @@ from _common import DATA, machine, median_time  # noqa: E402
 
 import pmjax  # noqa: E402
 from pmjax._camera import index_camera  # noqa: E402
-from pmjax._predicate import collapse_mask_jit  # noqa: E402
+from pmjax import collapse_mask  # noqa: E402
 
 # PMJAX_BENCH_CACHE moves the cache (to carry prebuilt PM files to another machine).
 CACHE = os.environ.get("PMJAX_BENCH_CACHE", os.path.join(os.path.dirname(os.path.abspath(__file__)), ".cache"))
@@ -100,12 +100,12 @@ def versus_oracle(name, tau, frames=5):
     for i in range(frames):
         cam = index_camera(cams, i)
         jax.block_until_ready(pmjax.refine(pm, cam, tau))
-        jax.block_until_ready(collapse_mask_jit(pm.attributes, cam, np.float32(tau)))
+        jax.block_until_ready(collapse_mask(pm.attributes, cam, np.float32(tau)))
         # The engine call is short, so one call is at the mercy of a hiccup:
         # take the median of 10 calls for this frame.
         eng.append(median_time(lambda: jax.block_until_ready(pmjax.refine(pm, cam, tau)), 10)[0])
         t = time.perf_counter()
-        collapse = np.asarray(collapse_mask_jit(pm.attributes, cam, np.float32(tau)))
+        collapse = np.asarray(collapse_mask(pm.attributes, cam, np.float32(tau)))
         t_loop = time.perf_counter()
         pmjax.oracle_refine(data, collapse)
         done = time.perf_counter()

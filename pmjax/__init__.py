@@ -10,7 +10,8 @@ from ._invariants import check_invariants, direct_killers
 from ._replay import active_faces, lod_mesh, mesh_for_executed, pcols_for_faces, prefix_executed, representatives
 from ._camera import Camera, camera_count, fly_through, index_camera, load_cameras, look_at, random_views, save_cameras, stack_cameras, standard_orbit
 from ._model import PcolAttributes, ProgressiveMesh, load
-from ._predicate import ALL_TESTS, Tests, collapse_mask, critical_tau, kappa, oriented_away, outside_frustum, small_on_screen
+from ._view import kappa
+from ._predicate import ALL_TESTS, Tests, collapse_mask, critical_tau, oriented_away, outside_frustum, small_on_screen
 from ._refine import Refinement, critical_tolerances, faces_for_budget, propagate, refine, refine_batch
 from ._oracle import oracle_refine
 from ._soft import SoftRefinement, geomorph_blend, geomorph_positions, soft_refine, soft_tests, soft_weights

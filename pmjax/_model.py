@@ -82,8 +82,10 @@ class ProgressiveMesh(eqx.Module):
         attributes: :class:`PcolAttributes`.
         batch_offsets: static tuple ``(0, ..., P)``.
         n_original_vertices: static V0.
-        max_kills: static, the most faces one pcol removes (sizes the bit
-            planes of the batched face count).
+        max_kills, min_kills, common_kills: static, the most, the fewest and
+            the most common number of faces one pcol removes (the batched face
+            count is ``common_kills`` per executed pcol plus corrections whose
+            bit planes these size).
     """
 
     vertices: Float[Array, "V 3"]
@@ -97,6 +99,8 @@ class ProgressiveMesh(eqx.Module):
     batch_offsets: tuple = eqx.field(static=True)
     n_original_vertices: int = eqx.field(static=True)
     max_kills: int = eqx.field(static=True, default=0)
+    min_kills: int = eqx.field(static=True, default=0)
+    common_kills: int = eqx.field(static=True, default=0)
 
     @property
     def n_pcols(self) -> int:
@@ -133,6 +137,8 @@ class ProgressiveMesh(eqx.Module):
             batch_offsets=tuple(int(o) for o in pm.batch_offsets),
             n_original_vertices=V0,
             max_kills=int(kills.max(initial=0)),
+            min_kills=int(kills.min()) if len(kills) else 0,
+            common_kills=int(np.argmax(np.bincount(kills))) if len(kills) else 0,
         )
 
 

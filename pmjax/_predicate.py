@@ -1,8 +1,9 @@
 """The three refinement tests of DESIGN §3, one vectorized predicate over pcols.
 
-``collapse_mask`` is THE definition of "this pcol may be collapsed for this
-view": the engine and the sequential oracle both call it, so they cannot
-disagree on float ties. Everything is float32 (the speed path).
+``collapse_mask`` (``view_collapse_mask`` for a :class:`View`) is THE
+definition of "this pcol may be collapsed for this view": the engine and the
+sequential oracle both call it, so they cannot disagree on float ties.
+Everything is float32 (the speed path).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from jaxtyping import Array, Bool, Float
 
 from ._camera import Camera
 from ._model import PcolAttributes
+from ._view import View
 
 
 class Tests(eqx.Module):
@@ -39,17 +41,18 @@ UserPredicate = Callable[[PcolAttributes, object], Bool[Array, " P"]]
 
 
 def _rows_dot(a, b):
-    """Per column dot product of ``[3, P]`` rows with ``[3, P]`` rows or a 3-vector."""
+    """Per column dot product of ``[3, P]`` rows with ``[3, P]`` rows or three scalars."""
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-def _eye_offset(attrs: PcolAttributes, camera: Camera):
+def _eye_offset(attrs: PcolAttributes, view: View):
     """``(d², h)``: squared distance eye→centre and its component along the axis."""
-    v = [attrs.center[i] - camera.eye[i] for i in range(3)]
+    eye = view.eye
+    v = [attrs.center[i] - eye[i] for i in range(3)]
     return _rows_dot(v, v), _rows_dot(v, attrs.axis)
 
 
-def frustum_margins(attrs: PcolAttributes, camera: Camera):
+def frustum_margins(attrs: PcolAttributes, view: View):
     """Per pcol, what the frustum test compares (:meth:`Camera.frustum_frame`).
 
     Returns:
@@ -59,13 +62,18 @@ def frustum_margins(attrs: PcolAttributes, camera: Camera):
         −r·l``); ``lx``, ``ly`` the plane scales. The sphere is outside the
         near or far plane when ``z + r < near`` or ``z − r > far``.
     """
-    # The barrier materializes the per-camera constants once; fused into the
-    # per-pcol loop, XLA recomputed them (tan, norms) per pcol (8x slower).
-    axes, k = jax.lax.optimization_barrier(camera.frustum_frame())
-    x = _rows_dot(attrs.center, axes[0]) - k[0]
-    y = _rows_dot(attrs.center, axes[1]) - k[1]
-    z = _rows_dot(attrs.center, axes[2]) - k[2]
-    return x, y, z, z * k[3] + k[5], z * k[4] + k[6], k[7], k[8], k[9], k[10]
+    k = view.frustum
+    x = _rows_dot(attrs.center, view.axis(0)) - k(0)
+    y = _rows_dot(attrs.center, view.axis(1)) - k(1)
+    z = _rows_dot(attrs.center, view.axis(2)) - k(2)
+    return x, y, z, z * k(3) + k(5), z * k(4) + k(6), k(7), k(8), k(9), k(10)
+
+
+def _outside_frustum(attrs: PcolAttributes, view: View):
+    x, y, z, sx, sy, lx, ly, near, far = frustum_margins(attrs, view)
+    r = attrs.radius
+    out = (z + r < near) | (z - r > far)
+    return out | (sx - jnp.abs(x) < -r * lx) | (sy - jnp.abs(y) < -r * ly)
 
 
 def outside_frustum(attrs: PcolAttributes, camera: Camera) -> Bool[Array, " P"]:
@@ -75,10 +83,18 @@ def outside_frustum(attrs: PcolAttributes, camera: Camera) -> Bool[Array, " P"]:
     operations per pcol than six general plane tests (the batched predicate
     is bound by this test; 0.32 -> 0.26 ms per camera on the dragon).
     """
-    x, y, z, sx, sy, lx, ly, near, far = frustum_margins(attrs, camera)
+    return _outside_frustum(attrs, View.of(camera, 0.0))
+
+
+def _oriented_away(attrs: PcolAttributes, view: View):
+    sa, ca = attrs.sin_alpha, attrs.cos_alpha
+    if view.orthographic:
+        h = _rows_dot(attrs.axis, view.forward)
+        return (ca > 0) & (h > sa)
+    d2, h = _eye_offset(attrs, view)
     r = attrs.radius
-    out = (z + r < near) | (z - r > far)
-    return out | (sx - jnp.abs(x) < -r * lx) | (sy - jnp.abs(y) < -r * ly)
+    tangent = jnp.sqrt(jnp.maximum(d2 - r * r, 0.0))  # d·cos(beta)
+    return (r * r < d2) & (ca * tangent > sa * r) & (h > sa * tangent + ca * r)
 
 
 def oriented_away(attrs: PcolAttributes, camera: Camera) -> Bool[Array, " P"]:
@@ -91,14 +107,7 @@ def oriented_away(attrs: PcolAttributes, camera: Camera) -> Bool[Array, " P"]:
     ``cos θ > sin(α + β) ⇔ h > sin α·√(d² − r²) + cos α·r`` (``h = d cos θ``).
     Orthographic views are the limit ``d = 1, r = 0`` along the view direction.
     """
-    sa, ca = attrs.sin_alpha, attrs.cos_alpha
-    if camera.orthographic:
-        h = _rows_dot(attrs.axis, camera.forward)
-        return (ca > 0) & (h > sa)
-    d2, h = _eye_offset(attrs, camera)
-    r = attrs.radius
-    tangent = jnp.sqrt(jnp.maximum(d2 - r * r, 0.0))  # d·cos(beta)
-    return (r * r < d2) & (ca * tangent > sa * r) & (h > sa * tangent + ca * r)
+    return _oriented_away(attrs, View.of(camera, 0.0))
 
 
 def safe_sqrt(x):
@@ -107,44 +116,44 @@ def safe_sqrt(x):
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
 
 
-def _screen_terms(attrs: PcolAttributes, camera: Camera):
-    """``(uniform², normal², scale²)``: refine iff ``uniform² ≥ κ²·scale²`` or
-    ``normal² ≥ κ²·scale²``, with ``κ = 2 tan(φ/2) τ / H`` (perspective) or the
-    world size of ``τ`` pixels (orthographic, ``κ = τ · ortho_height / H``)."""
+def _screen_terms(attrs: PcolAttributes, view: View):
+    """``(mu², normal², s)``: the pcol is small on screen for ``κ`` when
+    ``mu² < κ²·s`` and ``normal² < κ²·s·s``: Hoppe 1997's test
+    ``NOT(mu² ≥ κ²d² or delta²(d² − h²) ≥ κ²d⁴)`` with ``s = d²``,
+    ``normal² = delta²(d² − h²)`` (perspective); orthographic: ``s = 1``,
+    ``normal² = delta²(1 − h²)``, ``h`` along the view direction."""
     mu2 = attrs.mu * attrs.mu
     delta2 = attrs.delta * attrs.delta
-    if camera.orthographic:
-        h = _rows_dot(attrs.axis, camera.forward)
+    if view.orthographic:
+        h = _rows_dot(attrs.axis, view.forward)
         return mu2, delta2 * (1.0 - h * h), jnp.ones_like(mu2)
-    d2, h = _eye_offset(attrs, camera)
-    # Hoppe 1997: mu² ≥ κ²d²  or  delta²(d² − h²) ≥ κ²d⁴; divide the second by d².
-    return mu2, delta2 * (d2 - h * h) / jnp.maximum(d2, 1e-30), d2
+    d2, h = _eye_offset(attrs, view)
+    return mu2, delta2 * (d2 - h * h), d2
 
 
-def kappa(camera: Camera, tau) -> Float[Array, ""]:
-    """Screen-space tolerance ``tau`` pixels as an angle (or a world size)."""
-    if camera.orthographic:
-        return tau * camera.ortho_height / camera.height
-    return 2.0 * jnp.tan(0.5 * camera.fov_y) * tau / camera.height
+def _small(mu2, normal2, s, kappa2):
+    """The screen-space comparison, with no division or root (the batched
+    predicate's costliest operations; 0.089 -> 0.053 ms per camera on the dragon)."""
+    limit = kappa2 * s
+    return (mu2 < limit) & (normal2 < limit * s)
 
 
 def screen_tolerance(attrs: PcolAttributes, camera: Camera, sqrt=jnp.sqrt) -> Float[Array, " P"]:
-    """Per pcol, the pixel tolerance ``t_p`` of the screen-space test.
-
-    ``NOT(mu² ≥ κ²d² or delta²(d² − h²) ≥ κ²d⁴)`` holds exactly when
-    ``κ > sqrt(max(mu²/d², delta²(d² − h²)/d⁴))``, i.e. ``tau > t_p`` with
-    ``κ`` linear in ``tau``. Computing the test through ``t_p`` makes the
-    critical tolerances of :func:`critical_tau` agree with it bit for bit.
-    ``sqrt``: :func:`safe_sqrt` where gradients are needed (same values; the
-    plain one keeps the hard kernels fast).
+    """Per pcol, the pixel tolerance ``t_p`` of the screen-space test in closed
+    form, ``sqrt(max(mu²/s, normal²/s²)) / one_pixel``: the test holds for
+    ``tau > t_p`` up to float rounding (:func:`critical_tau` gives the exact
+    threshold). ``sqrt``: :func:`safe_sqrt` where gradients are needed.
     """
-    uniform2, normal2, scale2 = _screen_terms(attrs, camera)
-    return sqrt(jnp.maximum(uniform2, normal2) / scale2) / kappa(camera, 1.0)
+    view = View.of(camera, 0.0)
+    mu2, normal2, s = _screen_terms(attrs, view)
+    s = jnp.maximum(s, 1e-30)
+    return sqrt(jnp.maximum(mu2 / s, normal2 / (s * s))) / view.one_pixel
 
 
 def small_on_screen(attrs: PcolAttributes, camera: Camera, tau) -> Bool[Array, " P"]:
-    """Screen-space error below ``tau`` pixels (DESIGN §3): ``tau > t_p``."""
-    return tau > screen_tolerance(attrs, camera)
+    """Screen-space deviation below ``tau`` pixels (DESIGN §3)."""
+    view = View.of(camera, tau)
+    return _small(*_screen_terms(attrs, view), view.kappa2)
 
 
 def collapse_mask(
@@ -155,7 +164,6 @@ def collapse_mask(
     predicate: Optional[UserPredicate] = None,
     context=None,
     combine: str = "or",
-    rows: bool = True,
 ) -> Bool[Array, " P"]:
     """Per pcol: may it be collapsed for this view? (one camera)
 
@@ -167,20 +175,44 @@ def collapse_mask(
         predicate: optional user test ``predicate(attrs, context) -> bool[P]``.
         context: passed to ``predicate`` (any pytree).
         combine: ``"or"`` (OR-ed with the tests) or ``"replace"``.
-        rows: evaluate the tests on ``[P/1024, 1024]`` views (faster for one
-            camera on CPU); under ``vmap`` over cameras the flat layout is
-            faster. Both give the same bits.
 
     Returns:
         ``bool[P]``.
+    """
+    return _collapse_mask(attrs, camera, jnp.asarray(tau, jnp.float32), tests, predicate, context, combine)
+
+
+# Compiled even when called eagerly: XLA's CPU code contracts a·b + c into one
+# fused multiply-add inside compiled kernels, which eager op-by-op evaluation
+# does not, and the decisions must be the same bits wherever they are made.
+@eqx.filter_jit
+def _collapse_mask(attrs, camera, tau, tests, predicate, context, combine):
+    return view_collapse_mask(attrs, View.of(camera, tau), tests, predicate, context, combine)
+
+
+def view_collapse_mask(
+    attrs: PcolAttributes,
+    view: View,
+    tests: Tests = ALL_TESTS,
+    predicate: Optional[UserPredicate] = None,
+    context=None,
+    combine: str = "or",
+    rows: bool = True,
+) -> Bool[Array, " P"]:
+    """:func:`collapse_mask` for a :class:`View` (the camera's constants for one ``tau``).
+
+    Args:
+        rows: evaluate the tests on ``[P/1024, 1024]`` views (faster for one
+            camera on CPU); mapped over cameras (:meth:`View.map`) the flat
+            layout is faster. Both give the same bits.
     """
     out = jnp.zeros(attrs.radius.shape, bool)
     if predicate is None or combine == "or":
 
         def builtin(a):
-            hit = _culled(a, camera, tests)
+            hit = _culled(a, view, tests)
             if tests.screen:
-                hit = hit | small_on_screen(a, camera, tau)
+                hit = hit | _small(*_screen_terms(a, view), view.kappa2)
             return hit
 
         out = _in_rows(builtin, attrs) if rows else builtin(attrs)
@@ -193,26 +225,65 @@ def collapse_mask(
 
 def critical_tau(attrs: PcolAttributes, camera: Camera, tests: Tests = ALL_TESTS) -> Float[Array, " P"]:
     """Per pcol, the tolerance above which it collapses: ``collapse ⇔ tau > t_p``
-    exactly (same float32 values as :func:`collapse_mask`).
+    exactly, for every float32 ``tau >= 0`` (same comparisons as
+    :func:`collapse_mask`).
 
     ``-1`` where the frustum or orientation test already collapses it (any
-    ``tau >= 0``), ``+inf`` where nothing can (screen test off).
+    ``tau >= 0``), ``+inf`` where nothing can (screen test off, or never small).
     """
+    return _critical_tau(attrs, camera, tests)
+
+
+@eqx.filter_jit  # compiled like _collapse_mask, so both see the same bits
+def _critical_tau(attrs, camera, tests):
+    view = View.of(camera, 0.0)
 
     def per_pcol(a):
-        t = screen_tolerance(a, camera) if tests.screen else jnp.full(a.radius.shape, jnp.inf)
-        return jnp.where(_culled(a, camera, tests), -1.0, t)
+        if tests.screen:
+            t = _screen_threshold(*_screen_terms(a, view), view.one_pixel)
+        else:
+            t = jnp.full(a.radius.shape, jnp.inf)
+        return jnp.where(_culled(a, view, tests), -1.0, t)
 
     return _in_rows(per_pcol, attrs)
 
 
-def _culled(attrs: PcolAttributes, camera: Camera, tests: Tests) -> Bool[Array, " P"]:
+_FLOAT32_INF_BITS = 0x7F800000
+
+
+def _screen_threshold(mu2, normal2, s, unit):
+    """The largest float32 ``tau`` at which :func:`_small` is still false, so
+    that it holds exactly for ``tau > t`` (``+inf`` if it never holds).
+
+    ``kappa² = (unit·tau)²`` is monotone in ``tau`` through every rounding,
+    and so is the test; non-negative float32 values are ordered as their bit
+    patterns, so a bisection over the patterns from 0 to +inf (31 halvings)
+    finds the switch exactly, where the closed form (:func:`screen_tolerance`)
+    can be a few ulps off.
+    """
+
+    def small_at(bits):
+        k = unit * jax.lax.bitcast_convert_type(bits, jnp.float32)
+        return _small(mu2, normal2, s, k * k)
+
+    # Invariant: not small at lo (tau = 0 never is), small at hi.
+    lo = jnp.zeros(mu2.shape, jnp.int32)
+    hi = jnp.full(mu2.shape, _FLOAT32_INF_BITS, jnp.int32)
+    for _ in range(31):
+        mid = lo + (hi - lo) // 2
+        small = small_at(mid)
+        lo, hi = jnp.where(small, lo, mid), jnp.where(small, mid, hi)
+    t = jax.lax.bitcast_convert_type(lo, jnp.float32)
+    return jnp.where(small_at(jnp.full(mu2.shape, _FLOAT32_INF_BITS, jnp.int32)), t, jnp.inf)
+
+
+def _culled(attrs: PcolAttributes, view: View, tests: Tests) -> Bool[Array, " P"]:
     """The tests that collapse a pcol whatever ``tau``: frustum or orientation."""
     out = jnp.zeros(attrs.radius.shape, bool)
     if tests.frustum:
-        out = out | outside_frustum(attrs, camera)
+        out = out | _outside_frustum(attrs, view)
     if tests.orientation:
-        out = out | oriented_away(attrs, camera)
+        out = out | _oriented_away(attrs, view)
     return out
 
 
@@ -239,4 +310,3 @@ def _in_rows(per_pcol, attrs: PcolAttributes):
     return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), out, tail)
 
 
-collapse_mask_jit = jax.jit(collapse_mask, static_argnames=("tests", "predicate", "combine", "rows"))

@@ -19,7 +19,8 @@ from jaxtyping import Array, Bool, Float, Int
 from ._bitsets import WORD, camera_major, pack_cameras, unpack_cameras, weight_bits_for, weighted_counts
 from ._camera import Camera, camera_count, index_camera
 from ._model import ProgressiveMesh
-from ._predicate import ALL_TESTS, Tests, UserPredicate, collapse_mask, critical_tau
+from ._predicate import ALL_TESTS, Tests, UserPredicate, collapse_mask, critical_tau, view_collapse_mask
+from ._view import View
 
 
 def up_the_batches(pm: ProgressiveMesh, own, leaf, join):
@@ -202,15 +203,31 @@ def _refine(pm, camera, tau, tests, predicate, context, combine):
 @eqx.filter_jit
 def _counts_chunk(pm, cameras, tau, tests, predicate, context, combine, want_masks):
     # Collapse decisions per camera, then 32 cameras per word through the hierarchy.
-    collapse = jax.vmap(
-        lambda c: collapse_mask(pm.attributes, c, tau, tests, predicate, context, combine, rows=False)
-    )(cameras)
+    views = View.batch(cameras, tau)
+    collapse = views.map(lambda v: view_collapse_mask(pm.attributes, v, tests, predicate, context, combine, rows=False))
     words = propagate(pm, pack_cameras(collapse))
-    by_camera = camera_major(words)
-    n_exec = weighted_counts(by_camera, jnp.ones_like(pm.kills), 1)
-    killed = weighted_counts(by_camera, pm.kills, weight_bits_for(pm.max_kills))
+    n_exec, killed = executed_and_killed(pm, camera_major(words))
     out = (pm.n_faces - killed, pm.n_original_vertices - n_exec, n_exec)
     return out + ((unpack_cameras(words),) if want_masks else ())
+
+
+def executed_and_killed(pm: ProgressiveMesh, by_camera):
+    """Per camera, executed pcols and the faces they kill, from camera-major
+    executed bits (:func:`pmjax._bitsets.camera_major`).
+
+    Most pcols kill the same number of faces ``m`` (2 for an edge collapse
+    inside a manifold), so ``killed = m·executed + sum((kills − m)·bit)``:
+    the correction has small weights, and one bit plane instead of two
+    (dragon: 99.3 % kill 2, the rest 1) saves a popcount pass over the words.
+    """
+    n_exec = weighted_counts(by_camera, jnp.ones_like(pm.kills), 1)
+    m = pm.common_kills
+    killed = m * n_exec
+    if pm.max_kills > m:
+        killed = killed + weighted_counts(by_camera, jnp.maximum(pm.kills - m, 0), weight_bits_for(pm.max_kills - m))
+    if pm.min_kills < m:
+        killed = killed - weighted_counts(by_camera, jnp.maximum(m - pm.kills, 0), weight_bits_for(m - pm.min_kills))
+    return n_exec, killed
 
 
 def refine_batch(

@@ -21,7 +21,8 @@ from jaxtyping import Array, Float
 
 from ._camera import Camera
 from ._model import PcolAttributes, ProgressiveMesh
-from ._predicate import ALL_TESTS, Tests, _eye_offset, _in_rows, frustum_margins, kappa, safe_sqrt, screen_tolerance
+from ._predicate import ALL_TESTS, Tests, _eye_offset, _in_rows, frustum_margins, safe_sqrt, screen_tolerance
+from ._view import View
 from ._refine import down_the_batches, up_the_batches
 
 
@@ -73,15 +74,16 @@ def soft_tests(attrs: PcolAttributes, camera: Camera, tau, temperature, scale=No
     Returns:
         ``(collapse, visible, t_p)``, each shaped like ``attrs.radius``.
     """
-    one_px = kappa(camera, 1.0)
-    d2, h = _eye_offset(attrs, camera)
+    view = View.of(camera, 0.0)
+    one_px = view.one_pixel
+    d2, h = _eye_offset(attrs, view)
     d = safe_sqrt(d2)
     r = attrs.radius
     visible = jnp.ones_like(r)
     if tests.frustum:
         # The hard test's comparisons (pmjax.outside_frustum), each made soft;
         # inside all six planes is a product. Side margins are in units of l.
-        x, y, z, sx, sy, lx, ly, near, far = frustum_margins(attrs, camera)
+        x, y, z, sx, sy, lx, ly, near, far = frustum_margins(attrs, view)
         unit = d * one_px
         outside = [
             _above(near - (z + r), unit, temperature),

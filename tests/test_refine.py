@@ -1,5 +1,7 @@
 """The refinement engine against a plain sequential oracle (the paper's Fig. 6)."""
 
+import dataclasses
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -7,7 +9,7 @@ import pytest
 import pmjax
 from pmjax._camera import index_camera
 from pmjax._oracle import oracle_refine as oracle
-from pmjax._predicate import collapse_mask_jit
+from pmjax import collapse_mask
 
 
 def face_set(faces):
@@ -26,7 +28,7 @@ def test_engine_equals_oracle_on_50_random_views(built, name, pair_distance):
     for i in range(50):
         cam = index_camera(cams, i)
         tau = [0.5, 1.0, 3.0][i % 3]
-        collapse = np.asarray(collapse_mask_jit(pm.attributes, cam, jnp.float32(tau)))
+        collapse = np.asarray(collapse_mask(pm.attributes, cam, jnp.float32(tau)))
         want_exec, want_faces = oracle(data, collapse)
         r = pmjax.refine(pm, cam, tau)
         assert np.array_equal(np.asarray(r.executed), want_exec), f"camera {i}"
@@ -101,6 +103,30 @@ def test_critical_tolerances_reproduce_every_tau(built):
             assert np.array_equal(executed, np.float32(tau) > eps)
 
 
+def test_critical_tau_is_the_exact_switch_of_the_hard_test(built):
+    """At tau = t_p a pcol does not collapse, one float32 step above it does:
+    the bisection finds the switch of the hard comparisons bit for bit, also
+    for orthographic views (perspective views are also covered above)."""
+    data = built("bunny.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    v0 = data.vertices[: data.n_original_vertices]
+    cams = [index_camera(pmjax.random_views(v0, 2, seed=11), i) for i in range(2)]
+    ortho = pmjax.look_at(v0.mean(0) + [0.0, 0.0, 1.0], v0.mean(0), orthographic=True, ortho_height=0.3,
+                          near=1e-3, far=10.0)
+    rng = np.random.default_rng(0)
+    no_cull = pmjax.Tests(frustum=False, orientation=False)
+    for cam in cams + [ortho]:
+        t = np.asarray(pmjax.critical_tau(pm.attributes, cam, no_cull))
+        finite = np.flatnonzero(np.isfinite(t) & (t > 0))
+        assert len(finite) > 100
+        for p in rng.choice(finite, 12, replace=False):
+            at = np.asarray(collapse_mask(pm.attributes, cam, jnp.float32(t[p]), no_cull))
+            above = np.asarray(collapse_mask(pm.attributes, cam, np.nextafter(t[p], np.float32(np.inf)), no_cull))
+            assert not at[p] and above[p], f"pcol {p}, t_p = {t[p]!r}"
+            # Every other pcol switches consistently with its own t_p as well.
+            assert np.array_equal(at, t[p] > t)
+
+
 def test_faces_for_budget_is_exact(built):
     data = built("bunny.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
@@ -112,6 +138,27 @@ def test_faces_for_budget_is_exact(built):
         # Any smaller tau gives more faces than the budget.
         below = np.nextafter(np.float32(tau), np.float32(0))
         assert int(pmjax.refine(pm, cam, float(below)).n_faces) > budget
+
+
+@pytest.mark.parametrize("common", ["most", 0, 7])
+def test_batched_face_count_for_any_kills(built, common):
+    """The batched face count (``common_kills`` per executed pcol plus bit-plane
+    corrections for the others) equals the direct sum over executed pcols,
+    whatever the kills and whichever base is used."""
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = pmjax.random_views(data.vertices[: data.n_original_vertices], 40, seed=2)
+    executed = pmjax.refine_batch(pm, cams, 1.0, chunk=32, return_masks=True)["executed"]
+    assert 0 < executed.sum() < executed.size
+    rng = np.random.default_rng(1)
+    P = data.n_pcols
+    for kills in (rng.integers(0, 6, P), np.full(P, 3), np.where(rng.random(P) < 0.9, 2, rng.integers(0, 9, P))):
+        base = int(np.argmax(np.bincount(kills))) if common == "most" else common
+        fake = dataclasses.replace(pm, kills=jnp.asarray(kills, jnp.int32), max_kills=int(kills.max()),
+                                   min_kills=int(kills.min()), common_kills=base)
+        got = pmjax.refine_batch(fake, cams, 1.0, chunk=32)
+        assert np.array_equal(got["faces"], len(data.faces) - executed.astype(np.int64) @ kills)
+        assert np.array_equal(got["executed_count"], executed.sum(1))
 
 
 def test_refine_batch_equals_single_refines(built):
