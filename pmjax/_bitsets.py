@@ -3,9 +3,8 @@
 Many cameras share the hierarchy, so their executed sets are propagated
 together: one word carries 32 cameras and the AND of the propagation is one
 bitwise AND, i.e. a 32-way SIMD over cameras with 1/8 of the memory traffic of
-bools. Counting needs, per camera, a weighted sum over pcols; a 32×32 bit
-transpose turns the pcol-major words into camera-major words so that sum is a
-population count.
+bools. Counting needs, per camera, a sum over pcols of one bit of each word:
+:func:`column_popcounts`.
 """
 
 from __future__ import annotations
@@ -36,49 +35,37 @@ def _bit_ids():
     return jnp.arange(WORD, dtype=jnp.uint32)
 
 
-def _transpose32(a: UInt32[Array, "... 32"]) -> UInt32[Array, "... 32"]:
-    """Transpose 32×32 bit matrices (rows = words): out row ``31 − j`` bit
-    ``31 − i`` = in row ``i`` bit ``j`` (Hacker's Delight, 5 swap rounds)."""
-    lead = a.shape[:-1]
-    half, mask = 16, jnp.uint32(0x0000FFFF)
-    while half:
-        pairs = a.reshape(lead + (WORD // (2 * half), 2, half))
-        lo, hi = pairs[..., 0, :], pairs[..., 1, :]
-        swap = (lo ^ (hi >> half)) & mask
-        a = jnp.stack([lo ^ swap, hi ^ (swap << half)], axis=-2).reshape(lead + (WORD,))
-        half //= 2
-        mask = mask ^ (mask << half)
-    return a
+def _group_sum(x: UInt32[Array, "N W"], group: int) -> UInt32[Array, "M W"]:
+    """Sums of consecutive groups of ``group`` rows (the last group zero-padded)."""
+    x = jnp.pad(x, ((0, -x.shape[0] % group), (0, 0)))
+    return jnp.sum(x.reshape(-1, group, x.shape[1]), axis=1, dtype=jnp.uint32)
 
 
-def camera_major(words: UInt32[Array, "P W"]) -> UInt32[Array, "N W 32"]:
-    """Bit-transpose pcol-major words so each camera's bits run over 32 pcols.
+def column_popcounts(words: UInt32[Array, "P W"]) -> Int[Array, " K"]:
+    """``out[32w + c]`` = how many rows have bit ``c`` of word ``w`` set: per
+    camera, the pcols whose bit is set (``K = 32 W``).
 
-    ``out[n, w, 31 - c]`` bit ``31 - i`` is camera ``32w + c`` at pcol ``32n + i``
-    (``P`` padded with zero bits to a multiple of 32).
+    SIMD within a register, widening the counters step by step: ``(x >> j) &
+    0x11111111`` leaves bits ``c ≡ j (mod 4)`` one per 4-bit lane, and 15
+    such words add up without a lane overflowing; then lanes are split and
+    widened to 8 bits (groups of 17 sums ≤ 255), 16 bits (groups of 257) and
+    32 bits. About a dozen word operations per input word and one pass over
+    it: 5x faster than a 32×32 bit transpose and a popcount (dragon, 256
+    cameras: 0.068 -> 0.013 ms per camera, measured).
     """
-    P, W = words.shape
-    padded = -(-P // WORD) * WORD
-    words = jnp.pad(words, ((0, padded - P), (0, 0)))
-    return _transpose32(words.reshape(padded // WORD, WORD, W).transpose(0, 2, 1))
-
-
-def weighted_counts(by_camera: UInt32[Array, "N W 32"], weights: Int[Array, " P"], weight_bits: int) -> Int[Array, " K"]:
-    """``out[k] = sum_p weights[p] * bit(words[p], k)`` for ``0 <= weights < 2**weight_bits``,
-    from ``by_camera = camera_major(words)``:
-    ``sum_b 2**b * popcount(camera word & weight bit-plane b)``.
-    """
-    padded = by_camera.shape[0] * WORD
-    weights = jnp.pad(weights, (0, padded - weights.shape[0]))
-    pcol_bit = (WORD - 1) - _bit_ids()  # pcol i sits at bit 31 - i
-    total = jnp.zeros(by_camera.shape[1:], jnp.int32)
-    for b in range(weight_bits):
-        plane_bits = ((weights.reshape(-1, WORD) >> b) & 1).astype(jnp.uint32) << pcol_bit
-        plane = jnp.sum(plane_bits, axis=1, dtype=jnp.uint32)
-        hits = jax.lax.population_count(by_camera & plane[:, None, None]).astype(jnp.int32)
-        total = total + (jnp.sum(hits, axis=0) << b)
-    # Row r of each transposed block is camera 31 - r.
-    return total[:, ::-1].reshape(-1)
+    W = words.shape[1]
+    lanes = []  # (camera bit c, [W] counts)
+    for j in range(4):
+        by4 = _group_sum((words >> j) & jnp.uint32(0x11111111), 15)
+        for odd4 in range(2):
+            by8 = _group_sum((by4 >> (4 * odd4)) & jnp.uint32(0x0F0F0F0F), 17)
+            for odd8 in range(2):
+                by16 = _group_sum((by8 >> (8 * odd8)) & jnp.uint32(0x00FF00FF), 257)
+                for odd16 in range(2):
+                    count = jnp.sum((by16 >> (16 * odd16)) & jnp.uint32(0xFFFF), axis=0, dtype=jnp.uint32)
+                    lanes.append((16 * odd16 + 8 * odd8 + 4 * odd4 + j, count))
+    by_bit = jnp.stack([count for _, count in sorted(lanes, key=lambda lane: lane[0])], axis=1)
+    return by_bit.reshape(W * WORD).astype(jnp.int32)
 
 
 def weight_bits_for(max_weight: int) -> int:

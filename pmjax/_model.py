@@ -86,6 +86,8 @@ class ProgressiveMesh(eqx.Module):
             the most common number of faces one pcol removes (the batched face
             count is ``common_kills`` per executed pcol plus corrections whose
             bit planes these size).
+        uncommon: ``[N]`` int32, the pcols whose kills differ from
+            ``common_kills`` (the only ones the correction looks at).
     """
 
     vertices: Float[Array, "V 3"]
@@ -96,6 +98,7 @@ class ProgressiveMesh(eqx.Module):
     killer: Int[Array, " F"]
     kills: Int[Array, " P"]
     attributes: PcolAttributes
+    uncommon: Int[Array, " N"]
     batch_offsets: tuple = eqx.field(static=True)
     n_original_vertices: int = eqx.field(static=True)
     max_kills: int = eqx.field(static=True, default=0)
@@ -132,14 +135,26 @@ class ProgressiveMesh(eqx.Module):
             child2=jnp.asarray(np.where(pm.v2 >= V0, pm.v2 - V0, -1).astype(np.int32)),
             parent=jnp.asarray(parent),
             killer=jnp.asarray(pm.killer),
-            kills=jnp.asarray(kills),
             attributes=PcolAttributes.from_arrays(created, pm.normals[V0:], pm.radius, pm.alpha, pm.delta, pm.mu),
             batch_offsets=tuple(int(o) for o in pm.batch_offsets),
             n_original_vertices=V0,
-            max_kills=int(kills.max(initial=0)),
-            min_kills=int(kills.min()) if len(kills) else 0,
-            common_kills=int(np.argmax(np.bincount(kills))) if len(kills) else 0,
+            **kill_summary(kills),
         )
+
+
+def kill_summary(kills: np.ndarray, common: int | None = None) -> dict:
+    """The :class:`ProgressiveMesh` fields that describe ``kills``
+    (``common``: the base count, by default the most frequent)."""
+    kills = np.asarray(kills)
+    if common is None:
+        common = int(np.argmax(np.bincount(kills))) if len(kills) else 0
+    return dict(
+        kills=jnp.asarray(kills, jnp.int32),
+        uncommon=jnp.asarray(np.flatnonzero(kills != common).astype(np.int32)),
+        max_kills=int(kills.max(initial=0)),
+        min_kills=int(kills.min()) if len(kills) else 0,
+        common_kills=int(common),
+    )
 
 
 def load(path: str | os.PathLike) -> ProgressiveMesh:

@@ -45,10 +45,15 @@ def _rows_dot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
+def _eye_vector(attrs: PcolAttributes, view: View):
+    """The rows of ``centre − eye``."""
+    eye = view.eye
+    return [attrs.center[i] - eye[i] for i in range(3)]
+
+
 def _eye_offset(attrs: PcolAttributes, view: View):
     """``(d², h)``: squared distance eye→centre and its component along the axis."""
-    eye = view.eye
-    v = [attrs.center[i] - eye[i] for i in range(3)]
+    v = _eye_vector(attrs, view)
     return _rows_dot(v, v), _rows_dot(v, attrs.axis)
 
 
@@ -63,9 +68,10 @@ def frustum_margins(attrs: PcolAttributes, view: View):
         near or far plane when ``z + r < near`` or ``z − r > far``.
     """
     k = view.frustum
-    x = _rows_dot(attrs.center, view.axis(0)) - k(0)
-    y = _rows_dot(attrs.center, view.axis(1)) - k(1)
-    z = _rows_dot(attrs.center, view.axis(2)) - k(2)
+    # The offset from the eye first: no cancellation between right·centre and
+    # right·eye far from the origin, and the offset is shared with the other tests.
+    v = _eye_vector(attrs, view)
+    x, y, z = (_rows_dot(v, view.axis(i)) for i in range(3))
     return x, y, z, z * k(3) + k(5), z * k(4) + k(6), k(7), k(8), k(9), k(10)
 
 

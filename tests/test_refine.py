@@ -8,6 +8,7 @@ import pytest
 
 import pmjax
 from pmjax._camera import index_camera
+from pmjax._model import kill_summary
 from pmjax._oracle import oracle_refine as oracle
 from pmjax import collapse_mask
 
@@ -153,9 +154,7 @@ def test_batched_face_count_for_any_kills(built, common):
     rng = np.random.default_rng(1)
     P = data.n_pcols
     for kills in (rng.integers(0, 6, P), np.full(P, 3), np.where(rng.random(P) < 0.9, 2, rng.integers(0, 9, P))):
-        base = int(np.argmax(np.bincount(kills))) if common == "most" else common
-        fake = dataclasses.replace(pm, kills=jnp.asarray(kills, jnp.int32), max_kills=int(kills.max()),
-                                   min_kills=int(kills.min()), common_kills=base)
+        fake = dataclasses.replace(pm, **kill_summary(kills, None if common == "most" else common))
         got = pmjax.refine_batch(fake, cams, 1.0, chunk=32)
         assert np.array_equal(got["faces"], len(data.faces) - executed.astype(np.int64) @ kills)
         assert np.array_equal(got["executed_count"], executed.sum(1))
