@@ -5,8 +5,8 @@ camera alone: the eye, the camera axes, the frustum's slopes and offsets, the
 size of ``tau`` pixels. They are computed once per view and kept in one array,
 and the batched predicate reads each as a contiguous row of per-camera values.
 Both matter on the CPU (dragon, 256 cameras, measured): recomputed per pcol
-(XLA fuses them into the per-pcol loop) the predicate ran 4-6x slower, and
-read as columns of a ``[K, n]`` array 3x slower.
+(XLA fuses them into the per-pcol loop) the predicate ran 6x slower, and
+read as columns of a ``[K, n]`` array 4-5x slower.
 """
 
 from __future__ import annotations
@@ -74,7 +74,7 @@ class View(eqx.Module):
         over the cameras with :meth:`map`."""
         # Stacked from per-constant rows: a transpose of ``[K, 25]`` would be
         # turned into a column-major layout of the same memory, whose rows are
-        # strided (3x slower).
+        # strided (4x slower).
         values = jnp.stack(jax.vmap(_values, in_axes=(0, None))(cameras, tau))
         return View(jax.lax.optimization_barrier(values), cameras.orthographic)
 
