@@ -35,6 +35,9 @@ from pmjax import collapse_mask  # noqa: E402
 CACHE = os.environ.get("PMJAX_BENCH_CACHE", os.path.join(os.path.dirname(os.path.abspath(__file__)), ".cache"))
 
 
+PARTS = ("table1", "oracle", "batched")
+
+
 def pm_file(name: str) -> str:
     """Path of the default build of ``name``, cached per builder version (a
     digest of the builder's source, so a changed builder never reuses an old
@@ -140,13 +143,12 @@ def main():
     ap.add_argument("--batched", default="bunny,dragon")
     ap.add_argument("--ks", default="1,16,256,4096")
     ap.add_argument("--chunk", type=int, default=256)
-    ap.add_argument("--parts", default="table1,oracle,batched",
-                    help="comma-separated subset of table1,oracle,batched")
+    ap.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated subset of {','.join(PARTS)}")
     ap.add_argument("--json", help="also write results as JSON")
     args = ap.parse_args()
     parts = set(args.parts.split(","))
-    if parts - {"table1", "oracle", "batched"}:
-        ap.error(f"unknown part(s) {sorted(parts - {'table1', 'oracle', 'batched'})}")
+    if parts - set(PARTS):
+        ap.error(f"unknown part(s) {sorted(parts - set(PARTS))}")
     print(f"machine: {machine()}\n")
     t1, vo, bt = [], [], []
     if "table1" in parts:

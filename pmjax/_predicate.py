@@ -17,7 +17,7 @@ from jaxtyping import Array, Bool, Float
 
 from ._camera import Camera
 from ._model import PcolAttributes
-from ._view import View
+from ._view import View, kappa_squared
 
 
 class Tests(eqx.Module):
@@ -72,7 +72,7 @@ def frustum_margins(attrs: PcolAttributes, view: View):
     # right·eye far from the origin, and the offset is shared with the other tests.
     v = _eye_vector(attrs, view)
     x, y, z = (_rows_dot(v, view.axis(i)) for i in range(3))
-    return x, y, z, z * k(3) + k(5), z * k(4) + k(6), k(7), k(8), k(9), k(10)
+    return x, y, z, z * k(0) + k(2), z * k(1) + k(3), k(4), k(5), k(6), k(7)
 
 
 def _outside_frustum(attrs: PcolAttributes, view: View):
@@ -261,7 +261,8 @@ def _screen_threshold(mu2, normal2, s, unit):
     """The largest float32 ``tau`` at which :func:`_small` is still false, so
     that it holds exactly for ``tau > t`` (``+inf`` if it never holds).
 
-    ``kappa² = (unit·tau)²`` is monotone in ``tau`` through every rounding,
+    ``kappa² =`` :func:`kappa_squared` ``(unit, tau)``, the expression the
+    :class:`View` holds, is monotone in ``tau`` through every rounding,
     and so is the test; non-negative float32 values are ordered as their bit
     patterns, so a bisection over the patterns from 0 to +inf (31 halvings)
     finds the switch exactly, where the closed form (:func:`screen_tolerance`)
@@ -269,8 +270,7 @@ def _screen_threshold(mu2, normal2, s, unit):
     """
 
     def small_at(bits):
-        k = unit * jax.lax.bitcast_convert_type(bits, jnp.float32)
-        return _small(mu2, normal2, s, k * k)
+        return _small(mu2, normal2, s, kappa_squared(unit, jax.lax.bitcast_convert_type(bits, jnp.float32)))
 
     # Invariant: not small at lo (tau = 0 never is), small at hi.
     lo = jnp.zeros(mu2.shape, jnp.int32)

@@ -20,7 +20,7 @@ from ._camera import Camera
 
 # Layout of View.values: eye, the rows right/up/forward, the frustum constants
 # of Camera.frustum_frame, one pixel, kappa squared.
-_EYE, _AXES, _FRUSTUM, _ONE_PIXEL, _KAPPA2 = 0, 3, 12, 23, 24
+_EYE, _AXES, _FRUSTUM, _ONE_PIXEL, _KAPPA2 = 0, 3, 12, 20, 21
 
 
 def one_pixel(camera: Camera) -> Float[Array, "*K"]:
@@ -38,27 +38,34 @@ def kappa(camera: Camera, tau) -> Float[Array, "*K"]:
     return one_pixel(camera) * tau
 
 
+def kappa_squared(unit, tau):
+    """``kappa²`` from :func:`one_pixel` and ``tau``: the one expression both the
+    screen test (through :class:`View`) and the bisection of
+    :func:`pmjax.critical_tau` evaluate, so they agree bit for bit."""
+    k = unit * tau
+    return k * k
+
+
 def _values(camera: Camera, tau) -> list:
-    """The 25 constants of one camera, as scalars."""
+    """The 22 constants of one camera, as scalars."""
     axes, consts = camera.frustum_frame()
     unit = one_pixel(camera)
-    k = unit * tau  # kappa(camera, tau)
     return [camera.eye[i] for i in range(3)] + [axes[i, j] for i in range(3) for j in range(3)] + \
-        [consts[i] for i in range(11)] + [unit, k * k]
+        [consts[i] for i in range(8)] + [unit, kappa_squared(unit, tau)]
 
 
 class View(eqx.Module):
-    """One camera's constants for the per-pcol tests (or ``[25, K]`` for K cameras,
+    """One camera's constants for the per-pcol tests (or ``[22, K]`` for K cameras,
     see :meth:`batch`).
 
     Attributes:
-        values: ``[25]`` eye (3), right, up and forward axes (3 × 3), the
-            frustum constants of :meth:`Camera.frustum_frame` (11),
+        values: ``[22]`` eye (3), right, up and forward axes (3 × 3), the
+            frustum constants of :meth:`Camera.frustum_frame` (8),
             :func:`one_pixel`, ``kappa(camera, tau)²``.
         orthographic: static, as the camera.
     """
 
-    values: Float[Array, " 25"]
+    values: Float[Array, " 22"]
     orthographic: bool = eqx.field(static=True, default=False)
 
     @staticmethod
@@ -70,9 +77,9 @@ class View(eqx.Module):
 
     @staticmethod
     def batch(cameras: Camera, tau) -> "View":
-        """The constants of K cameras as rows, ``values[25, K]``; map a test
+        """The constants of K cameras as rows, ``values[22, K]``; map a test
         over the cameras with :meth:`map`."""
-        # Stacked from per-constant rows: a transpose of ``[K, 25]`` would be
+        # Stacked from per-constant rows: a transpose of ``[K, 22]`` would be
         # turned into a column-major layout of the same memory, whose rows are
         # strided (4x slower).
         values = jnp.stack(jax.vmap(_values, in_axes=(0, None))(cameras, tau))
