@@ -2,6 +2,7 @@
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -180,8 +181,15 @@ def test_bad_tau_and_camera_batches_are_refused(built):
         pmjax.refine_batch(pm, cams, -1.0)
     with pytest.raises(ValueError, match="camera batch"):
         pmjax.refine_batch(pm, index_camera(cams, 0), 1.0)
-    with pytest.raises(Exception, match="tau must be >= 0"):
+    # A host tau is checked before the call; a device tau inside the kernel.
+    with pytest.raises(ValueError, match="tau must be >= 0"):
         pmjax.refine(pm, index_camera(cams, 0), float("nan"))
+    with pytest.raises(ValueError, match="tau must be >= 0"):
+        pmjax.refine(pm, index_camera(cams, 0), -0.5)
+    with pytest.raises(ValueError, match="tau must be a scalar"):
+        pmjax.refine(pm, index_camera(cams, 0), np.ones(2))
+    with pytest.raises(Exception, match="tau must be >= 0"):
+        jax.block_until_ready(pmjax.refine(pm, index_camera(cams, 0), jnp.float32(-1.0)))
 
 
 def test_refined_mesh_covers_the_same_screen_area(built):
