@@ -253,3 +253,39 @@ def test_frustum_test_is_the_six_planes(orthographic):
     # Every plane culls some spheres on its own, and some spheres are inside.
     assert np.all((beyond & (beyond.sum(1) == 1)[:, None]).any(0)) and (~beyond.any(1)).any()
     assert np.array_equal(got[clear], beyond.any(1)[clear])
+
+
+@pytest.mark.parametrize("orthographic", [False, True])
+def test_orientation_test_is_the_cone_angle_sum(orthographic):
+    """The root-free orientation test decides as its definition, in float64:
+    every normal of the cone faces away from every eye ray into the sphere,
+    ``theta + alpha + beta < pi/2`` (``beta`` = 0 for orthographic views),
+    away from float ties."""
+    from pmjax._model import PcolAttributes
+
+    rng = np.random.default_rng(12)
+    target = np.array([0.5, -0.2, 1.0])
+    cam = pmjax.look_at(target + [3.0, 1.0, 4.0], target, fov_y_deg=50, width=640, height=400,
+                        orthographic=orthographic, ortho_height=3.0)
+    n = 40_000
+    centers = target + rng.normal(scale=3.0, size=(n, 3))
+    axes = rng.normal(size=(n, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    alpha = rng.uniform(0.0, 2.0, n)  # past pi/2 too: such a cone never faces away
+    radius = rng.uniform(0.0, 2.0, n)
+    eye = np.asarray(cam.eye, np.float64)
+    if orthographic:
+        forward = np.asarray(cam.frustum_frame()[0], np.float64)[2]
+        theta, beta = np.arccos(np.clip(axes @ forward, -1, 1)), np.zeros(n)
+    else:
+        off = centers - eye
+        d = np.linalg.norm(off, axis=1)
+        theta = np.arccos(np.clip(np.sum(off * axes, 1) / d, -1, 1))
+        beta = np.where(radius < d, np.arcsin(np.minimum(radius / d, 1)), np.inf)
+    margin = theta + alpha + beta - np.pi / 2
+    want = margin < 0
+    attrs = PcolAttributes.from_arrays(centers, axes, radius, alpha, np.zeros(n), np.zeros(n))
+    got = np.asarray(pmjax.oriented_away(attrs, cam))
+    clear = np.abs(margin) > 1e-4
+    assert clear.mean() > 0.99 and 0.05 < want.mean() < 0.95
+    assert np.array_equal(got[clear], want[clear])
