@@ -41,7 +41,9 @@ def up_the_batches(pm: ProgressiveMesh, own, leaf, join):
     first batch, whose children are all original vertices, is ``own`` as it
     is, and the other batches are updated in place (no pass over the first).
     """
-    out = own
+    # An explicit copy: where ``own`` is an argument of the jitted caller,
+    # without it XLA copied the whole array at every batch (dragon 0.44 -> 9.7 ms).
+    out = jnp.copy(own)
     trailing = (1,) * (own.ndim - 1)
     for lo, hi in zip(pm.batch_offsets[1:-1], pm.batch_offsets[2:]):
         if lo == hi:
@@ -81,7 +83,8 @@ def down_the_batches(pm: ProgressiveMesh, none, climb):
         climb: ``climb(parent, offset, ids, coarser)``: values of vertices
             ``ids`` given ``coarser``, the values of the vertices created by
             pcols ``offset..P``; ``parent`` is each vertex's consuming pcol
-            minus ``offset`` (negative: consumed by none).
+            minus ``offset`` (negative: consumed by none). ``offset`` is 0
+            exactly for the original vertices, the last call.
 
     Returns:
         values of all ``V0 + P`` vertices, stacked along the first axis.
@@ -111,15 +114,27 @@ def representatives(pm: ProgressiveMesh, executed: Bool[Array, " P"]) -> Int[Arr
 
     Resolved coarse to fine: a vertex takes its parent's representative
     (already final, parents are in later batches) if the parent ran, else
-    itself.
+    itself. What is carried for the created vertices is their representative
+    if their pcol ran and -1 if not, so that each vertex reads one random
+    element (its parent's) instead of two (whether the parent ran, and its
+    representative): dragon 1.26 -> 1.03 ms.
     """
+    V0, P = pm.n_original_vertices, pm.n_pcols
 
     def climb(parent, offset, ids, coarser):
-        up = jnp.maximum(parent, 0)
-        ran = (parent >= 0) & gather(executed, offset + up)
-        return jnp.where(ran, gather(coarser, up), ids)
+        t = gather(coarser, jnp.maximum(parent, 0))
+        rep = jnp.where((parent >= 0) & (t >= 0), t, ids)
+        if offset == 0:  # the original vertices: they always exist
+            return rep
+        lo = offset - ids.shape[0]
+        return jnp.where(executed[lo:offset], rep, -1)
 
-    return down_the_batches(pm, lambda ids: ids, climb)
+    def coarsest(ids):
+        lo = P - ids.shape[0]
+        return jnp.where(executed[lo:], ids, -1)
+
+    out = down_the_batches(pm, coarsest, climb)
+    return jnp.where(out >= 0, out, jnp.arange(V0 + P, dtype=jnp.int32))
 
 
 class Refinement(eqx.Module):
