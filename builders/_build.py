@@ -135,6 +135,10 @@ def build_pm(
     t0 = time.perf_counter()
     v0 = np.asarray(vertices, np.float64)
     f0 = np.asarray(faces, np.int64)
+    # The arrays should come from clean_mesh; say so rather than fail deep inside.
+    if v0.ndim != 2 or v0.shape[1] != 3 or f0.ndim != 2 or f0.shape[1] != 3 or len(f0) == 0:
+        raise ValueError(f"build_pm needs vertices (V, 3) and at least one face (F, 3), got {v0.shape} and "
+                         f"{f0.shape}; clean the mesh with pmjax.clean_mesh first")
     V0, F = len(v0), len(f0)
     cap = 2 * V0  # every pcol consumes two vertices and makes one: P < V0
     pos = np.zeros((cap, 3))

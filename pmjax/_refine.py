@@ -38,8 +38,8 @@ def up_the_batches(pm: ProgressiveMesh, own, leaf, join):
     children always come from earlier batches, so one gather per batch.
     ``own`` is ``[P, ...]``: trailing axes (cameras, words) ride along.
     ``leaf`` must be an identity of ``join`` (``join(x, leaf, leaf) = x``): the
-    first batch, whose children are all original vertices, is ``own`` as it
-    is, and the other batches are updated in place (no pass over the first).
+    first batch, whose children are all original vertices, keeps ``own``, and
+    only the later batches are computed (in place).
     """
     # An explicit copy: where ``own`` is an argument of the jitted caller,
     # without it XLA copied the whole array at every batch (dragon 0.44 -> 9.7 ms).
@@ -206,7 +206,9 @@ def refine(
     Args:
         pm: :class:`ProgressiveMesh` (``pmjax.load``).
         camera: one :class:`Camera`.
-        tau: screen-space tolerance in pixels of the image height.
+        tau: screen-space tolerance in pixels of the image height, a scalar
+            ``>= 0``. A Python or NumPy value is checked here (``ValueError``);
+            a JAX array is checked inside the compiled call.
         tests: :class:`Tests` to switch tests off (ablations).
         predicate, context, combine: optional user test, see
             :func:`pmjax.collapse_mask`.

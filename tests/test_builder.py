@@ -160,9 +160,18 @@ def test_a_small_share_still_simplifies_until_nothing_is_valid(data_path):
 
 def test_tiny_and_odd_inputs(data_path):
     tri_v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
+    with pytest.raises(ValueError, match="at least one face"):
+        build_pm(tri_v, np.zeros((0, 3), int))
     pm = build_pm(tri_v, np.array([[0, 1, 2]]))
     pmjax.check_invariants(pm)
     assert pm.n_pcols == 1 and pm.killer[0] == 0
+    # Refined: the one pcol runs only when tau allows, and vref follows it.
+    view = pmjax.look_at([0.3, 0.3, 3.0], [0.3, 0.3, 0.0], fov_y_deg=45, width=800, height=600)
+    fine, coarse = (pmjax.refine(pmjax.ProgressiveMesh.from_data(pm), view, t) for t in (0.0, 1e9))
+    assert int(fine.n_faces) == 1 and np.array_equal(np.asarray(fine.rep), np.arange(4))
+    assert int(coarse.n_faces) == 0 and int(coarse.n_executed) == 1
+    v1, v2 = int(pm.v1[0]), int(pm.v2[0])
+    assert np.asarray(coarse.rep)[v1] == np.asarray(coarse.rep)[v2] == 3
     # Two triangles sharing only a vertex (non-manifold bow tie).
     bow_v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0]], float)
     pm = build_pm(bow_v, np.array([[0, 1, 2], [0, 3, 4]]))
