@@ -224,14 +224,43 @@ def refine(
             raise ValueError(f"tau must be a scalar, got shape {tau.shape}")
         if not tau >= 0:
             raise ValueError(f"tau must be >= 0 (and not NaN), got {tau}")
-    return _refine(pm, camera, tau, context, tests, predicate, combine)
+    # As under eqx.filter_jit, the context's arrays are traced and its other
+    # leaves (Python numbers, strings) are static.
+    if context is None or eqx.is_array(context):  # the common cases, without the partition's cost
+        arrays, others = context, _NOTHING_STATIC
+    else:
+        arrays, others = eqx.partition(context, eqx.is_array)
+        others = _Static(others)
+    return _refine(pm, camera, tau, arrays, others, tests, predicate, combine)
+
+
+class _Static:
+    """A pytree of hashable leaves, usable as a static ``jax.jit`` argument."""
+
+    def __init__(self, tree):
+        self.leaves, self.treedef = jax.tree.flatten(tree)
+        self._hash = hash((self.treedef, tuple(self.leaves)))
+
+    def __hash__(self):
+        return self._hash
+
+    def __eq__(self, other):
+        return isinstance(other, _Static) and (self.treedef, self.leaves) == (other.treedef, other.leaves)
+
+    @property
+    def tree(self):
+        return jax.tree.unflatten(self.treedef, self.leaves)
+
+
+_NOTHING_STATIC = _Static(None)
 
 
 # jax.jit, not eqx.filter_jit: the call is a few hundred microseconds on small
 # meshes, and filter_jit's Python-side partition of the pytrees cost 60-90 us of
 # it (bunny 0.37 -> 0.28 ms per refine).
-@functools.partial(jax.jit, static_argnames=("tests", "predicate", "combine"))
-def _refine(pm, camera, tau, context, tests, predicate, combine):
+@functools.partial(jax.jit, static_argnames=("context_static", "tests", "predicate", "combine"))
+def _refine(pm, camera, tau, context_arrays, context_static, tests, predicate, combine):
+    context = eqx.combine(context_arrays, context_static.tree)
     tau = eqx.error_if(jnp.asarray(tau, jnp.float32), ~(tau >= 0), "tau must be >= 0 (and not NaN)")
     collapse = collapse_mask(pm.attributes, camera, tau, tests, predicate, context, combine)
     # Materialize the decisions once: fused into the per-batch slices of the

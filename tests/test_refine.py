@@ -90,6 +90,14 @@ def test_user_predicate_or_and_replace(built):
     e_only = np.asarray(only.executed)
     assert e_only.any()
     assert np.all(data.vertices[data.n_original_vertices:][e_only, 0] > cut)
+    # A context of any pytree: arrays are traced, other leaves (a string, an
+    # axis number) are static, as in jax.jit's static arguments.
+    side = lambda attrs, ctx: (attrs.position[:, ctx["axis"]] > ctx["cut"]) == (ctx["side"] == "above")
+    for which in ("above", "below"):
+        ctx = {"axis": 0, "cut": jnp.float32(cut), "side": which}
+        got = np.asarray(pmjax.refine(pm, cam, 0.0, predicate=side, context=ctx, combine="replace").executed)
+        want = np.asarray(pmjax.refine(pm, cam, 0.0, predicate=lambda a, c: side(a, ctx), combine="replace").executed)
+        assert got.any() and np.array_equal(got, want)
 
 
 def test_critical_tolerances_reproduce_every_tau(built):
