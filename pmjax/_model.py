@@ -113,6 +113,12 @@ class ProgressiveMesh(eqx.Module):
     def n_faces(self) -> int:
         return int(self.faces.shape[0])
 
+    @property
+    def uncommon_extra_kills(self) -> Int[Array, " N"]:
+        """``[N]`` faces each ``uncommon`` pcol kills beyond ``common_kills``
+        (may be negative): the correction of every face count."""
+        return self.kills[self.uncommon] - self.common_kills
+
     def astype(self, dtype) -> "ProgressiveMesh":
         """The same mesh with positions and pcol attributes in ``dtype``
         (``jnp.float64`` for gradient checks; needs ``jax.enable_x64``)."""

@@ -178,10 +178,11 @@ def _finish(pm: ProgressiveMesh, executed) -> Refinement:
     k = pm.killer
     active = (k < 0) | ~gather(executed, jnp.maximum(k, 0))
     n_exec = jnp.sum(executed, dtype=jnp.int32)
-    # Faces from the pcols: m per executed pcol, corrected on the few pcols
-    # that kill another number (a sum over P, not over the F faces).
+    # Faces from the pcols, as executed_and_killed counts them for a batch:
+    # m per executed pcol, corrected on the few uncommon pcols (a sum over P,
+    # not over the F faces).
     m = pm.common_kills
-    killed = m * n_exec + jnp.sum(jnp.where(gather(executed, pm.uncommon), pm.kills[pm.uncommon] - m, 0))
+    killed = m * n_exec + jnp.sum(jnp.where(gather(executed, pm.uncommon), pm.uncommon_extra_kills, 0))
     return Refinement(
         executed=executed,
         active=active,
@@ -294,7 +295,7 @@ def executed_and_killed(pm: ProgressiveMesh, words):
     m = pm.common_kills
     killed = m * n_exec
     rows = words[pm.uncommon]
-    delta = pm.kills[pm.uncommon] - m
+    delta = pm.uncommon_extra_kills
     for sign, most in ((1, pm.max_kills - m), (-1, m - pm.min_kills)):
         weight = jnp.maximum(sign * delta, 0)
         for b in range(weight_bits_for(most) if most > 0 else 0):
