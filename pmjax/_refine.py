@@ -70,7 +70,7 @@ def propagate(pm: ProgressiveMesh, collapse):
     return up_the_batches(pm, collapse, everything, lambda own, a, b: own & a & b)
 
 
-def down_the_batches(pm: ProgressiveMesh, none, climb):
+def down_the_batches(pm: ProgressiveMesh, coarsest, climb):
     """Resolve a per-vertex value coarse to fine, batch by batch (static slices).
 
     A vertex's value depends on the pcol consuming it (its parent), always in
@@ -78,35 +78,35 @@ def down_the_batches(pm: ProgressiveMesh, none, climb):
     the original vertices.
 
     Args:
-        none: ``none(ids)``, the values of vertices ``ids`` of the coarsest
-            batch (no coarser pcol to depend on).
-        climb: ``climb(parent, offset, ids, coarser)``: values of vertices
-            ``ids`` given ``coarser``, the values of the vertices created by
-            pcols ``offset..P``; ``parent`` is each vertex's consuming pcol
-            minus ``offset`` (negative: consumed by none). ``offset`` is 0
-            exactly for the original vertices, the last call.
+        coarsest: ``coarsest(ids)``: values of the created vertices ``ids``
+            (all ``P`` of them, ``V0 + p`` for pcol ``p``) as if nothing
+            coarser mattered; final for the last batch, whose vertices no
+            pcol consumes, and overwritten for the others.
+        climb: ``climb(parent, ids, created, pcols)``: values of vertices
+            ``ids`` given ``created``, the ``[P, ...]`` values of the created
+            vertices (final for the parents' batches); ``parent`` is each
+            vertex's consuming pcol (negative: consumed by none); ``pcols``
+            is the static ``slice`` of pcols that made ``ids``, or ``None``
+            for the original vertices (the last call).
 
     Returns:
-        values of all ``V0 + P`` vertices, stacked along the first axis.
+        ``(originals [V0, ...], created [P, ...])``: the values of all vertices.
     """
-    V0 = pm.n_original_vertices
-    # The finished, coarser batches are kept as a growing concatenation rather
-    # than updated in place: XLA copies a full array for each in-place slice
-    # update whose operand is also gathered from (measured 12 ms → 1.4 ms on
-    # the dragon, for vref).
-    coarser = None
-    for lo, hi in reversed(list(zip(pm.batch_offsets[:-1], pm.batch_offsets[1:]))):
+    V0, P = pm.n_original_vertices, pm.n_pcols
+    # Each batch is written in place into one [P] array: its reads (the
+    # parents, in later batches) are separate gathers, so XLA updates the
+    # slice without a copy. The previous way, a growing concatenation of the
+    # finished batches, copied every coarser batch again at each batch
+    # (dragon representatives 1.31 -> 1.22 ms, bunny 0.10 -> 0.08 ms).
+    created = coarsest(jnp.arange(V0, V0 + P, dtype=jnp.int32))
+    offsets = pm.batch_offsets
+    for lo, hi in reversed(list(zip(offsets[:-2], offsets[1:-1]))):
         if lo == hi:
             continue
         ids = jnp.arange(V0 + lo, V0 + hi, dtype=jnp.int32)
-        if coarser is None:
-            coarser = none(ids)
-        else:
-            coarser = jnp.concatenate([climb(pm.parent[V0 + lo:V0 + hi] - hi, hi, ids, coarser), coarser])
-    ids = jnp.arange(V0, dtype=jnp.int32)
-    if coarser is None:
-        return none(ids)
-    return jnp.concatenate([climb(pm.parent[:V0], 0, ids, coarser), coarser])
+        created = created.at[lo:hi].set(climb(pm.parent[V0 + lo:V0 + hi], ids, created, slice(lo, hi)))
+    originals = climb(pm.parent[:V0], jnp.arange(V0, dtype=jnp.int32), created, None)
+    return originals, created
 
 
 def representatives(pm: ProgressiveMesh, executed: Bool[Array, " P"]) -> Int[Array, " V"]:
@@ -121,20 +121,15 @@ def representatives(pm: ProgressiveMesh, executed: Bool[Array, " P"]) -> Int[Arr
     """
     V0, P = pm.n_original_vertices, pm.n_pcols
 
-    def climb(parent, offset, ids, coarser):
-        t = gather(coarser, jnp.maximum(parent, 0))
+    def climb(parent, ids, created, pcols):
+        t = gather(created, jnp.maximum(parent, 0))
         rep = jnp.where((parent >= 0) & (t >= 0), t, ids)
-        if offset == 0:  # the original vertices: they always exist
-            return rep
-        lo = offset - ids.shape[0]
-        return jnp.where(executed[lo:offset], rep, -1)
+        # The original vertices always exist; a created one only if its pcol ran.
+        return rep if pcols is None else jnp.where(executed[pcols], rep, -1)
 
-    def coarsest(ids):
-        lo = P - ids.shape[0]
-        return jnp.where(executed[lo:], ids, -1)
-
-    out = down_the_batches(pm, coarsest, climb)
-    return jnp.where(out >= 0, out, jnp.arange(V0 + P, dtype=jnp.int32))
+    originals, created = down_the_batches(pm, lambda ids: jnp.where(executed, ids, -1), climb)
+    created = jnp.where(created >= 0, created, jnp.arange(V0, V0 + P, dtype=jnp.int32))
+    return jnp.concatenate([originals, created])
 
 
 class Refinement(eqx.Module):

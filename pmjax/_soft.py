@@ -136,13 +136,13 @@ def geomorph_blend(pm: ProgressiveMesh, weight: Float[Array, " P"], values: Floa
     V0 = pm.n_original_vertices
 
     # offset(u) = w(p)·(value(p) − value(u)) + offset(p) for p = the pcol consuming u.
-    def climb(parent, start, ids, coarser):
+    def climb(parent, ids, created, pcols):
         up = jnp.maximum(parent, 0)
-        step = weight[start + up][:, None] * (values[V0 + start + up] - values[ids]) + coarser[up]
+        step = weight[up][:, None] * (values[V0 + up] - values[ids]) + created[up]
         return jnp.where((parent >= 0)[:, None], step, 0.0)
 
     none = lambda ids: jnp.zeros((ids.shape[0],) + values.shape[1:], values.dtype)
-    return values + down_the_batches(pm, none, climb)
+    return values + jnp.concatenate(down_the_batches(pm, none, climb))
 
 
 def geomorph_positions(pm: ProgressiveMesh, weight: Float[Array, " P"]) -> Float[Array, "V0 3"]:
