@@ -26,8 +26,25 @@ def machine() -> str:
     backend = jax.default_backend()
     if backend != "cpu":
         backend += ": " + jax.devices()[0].device_kind
-    return (f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, numpy {numpy.__version__}, "
+    cores = f"{os.cpu_count()} cores"
+    if hasattr(os, "sched_getaffinity") and len(os.sched_getaffinity(0)) < os.cpu_count():
+        cores += f" (pinned to {len(os.sched_getaffinity(0))})"
+    return (f"{cpu}, {cores}, Python {platform.python_version()}, numpy {numpy.__version__}, "
             f"jax {jax.__version__} ({backend})")
+
+
+def pin_cores(n: int) -> None:
+    """Run on the first ``n`` CPUs only (``taskset`` from inside). Must come
+    before the first JAX computation: XLA sizes its CPU thread pool and its
+    loop partitions from the CPUs the process may use when the backend starts."""
+    import jax._src.xla_bridge as xb
+
+    if xb.backends_are_initialized():
+        raise RuntimeError("pin_cores must run before the first JAX computation")
+    cpus = sorted(os.sched_getaffinity(0))
+    if not 1 <= n <= len(cpus):
+        raise ValueError(f"--cores must be in 1..{len(cpus)}, got {n}")
+    os.sched_setaffinity(0, cpus[:n])
 
 
 def median_time(fn, repeats: int) -> tuple[float, list[float]]:

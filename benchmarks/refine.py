@@ -2,7 +2,7 @@
 compile/load time and memory.
 
 Usage: python benchmarks/refine.py [--models cow,bunny,dragon,terrain_gcanyon,terrain_sthelens]
-       [--frames 240] [--tau 1] [--batched bunny,dragon] [--ks 1,16,256,4096]
+       [--frames 240] [--tau 1] [--batched bunny,dragon] [--ks 1,16,256,4096] [--cores N]
 
 Standard orbit of DESIGN §7 (800×600, 45° fov, 240 frames). PM files are built
 once into benchmarks/.cache (per builder version). Per-frame times are full single-camera refines
@@ -25,7 +25,7 @@ import jax
 import numpy as np
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _common import DATA, machine, median_time  # noqa: E402
+from _common import DATA, machine, median_time, pin_cores  # noqa: E402
 
 import pmjax  # noqa: E402
 from pmjax._camera import index_camera  # noqa: E402
@@ -145,7 +145,10 @@ def main():
     ap.add_argument("--chunk", type=int, default=256)
     ap.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated subset of {','.join(PARTS)}")
     ap.add_argument("--json", help="also write results as JSON")
+    ap.add_argument("--cores", type=int, help="run on this many CPUs only (default: all); docs/bench-refine.md")
     args = ap.parse_args()
+    if args.cores:
+        pin_cores(args.cores)
     parts = set(args.parts.split(","))
     if parts - set(PARTS):
         ap.error(f"unknown part(s) {sorted(parts - set(PARTS))}")
