@@ -148,7 +148,10 @@ def main():
     ap.add_argument("--cores", type=int, help="run on this many CPUs only (default: all); docs/bench-refine.md")
     args = ap.parse_args()
     if args.cores:
-        pin_cores(args.cores)
+        try:
+            pin_cores(args.cores)
+        except ValueError as e:
+            ap.error(str(e))
     parts = set(args.parts.split(","))
     if parts - set(PARTS):
         ap.error(f"unknown part(s) {sorted(parts - set(PARTS))}")
