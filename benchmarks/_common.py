@@ -27,8 +27,9 @@ def machine() -> str:
     if backend != "cpu":
         backend += ": " + jax.devices()[0].device_kind
     cores = f"{os.cpu_count()} cores"
-    if hasattr(os, "sched_getaffinity") and len(os.sched_getaffinity(0)) < os.cpu_count():
-        cores += f" (pinned to {len(os.sched_getaffinity(0))})"
+    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    if usable < os.cpu_count():
+        cores += f" (pinned to {usable})"
     return (f"{cpu}, {cores}, Python {platform.python_version()}, numpy {numpy.__version__}, "
             f"jax {jax.__version__} ({backend})")
 

@@ -319,5 +319,3 @@ def _in_rows(per_pcol, attrs: PcolAttributes):
         return out
     tail = per_pcol(jax.tree.map(lambda x: x[..., body:], attrs))
     return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), out, tail)
-
-

@@ -141,8 +141,8 @@ def geomorph_blend(pm: ProgressiveMesh, weight: Float[Array, " P"], values: Floa
         step = weight[up][:, None] * (values[V0 + up] - values[ids]) + created[up]
         return jnp.where((parent >= 0)[:, None], step, 0.0)
 
-    none = lambda ids: jnp.zeros((ids.shape[0],) + values.shape[1:], values.dtype)
-    return values + jnp.concatenate(down_the_batches(pm, none, climb))
+    coarsest = lambda ids: jnp.zeros((ids.shape[0],) + values.shape[1:], values.dtype)
+    return values + jnp.concatenate(down_the_batches(pm, coarsest, climb))
 
 
 def geomorph_positions(pm: ProgressiveMesh, weight: Float[Array, " P"]) -> Float[Array, "V0 3"]:
