@@ -1,7 +1,8 @@
-"""Shared benchmark helpers: data location, machine description, medians."""
+"""Shared benchmark helpers: data location, machine description, medians, reports."""
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import statistics
@@ -55,3 +56,11 @@ def median_time(fn, repeats: int) -> tuple[float, list[float]]:
         fn()
         times.append(time.perf_counter() - t)
     return statistics.median(times), times
+
+
+def write_json(path, report) -> None:
+    """Write a benchmark report as JSON, atomically (never a half-written file)."""
+    from pmjax._atomic import atomic_path
+
+    with atomic_path(path) as tmp, open(tmp, "w") as fh:
+        json.dump(report, fh, indent=1)

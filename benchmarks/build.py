@@ -18,7 +18,7 @@ import sys
 import numpy as np
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _common import DATA, machine, median_time  # noqa: E402
+from _common import DATA, machine, median_time, write_json  # noqa: E402
 
 
 def one_model(name: str, repeats: int, samples: int) -> dict:
@@ -81,8 +81,7 @@ def main():
                          f"Hausdorff/diag {q['fs_hausdorff']:.3e}  (RMS ratio pmjax/fs {q['rms'] / q['fs_rms']:.2f})")
             print(line)
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(dict(machine=machine(), rows=rows), fh, indent=1)
+        write_json(args.json, dict(machine=machine(), rows=rows))
 
 
 if __name__ == "__main__":

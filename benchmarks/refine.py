@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import json
 import os
 import resource
 import statistics
@@ -25,7 +24,7 @@ import jax
 import numpy as np
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _common import DATA, machine, median_time, pin_cores  # noqa: E402
+from _common import DATA, machine, median_time, pin_cores, write_json  # noqa: E402
 
 import pmjax  # noqa: E402
 from pmjax._camera import index_camera  # noqa: E402
@@ -169,8 +168,7 @@ def main():
             bt += batched(n, [int(k) for k in args.ks.split(",")], args.tau, args.chunk)
     print(f"\npeak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(dict(machine=machine(), table1=t1, oracle=vo, batched=bt), fh, indent=1)
+        write_json(args.json, dict(machine=machine(), table1=t1, oracle=vo, batched=bt))
 
 
 if __name__ == "__main__":

@@ -12,12 +12,11 @@ frame only because the refinement changed), median faces and render ms.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _common import machine  # noqa: E402
+from _common import machine, write_json  # noqa: E402
 from refine import pm_file  # noqa: E402
 
 import pmjax  # noqa: E402
@@ -58,8 +57,7 @@ def main():
             for fig, (p, faces) in paper_figures(pm, args.figures).items():
                 print(f"  figure {p}: {faces} faces")
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(dict(machine=machine(), rows=rows), fh, indent=1)
+        write_json(args.json, dict(machine=machine(), rows=rows))
 
 
 if __name__ == "__main__":

@@ -21,12 +21,11 @@ share and mean squared change, hard vs geomorphed over ``--geomorph`` frames.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _common import machine, median_time  # noqa: E402
+from _common import machine, median_time, write_json  # noqa: E402
 from refine import pm_file  # noqa: E402
 
 import jax  # noqa: E402
@@ -160,10 +159,7 @@ def main():
                       f"{r['popping_mse']:.3f} ({r['mse_ratio']:.2f}x less); differing {r['differing_share']:.2%}, "
                       f"faces {r['faces']:.0f}", flush=True)
     if args.json:
-        from pmjax._atomic import atomic_path
-
-        with atomic_path(args.json) as tmp, open(tmp, "w") as fh:
-            json.dump(report, fh, indent=1)
+        write_json(args.json, report)
 
 
 if __name__ == "__main__":
