@@ -7,6 +7,7 @@ vertex-pair collapses (pcols). See ``docs/`` for the format and semantics.
 from ._meshio import CleanReport, MeshError, clean_mesh, default_model_path, load_clean_mesh, read_mesh
 from ._pmfile import METRICS, PMData, PMFormatError, read_pm, save_pm, validate_pm
 from ._invariants import check_invariants, direct_killers
+from ._levels import dependency_levels
 from ._replay import active_faces, lod_mesh, mesh_for_executed, pcols_for_faces, prefix_executed, representatives
 from ._camera import Camera, camera_count, fly_through, index_camera, load_cameras, look_at, random_views, save_cameras, stack_cameras, standard_orbit
 from ._model import PcolAttributes, ProgressiveMesh, load
@@ -37,6 +38,7 @@ __all__ = [
     "validate_pm",
     "check_invariants",
     "direct_killers",
+    "dependency_levels",
     "active_faces",
     "lod_mesh",
     "mesh_for_executed",

@@ -58,6 +58,7 @@ def cmd_build(args) -> int:
 
 def info_dict(pm, path: str) -> dict:
     """Counts, per-batch face counts, sizes and build parameters of a PM."""
+    from pmjax._levels import dependency_levels
     from pmjax._replay import active_faces, prefix_executed
 
     kills = pm.kills
@@ -71,6 +72,7 @@ def info_dict(pm, path: str) -> dict:
         original_faces=int(len(pm.faces)),
         pcols=pm.n_pcols,
         batches=pm.n_batches,
+        dependency_height=int(dependency_levels(pm).max(initial=0)),
         base_vertices=pm.n_original_vertices - pm.n_pcols,
         base_faces=base,
         batches_detail=[
@@ -93,7 +95,7 @@ def cmd_info(args) -> int:
     print(f"{args.pm} ({info['file_bytes'] / 1e6:.2f} MB)")
     print(f"  original: {info['original_vertices']} vertices, {info['original_faces']} faces")
     print(f"  base:     {info['base_vertices']} vertices, {info['base_faces']} faces")
-    print(f"  pcols:    {info['pcols']} in {info['batches']} batches")
+    print(f"  pcols:    {info['pcols']} in {info['batches']} batches, dependency height {info['dependency_height']}")
     build = info["header"].get("build", {})
     if build:
         print(f"  build:    metric={build.get('metric')} pair_distance={build.get('pair_distance')} "

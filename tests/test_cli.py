@@ -18,6 +18,7 @@ def test_build_info_lod(tmp_path, data_path, capsys):
     assert main(["info", str(out), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["pcols"] == pm.n_pcols and info["batches"] == pm.n_batches
+    assert info["dependency_height"] == pmjax.dependency_levels(pm).max() <= pm.n_batches
     assert info["original_faces"] == 5804
     assert sum(row["pcols"] for row in info["batches_detail"]) == pm.n_pcols
     k = 4
