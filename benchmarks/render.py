@@ -1,12 +1,18 @@
 """Image-space fidelity benchmark: refined vs original renders along the standard orbit.
 
 Usage: python benchmarks/render.py [--models bunny,dragon] [--frames 240] [--taus 0.5,1,2,4]
-       [--figures docs/figures] [--json OUT]
+       [--figures docs/figures] [--parts orbit,frontier] [--json OUT]
 
-Per model and tau: median share of the model's pixels that differ from the
-original mesh's render (a pixel differs when a channel differs by > 8/255),
-median PSNR over the model's pixels, median popping share (pixels changed at a
-frame only because the refinement changed), median faces and render ms.
+orbit: per model and tau, the median share of the model's pixels that differ
+from the original mesh's render (a pixel differs when a channel differs by >
+8/255), median PSNR over the model's pixels, median popping share (pixels
+changed at a frame only because the refinement changed), median faces and
+render ms.
+
+frontier: differing pixels against faces drawn, for pmjax's view-dependent
+refinement at several tau and for a view-independent quadric simplifier
+(fast-simplification, the ``bench`` extra) at several face shares, on the same
+frames: where each reaches a given fidelity, and how many faces it needs.
 """
 
 from __future__ import annotations
@@ -15,12 +21,60 @@ import argparse
 import statistics
 import sys
 
+import numpy as np
+
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
 from _common import machine, write_json  # noqa: E402
 from refine import pm_file  # noqa: E402
 
 import pmjax  # noqa: E402
-from pmjax.render import paper_figures, path_fidelity  # noqa: E402
+from pmjax._camera import index_camera  # noqa: E402
+from pmjax.render import Renderer, image_difference, original_arrays, paper_figures, path_fidelity  # noqa: E402
+from pmjax.render import refined_arrays, vertex_normals  # noqa: E402
+
+PARTS = ("orbit", "frontier")
+
+
+def frontier(name, frames, taus, shares):
+    """Fidelity against faces drawn, on ``frames`` frames of the standard orbit:
+    pmjax refined per frame at each tau, and one view-independent quadric
+    simplification (fast-simplification, shaded with its own area-weighted
+    vertex normals) per face share. Medians over the frames."""
+    path = pm_file(name)
+    pm, data = pmjax.load(path), pmjax.read_pm(path)
+    cams = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], frames)
+    ov, of, on = original_arrays(pm)
+    F = len(of)
+    rows = []
+    views = [index_camera(cams, i) for i in range(frames)]
+    # As path_fidelity measures: 2x2 supersampled, unrounded colour.
+    with Renderer(views[0].width, views[0].height, supersample=2, float_color=True) as r:
+        originals = [r.render_mesh(ov, of, cam, normals=on) for cam in views]
+
+        def row(method, setting, faces, meshes):
+            # meshes: one (vertices, faces, vertex normals) per frame.
+            share = [image_difference(*orig, *r.render_mesh(v, f, cam, normals=n))["differing_share"]
+                     for orig, cam, (v, f, n) in zip(originals, views, meshes)]
+            out = dict(model=name, frames=frames, method=method, setting=setting, F=F, faces=statistics.median(faces),
+                       face_share=statistics.median(faces) / F, differing_share=statistics.median(share),
+                       max_differing_share=max(share))
+            print(f"{name:8s} {method:9s} {setting:>11s}: faces {out['faces']:8.0f} ({out['face_share']:6.2%}) | "
+                  f"differing {out['differing_share']:7.3%} (max {out['max_differing_share']:7.3%})", flush=True)
+            rows.append(out)
+
+        for tau in taus:
+            refined = [refined_arrays(pm, pmjax.refine(pm, cam, tau)) for cam in views]
+            row("pmjax", f"tau {tau:g}", [len(f) for _, f, _, _ in refined],
+                [(v, f, n) for v, f, _, n in refined])
+        try:
+            import fast_simplification
+        except ImportError:
+            print("  (fast-simplification not installed: pip install -e '.[bench]' for the quadric rows)")
+            return rows
+        for share in shares:
+            v, f = fast_simplification.simplify(ov.astype(np.float32), of.astype(np.int32), target_reduction=1 - share)
+            row("quadric", f"{share:.0%} faces", [len(f)] * frames, [(v, f, vertex_normals(v, f))] * frames)
+    return rows
 
 
 def main():
@@ -29,14 +83,21 @@ def main():
     ap.add_argument("--frames", default="240", help="frames per model, e.g. '240' or '240,48' per model")
     ap.add_argument("--taus", default="0.5,1,2,4")
     ap.add_argument("--figures", help="also write the paper's figures (first model) here")
+    ap.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated subset of {','.join(PARTS)}")
+    ap.add_argument("--frontier-frames", default="48,24", help="frames per model for the frontier part")
+    ap.add_argument("--frontier-taus", default="0.125,0.25,0.5,1")
+    ap.add_argument("--quadric-shares", default="0.1,0.2,0.4,0.7", help="face shares of the quadric baseline")
     ap.add_argument("--json")
     args = ap.parse_args()
+    parts = set(args.parts.split(","))
+    if parts - set(PARTS):
+        ap.error(f"unknown part(s) {sorted(parts - set(PARTS))}")
     print(f"machine: {machine()}\n")
     names = args.models.split(",")
     frames = [int(x) for x in args.frames.split(",")]
     frames += [frames[-1]] * (len(names) - len(frames))
-    rows = []
-    for name, n in zip(names, frames):
+    rows, frontier_rows = [], []
+    for name, n in zip(names, frames if "orbit" in parts else []):
         path = pm_file(name)
         pm, data = pmjax.load(path), pmjax.read_pm(path)
         cams = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], n)
@@ -56,8 +117,15 @@ def main():
         if args.figures and name == names[0]:
             for fig, (p, faces) in paper_figures(pm, args.figures).items():
                 print(f"  figure {p}: {faces} faces")
+    if "frontier" in parts:
+        print("\nFidelity against faces (same frames for every row):")
+        ff = [int(x) for x in args.frontier_frames.split(",")]
+        ff += [ff[-1]] * (len(names) - len(ff))
+        for name, n in zip(names, ff):
+            frontier_rows += frontier(name, n, [float(t) for t in args.frontier_taus.split(",")],
+                                      [float(s) for s in args.quadric_shares.split(",")])
     if args.json:
-        write_json(args.json, dict(machine=machine(), rows=rows))
+        write_json(args.json, dict(machine=machine(), rows=rows, frontier=frontier_rows))
 
 
 if __name__ == "__main__":
