@@ -7,6 +7,9 @@ import numpy as np
 import pmjax
 from pmjax._camera import index_camera
 
+# The PMData arrays with one entry per pcol (besides v1, v2).
+PER_PCOL = ("radius", "alpha", "delta", "mu", "cost", "metric")
+
 
 def reference_levels(data):
     """Plain recursion over the pcols in order: 1 + the higher child level."""
@@ -44,7 +47,7 @@ def test_single_triangle_and_no_pcols():
     assert data.n_pcols == 1 and pmjax.dependency_levels(data).tolist() == [1]
     empty = dataclasses.replace(data, vertices=v, normals=data.normals[:3], v1=data.v1[:0], v2=data.v2[:0],
                                 batch_offsets=np.zeros(1, np.int64), killer=np.full(1, -1, np.int32),
-                                **{k: getattr(data, k)[:0] for k in ("radius", "alpha", "delta", "mu", "cost", "metric")})
+                                **{k: getattr(data, k)[:0] for k in PER_PCOL})
     assert pmjax.dependency_levels(empty).shape == (0,)
 
 
@@ -56,7 +59,7 @@ def level_ordered(data):
     new = np.empty(P, np.int64)
     new[order] = np.arange(P)
     vertex = np.concatenate([np.arange(V0), V0 + new])
-    per_pcol = {k: getattr(data, k)[order] for k in ("radius", "alpha", "delta", "mu", "cost", "metric")}
+    per_pcol = {k: getattr(data, k)[order] for k in PER_PCOL}
     return dataclasses.replace(
         data,
         vertices=np.concatenate([data.vertices[:V0], data.vertices[V0:][order]]),
