@@ -35,13 +35,19 @@ from pmjax.render import refined_arrays, vertex_normals  # noqa: E402
 PARTS = ("orbit", "frontier")
 
 
+def per_model(counts: str, names: list) -> list:
+    """``'240,48'`` -> one int per model, the last repeated for the rest."""
+    values = [int(x) for x in counts.split(",")]
+    return values + [values[-1]] * (len(names) - len(values))
+
+
 def frontier(name, frames, taus, shares):
     """Fidelity against faces drawn, on ``frames`` frames of the standard orbit:
     pmjax refined per frame at each tau, and one view-independent quadric
     simplification (fast-simplification, shaded with its own area-weighted
     vertex normals) per face share. Medians over the frames."""
-    path = pm_file(name)
-    pm, data = pmjax.load(path), pmjax.read_pm(path)
+    data = pmjax.read_pm(pm_file(name))  # read and checked once
+    pm = pmjax.ProgressiveMesh.from_data(data)
     cams = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], frames)
     ov, of, on = original_arrays(pm)
     F = len(of)
@@ -94,12 +100,11 @@ def main():
         ap.error(f"unknown part(s) {sorted(parts - set(PARTS))}")
     print(f"machine: {machine()}\n")
     names = args.models.split(",")
-    frames = [int(x) for x in args.frames.split(",")]
-    frames += [frames[-1]] * (len(names) - len(frames))
+    frames = per_model(args.frames, names)
     rows, frontier_rows = [], []
     for name, n in zip(names, frames if "orbit" in parts else []):
-        path = pm_file(name)
-        pm, data = pmjax.load(path), pmjax.read_pm(path)
+        data = pmjax.read_pm(pm_file(name))
+        pm = pmjax.ProgressiveMesh.from_data(data)
         cams = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], n)
         for tau in [float(t) for t in args.taus.split(",")]:
             fid = path_fidelity(pm, cams, tau)
@@ -119,9 +124,7 @@ def main():
                 print(f"  figure {p}: {faces} faces")
     if "frontier" in parts:
         print("\nFidelity against faces (same frames for every row):")
-        ff = [int(x) for x in args.frontier_frames.split(",")]
-        ff += [ff[-1]] * (len(names) - len(ff))
-        for name, n in zip(names, ff):
+        for name, n in zip(names, per_model(args.frontier_frames, names)):
             frontier_rows += frontier(name, n, [float(t) for t in args.frontier_taus.split(",")],
                                       [float(s) for s in args.quadric_shares.split(",")])
     if args.json:
