@@ -1,18 +1,20 @@
 """Image-space fidelity benchmark: refined vs original renders along the standard orbit.
 
 Usage: python benchmarks/render.py [--models bunny,dragon] [--frames 240] [--taus 0.5,1,2,4]
-       [--figures docs/figures] [--parts orbit,frontier] [--json OUT]
+       [--figures docs/figures] [--parts orbit,frontier] [--supersample 2] [--json OUT]
 
 orbit: per model and tau, the median share of the model's pixels that differ
 from the original mesh's render (a pixel differs when a channel differs by >
-8/255), median PSNR over the model's pixels, median popping share (pixels
-changed at a frame only because the refinement changed), median faces and
-render ms.
+8/255), median PSNR over the model's pixels, the median share that differs
+when both are drawn unlit (geometry alone: the part no shading could remove),
+median popping share (pixels changed at a frame only because the refinement
+changed), median faces and render ms.
 
 frontier: differing pixels against faces drawn, for pmjax's view-dependent
 refinement at several tau and for a view-independent quadric simplifier
 (fast-simplification, the ``bench`` extra) at several face shares, on the same
-frames: where each reaches a given fidelity, and how many faces it needs.
+frames: where each reaches a given fidelity, and how many faces it needs; with
+the unlit (geometry-only) share for each row.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from refine import pm_file  # noqa: E402
 import pmjax  # noqa: E402
 from pmjax._camera import index_camera  # noqa: E402
 from pmjax.render import Renderer, image_difference, original_arrays, paper_figures, path_fidelity  # noqa: E402
-from pmjax.render import refined_arrays, vertex_normals  # noqa: E402
+from pmjax.render import refined_arrays, silhouette_difference, vertex_normals  # noqa: E402
 
 PARTS = ("orbit", "frontier")
 
@@ -41,7 +43,7 @@ def per_model(counts: str, names: list) -> list:
     return values + [values[-1]] * (len(names) - len(values))
 
 
-def frontier(name, frames, taus, shares):
+def frontier(name, frames, taus, shares, supersample=2):
     """Fidelity against faces drawn, on ``frames`` frames of the standard orbit:
     pmjax refined per frame at each tau, and one view-independent quadric
     simplification (fast-simplification, shaded with its own area-weighted
@@ -53,19 +55,23 @@ def frontier(name, frames, taus, shares):
     F = len(of)
     rows = []
     views = [index_camera(cams, i) for i in range(frames)]
-    # As path_fidelity measures: 2x2 supersampled, unrounded colour.
-    with Renderer(views[0].width, views[0].height, supersample=2, float_color=True) as r:
+    # As path_fidelity measures: supersampled, unrounded colour.
+    with Renderer(views[0].width, views[0].height, supersample=supersample, float_color=True) as r:
         originals = [r.render_mesh(ov, of, cam, normals=on) for cam in views]
 
         def row(method, setting, faces, meshes):
             # meshes: one (vertices, faces, vertex normals) per frame.
             share = [image_difference(*orig, *r.render_mesh(v, f, cam, normals=n))["differing_share"]
                      for orig, cam, (v, f, n) in zip(originals, views, meshes)]
+            # The part no shading could remove: flat renders, geometry only.
+            flat = [silhouette_difference(r, (ov, of), (v, f), cam)["differing_share"]
+                    for cam, (v, f, _) in zip(views, meshes)]
             out = dict(model=name, frames=frames, method=method, setting=setting, F=F, faces=statistics.median(faces),
                        face_share=statistics.median(faces) / F, differing_share=statistics.median(share),
-                       max_differing_share=max(share))
+                       max_differing_share=max(share), silhouette_share=statistics.median(flat))
             print(f"{name:8s} {method:9s} {setting:>11s}: faces {out['faces']:8.0f} ({out['face_share']:6.2%}) | "
-                  f"differing {out['differing_share']:7.3%} (max {out['max_differing_share']:7.3%})", flush=True)
+                  f"differing {out['differing_share']:7.3%} (max {out['max_differing_share']:7.3%}) | "
+                  f"silhouette {out['silhouette_share']:7.3%}", flush=True)
             rows.append(out)
 
         for tau in taus:
@@ -93,6 +99,8 @@ def main():
     ap.add_argument("--frontier-frames", default="48,24", help="frames per model for the frontier part")
     ap.add_argument("--frontier-taus", default="0.125,0.25,0.5,1")
     ap.add_argument("--quadric-shares", default="0.1,0.2,0.4,0.7", help="face shares of the quadric baseline")
+    ap.add_argument("--supersample", type=int, default=2, metavar="S",
+                    help="S x S samples per pixel in every render (default 2, as `pmjax path --fidelity`)")
     ap.add_argument("--json")
     args = ap.parse_args()
     parts = set(args.parts.split(","))
@@ -107,17 +115,19 @@ def main():
         pm = pmjax.ProgressiveMesh.from_data(data)
         cams = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], n)
         for tau in [float(t) for t in args.taus.split(",")]:
-            fid = path_fidelity(pm, cams, tau)
+            fid = path_fidelity(pm, cams, tau, supersample=args.supersample)
             med = lambda k, rows=fid: statistics.median(r[k] for r in rows)
             row = dict(model=name, frames=n, tau=tau, F=len(data.faces), faces=med("faces"),
                        face_share=med("faces") / len(data.faces), differing_share=med("differing_share"),
                        max_differing_share=max(r["differing_share"] for r in fid), psnr=med("psnr"),
+                       silhouette_share=med("silhouette_share"),
                        popping_share=statistics.median(r["popping_share"] for r in fid[1:]),
                        render_ms=med("render_ms"))
             rows.append(row)
             print(f"{name:8s} {n:4d} frames tau {tau:4g}: faces {row['faces']:8.0f} ({row['face_share']:6.2%}) | "
                   f"differing {row['differing_share']:7.3%} (max {row['max_differing_share']:7.3%}) | "
-                  f"PSNR {row['psnr']:5.1f} dB | popping {row['popping_share']:7.3%} | "
+                  f"PSNR {row['psnr']:5.1f} dB | silhouette {row['silhouette_share']:7.3%} | "
+                  f"popping {row['popping_share']:7.3%} | "
                   f"render {row['render_ms']:6.1f} ms", flush=True)
         if args.figures and name == names[0]:
             for fig, (p, faces) in paper_figures(pm, args.figures).items():
@@ -126,9 +136,10 @@ def main():
         print("\nFidelity against faces (same frames for every row):")
         for name, n in zip(names, per_model(args.frontier_frames, names)):
             frontier_rows += frontier(name, n, [float(t) for t in args.frontier_taus.split(",")],
-                                      [float(s) for s in args.quadric_shares.split(",")])
+                                      [float(s) for s in args.quadric_shares.split(",")], args.supersample)
     if args.json:
-        write_json(args.json, dict(machine=machine(), rows=rows, frontier=frontier_rows))
+        write_json(args.json, dict(machine=machine(), supersample=args.supersample, rows=rows,
+                                   frontier=frontier_rows))
 
 
 if __name__ == "__main__":

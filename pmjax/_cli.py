@@ -195,12 +195,15 @@ def cmd_path(args) -> int:
     if args.fidelity:
         share = np.array([r["differing_share"] for r in rows])
         pop = np.array([r["popping_share"] for r in rows[1:]]) if K > 1 else np.zeros(1)
+        silhouette = np.array([r["silhouette_share"] for r in rows])
         print(f"fidelity: median {np.median(share):.3%} of the model's pixels differ from the original "
-              f"(max {share.max():.3%}); popping median {np.median(pop):.3%} per frame")
+              f"(max {share.max():.3%}; {np.median(silhouette):.3%} by geometry alone, drawn unlit); "
+              f"popping median {np.median(pop):.3%} per frame")
     return 0
 
 
-FIDELITY_COLUMNS = ("differing_share", "psnr", "popping_share", "popping_mse", "render_ms")
+FIDELITY_COLUMNS = ("differing_share", "psnr", "silhouette_share", "popping_share", "popping_mse",
+                    "render_ms")
 
 
 def _path_cameras(pm, args):
@@ -353,7 +356,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_path_args(p)
     p.add_argument("--csv", help="output CSV")
     p.add_argument("--fidelity", action="store_true",
-                   help="also render each frame and the original: differing-pixel share, PSNR, popping")
+                   help="also render each frame and the original: differing-pixel share, PSNR, "
+                        "the share due to geometry alone (silhouette), popping")
     p.add_argument("--supersample", type=int, default=2, metavar="S",
                    help="fidelity renders: S×S samples per pixel (default 2; popping wants 4, docs/soft.md)")
     add_geomorph_arg(p)

@@ -38,13 +38,40 @@ def image_difference(rgb_a, depth_a, rgb_b, depth_b, threshold: int = DIFF_THRES
     return dict(model_pixels=n, differing=differing, differing_share=differing / n if n else 0.0, mse=mse, psnr=psnr)
 
 
+def silhouette_difference(renderer, mesh_a, mesh_b, camera: Camera) -> dict:
+    """:func:`image_difference` of two meshes drawn unlit, in one flat colour.
+
+    Shading plays no part, so what differs is where the surfaces lie on
+    screen: coverage along the silhouettes and at holes. It estimates the part
+    of a lit comparison that no normals or shading on ``mesh_b``'s geometry
+    could remove: with ``s × s`` samples a coverage change moves a pixel by at
+    least ``1/s²`` of the model-to-background contrast, which at 2×2 exceeds
+    the threshold for any model colour below 223 of 255 (lit or flat; the
+    flat colour is about 87). An estimate, not a bound: a lit edge brighter
+    than that hides a one-sample change.
+
+    Args:
+        renderer: a :class:`Renderer` of ``camera``'s size.
+        mesh_a, mesh_b: ``(vertices [V, 3], faces [F, 3])`` each.
+        camera: the view.
+
+    Returns:
+        The dict of :func:`image_difference` for the two flat renders.
+    """
+    flat_a = renderer.render_mesh(*mesh_a, camera, light=False)
+    flat_b = renderer.render_mesh(*mesh_b, camera, light=False)
+    return image_difference(*flat_a, *flat_b)
+
+
 def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Tests = ALL_TESTS,
                   geomorph: int = 0, supersample: int = 2, float_color: bool = True,
                   progress: bool = False) -> list[dict]:
     """Per frame: faces, share of the model's pixels that differ from the
-    original mesh's render (and PSNR), and popping — the share of pixels that
-    change at this frame's camera only because the refinement changed since
-    the previous frame (render with the previous frame's geometry vs this one's).
+    original mesh's render (and PSNR), the part of that share due to geometry
+    alone (:func:`silhouette_difference`), and popping — the share of pixels
+    that change at this frame's camera only because the refinement changed
+    since the previous frame (render with the previous frame's geometry vs
+    this one's).
 
     Args:
         geomorph: blend refinement changes over this many frames
@@ -60,7 +87,7 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
 
     Returns:
         list of dicts (one per camera) with ``faces``, ``differing_share``,
-        ``psnr``, ``popping_share`` (visibly changed pixels, see
+        ``psnr``, ``silhouette_share``, ``popping_share`` (visibly changed pixels, see
         :data:`DIFF_THRESHOLD`), ``popping_mse`` (mean squared change: a
         change spread over ``n`` frames counts ``1/n`` as much per frame),
         both 0 for the first frame, and ``render_ms``.
@@ -75,7 +102,8 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
             rgb, depth = r.render_mesh(v, f, cam, normals=n)
             render_ms = 1e3 * (time.perf_counter() - t)
             row = image_difference(*r.render_mesh(ov, of, cam, normals=on), rgb, depth)
-            row.update(frame=i, faces=int(len(f)), render_ms=render_ms, popping_share=0.0, popping_mse=0.0)
+            row.update(frame=i, faces=int(len(f)), render_ms=render_ms, popping_share=0.0, popping_mse=0.0,
+                       silhouette_share=silhouette_difference(r, (ov, of), (v, f), cam)["differing_share"])
             if previous is not None:
                 pv, pf, pn = previous
                 pop = image_difference(*r.render_mesh(pv, pf, cam, normals=pn), rgb, depth)

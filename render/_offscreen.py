@@ -77,7 +77,7 @@ class Renderer:
         return np.ascontiguousarray(color), depth
 
     def render_mesh(self, vertices, faces, camera: Camera, *, levels=None, n_batches=1, wireframe=False,
-                    lines=None, normals=None):
+                    lines=None, normals=None, light=True):
         """Render plain arrays seen from ``camera`` (whose size must match).
 
         Args:
@@ -85,11 +85,13 @@ class Renderer:
             wireframe: overlay the edges.
             lines: optional ``[2n, 3]`` line segments (drawn red).
             normals: optional ``[V, 3]`` vertex normals (default: from the faces).
+            light: False draws the mesh in its flat ambient colour, whatever
+                its normals: the image then shows only where the surface lies.
         """
         if (camera.width, camera.height) != (self.width, self.height):
             raise ValueError(f"camera is {camera.width}x{camera.height}, renderer {self.width}x{self.height}")
         scene, _ = build_scene(vertices, faces, camera, levels=levels, n_batches=n_batches, wireframe=wireframe,
-                               extra_lines=lines, normals=normals)
+                               extra_lines=lines, normals=normals, light=light)
         return self.render_scene(scene)
 
     def close(self):

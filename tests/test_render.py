@@ -61,6 +61,31 @@ def test_small_tau_covers_the_original_silhouette(cow, renderer):
     assert same["differing"] == 0 and same["psnr"] == float("inf")
 
 
+def test_silhouette_difference_sees_geometry_not_shading(cow, renderer):
+    """Flat (unlit) renders separate geometry from shading: new normals on the
+    original geometry change the lit image but not the flat one; a coarse
+    refinement changes both, and its flat difference grows with tau."""
+    from pmjax.render import image_difference, original_arrays, refined_arrays, silhouette_difference
+
+    _, pm, data = cow
+    cam = _camera(data)
+    ov, of, on = original_arrays(pm)
+    bent = on + np.random.default_rng(0).normal(0.0, 0.3, on.shape).astype(np.float32)
+    bent /= np.linalg.norm(bent, axis=1, keepdims=True)
+    lit = image_difference(*renderer.render_mesh(ov, of, cam, normals=on),
+                           *renderer.render_mesh(ov, of, cam, normals=bent))
+    assert lit["differing"] > 500
+    flat = [renderer.render_mesh(ov, of, cam, normals=n, light=False)[0] for n in (on, bent)]
+    assert np.array_equal(flat[0], flat[1])
+    assert silhouette_difference(renderer, (ov, of), (ov, of), cam)["differing"] == 0
+
+    shares = {}
+    for tau in (0.25, 8.0):
+        v, f, _, _ = refined_arrays(pm, pmjax.refine(pm, cam, tau))
+        shares[tau] = silhouette_difference(renderer, (ov, of), (v, f), cam)["differing_share"]
+    assert 0 < shares[0.25] < shares[8.0]
+
+
 def test_phantom_shows_the_frustum_lines(cow, renderer):
     from pmjax.render import overview_camera, phantom, render_refinement
 
@@ -133,9 +158,10 @@ def test_path_fidelity_columns(cow, tmp_path):
     assert r.returncode == 0, r.stderr
     rows = list(csv.DictReader(open(out)))
     assert len(rows) == 4
-    assert {"differing_share", "psnr", "popping_share", "render_ms"} <= set(rows[0])
+    assert {"differing_share", "psnr", "silhouette_share", "popping_share", "render_ms"} <= set(rows[0])
     assert float(rows[0]["popping_share"]) == 0.0
     assert all(0 <= float(r["differing_share"]) < 0.5 for r in rows)
+    assert all(0 < float(r["silhouette_share"]) < 0.5 for r in rows)
 
 
 @pytest.mark.skipif(not (shutil.which("Xvfb") and shutil.which("xdotool")), reason="needs Xvfb and xdotool")
