@@ -6,7 +6,7 @@ Usage: python benchmarks/render.py [--models bunny,dragon] [--frames 240] [--tau
 orbit: per model and tau, the median share of the model's pixels that differ
 from the original mesh's render (a pixel differs when a channel differs by >
 8/255), median PSNR over the model's pixels, the median share that differs
-when both are drawn unlit (geometry alone: the part no shading could remove),
+when both are drawn unlit (geometry alone: about the part no shading could remove),
 median popping share (pixels changed at a frame only because the refinement
 changed), median faces and render ms.
 
@@ -63,7 +63,7 @@ def frontier(name, frames, taus, shares, supersample=2):
             # meshes: one (vertices, faces, vertex normals) per frame.
             share = [image_difference(*orig, *r.render_mesh(v, f, cam, normals=n))["differing_share"]
                      for orig, cam, (v, f, n) in zip(originals, views, meshes)]
-            # The part no shading could remove: flat renders, geometry only.
+            # About the part no shading could remove: flat renders, geometry only.
             flat = [silhouette_difference(r, (ov, of), (v, f), cam)["differing_share"]
                     for cam, (v, f, _) in zip(views, meshes)]
             out = dict(model=name, frames=frames, method=method, setting=setting, F=F, faces=statistics.median(faces),
