@@ -13,7 +13,9 @@ batches), each batch one vectorized step:
   test of DESIGN §3 (Hoppe 1997's notation): ``delta`` bounds the distance of
   every original vertex below from the tangent plane at the pcol vertex; ``mu``
   is the part of that residual that can point off the normal, ``delta ·
-  sin(min(alpha, π/2))``. Both are then made monotone with a max over children.
+  sin(min(alpha, π/2))``, and at least the distance by which an original vertex
+  below is left off the coarse surface (see :func:`uncovered_distance`). Both
+  are then made monotone with a max over children.
 """
 
 from __future__ import annotations
@@ -37,6 +39,102 @@ def original_cone_angles(vertices, normals, faces) -> np.ndarray:
     out = np.zeros(len(vertices))
     np.maximum.at(out, corner, ang)
     return out
+
+
+def uncovered_distance(vertices, normals, leaves, owner, ring, lo: int, hi: int) -> np.ndarray:
+    """How far each leaf lies off the coarse surface around its owner, sideways.
+
+    A leaf's deviation is measured along its owner's normal (``delta``). That
+    misses the coarse surface pulling away from the leaf: a border vertex
+    collapsing along a flat border, or a whole part collapsing to a point,
+    moves nothing along the normal. So for owners on an open border of the
+    coarse mesh, the leaf and the owner's faces are projected on the owner's
+    tangent plane and the leaf's distance to those triangles is taken (0 when
+    it projects inside one); an owner left without faces is a point, so the
+    leaf's whole distance to it counts. Owners inside a closed surface give 0:
+    there the neighbours' faces cover what the owner's do not.
+
+    Args:
+        vertices, normals: ``float64[N, 3]`` of every vertex id (unit normals).
+        leaves, owner: ``int[M]`` original vertices and the new vertex each now
+            belongs to (``lo <= owner < hi``).
+        ring: ``int[R, 3]`` faces after the batch that touch the new vertices.
+        lo, hi: the batch's new vertex ids.
+
+    Returns:
+        ``float64[M]`` distances, model units.
+    """
+    out = np.zeros(len(leaves))
+    if not len(leaves):
+        return out
+    k = hi - lo
+    # Each ring face once per new corner: (new vertex, face).
+    corner_face = np.repeat(np.arange(len(ring)), 3)
+    corner = ring.ravel()
+    mine = corner >= lo
+    cv, cf = corner[mine] - lo, corner_face[mine]
+    faces_of = np.bincount(cv, minlength=k)
+    # Border owners: an edge to a neighbour that only one of their faces has.
+    # Every face holding an edge at the owner holds the owner, so counting
+    # within the ring is exact.
+    pos_in = np.argmax(ring[cf] == corner[mine][:, None], axis=1)
+    nxt = ring[cf, (pos_in + 1) % 3]
+    prv = ring[cf, (pos_in + 2) % 3]
+    edge_v = np.concatenate([cv, cv])
+    edge_w = np.concatenate([nxt, prv]).astype(np.int64)
+    key = edge_v.astype(np.int64) * (int(vertices.shape[0]) + 1) + edge_w
+    uniq, count = np.unique(key, return_counts=True)
+    border = np.zeros(k, bool)
+    border[(uniq[count == 1] // (int(vertices.shape[0]) + 1)).astype(np.int64)] = True
+    o = owner - lo
+    # An owner left without faces: the leaf's whole distance to the point.
+    alone = faces_of[o] == 0
+    out[alone] = np.linalg.norm(vertices[leaves[alone]] - vertices[owner[alone]], axis=1)
+    # Border owners: the leaf against each of its owner's faces, in the tangent plane.
+    which = np.flatnonzero(border[o] & ~alone)
+    if not len(which):
+        return out
+    order = np.argsort(cv, kind="stable")
+    start = np.concatenate([[0], np.cumsum(faces_of)])
+    n_pairs = faces_of[o[which]]
+    pair_leaf = np.repeat(which, n_pairs)
+    first = np.repeat(start[o[which]], n_pairs)
+    step = np.arange(len(pair_leaf)) - np.repeat(np.cumsum(n_pairs) - n_pairs, n_pairs)
+    pair_face = cf[order[first + step]]
+    n = normals[owner[pair_leaf]]
+    e1 = np.cross(n, np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]]))
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(n, e1)
+    origin = vertices[owner[pair_leaf]]
+
+    def plane(points):
+        rel = points - origin
+        return np.stack([np.einsum("ij,ij->i", rel, e1), np.einsum("ij,ij->i", rel, e2)], axis=1)
+
+    p = plane(vertices[leaves[pair_leaf]])
+    tri = [plane(vertices[ring[pair_face, j]]) for j in range(3)]
+    dist = _point_triangle_distance_2d(p, *tri)
+    best = np.full(len(leaves), np.inf)
+    np.minimum.at(best, pair_leaf, dist)
+    out[which] = best[which]
+    return out
+
+
+def _point_triangle_distance_2d(p, a, b, c) -> np.ndarray:
+    """Distance from 2D points ``p`` to triangles ``abc`` (0 inside), rows paired."""
+    def cross(u, v):
+        return u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
+
+    s1, s2, s3 = cross(b - a, p - a), cross(c - b, p - b), cross(a - c, p - c)
+    inside = ((s1 >= 0) & (s2 >= 0) & (s3 >= 0)) | ((s1 <= 0) & (s2 <= 0) & (s3 <= 0))
+    inside &= cross(b - a, c - a) != 0
+
+    def segment(u, v):
+        d = v - u
+        t = np.clip(np.einsum("ij,ij->i", p - u, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-300), 0.0, 1.0)
+        return np.linalg.norm(p - (u + t[:, None] * d), axis=1)
+
+    return np.where(inside, 0.0, np.minimum(np.minimum(segment(a, b), segment(b, c)), segment(c, a)))
 
 
 class HierarchyAttributes:
@@ -63,9 +161,10 @@ class HierarchyAttributes:
         # Topmost vertex reached so far from each original vertex (its leaf chain).
         self.top = np.arange(V0)
 
-    def add_batch(self, lo: int, c1: np.ndarray, c2: np.ndarray) -> None:
+    def add_batch(self, lo: int, c1: np.ndarray, c2: np.ndarray, ring: np.ndarray) -> None:
         """Attributes of vertex ids ``lo .. lo+len(c1)-1``, made from ``c1[i]``
-        and ``c2[i]`` (children always come from earlier batches)."""
+        and ``c2[i]`` (children always come from earlier batches); ``ring``
+        are the faces after the batch that touch the new vertices."""
         hi = lo + len(c1)
         if lo == hi:
             return
@@ -94,7 +193,11 @@ class HierarchyAttributes:
         np.maximum.at(d, owner - lo, height)
         delta[ids] = np.maximum(d, np.maximum(delta[c1], delta[c2]))
         spread = np.sin(np.minimum(alpha[ids], np.pi / 2))
-        mu[ids] = np.maximum(d * spread, np.maximum(mu[c1], mu[c2]))
+        # Leaves the coarse surface no longer covers (a receding border, a part
+        # that vanished) are off it sideways, which the normal cannot see.
+        off = np.zeros(hi - lo)
+        np.maximum.at(off, owner - lo, uncovered_distance(vertices, normals, moving, owner, ring, lo, hi))
+        mu[ids] = np.maximum(np.maximum(d * spread, off), np.maximum(mu[c1], mu[c2]))
 
     def result(self, n_pcols: int) -> dict:
         """``float64[P]`` arrays ``radius``, ``alpha``, ``delta``, ``mu`` of the pcols."""

@@ -372,7 +372,8 @@ def _attribute_batch(start, pos, normals, cur, first, ca, cb):
     k = len(ca)
     new = slice(first, first + k)
     # Normals from the faces around the new vertices only.
-    vn = _new_vertex_normals(pos, cur[any3(cur >= first)], first, k)
+    ring = cur[any3(cur >= first)]
+    vn = _new_vertex_normals(pos, ring, first, k)
     # A vertex left without faces inherits its children's mean normal.
     lonely = np.linalg.norm(vn, axis=1) == 0
     if lonely.any():
@@ -380,7 +381,7 @@ def _attribute_batch(start, pos, normals, cur, first, ca, cb):
         sl = np.linalg.norm(s, axis=1)
         vn[lonely] = np.where(sl[:, None] > 0, s / np.where(sl > 0, sl, 1)[:, None], [0.0, 0.0, 1.0])
     normals[new] = vn
-    start.result().add_batch(first, ca, cb)
+    start.result().add_batch(first, ca, cb, ring)
 
 
 def _new_vertex_normals(pos, faces, first, k):

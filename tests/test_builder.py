@@ -202,6 +202,60 @@ def test_attributes_bound_what_they_claim(built):
         up = np.where(ok, parent[np.maximum(up, 0)], -1)
 
 
+def test_uncovered_distance_sees_borders_and_vanished_parts():
+    """A leaf off its owner's faces counts only where the coarse surface ends:
+    at an open border (distance in the tangent plane) or where the owner has
+    no faces left (whole distance); an owner inside a closed fan gives 0."""
+    from pmjax.builders._attributes import uncovered_distance
+
+    # Neighbours 0-3 around the origin in the plane, leaves 4-6, and the owner
+    # 7 at the origin with normal +z: the batch's one new vertex (ids >= lo).
+    ring_xy = [(1, 0), (0, 1), (-1, 0), (0, -1)]
+    vertices = np.array([[x, y, 0.0] for x, y in ring_xy]
+                        + [[0.2, 0.3, 0.5], [0.0, -2.0, 0.1], [3.0, 4.0, 0.0], [0.0, 0.0, 0.0]])
+    normals = np.tile([0.0, 0.0, 1.0], (len(vertices), 1))
+    inside, below, far, o = 4, 5, 6, 7
+    half_fan = np.array([[o, 0, 1], [o, 1, 2]])  # covers y >= 0: the owner is on a border
+    closed_fan = np.array([[o, 0, 1], [o, 1, 2], [o, 2, 3], [o, 3, 0]])
+    leaves, owner = np.array([inside, below]), np.array([o, o])
+
+    d = uncovered_distance(vertices, normals, leaves, owner, half_fan, o, o + 1)
+    np.testing.assert_allclose(d, [0.0, 2.0])  # in the plane: (0, -2) to the border y = 0
+    d = uncovered_distance(vertices, normals, leaves, owner, closed_fan, o, o + 1)
+    np.testing.assert_allclose(d, [0.0, 0.0])  # the leaf beyond is some neighbour's business
+    d = uncovered_distance(vertices, normals, np.array([far]), np.array([o]), np.zeros((0, 3), int), o, o + 1)
+    np.testing.assert_allclose(d, [5.0])  # the part vanished into the point
+
+
+def test_flat_open_parts_keep_their_extent_on_screen(tmp_path):
+    """On a flat open grid the normal sees no deviation at all; the border must
+    still stop the refinement from shrinking the grid while it is large on
+    screen, and a single triangle must not vanish while it is seen big."""
+    n = 21
+    xs, ys = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n))
+    v = np.stack([xs.ravel(), ys.ravel(), np.zeros(n * n)], 1)
+    a = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel()
+    f = np.concatenate([np.stack([a, a + 1, a + n + 1], 1), np.stack([a, a + n + 1, a + n], 1)])
+    near = pmjax.look_at(eye=[0.5, 0.5, 1.5], target=[0.5, 0.5, 0.0])
+    far = pmjax.look_at(eye=[0.5, 0.5, 1e4], target=[0.5, 0.5, 0.0], far=2e4)
+
+    def area(vv, ff):
+        return 0.5 * np.linalg.norm(np.cross(vv[ff[:, 1]] - vv[ff[:, 0]], vv[ff[:, 2]] - vv[ff[:, 0]]), axis=1).sum()
+
+    data = build_pm(v, f)
+    assert np.all(data.delta == 0)  # flat: nothing along the normal
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    vv, ff, _ = pmjax.refine(pm, near, 1.0).mesh(pm)
+    assert len(ff) < len(f) // 4  # the inside still simplifies
+    assert abs(area(vv, ff) - 1.0) < 0.05
+    np.testing.assert_allclose(vv[np.unique(ff)].min(0)[:2], [0, 0], atol=0.02)
+    np.testing.assert_allclose(vv[np.unique(ff)].max(0)[:2], [1, 1], atol=0.02)
+
+    tri = pmjax.ProgressiveMesh.from_data(build_pm(v[[0, n - 1, n * n - 1]], np.array([[0, 1, 2]])))
+    assert int(pmjax.refine(tri, near, 1.0).n_faces) == 1
+    assert int(pmjax.refine(tri, far, 1.0).n_faces) == 0  # a speck far away may go
+
+
 def test_cheapest_is_the_stable_sort_prefix():
     """The batch's eligible candidates (partial selection) equal the first k of
     a full stable sort, ties included."""
@@ -265,7 +319,7 @@ def test_an_error_on_the_attribute_thread_reaches_the_caller(monkeypatch, data_p
     must surface from build_pm, not be lost or hang the build."""
     from pmjax.builders import _attributes
 
-    def fail(self, lo, c1, c2):
+    def fail(self, lo, c1, c2, ring):
         raise FloatingPointError(f"attributes of batch at {lo}")
 
     monkeypatch.setattr(_attributes.HierarchyAttributes, "add_batch", fail)
