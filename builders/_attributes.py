@@ -24,6 +24,7 @@ import numpy as np
 
 from ._quadrics import face_cross
 from ._threads import split_rows
+from ._topology import unique_edges
 
 
 def _angle(n1: np.ndarray, n2: np.ndarray) -> np.ndarray:
@@ -41,18 +42,21 @@ def original_cone_angles(vertices, normals, faces) -> np.ndarray:
     return out
 
 
-def uncovered_distance(vertices, normals, leaves, owner, ring, lo: int, hi: int) -> np.ndarray:
+def uncovered_distance(vertices, normals, leaves, owner, ring, lo: int, hi: int, maybe_border,
+                       leaf_on_border) -> np.ndarray:
     """How far each leaf lies off the coarse surface around its owner, sideways.
 
     A leaf's deviation is measured along its owner's normal (``delta``). That
     misses the coarse surface pulling away from the leaf: a border vertex
     collapsing along a flat border, or a whole part collapsing to a point,
     moves nothing along the normal. So for owners on an open border of the
-    coarse mesh, the leaf and the owner's faces are projected on the owner's
-    tangent plane and the leaf's distance to those triangles is taken (0 when
-    it projects inside one); an owner left without faces is a point, so the
-    leaf's whole distance to it counts. Owners inside a closed surface give 0:
-    there the neighbours' faces cover what the owner's do not.
+    coarse mesh, each leaf on the original border is projected with the
+    owner's faces on the owner's tangent plane and its distance to those
+    triangles is taken (0 when it projects inside one): a receding border
+    leaves the original border's vertices farthest out. An owner left without
+    faces is a point, so every leaf's whole distance to it counts. Owners
+    inside a closed surface give 0: there the neighbours' faces cover what
+    the owner's do not.
 
     Args:
         vertices, normals: ``float64[N, 3]`` of every vertex id (unit normals).
@@ -60,6 +64,10 @@ def uncovered_distance(vertices, normals, leaves, owner, ring, lo: int, hi: int)
             belongs to (``lo <= owner < hi``).
         ring: ``int[R, 3]`` faces after the batch that touch the new vertices.
         lo, hi: the batch's new vertex ids.
+        maybe_border: ``bool[hi - lo]``, the new vertices that may lie on an
+            open border (a child did before the batch); only these are checked,
+            so closed surfaces cost no more than a count of their faces.
+        leaf_on_border: ``bool[M]``, leaves on an open border of the original mesh.
 
     Returns:
         ``float64[M]`` distances, model units.
@@ -68,39 +76,41 @@ def uncovered_distance(vertices, normals, leaves, owner, ring, lo: int, hi: int)
     if not len(leaves):
         return out
     k = hi - lo
-    # Each ring face once per new corner: (new vertex, face).
-    corner_face = np.repeat(np.arange(len(ring)), 3)
     corner = ring.ravel()
-    mine = corner >= lo
-    cv, cf = corner[mine] - lo, corner_face[mine]
-    faces_of = np.bincount(cv, minlength=k)
-    # Border owners: an edge to a neighbour that only one of their faces has.
-    # Every face holding an edge at the owner holds the owner, so counting
-    # within the ring is exact.
-    pos_in = np.argmax(ring[cf] == corner[mine][:, None], axis=1)
-    nxt = ring[cf, (pos_in + 1) % 3]
-    prv = ring[cf, (pos_in + 2) % 3]
-    edge_v = np.concatenate([cv, cv])
-    edge_w = np.concatenate([nxt, prv]).astype(np.int64)
-    key = edge_v.astype(np.int64) * (int(vertices.shape[0]) + 1) + edge_w
-    uniq, count = np.unique(key, return_counts=True)
-    border = np.zeros(k, bool)
-    border[(uniq[count == 1] // (int(vertices.shape[0]) + 1)).astype(np.int64)] = True
+    mine = np.flatnonzero(corner >= lo)
+    faces_of = np.bincount(corner[mine] - lo, minlength=k)
     o = owner - lo
     # An owner left without faces: the leaf's whole distance to the point.
     alone = faces_of[o] == 0
     out[alone] = np.linalg.norm(vertices[leaves[alone]] - vertices[owner[alone]], axis=1)
-    # Border owners: the leaf against each of its owner's faces, in the tangent plane.
-    which = np.flatnonzero(border[o] & ~alone)
+    check = np.asarray(maybe_border, bool) & (faces_of > 0)
+    if not check[o].any():
+        return out
+    # The checked owners' faces, one row per (owner, face), grouped by owner.
+    mine = mine[check[corner[mine] - lo]]
+    order = np.argsort(corner[mine], kind="stable")
+    mine = mine[order]
+    cv, cf, pos_in = corner[mine] - lo, mine // 3, mine % 3
+    # On a border: an edge to a neighbour that only one of the owner's faces
+    # has. Every face holding an edge at the owner holds the owner, so
+    # counting within its faces is exact.
+    nxt = ring[cf, (pos_in + 1) % 3].astype(np.int64)
+    prv = ring[cf, (pos_in + 2) % 3].astype(np.int64)
+    stride = int(len(vertices)) + 1
+    key = np.concatenate([cv, cv]).astype(np.int64) * stride + np.concatenate([nxt, prv])
+    uniq, count = np.unique(key, return_counts=True)
+    border = np.zeros(k, bool)
+    border[uniq[count == 1] // stride] = True
+    which = np.flatnonzero(border[o] & ~alone & np.asarray(leaf_on_border, bool))
     if not len(which):
         return out
-    order = np.argsort(cv, kind="stable")
-    start = np.concatenate([[0], np.cumsum(faces_of)])
-    n_pairs = faces_of[o[which]]
+    # Each of those leaves against each face of its owner, in the owner's tangent plane.
+    start = np.zeros(k + 1, np.int64)
+    start[1:] = np.cumsum(np.bincount(cv, minlength=k))
+    n_pairs = (start[1:] - start[:-1])[o[which]]
     pair_leaf = np.repeat(which, n_pairs)
-    first = np.repeat(start[o[which]], n_pairs)
     step = np.arange(len(pair_leaf)) - np.repeat(np.cumsum(n_pairs) - n_pairs, n_pairs)
-    pair_face = cf[order[first + step]]
+    pair_face = cf[np.repeat(start[o[which]], n_pairs) + step]
     n = normals[owner[pair_leaf]]
     e1 = np.cross(n, np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]]))
     e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
@@ -160,11 +170,17 @@ class HierarchyAttributes:
         self.parent = np.full(n, -1, np.int64)
         # Topmost vertex reached so far from each original vertex (its leaf chain).
         self.top = np.arange(V0)
+        # Original vertices on an open border (an edge of one face).
+        ea, eb, count, _ = unique_edges(np.asarray(faces))
+        self.on_border = np.zeros(V0, bool)
+        self.on_border[ea[count == 1]] = True
+        self.on_border[eb[count == 1]] = True
 
-    def add_batch(self, lo: int, c1: np.ndarray, c2: np.ndarray, ring: np.ndarray) -> None:
+    def add_batch(self, lo: int, c1: np.ndarray, c2: np.ndarray, ring: np.ndarray, maybe_border: np.ndarray) -> None:
         """Attributes of vertex ids ``lo .. lo+len(c1)-1``, made from ``c1[i]``
         and ``c2[i]`` (children always come from earlier batches); ``ring``
-        are the faces after the batch that touch the new vertices."""
+        are the faces after the batch that touch the new vertices, and
+        ``maybe_border`` flags those with a child on an open border before it."""
         hi = lo + len(c1)
         if lo == hi:
             return
@@ -196,7 +212,9 @@ class HierarchyAttributes:
         # Leaves the coarse surface no longer covers (a receding border, a part
         # that vanished) are off it sideways, which the normal cannot see.
         off = np.zeros(hi - lo)
-        np.maximum.at(off, owner - lo, uncovered_distance(vertices, normals, moving, owner, ring, lo, hi))
+        u = uncovered_distance(vertices, normals, moving, owner, ring, lo, hi, maybe_border, self.on_border[moving])
+        hit = np.flatnonzero(u > 0)
+        np.maximum.at(off, owner[hit] - lo, u[hit])
         mu[ids] = np.maximum(np.maximum(d * spread, off), np.maximum(mu[c1], mu[c2]))
 
     def result(self, n_pcols: int) -> dict:

@@ -260,7 +260,8 @@ def build_pm(
             killer[fid[dead]] = (merged[dead] - V0).astype(np.int32)
             cur, fid = cur[~dead], fid[~dead]
             # Normals and attributes of the new vertices, beside the next batch.
-            jobs.append(beside.submit(_attribute_batch, jobs[0], pos, normals, cur, next_id, ca, cb))
+            maybe_border = boundary_vertex[ca] | boundary_vertex[cb]
+            jobs.append(beside.submit(_attribute_batch, jobs[0], pos, normals, cur, next_id, ca, cb, maybe_border))
             v1s.append(ca)
             v2s.append(cb)
             costs.append(cost[chosen])
@@ -366,9 +367,10 @@ def _start_attributes(pos, normals, faces, V0):
     return HierarchyAttributes(pos, normals, faces, V0)
 
 
-def _attribute_batch(start, pos, normals, cur, first, ca, cb):
+def _attribute_batch(start, pos, normals, cur, first, ca, cb, maybe_border):
     """Normals and refinement attributes of the batch's new vertices
-    ``first .. first+k-1``; ``cur`` are the faces after the batch."""
+    ``first .. first+k-1``; ``cur`` are the faces after the batch;
+    ``maybe_border`` flags new vertices with a child on an open border."""
     k = len(ca)
     new = slice(first, first + k)
     # Normals from the faces around the new vertices only.
@@ -381,7 +383,7 @@ def _attribute_batch(start, pos, normals, cur, first, ca, cb):
         sl = np.linalg.norm(s, axis=1)
         vn[lonely] = np.where(sl[:, None] > 0, s / np.where(sl > 0, sl, 1)[:, None], [0.0, 0.0, 1.0])
     normals[new] = vn
-    start.result().add_batch(first, ca, cb, ring)
+    start.result().add_batch(first, ca, cb, ring, maybe_border)
 
 
 def _new_vertex_normals(pos, faces, first, k):

@@ -219,11 +219,14 @@ def test_uncovered_distance_sees_borders_and_vanished_parts():
     closed_fan = np.array([[o, 0, 1], [o, 1, 2], [o, 2, 3], [o, 3, 0]])
     leaves, owner = np.array([inside, below]), np.array([o, o])
 
-    d = uncovered_distance(vertices, normals, leaves, owner, half_fan, o, o + 1)
+    maybe = np.array([True])  # checked, not assumed: the counts decide
+    edge = np.array([True, True])  # leaves on the original border
+    d = uncovered_distance(vertices, normals, leaves, owner, half_fan, o, o + 1, maybe, edge)
     np.testing.assert_allclose(d, [0.0, 2.0])  # in the plane: (0, -2) to the border y = 0
-    d = uncovered_distance(vertices, normals, leaves, owner, closed_fan, o, o + 1)
+    d = uncovered_distance(vertices, normals, leaves, owner, closed_fan, o, o + 1, maybe, edge)
     np.testing.assert_allclose(d, [0.0, 0.0])  # the leaf beyond is some neighbour's business
-    d = uncovered_distance(vertices, normals, np.array([far]), np.array([o]), np.zeros((0, 3), int), o, o + 1)
+    d = uncovered_distance(vertices, normals, np.array([far]), np.array([o]), np.zeros((0, 3), int), o, o + 1,
+                           np.array([False]), np.array([False]))
     np.testing.assert_allclose(d, [5.0])  # the part vanished into the point
 
 
@@ -319,7 +322,7 @@ def test_an_error_on_the_attribute_thread_reaches_the_caller(monkeypatch, data_p
     must surface from build_pm, not be lost or hang the build."""
     from pmjax.builders import _attributes
 
-    def fail(self, lo, c1, c2, ring):
+    def fail(self, lo, c1, c2, ring, maybe_border):
         raise FloatingPointError(f"attributes of batch at {lo}")
 
     monkeypatch.setattr(_attributes.HierarchyAttributes, "add_batch", fail)
