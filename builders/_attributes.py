@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from pmjax._distance import point_triangle_distance
+
 from ._quadrics import face_cross
 from ._threads import split_rows
 from ._topology import unique_edges
@@ -104,47 +106,27 @@ def uncovered_distance(vertices, normals, leaves, owner, ring, lo: int, hi: int,
     which = np.flatnonzero(border[o] & ~alone & np.asarray(leaf_on_border, bool))
     if not len(which):
         return out
-    # Each of those leaves against each face of its owner, in the owner's tangent plane.
+    # Each of those leaves against each face of its owner, all flattened onto
+    # the owner's tangent plane: their 3D distance there is the in-plane one.
     start = np.zeros(k + 1, np.int64)
-    start[1:] = np.cumsum(np.bincount(cv, minlength=k))
-    n_pairs = (start[1:] - start[:-1])[o[which]]
+    start[1:] = np.cumsum(np.where(check, faces_of, 0))
+    n_pairs = faces_of[o[which]]
     pair_leaf = np.repeat(which, n_pairs)
     step = np.arange(len(pair_leaf)) - np.repeat(np.cumsum(n_pairs) - n_pairs, n_pairs)
     pair_face = cf[np.repeat(start[o[which]], n_pairs) + step]
     n = normals[owner[pair_leaf]]
-    e1 = np.cross(n, np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]]))
-    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
-    e2 = np.cross(n, e1)
     origin = vertices[owner[pair_leaf]]
 
-    def plane(points):
+    def flat(points):
         rel = points - origin
-        return np.stack([np.einsum("ij,ij->i", rel, e1), np.einsum("ij,ij->i", rel, e2)], axis=1)
+        return rel - np.einsum("ij,ij->i", rel, n)[:, None] * n
 
-    p = plane(vertices[leaves[pair_leaf]])
-    tri = [plane(vertices[ring[pair_face, j]]) for j in range(3)]
-    dist = _point_triangle_distance_2d(p, *tri)
+    dist = point_triangle_distance(flat(vertices[leaves[pair_leaf]]),
+                                   *(flat(vertices[ring[pair_face, j]]) for j in range(3)))
     best = np.full(len(leaves), np.inf)
     np.minimum.at(best, pair_leaf, dist)
     out[which] = best[which]
     return out
-
-
-def _point_triangle_distance_2d(p, a, b, c) -> np.ndarray:
-    """Distance from 2D points ``p`` to triangles ``abc`` (0 inside), rows paired."""
-    def cross(u, v):
-        return u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
-
-    s1, s2, s3 = cross(b - a, p - a), cross(c - b, p - b), cross(a - c, p - c)
-    inside = ((s1 >= 0) & (s2 >= 0) & (s3 >= 0)) | ((s1 <= 0) & (s2 <= 0) & (s3 <= 0))
-    inside &= cross(b - a, c - a) != 0
-
-    def segment(u, v):
-        d = v - u
-        t = np.clip(np.einsum("ij,ij->i", p - u, d) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-300), 0.0, 1.0)
-        return np.linalg.norm(p - (u + t[:, None] * d), axis=1)
-
-    return np.where(inside, 0.0, np.minimum(np.minimum(segment(a, b), segment(b, c)), segment(c, a)))
 
 
 class HierarchyAttributes:
