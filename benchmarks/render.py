@@ -32,7 +32,7 @@ from refine import pm_file  # noqa: E402
 import pmjax  # noqa: E402
 from pmjax._camera import index_camera  # noqa: E402
 from pmjax.render import Renderer, image_difference, original_arrays, paper_figures, path_fidelity  # noqa: E402
-from pmjax.render import refined_arrays, silhouette_difference, vertex_normals  # noqa: E402
+from pmjax.render import refined_arrays, vertex_normals  # noqa: E402
 
 PARTS = ("orbit", "frontier")
 
@@ -58,14 +58,17 @@ def frontier(name, frames, taus, shares, supersample=2):
     # As path_fidelity measures: supersampled, unrounded colour.
     with Renderer(views[0].width, views[0].height, supersample=supersample, float_color=True) as r:
         originals = [r.render_mesh(ov, of, cam, normals=on) for cam in views]
+        # The original drawn unlit, once per frame for every row (silhouette_difference's reference).
+        flat_originals = [r.render_mesh(ov, of, cam, light=False) for cam in views]
 
         def row(method, setting, faces, meshes):
             # meshes: one (vertices, faces, vertex normals) per frame.
             share = [image_difference(*orig, *r.render_mesh(v, f, cam, normals=n))["differing_share"]
                      for orig, cam, (v, f, n) in zip(originals, views, meshes)]
-            # About the part no shading could remove: flat renders, geometry only.
-            flat = [silhouette_difference(r, (ov, of), (v, f), cam)["differing_share"]
-                    for cam, (v, f, _) in zip(views, meshes)]
+            # About the part no shading could remove: flat renders, geometry only,
+            # as silhouette_difference compares them.
+            flat = [image_difference(*orig, *r.render_mesh(v, f, cam, light=False))["differing_share"]
+                    for orig, cam, (v, f, _) in zip(flat_originals, views, meshes)]
             out = dict(model=name, frames=frames, method=method, setting=setting, F=F, faces=statistics.median(faces),
                        face_share=statistics.median(faces) / F, differing_share=statistics.median(share),
                        max_differing_share=max(share), silhouette_share=statistics.median(flat))
