@@ -11,6 +11,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ._pmfile import PMData, read_pm
+from ._subtree import SubtreeBounds, subtree_bounds
 
 
 class PcolAttributes(eqx.Module):
@@ -88,6 +89,15 @@ class ProgressiveMesh(eqx.Module):
             bit planes these size).
         uncommon: ``[N]`` int32, the pcols whose kills differ from
             ``common_kills`` (the only ones the correction looks at).
+        subtree: :class:`pmjax._subtree.SubtreeBounds`, per pcol, bounds over
+            its subtree (the output-sensitive traversal's pruning test).
+        roots: ``[R]`` int32, the pcols no pcol consumes (the forest's roots).
+        table: ``[P, 16]`` float32, per pcol its attributes and subtree bounds
+            in one 64-byte row (:data:`pmjax._front.TABLE`): the traversal
+            gathers scattered pcols, one cache line each instead of 16.
+        children: ``[P, 2]`` int32, ``child1`` and ``child2`` side by side.
+        plan: static :class:`pmjax._front.FrontPlan` (traversal capacities,
+            host arrays of the front mesh).
     """
 
     vertices: Float[Array, "V 3"]
@@ -99,6 +109,11 @@ class ProgressiveMesh(eqx.Module):
     kills: Int[Array, " P"]
     attributes: PcolAttributes
     uncommon: Int[Array, " N"]
+    subtree: SubtreeBounds
+    roots: Int[Array, " R"]
+    table: Float[Array, "P 16"]
+    children: Int[Array, "P 2"]
+    plan: object = eqx.field(static=True)
     batch_offsets: tuple = eqx.field(static=True)
     n_original_vertices: int = eqx.field(static=True)
     max_kills: int = eqx.field(static=True, default=0)
@@ -112,6 +127,11 @@ class ProgressiveMesh(eqx.Module):
     @property
     def n_faces(self) -> int:
         return int(self.faces.shape[0])
+
+    @property
+    def total_kills(self) -> Int[Array, ""]:
+        """Faces all pcols together remove (``F`` minus the base mesh's faces)."""
+        return jnp.sum(self.kills, dtype=jnp.int32)
 
     @property
     def uncommon_extra_kills(self) -> Int[Array, " N"]:
@@ -132,16 +152,33 @@ class ProgressiveMesh(eqx.Module):
         parent = np.full(V0 + P, -1, np.int32)
         parent[pm.v1] = np.arange(P)
         parent[pm.v2] = np.arange(P)
+        from ._front import TABLE_ATTRIBUTES, TABLE_BOUNDS, FrontPlan, forest_generations
+
         kills = pm.kills.astype(np.int32)
         created = pm.vertices[V0:]
+        child1 = np.where(pm.v1 >= V0, pm.v1 - V0, -1).astype(np.int32)
+        child2 = np.where(pm.v2 >= V0, pm.v2 - V0, -1).astype(np.int32)
+        attributes = PcolAttributes.from_arrays(created, pm.normals[V0:], pm.radius, pm.alpha, pm.delta, pm.mu)
+        # Bounds from the float32 values the tests read.
+        host = {k: np.asarray(getattr(attributes, k)) for k in ("center", "axis", "sin_alpha", "cos_alpha")}
+        bounds = subtree_bounds(host["center"].T, host["axis"].T, pm.radius, host["sin_alpha"], host["cos_alpha"],
+                                pm.delta, pm.mu, child1, child2, pm.batch_offsets)
+        roots, depth = forest_generations(child1, child2, pm.batch_offsets)
+        table = np.concatenate([np.asarray(getattr(attributes, k)).reshape(-1, P) for k in TABLE_ATTRIBUTES]
+                               + [bounds[k].reshape(1, P) for k in TABLE_BOUNDS]).T
         return ProgressiveMesh(
             vertices=jnp.asarray(pm.vertices),
             faces=jnp.asarray(pm.faces),
-            child1=jnp.asarray(np.where(pm.v1 >= V0, pm.v1 - V0, -1).astype(np.int32)),
-            child2=jnp.asarray(np.where(pm.v2 >= V0, pm.v2 - V0, -1).astype(np.int32)),
+            child1=jnp.asarray(child1),
+            child2=jnp.asarray(child2),
             parent=jnp.asarray(parent),
             killer=jnp.asarray(pm.killer),
-            attributes=PcolAttributes.from_arrays(created, pm.normals[V0:], pm.radius, pm.alpha, pm.delta, pm.mu),
+            attributes=attributes,
+            subtree=SubtreeBounds(**{k: jnp.asarray(v) for k, v in bounds.items()}),
+            roots=jnp.asarray(roots),
+            table=jnp.asarray(np.ascontiguousarray(table, np.float32)),
+            children=jnp.asarray(np.stack([child1, child2], axis=1)),
+            plan=FrontPlan(np.bincount(depth, minlength=1) if P else np.zeros(0, np.int64)),
             batch_offsets=tuple(int(o) for o in pm.batch_offsets),
             n_original_vertices=V0,
             **kill_summary(kills),

@@ -17,6 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from ._front import one_camera_decide, traverse
+from ._subtree import subtree_collapses
 from ._bitsets import WORD, column_popcounts, pack_cameras, unpack_cameras, weight_bits_for
 from ._camera import Camera, camera_count, index_camera
 from ._model import ProgressiveMesh
@@ -132,36 +134,97 @@ def representatives(pm: ProgressiveMesh, executed: Bool[Array, " P"]) -> Int[Arr
     return jnp.concatenate([originals, created])
 
 
-class Refinement(eqx.Module):
-    """The result of refining a progressive mesh for one view.
+class DenseRefinement(eqx.Module):
+    """The full-hierarchy arrays the dense engine computes for one view.
 
     Attributes:
-        executed: ``bool[P]`` pcols executed.
-        active: ``bool[F]`` faces drawn.
-        rep: ``int32[V0 + P]`` representative of every vertex (``vref``).
-        n_faces, n_vertices, n_executed: counts (``n_vertices`` = V0 − executed,
-            the vertex front).
+        executed: ``bool[P]``; active: ``bool[F]``; rep: ``int32[V0 + P]``.
     """
 
     executed: Bool[Array, " P"]
     active: Bool[Array, " F"]
     rep: Int[Array, " V"]
+
+
+class Refinement(eqx.Module):
+    """The result of refining a progressive mesh for one view.
+
+    The output-sensitive engine (``method="front"``) keeps only the pcols its
+    traversal visited and whether each ran; every other pcol lies under a
+    decided subtree and ran. The full arrays (``executed``, ``active``,
+    ``rep``) are computed from that when asked; the dense engine
+    (``method="dense"``) computes them eagerly.
+
+    Attributes:
+        pm: the :class:`ProgressiveMesh` refined (shared, not copied).
+        visited: ``int32[C]`` pcols the traversal visited, ``P`` in unused slots
+            (``None`` from the dense engine).
+        visited_executed: ``bool[C]`` whether each ran (``True`` in unused slots).
+        dense: :class:`DenseRefinement` from the dense engine, else ``None``.
+        n_faces, n_vertices, n_executed: counts (``n_vertices`` = V0 − executed,
+            the vertex front).
+    """
+
+    pm: ProgressiveMesh
+    visited: Optional[Int[Array, " C"]]
+    visited_executed: Optional[Bool[Array, " C"]]
+    dense: Optional[DenseRefinement]
     n_faces: Int[Array, ""]
     n_vertices: Int[Array, ""]
     n_executed: Int[Array, ""]
 
-    def mesh(self, pm: ProgressiveMesh):
+    @property
+    def executed(self) -> Bool[Array, " P"]:
+        """``bool[P]`` pcols executed."""
+        if self.dense is not None:
+            return self.dense.executed
+        return _spread_executed(self.visited, self.visited_executed, self.pm.n_pcols)
+
+    @property
+    def active(self) -> Bool[Array, " F"]:
+        """``bool[F]`` faces drawn (their killer did not run)."""
+        if self.dense is not None:
+            return self.dense.active
+        return _active_faces(self.pm, self.executed)
+
+    @property
+    def rep(self) -> Int[Array, " V"]:
+        """``int32[V0 + P]`` representative of every vertex (``vref``)."""
+        if self.dense is not None:
+            return self.dense.rep
+        return _representatives(self.pm, self.executed)
+
+    @property
+    def n_visited(self) -> int:
+        """Pcols whose decision the engine looked at (``P`` for the dense engine)."""
+        if self.visited is None:
+            return self.pm.n_pcols
+        return int(jnp.sum(self.visited < self.pm.n_pcols))
+
+    def mesh(self, pm: Optional[ProgressiveMesh] = None):
         """Compacted refined mesh as plain arrays.
 
-        Returns:
-            ``(vertices float32[n, 3], faces int32[m, 3], vertex_ids int64[n])``.
-        """
-        active = np.asarray(self.active)
-        faces = np.asarray(self.rep)[np.asarray(pm.faces)[active]]
-        ids, inverse = np.unique(faces, return_inverse=True)
-        return np.asarray(pm.vertices)[ids], inverse.reshape(-1, 3).astype(np.int32), ids
+        Args:
+            pm: the mesh refined (optional; it is the one :attr:`pm` holds).
 
-    def to_trimesh(self, pm: ProgressiveMesh):
+        Returns:
+            ``(vertices float32[n, 3], faces int32[m, 3], vertex_ids int32[n])``:
+            faces in increasing original face order, ``vertex_ids`` the sorted
+            PM vertex ids used. From the front its cost is proportional to the
+            faces drawn (times the hierarchy's height), not to the hierarchy.
+        """
+        if pm is not None and pm is not self.pm and pm.plan is not self.pm.plan:
+            raise ValueError("Refinement.mesh: pm is not the mesh this refinement was made for")
+        if self.dense is None:
+            from ._front_mesh import front_mesh
+
+            return front_mesh(self.pm, np.asarray(self.visited), np.asarray(self.visited_executed))
+        active = np.asarray(self.dense.active)
+        faces = np.asarray(self.dense.rep)[np.asarray(self.pm.faces)[active]]
+        ids, inverse = np.unique(faces, return_inverse=True)
+        return np.asarray(self.pm.vertices)[ids], inverse.reshape(-1, 3).astype(np.int32), ids
+
+    def to_trimesh(self, pm: Optional[ProgressiveMesh] = None):
         """The refined mesh as a ``trimesh.Trimesh`` (not processed)."""
         import trimesh
 
@@ -169,23 +232,69 @@ class Refinement(eqx.Module):
         return trimesh.Trimesh(v, f, process=False)
 
 
-def _finish(pm: ProgressiveMesh, executed) -> Refinement:
+@functools.partial(jax.jit, static_argnums=2)
+def _spread_executed(visited, visited_executed, n_pcols):
+    # Unused slots hold P: dropped.
+    return jnp.ones(n_pcols, bool).at[visited].set(visited_executed, mode="drop")
+
+
+@jax.jit
+def _active_faces(pm, executed):
     k = pm.killer
-    active = (k < 0) | ~gather(executed, jnp.maximum(k, 0))
+    return (k < 0) | ~gather(executed, jnp.maximum(k, 0))
+
+
+_representatives = jax.jit(lambda pm, executed: representatives(pm, executed))
+
+
+def _finish(pm: ProgressiveMesh, executed):
+    active = _active_faces(pm, executed)
     n_exec = jnp.sum(executed, dtype=jnp.int32)
     # Faces from the pcols, as executed_and_killed counts them for a batch:
     # m per executed pcol, corrected on the few uncommon pcols (a sum over P,
     # not over the F faces).
     m = pm.common_kills
     killed = m * n_exec + jnp.sum(jnp.where(gather(executed, pm.uncommon), pm.uncommon_extra_kills, 0))
-    return Refinement(
-        executed=executed,
-        active=active,
-        rep=representatives(pm, executed),
-        n_faces=jnp.int32(pm.n_faces) - killed,
-        n_vertices=jnp.int32(pm.n_original_vertices) - n_exec,
-        n_executed=n_exec,
-    )
+    dense = DenseRefinement(executed=executed, active=active, rep=representatives(pm, executed))
+    return dense, jnp.int32(pm.n_faces) - killed, jnp.int32(pm.n_original_vertices) - n_exec, n_exec
+
+
+METHODS = ("auto", "front", "dense")
+
+# "auto" refines one camera with the front engine from this many pcols on:
+# below it the dense engine is as fast (bunny, 34,819 pcols: 0.82 against
+# 0.77-0.90 ms) and compiles in a third of the time (docs/bench-refine.md).
+FRONT_FROM_PCOLS = 100_000
+
+
+def _method(pm: ProgressiveMesh, method: str, predicate, batch: bool = False) -> str:
+    """The engine a call uses. ``"auto"``: the front engine for one camera on a
+    large hierarchy; the dense engine for camera batches (faster there today),
+    small hierarchies, and a user predicate (it has no subtree bound, so only
+    the dense engine can apply it)."""
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if method == "front" and predicate is not None:
+        raise ValueError("method='front' cannot apply a user predicate (it has no subtree bound); "
+                         "use method='dense' or 'auto'")
+    if pm.n_pcols == 0:
+        return "dense"
+    if method == "auto":
+        large = pm.n_pcols >= FRONT_FROM_PCOLS
+        return "front" if predicate is None and large and not batch else "dense"
+    return method
+
+
+def _host_tau(tau):
+    """A host scalar tau as float32 (a new value does not recompile), checked;
+    a JAX array is passed on and checked inside the compiled call."""
+    if isinstance(tau, (int, float, np.generic, np.ndarray)):
+        tau = np.asarray(tau, np.float32)
+        if tau.shape != ():
+            raise ValueError(f"tau must be a scalar, got shape {tau.shape}")
+        if not tau >= 0:
+            raise ValueError(f"tau must be >= 0 (and not NaN), got {tau}")
+    return tau
 
 
 def refine(
@@ -196,6 +305,7 @@ def refine(
     predicate: Optional[UserPredicate] = None,
     context=None,
     combine: str = "or",
+    method: str = "auto",
 ) -> Refinement:
     """Refine ``pm`` for one camera.
 
@@ -208,18 +318,19 @@ def refine(
         tests: :class:`Tests` to switch tests off (ablations).
         predicate, context, combine: optional user test, see
             :func:`pmjax.collapse_mask`.
+        method: ``"front"``: output-sensitive traversal from the roots, pruned
+            by subtree bounds (cost ∝ the pcols near the front);
+            ``"dense"``: every pcol tested and propagated (the reference);
+            ``"auto"`` (default): ``"front"`` from ``FRONT_FROM_PCOLS`` pcols
+            on, else ``"dense"``; always ``"dense"`` with a user predicate
+            (which has no subtree bound). All give the same bits.
 
     Returns:
-        :class:`Refinement` (device arrays; ``.mesh(pm)`` gives NumPy arrays).
+        :class:`Refinement` (device arrays; ``.mesh()`` gives NumPy arrays).
     """
-    # A host scalar travels as a NumPy float32: a new value does not recompile,
-    # and no device computation runs to convert it.
-    if isinstance(tau, (int, float, np.generic, np.ndarray)):
-        tau = np.asarray(tau, np.float32)
-        if tau.shape != ():
-            raise ValueError(f"tau must be a scalar, got shape {tau.shape}")
-        if not tau >= 0:
-            raise ValueError(f"tau must be >= 0 (and not NaN), got {tau}")
+    tau = _host_tau(tau)
+    if _method(pm, method, predicate) == "front":
+        return _refine_front(pm, camera, tau, tests)
     # As under eqx.filter_jit, the context's arrays are traced and its other
     # leaves (Python numbers, strings) are static.
     if context is None or eqx.is_array(context):  # the common cases, without the partition's cost
@@ -227,7 +338,43 @@ def refine(
     else:
         arrays, others = eqx.partition(context, eqx.is_array)
         others = _Static(others)
-    return _refine(pm, camera, tau, arrays, others, tests, predicate, combine)
+    dense, n_faces, n_vertices, n_executed = _refine(pm, camera, tau, arrays, others, tests, predicate, combine)
+    return Refinement(pm=pm, visited=None, visited_executed=None, dense=dense, n_faces=n_faces,
+                      n_vertices=n_vertices, n_executed=n_executed)
+
+
+def _refine_front(pm: ProgressiveMesh, camera: Camera, tau, tests: Tests) -> Refinement:
+    kind = ("one", tests, camera.orthographic)
+    capacities = pm.plan.capacities(kind)
+    out = _front_refine(pm, camera, tau, tests, capacities)
+    # The one host synchronisation: did every generation fit its buffer?
+    if np.any(np.asarray(out[2]) > np.asarray(capacities)):
+        out = _front_refine(pm, camera, tau, tests, pm.plan.full)
+        pm.plan.grow(kind, np.asarray(out[2]))
+    visited, ran, _, n_faces, n_vertices, n_executed = out
+    return Refinement(pm=pm, visited=visited, visited_executed=ran, dense=None, n_faces=n_faces,
+                      n_vertices=n_vertices, n_executed=n_executed)
+
+
+def front_counts(pm: ProgressiveMesh, visited, not_ran):
+    """``(n_faces, n_vertices, n_executed)`` from the pcols that did not run
+    (``not_ran``, lanes over ``visited``; ``visited`` holds ``P`` in unused
+    slots): every face is drawn but those killed by the pcols that ran."""
+    P = pm.n_pcols
+    kills = jnp.where(visited < P, gather(pm.kills, jnp.minimum(visited, P - 1)), 0)
+    n_not_run = jnp.sum(not_ran, axis=-1, dtype=jnp.int32)
+    kept = jnp.sum(jnp.where(not_ran, kills, 0), axis=-1, dtype=jnp.int32)
+    n_exec = P - n_not_run
+    return pm.n_faces - pm.total_kills + kept, pm.n_original_vertices - n_exec, n_exec
+
+
+@functools.partial(jax.jit, static_argnames=("tests", "capacities"))
+def _front_refine(pm, camera, tau, tests, capacities):
+    tau = eqx.error_if(jnp.asarray(tau, jnp.float32), ~(tau >= 0), "tau must be >= 0 (and not NaN)")
+    view = View.of(camera, tau)
+    visited, ran, needed = traverse(pm, one_camera_decide(view, tests), capacities, bool)
+    counts = front_counts(pm, visited, (visited < pm.n_pcols) & ~ran)
+    return (visited, ran, needed) + counts
 
 
 class _Static:
@@ -311,6 +458,7 @@ def refine_batch(
     chunk: int = 256,
     return_masks: bool = False,
     progress: bool = False,
+    method: str = "auto",
 ) -> dict:
     """Refine for K cameras at once (vmap), ``chunk`` cameras per kernel call so
     memory stays bounded for any K.
@@ -322,6 +470,9 @@ def refine_batch(
         chunk: cameras per vmapped call, rounded up to a multiple of 32 (one
             bitset word); the last chunk is padded.
         return_masks: also return ``executed`` masks ``bool[K, P]``.
+        method: as :func:`refine`. ``"front"`` traverses, per group of 32
+            cameras, the union of their fronts (one bit per camera), with the
+            cameras reordered so that nearby eyes share a group.
 
     Returns:
         dict of NumPy arrays: ``faces``, ``vertices``, ``executed_count``
@@ -340,17 +491,77 @@ def refine_batch(
 
         starts = tqdm(starts, unit="chunk", desc="refine")
     tau32 = jnp.float32(tau)
+    front = _method(pm, method, predicate, batch=True) == "front"
+    # The front engine groups nearby cameras into words; results go back to
+    # the caller's order.
+    order = nearby_order(np.asarray(cameras.eye)) if front else np.arange(K)
     for s in starts:
-        idx = np.minimum(np.arange(s, s + chunk), K - 1)  # pad by repeating the last
+        idx = order[np.minimum(np.arange(s, s + chunk), K - 1)]  # pad by repeating the last
         part = index_camera(cameras, jnp.asarray(idx))
-        res = _counts_chunk(pm, part, tau32, tests, predicate, context, combine, return_masks)
+        if front:
+            res = _front_counts(pm, part, tau32, tests, return_masks)
+        else:
+            res = _counts_chunk(pm, part, tau32, tests, predicate, context, combine, return_masks)
         n = min(chunk, K - s)
         outs.append([np.asarray(r)[:n] for r in res])
-    cols = [np.concatenate(c) for c in zip(*outs)]
+    cols = [np.empty_like(c) for c in (np.concatenate(c) for c in zip(*outs))]
+    for col, parts in zip(cols, zip(*outs)):
+        col[order] = np.concatenate(parts)
     out = dict(faces=cols[0], vertices=cols[1], executed_count=cols[2])
     if return_masks:
         out["executed"] = cols[3]
     return out
+
+
+def nearby_order(eyes: np.ndarray) -> np.ndarray:
+    """An order of the cameras in which consecutive eyes are close: the
+    Morton (Z-order) code of each eye in the eyes' bounding box, 10 bits per
+    axis. Cameras that see the model from nearby share most of their front, so
+    a word of 32 of them visits little more than one camera alone."""
+    lo, hi = eyes.min(0), eyes.max(0)
+    cells = ((eyes - lo) / np.where(hi > lo, hi - lo, 1.0) * 1023).astype(np.int64)
+    code = np.zeros(len(eyes), np.int64)
+    for bit in range(10):
+        for axis in range(3):
+            code |= ((cells[:, axis] >> bit) & 1) << (3 * bit + axis)
+    return np.argsort(code, kind="stable")
+
+
+def _front_counts(pm: ProgressiveMesh, cameras: Camera, tau, tests: Tests, want_masks: bool):
+    kind = ("word", tests, cameras.orthographic)
+    capacities = pm.plan.capacities(kind)
+    out = _front_counts_chunk(pm, cameras, tau, tests, capacities, want_masks)
+    if np.any(np.asarray(out[-1]).max(0) > np.asarray(capacities)):
+        out = _front_counts_chunk(pm, cameras, tau, tests, pm.plan.full, want_masks)
+        pm.plan.grow(kind, np.asarray(out[-1]).max(0))
+    return out[:-1]
+
+
+@functools.partial(jax.jit, static_argnames=("tests", "capacities", "want_masks"))
+def _front_counts_chunk(pm, cameras, tau, tests, capacities, want_masks):
+    views = View.batch(cameras, tau)
+    words = views.values.reshape(views.values.shape[0], -1, WORD)  # [22, W, 32]
+
+    def one_word(values):
+        group = View(values, cameras.orthographic)
+
+        def decide(attrs, bounds):
+            collapse = group.map(lambda v: view_collapse_mask(attrs, v, tests, rows=False))
+            whole = group.map(lambda v: subtree_collapses(attrs.center, attrs.axis, bounds, v, tests))
+            return pack_cameras(collapse)[:, 0], pack_cameras(whole)[:, 0]
+
+        visited, ran, needed = traverse(pm, decide, capacities, jnp.uint32)
+        not_ran = unpack_cameras(~ran[:, None]) & (visited < pm.n_pcols)[None, :]  # [32, C]
+        counts = front_counts(pm, visited, not_ran)
+        masks = ()
+        if want_masks:
+            dense = jnp.full(pm.n_pcols, ~jnp.uint32(0)).at[visited].set(ran, mode="drop")
+            masks = (unpack_cameras(dense[:, None]),)
+        return counts + masks + (needed,)
+
+    out = jax.vmap(one_word, in_axes=1)(words)
+    # Words back to cameras: [W, 32, ...] -> [K, ...]; ``needed`` stays per word.
+    return tuple(x.reshape((-1,) + x.shape[2:]) for x in out[:-1]) + (out[-1],)
 
 
 # -- critical tolerances ----------------------------------------------------------

@@ -1,0 +1,249 @@
+"""Output-sensitive refinement: a top-down traversal that stops where a subtree is decided.
+
+The dense engine tests every pcol. Here the forest of pcols is walked from its
+roots, one generation (depth below a root) at a time. At each visited pcol two
+things are evaluated:
+
+- its own decision, ``collapse(p)``, by the very predicate the dense engine
+  uses (:func:`pmjax._predicate.view_collapse_mask`), so the bits are the same;
+- the subtree bound (:func:`pmjax._subtree.subtree_collapses`): if every pcol
+  below certainly collapses, the whole subtree is executed and not entered.
+
+The children of the other visited pcols form the next generation. Then, from
+the deepest generation up, ``executed(p) = whole(p) ∨ (collapse(p) ∧
+executed(c1) ∧ executed(c2))``, an original vertex counting as executed. Every
+pcol not visited lies under a decided subtree, so it is executed: the visited
+pcols and their flags are the whole answer, and the work is proportional to
+them (about twice the pcols not executed), not to the hierarchy.
+
+Generations are fixed-capacity buffers (XLA needs static shapes). The
+children of a generation are compacted into the next buffer by a prefix sum;
+each call reports how many each generation needed, and a call that needed
+more than a buffer holds is redone with buffers as large as the whole forest's
+generations (exact, never overflows), after which the capacities grow to fit
+(:class:`FrontPlan`). The answer is therefore always exact; only its cost
+depends on the capacities.
+
+The same traversal serves many cameras at once: a node then carries a
+``uint32`` word, one bit per camera of a group of 32, and a node is visited
+when any of the 32 visits it (:func:`traverse` with ``lanes``).
+"""
+
+from __future__ import annotations
+
+import threading
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._model import PcolAttributes
+from ._predicate import view_collapse_mask
+from ._subtree import SubtreeBounds, subtree_collapses
+
+
+def take(values, indices):
+    """``values[..., indices]``: along the last axis, for in-range indices
+    (no wrapping nor clamping, the fast gather on the CPU)."""
+    return values.at[..., indices].get(mode="promise_in_bounds")
+
+
+class FrontPlan:
+    """Host-side, mutable companions of one :class:`ProgressiveMesh`: the
+    traversal's buffer capacities (grown when a view needs more) and the host
+    arrays the front mesh reads. Hashed by the forest's shape, so it can ride
+    as a static field.
+
+    Attributes:
+        generation_sizes: pcols at each depth below a root, over the whole forest
+            (the buffers that can never overflow).
+    """
+
+    # Buffers start at this share of the forest's generation (at least MIN_CAPACITY)
+    # and, after an overflow, grow to GROWTH times what the view needed, rounded up
+    # to a multiple of ROUND: few distinct shapes, so few compilations.
+    START_SHARE = 0.25
+    MIN_CAPACITY = 256
+    GROWTH = 1.5
+    ROUND = 256
+
+    def __init__(self, generation_sizes):
+        self.generation_sizes = tuple(int(g) for g in generation_sizes)
+        self._capacities: dict = {}
+        self._lock = threading.Lock()
+        self.host: dict = {}
+
+    def capacities(self, kind: str) -> tuple:
+        """Current capacities for a traversal kind (one camera, or words of 32)."""
+        with self._lock:
+            if kind not in self._capacities:
+                self._capacities[kind] = tuple(
+                    g if i == 0 else min(g, self._round(max(self.MIN_CAPACITY, self.START_SHARE * g)))
+                    for i, g in enumerate(self.generation_sizes))
+            return self._capacities[kind]
+
+    def grow(self, kind: str, needed) -> tuple:
+        """Capacities that hold ``needed`` (per generation, the most any view
+        of a call needed) with room to spare; returns the new capacities."""
+        with self._lock:
+            old = self._capacities.get(kind, self.generation_sizes)
+            new = tuple(min(g, max(c, self._round(self.GROWTH * n))) if n > c else c
+                        for g, c, n in zip(self.generation_sizes, old, needed))
+            self._capacities[kind] = new
+            return new
+
+    @classmethod
+    def _round(cls, n) -> int:
+        return int(-(-int(np.ceil(n)) // cls.ROUND) * cls.ROUND)
+
+    @property
+    def full(self) -> tuple:
+        return self.generation_sizes
+
+    # Equal plans (same forest shape) share compiled kernels: the capacities a
+    # kernel is compiled for are its own static argument.
+    def __hash__(self):
+        return hash(self.generation_sizes)
+
+    def __eq__(self, other):
+        return isinstance(other, FrontPlan) and self.generation_sizes == other.generation_sizes
+
+
+def forest_generations(child1: np.ndarray, child2: np.ndarray, batch_offsets) -> tuple[np.ndarray, np.ndarray]:
+    """Roots of the pcol forest and each pcol's depth below its root.
+
+    Returns:
+        ``(roots int32[R], depth int32[P])``; roots in increasing order.
+    """
+    P = len(child1)
+    parent = np.full(P, -1, np.int64)
+    for child in (child1, child2):
+        has = np.flatnonzero(child >= 0)
+        parent[child[has]] = has
+    depth = np.zeros(P, np.int32)
+    # Parents are in later batches: resolve from the last batch down.
+    for lo, hi in reversed(list(zip(batch_offsets[:-1], batch_offsets[1:]))):
+        up = parent[lo:hi]
+        depth[lo:hi] = np.where(up >= 0, depth[np.maximum(up, 0)] + 1, 0)
+    return np.flatnonzero(parent < 0).astype(np.int32), depth
+
+
+# Columns of ProgressiveMesh.table: these attributes (center and axis three
+# columns each), then these subtree bounds.
+TABLE_ATTRIBUTES = ("center", "axis", "radius", "alpha", "sin_alpha", "cos_alpha", "delta", "mu")
+TABLE_BOUNDS = ("reach", "spread", "cone", "error")
+
+
+def _gathered(pm, ids):
+    """The attributes and subtree bounds of pcols ``ids``, from one row each."""
+    rows = pm.table.at[ids].get(mode="promise_in_bounds").T  # [16, C]
+    attrs = PcolAttributes(center=rows[0:3], axis=rows[3:6], **{k: rows[4 + i] for i, k in enumerate(TABLE_ATTRIBUTES) if i >= 2})
+    bounds = SubtreeBounds(**{k: rows[12 + i] for i, k in enumerate(TABLE_BOUNDS)})
+    return attrs, bounds
+
+
+BLOCK = 64
+
+
+def prefix_count(flags):
+    """Inclusive prefix sum of a bool vector, as ``int32``.
+
+    Two small matrix products with triangular matrices of ones (exact in
+    float32 below 2^24): blocks of 64, then the blocks' totals. On the CPU,
+    ``jnp.cumsum`` (a reduce-window) ran 3x slower, and an associative scan
+    cost a dozen tiny kernels per call.
+    """
+    n = flags.shape[0]
+    blocks = jnp.pad(flags.astype(jnp.float32), (0, -n % BLOCK)).reshape(-1, BLOCK)
+    within = blocks @ jnp.triu(jnp.ones((BLOCK, BLOCK), jnp.float32))
+    totals = within[:, -1]
+    before = totals @ jnp.triu(jnp.ones((totals.shape[0],) * 2, jnp.float32), 1)
+    return (within + before[:, None]).reshape(-1)[:n].astype(jnp.int32)
+
+
+def _materialized(always, fn, *args):
+    """``fn(*args)``, computed once into memory.
+
+    XLA's CPU compiler fuses a producer into each of its consumers, so the
+    tests, read by three consumers, ran three to five times per generation
+    (``optimization_barrier`` is expanded before fusion there). A conditional
+    is a boundary no fusion crosses; ``always`` is a traced true value, so the
+    conditional stays in the program.
+    """
+    shapes = jax.eval_shape(fn, *args)
+    never = lambda *a: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+    return jax.lax.cond(always, fn, never, *args)
+
+
+def traverse(pm, decide, capacities, lanes_dtype):
+    """The top-down traversal and the bottom-up resolution (see module doc).
+
+    Args:
+        pm: :class:`ProgressiveMesh`.
+        decide: ``decide(attrs, bounds) -> (collapse, whole)`` for gathered
+            pcols, each a ``lanes_dtype`` array ``[C]``: bool for one camera,
+            ``uint32`` words for 32 cameras (bit ``c`` for camera ``c``).
+        capacities: static buffer size per generation.
+        lanes_dtype: ``bool`` or ``jnp.uint32``.
+
+    Returns:
+        ``(ids, executed, needed)``: ``ids int32[sum(capacities)]`` the visited
+        pcols (``P`` in unused slots), ``executed`` their lanes (all set in
+        unused slots and for cameras that did not visit a pcol: both are
+        executed), ``needed int32[G]`` the pcols each generation had to hold.
+    """
+    P = pm.n_pcols
+    none = jnp.zeros((), lanes_dtype)
+    every = ~none
+    ids = pm.roots
+    visits = jnp.full(ids.shape, every)
+    count = jnp.int32(ids.shape[0])
+    levels, needed = [], [count]
+    # Top-down: evaluate each generation, push the children of the pcols it
+    # could not decide, compacted (prefix sum) into the next buffer.
+    for g, cap in enumerate(capacities):
+        valid = jnp.arange(cap) < count
+        visits = jnp.where(valid, visits, none)
+        collapse, whole = _materialized(count >= 0, lambda i: decide(*_gathered(pm, i)), ids)
+        open_ = visits & ~whole
+        kids = pm.children.at[ids].get(mode="promise_in_bounds")
+        c1, c2 = kids[:, 0], kids[:, 1]
+        push = jnp.concatenate([(open_ != none) & (c1 >= 0), (open_ != none) & (c2 >= 0)])
+        slot = prefix_count(push) - 1
+        levels.append((ids, valid, visits, whole, collapse, push, slot))
+        if g + 1 == len(capacities):
+            break
+        nxt = capacities[g + 1]
+        target = jnp.where(push, slot, nxt)  # out of range: dropped
+        count = jnp.sum(push, dtype=jnp.int32)
+        needed.append(count)
+        ids = jnp.zeros(nxt, jnp.int32).at[target].set(jnp.concatenate([c1, c2]), mode="drop")
+        visits = jnp.zeros(nxt, lanes_dtype).at[target].set(jnp.concatenate([open_, open_]), mode="drop")
+        count = jnp.minimum(count, nxt)
+    # Bottom-up: a pcol runs if its subtree is decided, or it collapses and
+    # both children ran (a child not pushed is original, or not open: ran).
+    below = None
+    out_ids, out_exec = [], []
+    for ids, valid, visits, whole, collapse, push, slot in reversed(levels):
+        cap = ids.shape[0]
+        if below is None:
+            child_ran = jnp.full(2 * cap, every)
+        else:
+            child_ran = jnp.where(push, take(below, jnp.clip(slot, 0, below.shape[0] - 1)), every)
+            # A child beyond the next buffer's capacity was dropped (the call
+            # reports the overflow and is redone); never read a wrong slot.
+        ran = ~visits | whole | (collapse & child_ran[:cap] & child_ran[cap:])
+        below = ran
+        out_ids.append(jnp.where(valid, ids, P))
+        out_exec.append(ran)
+    return jnp.concatenate(out_ids[::-1]), jnp.concatenate(out_exec[::-1]), jnp.stack(needed)
+
+
+def one_camera_decide(view, tests):
+    """``decide`` for :func:`traverse` with one camera's :class:`View`."""
+
+    def decide(attrs: PcolAttributes, bounds: SubtreeBounds):
+        collapse = view_collapse_mask(attrs, view, tests, rows=False)
+        return collapse, subtree_collapses(attrs.center, attrs.axis, bounds, view, tests)
+
+    return decide

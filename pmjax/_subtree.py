@@ -1,0 +1,174 @@
+"""Subtree bounds: one test at a pcol that decides its whole subtree.
+
+A pcol is executed exactly when every pcol of its subtree (itself and all the
+pcols below it) may collapse, because ``executed(p) = collapse(p) ∧
+executed(c1) ∧ executed(c2)``. So a test at ``p`` that implies "every pcol
+below collapses" decides the whole subtree without looking into it. Each of
+the three refinement tests has such a bound, from four numbers per pcol
+computed at load (:func:`subtree_bounds`), all upper bounds over the subtree
+``S(p)``:
+
+- ``reach``: a sphere about the pcol's centre ``c_p`` holding every sphere of
+  ``S(p)``: ``max |c_q − c_p| + r_q``;
+- ``spread``: ``max |c_q − c_p|``, the centres alone (the screen test);
+- ``cone``: a cone about the pcol's axis ``n_p`` holding every cone of ``S(p)``:
+  ``max angle(n_p, n_q) + alpha_q``;
+- ``error``: ``max(mu_q, delta_q)``.
+
+Then (DESIGN §3's tests, each on the outer sphere and cone):
+
+- **outside**: the ``reach`` sphere is outside a frustum plane: so is every
+  sphere inside it;
+- **oriented away**: ``theta + cone + asin(reach / d) < π/2``: every cone of
+  ``S(p)`` faces away from every eye ray into its sphere;
+- **small**: ``error < κ (d − spread)``: every ``q`` has ``mu_q`` and
+  ``delta_q`` below ``κ d_q`` since ``d_q ≥ d − spread``, which is Hoppe's
+  test for ``q``.
+
+The pcols' own tests run in float32; each bound holds with a margin that
+dominates their rounding (``MARGIN``, ``SCREEN_MARGIN``, ``ANGLE_MARGIN``), so
+a subtree the bound decides is decided identically by the exact tests, pcol by
+pcol. Nothing here assumes the file's attributes nest: the bounds are computed
+from what each pcol holds, bottom-up with the triangle inequality.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from ._view import View
+
+# Relative margins, in units of the magnitudes a test adds up: 2^-16 is 128
+# float32 ulps (the frustum test rounds in a dozen operations).
+MARGIN = 2.0 ** -16
+SCREEN_MARGIN = 2.0 ** -14
+# Angle margin of the orientation bound (radians). Its slack in the pcols'
+# root-free comparisons is about ANGLE_MARGIN²/2 = 1.25e-3 relative, and at
+# this margin the eye is at least sin(0.05) sphere radii... away from every
+# sphere, so d² − r² keeps 3 of its 7 digits: a 25x margin over rounding.
+ANGLE_MARGIN = 0.05
+
+
+class SubtreeBounds(eqx.Module):
+    """Per-pcol bounds over its subtree (float32, rounded up; see module doc).
+
+    Attributes:
+        reach: ``[P]`` radius about the pcol centre holding every sphere below, model units.
+        spread: ``[P]`` radius about the pcol centre holding every centre below, model units.
+        cone: ``[P]`` half-angle about the pcol axis holding every cone below, radians.
+        error: ``[P]`` largest ``mu`` or ``delta`` below, model units.
+    """
+
+    reach: Float[Array, " P"]
+    spread: Float[Array, " P"]
+    cone: Float[Array, " P"]
+    error: Float[Array, " P"]
+
+
+def subtree_bounds(center, axis, radius, sin_alpha, cos_alpha, delta, mu, child1, child2, batch_offsets) -> dict:
+    """The four subtree bounds of every pcol, bottom-up, batch by batch.
+
+    Args:
+        center, axis: ``[P, 3]`` the pcols' centres and cone axes, as the tests see them.
+        radius, sin_alpha, cos_alpha, delta, mu: ``[P]`` the pcols' own attributes.
+        child1, child2: ``[P]`` pcol making each endpoint, ``-1`` for an original vertex.
+        batch_offsets: ``[B + 1]``.
+
+    Returns:
+        dict ``reach, spread, cone, error`` of float32 ``[P]`` arrays, each
+        an upper bound (computed in float64, rounded up).
+    """
+    c = np.asarray(center, np.float64)
+    n = np.asarray(axis, np.float64)
+    norm = np.linalg.norm(n, axis=1)
+    # The cone angle the tests mean: they compare the stored sine squared and
+    # need a positive cosine, so it is atan2(|sin|, cos) (at least π/2, never
+    # facing away, when the cosine is not positive). An axis that is not unit
+    # (a degenerate normal) bounds nothing: its cone is π.
+    own_cone = np.arctan2(np.abs(np.asarray(sin_alpha, np.float64)), np.asarray(cos_alpha, np.float64))
+    own_cone = np.where(np.abs(norm - 1.0) < 1e-3, own_cone, math.pi)
+    unit = n / np.where(norm > 0, norm, 1.0)[:, None]
+    reach = np.asarray(radius, np.float64).copy()
+    spread = np.zeros(len(reach))
+    cone = own_cone.copy()
+    error = np.maximum(np.asarray(mu, np.float64), np.asarray(delta, np.float64))
+    child1, child2 = np.asarray(child1), np.asarray(child2)
+    # Children come from earlier batches, so their bounds are final when a
+    # batch is reached (the same order as the engine's propagation).
+    for lo, hi in zip(batch_offsets[:-1], batch_offsets[1:]):
+        for child in (child1[lo:hi], child2[lo:hi]):
+            has = np.flatnonzero(child >= 0)
+            if len(has) == 0:
+                continue
+            p, q = lo + has, child[has]
+            gap = np.linalg.norm(c[q] - c[p], axis=1)
+            turn = np.arccos(np.clip(np.sum(unit[p] * unit[q], axis=1), -1.0, 1.0))
+            reach[p] = np.maximum(reach[p], gap + reach[q])
+            spread[p] = np.maximum(spread[p], gap + spread[q])
+            cone[p] = np.maximum(cone[p], turn + cone[q])
+            error[p] = np.maximum(error[p], error[q])
+    up = lambda x: np.nextafter(x.astype(np.float32), np.float32(np.inf))
+    # The float64 sums above round too: one relative step of 2^-40 covers them.
+    grow = lambda x: up(x * (1 + 2.0 ** -40))
+    return dict(reach=grow(reach), spread=grow(spread), cone=grow(np.minimum(cone, 4.0)), error=grow(error))
+
+
+def _rows_dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def subtree_collapses(center, axis, bounds: SubtreeBounds, view: View, tests) -> Bool[Array, " N"]:
+    """Per pcol: does every pcol of its subtree collapse for this view?
+
+    ``True`` is a guarantee (the tests of every pcol below would say
+    "collapse"); ``False`` only means the bound cannot tell.
+
+    Args:
+        center, axis: ``[3, N]`` rows of the pcols' centres and axes.
+        bounds: :class:`SubtreeBounds` of the same ``N`` pcols.
+        view: one camera's :class:`View`.
+        tests: :class:`pmjax.Tests`; a test switched off bounds nothing.
+    """
+    f32 = lambda x: jnp.asarray(x, jnp.float32)
+    reach, spread, cone, error = bounds.reach, bounds.spread, bounds.cone, bounds.error
+    v = [center[i] - view.eye[i] for i in range(3)]
+    out = jnp.zeros(reach.shape, bool)
+    if tests.frustum:
+        k = view.frustum
+        x, y, z = (_rows_dot(v, view.axis(i)) for i in range(3))
+        sx, sy, lx, ly, near, far = z * k(0) + k(2), z * k(1) + k(3), k(4), k(5), k(6), k(7)
+        size = (jnp.abs(x) + jnp.abs(y) + jnp.abs(z) + reach) * (1 + jnp.abs(k(0)) + jnp.abs(k(1)) + lx + ly)
+        m = f32(MARGIN) * (size + jnp.abs(k(2)) + jnp.abs(k(3)) + jnp.abs(near) + jnp.abs(far))
+        out = out | (z + reach < near - m) | (z - reach > far + m)
+        out = out | (sx - jnp.abs(x) + reach * lx < -m) | (sy - jnp.abs(y) + reach * ly < -m)
+    if view.orthographic:
+        if tests.orientation:
+            # theta + cone < π/2 − margin, as cos(theta) > sin(cone + margin).
+            h = _rows_dot(axis, view.forward) / jnp.sqrt(_rows_dot(axis, axis))
+            out = out | ((cone < f32(math.pi / 2 - ANGLE_MARGIN)) & (h > jnp.sin(cone + f32(ANGLE_MARGIN))))
+        if tests.screen:
+            out = out | (error * error < view.kappa2 * f32(1 - SCREEN_MARGIN))
+        return out
+    d2 = _rows_dot(v, v)
+    d = jnp.sqrt(d2)
+    if tests.orientation:
+        # theta + beta < phi = π/2 − cone − margin, without inverse trigonometry:
+        # cos(theta + beta) > cos(phi) = sin(cone + margin), with cos(theta) =
+        # h / d, sin(beta) = reach / d. Rounding moves the angle by far less
+        # than the margin.
+        length = d * jnp.sqrt(_rows_dot(axis, axis))
+        cos_t = _rows_dot(v, axis) / jnp.where(length > 0, length, 1.0)
+        sin_t = jnp.sqrt(jnp.maximum(1.0 - cos_t * cos_t, 0.0))
+        sin_b = reach / jnp.where(d > 0, d, 1.0)
+        cos_b = jnp.sqrt(jnp.maximum(1.0 - sin_b * sin_b, 0.0))
+        facing = (cos_t > 0) & (cos_t * cos_b - sin_t * sin_b > jnp.sin(cone + f32(ANGLE_MARGIN)))
+        out = out | ((d > reach) & (length > 0) & (cone < f32(math.pi / 2 - ANGLE_MARGIN)) & facing)
+    if tests.screen:
+        room = d - spread - f32(SCREEN_MARGIN) * (d + spread)
+        out = out | ((room > 0) & (error * error < view.kappa2 * room * room * f32(1 - SCREEN_MARGIN)))
+    return out
