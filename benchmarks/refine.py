@@ -3,8 +3,11 @@ compile/load time and memory.
 
 Usage: python benchmarks/refine.py [--models cow,bunny,dragon,terrain_gcanyon,terrain_sthelens]
        [--frames 240] [--tau 1] [--batched bunny,dragon] [--ks 1,16,256,4096] [--cores N]
+       [--parts table1,oracle,batched,front]
 
-Standard orbit of DESIGN §7 (800×600, 45° fov, 240 frames). PM files are built
+Standard orbit (the camera circles the bounding-box centre at r / sin 22.5°,
+r half the box diagonal, 20° elevation, 800×600, 45° fov, 240 frames). The
+front part compares the output-sensitive engine with the dense one per model. PM files are built
 once into benchmarks/.cache (per builder version). Per-frame times are full single-camera refines
 (executed set, vref, face mask, counts) after compilation; medians over frames.
 """
@@ -34,7 +37,7 @@ from pmjax import collapse_mask  # noqa: E402
 CACHE = os.environ.get("PMJAX_BENCH_CACHE", os.path.join(os.path.dirname(os.path.abspath(__file__)), ".cache"))
 
 
-PARTS = ("table1", "oracle", "batched")
+PARTS = ("table1", "oracle", "batched", "front")
 
 
 def pm_file(name: str) -> str:
@@ -134,6 +137,49 @@ def batched(name, ks, tau, chunk):
     return rows
 
 
+def front_vs_dense(name, frames, tau, K, chunk):
+    """The output-sensitive engine against the dense reference, same run, same
+    cameras: one camera along the standard orbit (refine, and the mesh of the
+    result), the visited region, and a batch of K random views."""
+    path = pm_file(name)
+    pm, data = pmjax.load(path), pmjax.read_pm(path)
+    cams = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], frames)
+    t = {m: [] for m in ("dense", "front", "mesh_dense", "mesh_front")}
+    visited, not_run, faces = [], [], []
+    for m in ("dense", "front"):  # compile, and grow the front's buffers on a few frames
+        for i in range(0, frames, max(1, frames // 8)):
+            jax.block_until_ready(pmjax.refine(pm, index_camera(cams, i), tau, method=m)).mesh()
+    for i in range(frames):
+        cam = index_camera(cams, i)
+        for m in ("dense", "front"):
+            t0 = time.perf_counter()
+            r = jax.block_until_ready(pmjax.refine(pm, cam, tau, method=m))
+            t1 = time.perf_counter()
+            r.mesh()
+            t[m].append(t1 - t0)
+            t["mesh_" + m].append(time.perf_counter() - t1)
+        visited.append(r.n_visited)
+        not_run.append(data.n_pcols - int(r.n_executed))
+        faces.append(int(r.n_faces))
+    med = {k: 1e3 * statistics.median(v) for k, v in t.items()}
+    row = dict(model=name, pcols=data.n_pcols, frames=frames, faces=int(np.median(faces)),
+               visited=int(np.median(visited)), not_executed=int(np.median(not_run)),
+               dense_ms=med["dense"], front_ms=med["front"], mesh_dense_ms=med["mesh_dense"],
+               mesh_front_ms=med["mesh_front"])
+    rv = pmjax.random_views(data.vertices[: data.n_original_vertices], K, seed=K, min_scale=0.8, max_scale=3)
+    for m in ("dense", "front"):
+        pmjax.refine_batch(pm, rv, tau, chunk=chunk, method=m)  # compile (and grow buffers)
+        sec, _ = median_time(lambda: pmjax.refine_batch(pm, rv, tau, chunk=chunk, method=m), 3)
+        row[f"batch_{m}_cameras_per_s"] = K / sec
+    print(f"{name:16s} P {row['pcols']:7d} | visited {row['visited']:6d} ({row['visited'] / row['pcols']:5.1%} of P, "
+          f"{row['visited'] / max(1, row['not_executed']):.2f}x not executed, {row['visited'] / row['faces']:.2f}x faces) | "
+          f"refine dense {med['dense']:6.3f} front {med['front']:6.3f} ms ({med['dense'] / med['front']:4.2f}x) | "
+          f"mesh dense {med['mesh_dense']:6.3f} front {med['mesh_front']:6.3f} ms "
+          f"({med['mesh_dense'] / med['mesh_front']:4.2f}x) | batch K={K}: dense {row['batch_dense_cameras_per_s']:7.0f} "
+          f"front {row['batch_front_cameras_per_s']:7.0f} cameras/s", flush=True)
+    return row
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--models", default="cow,bunny,dragon,terrain_gcanyon,terrain_sthelens")
@@ -155,7 +201,7 @@ def main():
     if parts - set(PARTS):
         ap.error(f"unknown part(s) {sorted(parts - set(PARTS))}")
     print(f"machine: {machine()}\n")
-    t1, vo, bt = [], [], []
+    t1, vo, bt, fr = [], [], [], []
     if "table1" in parts:
         print(f"Table 1 (standard orbit, {args.frames} frames, tau = {args.tau} px, 800x600, 45 deg):")
         t1 = table1(args.models.split(","), args.frames, args.tau)
@@ -166,9 +212,12 @@ def main():
         print("\nBatched throughput (random views around the model, counts only):")
         for n in args.batched.split(","):
             bt += batched(n, [int(k) for k in args.ks.split(",")], args.tau, args.chunk)
+    if "front" in parts:
+        print("\nOutput-sensitive (front) vs dense engine, same run (standard orbit; batch: random views):")
+        fr = [front_vs_dense(n, args.frames, args.tau, 256, args.chunk) for n in args.models.split(",")]
     print(f"\npeak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
     if args.json:
-        write_json(args.json, dict(machine=machine(), table1=t1, oracle=vo, batched=bt))
+        write_json(args.json, dict(machine=machine(), table1=t1, oracle=vo, batched=bt, front=fr))
 
 
 if __name__ == "__main__":

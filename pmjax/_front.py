@@ -229,9 +229,9 @@ def traverse(pm, decide, capacities, lanes_dtype):
         if below is None:
             child_ran = jnp.full(2 * cap, every)
         else:
+            # A child beyond the next buffer was dropped: the clip keeps the read
+            # in range, and the call, which reports the overflow, is redone.
             child_ran = jnp.where(push, take(below, jnp.clip(slot, 0, below.shape[0] - 1)), every)
-            # A child beyond the next buffer's capacity was dropped (the call
-            # reports the overflow and is redone); never read a wrong slot.
         ran = ~visits | whole | (collapse & child_ran[:cap] & child_ran[cap:])
         below = ran
         out_ids.append(jnp.where(valid, ids, P))

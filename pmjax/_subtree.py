@@ -47,10 +47,10 @@ from ._view import View
 # float32 ulps (the frustum test rounds in a dozen operations).
 MARGIN = 2.0 ** -16
 SCREEN_MARGIN = 2.0 ** -14
-# Angle margin of the orientation bound (radians). Its slack in the pcols'
-# root-free comparisons is about ANGLE_MARGIN²/2 = 1.25e-3 relative, and at
-# this margin the eye is at least sin(0.05) sphere radii... away from every
-# sphere, so d² − r² keeps 3 of its 7 digits: a 25x margin over rounding.
+# Angle margin of the orientation bound (radians). The pcols' root-free
+# comparisons then have a slack of at least ANGLE_MARGIN²/2 = 1.25e-3
+# relative, while the eye stays far enough from every sphere below that
+# d² − r² ≥ sin²(0.05)·d² keeps its rounding near 5e-5: a 25x margin.
 ANGLE_MARGIN = 0.05
 
 

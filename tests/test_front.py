@@ -1,5 +1,6 @@
 """The output-sensitive engine (method="front") against the dense engine and the oracle."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -9,6 +10,16 @@ from pmjax._camera import index_camera, stack_cameras
 from pmjax._oracle import oracle_refine
 
 TAUS = (0.0, 1e-3, 1.0, 4.0, 1e6)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def release_compiled_kernels():
+    """The front kernels are large (one program per generation buffer set):
+    release them after this module, so that the executables compiled by one
+    long test process stay within the memory maps the system allows (XLA
+    otherwise fails with "Cannot allocate memory" in later modules)."""
+    yield
+    jax.clear_caches()
 CASES = [("cow.ply", 0.0), ("bunny.ply", 0.0), ("cessna.ply", 0.02), ("terrain_gcanyon.ply", 0.0)]
 
 
