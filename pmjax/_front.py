@@ -18,9 +18,10 @@ them (about twice the pcols not executed), not to the hierarchy.
 
 Generations are fixed-capacity buffers (XLA needs static shapes). The
 children of a generation are compacted into the next buffer by a prefix sum;
-each call reports how many each generation needed, and a call that needed
-more than a buffer holds is redone with buffers as large as the whole forest's
-generations (exact, never overflows), after which the capacities grow to fit
+each call reports how many each generation needed. The first call on a mesh
+uses buffers as large as the whole forest's generations (exact, never
+overflows) and sizes the buffers from what it needed; a later call that needed
+more than a buffer holds is redone with the full buffers, and the buffers grow
 (:class:`FrontPlan`). The answer is therefore always exact; only its cost
 depends on the capacities.
 
@@ -31,6 +32,7 @@ when any of the 32 visits it (:func:`traverse` with ``lanes``).
 
 from __future__ import annotations
 
+import functools
 import threading
 
 import jax
@@ -59,13 +61,10 @@ class FrontPlan:
             (the buffers that can never overflow).
     """
 
-    # Buffers start at this share of the forest's generation (at least MIN_CAPACITY)
-    # and, after an overflow, grow to GROWTH times what the view needed, rounded up
+    # After a call, buffers hold GROWTH times what the views needed, rounded up
     # to a multiple of ROUND: few distinct shapes, so few compilations.
-    START_SHARE = 0.25
-    MIN_CAPACITY = 256
     GROWTH = 1.5
-    ROUND = 256
+    ROUND = 64
 
     def __init__(self, generation_sizes):
         self.generation_sizes = tuple(int(g) for g in generation_sizes)
@@ -73,24 +72,37 @@ class FrontPlan:
         self._lock = threading.Lock()
         self.host: dict = {}
 
-    def capacities(self, kind: str) -> tuple:
-        """Current capacities for a traversal kind (one camera, or words of 32)."""
+    def capacities(self, kind) -> tuple:
+        """Current capacities for a traversal kind (one camera or words of 32,
+        per set of tests and projection): the whole forest's generations until
+        a first call has measured what views need."""
         with self._lock:
-            if kind not in self._capacities:
-                self._capacities[kind] = tuple(
-                    g if i == 0 else min(g, self._round(max(self.MIN_CAPACITY, self.START_SHARE * g)))
-                    for i, g in enumerate(self.generation_sizes))
-            return self._capacities[kind]
+            return self._capacities.get(kind, self.generation_sizes)
 
-    def grow(self, kind: str, needed) -> tuple:
-        """Capacities that hold ``needed`` (per generation, the most any view
-        of a call needed) with room to spare; returns the new capacities."""
+    def fit(self, kind, needed) -> tuple:
+        """Grow the capacities of ``kind`` to hold ``needed`` (per generation,
+        the most any view of a call needed) with room to spare."""
         with self._lock:
-            old = self._capacities.get(kind, self.generation_sizes)
-            new = tuple(min(g, max(c, self._round(self.GROWTH * n))) if n > c else c
+            old = self._capacities.get(kind, (0,) * len(self.generation_sizes))
+            new = tuple(min(g, max(c, self._round(self.GROWTH * n), 1))
                         for g, c, n in zip(self.generation_sizes, old, needed))
             self._capacities[kind] = new
             return new
+
+    def run(self, kind, call):
+        """``call(capacities)`` with this kind's capacities; a call that
+        overflowed one is redone with full buffers (exact). Either way the
+        capacities then fit what was needed. ``call`` returns a tuple whose
+        last element is ``needed`` (``[G]``, or ``[W, G]`` per word)."""
+        capacities = self.capacities(kind)
+        out = call(capacities)
+        needed = np.asarray(out[-1]).reshape(-1, len(capacities)).max(0)
+        if capacities != self.full and np.any(needed > np.asarray(capacities)):
+            out = call(self.full)
+            needed = np.asarray(out[-1]).reshape(-1, len(capacities)).max(0)
+        if capacities == self.full or np.any(needed > np.asarray(capacities)):
+            self.fit(kind, needed)
+        return out
 
     @classmethod
     def _round(cls, n) -> int:
@@ -161,20 +173,6 @@ def prefix_count(flags):
     return (within + before[:, None]).reshape(-1)[:n].astype(jnp.int32)
 
 
-def _materialized(always, fn, *args):
-    """``fn(*args)``, computed once into memory.
-
-    XLA's CPU compiler fuses a producer into each of its consumers, so the
-    tests, read by three consumers, ran three to five times per generation
-    (``optimization_barrier`` is expanded before fusion there). A conditional
-    is a boundary no fusion crosses; ``always`` is a traced true value, so the
-    conditional stays in the program.
-    """
-    shapes = jax.eval_shape(fn, *args)
-    never = lambda *a: jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
-    return jax.lax.cond(always, fn, never, *args)
-
-
 def traverse(pm, decide, capacities, lanes_dtype):
     """The top-down traversal and the bottom-up resolution (see module doc).
 
@@ -195,36 +193,52 @@ def traverse(pm, decide, capacities, lanes_dtype):
     P = pm.n_pcols
     none = jnp.zeros((), lanes_dtype)
     every = ~none
-    ids = pm.roots
-    visits = jnp.full(ids.shape, every)
-    count = jnp.int32(ids.shape[0])
-    levels, needed = [], [count]
-    # Top-down: evaluate each generation, push the children of the pcols it
-    # could not decide, compacted (prefix sum) into the next buffer.
-    for g, cap in enumerate(capacities):
+    # One camera: a pushed child is visited by it, so visits are the valid slots.
+    single = lanes_dtype == bool
+
+    def descend(g, ids, visits, count):
+        """Evaluate generation ``g`` and push the children of the pcols it
+        could not decide, compacted (prefix sum) into the next buffer."""
+        cap = capacities[g]
         valid = jnp.arange(cap) < count
-        visits = jnp.where(valid, visits, none)
-        collapse, whole = _materialized(count >= 0, lambda i: decide(*_gathered(pm, i)), ids)
+        visits = valid if single else jnp.where(valid, visits, none)
+        collapse, whole = decide(*_gathered(pm, ids))
         open_ = visits & ~whole
         kids = pm.children.at[ids].get(mode="promise_in_bounds")
         c1, c2 = kids[:, 0], kids[:, 1]
         push = jnp.concatenate([(open_ != none) & (c1 >= 0), (open_ != none) & (c2 >= 0)])
         slot = prefix_count(push) - 1
-        levels.append((ids, valid, visits, whole, collapse, push, slot))
+        nxt = capacities[g + 1] if g + 1 < len(capacities) else 0
+        target = jnp.where(push, slot, nxt)  # out of range: dropped
+        next_ids = jnp.zeros(nxt, jnp.int32).at[target].set(jnp.concatenate([c1, c2]), mode="drop")
+        next_visits = None if single else \
+            jnp.zeros(nxt, lanes_dtype).at[target].set(jnp.concatenate([open_, open_]), mode="drop")
+        # The last prefix count is the total (a sum here was a reduce-window).
+        return (visits, collapse, whole, push, slot), (next_ids, next_visits, slot[-1] + 1)
+
+    ids = pm.roots
+    visits = None if single else jnp.full(ids.shape, every)
+    count = jnp.int32(ids.shape[0])
+    levels, needed = [], [count]
+    # Top-down. A generation with nothing to visit (the deep ones, for most
+    # views) is skipped by a conditional, which is also a boundary no fusion
+    # crosses: XLA's CPU compiler would otherwise fuse the tests into each of
+    # their three consumers and run them three to five times.
+    for g in range(len(capacities)):
+        run = functools.partial(descend, g)
+        skip = lambda ids, visits, count, run=run: jax.tree.map(
+            lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(run, ids, visits, count))
+        state, (ids_next, visits_next, wanted) = jax.lax.cond(count > 0, run, skip, ids, visits, count)
+        levels.append((ids, count) + state)
         if g + 1 == len(capacities):
             break
-        nxt = capacities[g + 1]
-        target = jnp.where(push, slot, nxt)  # out of range: dropped
-        count = jnp.sum(push, dtype=jnp.int32)
-        needed.append(count)
-        ids = jnp.zeros(nxt, jnp.int32).at[target].set(jnp.concatenate([c1, c2]), mode="drop")
-        visits = jnp.zeros(nxt, lanes_dtype).at[target].set(jnp.concatenate([open_, open_]), mode="drop")
-        count = jnp.minimum(count, nxt)
+        needed.append(wanted)
+        ids, visits, count = ids_next, visits_next, jnp.minimum(wanted, capacities[g + 1])
     # Bottom-up: a pcol runs if its subtree is decided, or it collapses and
     # both children ran (a child not pushed is original, or not open: ran).
     below = None
     out_ids, out_exec = [], []
-    for ids, valid, visits, whole, collapse, push, slot in reversed(levels):
+    for ids, count, visits, collapse, whole, push, slot in reversed(levels):
         cap = ids.shape[0]
         if below is None:
             child_ran = jnp.full(2 * cap, every)
@@ -234,7 +248,7 @@ def traverse(pm, decide, capacities, lanes_dtype):
             child_ran = jnp.where(push, take(below, jnp.clip(slot, 0, below.shape[0] - 1)), every)
         ran = ~visits | whole | (collapse & child_ran[:cap] & child_ran[cap:])
         below = ran
-        out_ids.append(jnp.where(valid, ids, P))
+        out_ids.append(jnp.where(jnp.arange(cap) < count, ids, P))
         out_exec.append(ran)
     return jnp.concatenate(out_ids[::-1]), jnp.concatenate(out_exec[::-1]), jnp.stack(needed)
 

@@ -344,14 +344,10 @@ def refine(
 
 
 def _refine_front(pm: ProgressiveMesh, camera: Camera, tau, tests: Tests) -> Refinement:
-    kind = ("one", tests, camera.orthographic)
-    capacities = pm.plan.capacities(kind)
-    out = _front_refine(pm, camera, tau, tests, capacities)
     # The one host synchronisation: did every generation fit its buffer?
-    if np.any(np.asarray(out[2]) > np.asarray(capacities)):
-        out = _front_refine(pm, camera, tau, tests, pm.plan.full)
-        pm.plan.grow(kind, np.asarray(out[2]))
-    visited, ran, _, n_faces, n_vertices, n_executed = out
+    out = pm.plan.run(("one", tests, camera.orthographic),
+                      lambda capacities: _front_refine(pm, camera, tau, tests, capacities))
+    visited, ran, n_faces, n_vertices, n_executed, _ = out
     return Refinement(pm=pm, visited=visited, visited_executed=ran, dense=None, n_faces=n_faces,
                       n_vertices=n_vertices, n_executed=n_executed)
 
@@ -374,7 +370,7 @@ def _front_refine(pm, camera, tau, tests, capacities):
     view = View.of(camera, tau)
     visited, ran, needed = traverse(pm, one_camera_decide(view, tests), capacities, bool)
     counts = front_counts(pm, visited, (visited < pm.n_pcols) & ~ran)
-    return (visited, ran, needed) + counts
+    return (visited, ran) + counts + (needed,)
 
 
 class _Static:
@@ -528,12 +524,8 @@ def nearby_order(eyes: np.ndarray) -> np.ndarray:
 
 
 def _front_counts(pm: ProgressiveMesh, cameras: Camera, tau, tests: Tests, want_masks: bool):
-    kind = ("word", tests, cameras.orthographic)
-    capacities = pm.plan.capacities(kind)
-    out = _front_counts_chunk(pm, cameras, tau, tests, capacities, want_masks)
-    if np.any(np.asarray(out[-1]).max(0) > np.asarray(capacities)):
-        out = _front_counts_chunk(pm, cameras, tau, tests, pm.plan.full, want_masks)
-        pm.plan.grow(kind, np.asarray(out[-1]).max(0))
+    out = pm.plan.run(("word", tests, cameras.orthographic),
+                      lambda capacities: _front_counts_chunk(pm, cameras, tau, tests, capacities, want_masks))
     return out[:-1]
 
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import pmjax
+from pmjax import _refine
 from pmjax._camera import index_camera, stack_cameras
 from pmjax._oracle import oracle_refine
 
@@ -90,14 +91,19 @@ def test_capacity_overflow_still_exact(built):
     pm = pmjax.ProgressiveMesh.from_data(data)
     cam = index_camera(pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 4), 0)
     kind = ("one", pmjax.ALL_TESTS, False)
+    assert pm.plan.capacities(kind) == pm.plan.full  # before any call: the whole forest
     small = tuple(min(g, 16) for g in pm.plan.full)
     pm.plan._capacities[kind] = small
     front = pmjax.refine(pm, cam, 1.0, method="front")
     assert_same(front, pmjax.refine(pm, cam, 1.0, method="dense"), "overflow")
     grown = pm.plan.capacities(kind)
     assert sum(grown) > sum(small) and all(g >= s for g, s in zip(grown, small))
+    assert sum(grown) < sum(pm.plan.full)
     # The grown buffers hold this view: the next call needs no redo.
     assert front.n_visited <= sum(grown)
+    calls = []
+    pm.plan.run(kind, lambda caps: calls.append(caps) or _refine._front_refine(pm, cam, 1.0, pmjax.ALL_TESTS, caps))
+    assert calls == [grown]
 
 
 def test_user_predicate_uses_the_dense_engine(built):
