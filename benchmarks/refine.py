@@ -68,13 +68,13 @@ def table1(names, frames, tau):
         data = pmjax.read_pm(path)
         cams = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], frames)
         t = time.perf_counter()
-        jax.block_until_ready(pmjax.refine(pm, index_camera(cams, 0), tau))
+        jax.block_until_ready(pmjax.refine(pm, index_camera(cams, 0), tau, method="dense"))
         compile_s = time.perf_counter() - t
         faces, verts, ms = [], [], []
         for i in range(frames):
             cam = index_camera(cams, i)
             t = time.perf_counter()
-            r = jax.block_until_ready(pmjax.refine(pm, cam, tau))
+            r = jax.block_until_ready(pmjax.refine(pm, cam, tau, method="dense"))
             ms.append(1e3 * (time.perf_counter() - t))
             faces.append(int(r.n_faces))
             verts.append(int(r.n_vertices))
@@ -104,11 +104,11 @@ def versus_oracle(name, tau, frames=5):
     eng, orc, loop = [], [], []
     for i in range(frames):
         cam = index_camera(cams, i)
-        jax.block_until_ready(pmjax.refine(pm, cam, tau))
+        jax.block_until_ready(pmjax.refine(pm, cam, tau, method="dense"))
         jax.block_until_ready(collapse_mask(pm.attributes, cam, np.float32(tau)))
         # The engine call is short, so one call is at the mercy of a hiccup:
         # take the median of 10 calls for this frame.
-        eng.append(median_time(lambda: jax.block_until_ready(pmjax.refine(pm, cam, tau)), 10)[0])
+        eng.append(median_time(lambda: jax.block_until_ready(pmjax.refine(pm, cam, tau, method="dense")), 10)[0])
         t = time.perf_counter()
         collapse = np.asarray(collapse_mask(pm.attributes, cam, np.float32(tau)))
         t_loop = time.perf_counter()

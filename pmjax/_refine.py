@@ -213,8 +213,10 @@ class Refinement(eqx.Module):
             PM vertex ids used. From the front its cost is proportional to the
             faces drawn (times the hierarchy's height), not to the hierarchy.
         """
-        if pm is not None and pm is not self.pm and pm.plan is not self.pm.plan:
-            raise ValueError("Refinement.mesh: pm is not the mesh this refinement was made for")
+        if pm is not None and pm is not self.pm and (pm.n_pcols, pm.n_faces, pm.n_original_vertices) != (
+                self.pm.n_pcols, self.pm.n_faces, self.pm.n_original_vertices):
+            raise ValueError("Refinement.mesh: pm is not the mesh this refinement was made for "
+                             f"({pm.n_pcols} pcols, {pm.n_faces} faces; refined: {self.pm.n_pcols}, {self.pm.n_faces})")
         if self.dense is None:
             from ._front_mesh import front_mesh
 
