@@ -140,10 +140,10 @@ def cmd_refine(args) -> int:
     pm = pmjax.load(args.pm)
     cams = pmjax.load_cameras(args.camera)
     cam = pmjax._camera.index_camera(cams, 0)
-    r = pmjax.refine(pm, cam, args.tau, tests=_tests(args))
+    r = pmjax.refine(pm, cam, args.tau, tests=_tests(args), method=args.method)
     r.n_faces.block_until_ready()
     t = time.perf_counter()
-    r = pmjax.refine(pm, cam, args.tau, tests=_tests(args))
+    r = pmjax.refine(pm, cam, args.tau, tests=_tests(args), method=args.method)
     r.n_faces.block_until_ready()
     ms = 1e3 * (time.perf_counter() - t)
     v, f, _ = r.mesh(pm)
@@ -168,12 +168,12 @@ def cmd_path(args) -> int:
     tests = _tests(args)
     K = pmjax._camera.camera_count(cams)
     rows = []
-    first = pmjax.refine(pm, pmjax._camera.index_camera(cams, 0), args.tau, tests=tests)
+    first = pmjax.refine(pm, pmjax._camera.index_camera(cams, 0), args.tau, tests=tests, method=args.method)
     first.n_faces.block_until_ready()  # compile once, outside the timings
     for i in tqdm(range(K), unit="frame", desc="path", disable=args.quiet):
         cam = pmjax._camera.index_camera(cams, i)
         t = time.perf_counter()
-        r = pmjax.refine(pm, cam, args.tau, tests=tests)
+        r = pmjax.refine(pm, cam, args.tau, tests=tests, method=args.method)
         jax.block_until_ready(r)
         rows.append(dict(frame=i, **_stats(r, 1e3 * (time.perf_counter() - t))))
     cols = ["frame", "faces", "vertices", "executed", "milliseconds"]
@@ -341,6 +341,11 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--no", action="append", choices=("frustum", "orientation", "screen"),
                        help="switch a test off (repeatable)")
 
+    def add_method_arg(p):
+        p.add_argument("--method", choices=("auto", "front", "dense"), default="auto",
+                       help="refinement engine, same results: front (output-sensitive), dense (every pcol), "
+                            "auto (front from 100,000 pcols on; docs/front.md)")
+
     p = sub.add_parser("refine", help="refine for one camera and write the mesh",
                        description="View-dependent refinement for the first camera of a camera file.")
     p.add_argument("pm", help=".pmz file")
@@ -348,6 +353,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="output mesh")
     p.add_argument("--stats-json", help="write counts and timing as JSON")
     add_view_args(p)
+    add_method_arg(p)
     p.set_defaults(func=cmd_refine)
 
     p = sub.add_parser("path", help="refine along a camera path, one CSV row per camera",
@@ -363,6 +369,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_geomorph_arg(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_view_args(p)
+    add_method_arg(p)
     p.set_defaults(func=cmd_path)
 
     p = sub.add_parser("render", help="render a camera path to .mp4, .gif or PNG frames (headless)",

@@ -76,6 +76,14 @@ def test_refine_and_path_commands(tmp_path, built, capsys):
     want = pmjax.refine_batch(pmjax.ProgressiveMesh.from_data(data), cams, 1.0,
                               tests=pmjax.Tests(orientation=False))["faces"]
     assert got == list(want)
+    # Both engines through the CLI: the same rows, and the same mesh file.
+    assert main(["path", str(pmz), "--path", str(tmp_path / "path.json"), "--csv", str(tmp_path / "f.csv"), "-q",
+                 "--no", "orientation", "--method", "front"]) == 0
+    assert [int(row["faces"]) for row in csv.DictReader(open(tmp_path / "f.csv"))] == got
+    front = tmp_path / "front.ply"
+    assert main(["refine", str(pmz), "--camera", str(tmp_path / "one.json"), "--tau", "2", "-o", str(front),
+                 "--method", "front"]) == 0
+    assert front.read_bytes() == out.read_bytes()
     assert main(["path", str(pmz), "--orbit", "3", "-q"]) == 0
     assert main(["refine", str(pmz), "--camera", str(tmp_path / "missing.json"), "-o", str(out)]) == 2
     assert "cannot read cameras" in capsys.readouterr().err
