@@ -14,7 +14,9 @@ the deepest generation up, ``executed(p) = whole(p) ∨ (collapse(p) ∧
 executed(c1) ∧ executed(c2))``, an original vertex counting as executed. Every
 pcol not visited lies under a decided subtree, so it is executed: the visited
 pcols and their flags are the whole answer, and the work is proportional to
-them (about twice the pcols not executed), not to the hierarchy.
+them (about twice the pcols not executed), not to the hierarchy. On a CPU,
+each generation also has a fixed cost of a dozen small kernels, which
+dominates on small hierarchies (docs/front.md).
 
 Generations are fixed-capacity buffers (XLA needs static shapes). The
 children of a generation are compacted into the next buffer by a prefix sum;
@@ -27,7 +29,7 @@ depends on the capacities.
 
 The same traversal serves many cameras at once: a node then carries a
 ``uint32`` word, one bit per camera of a group of 32, and a node is visited
-when any of the 32 visits it (:func:`traverse` with ``lanes``).
+when any of the 32 visits it (:func:`traverse` with ``lanes_dtype=uint32``).
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ from ._subtree import SubtreeBounds, subtree_collapses
 
 def take(values, indices):
     """``values[..., indices]``: along the last axis, for in-range indices
-    (no wrapping nor clamping, the fast gather on the CPU)."""
+    (no wrapping nor clamping)."""
     return values.at[..., indices].get(mode="promise_in_bounds")
 
 
@@ -149,7 +151,9 @@ TABLE_BOUNDS = ("reach", "spread", "cone", "error")
 def _gathered(pm, ids):
     """The attributes and subtree bounds of pcols ``ids``, from one row each."""
     rows = pm.table.at[ids].get(mode="promise_in_bounds").T  # [16, C]
-    attrs = PcolAttributes(center=rows[0:3], axis=rows[3:6], **{k: rows[4 + i] for i, k in enumerate(TABLE_ATTRIBUTES) if i >= 2})
+    # Columns 0-2 centre, 3-5 axis, then one column per remaining attribute.
+    scalars = {k: rows[4 + i] for i, k in enumerate(TABLE_ATTRIBUTES) if i >= 2}
+    attrs = PcolAttributes(center=rows[0:3], axis=rows[3:6], **scalars)
     bounds = SubtreeBounds(**{k: rows[12 + i] for i, k in enumerate(TABLE_BOUNDS)})
     return attrs, bounds
 
@@ -161,15 +165,17 @@ def prefix_count(flags):
     """Inclusive prefix sum of a bool vector, as ``int32``.
 
     Two small matrix products with triangular matrices of ones (exact in
-    float32 below 2^24): blocks of 64, then the blocks' totals. On the CPU,
+    float32 below 2^24, at full precision: a GPU's default TF32 products
+    would round counts above 1024): blocks of 64, then the blocks' totals. On the CPU,
     ``jnp.cumsum`` (a reduce-window) ran 3x slower, and an associative scan
     cost a dozen tiny kernels per call.
     """
     n = flags.shape[0]
     blocks = jnp.pad(flags.astype(jnp.float32), (0, -n % BLOCK)).reshape(-1, BLOCK)
-    within = blocks @ jnp.triu(jnp.ones((BLOCK, BLOCK), jnp.float32))
+    exact = jax.lax.Precision.HIGHEST
+    within = jnp.matmul(blocks, jnp.triu(jnp.ones((BLOCK, BLOCK), jnp.float32)), precision=exact)
     totals = within[:, -1]
-    before = totals @ jnp.triu(jnp.ones((totals.shape[0],) * 2, jnp.float32), 1)
+    before = jnp.matmul(totals, jnp.triu(jnp.ones((totals.shape[0],) * 2, jnp.float32), 1), precision=exact)
     return (within + before[:, None]).reshape(-1)[:n].astype(jnp.int32)
 
 

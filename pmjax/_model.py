@@ -93,8 +93,9 @@ class ProgressiveMesh(eqx.Module):
             its subtree (the output-sensitive traversal's pruning test).
         roots: ``[R]`` int32, the pcols no pcol consumes (the forest's roots).
         table: ``[P, 16]`` float32, per pcol its attributes and subtree bounds
-            in one 64-byte row (:data:`pmjax._front.TABLE`): the traversal
-            gathers scattered pcols, one cache line each instead of 16.
+            in one 64-byte row (columns ``pmjax._front.TABLE_ATTRIBUTES``, then
+            ``TABLE_BOUNDS``): the traversal gathers scattered pcols, one row
+            each instead of 16 separate arrays.
         children: ``[P, 2]`` int32, ``child1`` and ``child2`` side by side.
         plan: static :class:`pmjax._front.FrontPlan` (traversal capacities,
             host arrays of the front mesh).

@@ -210,8 +210,8 @@ class Refinement(eqx.Module):
         Returns:
             ``(vertices float32[n, 3], faces int32[m, 3], vertex_ids int32[n])``:
             faces in increasing original face order, ``vertex_ids`` the sorted
-            PM vertex ids used. From the front its cost is proportional to the
-            faces drawn (times the hierarchy's height), not to the hierarchy.
+            PM vertex ids used. From the front its cost follows the faces
+            drawn, plus one prefix sum over the V0 original vertices.
         """
         if pm is not None and pm is not self.pm and (pm.n_pcols, pm.n_faces, pm.n_original_vertices) != (
                 self.pm.n_pcols, self.pm.n_faces, self.pm.n_original_vertices):
@@ -263,9 +263,10 @@ def _finish(pm: ProgressiveMesh, executed):
 
 METHODS = ("auto", "front", "dense")
 
-# "auto" refines one camera with the front engine from this many pcols on:
-# below it the dense engine is as fast (bunny, 34,819 pcols: 0.82 against
-# 0.77-0.90 ms) and compiles in a third of the time (docs/bench-refine.md).
+# "auto" refines one camera with the front engine from this many pcols on;
+# below it the dense engine is faster (docs/front.md, 2 cores: bunny, 34,819
+# pcols, 0.58 against 0.86 ms front; St Helens, 148,883, 1.97 against 1.34;
+# dragon, 436,325, 5.90 against 2.43) and compiles in a third of the time.
 FRONT_FROM_PCOLS = 100_000
 
 
@@ -468,9 +469,10 @@ def refine_batch(
         chunk: cameras per vmapped call, rounded up to a multiple of 32 (one
             bitset word); the last chunk is padded.
         return_masks: also return ``executed`` masks ``bool[K, P]``.
-        method: as :func:`refine`. ``"front"`` traverses, per group of 32
+        method: ``"dense"`` (and ``"auto"``: faster for batches today, see
+            docs/front.md) or ``"front"``, which traverses, per group of 32
             cameras, the union of their fronts (one bit per camera), with the
-            cameras reordered so that nearby eyes share a group.
+            cameras reordered so that nearby eyes share a group. Same results.
 
     Returns:
         dict of NumPy arrays: ``faces``, ``vertices``, ``executed_count``

@@ -15,7 +15,7 @@ computed at load (:func:`subtree_bounds`), all upper bounds over the subtree
   ``max angle(n_p, n_q) + alpha_q``;
 - ``error``: ``max(mu_q, delta_q)``.
 
-Then (DESIGN §3's tests, each on the outer sphere and cone):
+Then the refinement tests, each on the outer sphere and cone:
 
 - **outside**: the ``reach`` sphere is outside a frustum plane: so is every
   sphere inside it;
