@@ -46,10 +46,10 @@ from ._predicate import view_collapse_mask
 from ._subtree import SubtreeBounds, subtree_collapses
 
 
-def take(values, indices):
-    """``values[..., indices]``: along the last axis, for in-range indices
-    (no wrapping nor clamping)."""
-    return values.at[..., indices].get(mode="promise_in_bounds")
+def gather(values, indices):
+    """``values[indices]`` for indices known to be in range: no wrapping of
+    negative indices nor clamping (2x faster gathers on the CPU)."""
+    return values.at[indices].get(mode="promise_in_bounds")
 
 
 class FrontPlan:
@@ -150,7 +150,7 @@ TABLE_BOUNDS = ("reach", "spread", "cone", "error")
 
 def _gathered(pm, ids):
     """The attributes and subtree bounds of pcols ``ids``, from one row each."""
-    rows = pm.table.at[ids].get(mode="promise_in_bounds").T  # [16, C]
+    rows = gather(pm.table, ids).T  # [16, C]
     # Columns 0-2 centre, 3-5 axis, then one column per remaining attribute.
     scalars = {k: rows[4 + i] for i, k in enumerate(TABLE_ATTRIBUTES) if i >= 2}
     attrs = PcolAttributes(center=rows[0:3], axis=rows[3:6], **scalars)
@@ -210,7 +210,7 @@ def traverse(pm, decide, capacities, lanes_dtype):
         visits = valid if single else jnp.where(valid, visits, none)
         collapse, whole = decide(*_gathered(pm, ids))
         open_ = visits & ~whole
-        kids = pm.children.at[ids].get(mode="promise_in_bounds")
+        kids = gather(pm.children, ids)
         c1, c2 = kids[:, 0], kids[:, 1]
         push = jnp.concatenate([(open_ != none) & (c1 >= 0), (open_ != none) & (c2 >= 0)])
         slot = prefix_count(push) - 1
@@ -251,7 +251,7 @@ def traverse(pm, decide, capacities, lanes_dtype):
         else:
             # A child beyond the next buffer was dropped: the clip keeps the read
             # in range, and the call, which reports the overflow, is redone.
-            child_ran = jnp.where(push, take(below, jnp.clip(slot, 0, below.shape[0] - 1)), every)
+            child_ran = jnp.where(push, gather(below, jnp.clip(slot, 0, below.shape[0] - 1)), every)
         ran = ~visits | whole | (collapse & child_ran[:cap] & child_ran[cap:])
         below = ran
         out_ids.append(jnp.where(jnp.arange(cap) < count, ids, P))

@@ -17,19 +17,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._front import one_camera_decide, traverse
-from ._subtree import subtree_collapses
 from ._bitsets import WORD, column_popcounts, pack_cameras, unpack_cameras, weight_bits_for
 from ._camera import Camera, camera_count, index_camera
+from ._front import gather, one_camera_decide, traverse
 from ._model import ProgressiveMesh
 from ._predicate import ALL_TESTS, Tests, UserPredicate, collapse_mask, critical_tau, view_collapse_mask
+from ._subtree import subtree_collapses
 from ._view import View
-
-
-def gather(values, indices):
-    """``values[indices]`` for indices known to be in range: no wrapping of
-    negative indices nor clamping (2x faster gathers on the CPU)."""
-    return values.at[indices].get(mode="promise_in_bounds")
 
 
 def up_the_batches(pm: ProgressiveMesh, own, leaf, join):
