@@ -123,18 +123,17 @@ class FrontPlan:
         return isinstance(other, FrontPlan) and self.generation_sizes == other.generation_sizes
 
 
-def forest_generations(child1: np.ndarray, child2: np.ndarray, batch_offsets) -> tuple[np.ndarray, np.ndarray]:
+def forest_generations(parent: np.ndarray, batch_offsets) -> tuple[np.ndarray, np.ndarray]:
     """Roots of the pcol forest and each pcol's depth below its root.
+
+    Args:
+        parent: ``[P]`` the pcol consuming each pcol's vertex, ``-1`` for none
+            (``ProgressiveMesh.parent`` of the created vertices).
 
     Returns:
         ``(roots int32[R], depth int32[P])``; roots in increasing order.
     """
-    P = len(child1)
-    parent = np.full(P, -1, np.int64)
-    for child in (child1, child2):
-        has = np.flatnonzero(child >= 0)
-        parent[child[has]] = has
-    depth = np.zeros(P, np.int32)
+    depth = np.zeros(len(parent), np.int32)
     # Parents are in later batches: resolve from the last batch down.
     for lo, hi in reversed(list(zip(batch_offsets[:-1], batch_offsets[1:]))):
         up = parent[lo:hi]
