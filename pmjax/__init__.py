@@ -19,6 +19,8 @@ from ._soft import SoftRefinement, geomorph_blend, geomorph_positions, soft_refi
 from ._normals import hierarchy_normals
 from ._budget import BudgetSolution, soft_tau_for_budget
 from ._geomorph import Geomorph, geomorph_mesh, geomorph_start, geomorph_step, hidden_pcols
+from ._camera_table import CameraError, CameraTable, read_camera_table, table_from_cameras, write_camera_table
+from ._eval import CameraSet, EvalError, EvalSummary, camera_set, evaluate
 from ._distance import distance_to_surface, point_triangle_distance, sample_surface, surface_distance
 
 __all__ = [
@@ -56,6 +58,16 @@ __all__ = [
     "random_views",
     "save_cameras",
     "stack_cameras",
+    "CameraError",
+    "CameraTable",
+    "read_camera_table",
+    "table_from_cameras",
+    "write_camera_table",
+    "CameraSet",
+    "EvalError",
+    "EvalSummary",
+    "camera_set",
+    "evaluate",
     "standard_orbit",
     "PcolAttributes",
     "ProgressiveMesh",

@@ -184,46 +184,29 @@ def index_camera(camera: Camera, i) -> Camera:
 
 def standard_orbit(vertices, n_frames: int = 240, *, elevation_deg=20.0, width=800, height=600,
                    fov_y_deg=45.0) -> Camera:
-    """The standard orbit of DESIGN §7 as a batch of ``n_frames`` cameras.
+    """The standard orbit, the camera set of every published comparison, as a
+    batch of ``n_frames`` cameras.
 
     Orbits the bounding-box centre at distance ``r / sin(22.5°)`` (``r`` = half
     the bounding-box diagonal) at 20° elevation, up axis +y.
     """
-    v = np.asarray(vertices, np.float64)
-    lo, hi = v.min(0), v.max(0)
-    centre = 0.5 * (lo + hi)
-    r = 0.5 * np.linalg.norm(hi - lo)
-    dist = r / math.sin(math.radians(22.5))
-    el = math.radians(elevation_deg)
-    cams = []
-    for k in range(n_frames):
-        az = 2 * math.pi * k / n_frames
-        offset = dist * np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
-        cams.append(look_at(centre + offset, centre, fov_y_deg=fov_y_deg, width=width, height=height,
-                            near=0.01 * r, far=dist + 2 * r))
-    return stack_cameras(cams)
+    from ._camera_table import orbit_rows
+
+    return orbit_rows(vertices, n_frames, 0, n_frames, elevation_deg=elevation_deg, width=width, height=height,
+                      fov_y_deg=fov_y_deg).camera()
 
 
 def random_views(vertices, n: int, *, seed=0, min_scale=0.05, max_scale=4.0, width=800, height=600,
                  fov_y_deg=45.0) -> Camera:
     """``n`` cameras at random directions and distances around the model,
-    each looking at a random point near it (inside, outside, close-up, far)."""
-    rng = np.random.default_rng(seed)
-    v = np.asarray(vertices, np.float64)
-    lo, hi = v.min(0), v.max(0)
-    centre, r = 0.5 * (lo + hi), 0.5 * np.linalg.norm(hi - lo)
-    cams = []
-    for _ in range(n):
-        d = rng.normal(size=3)
-        d /= np.linalg.norm(d)
-        dist = r * math.exp(rng.uniform(math.log(min_scale), math.log(max_scale)))
-        eye = centre + d * dist
-        target = centre + rng.normal(scale=0.5 * r, size=3)
-        if np.linalg.norm(target - eye) < 1e-6 * r:
-            target = centre
-        cams.append(look_at(eye, target, fov_y_deg=fov_y_deg, width=width, height=height,
-                            near=1e-3 * r, far=10 * r + dist))
-    return stack_cameras(cams)
+    each looking at a random point near it (inside, outside, close-up, far):
+    the first ``n`` rows of the random view set with ``seed`` that
+    ``pmjax eval --random`` uses (directions uniform on the sphere, distances
+    log-uniform in ``[min_scale, max_scale]`` times the half diagonal)."""
+    from ._camera_table import random_rows
+
+    return random_rows(vertices, seed, 0, n, min_scale=min_scale, max_scale=max_scale, width=width,
+                       height=height, fov_y_deg=fov_y_deg).camera()
 
 
 def fly_through(keyframes: list[tuple], n_frames: int, **kw) -> Camera:

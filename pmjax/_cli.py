@@ -206,6 +206,27 @@ FIDELITY_COLUMNS = ("differing_share", "psnr", "silhouette_share", "popping_shar
                     "render_ms")
 
 
+def cmd_eval(args) -> int:
+    from pmjax._eval import DEFAULT_COMPILE_CACHE, camera_set, evaluate
+
+    image = dict(width=args.size[0], height=args.size[1], fov_y_deg=args.fov)
+    sets = [camera_set(spec, **image) for spec in args.cameras or []]
+    sets += [camera_set(f"orbit:{n}", **image) for n in args.orbit or []]
+    sets += [camera_set(f"fly:{n}", **image) for n in args.fly or []]
+    sets += [camera_set(f"random:{n}:{args.seed}", **image) for n in args.random or []]
+    if not sets:
+        sets = [camera_set("orbit:240", **image)]
+    taus = args.tau or ([] if args.budget else [1.0])
+    summary = evaluate(args.models, sets, args.output, taus=taus, budgets=args.budget or [], tests=_tests(args),
+                       method=args.method, chunk=args.chunk,
+                       compile_cache=None if args.no_compile_cache else (args.compile_cache or DEFAULT_COMPILE_CACHE),
+                       scheduler=args.scheduler, workers=args.workers, progress=not args.quiet)
+    print(f"{summary.folder}: {summary.rows} rows; {summary.parts_written} parts written now "
+          f"({summary.cameras} cameras, {summary.cameras_per_s:.0f} cameras/s over {summary.seconds:.1f} s), "
+          f"{summary.parts_skipped} parts found done")
+    return 0
+
+
 def _path_cameras(pm, args):
     import pmjax
 
@@ -329,7 +350,8 @@ def build_parser() -> argparse.ArgumentParser:
     def add_path_args(p):
         # read by _path_cameras
         g = p.add_mutually_exclusive_group(required=True)
-        g.add_argument("--orbit", type=int, help="standard orbit with N frames (DESIGN §7)")
+        g.add_argument("--orbit", type=int, help="the standard orbit with N frames (round the bounding-box centre "
+                       "at r / sin 22.5°, r the half diagonal, 20° elevation)")
         g.add_argument("--path", help="camera file (.json or .csv)")
 
     def add_geomorph_arg(p):
@@ -371,6 +393,40 @@ def build_parser() -> argparse.ArgumentParser:
     add_view_args(p)
     add_method_arg(p)
     p.set_defaults(func=cmd_path)
+
+    p = sub.add_parser("eval", help="evaluate models x camera sets x tolerances into a Parquet dataset",
+                       description="One row per (model, camera set, tau or budget, camera): faces, vertices, "
+                                   "executed pcols, refine time. Parts are written atomically into the output "
+                                   "folder as the work goes; re-running the same command resumes. "
+                                   "Columns and camera files: docs/eval.md.")
+    p.add_argument("models", nargs="+", help=".pmz files")
+    p.add_argument("-o", "--output", required=True, help="dataset folder (Parquet part files and _job.json)")
+    p.add_argument("--cameras", action="append", metavar="FILE",
+                   help="camera table, .npz or .parquet (repeatable; schema in docs/eval.md)")
+    p.add_argument("--orbit", type=int, action="append", metavar="N",
+                   help="the standard orbit with N frames round each model (repeatable; the default is 240)")
+    p.add_argument("--fly", type=int, action="append", metavar="N",
+                   help="a fly-through of N frames past each model (repeatable)")
+    p.add_argument("--random", type=int, action="append", metavar="N", help="N random views of each model (repeatable)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random views (default 0)")
+    p.add_argument("--size", type=int, nargs=2, default=(800, 600), metavar=("W", "H"),
+                   help="image size of generated cameras (default 800 600)")
+    p.add_argument("--fov", type=float, default=45.0, help="vertical field of view of generated cameras, degrees")
+    p.add_argument("--tau", type=float, action="append", help="tolerance in pixels (repeatable; default 1)")
+    p.add_argument("--budget", type=int, action="append",
+                   help="face budget instead of tau (repeatable): the tolerance found is in the tau column")
+    p.add_argument("--no", action="append", choices=("frustum", "orientation", "screen"),
+                   help="switch a test off (repeatable)")
+    add_method_arg(p)
+    p.add_argument("--chunk", type=int, default=4096, help="cameras per part file and per task (default 4096)")
+    p.add_argument("--workers", type=int, default=0,
+                   help="run on a local Dask cluster of N single-threaded worker processes (default 0: this process)")
+    p.add_argument("--scheduler", help="run on a Dask cluster: scheduler address, tcp://HOST:PORT")
+    p.add_argument("--compile-cache", metavar="DIR",
+                   help="JAX's persistent compilation cache (default ~/.cache/pmjax/xla)")
+    p.add_argument("--no-compile-cache", action="store_true", help="do not use the persistent compilation cache")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("render", help="render a camera path to .mp4, .gif or PNG frames (headless)",
                        description="Refine and render every camera of a path offscreen (EGL or OSMesa).")

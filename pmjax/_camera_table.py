@@ -1,0 +1,359 @@
+"""Camera sets as columnar tables: plain NumPy columns, one row per camera.
+
+A :class:`CameraTable` is what large evaluations read and generate: millions of
+cameras never become millions of Python objects, and any row range turns into
+:class:`pmjax.Camera` batches (one per image size and projection) on demand.
+
+Files (``.npz`` or Parquet) hold the same flat columns (documented in
+docs/eval.md): ``eye_x, eye_y, eye_z``; the orientation as
+``target_x, target_y, target_z`` (with optional ``up_x, up_y, up_z``, default
++y) or as the camera-to-world rotation ``r00 … r22`` (row-major; columns
+right, up, back); optional ``fov_y_deg`` (45), ``ortho_height`` (1),
+``width`` (800), ``height`` (600), ``near``, ``far`` (default 1e-3 and 1e3
+times the eye–target distance, or 1e-3 and 1e3 with a rotation),
+``orthographic`` (false), ``path_id`` and ``frame``.
+
+The generators (orbit, fly-through, random views) give row ranges of a set
+without building the rest, and a row's camera depends on its index only, so a
+set cut into chunks gives the same cameras however it is cut.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from typing import Iterator, Optional
+
+import jax.numpy as jnp
+import numpy as np
+
+from ._atomic import atomic_path
+from ._camera import Camera
+
+# Column names of the file schema, grouped as they are read.
+EYE = ("eye_x", "eye_y", "eye_z")
+TARGET = ("target_x", "target_y", "target_z")
+UP = ("up_x", "up_y", "up_z")
+ROTATION = tuple(f"r{i}{j}" for i in range(3) for j in range(3))
+SCALARS = ("fov_y_deg", "ortho_height", "near", "far")
+SIZES = ("width", "height")
+COLUMNS = EYE + TARGET + UP + ROTATION + SCALARS + SIZES + ("orthographic", "path_id", "frame")
+
+# Block of rows drawn from one seeded generator (random views): fixed, so a
+# row's camera does not depend on how the set is chunked.
+RANDOM_BLOCK = 4096
+
+
+class CameraError(ValueError):
+    """A camera set that cannot be used; the message names the file, row and column."""
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraTable:
+    """N cameras as columns (float64 geometry, so files round-trip exactly).
+
+    Attributes:
+        eye: ``float64[N, 3]``.
+        rotation: ``float64[N, 3, 3]`` camera-to-world (columns right, up, back).
+        fov_y: ``float64[N]`` radians.
+        near, far, ortho_height: ``float64[N]`` model units.
+        width, height: ``int32[N]`` pixels.
+        orthographic: ``bool[N]``.
+        path_id, frame: ``int64[N]`` or ``None`` when the set has no paths.
+    """
+
+    eye: np.ndarray
+    rotation: np.ndarray
+    fov_y: np.ndarray
+    near: np.ndarray
+    far: np.ndarray
+    ortho_height: np.ndarray
+    width: np.ndarray
+    height: np.ndarray
+    orthographic: np.ndarray
+    path_id: Optional[np.ndarray] = None
+    frame: Optional[np.ndarray] = None
+
+    def __len__(self) -> int:
+        return int(self.eye.shape[0])
+
+    def rows(self, lo: int, hi: int) -> "CameraTable":
+        """Rows ``[lo, hi)``."""
+        return CameraTable(**{f.name: None if getattr(self, f.name) is None else getattr(self, f.name)[lo:hi]
+                              for f in dataclasses.fields(self)})
+
+    def batches(self) -> Iterator[tuple[np.ndarray, Camera]]:
+        """``(row indices, Camera batch)`` per image size and projection, rows
+        in increasing order within each (a Camera batch shares those)."""
+        kinds = np.stack([self.width, self.height, self.orthographic.astype(np.int32)], axis=1)
+        keys, inverse = np.unique(kinds, axis=0, return_inverse=True)
+        for k, (w, h, ortho) in enumerate(keys):
+            idx = np.flatnonzero(inverse.reshape(-1) == k)
+            yield idx, Camera(
+                eye=jnp.asarray(self.eye[idx], jnp.float32),
+                rotation=jnp.asarray(self.rotation[idx], jnp.float32),
+                fov_y=jnp.asarray(self.fov_y[idx], jnp.float32),
+                near=jnp.asarray(self.near[idx], jnp.float32),
+                far=jnp.asarray(self.far[idx], jnp.float32),
+                ortho_height=jnp.asarray(self.ortho_height[idx], jnp.float32),
+                width=int(w), height=int(h), orthographic=bool(ortho))
+
+    def camera(self) -> Camera:
+        """All rows as one Camera batch (they must share image size and projection)."""
+        groups = list(self.batches())
+        if len(groups) != 1:
+            raise CameraError(f"{len(groups)} image sizes or projections in one set; use batches()")
+        return groups[0][1]
+
+    def columns(self) -> dict:
+        """The file schema's columns (rotation form), NumPy arrays."""
+        cols = {name: self.eye[:, i] for i, name in enumerate(EYE)}
+        cols.update({name: self.rotation[:, i // 3, i % 3] for i, name in enumerate(ROTATION)})
+        cols.update(fov_y_deg=np.degrees(self.fov_y), ortho_height=self.ortho_height, near=self.near, far=self.far,
+                    width=self.width, height=self.height, orthographic=self.orthographic)
+        if self.path_id is not None:
+            cols.update(path_id=self.path_id, frame=self.frame)
+        return cols
+
+
+def table_from_cameras(camera: Camera, path_id=None, frame=None) -> CameraTable:
+    """A :class:`CameraTable` holding a Camera batch (or one camera)."""
+    n = max(1, int(camera.eye.shape[0]) if camera.eye.ndim == 2 else 1)
+    flat = lambda a: np.asarray(a, np.float64).reshape(n)  # noqa: E731
+    return CameraTable(
+        eye=np.asarray(camera.eye, np.float64).reshape(n, 3),
+        rotation=np.asarray(camera.rotation, np.float64).reshape(n, 3, 3),
+        fov_y=flat(camera.fov_y), near=flat(camera.near), far=flat(camera.far),
+        ortho_height=flat(camera.ortho_height),
+        width=np.full(n, camera.width, np.int32), height=np.full(n, camera.height, np.int32),
+        orthographic=np.full(n, bool(camera.orthographic)),
+        path_id=None if path_id is None else np.broadcast_to(np.asarray(path_id, np.int64), (n,)).copy(),
+        frame=None if frame is None else np.broadcast_to(np.asarray(frame, np.int64), (n,)).copy())
+
+
+def look_at_rotations(eye, target, up) -> np.ndarray:
+    """Camera-to-world rotations ``float64[N, 3, 3]`` looking from ``eye`` at
+    ``target`` (``[N, 3]`` each), as :func:`pmjax.look_at` builds one: when
+    ``up`` is along the view, another up is picked."""
+    back = eye - target
+    back = back / np.linalg.norm(back, axis=1, keepdims=True)
+    right = np.cross(up, back)
+    # Looking along up: the same fallback as look_at.
+    along = np.linalg.norm(right, axis=1) < 1e-9
+    if along.any():
+        other = np.where(np.abs(back[along, 2:3]) < 0.9, [0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
+        right[along] = np.cross(other, back[along])
+    right /= np.linalg.norm(right, axis=1, keepdims=True)
+    true_up = np.cross(back, right)
+    return np.stack([right, true_up, back], axis=2)
+
+
+def _defaults(n, *, fov_y_deg=45.0, width=800, height=600, orthographic=False, ortho_height=1.0):
+    return dict(fov_y=np.full(n, math.radians(fov_y_deg)), ortho_height=np.full(n, float(ortho_height)),
+                width=np.full(n, int(width), np.int32), height=np.full(n, int(height), np.int32),
+                orthographic=np.full(n, bool(orthographic)))
+
+
+def _bounds(vertices):
+    v = np.asarray(vertices, np.float64)
+    lo, hi = v.min(0), v.max(0)
+    return 0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo))
+
+
+def orbit_rows(vertices, n_frames: int, lo: int, hi: int, *, elevation_deg=20.0, width=800, height=600,
+               fov_y_deg=45.0) -> CameraTable:
+    """Rows ``[lo, hi)`` of the standard orbit of ``n_frames`` cameras (see
+    :func:`pmjax.standard_orbit`); one path, ``frame`` = row."""
+    centre, r = _bounds(vertices)
+    dist = r / math.sin(math.radians(22.5))
+    el = math.radians(elevation_deg)
+    k = np.arange(lo, hi)
+    az = 2 * math.pi * k / n_frames
+    offset = dist * np.stack([math.cos(el) * np.sin(az), np.full(len(k), math.sin(el)), math.cos(el) * np.cos(az)], 1)
+    eye = centre + offset
+    target = np.broadcast_to(centre, eye.shape)
+    return CameraTable(eye=eye, rotation=look_at_rotations(eye, target, np.array([0.0, 1.0, 0.0])),
+                       near=np.full(len(k), 0.01 * r), far=np.full(len(k), dist + 2 * r),
+                       path_id=np.zeros(len(k), np.int64), frame=k.astype(np.int64),
+                       **_defaults(len(k), fov_y_deg=fov_y_deg, width=width, height=height))
+
+
+def random_rows(vertices, seed: int, lo: int, hi: int, *, min_scale=0.05, max_scale=4.0, width=800, height=600,
+                fov_y_deg=45.0) -> CameraTable:
+    """Rows ``[lo, hi)`` of the random views with ``seed``: directions uniform
+    on the sphere, distances log-uniform in ``[min_scale, max_scale]`` times
+    the half diagonal ``r``, each looking at a point drawn around the centre
+    (``N(0, (r/2)²)`` per axis). Rows come in blocks of 4096 drawn from a
+    generator seeded by ``(seed, block)``."""
+    centre, r = _bounds(vertices)
+    parts = []
+    for block in range(lo // RANDOM_BLOCK, -(-hi // RANDOM_BLOCK)):
+        rng = np.random.default_rng([seed, block])
+        d = rng.normal(size=(RANDOM_BLOCK, 3))
+        scale = np.exp(rng.uniform(math.log(min_scale), math.log(max_scale), RANDOM_BLOCK))
+        aim = rng.normal(scale=0.5 * r, size=(RANDOM_BLOCK, 3))
+        first = block * RANDOM_BLOCK
+        keep = slice(max(lo - first, 0), min(hi - first, RANDOM_BLOCK))
+        parts.append((d[keep], scale[keep], aim[keep]))
+    d, scale, aim = (np.concatenate(p) for p in zip(*parts)) if parts else (np.zeros((0, 3)),) * 3
+    dist = r * scale
+    eye = centre + d / np.linalg.norm(d, axis=1, keepdims=True) * dist[:, None]
+    target = centre + aim
+    # A target on the eye (never seen in practice) looks at the centre instead.
+    target[np.linalg.norm(target - eye, axis=1) < 1e-6 * r] = centre
+    return CameraTable(eye=eye, rotation=look_at_rotations(eye, target, np.array([0.0, 1.0, 0.0])),
+                       near=np.full(len(eye), 1e-3 * r), far=10 * r + dist,
+                       **_defaults(len(eye), fov_y_deg=fov_y_deg, width=width, height=height))
+
+
+def fly_rows(vertices, n_frames: int, lo: int, hi: int, *, width=800, height=600, fov_y_deg=45.0) -> CameraTable:
+    """Rows ``[lo, hi)`` of a fly-through of ``n_frames`` cameras: from far in
+    front of the model (4 r) to close by its side (0.3 r from the surface's
+    bounding sphere), round the back and out again, always looking at the
+    centre; one path, ``frame`` = row."""
+    centre, r = _bounds(vertices)
+    keys = np.array([[0.3, 0.5, 4.0], [1.3, 0.2, 0.2], [0.1, 0.4, -1.3], [-2.5, 0.8, -1.0]]) * r + centre
+    s = np.arange(lo, hi) * ((len(keys) - 1) / max(1, n_frames - 1))
+    i = np.minimum(s.astype(int), len(keys) - 2)
+    w = (s - i)[:, None]
+    eye = keys[i] * (1 - w) + keys[i + 1] * w
+    dist = np.linalg.norm(eye - centre, axis=1)
+    return CameraTable(eye=eye, rotation=look_at_rotations(eye, np.broadcast_to(centre, eye.shape),
+                                                           np.array([0.0, 1.0, 0.0])),
+                       near=1e-3 * dist, far=1e3 * dist, path_id=np.zeros(len(eye), np.int64),
+                       frame=np.arange(lo, hi, dtype=np.int64),
+                       **_defaults(len(eye), fov_y_deg=fov_y_deg, width=width, height=height))
+
+
+# ---------------------------------------------------------------- files
+
+
+def write_camera_table(table: CameraTable, path) -> None:
+    """Write ``table`` to ``.npz`` or ``.parquet`` (atomically), in the
+    rotation form of the schema."""
+    path = os.fspath(path)
+    cols = table.columns()
+    if path.endswith(".npz"):
+        with atomic_path(path, suffix=".npz") as tmp:
+            np.savez(tmp, **cols)
+    elif path.endswith(".parquet"):
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        with atomic_path(path) as tmp:
+            pq.write_table(pa.table(cols), tmp)
+    else:
+        raise CameraError(f"{path}: camera tables are .npz or .parquet files")
+
+
+def _read_columns(path: str) -> dict:
+    try:
+        if path.endswith(".npz"):
+            with np.load(path, allow_pickle=False) as z:
+                return {k: z[k] for k in z.files}
+        if path.endswith(".parquet"):
+            import pyarrow.parquet as pq
+
+            table = pq.read_table(path)
+            out = {}
+            for name in table.column_names:
+                col = table.column(name)
+                if col.null_count:
+                    row = int(np.flatnonzero(np.asarray(col.is_null()))[0])
+                    raise CameraError(f"{path}: row {row}: column {name!r} is null")
+                out[name] = col.to_numpy()
+            return out
+    except CameraError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any reader failure is a bad file
+        raise CameraError(f"{path}: cannot read the camera table ({type(exc).__name__}: {exc})") from exc
+    raise CameraError(f"{path}: camera tables are .npz or .parquet files")
+
+
+def _numeric(path, cols, name, n, default=None, integer=False):
+    if name not in cols:
+        if default is None:
+            raise CameraError(f"{path}: column {name!r} is missing")
+        return np.full(n, default, np.int64 if integer else np.float64)
+    a = np.asarray(cols[name])
+    if a.shape != (n,):
+        raise CameraError(f"{path}: column {name!r} has shape {a.shape}, expected ({n},)")
+    if a.dtype.kind not in "biuf":
+        raise CameraError(f"{path}: column {name!r} has dtype {a.dtype}, expected numbers")
+    if integer:
+        bad = np.flatnonzero(a != np.round(a)) if a.dtype.kind == "f" else np.array([], int)
+        if len(bad):
+            raise CameraError(f"{path}: row {bad[0]}: column {name!r} is {a[bad[0]]}, expected an integer")
+        return a.astype(np.int64)
+    a = a.astype(np.float64)
+    bad = np.flatnonzero(~np.isfinite(a))
+    if len(bad):
+        raise CameraError(f"{path}: row {bad[0]}: column {name!r} is {a[bad[0]]}, expected a finite number")
+    return a
+
+
+def _first(path, bad, what):
+    rows = np.flatnonzero(bad)
+    if len(rows):
+        raise CameraError(f"{path}: row {rows[0]}: {what}")
+
+
+def read_camera_table(path) -> CameraTable:
+    """Read and validate a camera table (``.npz`` or ``.parquet``).
+
+    Every value is checked: finite, image sizes positive integers, a field of
+    view in (0°, 180°), a positive orthographic height, ``0 < near < far``, a
+    rotation that is orthonormal and right-handed, an eye off its target;
+    unknown columns are refused. Errors name the file, the row and the column.
+    """
+    path = os.fspath(path)
+    cols = _read_columns(path)
+    unknown = sorted(set(cols) - set(COLUMNS))
+    if unknown:
+        raise CameraError(f"{path}: unknown column {unknown[0]!r}; known columns: {', '.join(COLUMNS)}")
+    if "eye_x" not in cols:
+        raise CameraError(f"{path}: column 'eye_x' is missing")
+    n = int(np.shape(cols["eye_x"])[0]) if np.ndim(cols["eye_x"]) else -1
+    if n < 0:
+        raise CameraError(f"{path}: column 'eye_x' is not a column")
+    num = lambda name, default=None, integer=False: _numeric(path, cols, name, n, default, integer)  # noqa: E731
+    eye = np.stack([num(c) for c in EYE], 1)
+    has_target, has_rotation = any(c in cols for c in TARGET), any(c in cols for c in ROTATION)
+    if has_target == has_rotation:
+        raise CameraError(f"{path}: give either target_x/y/z (and optionally up_x/y/z) or r00..r22, "
+                          f"not {'both' if has_target else 'neither'}")
+    if has_target:
+        target = np.stack([num(c) for c in TARGET], 1)
+        up = np.stack([num(c, d) for c, d in zip(UP, (0.0, 1.0, 0.0))], 1)
+        dist = np.linalg.norm(eye - target, axis=1)
+        _first(path, ~(dist > 0), "eye and target coincide")
+        _first(path, ~(np.linalg.norm(up, axis=1) > 0), "up is zero")
+        rotation = look_at_rotations(eye, target, up)
+    else:
+        rotation = np.stack([num(c) for c in ROTATION], 1).reshape(n, 3, 3)
+        gram = np.einsum("nji,njk->nik", rotation, rotation)
+        _first(path, np.abs(gram - np.eye(3)).max(axis=(1, 2)) > 1e-4, "r00..r22 is not orthonormal")
+        _first(path, np.linalg.det(rotation) < 0, "r00..r22 is a reflection (determinant -1)")
+        dist = np.ones(n)
+    fov = num("fov_y_deg", 45.0)
+    ortho = num("orthographic", 0, integer=True)
+    _first(path, (ortho != 0) & (ortho != 1), "column 'orthographic' must be 0 or 1 (or a boolean)")
+    ortho = ortho.astype(bool)
+    _first(path, ~ortho & ~((fov > 0) & (fov < 180)), "column 'fov_y_deg' must lie in (0, 180)")
+    ortho_height = num("ortho_height", 1.0)
+    _first(path, ~(ortho_height > 0), "column 'ortho_height' must be > 0")
+    width, height = num("width", 800, integer=True), num("height", 600, integer=True)
+    _first(path, ~((width > 0) & (width <= 1 << 16)), "column 'width' must be an integer in [1, 65536]")
+    _first(path, ~((height > 0) & (height <= 1 << 16)), "column 'height' must be an integer in [1, 65536]")
+    near = num("near") if "near" in cols else 1e-3 * dist
+    far = num("far") if "far" in cols else 1e3 * dist
+    _first(path, ~(near > 0), "column 'near' must be > 0")
+    _first(path, ~(far > near), "column 'far' must be greater than 'near'")
+    if ("path_id" in cols) != ("frame" in cols):
+        raise CameraError(f"{path}: columns 'path_id' and 'frame' come together")
+    path_id = num("path_id", integer=True) if "path_id" in cols else None
+    frame = num("frame", integer=True) if "frame" in cols else None
+    return CameraTable(eye=eye, rotation=rotation, fov_y=np.radians(fov), near=near, far=far,
+                       ortho_height=ortho_height, width=width.astype(np.int32), height=height.astype(np.int32),
+                       orthographic=ortho, path_id=path_id, frame=frame)

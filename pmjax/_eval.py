@@ -1,0 +1,533 @@
+"""Evaluation jobs: models × camera sets × tolerances (or face budgets) → one
+Parquet dataset, streamed, resumable, and optionally spread over Dask workers.
+
+A job is cut into parts: one chunk of cameras of one camera set, for one model
+and one tolerance (or budget). A part is refined with :func:`pmjax.refine_batch`
+(budgets: one camera at a time, see :func:`evaluate`) and written as one
+Parquet file, atomically (a temporary file, then a rename), so a part file
+that exists is complete. The dataset folder holds the part files, named so
+that their lexical order is the row order, and ``_job.json``, the job's
+description. Re-running a job skips the parts already there; a different job
+refuses to write into the folder.
+
+Rows depend only on the job description, never on where or when a part ran:
+a camera's row comes from that camera alone (generated sets give a row's
+camera from its index), so an interrupted and resumed job, or one run on a
+Dask cluster, gives the same rows as one uninterrupted process; only
+``refine_ms``, a measured time, differs.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import hashlib
+import json
+import os
+import threading
+import time
+from typing import Optional, Sequence
+
+import numpy as np
+
+from ._atomic import atomic_path
+from ._camera_table import CameraTable, fly_rows, orbit_rows, random_rows, read_camera_table
+from ._predicate import ALL_TESTS, Tests
+
+FORMAT = "pmjax-eval/1"
+JOB_FILE = "_job.json"
+DEFAULT_CHUNK = 4096
+# Default folder of JAX's persistent compilation cache for evaluations.
+DEFAULT_COMPILE_CACHE = os.path.join(os.path.expanduser("~"), ".cache", "pmjax", "xla")
+# Models a process keeps loaded (with their compiled kernels) at once.
+MODELS_KEPT = 2
+
+
+class EvalError(ValueError):
+    """A job that cannot run or cannot resume; the message says which model,
+    camera set, file or setting, and why."""
+
+
+# ---------------------------------------------------------------- the job
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraSet:
+    """A camera set of a job: a file, or a generator applied to each model.
+
+    Attributes:
+        kind: ``"file"``, ``"orbit"``, ``"fly"`` or ``"random"``.
+        count: cameras (generators; a file's count is its row count).
+        path: the file (``kind == "file"``).
+        seed: random views' seed.
+        width, height, fov_y_deg: image of generated cameras.
+    """
+
+    kind: str
+    count: int = 0
+    path: Optional[str] = None
+    seed: int = 0
+    width: int = 800
+    height: int = 600
+    fov_y_deg: float = 45.0
+
+    @property
+    def name(self) -> str:
+        """The set's name in the ``camera_set`` column."""
+        if self.kind == "file":
+            return os.path.basename(self.path)
+        if self.kind == "random":
+            return f"random-{self.count}-seed{self.seed}"
+        return f"{self.kind}-{self.count}"
+
+    def describe(self) -> dict:
+        d = dataclasses.asdict(self)
+        if self.kind == "file":
+            d.update(path=os.path.abspath(self.path), sha256=_file_digest(self.path))
+        return d
+
+    def rows(self, vertices, lo: int, hi: int, table: Optional[CameraTable]) -> CameraTable:
+        """Cameras ``[lo, hi)`` of this set for a model with ``vertices``."""
+        image = dict(width=self.width, height=self.height, fov_y_deg=self.fov_y_deg)
+        if self.kind == "file":
+            return table.rows(lo, hi)
+        if self.kind == "orbit":
+            return orbit_rows(vertices, self.count, lo, hi, **image)
+        if self.kind == "fly":
+            return fly_rows(vertices, self.count, lo, hi, **image)
+        return random_rows(vertices, self.seed, lo, hi, min_scale=0.05, max_scale=4.0, **image)
+
+
+def camera_set(spec: str, *, width: int = 800, height: int = 600, fov_y_deg: float = 45.0) -> CameraSet:
+    """A camera set from a short spec: ``orbit:N``, ``fly:N``,
+    ``random:N[:SEED]`` or the path of a ``.npz`` / ``.parquet`` camera table."""
+    head, _, rest = spec.partition(":")
+    if head in ("orbit", "fly", "random") and rest:
+        fields = rest.split(":")
+        try:
+            count = int(fields[0])
+            seed = int(fields[1]) if len(fields) > 1 else 0
+        except ValueError:
+            raise EvalError(f"camera set {spec!r}: expected {head}:N" + ("[:SEED]" if head == "random" else "")) from None
+        if count < 1 or (head != "random" and len(fields) > 1) or len(fields) > 2:
+            raise EvalError(f"camera set {spec!r}: expected {head}:N with N >= 1"
+                            + ("[:SEED]" if head == "random" else ""))
+        return CameraSet(head, count, seed=seed, width=width, height=height, fov_y_deg=fov_y_deg)
+    if not spec.endswith((".npz", ".parquet")):
+        raise EvalError(f"camera set {spec!r}: expected orbit:N, fly:N, random:N[:SEED] or a .npz/.parquet file")
+    if not os.path.exists(spec):
+        raise EvalError(f"camera set {spec!r}: no such file")
+    return CameraSet("file", path=spec)
+
+
+def _model_name(path) -> str:
+    name = os.path.basename(path)
+    return name[:-4] if name.endswith(".pmz") else name
+
+
+def _file_digest(path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 22), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _tests_dict(tests: Tests) -> dict:
+    return dict(frustum=bool(tests.frustum), orientation=bool(tests.orientation), screen=bool(tests.screen))
+
+
+@dataclasses.dataclass(frozen=True)
+class _Part:
+    """One unit of work: a chunk of one camera set, one model, one value."""
+
+    model: int
+    cameras: int
+    value: int
+    chunk: int
+    lo: int
+    hi: int
+
+    @property
+    def file(self) -> str:
+        return f"part-m{self.model:04d}-c{self.cameras:04d}-v{self.value:04d}-{self.chunk:07d}.parquet"
+
+
+# ---------------------------------------------------------------- one part
+
+
+_LOADED: "collections.OrderedDict[tuple, object]" = collections.OrderedDict()
+_LOADED_LOCK = threading.Lock()
+
+
+def _model(path: str, digest: str):
+    """The loaded model, kept per process (so its kernels stay compiled) for
+    the last few models; older ones are dropped with JAX's compiled
+    executables, which otherwise pile up in a process that visits many models."""
+    import jax
+
+    from ._model import load
+
+    key = (os.path.abspath(path), digest)
+    with _LOADED_LOCK:
+        if key in _LOADED:
+            _LOADED.move_to_end(key)
+            return _LOADED[key]
+        if _file_digest(path) != digest:
+            raise EvalError(f"{path}: the model file changed while the job ran")
+        pm = load(path)
+        _LOADED[key] = pm
+        if len(_LOADED) > MODELS_KEPT:
+            _LOADED.popitem(last=False)
+            jax.clear_caches()
+        return pm
+
+
+def _compile_cache(folder: Optional[str]) -> None:
+    """Point JAX's persistent compilation cache at ``folder`` (once per process)."""
+    if not folder:
+        return
+    import jax
+
+    if jax.config.jax_compilation_cache_dir != folder:
+        os.makedirs(folder, exist_ok=True)
+        jax.config.update("jax_compilation_cache_dir", folder)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+
+
+def run_part(task: dict):
+    """Refine one part and return its rows as a ``pyarrow.Table``.
+
+    ``task`` holds the model path and digest, the camera rows, the value (tau
+    or budget) and the job's settings; it is plain data, so a Dask worker can
+    run it. Public for Dask; users call :func:`evaluate`.
+    """
+    import pyarrow as pa
+
+    from ._refine import faces_for_budget, refine, refine_batch
+
+    _compile_cache(task["compile_cache"])
+    pm = _model(task["model_path"], task["model_sha256"])
+    table: CameraTable = task["rows"]
+    tests = Tests(**task["tests"])
+    n = len(table)
+    faces, vertices, executed = (np.zeros(n, np.int64) for _ in range(3))
+    tau, ms = np.zeros(n, np.float32), np.zeros(n)
+    budget = task["budget"]
+    for idx, cams in table.batches():
+        if budget is None:
+            # One batched call per image size: its wall time shared by its cameras.
+            t = time.perf_counter()
+            out = refine_batch(pm, cams, task["tau"], tests=tests, chunk=task["batch_chunk"], method=task["method"])
+            ms[idx] = 1e3 * (time.perf_counter() - t) / len(idx)
+            faces[idx], vertices[idx], executed[idx] = out["faces"], out["vertices"], out["executed_count"]
+            tau[idx] = task["tau"]
+            continue
+        from ._camera import index_camera
+
+        for j, row in enumerate(idx):
+            # A budget needs its own tolerance per camera: the exact one from
+            # the sorted critical tolerances, then a refine at it.
+            t = time.perf_counter()
+            cam = index_camera(cams, j)
+            tau[row], _ = faces_for_budget(pm, cam, budget, tests)
+            r = refine(pm, cam, float(tau[row]), tests=tests, method=task["method"])
+            faces[row], vertices[row], executed[row] = int(r.n_faces), int(r.n_vertices), int(r.n_executed)
+            ms[row] = 1e3 * (time.perf_counter() - t)
+    camera = np.arange(task["lo"], task["hi"], dtype=np.int64)
+    null_ints = pa.nulls(n, pa.int64())
+    columns = {
+        "model": pa.array([task["model_name"]] * n, pa.string()).dictionary_encode(),
+        "camera_set": pa.array([task["set_name"]] * n, pa.string()).dictionary_encode(),
+        "camera": pa.array(camera),
+        "path_id": null_ints if table.path_id is None else pa.array(table.path_id, pa.int64()),
+        "frame": null_ints if table.frame is None else pa.array(table.frame, pa.int64()),
+        "budget": null_ints if budget is None else pa.array(np.full(n, budget, np.int64)),
+        "tau": pa.array(tau),
+        "faces": pa.array(faces),
+        "vertices": pa.array(vertices),
+        "executed": pa.array(executed),
+        "refine_ms": pa.array(ms),
+    }
+    return pa.table(columns, schema=_schema()).replace_schema_metadata(
+        {"pmjax": json.dumps(dict(job=task["job_sha256"], model_sha256=task["model_sha256"]))})
+
+
+def _schema():
+    import pyarrow as pa
+
+    return pa.schema([
+        ("model", pa.dictionary(pa.int32(), pa.string())),
+        ("camera_set", pa.dictionary(pa.int32(), pa.string())),
+        ("camera", pa.int64()),
+        ("path_id", pa.int64()),
+        ("frame", pa.int64()),
+        ("budget", pa.int64()),
+        ("tau", pa.float32()),
+        ("faces", pa.int64()),
+        ("vertices", pa.int64()),
+        ("executed", pa.int64()),
+        ("refine_ms", pa.float64()),
+    ])
+
+
+# ---------------------------------------------------------------- the driver
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalSummary:
+    """What :func:`evaluate` did.
+
+    Attributes:
+        folder: the dataset folder.
+        rows: rows in the dataset.
+        parts_written, parts_skipped: parts computed now / found done.
+        cameras: camera refinements computed now (rows written now).
+        seconds: wall time of this run.
+    """
+
+    folder: str
+    rows: int
+    parts_written: int
+    parts_skipped: int
+    cameras: int
+    seconds: float
+
+    @property
+    def cameras_per_s(self) -> float:
+        return self.cameras / self.seconds if self.seconds > 0 else 0.0
+
+
+def evaluate(
+    models: Sequence[str],
+    camera_sets: Sequence,
+    folder: str,
+    *,
+    taus: Sequence[float] = (),
+    budgets: Sequence[int] = (),
+    tests: Tests = ALL_TESTS,
+    method: str = "auto",
+    chunk: int = DEFAULT_CHUNK,
+    batch_chunk: int = 256,
+    compile_cache: Optional[str] = DEFAULT_COMPILE_CACHE,
+    scheduler: Optional[str] = None,
+    workers: int = 0,
+    progress: bool = True,
+) -> EvalSummary:
+    """Evaluate models × camera sets × tolerances (or face budgets) into a
+    Parquet dataset folder, one row per (model, camera set, value, camera).
+
+    Args:
+        models: ``.pmz`` paths.
+        camera_sets: :class:`CameraSet` objects or specs for :func:`camera_set`
+            (``orbit:N``, ``fly:N``, ``random:N[:SEED]``, a ``.npz`` or
+            ``.parquet`` camera table).
+        folder: the dataset folder (created; a finished or interrupted run of
+            the same job there is resumed).
+        taus: tolerances in pixels; or
+        budgets: face budgets (exclusive with ``taus``): per camera, the
+            smallest tolerance whose face count is the largest within the
+            budget (:func:`pmjax.faces_for_budget`), refined one camera at a time.
+        tests, method: as :func:`pmjax.refine_batch`.
+        chunk: cameras per part (the unit of resumption and of Dask tasks).
+        batch_chunk: cameras per vmapped kernel call inside a part.
+        compile_cache: folder of JAX's persistent compilation cache (``None``:
+            off), so a second run of a job, or another worker, skips compiling.
+        scheduler: address of a running Dask scheduler (``tcp://HOST:PORT``).
+        workers: start a local Dask cluster of this many single-threaded
+            worker processes (0: run in this process).
+        progress: a progress bar (cameras/s and ETA).
+
+    Returns:
+        :class:`EvalSummary`. Read the rows with ``pyarrow.dataset.dataset(folder)``,
+        ``pandas.read_parquet(folder)`` or DuckDB's ``read_parquet('folder/*.parquet')``.
+
+    Raises:
+        EvalError: a bad setting, a camera set that cannot be read, a model
+            that fails validation (parts finished before it are kept), or a
+            folder holding another job.
+    """
+    from ._pmfile import PMFormatError, read_pm
+
+    if bool(len(taus)) == bool(len(budgets)):
+        raise EvalError("give tolerances (taus) or face budgets, not " + ("both" if len(taus) else "neither"))
+    values = [float(t) for t in taus] or [int(b) for b in budgets]
+    for v in values:
+        if not (np.isfinite(v) and v >= 0):
+            raise EvalError(f"{'tau' if taus else 'budget'} {v} must be finite and >= 0")
+    if not models:
+        raise EvalError("no models")
+    if chunk < 1 or batch_chunk < 1:
+        raise EvalError("chunk and batch_chunk must be >= 1")
+    if method not in ("auto", "front", "dense"):
+        raise EvalError(f"method must be auto, front or dense, not {method!r}")
+    sets = [s if isinstance(s, CameraSet) else camera_set(s) for s in camera_sets]
+    if not sets:
+        raise EvalError("no camera sets")
+    for m in models:
+        if not os.path.exists(m):
+            raise EvalError(f"model {m}: no such file")
+    names = [_model_name(m) for m in models]
+    if len(set(names)) < len(names):
+        twice = next(n for n in names if names.count(n) > 1)
+        raise EvalError(f"two models are named {twice!r} (the file name without .pmz names a model's rows)")
+    if len({s.name for s in sets}) < len(sets):
+        raise EvalError("two camera sets have the same name; give each file set a distinct file name")
+    start = time.perf_counter()
+    # Camera files are read (and validated) once, before any work.
+    tables = [read_camera_table(s.path) if s.kind == "file" else None for s in sets]
+    job = dict(format=FORMAT, models=[os.path.abspath(m) for m in models], camera_sets=[s.describe() for s in sets],
+               taus=[float(t) for t in taus], budgets=[int(b) for b in budgets], tests=_tests_dict(tests),
+               method=method, chunk=int(chunk), batch_chunk=int(batch_chunk))
+    job_sha = hashlib.sha256(json.dumps(job, sort_keys=True).encode()).hexdigest()
+    done = _open_folder(folder, job)
+    counts = [len(t) if t is not None else s.count for s, t in zip(sets, tables)]
+    total = len(models) * len(values) * sum(counts)
+    n_done = sum(p.hi - p.lo for m in range(len(models)) for p in _model_parts(m, counts, len(values), chunk)
+                 if p.file in done)
+    bar = _progress(progress, total, n_done)
+    written = skipped = rows_now = 0
+    runner = _Runner(scheduler, workers)
+    try:
+        for mi, model_path in enumerate(models):
+            # The model is validated before its parts start; a bad one stops
+            # the job with the parts before it kept.
+            try:
+                data = read_pm(model_path)
+            except PMFormatError as exc:
+                for finished, table in runner.drain():
+                    _write_part(folder, finished, table)
+                raise EvalError(f"model {model_path}: {exc}") from exc
+            digest = _file_digest(model_path)
+            vertices = data.vertices[: data.n_original_vertices]
+            for part in _model_parts(mi, counts, len(values), chunk):
+                if part.file in done:
+                    _check_part(folder, part, job_sha, digest, model_path)
+                    skipped += 1
+                    continue
+                s, value = sets[part.cameras], values[part.value]
+                task = dict(model_path=model_path, model_sha256=digest, model_name=_model_name(model_path),
+                            set_name=s.name, rows=s.rows(vertices, part.lo, part.hi, tables[part.cameras]),
+                            lo=part.lo, hi=part.hi, tau=None if budgets else value,
+                            budget=value if budgets else None, tests=_tests_dict(tests), method=method,
+                            batch_chunk=int(batch_chunk), compile_cache=compile_cache, job_sha256=job_sha)
+                for finished, table in runner.submit(part, task):
+                    _write_part(folder, finished, table)
+                    written += 1
+                    rows_now += table.num_rows
+                    bar.update(table.num_rows)
+            del data, vertices
+        for finished, table in runner.drain():
+            _write_part(folder, finished, table)
+            written += 1
+            rows_now += table.num_rows
+            bar.update(table.num_rows)
+    finally:
+        bar.close()
+        runner.close()
+    return EvalSummary(folder=os.fspath(folder), rows=total, parts_written=written, parts_skipped=skipped,
+                       cameras=rows_now, seconds=time.perf_counter() - start)
+
+
+def _model_parts(m, counts, n_values, chunk):
+    """The parts of model ``m``, in row order."""
+    for c, n in enumerate(counts):
+        for v in range(n_values):
+            for k, lo in enumerate(range(0, n, chunk)):
+                yield _Part(m, c, v, k, lo, min(lo + chunk, n))
+
+
+def _open_folder(folder, job) -> set:
+    """Create or reopen the dataset folder for ``job``: the part files done."""
+    os.makedirs(folder, exist_ok=True)
+    path = os.path.join(folder, JOB_FILE)
+    if os.path.exists(path):
+        try:
+            with open(path) as fh:
+                old = json.load(fh)
+        except (OSError, ValueError) as exc:
+            raise EvalError(f"{path}: unreadable job description ({exc}); use another folder") from exc
+        if old != job:
+            changed = sorted(k for k in set(old) | set(job) if old.get(k) != job.get(k))
+            raise EvalError(f"{folder} holds another job (differs in: {', '.join(changed)}); "
+                            "use another folder, or delete this one to start over")
+    else:
+        with atomic_path(path) as tmp, open(tmp, "w") as fh:
+            json.dump(job, fh, indent=1, sort_keys=True)
+    # Temporary files of a killed run are debris: no part is half-written.
+    for name in os.listdir(folder):
+        if name.startswith(".tmp-"):
+            os.unlink(os.path.join(folder, name))
+    return {name for name in os.listdir(folder) if name.startswith("part-") and name.endswith(".parquet")}
+
+
+def _check_part(folder, part, job_sha, digest, model_path) -> None:
+    import pyarrow.parquet as pq
+
+    meta = pq.read_schema(os.path.join(folder, part.file)).metadata or {}
+    info = json.loads(meta.get(b"pmjax", b"{}"))
+    if info.get("job") != job_sha or info.get("model_sha256") != digest:
+        raise EvalError(f"{os.path.join(folder, part.file)} was computed from another version of {model_path} "
+                        "(its content changed); use another folder, or delete this one to start over")
+
+
+def _write_part(folder, part, table) -> None:
+    import pyarrow.parquet as pq
+
+    with atomic_path(os.path.join(folder, part.file)) as tmp:
+        pq.write_table(table, tmp)
+
+
+def _progress(on, total, done):
+    from tqdm import tqdm
+
+    return tqdm(total=total, initial=done, unit="camera", unit_scale=True, desc="eval", disable=not on,
+                smoothing=0.1)
+
+
+class _Runner:
+    """Runs parts in this process, or on Dask with a bounded number in flight
+    (camera rows are made as parts are submitted, so memory stays flat)."""
+
+    def __init__(self, scheduler, workers):
+        self.client = self.cluster = None
+        if scheduler or workers:
+            from dask.distributed import Client, LocalCluster
+
+            if scheduler:
+                self.client = Client(scheduler)
+            else:
+                self.cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
+                                            dashboard_address=None)
+                self.client = Client(self.cluster)
+            from dask.distributed import as_completed
+
+            self.pending = as_completed([], with_results=True)
+            self.parts = {}
+            threads = sum(self.client.nthreads().values()) or int(workers) or 1
+            self.window = 2 * threads + 2
+
+    def submit(self, part, task):
+        if self.client is None:
+            return [(part, run_part(task))]
+        future = self.client.submit(run_part, task, key=f"pmjax-eval-{task['job_sha256'][:12]}-{part.file}",
+                                    pure=False, retries=2)
+        self.parts[future.key] = part
+        self.pending.add(future)
+        return self._collect(self.window)
+
+    def _collect(self, keep):
+        out = []
+        while self.pending.count() > keep:
+            future, table = next(self.pending)
+            out.append((self.parts.pop(future.key), table))
+        return out
+
+    def drain(self):
+        return [] if self.client is None else self._collect(0)
+
+    def close(self):
+        if self.client is not None:
+            self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
