@@ -16,7 +16,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from ._atomic import atomic_path
 
@@ -30,7 +30,8 @@ class Camera(eqx.Module):
         fov_y: ``[...]`` vertical field of view, radians (perspective).
         near, far: ``[...]`` clip distances along the view direction.
         ortho_height: ``[...]`` view height in model units (orthographic).
-        width, height: image size in pixels (static).
+        width, height: ``[...]`` image size in pixels (``int32``; traced, so
+            one compiled kernel serves every image size).
         orthographic: static flag.
     """
 
@@ -40,9 +41,23 @@ class Camera(eqx.Module):
     near: Float[Array, "*K"]
     far: Float[Array, "*K"]
     ortho_height: Float[Array, "*K"]
-    width: int = eqx.field(static=True, default=800)
-    height: int = eqx.field(static=True, default=600)
+    width: Int[Array, "*K"]
+    height: Int[Array, "*K"]
     orthographic: bool = eqx.field(static=True, default=False)
+
+    def __init__(self, eye, rotation, fov_y, near, far, ortho_height, width=800, height=600, orthographic=False):
+        self.eye, self.rotation, self.fov_y = eye, rotation, fov_y
+        self.near, self.far, self.ortho_height = near, far, ortho_height
+        # One size per camera, whatever was given (a batch may mix sizes).
+        shape = jnp.shape(fov_y)
+        self.width = jnp.broadcast_to(jnp.asarray(width, jnp.int32), shape)
+        self.height = jnp.broadcast_to(jnp.asarray(height, jnp.int32), shape)
+        self.orthographic = bool(orthographic)
+
+    def aspect(self):
+        """Width over height, in the dtype of the camera's angles."""
+        dtype = jnp.result_type(self.fov_y)
+        return self.width.astype(dtype) / self.height.astype(dtype)
 
     @property
     def forward(self):
@@ -50,7 +65,9 @@ class Camera(eqx.Module):
 
     def astype(self, dtype) -> "Camera":
         """The same camera with its array fields in ``dtype``."""
-        return jax.tree.map(lambda x: x.astype(dtype), self)
+        cast = lambda x: x.astype(dtype)  # noqa: E731
+        return Camera(cast(self.eye), cast(self.rotation), cast(self.fov_y), cast(self.near), cast(self.far),
+                      cast(self.ortho_height), self.width, self.height, self.orthographic)
 
     def pose(self) -> np.ndarray:
         """4×4 camera-to-world matrix (as pyrender wants it), float64."""
@@ -80,7 +97,7 @@ class Camera(eqx.Module):
         # cheap under vmap (a sum-reduction form made the batched predicate
         # 1.8x slower, measured).
         r, u, f = self.rotation[:, 0], self.rotation[:, 1], -self.rotation[:, 2]
-        aspect = self.width / self.height
+        aspect = self.aspect()
         if self.orthographic:
             b_y = 0.5 * self.ortho_height + 0.0 * self.near
             slope = [0.0 * b_y, 0.0 * b_y, b_y * aspect, b_y, 1.0 + 0.0 * b_y, 1.0 + 0.0 * b_y]
@@ -97,7 +114,7 @@ class Camera(eqx.Module):
         u = self.rotation[..., :, 1]
         f = -self.rotation[..., :, 2]
         e = self.eye
-        aspect = self.width / self.height
+        aspect = self.aspect()
 
         def plane(n, d):
             return jnp.concatenate([n, d[..., None]], axis=-1)
@@ -157,16 +174,17 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0), *, fov_y_deg=45.0, width=800, heigh
 
 
 def stack_cameras(cameras: list[Camera]) -> Camera:
-    """K single cameras (same image size and kind) -> one camera batch."""
+    """K single cameras (same projection; image sizes may differ) -> one camera batch."""
     if not cameras:
         raise ValueError("no cameras to stack")
     first = cameras[0]
     for c in cameras:
-        if (c.width, c.height, c.orthographic) != (first.width, first.height, first.orthographic):
-            raise ValueError("cameras in a batch must share width, height and projection")
+        if c.orthographic != first.orthographic:
+            raise ValueError("cameras in a batch must share the projection (perspective or orthographic)")
     return Camera(
-        *(jnp.stack([getattr(c, k) for c in cameras]) for k in ("eye", "rotation", "fov_y", "near", "far", "ortho_height")),
-        width=first.width, height=first.height, orthographic=first.orthographic,
+        *(jnp.stack([getattr(c, k) for c in cameras])
+          for k in ("eye", "rotation", "fov_y", "near", "far", "ortho_height", "width", "height")),
+        orthographic=first.orthographic,
     )
 
 
@@ -232,10 +250,14 @@ def save_cameras(camera: Camera, path) -> None:
     rows = [
         dict(eye=np.asarray(c.eye).tolist(), rotation=np.asarray(c.rotation).tolist(),
              fov_y_deg=math.degrees(float(c.fov_y)), near=float(c.near), far=float(c.far),
-             ortho_height=float(c.ortho_height))
+             ortho_height=float(c.ortho_height), width=int(c.width), height=int(c.height))
         for c in cams
     ]
-    meta = dict(width=camera.width, height=camera.height, orthographic=camera.orthographic)
+    # JSON: the image size once at the top, and per camera only in a batch that mixes sizes.
+    meta = dict(width=rows[0]["width"], height=rows[0]["height"], orthographic=camera.orthographic)
+    if all((r["width"], r["height"]) == (meta["width"], meta["height"]) for r in rows):
+        for r in rows:
+            del r["width"], r["height"]
     with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
         if path.endswith(".csv"):
             w = csv.writer(fh)
@@ -243,14 +265,16 @@ def save_cameras(camera: Camera, path) -> None:
                        + ["fov_y_deg", "near", "far", "ortho_height", "width", "height", "orthographic"])
             for row in rows:
                 w.writerow(row["eye"] + sum(row["rotation"], []) + [row["fov_y_deg"], row["near"], row["far"],
-                           row["ortho_height"], meta["width"], meta["height"], int(meta["orthographic"])])
+                           row["ortho_height"], row.get("width", meta["width"]), row.get("height", meta["height"]),
+                           int(meta["orthographic"])])
         else:
             json.dump(dict(meta, cameras=rows), fh, indent=1)
 
 
 def load_cameras(path) -> Camera:
     """Read cameras written by :func:`save_cameras` (or by hand: JSON with
-    ``cameras: [{eye, target | rotation, fov_y_deg, ...}]``). Always a batch."""
+    ``cameras: [{eye, target | rotation, fov_y_deg, ...}]``, a camera's own
+    ``width``/``height`` overriding the file's). Always a batch."""
     path = os.fspath(path)
     try:
         if path.endswith(".csv"):
@@ -261,7 +285,8 @@ def load_cameras(path) -> Camera:
             items = [dict(eye=[float(r[k]) for k in ("ex", "ey", "ez")],
                           rotation=np.array([float(r[f"r{i}{j}"]) for i in range(3) for j in range(3)]).reshape(3, 3),
                           fov_y_deg=float(r["fov_y_deg"]), near=float(r["near"]), far=float(r["far"]),
-                          ortho_height=float(r["ortho_height"])) for r in rows]
+                          ortho_height=float(r["ortho_height"]), width=int(r["width"]), height=int(r["height"]))
+                     for r in rows]
         else:
             with open(path) as fh:
                 doc = json.load(fh)
@@ -274,15 +299,16 @@ def load_cameras(path) -> Camera:
     for i, it in enumerate(items):
         try:
             eye = np.asarray(it["eye"], float)
+            size = dict(meta, width=int(it.get("width", meta["width"])), height=int(it.get("height", meta["height"])))
             if "rotation" in it:
                 rot = np.asarray(it["rotation"], float)
                 if rot.shape != (3, 3) or not np.allclose(rot.T @ rot, np.eye(3), atol=1e-4):
                     raise ValueError("rotation is not a 3×3 rotation matrix")
-                cam = look_at(eye, eye - rot[:, 2], rot[:, 1], fov_y_deg=it.get("fov_y_deg", 45.0), **meta,
+                cam = look_at(eye, eye - rot[:, 2], rot[:, 1], fov_y_deg=it.get("fov_y_deg", 45.0), **size,
                               near=it.get("near"), far=it.get("far"), ortho_height=it.get("ortho_height", 1.0))
             else:
                 cam = look_at(eye, it["target"], it.get("up", (0, 1, 0)), fov_y_deg=it.get("fov_y_deg", 45.0),
-                              **meta, near=it.get("near"), far=it.get("far"), ortho_height=it.get("ortho_height", 1.0))
+                              **size, near=it.get("near"), far=it.get("far"), ortho_height=it.get("ortho_height", 1.0))
             if not np.all(np.isfinite(np.asarray(cam.eye))):
                 raise ValueError("non-finite eye")
         except (KeyError, ValueError, TypeError) as exc:

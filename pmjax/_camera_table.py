@@ -2,7 +2,7 @@
 
 A :class:`CameraTable` is what large evaluations read and generate: millions of
 cameras never become millions of Python objects, and any row range turns into
-:class:`pmjax.Camera` batches (one per image size and projection) on demand.
+:class:`pmjax.Camera` batches (one per projection) on demand.
 
 Files (``.npz`` or Parquet) hold the same flat columns (documented in
 docs/eval.md): ``eye_x, eye_y, eye_z``; the orientation as
@@ -84,26 +84,26 @@ class CameraTable:
                               for f in dataclasses.fields(self)})
 
     def batches(self) -> Iterator[tuple[np.ndarray, Camera]]:
-        """``(row indices, Camera batch)`` per image size and projection, rows
-        in increasing order within each (a Camera batch shares those)."""
-        kinds = np.stack([self.width, self.height, self.orthographic.astype(np.int32)], axis=1)
-        keys, inverse = np.unique(kinds, axis=0, return_inverse=True)
-        for k, (w, h, ortho) in enumerate(keys):
-            idx = np.flatnonzero(inverse.reshape(-1) == k)
-            yield idx, Camera(
-                eye=jnp.asarray(self.eye[idx], jnp.float32),
-                rotation=jnp.asarray(self.rotation[idx], jnp.float32),
-                fov_y=jnp.asarray(self.fov_y[idx], jnp.float32),
-                near=jnp.asarray(self.near[idx], jnp.float32),
-                far=jnp.asarray(self.far[idx], jnp.float32),
-                ortho_height=jnp.asarray(self.ortho_height[idx], jnp.float32),
-                width=int(w), height=int(h), orthographic=bool(ortho))
+        """``(row indices, Camera batch)`` per projection (perspective,
+        orthographic), rows in increasing order within each; image sizes are
+        traced, so they need no batch of their own."""
+        for ortho in (False, True):
+            idx = np.flatnonzero(self.orthographic == ortho)
+            if len(idx):
+                yield idx, Camera(
+                    eye=jnp.asarray(self.eye[idx], jnp.float32),
+                    rotation=jnp.asarray(self.rotation[idx], jnp.float32),
+                    fov_y=jnp.asarray(self.fov_y[idx], jnp.float32),
+                    near=jnp.asarray(self.near[idx], jnp.float32),
+                    far=jnp.asarray(self.far[idx], jnp.float32),
+                    ortho_height=jnp.asarray(self.ortho_height[idx], jnp.float32),
+                    width=self.width[idx], height=self.height[idx], orthographic=ortho)
 
     def camera(self) -> Camera:
         """All rows as one Camera batch (they must share image size and projection)."""
         groups = list(self.batches())
         if len(groups) != 1:
-            raise CameraError(f"{len(groups)} image sizes or projections in one set; use batches()")
+            raise CameraError("perspective and orthographic cameras in one set; use batches()")
         return groups[0][1]
 
     def columns(self) -> dict:
@@ -126,7 +126,7 @@ def table_from_cameras(camera: Camera, path_id=None, frame=None) -> CameraTable:
         rotation=np.asarray(camera.rotation, np.float64).reshape(n, 3, 3),
         fov_y=flat(camera.fov_y), near=flat(camera.near), far=flat(camera.far),
         ortho_height=flat(camera.ortho_height),
-        width=np.full(n, camera.width, np.int32), height=np.full(n, camera.height, np.int32),
+        width=np.asarray(camera.width, np.int32).reshape(n), height=np.asarray(camera.height, np.int32).reshape(n),
         orthographic=np.full(n, bool(camera.orthographic)),
         path_id=None if path_id is None else np.broadcast_to(np.asarray(path_id, np.int64), (n,)).copy(),
         frame=None if frame is None else np.broadcast_to(np.asarray(frame, np.int64), (n,)).copy())

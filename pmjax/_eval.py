@@ -216,7 +216,7 @@ def run_part(task: dict):
     budget = task["budget"]
     for idx, cams in table.batches():
         if budget is None:
-            # One batched call per image size: its wall time shared by its cameras.
+            # One batched call per projection: its wall time shared by its cameras.
             t = time.perf_counter()
             out = refine_batch(pm, cams, task["tau"], tests=tests, chunk=task["batch_chunk"], method=task["method"])
             ms[idx] = 1e3 * (time.perf_counter() - t) / len(idx)

@@ -26,9 +26,10 @@ _EYE, _AXES, _FRUSTUM, _ONE_PIXEL, _KAPPA2 = 0, 3, 12, 20, 21
 def one_pixel(camera: Camera) -> Float[Array, "*K"]:
     """One pixel of the image height as an angle at unit distance
     (``2 tan(φ/2) / H``), or as a world size (orthographic)."""
+    height = camera.height.astype(jnp.result_type(camera.fov_y))
     if camera.orthographic:
-        return camera.ortho_height / camera.height
-    return 2.0 * jnp.tan(0.5 * camera.fov_y) / camera.height
+        return camera.ortho_height / height
+    return 2.0 * jnp.tan(0.5 * camera.fov_y) / height
 
 
 def kappa(camera: Camera, tau) -> Float[Array, "*K"]:

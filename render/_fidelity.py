@@ -95,7 +95,7 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
     first = index_camera(cameras, 0)
     ov, of, on = original_arrays(pm)
     rows, previous = [], None
-    with Renderer(first.width, first.height, supersample, float_color) as r:
+    with Renderer(int(first.width), int(first.height), supersample, float_color) as r:
         frames = path_geometry(pm, cameras, tau, tests=tests, geomorph=geomorph, progress=progress, desc="fidelity")
         for i, (cam, v, f, _, n) in enumerate(frames):
             t = time.perf_counter()

@@ -25,8 +25,8 @@ def overview_camera(vertices, camera: Camera, *, distance_scale: float = 2.5, li
     new_eye = centre + distance_scale * back + lift * np.linalg.norm(back) * up + 0.5 * radius * up
     target = 0.5 * (centre + eye)
     far = 2.0 * np.linalg.norm(new_eye - centre) + 2 * radius
-    return look_at(new_eye, target, up=up, fov_y_deg=float(np.degrees(camera.fov_y)), width=camera.width,
-                   height=camera.height, near=far * 1e-4, far=far)
+    return look_at(new_eye, target, up=up, fov_y_deg=float(np.degrees(camera.fov_y)), width=int(camera.width),
+                   height=int(camera.height), near=far * 1e-4, far=far)
 
 
 def phantom(pm: ProgressiveMesh, refine_for: Camera, tau=1.0, tests: Tests = ALL_TESTS):

@@ -88,8 +88,8 @@ class Renderer:
             light: False draws the mesh in its flat ambient colour, whatever
                 its normals: the image then shows only where the surface lies.
         """
-        if (camera.width, camera.height) != (self.width, self.height):
-            raise ValueError(f"camera is {camera.width}x{camera.height}, renderer {self.width}x{self.height}")
+        if (int(camera.width), int(camera.height)) != (self.width, self.height):
+            raise ValueError(f"camera is {int(camera.width)}x{int(camera.height)}, renderer {self.width}x{self.height}")
         scene, _ = build_scene(vertices, faces, camera, levels=levels, n_batches=n_batches, wireframe=wireframe,
                                extra_lines=lines, normals=normals, light=light)
         return self.render_scene(scene)

@@ -60,8 +60,8 @@ def pyrender_camera(camera: Camera):
     near, far = float(camera.near), float(camera.far)
     if camera.orthographic:
         half = 0.5 * float(camera.ortho_height)
-        return pyrender.OrthographicCamera(half * camera.width / camera.height, half, znear=near, zfar=far)
-    return pyrender.PerspectiveCamera(float(camera.fov_y), aspectRatio=camera.width / camera.height,
+        return pyrender.OrthographicCamera(half * (int(camera.width) / int(camera.height)), half, znear=near, zfar=far)
+    return pyrender.PerspectiveCamera(float(camera.fov_y), aspectRatio=(int(camera.width) / int(camera.height)),
                                       znear=near, zfar=far)
 
 
@@ -110,11 +110,11 @@ def frustum_lines(camera: Camera, depth: float) -> np.ndarray:
     right, up, fwd = R[:, 0], R[:, 1], -R[:, 2]
     if camera.orthographic:
         hy = 0.5 * float(camera.ortho_height)
-        hx = hy * camera.width / camera.height
+        hx = hy * (int(camera.width) / int(camera.height))
         near_c = [eye + sx * hx * right + sy * hy * up for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
     else:
         hy = np.tan(0.5 * float(camera.fov_y)) * depth
-        hx = hy * camera.width / camera.height
+        hx = hy * (int(camera.width) / int(camera.height))
         near_c = [eye] * 4
     far_c = [eye + depth * fwd + sx * hx * right + sy * hy * up for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
     segs = []
