@@ -76,9 +76,13 @@ class CameraSet:
         """The set's name in the ``camera_set`` column."""
         if self.kind == "file":
             return os.path.basename(self.path)
-        if self.kind == "random":
-            return f"random-{self.count}-seed{self.seed}"
-        return f"{self.kind}-{self.count}"
+        name = f"random-{self.count}-seed{self.seed}" if self.kind == "random" else f"{self.kind}-{self.count}"
+        # The image, when it is not the default 800x600 at 45 degrees.
+        if (self.width, self.height) != (800, 600):
+            name += f"-{self.width}x{self.height}"
+        if self.fov_y_deg != 45.0:
+            name += f"-fov{self.fov_y_deg:g}"
+        return name
 
     def describe(self) -> dict:
         d = dataclasses.asdict(self)

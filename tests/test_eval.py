@@ -256,3 +256,34 @@ def test_dask_cluster_gives_the_same_rows_even_when_a_worker_dies(cow, tmp_path)
         assert killed, "no worker was killed: the job ended first"
         assert summary.parts_written == 30
         assert_same_rows(rows(out), rows(reference))
+
+
+def test_one_compilation_serves_every_image_size(cow, tmp_path):
+    import jax
+
+    compiles = []
+
+    def listen(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(duration)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        sizes = [(800, 600), (320, 240), (1920, 1080)]
+        sets = [pmjax.camera_set("orbit:40", width=w, height=h) for w, h in sizes]
+        assert [s.name for s in sets] == ["orbit-40", "orbit-40-320x240", "orbit-40-1920x1080"]
+        evaluate([cow], sets[:1], str(tmp_path / "one"), taus=[1.0], compile_cache=None, progress=False)
+        first = len(compiles)
+        assert first > 0  # the listener sees compilations
+        evaluate([cow], sets, str(tmp_path / "three"), taus=[1.0], compile_cache=None, progress=False)
+        assert len(compiles) == first  # the other sizes reuse the compiled kernels
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    got = rows(str(tmp_path / "three"))
+    pm, data = pmjax.load(cow), pmjax.read_pm(cow)
+    v0 = data.vertices[: data.n_original_vertices]
+    for k, (w, h) in enumerate(sizes):
+        # A smaller image sees less detail: the same cameras, fewer faces.
+        expect = pmjax.refine_batch(pm, pmjax.standard_orbit(v0, 40, width=w, height=h), 1.0)["faces"]
+        assert np.array_equal(got["faces"][40 * k:40 * (k + 1)], expect)
+    assert got["faces"][40:80].sum() < got["faces"][:40].sum() < got["faces"][80:].sum()
