@@ -48,10 +48,12 @@ class Camera(eqx.Module):
     def __init__(self, eye, rotation, fov_y, near, far, ortho_height, width=800, height=600, orthographic=False):
         self.eye, self.rotation, self.fov_y = eye, rotation, fov_y
         self.near, self.far, self.ortho_height = near, far, ortho_height
-        # One size per camera, whatever was given (a batch may mix sizes).
-        shape = jnp.shape(fov_y)
-        self.width = jnp.broadcast_to(jnp.asarray(width, jnp.int32), shape)
-        self.height = jnp.broadcast_to(jnp.asarray(height, jnp.int32), shape)
+        # One size per camera, whatever was given (a batch may mix sizes);
+        # host arrays stay on the host, like the other fields.
+        xp = np if isinstance(fov_y, np.ndarray) else jnp
+        shape = np.shape(fov_y)
+        self.width = xp.broadcast_to(xp.asarray(width, np.int32), shape)
+        self.height = xp.broadcast_to(xp.asarray(height, np.int32), shape)
         self.orthographic = bool(orthographic)
 
     def aspect(self):
@@ -210,8 +212,9 @@ def standard_orbit(vertices, n_frames: int = 240, *, elevation_deg=20.0, width=8
     """
     from ._camera_table import orbit_rows
 
-    return orbit_rows(vertices, n_frames, 0, n_frames, elevation_deg=elevation_deg, width=width, height=height,
-                      fov_y_deg=fov_y_deg).camera()
+    table = orbit_rows(vertices, n_frames, 0, n_frames, elevation_deg=elevation_deg, width=width, height=height,
+                       fov_y_deg=fov_y_deg)
+    return jax.tree.map(jnp.asarray, table.camera())
 
 
 def random_views(vertices, n: int, *, seed=0, min_scale=0.05, max_scale=4.0, width=800, height=600,
@@ -223,8 +226,9 @@ def random_views(vertices, n: int, *, seed=0, min_scale=0.05, max_scale=4.0, wid
     log-uniform in ``[min_scale, max_scale]`` times the half diagonal)."""
     from ._camera_table import random_rows
 
-    return random_rows(vertices, seed, 0, n, min_scale=min_scale, max_scale=max_scale, width=width,
-                       height=height, fov_y_deg=fov_y_deg).camera()
+    table = random_rows(vertices, seed, 0, n, min_scale=min_scale, max_scale=max_scale, width=width,
+                        height=height, fov_y_deg=fov_y_deg)
+    return jax.tree.map(jnp.asarray, table.camera())
 
 
 def fly_through(keyframes: list[tuple], n_frames: int, **kw) -> Camera:

@@ -25,7 +25,6 @@ import math
 import os
 from typing import Iterator, Optional
 
-import jax.numpy as jnp
 import numpy as np
 
 from ._atomic import atomic_path
@@ -90,13 +89,11 @@ class CameraTable:
         for ortho in (False, True):
             idx = np.flatnonzero(self.orthographic == ortho)
             if len(idx):
+                # Host (NumPy) float32 fields: refine_batch cuts its chunks on the host.
                 yield idx, Camera(
-                    eye=jnp.asarray(self.eye[idx], jnp.float32),
-                    rotation=jnp.asarray(self.rotation[idx], jnp.float32),
-                    fov_y=jnp.asarray(self.fov_y[idx], jnp.float32),
-                    near=jnp.asarray(self.near[idx], jnp.float32),
-                    far=jnp.asarray(self.far[idx], jnp.float32),
-                    ortho_height=jnp.asarray(self.ortho_height[idx], jnp.float32),
+                    eye=self.eye[idx].astype(np.float32), rotation=self.rotation[idx].astype(np.float32),
+                    fov_y=self.fov_y[idx].astype(np.float32), near=self.near[idx].astype(np.float32),
+                    far=self.far[idx].astype(np.float32), ortho_height=self.ortho_height[idx].astype(np.float32),
                     width=self.width[idx], height=self.height[idx], orthographic=ortho)
 
     def camera(self) -> Camera:

@@ -1,0 +1,210 @@
+"""Evaluation-job benchmark: streaming, Dask, the compilation cache, many models.
+
+Usage: python benchmarks/eval.py [--parts stream,dask,cache,models] [--cameras 1000000]
+       [--dask-cameras 20000] [--json out.json]
+
+- stream: random views of the bunny streamed to Parquet by ``pmjax eval`` (a
+  child process per run, for its peak RSS): the full set against 10,000
+  cameras, and the job's cameras/s against raw ``refine_batch`` on the same
+  cameras in the same run.
+- dask: the dragon, a local Dask cluster of 2 single-threaded workers against
+  one process (both with a warm compilation cache; wall time of the whole job).
+- cache: a job over 5 models run twice with a fresh persistent compilation
+  cache: time until the first part is written, first run against second.
+- models: one process evaluates 30 hierarchies in turn, each at 3 image sizes:
+  XLA compilations per model and the RSS after each model.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+sys.path.insert(0, __file__.rsplit("/", 1)[0])
+from _common import DATA, machine, write_json  # noqa: E402
+from refine import pm_file  # noqa: E402
+
+import pmjax  # noqa: E402
+
+PARTS = ("stream", "dask", "cache", "models")
+
+
+def _child(code: str) -> dict:
+    """Run ``code`` in a fresh Python; it prints one JSON line last."""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+_STREAM_CHILD = """
+import json, resource, sys, time
+import pmjax
+t = time.perf_counter()
+s = pmjax.evaluate([{model!r}], ["random:{n}:1"], {folder!r}, taus=[1.0], compile_cache={cache!r}, progress=False)
+print(json.dumps(dict(seconds=time.perf_counter() - t, rate=s.cameras_per_s, rows=s.rows,
+                      peak_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)))
+"""
+
+_RAW_CHILD = """
+import json, time
+import pmjax
+from pmjax._camera_table import random_rows
+pm, data = pmjax.load({model!r}), pmjax.read_pm({model!r})
+v0 = data.vertices[: data.n_original_vertices]
+pmjax.refine_batch(pm, random_rows(v0, 1, 0, 256).camera(), 1.0)  # compile
+busy = 0.0
+for lo in range(0, {n}, 4096):
+    cams = random_rows(v0, 1, lo, min(lo + 4096, {n})).camera()  # made outside the timing
+    t = time.perf_counter()
+    pmjax.refine_batch(pm, cams, 1.0)
+    busy += time.perf_counter() - t
+print(json.dumps(dict(rate={n} / busy)))
+"""
+
+
+def stream(n: int, work: str) -> dict:
+    model = pm_file("bunny")
+    cache = os.path.join(work, "xla-stream")
+    runs = {}
+    for count in (10_000, n):
+        folder = os.path.join(work, f"stream-{count}")
+        runs[count] = _child(_STREAM_CHILD.format(model=model, n=count, folder=folder, cache=cache))
+        shutil.rmtree(folder)
+    raw = _child(_RAW_CHILD.format(model=model, n=n))
+    row = dict(model="bunny", cameras=n, peak_mb_small=runs[10_000]["peak_mb"], peak_mb=runs[n]["peak_mb"],
+               eval_rate=runs[n]["rate"], raw_rate=raw["rate"], eval_seconds=runs[n]["seconds"])
+    print(f"stream bunny: {n} cameras peak RSS {row['peak_mb']:.0f} MB vs 10,000 cameras {row['peak_mb_small']:.0f} MB "
+          f"({row['peak_mb'] / row['peak_mb_small']:.2f}x); eval {row['eval_rate']:.0f} cameras/s vs raw refine_batch "
+          f"{row['raw_rate']:.0f} cameras/s ({row['eval_rate'] / row['raw_rate']:.2f}x)", flush=True)
+    return row
+
+
+def dask_vs_process(n: int, work: str) -> dict:
+    model = pm_file("dragon")
+    cache = os.path.join(work, "xla-dask")
+    job = dict(taus=[1.0], compile_cache=cache, progress=False)
+    pmjax.evaluate([model], ["random:512:9"], os.path.join(work, "warm"), **job)  # warm the cache
+    times = {}
+    for name, kw in (("process", {}), ("dask", dict(workers=2))):
+        folder = os.path.join(work, f"dask-{name}")
+        t = time.perf_counter()
+        pmjax.evaluate([model], [f"random:{n}:9"], folder, **job, **kw)
+        times[name] = time.perf_counter() - t
+        shutil.rmtree(folder)
+    row = dict(model="dragon", cameras=n, process_s=times["process"], dask_s=times["dask"])
+    print(f"dask dragon: {n} cameras, one process {times['process']:.1f} s, local cluster of 2 single-threaded "
+          f"workers {times['dask']:.1f} s (dask rate / process rate {times['process'] / times['dask']:.2f}x)",
+          flush=True)
+    return row
+
+
+FIVE = ("cow", "bunny", "horse", "spot", "gears")
+
+_FIRST_PART_CHILD = """
+import json, os, subprocess, sys, time
+folder = {folder!r}
+t = time.perf_counter()
+proc = subprocess.Popen([sys.executable, "-m", "pmjax", "eval", *{models!r}, "-o", folder, "--orbit", "64",
+                         "--compile-cache", {cache!r}, "-q"], stdout=subprocess.DEVNULL)
+first = None
+while proc.poll() is None:
+    if first is None and os.path.isdir(folder) and any(n.startswith("part-") for n in os.listdir(folder)):
+        first = time.perf_counter() - t
+    time.sleep(0.01)
+assert proc.returncode == 0
+print(json.dumps(dict(first_part_s=first, total_s=time.perf_counter() - t)))
+"""
+
+
+def cache(work: str) -> dict:
+    models = [pm_file(n) for n in FIVE]
+    xla = os.path.join(work, "xla-cache")
+    runs = []
+    for k in range(2):
+        folder = os.path.join(work, f"cache-{k}")
+        runs.append(_child(_FIRST_PART_CHILD.format(folder=folder, models=models, cache=xla)))
+        shutil.rmtree(folder)
+    row = dict(models=list(FIVE), first_run=runs[0], second_run=runs[1])
+    print(f"compilation cache, 5 models: first part after {runs[0]['first_part_s']:.1f} s (cold cache) vs "
+          f"{runs[1]['first_part_s']:.1f} s (warm) = {runs[0]['first_part_s'] / runs[1]['first_part_s']:.2f}x sooner; "
+          f"whole job {runs[0]['total_s']:.1f} vs {runs[1]['total_s']:.1f} s", flush=True)
+    return row
+
+
+def _variants(count: int) -> list[str]:
+    """``count`` distinct hierarchies: the shared models, each built to a few face targets."""
+    from pmjax.builders import BuildOptions, build_pm
+
+    names = [p.stem for p in sorted(DATA.glob("*.ply")) if p.stem not in ("dragon", "terrain_sthelens")]
+    out = []
+    folder = os.path.join(os.path.dirname(pm_file("cow")), "variants")
+    os.makedirs(folder, exist_ok=True)
+    for k in range(count):
+        name, target = names[k % len(names)], (0, 2000, 500)[k // len(names)]
+        path = os.path.join(folder, f"{name}-t{target}.pmz")
+        if not os.path.exists(path):
+            v, f, _, _ = pmjax.load_clean_mesh(DATA / f"{name}.ply")
+            pmjax.save_pm(build_pm(v, f, BuildOptions(target_faces=target)), path)
+        out.append(path)
+    return out
+
+
+def models(work: str, count: int = 30) -> dict:
+    import jax
+
+    paths = _variants(count)
+    compiles = []
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda event, d, **kw: compiles.append(d) if event == "/jax/core/compile/backend_compile_duration" else None)
+    sizes = [(800, 600), (320, 240), (1920, 1080)]
+    per_model, rss = [], []
+    t0 = time.perf_counter()
+    for k, path in enumerate(paths):
+        before = len(compiles)
+        sets = [pmjax.camera_set("orbit:64", width=w, height=h) for w, h in sizes]
+        pmjax.evaluate([path], sets, os.path.join(work, f"models-{k}"), taus=[1.0], compile_cache=None, progress=False)
+        per_model.append(len(compiles) - before)
+        with open("/proc/self/statm") as fh:
+            rss.append(int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20)
+    row = dict(models=count, sizes=len(sizes), compiles_per_model=per_model, rss_mb=rss,
+               seconds=time.perf_counter() - t0)
+    print(f"{count} models x {len(sizes)} image sizes in one process: XLA compilations per model "
+          f"{min(per_model)}-{max(per_model)} (total {sum(per_model)}); RSS after model 5 {rss[4]:.0f} MB, "
+          f"after model {count} {rss[-1]:.0f} MB (max {max(rss):.0f} MB); {row['seconds']:.0f} s", flush=True)
+    return row
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--parts", default=",".join(PARTS))
+    ap.add_argument("--cameras", type=int, default=1_000_000)
+    ap.add_argument("--dask-cameras", type=int, default=20_000)
+    ap.add_argument("--json")
+    args = ap.parse_args()
+    parts = args.parts.split(",")
+    print(machine(), flush=True)
+    report = dict(machine=machine())
+    with tempfile.TemporaryDirectory(prefix="pmjax-bench-eval-") as work:
+        if "stream" in parts:
+            report["stream"] = stream(args.cameras, work)
+        if "dask" in parts:
+            report["dask"] = dask_vs_process(args.dask_cameras, work)
+        if "cache" in parts:
+            report["cache"] = cache(work)
+        if "models" in parts:
+            report["models"] = models(work)
+    print(f"peak RSS of this process {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
+    if args.json:
+        write_json(args.json, report)
+
+
+if __name__ == "__main__":
+    main()
