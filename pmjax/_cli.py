@@ -418,7 +418,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no", action="append", choices=("frustum", "orientation", "screen"),
                    help="switch a test off (repeatable)")
     add_method_arg(p)
-    p.add_argument("--chunk", type=int, default=4096, help="cameras per part file and per task (default 4096)")
+    p.add_argument("--chunk", type=int, default=2048, help="cameras per part file and per task (default 2048)")
     p.add_argument("--workers", type=int, default=0,
                    help="run on a local Dask cluster of N single-threaded worker processes (default 0: this process)")
     p.add_argument("--scheduler", help="run on a Dask cluster: scheduler address, tcp://HOST:PORT")

@@ -20,6 +20,7 @@ Dask cluster, gives the same rows as one uninterrupted process; only
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -36,7 +37,7 @@ from ._predicate import ALL_TESTS, Tests
 
 FORMAT = "pmjax-eval/1"
 JOB_FILE = "_job.json"
-DEFAULT_CHUNK = 4096
+DEFAULT_CHUNK = 2048
 # Default folder of JAX's persistent compilation cache for evaluations.
 DEFAULT_COMPILE_CACHE = os.path.join(os.path.expanduser("~"), ".cache", "pmjax", "xla")
 # Models a process keeps loaded (with their compiled kernels) at once.
@@ -384,23 +385,33 @@ def evaluate(
                taus=[float(t) for t in taus], budgets=[int(b) for b in budgets], tests=_tests_dict(tests),
                method=method, chunk=int(chunk), batch_chunk=int(batch_chunk))
     job_sha = hashlib.sha256(json.dumps(job, sort_keys=True).encode()).hexdigest()
-    done = _open_folder(folder, job)
-    counts = [len(t) if t is not None else s.count for s, t in zip(sets, tables)]
-    total = len(models) * len(values) * sum(counts)
-    n_done = sum(p.hi - p.lo for m in range(len(models)) for p in _model_parts(m, counts, len(values), chunk)
-                 if p.file in done)
-    bar = _progress(progress, total, n_done)
-    written = skipped = rows_now = 0
-    runner = _Runner(scheduler, workers)
-    try:
+    with contextlib.ExitStack() as stack:
+        stack.enter_context(_lock_folder(folder))
+        done = _open_folder(folder, job)
+        counts = [len(t) if t is not None else s.count for s, t in zip(sets, tables)]
+        total = len(models) * len(values) * sum(counts)
+        n_done = sum(p.hi - p.lo for m in range(len(models)) for p in _model_parts(m, counts, len(values), chunk)
+                     if p.file in done)
+        bar = stack.enter_context(_progress(progress, total, n_done))
+        written = skipped = rows_now = 0
+        runner = _Runner(scheduler, workers)
+        stack.callback(runner.close)
+
+        def store(finished_parts):
+            nonlocal written, rows_now
+            for finished, table in finished_parts:
+                _write_part(folder, finished, table)
+                written += 1
+                rows_now += table.num_rows
+                bar.update(table.num_rows)
+
         for mi, model_path in enumerate(models):
             # The model is validated before its parts start; a bad one stops
             # the job with the parts before it kept.
             try:
                 data = read_pm(model_path)
             except PMFormatError as exc:
-                for finished, table in runner.drain():
-                    _write_part(folder, finished, table)
+                store(runner.drain())
                 raise EvalError(f"model {model_path}: {exc}") from exc
             digest = _file_digest(model_path)
             vertices = data.vertices[: data.n_original_vertices]
@@ -415,20 +426,9 @@ def evaluate(
                             lo=part.lo, hi=part.hi, tau=None if budgets else value,
                             budget=value if budgets else None, tests=_tests_dict(tests), method=method,
                             batch_chunk=int(batch_chunk), compile_cache=compile_cache, job_sha256=job_sha)
-                for finished, table in runner.submit(part, task):
-                    _write_part(folder, finished, table)
-                    written += 1
-                    rows_now += table.num_rows
-                    bar.update(table.num_rows)
+                store(runner.submit(part, task))
             del data, vertices
-        for finished, table in runner.drain():
-            _write_part(folder, finished, table)
-            written += 1
-            rows_now += table.num_rows
-            bar.update(table.num_rows)
-    finally:
-        bar.close()
-        runner.close()
+        store(runner.drain())
     return EvalSummary(folder=os.fspath(folder), rows=total, parts_written=written, parts_skipped=skipped,
                        cameras=rows_now, seconds=time.perf_counter() - start)
 
@@ -441,9 +441,24 @@ def _model_parts(m, counts, n_values, chunk):
                 yield _Part(m, c, v, k, lo, min(lo + chunk, n))
 
 
-def _open_folder(folder, job) -> set:
-    """Create or reopen the dataset folder for ``job``: the part files done."""
+def _lock_folder(folder):
+    """An exclusive lock on the dataset folder for this run (released when the
+    returned file closes, also when the process dies): two runs writing into
+    one folder would remove each other's temporary files."""
+    import fcntl
+
     os.makedirs(folder, exist_ok=True)
+    fh = open(os.path.join(folder, ".lock"), "a")
+    try:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        fh.close()
+        raise EvalError(f"{folder}: another pmjax eval is writing into this folder") from None
+    return fh
+
+
+def _open_folder(folder, job) -> set:
+    """Reopen (or start) the locked dataset folder for ``job``: the part files done."""
     path = os.path.join(folder, JOB_FILE)
     if os.path.exists(path):
         try:

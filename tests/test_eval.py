@@ -195,6 +195,10 @@ def test_a_bad_model_stops_the_job_and_keeps_earlier_parts(cow, tmp_path):
     got = rows(out)
     assert np.array_equal(got["camera"], np.arange(20)) and set(got["model"]) == {"cow"}
     assert not [n for n in os.listdir(out) if n.startswith(".tmp-")]
+    # While a run holds the folder, a second run is refused.
+    with pmjax._eval._lock_folder(out):
+        with pytest.raises(EvalError, match="another pmjax eval is writing into this folder"):
+            evaluate([cow], ["orbit:20"], out, taus=[1.0], chunk=8, compile_cache=None, progress=False)
 
 
 def _run_cli(args, **kw):
