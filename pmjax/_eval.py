@@ -514,14 +514,16 @@ class _Runner:
             from dask.distributed import Client, LocalCluster
 
             if scheduler:
-                self.client = Client(scheduler)
+                self.client = Client(scheduler, set_as_default=False)
             else:
                 self.cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
                                             dashboard_address=None)
-                self.client = Client(self.cluster)
-            from dask.distributed import as_completed
-
-            self.pending = as_completed([], with_results=True)
+                self.client = Client(self.cluster, set_as_default=False)
+            # Pending futures; each result is fetched with the future's own
+            # result(), which waits for the scheduler to recompute a result
+            # lost with its worker (as_completed(with_results=True) can wait
+            # forever in that case).
+            self.pending = []
             self.parts = {}
             threads = sum(self.client.nthreads().values()) or int(workers) or 1
             self.window = 2 * threads + 2
@@ -532,14 +534,21 @@ class _Runner:
         future = self.client.submit(run_part, task, key=f"pmjax-eval-{task['job_sha256'][:12]}-{part.file}",
                                     pure=False, retries=2)
         self.parts[future.key] = part
-        self.pending.add(future)
+        self.pending.append(future)
         return self._collect(self.window)
 
     def _collect(self, keep):
         out = []
-        while self.pending.count() > keep:
-            future, table = next(self.pending)
-            out.append((self.parts.pop(future.key), table))
+        while len(self.pending) > keep:
+            # Polled: distributed.wait and as_completed use the process's
+            # default client, which need not be this one.
+            done = [f for f in self.pending if f.done()]
+            if not done:
+                time.sleep(0.01)
+                continue
+            for future in done:
+                out.append((self.parts.pop(future.key), future.result()))
+            self.pending = [f for f in self.pending if not f.done() or f.key in self.parts]
         return out
 
     def drain(self):
