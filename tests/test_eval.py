@@ -241,13 +241,12 @@ def test_dask_cluster_gives_the_same_rows_even_when_a_worker_dies(cow, tmp_path)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                   dashboard_address=None) as cluster:
         out = str(tmp_path / "dask")
-        killed = []
+        killed, stop = [], threading.Event()
 
         def kill_one_worker():
             # Once parts come back, kill a worker process outright (the
             # cluster's worker processes are children of this process).
-            deadline = time.time() + 300
-            while time.time() < deadline:
+            while not stop.is_set():
                 if os.path.isdir(out) and len([n for n in os.listdir(out) if n.startswith("part-")]) >= 3:
                     workers = [p for p in psutil.Process().children()
                                if any("spawn_main" in arg for arg in p.cmdline())]
@@ -256,10 +255,13 @@ def test_dask_cluster_gives_the_same_rows_even_when_a_worker_dies(cow, tmp_path)
                     return
                 time.sleep(0.05)
 
-        killer = threading.Thread(target=kill_one_worker)
+        killer = threading.Thread(target=kill_one_worker, daemon=True)
         killer.start()
-        summary = evaluate([cow], ["random:3000:7"], out, scheduler=cluster.scheduler_address, **job)
-        killer.join()
+        try:
+            summary = evaluate([cow], ["random:3000:7"], out, scheduler=cluster.scheduler_address, **job)
+        finally:
+            stop.set()
+            killer.join()
         assert killed, "no worker was killed: the job ended first"
         assert summary.parts_written == 30
         assert_same_rows(rows(out), rows(reference))
