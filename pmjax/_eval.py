@@ -32,6 +32,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ._atomic import atomic_path
+from ._camera import index_camera
 from ._camera_table import CameraTable, fly_rows, orbit_rows, random_rows, read_camera_table
 from ._predicate import ALL_TESTS, Tests
 
@@ -228,8 +229,6 @@ def run_part(task: dict):
             faces[idx], vertices[idx], executed[idx] = out["faces"], out["vertices"], out["executed_count"]
             tau[idx] = task["tau"]
             continue
-        from ._camera import index_camera
-
         for j, row in enumerate(idx):
             # A budget needs its own tolerance per camera: the exact one from
             # the sorted critical tolerances, then a refine at it.
