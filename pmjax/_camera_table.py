@@ -97,7 +97,7 @@ class CameraTable:
                     width=self.width[idx], height=self.height[idx], orthographic=ortho)
 
     def camera(self) -> Camera:
-        """All rows as one Camera batch (they must share image size and projection)."""
+        """All rows as one Camera batch (they must share the projection)."""
         groups = list(self.batches())
         if len(groups) != 1:
             raise CameraError("perspective and orthographic cameras in one set; use batches()")
@@ -116,7 +116,7 @@ class CameraTable:
 
 def table_from_cameras(camera: Camera, path_id=None, frame=None) -> CameraTable:
     """A :class:`CameraTable` holding a Camera batch (or one camera)."""
-    n = max(1, int(camera.eye.shape[0]) if camera.eye.ndim == 2 else 1)
+    n = int(camera.eye.shape[0]) if np.ndim(camera.eye) == 2 else 1
     flat = lambda a: np.asarray(a, np.float64).reshape(n)  # noqa: E731
     return CameraTable(
         eye=np.asarray(camera.eye, np.float64).reshape(n, 3),

@@ -313,6 +313,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="pmjax",
         description="View-dependent refinement of progressive meshes (JAX).",
     )
+    from pmjax import __version__
+
+    parser.add_argument("--version", action="version", version=f"pmjax {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("build", help="build a progressive mesh (.pmz) from a mesh file",

@@ -47,3 +47,12 @@ def test_lod_batch_out_of_range(tmp_path, capsys):
     assert main(["build", pmjax.default_model_path(), "-o", str(out), "-q"]) == 0
     assert main(["lod", str(out), "--batch", "999", "-o", str(tmp_path / "x.ply")]) == 2
     assert "batch 999 outside" in capsys.readouterr().err
+
+
+def test_version(capsys):
+    import pmjax
+    from pmjax._cli import main
+
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0 and capsys.readouterr().out.strip() == f"pmjax {pmjax.__version__}"
