@@ -3,6 +3,7 @@
 import json
 
 import numpy as np
+import pytest
 import trimesh
 
 import pmjax
@@ -50,9 +51,6 @@ def test_lod_batch_out_of_range(tmp_path, capsys):
 
 
 def test_version(capsys):
-    import pmjax
-    from pmjax._cli import main
-
     with pytest.raises(SystemExit) as info:
         main(["--version"])
     assert info.value.code == 0 and capsys.readouterr().out.strip() == f"pmjax {pmjax.__version__}"
