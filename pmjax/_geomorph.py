@@ -100,7 +100,7 @@ def geomorph_step(pm: ProgressiveMesh, state: Geomorph, executed: Bool[Array, " 
 @eqx.filter_jit
 def _blend(pm: ProgressiveMesh, weight, normals):
     k = pm.killer
-    drawn = (k < 0) | (weight[jnp.maximum(k, 0)] < 1.0)
+    drawn = (k < 0) if pm.n_pcols == 0 else (k < 0) | (weight[jnp.maximum(k, 0)] < 1.0)
     # Weld through the fully collapsed pcols, as the hard mesh does.
     rep = representatives(pm, weight >= 1.0)
     blended_normals = None if normals is None else geomorph_blend(pm, weight, normals)

@@ -165,7 +165,7 @@ class ProgressiveMesh(eqx.Module):
         bounds = subtree_bounds(host["center"].T, host["axis"].T, pm.radius, host["sin_alpha"], host["cos_alpha"],
                                 pm.delta, pm.mu, child1, child2, pm.batch_offsets)
         roots, depth = forest_generations(parent[V0:], pm.batch_offsets)
-        table = np.concatenate([np.asarray(getattr(attributes, k)).reshape(-1, P) for k in TABLE_ATTRIBUTES]
+        table = np.concatenate([np.atleast_2d(np.asarray(getattr(attributes, k))) for k in TABLE_ATTRIBUTES]
                                + [bounds[k].reshape(1, P) for k in TABLE_BOUNDS]).T
         return ProgressiveMesh(
             vertices=jnp.asarray(pm.vertices),

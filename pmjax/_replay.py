@@ -49,8 +49,8 @@ def representatives(pm: PMData, executed: np.ndarray) -> np.ndarray:
 
 def active_faces(pm: PMData, executed: np.ndarray) -> np.ndarray:
     """``bool[F]``: faces whose killer did not run."""
-    k = pm.killer
-    return (k < 0) | ~executed[np.maximum(k, 0)]
+    # Index -1 (no killer) reads the appended False: drawn. Also right with no pcols.
+    return ~np.append(np.asarray(executed, bool), False)[pm.killer]
 
 
 def mesh_for_executed(pm: PMData, executed: np.ndarray):

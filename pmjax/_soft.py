@@ -134,6 +134,8 @@ def geomorph_blend(pm: ProgressiveMesh, weight: Float[Array, " P"], values: Floa
         ``[V0 + P, k]`` blended values of every vertex.
     """
     V0 = pm.n_original_vertices
+    if pm.n_pcols == 0:  # nothing to blend toward
+        return values
 
     # offset(u) = w(p)·(value(p) − value(u)) + offset(p) for p = the pcol consuming u.
     def climb(parent, ids, created, pcols):
@@ -205,7 +207,10 @@ def soft_refine_unchecked(pm, camera, tau, temperature, scale=None, tests: Tests
         collapse, visible, t = soft_tests(attrs, camera, tau, temperature, jnp.asarray(scale, dtype), tests)
     weight = soft_weights(pm, collapse)
     killer = pm.killer
-    face_weight = jnp.where(killer < 0, 1.0, 1.0 - weight[jnp.maximum(killer, 0)])
+    if pm.n_pcols == 0:  # every face drawn, fully
+        face_weight = jnp.ones(killer.shape, weight.dtype)
+    else:
+        face_weight = jnp.where(killer < 0, 1.0, 1.0 - weight[jnp.maximum(killer, 0)])
     return SoftRefinement(
         collapse=collapse,
         visible=visible,
