@@ -143,20 +143,100 @@ class Camera(eqx.Module):
         return jnp.stack([near, far] + sides, axis=-2)
 
 
+class CameraError(ValueError):
+    """A camera value out of range; the message names the value (and the file
+    and camera or row it came from)."""
+
+
+MAX_IMAGE_SIZE = 1 << 16
+
+
+def check_camera_values(eye, fov_y_deg, near, far, ortho_height, width, height, orthographic, *,
+                        name=lambda key: key, where: str = "", row: str = "") -> None:
+    """Range checks shared by every way of making cameras, vectorized over N
+    rows (1-D arrays, ``eye [N, 3]``).
+
+    Raises:
+        CameraError: ``{where}{row} i: {name(key)} ...`` for the first bad
+            value (no row part when ``row`` is empty).
+    """
+    width, height = np.asarray(width), np.asarray(height)
+
+    def fail(bad, what):
+        rows = np.flatnonzero(np.broadcast_to(bad, np.shape(fov_y_deg)))
+        if len(rows):
+            at = f"{row} {rows[0]}: " if row else ""
+            raise CameraError(f"{where}{at}{what}")
+
+    fail(~np.all(np.isfinite(eye), axis=-1), f"{name('eye')} must be finite")
+    for key, values in (("fov_y_deg", fov_y_deg), ("near", near), ("far", far), ("ortho_height", ortho_height)):
+        fail(~np.isfinite(values), f"{name(key)} must be finite")
+    for key, values in (("width", width), ("height", height)):
+        if values.dtype.kind not in "iu":
+            raise CameraError(f"{where}{name(key)} must be an integer, got {values.dtype} values")
+        fail((values < 1) | (values > MAX_IMAGE_SIZE), f"{name(key)} must be an integer in [1, {MAX_IMAGE_SIZE}]")
+    fail(~np.asarray(orthographic, bool) & ~((fov_y_deg > 0) & (fov_y_deg < 180)),
+         f"{name('fov_y_deg')} must lie in (0, 180) degrees")
+    fail(~(ortho_height > 0), f"{name('ortho_height')} must be > 0")
+    fail(~(near > 0), f"{name('near')} must be > 0")
+    fail(~(far > near), f"{name('far')} must be greater than {name('near')}")
+
+
+def _vector(value, key):
+    v = np.asarray(value, np.float64)
+    if v.shape != (3,):
+        raise CameraError(f"look_at: {key} must be 3 numbers, got shape {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise CameraError(f"look_at: {key} must be finite, got {v.tolist()}")
+    return v
+
+
+def _number(value, key) -> float:
+    try:
+        if isinstance(value, (bool, np.bool_, str)):
+            raise TypeError
+        return float(value)
+    except (TypeError, ValueError):
+        raise CameraError(f"look_at: {key} must be a number, got {value!r}") from None
+
+
+def _size(value, key) -> int:
+    number = _number(value, key)
+    if not (math.isfinite(number) and number == int(number)):
+        raise CameraError(f"look_at: {key} must be an integer, got {value!r}")
+    return int(number)
+
+
 def look_at(eye, target, up=(0.0, 1.0, 0.0), *, fov_y_deg=45.0, width=800, height=600, near=None, far=None,
             orthographic=False, ortho_height=1.0) -> Camera:
     """Camera at ``eye`` looking at ``target`` (numpy inputs, one camera).
 
     ``near``/``far`` default to 1e-3 and 1e3 times the eye–target distance.
+
+    Raises:
+        CameraError: a value out of range: eye, target or up not 3 finite
+            numbers, eye on target, up zero, fov not in (0°, 180°) (perspective),
+            a size not an integer in [1, 65536], ``near <= 0``, ``far <= near``,
+            ``ortho_height <= 0``, ``orthographic`` not a boolean.
     """
-    eye = np.asarray(eye, np.float64)
-    target = np.asarray(target, np.float64)
+    eye, target, up = _vector(eye, "eye"), _vector(target, "target"), _vector(up, "up")
+    if not isinstance(orthographic, (bool, np.bool_)):
+        raise CameraError(f"look_at: orthographic must be true or false, got {orthographic!r}")
+    width, height = _size(width, "width"), _size(height, "height")
     back = eye - target
     dist = np.linalg.norm(back)
     if not dist > 0:
-        raise ValueError("look_at: eye and target coincide")
+        raise CameraError("look_at: eye and target coincide")
+    if not np.linalg.norm(up) > 0:
+        raise CameraError("look_at: up is zero")
+    near = 1e-3 * dist if near is None else _number(near, "near")
+    far = 1e3 * dist if far is None else _number(far, "far")
+    fov_y_deg, ortho_height = _number(fov_y_deg, "fov_y_deg"), _number(ortho_height, "ortho_height")
+    check_camera_values(eye[None], np.array([fov_y_deg]), np.array([near]), np.array([far]),
+                        np.array([ortho_height]), np.array([width]), np.array([height]),
+                        np.array([orthographic]), where="look_at: ")
     back /= dist
-    right = np.cross(np.asarray(up, np.float64), back)
+    right = np.cross(up, back)
     if np.linalg.norm(right) < 1e-9:  # looking along up: pick another up
         right = np.cross([0.0, 0.0, 1.0] if abs(back[2]) < 0.9 else [1.0, 0.0, 0.0], back)
     right /= np.linalg.norm(right)
@@ -166,8 +246,8 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0), *, fov_y_deg=45.0, width=800, heigh
         eye=jnp.asarray(eye, jnp.float32),
         rotation=jnp.asarray(rotation, jnp.float32),
         fov_y=jnp.asarray(math.radians(fov_y_deg), jnp.float32),
-        near=jnp.asarray(near if near is not None else 1e-3 * dist, jnp.float32),
-        far=jnp.asarray(far if far is not None else 1e3 * dist, jnp.float32),
+        near=jnp.asarray(near, jnp.float32),
+        far=jnp.asarray(far, jnp.float32),
         ortho_height=jnp.asarray(ortho_height, jnp.float32),
         width=int(width),
         height=int(height),
@@ -275,11 +355,23 @@ def save_cameras(camera: Camera, path) -> None:
             json.dump(dict(meta, cameras=rows), fh, indent=1)
 
 
+# Keys of a JSON camera file: the file's, and each camera's.
+FILE_KEYS = ("width", "height", "orthographic", "cameras")
+CAMERA_KEYS = ("eye", "target", "up", "rotation", "fov_y_deg", "near", "far", "ortho_height", "width", "height")
+
+
+def _known_keys(doc, known):
+    unknown = sorted(set(doc) - set(known))
+    if unknown:
+        raise CameraError(f"unknown key {unknown[0]!r}; known keys: {', '.join(known)}")
+
+
 def load_cameras(path) -> Camera:
     """Read cameras written by :func:`save_cameras` (or by hand: JSON with
     ``cameras: [{eye, target | rotation, fov_y_deg, ...}]``, a camera's own
     ``width``/``height`` overriding the file's). Always a batch."""
     path = os.fspath(path)
+    single = None
     try:
         if path.endswith(".csv"):
             with open(path, newline="") as fh:
@@ -294,28 +386,49 @@ def load_cameras(path) -> Camera:
         else:
             with open(path) as fh:
                 doc = json.load(fh)
-            meta = dict(width=int(doc.get("width", 800)), height=int(doc.get("height", 600)),
-                        orthographic=bool(doc.get("orthographic", False)))
+            if not isinstance(doc, dict):
+                raise CameraError(f"{path}: expected a JSON object (one camera, or cameras: [...]), "
+                                  f"got {type(doc).__name__}")
+            try:
+                _known_keys(doc, FILE_KEYS if "cameras" in doc else FILE_KEYS + CAMERA_KEYS)
+            except CameraError as exc:
+                raise CameraError(f"{path}: {exc}") from None
+            meta = dict(width=doc.get("width", 800), height=doc.get("height", 600),
+                        orthographic=doc.get("orthographic", False))
             items = doc["cameras"] if "cameras" in doc else [doc]
+            single = None if "cameras" in doc else doc
+            if not isinstance(items, list):
+                raise CameraError(f"{path}: 'cameras' must be a list, got {type(items).__name__}")
+    except CameraError:
+        raise
     except (OSError, ValueError, KeyError, IndexError, TypeError) as exc:
-        raise ValueError(f"{path}: cannot read cameras ({type(exc).__name__}: {exc})") from exc
+        raise CameraError(f"{path}: cannot read cameras ({type(exc).__name__}: {exc})") from exc
     cams = []
     for i, it in enumerate(items):
         try:
+            if not isinstance(it, dict):
+                raise CameraError(f"expected a JSON object, got {type(it).__name__}")
+            if it is not single:  # a single-camera file was checked with the file's keys
+                _known_keys(it, CAMERA_KEYS)
+            if "eye" not in it:
+                raise CameraError("'eye' is missing")
+            if ("target" in it) == ("rotation" in it):
+                raise CameraError("give either 'target' (and optionally 'up') or 'rotation', "
+                                  + ("not both" if "target" in it else "neither"))
             eye = np.asarray(it["eye"], float)
-            size = dict(meta, width=int(it.get("width", meta["width"])), height=int(it.get("height", meta["height"])))
+            size = dict(meta, width=it.get("width", meta["width"]), height=it.get("height", meta["height"]))
             if "rotation" in it:
                 rot = np.asarray(it["rotation"], float)
                 if rot.shape != (3, 3) or not np.allclose(rot.T @ rot, np.eye(3), atol=1e-4):
-                    raise ValueError("rotation is not a 3×3 rotation matrix")
+                    raise CameraError("rotation is not a 3×3 rotation matrix (orthonormal columns)")
+                if np.linalg.det(rot) < 0:
+                    raise CameraError("rotation is a reflection (determinant -1)")
                 cam = look_at(eye, eye - rot[:, 2], rot[:, 1], fov_y_deg=it.get("fov_y_deg", 45.0), **size,
                               near=it.get("near"), far=it.get("far"), ortho_height=it.get("ortho_height", 1.0))
             else:
                 cam = look_at(eye, it["target"], it.get("up", (0, 1, 0)), fov_y_deg=it.get("fov_y_deg", 45.0),
                               **size, near=it.get("near"), far=it.get("far"), ortho_height=it.get("ortho_height", 1.0))
-            if not np.all(np.isfinite(np.asarray(cam.eye))):
-                raise ValueError("non-finite eye")
         except (KeyError, ValueError, TypeError) as exc:
-            raise ValueError(f"{path}: camera {i}: {exc}") from exc
+            raise CameraError(f"{path}: camera {i}: {str(exc).removeprefix('look_at: ')}") from exc
         cams.append(cam)
     return stack_cameras(cams)

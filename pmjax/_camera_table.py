@@ -28,7 +28,7 @@ from typing import Iterator, Optional
 import numpy as np
 
 from ._atomic import atomic_path
-from ._camera import Camera
+from ._camera import Camera, CameraError, check_camera_values
 
 # Column names of the file schema, grouped as they are read.
 EYE = ("eye_x", "eye_y", "eye_z")
@@ -42,10 +42,6 @@ COLUMNS = EYE + TARGET + UP + ROTATION + SCALARS + SIZES + ("orthographic", "pat
 # Block of rows drawn from one seeded generator (random views): fixed, so a
 # row's camera does not depend on how the set is chunked.
 RANDOM_BLOCK = 4096
-
-
-class CameraError(ValueError):
-    """A camera set that cannot be used; the message names the file, row and column."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -337,16 +333,12 @@ def read_camera_table(path) -> CameraTable:
     ortho = num("orthographic", 0, integer=True)
     _first(path, (ortho != 0) & (ortho != 1), "column 'orthographic' must be 0 or 1 (or a boolean)")
     ortho = ortho.astype(bool)
-    _first(path, ~ortho & ~((fov > 0) & (fov < 180)), "column 'fov_y_deg' must lie in (0, 180)")
     ortho_height = num("ortho_height", 1.0)
-    _first(path, ~(ortho_height > 0), "column 'ortho_height' must be > 0")
     width, height = num("width", 800, integer=True), num("height", 600, integer=True)
-    _first(path, ~((width > 0) & (width <= 1 << 16)), "column 'width' must be an integer in [1, 65536]")
-    _first(path, ~((height > 0) & (height <= 1 << 16)), "column 'height' must be an integer in [1, 65536]")
     near = num("near") if "near" in cols else 1e-3 * dist
     far = num("far") if "far" in cols else 1e3 * dist
-    _first(path, ~(near > 0), "column 'near' must be > 0")
-    _first(path, ~(far > near), "column 'far' must be greater than 'near'")
+    check_camera_values(eye, fov, near, far, ortho_height, width, height, ortho, name=lambda key: f"column {key!r}",
+                        where=f"{path}: ", row="row")
     if ("path_id" in cols) != ("frame" in cols):
         raise CameraError(f"{path}: columns 'path_id' and 'frame' come together")
     path_id = num("path_id", integer=True) if "path_id" in cols else None

@@ -96,3 +96,51 @@ def test_failed_camera_write_leaves_nothing(tmp_path):
     with pytest.raises(TypeError):
         pmjax.save_cameras(bad, tmp_path / "c.json")
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("kw, message", [
+    (dict(fov_y_deg=0), "fov_y_deg must lie in (0, 180)"), (dict(fov_y_deg=180), "fov_y_deg must lie in (0, 180)"),
+    (dict(fov_y_deg=-5), "fov_y_deg must lie in (0, 180)"), (dict(fov_y_deg=float("nan")), "fov_y_deg must be finite"),
+    (dict(width=0), "width must be an integer in [1, 65536]"), (dict(height=0), "height must be an integer in"),
+    (dict(width=800.5), "width must be an integer, got 800.5"), (dict(width=True), "width must be a number"),
+    (dict(near=-1.0), "near must be > 0"), (dict(near=2.0, far=1.0), "far must be greater than near"),
+    (dict(orthographic="yes"), "orthographic must be true or false, got 'yes'"),
+    (dict(orthographic=True, ortho_height=0.0), "ortho_height must be > 0"),
+    (dict(eye=[0, 0, float("nan")]), "eye must be finite"), (dict(target=[0, 0, float("inf")]), "target must be finite"),
+    (dict(up=[0, 0, 0]), "up is zero"), (dict(eye=[0, 0, 0]), "eye and target coincide"),
+    (dict(eye=[0, 0]), "eye must be 3 numbers"),
+])
+def test_look_at_refuses_values_out_of_range(kw, message):
+    args = dict(eye=[0, 0, 3], target=[0, 0, 0])
+    args.update(kw)
+    eye, target, up = args.pop("eye"), args.pop("target"), args.pop("up", (0, 1, 0))
+    with pytest.raises(pmjax.CameraError) as info:
+        pmjax.look_at(eye, target, up, **args)
+    assert str(info.value).startswith("look_at: ") and message in str(info.value)
+
+
+@pytest.mark.parametrize("doc, message", [
+    ([1, 2], "expected a JSON object (one camera, or cameras: [...]), got list"),
+    (None, "got NoneType"), (5, "got int"),
+    ({"cameras": 3}, "'cameras' must be a list, got int"),
+    ({"widht": 5, "cameras": []}, "unknown key 'widht'; known keys: width, height, orthographic, cameras"),
+    ({"cameras": [{"eyes": [0, 0, 1], "target": [0, 0, 0]}]}, "camera 0: unknown key 'eyes'; known keys: eye,"),
+    ({"cameras": [{"eye": [0, 0, 1], "target": [0, 0, 0]}, {"eye": [0, 0, 1], "target": [0, 0, 0], "fov_deg": 4}]},
+     "camera 1: unknown key 'fov_deg'"),
+    ({"cameras": [{"eye": [0, 0, 1]}]}, "camera 0: give either 'target' (and optionally 'up') or 'rotation', neither"),
+    ({"cameras": [{"target": [0, 0, 1]}]}, "camera 0: 'eye' is missing"),
+    ({"cameras": [{"eye": [0, 0, 1], "rotation": [[-1, 0, 0], [0, 1, 0], [0, 0, 1]]}]}, "camera 0: rotation is a reflection"),
+    ({"cameras": [{"eye": [0, 0, 1], "rotation": [[2, 0, 0], [0, 1, 0], [0, 0, 1]]}]}, "camera 0: rotation is not a 3×3"),
+    ({"orthographic": "yes", "cameras": [{"eye": [0, 0, 1], "target": [0, 0, 0]}]}, "orthographic must be true or false"),
+    ({"height": 0, "cameras": [{"eye": [0, 0, 1], "target": [0, 0, 0]}]}, "camera 0: height must be an integer in"),
+    ({"eye": [0, 0, 1], "target": [0, 0, 0], "orthographic": True, "ortho_height": -1}, "ortho_height must be > 0"),
+])
+def test_camera_files_are_refused_by_camera_and_key(tmp_path, doc, message):
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(doc))
+    with pytest.raises(pmjax.CameraError) as info:
+        pmjax.load_cameras(path)
+    assert str(info.value).startswith(f"{path}: ") and message in str(info.value), str(info.value)
+    # A single camera with the file's keys is fine.
+    path.write_text(json.dumps({"eye": [0, 0, 1], "target": [0, 0, 0], "orthographic": True, "width": 64}))
+    assert int(pmjax.load_cameras(path).width[0]) == 64
