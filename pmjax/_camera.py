@@ -207,6 +207,23 @@ def _size(value, key) -> int:
     return int(number)
 
 
+def look_at_rotations(eye, target, up) -> np.ndarray:
+    """Camera-to-world rotations ``float64[N, 3, 3]`` looking from ``eye`` at
+    ``target`` (``[N, 3]`` each), columns right, up, back; when ``up``
+    is along the view, another up is picked."""
+    back = eye - target
+    back = back / np.linalg.norm(back, axis=1, keepdims=True)
+    right = np.cross(up, back)
+    # Looking along up: another up, away from the view direction.
+    along = np.linalg.norm(right, axis=1) < 1e-9
+    if along.any():
+        other = np.where(np.abs(back[along, 2:3]) < 0.9, [0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
+        right[along] = np.cross(other, back[along])
+    right /= np.linalg.norm(right, axis=1, keepdims=True)
+    true_up = np.cross(back, right)
+    return np.stack([right, true_up, back], axis=2)
+
+
 def look_at(eye, target, up=(0.0, 1.0, 0.0), *, fov_y_deg=45.0, width=800, height=600, near=None, far=None,
             orthographic=False, ortho_height=1.0) -> Camera:
     """Camera at ``eye`` looking at ``target`` (numpy inputs, one camera).
@@ -223,8 +240,7 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0), *, fov_y_deg=45.0, width=800, heigh
     if not isinstance(orthographic, (bool, np.bool_)):
         raise CameraError(f"look_at: orthographic must be true or false, got {orthographic!r}")
     width, height = _size(width, "width"), _size(height, "height")
-    back = eye - target
-    dist = np.linalg.norm(back)
+    dist = np.linalg.norm(eye - target)
     if not dist > 0:
         raise CameraError("look_at: eye and target coincide")
     if not np.linalg.norm(up) > 0:
@@ -235,13 +251,7 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0), *, fov_y_deg=45.0, width=800, heigh
     check_camera_values(eye[None], np.array([fov_y_deg]), np.array([near]), np.array([far]),
                         np.array([ortho_height]), np.array([width]), np.array([height]),
                         np.array([orthographic]), where="look_at: ")
-    back /= dist
-    right = np.cross(up, back)
-    if np.linalg.norm(right) < 1e-9:  # looking along up: pick another up
-        right = np.cross([0.0, 0.0, 1.0] if abs(back[2]) < 0.9 else [1.0, 0.0, 0.0], back)
-    right /= np.linalg.norm(right)
-    true_up = np.cross(back, right)
-    rotation = np.stack([right, true_up, back], axis=1)
+    rotation = look_at_rotations(eye[None], target[None], up[None])[0]
     return Camera(
         eye=jnp.asarray(eye, jnp.float32),
         rotation=jnp.asarray(rotation, jnp.float32),

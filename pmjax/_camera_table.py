@@ -28,7 +28,7 @@ from typing import Iterator, Optional
 import numpy as np
 
 from ._atomic import atomic_path
-from ._camera import Camera, CameraError, check_camera_values
+from ._camera import Camera, CameraError, check_camera_values, look_at_rotations
 
 # Column names of the file schema, grouped as they are read.
 EYE = ("eye_x", "eye_y", "eye_z")
@@ -123,23 +123,6 @@ def table_from_cameras(camera: Camera, path_id=None, frame=None) -> CameraTable:
         orthographic=np.full(n, bool(camera.orthographic)),
         path_id=None if path_id is None else np.broadcast_to(np.asarray(path_id, np.int64), (n,)).copy(),
         frame=None if frame is None else np.broadcast_to(np.asarray(frame, np.int64), (n,)).copy())
-
-
-def look_at_rotations(eye, target, up) -> np.ndarray:
-    """Camera-to-world rotations ``float64[N, 3, 3]`` looking from ``eye`` at
-    ``target`` (``[N, 3]`` each), as :func:`pmjax.look_at` builds one: when
-    ``up`` is along the view, another up is picked."""
-    back = eye - target
-    back = back / np.linalg.norm(back, axis=1, keepdims=True)
-    right = np.cross(up, back)
-    # Looking along up: the same fallback as look_at.
-    along = np.linalg.norm(right, axis=1) < 1e-9
-    if along.any():
-        other = np.where(np.abs(back[along, 2:3]) < 0.9, [0.0, 0.0, 1.0], [1.0, 0.0, 0.0])
-        right[along] = np.cross(other, back[along])
-    right /= np.linalg.norm(right, axis=1, keepdims=True)
-    true_up = np.cross(back, right)
-    return np.stack([right, true_up, back], axis=2)
 
 
 def _defaults(n, *, fov_y_deg=45.0, width=800, height=600, orthographic=False, ortho_height=1.0):
