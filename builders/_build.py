@@ -4,7 +4,6 @@ vectorized step (DESIGN §5). The output is a :class:`pmjax.PMData`."""
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import math
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -12,7 +11,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pmjax._pmfile import METRICS, PMData
+from pmjax._pmfile import METRICS, PMData, file_sha256  # noqa: F401 (re-exported)
 
 from . import _quadrics as qd
 from ._attributes import HierarchyAttributes
@@ -464,10 +463,3 @@ def _first_valid(is_valid, a, b, cur, n_vertices) -> np.ndarray:
     return np.zeros(0, np.int64)
 
 
-def file_sha256(path) -> str:
-    """SHA-256 of a file's bytes (stored as the PM's source checksum)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()

@@ -34,6 +34,7 @@ import numpy as np
 from ._atomic import atomic_path
 from ._camera import index_camera
 from ._camera_table import CameraTable, fly_rows, orbit_rows, random_rows, read_camera_table
+from ._pmfile import file_sha256
 from ._predicate import ALL_TESTS, Tests
 
 FORMAT = "pmjax-eval/1"
@@ -89,7 +90,7 @@ class CameraSet:
     def describe(self) -> dict:
         d = dataclasses.asdict(self)
         if self.kind == "file":
-            d.update(path=os.path.abspath(self.path), sha256=_file_digest(self.path))
+            d.update(path=os.path.abspath(self.path), sha256=file_sha256(self.path))
         return d
 
     def rows(self, vertices, lo: int, hi: int, table: Optional[CameraTable]) -> CameraTable:
@@ -129,14 +130,6 @@ def camera_set(spec: str, *, width: int = 800, height: int = 600, fov_y_deg: flo
 def _model_name(path) -> str:
     name = os.path.basename(path)
     return name[:-4] if name.endswith(".pmz") else name
-
-
-def _file_digest(path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 22), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def _tests_dict(tests: Tests) -> dict:
@@ -179,7 +172,7 @@ def _model(path: str, digest: str):
         if key in _LOADED:
             _LOADED.move_to_end(key)
             return _LOADED[key]
-        if _file_digest(path) != digest:
+        if file_sha256(path) != digest:
             raise EvalError(f"{path}: the model file changed while the job ran")
         pm = load(path)
         _LOADED[key] = pm
@@ -412,7 +405,7 @@ def evaluate(
             except PMFormatError as exc:
                 store(runner.drain())
                 raise EvalError(f"model {model_path}: {exc}") from exc
-            digest = _file_digest(model_path)
+            digest = file_sha256(model_path)
             vertices = data.vertices[: data.n_original_vertices]
             for part in _model_parts(mi, counts, len(values), chunk):
                 if part.file in done:

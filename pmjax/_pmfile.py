@@ -133,6 +133,16 @@ def save_pm(pm: PMData, path: str | os.PathLike) -> None:
             os.fsync(fh.fileno())
 
 
+def file_sha256(path) -> str:
+    """SHA-256 of a file's bytes, hex (a PM's source checksum; an evaluation
+    job's record of its models and camera files)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 22), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 def read_pm(path: str | os.PathLike) -> PMData:
     """Read and fully validate a ``.pmz`` file.
 
