@@ -5,7 +5,8 @@ vertex-pair collapses (pcols). See ``docs/`` for the format and semantics.
 """
 
 from ._meshio import CleanReport, MeshError, clean_mesh, default_model_path, load_clean_mesh, read_mesh
-from ._pmfile import METRICS, PMData, PMFormatError, read_pm, save_pm, validate_pm
+from ._pmfile import METRICS, PMData, PMFormatError, read_arrays, read_pm, save_pm, validate_pm
+from ._structure import check_structure, structure_known
 from ._invariants import check_invariants, direct_killers
 from ._levels import dependency_levels
 from ._replay import active_faces, lod_mesh, mesh_for_executed, pcols_for_faces, prefix_executed, representatives
@@ -39,6 +40,9 @@ __all__ = [
     "save_pm",
     "validate_pm",
     "check_invariants",
+    "check_structure",
+    "read_arrays",
+    "structure_known",
     "direct_killers",
     "dependency_levels",
     "active_faces",

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._pmfile import PMData, PMFormatError, validate_pm
+from ._structure import CONE_SLACK, sphere_slack
 from ._replay import parents, prefix_executed, representatives
 
 
@@ -41,20 +42,19 @@ def direct_killers(pm: PMData) -> np.ndarray:
     return np.where(best == np.iinfo(np.int64).max, -1, best).astype(np.int32)
 
 
-def check_invariants(pm: PMData, *, rtol: float = 1e-5) -> None:
+def check_invariants(pm: PMData) -> None:
     """Raise :class:`PMFormatError` naming the first broken invariant.
 
-    Args:
-        pm: a progressive mesh.
-        rtol: tolerance, relative to the bounding-box diagonal, for the
-            float32 containment tests.
+    The slow, independent twin of :func:`pmjax.check_structure` (which every
+    load runs): it replays the hierarchy batch by batch. Containment tests
+    allow the float32 rounding of the stored values
+    (:func:`pmjax._structure.sphere_slack`, ``CONE_SLACK`` radians).
     """
     validate_pm(pm)
     V0 = pm.n_original_vertices
     P = pm.n_pcols
     x = pm.vertices.astype(np.float64)
     n = pm.normals.astype(np.float64)
-    diag = float(np.linalg.norm(np.ptp(x[:V0], axis=0)))
 
     killers = direct_killers(pm)
     bad = np.flatnonzero(killers != pm.killer)
@@ -94,15 +94,16 @@ def check_invariants(pm: PMData, *, rtol: float = 1e-5) -> None:
     # Monotone attributes, parent against each child.
     radius = np.concatenate([np.zeros(V0), pm.radius.astype(np.float64)])
     alpha_all = np.concatenate([np.zeros(V0), pm.alpha.astype(np.float64)])
+    slack = sphere_slack(pm.vertices, pm.radius)
     for name in ("v1", "v2"):
         c = getattr(pm, name).astype(np.int64)
         p = V0 + np.arange(P)
         reach = np.linalg.norm(x[p] - x[c], axis=1) + radius[c]
-        _fail(reach > radius[p] + rtol * diag, "sphere does not contain its child's sphere")
+        _fail(reach > radius[p] + slack, "sphere does not contain its child's sphere")
         created = c >= V0
         cos = np.clip(np.einsum("ij,ij->i", n[p], n[c]), -1, 1)
         spread = np.arccos(cos) + alpha_all[c]
-        _fail(created & (spread > np.minimum(np.pi, alpha_all[p]) + 1e-3) & (alpha_all[p] < np.pi - 1e-6),
+        _fail(created & (spread > alpha_all[p] + CONE_SLACK) & (alpha_all[p] < np.pi - CONE_SLACK),
               "normal cone does not contain its child's cone")
         for attr in ("delta", "mu", "alpha"):
             a = getattr(pm, attr)

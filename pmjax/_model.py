@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
 import jax
@@ -10,7 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from ._pmfile import PMData, read_pm
+from ._pmfile import PMData, read_arrays
+from ._structure import check_structure, remember_structure, structure_known
 from ._subtree import SubtreeBounds, subtree_bounds
 
 
@@ -207,5 +209,16 @@ def load(path: str | os.PathLike) -> ProgressiveMesh:
     Raises:
         PMFormatError: see :func:`pmjax.read_pm`.
     """
-    return ProgressiveMesh.from_data(read_pm(path))
+    data, fingerprint = read_arrays(path)
+    if structure_known(fingerprint):
+        return ProgressiveMesh.from_data(data)
+    # The structure check runs beside the device copy (both mostly NumPy,
+    # which releases the GIL); validate_pm has already bounded every index,
+    # so the copy is safe on a forged file, and it is never returned.
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        check = pool.submit(check_structure, data, source=os.fspath(path), threads=1)
+        pm = ProgressiveMesh.from_data(data)
+        check.result()
+    remember_structure(fingerprint)
+    return pm
 

@@ -104,8 +104,9 @@ def _sha256(a: np.ndarray) -> str:
 def save_pm(pm: PMData, path: str | os.PathLike) -> None:
     """Write ``pm`` to ``path`` atomically (temporary file, then rename).
 
-    The arrays are first checked with :func:`validate_pm`, so an inconsistent
-    progressive mesh is never written.
+    The arrays are first checked with :func:`validate_pm` and
+    :func:`pmjax.check_structure`, so an inconsistent progressive mesh is
+    never written.
     """
     path = os.fspath(path)
     validate_pm(pm, source=path)
@@ -121,6 +122,7 @@ def save_pm(pm: PMData, path: str | os.PathLike) -> None:
         ),
         array_sha256={name: _sha256(a) for name, a in pm.arrays().items()},
     )
+    check_structure(pm, source=path)
     with atomic_path(path, ".pmz") as tmp:
         with open(tmp, "wb") as fh:
             with zipfile.ZipFile(fh, "w", compression=zipfile.ZIP_STORED) as zf:
@@ -143,19 +145,43 @@ def file_sha256(path) -> str:
     return h.hexdigest()
 
 
-def read_pm(path: str | os.PathLike) -> PMData:
+def read_pm(path: str | os.PathLike, *, verify: bool = True) -> PMData:
     """Read and fully validate a ``.pmz`` file.
+
+    Args:
+        path: the file.
+        verify: also check the hierarchy's structure (killers, batch
+            independence, monotone attributes; :func:`pmjax.check_structure`),
+            unless a file with the same array checksums passed it before on
+            this machine (:func:`pmjax.structure_known`). ``False`` is only
+            for measuring what that check costs: a file read without it may
+            be forged.
 
     Raises:
         PMFormatError: naming the file and what is wrong (magic, version, a
-            missing array, a dtype or shape, an index range, a checksum).
+            missing array, a dtype or shape, an index range, a checksum, the
+            structure).
+    """
+    pm, fingerprint = read_arrays(path)
+    if verify and not structure_known(fingerprint):
+        check_structure(pm, source=os.fspath(path))
+        remember_structure(fingerprint)
+    return pm
+
+
+def read_arrays(path: str | os.PathLike) -> tuple[PMData, str]:
+    """Read a ``.pmz`` file with every check but the structure check.
+
+    Returns:
+        ``(pm, fingerprint)``: the fingerprint is a SHA-256 over the arrays'
+        checksums, verified against the bytes read, so it names the content.
     """
     path = os.fspath(path)
     if not os.path.exists(path):
         raise PMFormatError(f"{path}: no such file")
     try:
         zf = zipfile.ZipFile(path, "r")
-    except (zipfile.BadZipFile, OSError) as exc:
+    except Exception as exc:  # zipfile raises several types for a damaged archive
         raise PMFormatError(f"{path}: not a pmjax file (not a zip archive: {exc})") from exc
     with zf:
         names = set(zf.namelist())
@@ -163,8 +189,8 @@ def read_pm(path: str | os.PathLike) -> PMData:
             raise PMFormatError(f"{path}: not a pmjax file (no header.json)")
         try:
             header = json.loads(zf.read("header.json"))
-        except (ValueError, zipfile.BadZipFile, OSError) as exc:
-            raise PMFormatError(f"{path}: header.json is unreadable ({exc})") from exc
+        except Exception as exc:  # bad JSON, a damaged entry, an unknown compression method
+            raise PMFormatError(f"{path}: header.json is unreadable ({type(exc).__name__}: {exc})") from exc
         if not isinstance(header, dict) or header.get("magic") != MAGIC:
             raise PMFormatError(f"{path}: bad magic (expected {MAGIC!r})")
         if header.get("version") != VERSION:
@@ -172,7 +198,9 @@ def read_pm(path: str | os.PathLike) -> PMData:
                 f"{path}: unsupported format version {header.get('version')!r} "
                 f"(this pmjax reads version {VERSION})"
             )
-        sums = header.get("array_sha256", {})
+        sums = header.get("array_sha256")
+        if not isinstance(sums, dict):
+            raise PMFormatError(f"{path}: header has no array checksums")
         arrays: dict[str, Any] = {}
         for name in ARRAY_SPECS:
             if name + ".npy" not in names:
@@ -181,7 +209,7 @@ def read_pm(path: str | os.PathLike) -> PMData:
                 raw = zf.read(name + ".npy")
                 a = np.load(io.BytesIO(raw), allow_pickle=False)
             except Exception as exc:
-                raise PMFormatError(f"{path}: array {name!r} is unreadable ({exc})") from exc
+                raise PMFormatError(f"{path}: array {name!r} is unreadable ({type(exc).__name__}: {exc})") from exc
             arrays[name] = a
     # hashlib releases the GIL on large buffers: hash the arrays in parallel.
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
@@ -199,7 +227,8 @@ def read_pm(path: str | os.PathLike) -> PMData:
             raise PMFormatError(
                 f"{path}: header count {key}={counts.get(key)!r} but arrays give {value}"
             )
-    return pm
+    fingerprint = hashlib.sha256(json.dumps(digests, sort_keys=True).encode()).hexdigest()
+    return pm, fingerprint
 
 
 def validate_pm(pm: PMData, *, source: str = "<memory>") -> None:
@@ -265,3 +294,6 @@ def validate_pm(pm: PMData, *, source: str = "<memory>") -> None:
         a = getattr(pm, name)
         first_bad(~np.isfinite(a) | (a < 0), f"{name} negative or non-finite")
     first_bad(pm.metric >= len(METRICS), "unknown metric id")
+
+
+from ._structure import check_structure, remember_structure, structure_known  # noqa: E402  (they use this module's types)
