@@ -95,13 +95,23 @@ class BuildOptions:
         return self.schedule()[-1][0]
 
     def validate(self) -> None:
+        """Raise ``ValueError`` naming the first option out of its range
+        (NaN is out of every range)."""
         self.schedule()
         if not 0 < self.batch_share <= 1:
             raise ValueError(f"batch_share must be in (0, 1], got {self.batch_share}")
-        if self.pair_distance < 0:
-            raise ValueError(f"pair_distance must be >= 0, got {self.pair_distance}")
-        if self.target_faces < 0 or self.target_vertices < 0:
-            raise ValueError("targets must be >= 0")
+        # Beyond 1 diagonal every pair is a candidate already; the candidate
+        # count, and the build time, grow with the square of this distance.
+        if not 0 <= self.pair_distance <= 1:
+            raise ValueError(f"pair_distance must be in [0, 1] (a fraction of the diagonal), got {self.pair_distance}")
+        if not self.max_error >= 0:
+            raise ValueError(f"max_error must be >= 0 (inf: no limit), got {self.max_error}")
+        if not (math.isfinite(self.boundary_weight) and self.boundary_weight >= 0):
+            raise ValueError(f"boundary_weight must be finite and >= 0, got {self.boundary_weight}")
+        for name in ("target_faces", "target_vertices", "max_batches"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+                raise ValueError(f"{name} must be a whole number >= 0, got {value!r}")
 
 
 def vertex_normals(pos: np.ndarray, faces: np.ndarray, n: int) -> np.ndarray:

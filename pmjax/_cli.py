@@ -10,7 +10,48 @@ import sys
 
 import numpy as np
 
-from pmjax._atomic import atomic_path
+from pmjax._atomic import atomic_path, check_output_path
+
+
+def _whole(low: int, high: int | None = None):
+    """argparse type: a whole number in ``[low, high]``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+        if value < low or (high is not None and value > high):
+            raise argparse.ArgumentTypeError(
+                f"{value} is out of range (must be >= {low}{'' if high is None else f' and <= {high}'})")
+        return value
+
+    return parse
+
+
+def _real(low: float = 0.0, high: float = math.inf, *, open_low=False, open_high=False, infinite=False):
+    """argparse type: a real number in the interval (NaN is always refused;
+    ``inf`` only where ``infinite``)."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        if math.isinf(value) and value > 0 and infinite:
+            return value
+        ok = (math.isfinite(value) and (value > low if open_low else value >= low)
+              and (value < high if open_high else value <= high))
+        if not ok:
+            where = f"{'(' if open_low else '['}{low:g}, {high:g}{')' if open_high or math.isinf(high) else ']'}"
+            raise argparse.ArgumentTypeError(f"{text} is out of range (must be in {where}"
+                                             f"{' or inf' if infinite else ''})")
+        return value
+
+    return parse
+
+
+TAU = _real(0.0, infinite=True)  # pixels; inf collapses everything collapsible
+COUNT = _whole(1)
+SIZE = _whole(1, 65536)
 
 
 def _write_mesh(path: str, vertices, faces) -> None:
@@ -273,7 +314,7 @@ def cmd_demo(args) -> int:
     import pmjax
     from pmjax.builders import build_pm, file_sha256
 
-    os.makedirs(args.out, exist_ok=True)
+    os.makedirs(args.out, exist_ok=True)  # its parent exists (checked)
     src = args.mesh or pmjax.default_model_path()
     v, f, _, report = pmjax.load_clean_mesh(src)
     print(f"model: {src} ({len(v)} vertices, {len(f)} faces)")
@@ -325,16 +366,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--metric", default="quadric",
                    help="metric or schedule, e.g. 'quadric' or 'edge:2,quadric' "
                         "(quadric, quadric-memoryless, edge, pm, hybrid)")
-    p.add_argument("--pair-distance", type=float, default=0.0,
+    p.add_argument("--pair-distance", type=_real(0.0, 1.0), default=0.0,
                    help="also pair vertices closer than t × bbox diagonal (0: edges only)")
-    p.add_argument("--target-faces", type=int, default=0, help="stop at this many faces (0: as far as possible)")
-    p.add_argument("--target-vertices", type=int, default=0, help="stop at this many vertices")
-    p.add_argument("--max-error", type=float, default=math.inf, help="never take a collapse costing more")
-    p.add_argument("--batch-share", type=float, default=0.5,
+    p.add_argument("--target-faces", type=_whole(0), default=0, help="stop at this many faces (0: as far as possible)")
+    p.add_argument("--target-vertices", type=_whole(0), default=0, help="stop at this many vertices")
+    p.add_argument("--max-error", type=_real(0.0, infinite=True), default=math.inf, help="never take a collapse costing more")
+    p.add_argument("--batch-share", type=_real(0.0, 1.0, open_low=True), default=0.5,
                    help="share of the cheapest candidates a batch may take from (quality knob, (0, 1])")
     p.add_argument("--linear", action="store_true", help="one collapse per batch, strict cost order (slow reference)")
     p.add_argument("--allow-topology-change", action="store_true", help="skip the link test for edges")
-    p.add_argument("--boundary-weight", type=float, default=1.0, help="weight of border-preserving planes")
+    p.add_argument("--boundary-weight", type=_real(0.0), default=1.0, help="weight of border-preserving planes")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_build)
 
@@ -346,23 +387,23 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("lod", help="export the discrete LOD after a batch",
                        description="Replay pcols of batches 0..k and write the mesh.")
     p.add_argument("pm", help=".pmz file")
-    p.add_argument("--batch", type=int, default=None, help="last batch to execute (-1: original; default: all)")
+    p.add_argument("--batch", type=_whole(-1), default=None, help="last batch to execute (-1: original; default: all)")
     p.add_argument("-o", "--output", required=True, help="output mesh (.ply, .obj, .stl, ...)")
     p.set_defaults(func=cmd_lod)
 
     def add_path_args(p):
         # read by _path_cameras
         g = p.add_mutually_exclusive_group(required=True)
-        g.add_argument("--orbit", type=int, help="the standard orbit with N frames (round the bounding-box centre "
+        g.add_argument("--orbit", type=COUNT, help="the standard orbit with N frames (round the bounding-box centre "
                        "at r / sin 22.5°, r the half diagonal, 20° elevation)")
         g.add_argument("--path", help="camera file (.json or .csv)")
 
     def add_geomorph_arg(p):
-        p.add_argument("--geomorph", type=int, default=0, metavar="N",
+        p.add_argument("--geomorph", type=_whole(0), default=0, metavar="N",
                        help="blend refinement changes over N frames instead of popping (default 0: off)")
 
     def add_view_args(p):
-        p.add_argument("--tau", type=float, default=1.0, help="screen-space tolerance in pixels (default 1)")
+        p.add_argument("--tau", type=TAU, default=1.0, help="screen-space tolerance in pixels (default 1)")
         p.add_argument("--no", action="append", choices=("frustum", "orientation", "screen"),
                        help="switch a test off (repeatable)")
 
@@ -389,7 +430,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fidelity", action="store_true",
                    help="also render each frame and the original: differing-pixel share, PSNR, "
                         "the share due to geometry alone (silhouette), popping")
-    p.add_argument("--supersample", type=int, default=2, metavar="S",
+    p.add_argument("--supersample", type=_whole(1, 16), default=2, metavar="S",
                    help="fidelity renders: S×S samples per pixel (default 2; popping wants 4, docs/soft.md)")
     add_geomorph_arg(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -406,23 +447,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="dataset folder (Parquet part files and _job.json)")
     p.add_argument("--cameras", action="append", metavar="FILE",
                    help="camera table, .npz or .parquet (repeatable; schema in docs/eval.md)")
-    p.add_argument("--orbit", type=int, action="append", metavar="N",
+    p.add_argument("--orbit", type=COUNT, action="append", metavar="N",
                    help="the standard orbit with N frames round each model (repeatable; the default is 240)")
-    p.add_argument("--fly", type=int, action="append", metavar="N",
+    p.add_argument("--fly", type=COUNT, action="append", metavar="N",
                    help="a fly-through of N frames past each model (repeatable)")
-    p.add_argument("--random", type=int, action="append", metavar="N", help="N random views of each model (repeatable)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the random views (default 0)")
-    p.add_argument("--size", type=int, nargs=2, default=(800, 600), metavar=("W", "H"),
+    p.add_argument("--random", type=COUNT, action="append", metavar="N", help="N random views of each model (repeatable)")
+    p.add_argument("--seed", type=_whole(0), default=0, help="seed of the random views (default 0)")
+    p.add_argument("--size", type=SIZE, nargs=2, default=(800, 600), metavar=("W", "H"),
                    help="image size of generated cameras (default 800 600)")
-    p.add_argument("--fov", type=float, default=45.0, help="vertical field of view of generated cameras, degrees")
-    p.add_argument("--tau", type=float, action="append", help="tolerance in pixels (repeatable; default 1)")
-    p.add_argument("--budget", type=int, action="append",
+    p.add_argument("--fov", type=_real(0.0, 180.0, open_low=True, open_high=True), default=45.0, help="vertical field of view of generated cameras, degrees")
+    p.add_argument("--tau", type=TAU, action="append", help="tolerance in pixels (repeatable; default 1)")
+    p.add_argument("--budget", type=_whole(0), action="append",
                    help="face budget instead of tau (repeatable): the tolerance found is in the tau column")
     p.add_argument("--no", action="append", choices=("frustum", "orientation", "screen"),
                    help="switch a test off (repeatable)")
     add_method_arg(p)
-    p.add_argument("--chunk", type=int, default=2048, help="cameras per part file and per task (default 2048)")
-    p.add_argument("--workers", type=int, default=0,
+    p.add_argument("--chunk", type=COUNT, default=2048, help="cameras per part file and per task (default 2048)")
+    p.add_argument("--workers", type=_whole(0), default=0,
                    help="run on a local Dask cluster of N single-threaded worker processes (default 0: this process)")
     p.add_argument("--scheduler", help="run on a Dask cluster: scheduler address, tcp://HOST:PORT")
     p.add_argument("--compile-cache", metavar="DIR",
@@ -440,7 +481,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--levels", action="store_true", help="colour faces by batch level (blue fine, red coarse)")
     p.add_argument("--phantom", action="store_true",
                    help="watch from a fixed overview camera, with each path camera's frustum drawn")
-    p.add_argument("--fps", type=int, default=30, help="frames per second of the video")
+    p.add_argument("--fps", type=_whole(1, 1000), default=30, help="frames per second of the video")
     add_geomorph_arg(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_view_args(p)
@@ -457,9 +498,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "lower tau, 'p' freeze or release a phantom camera, '1' '2' '3' toggle the "
                                    "frustum / orientation / screen test, 'e' wireframe overlay, 'q' quit.")
     p.add_argument("pm", help=".pmz file")
-    p.add_argument("--tau", type=float, default=1.0, help="initial tolerance in pixels")
-    p.add_argument("--size", type=int, nargs=2, default=(800, 600), metavar=("W", "H"), help="window size")
-    p.add_argument("--close-after", type=float, default=0.0, help="close after this many seconds (0: never)")
+    p.add_argument("--tau", type=TAU, default=1.0, help="initial tolerance in pixels")
+    p.add_argument("--size", type=SIZE, nargs=2, default=(800, 600), metavar=("W", "H"), help="window size")
+    p.add_argument("--close-after", type=_real(0.0), default=0.0, help="close after this many seconds (0: never)")
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("demo", help="build the bundled model and refine it along the standard orbit",
@@ -470,17 +511,67 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# Each command's outputs: (argument, is a folder). Checked before any work.
+OUTPUTS = {
+    "build": [("output", False)],
+    "lod": [("output", False)],
+    "refine": [("output", False), ("stats_json", False)],
+    "path": [("csv", False)],
+    "eval": [("output", True)],
+    "figures": [("output", True)],
+    "demo": [("out", True)],
+}
+
+def check_outputs(args) -> None:
+    """Refuse unusable output paths before any work (one rule for every
+    command: see :func:`pmjax._atomic.check_output_path`)."""
+    if args.command == "render":
+        from pmjax.render import check_frames_output
+
+        check_frames_output(args.output, args.fps)
+    for name, folder in OUTPUTS.get(args.command, []):
+        path = getattr(args, name, None)
+        if path is not None:
+            check_output_path(path, folder=folder)
+
+
+def _parse(parser: argparse.ArgumentParser, argv):
+    """Parse; an unknown flag is reported with its subcommand's usage and the
+    closest known flag."""
+    import difflib
+
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        sub = parser._subparsers._group_actions[0].choices[args.command]
+        known = [o for a in sub._actions for o in a.option_strings]
+        hints = [m for x in extra for m in difflib.get_close_matches(x.split("=")[0], known, n=1)]
+        sub.error(f"unrecognized arguments: {' '.join(extra)}"
+                  + (f" (did you mean {', '.join(hints)}?)" if hints else ""))
+    return args
+
+
 def main(argv=None) -> int:
-    from pmjax import MeshError, PMFormatError
+    from pmjax import CameraError, MeshError, PMFormatError
     from pmjax.render import RenderError
 
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = _parse(parser, argv)
     try:
+        check_outputs(args)
         return args.func(args)
-    except (MeshError, PMFormatError, ValueError, OSError, RenderError) as exc:
+    except (MeshError, PMFormatError, CameraError, ValueError, OSError, RenderError) as exc:
+        if isinstance(exc, BrokenPipeError):
+            return _closed_pipe()
         print(f"pmjax {args.command}: error: {exc}", file=sys.stderr)
         return 2
+
+
+def _closed_pipe() -> int:
+    """The reader of our output went away (``pmjax info x | head``): stop
+    quietly, as a shell tool would, with the SIGPIPE status."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    return 141
 
 
 if __name__ == "__main__":

@@ -31,7 +31,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ._atomic import atomic_path
+from ._atomic import TEMP_MARK, atomic_path
 from ._camera import index_camera
 from ._camera_table import CameraTable, fly_rows, orbit_rows, random_rows, read_camera_table
 from ._pmfile import file_sha256
@@ -467,7 +467,7 @@ def _open_folder(folder, job) -> set:
             json.dump(job, fh, indent=1, sort_keys=True)
     # Temporary files of a killed run are debris: no part is half-written.
     for name in os.listdir(folder):
-        if name.startswith(".tmp-"):
+        if TEMP_MARK in name:
             os.unlink(os.path.join(folder, name))
     return {name for name in os.listdir(folder) if name.startswith("part-") and name.endswith(".parquet")}
 

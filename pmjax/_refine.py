@@ -289,12 +289,14 @@ def _method(pm: ProgressiveMesh, method: str, predicate, batch: bool = False) ->
 def _host_tau(tau):
     """A host scalar tau as float32 (a new value does not recompile), checked;
     a JAX array is passed on and checked inside the compiled call."""
+    if isinstance(tau, jax.Array) and not isinstance(tau, jax.core.Tracer):
+        tau = np.asarray(tau)  # concrete: checked here, not inside the compiled call
     if isinstance(tau, (int, float, np.generic, np.ndarray)):
         tau = np.asarray(tau, np.float32)
         if tau.shape != ():
             raise ValueError(f"tau must be a scalar, got shape {tau.shape}")
         if not tau >= 0:
-            raise ValueError(f"tau must be >= 0 (and not NaN), got {tau}")
+            raise ValueError(f"tau must be >= 0 (inf: every collapsible pcol; not NaN), got {tau}")
     return tau
 
 
@@ -481,8 +483,8 @@ def refine_batch(
     K = camera_count(cameras)
     if K == 0:
         raise ValueError("refine_batch needs a camera batch (leading axis); use refine for one camera")
-    if not (np.isfinite(tau) and tau >= 0):
-        raise ValueError(f"tau must be >= 0 and finite, got {tau}")
+    if not tau >= 0:
+        raise ValueError(f"tau must be >= 0 (inf: every collapsible pcol), got {tau}")
     chunk = -(-max(1, min(int(chunk), K)) // WORD) * WORD
     outs = []
     starts = range(0, K, chunk)
@@ -583,16 +585,40 @@ def critical_tolerances(pm: ProgressiveMesh, camera: Camera, tests: Tests = ALL_
     return up_the_batches(pm, t, -jnp.inf, lambda own, a, b: jnp.maximum(own, jnp.maximum(a, b)))
 
 
+def check_budget(budget) -> int:
+    """A face budget as an ``int``: a whole number >= 0 (``ValueError`` otherwise)."""
+    ok = isinstance(budget, (int, np.integer)) and not isinstance(budget, bool)
+    if not ok and isinstance(budget, (float, np.floating)) and np.isfinite(budget) and float(budget).is_integer():
+        ok, budget = True, int(budget)
+    if not ok or budget < 0:
+        raise ValueError(f"a face budget must be a whole number >= 0, got {budget!r}")
+    return int(budget)
+
+
 def faces_for_budget(pm: ProgressiveMesh, camera: Camera, budget: int, tests: Tests = ALL_TESTS):
     """The smallest ``tau`` whose face count is the largest not above ``budget``.
 
-    One sort of the critical tolerances: the face count for ``tau`` is ``F``
-    minus the faces killed by pcols with ``eps < tau``.
+    One sort of the critical tolerances: a pcol runs at ``tau`` iff
+    ``eps < tau``, so the face count at ``tau`` is ``F`` minus the faces killed
+    by the pcols with ``eps < tau``. Even ``tau = 0`` runs the pcols with
+    ``eps < 0`` (culled: outside the frustum or facing away).
+
+    Args:
+        pm: :class:`ProgressiveMesh`.
+        camera: one camera.
+        budget: faces, a whole number >= 0.
+        tests: :class:`Tests`.
 
     Returns:
-        ``(tau, faces)``: ``tau`` (pixels, float32) and the face count there.
-        If no tolerance meets the budget, the coarsest (``tau = inf``) count.
+        ``(tau, faces)``: ``tau`` (pixels, float32) and the face count there,
+        which :func:`pmjax.refine` reproduces. ``tau = 0`` when even the finest
+        view fits; when no tolerance meets the budget, ``tau = inf`` and the
+        coarsest count, which is then above ``budget``.
+
+    Raises:
+        ValueError: a budget that is negative, fractional, NaN or not a number.
     """
+    budget = check_budget(budget)
     eps = np.asarray(critical_tolerances(pm, camera, tests), np.float32)
     kills = np.asarray(pm.kills)
     order = np.argsort(eps, kind="stable")
@@ -601,11 +627,16 @@ def faces_for_budget(pm: ProgressiveMesh, camera: Camera, budget: int, tests: Te
     # All pcols with equal eps switch together: look at the end of each tie.
     ends = np.searchsorted(e, e, side="right") - 1
     faces_at = faces_after[ends]
-    if pm.n_faces <= budget:
-        return np.float32(0.0), int(pm.n_faces)
+
+    def faces_below(t):  # face count once every pcol with eps < t has run
+        n = int(np.searchsorted(e, t, side="left"))
+        return int(faces_after[n - 1]) if n else int(pm.n_faces)
+
+    finest = faces_below(np.float32(0.0))
+    if finest <= budget:
+        return np.float32(0.0), finest
     ok = np.flatnonzero((faces_at <= budget) & np.isfinite(e))
     if len(ok) == 0:
-        return np.float32(np.inf), int(faces_after[-1] if len(e) else pm.n_faces)
-    k = ok[0]
-    tau = np.nextafter(np.float32(max(e[k], 0.0)), np.float32(np.inf)) if e[k] >= 0 else np.float32(0.0)
-    return np.float32(tau), int(faces_at[k])
+        return np.float32(np.inf), faces_below(np.float32(np.inf))
+    k = ok[0]  # eps >= 0 here: the negative ones all run at tau = 0
+    return np.nextafter(e[k], np.float32(np.inf)), int(faces_at[k])

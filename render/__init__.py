@@ -17,6 +17,7 @@ from ._scene import (
 )
 from ._offscreen import (
     Renderer,
+    check_frames_output,
     original_arrays,
     path_geometry,
     refined_arrays,
@@ -40,6 +41,7 @@ __all__ = [
     "level_colors",
     "vertex_normals",
     "Renderer",
+    "check_frames_output",
     "original_arrays",
     "path_geometry",
     "refined_arrays",

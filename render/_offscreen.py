@@ -9,7 +9,7 @@ import numpy as np
 
 from pmjax import ALL_TESTS, Camera, ProgressiveMesh, Refinement, Tests, camera_count, index_camera, refine
 from pmjax import critical_tolerances, geomorph_mesh, geomorph_start, geomorph_step, hierarchy_normals
-from pmjax._atomic import atomic_path
+from pmjax._atomic import atomic_path, check_output_path
 
 
 from ._gl import RenderError, pyrender_module
@@ -150,13 +150,34 @@ def render_refinement(renderer: Renderer, pm: ProgressiveMesh, refinement: Refin
                                 wireframe=wireframe, lines=lines, normals=normals)
 
 
+def check_frames_output(path: str, fps: int = 30) -> str:
+    """Check a frames output and rate before any rendering; return the extension.
+
+    Raises:
+        ValueError: not ``.mp4``, ``.gif``, ``.png`` or a folder; ``fps`` not a
+            whole number in ``[1, 1000]``.
+        OSError: the folder it goes into does not exist (see
+            :func:`pmjax._atomic.check_output_path`).
+    """
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in (".mp4", ".gif", ".png", ""):
+        raise ValueError(f"{path}: output must be .mp4, .gif or a directory for PNG frames")
+    if isinstance(fps, bool) or not isinstance(fps, (int, np.integer)) or not 1 <= fps <= 1000:
+        raise ValueError(f"fps must be a whole number in [1, 1000], got {fps!r}")
+    if ext == ".png":
+        check_output_path(os.path.dirname(path) or ".", folder=True)
+    else:
+        check_output_path(path, folder=ext == "")
+    return ext
+
+
 def write_frames(frames, path: str, fps: int = 30) -> None:
     """Write RGB frames as a video (``.mp4``: imageio-ffmpeg; ``.gif``) or, for a
     directory path or ``.png`` pattern, as numbered PNGs; atomically per file."""
     import imageio.v2 as imageio
 
     path = os.fspath(path)
-    ext = os.path.splitext(path)[1].lower()
+    ext = check_frames_output(path, fps)
     if ext in (".mp4", ".gif"):
         with atomic_path(path, ext) as tmp:
             kw = dict(fps=fps, macro_block_size=1) if ext == ".mp4" else dict(duration=1.0 / fps, loop=0)
@@ -164,8 +185,6 @@ def write_frames(frames, path: str, fps: int = 30) -> None:
                 for frame in frames:
                     w.append_data(frame)
         return
-    if ext not in ("", ".png"):
-        raise ValueError(f"{path}: output must be .mp4, .gif or a directory for PNG frames")
     folder = path if ext == "" else os.path.dirname(path) or "."
     os.makedirs(folder, exist_ok=True)
     for i, frame in enumerate(frames):
@@ -232,6 +251,7 @@ def render_path(pm: ProgressiveMesh, cameras: Camera, tau: float, out: str, *, t
     Returns:
         dict with ``faces`` (int per frame) and ``frames`` (count).
     """
+    check_frames_output(os.fspath(out), fps)
     view = phantom if phantom is not None else index_camera(cameras, 0)
     n_batches = len(pm.batch_offsets) - 1
     faces = []

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import os
+import sys
 import time
 
 import jax
@@ -10,7 +12,7 @@ import numpy as np
 
 from pmjax import Camera, Tests, index_camera, load, refine, standard_orbit
 
-from ._gl import pyrender_module
+from ._gl import RenderError, pyrender_module
 from ._offscreen import refined_arrays
 from ._scene import add_mesh, build_scene, frustum_past_model, lines_mesh
 
@@ -84,6 +86,7 @@ def run_viewer(path: str, *, tau: float = 1.0, size=(800, 600), close_after: flo
         size: window ``(width, height)``.
         close_after: close after this many seconds (0: when the user quits).
     """
+    check_display()
     pyrender = pyrender_module(offscreen=False)
     pm = load(path)
     W, H = int(size[0]), int(size[1])
@@ -100,8 +103,39 @@ def run_viewer(path: str, *, tau: float = 1.0, size=(800, 600), close_after: flo
         use_direct_lighting=True, window_title=f"pmjax view {path}",
         caption=[dict(caption, text="pmjax")],
     )
-    began, last_pose, frustum_node = time.time(), None, None
-    while viewer.is_active:
+    began = time.time()
+    try:
+        _follow(viewer, scene, nodes, pm, start, state, caption, began, close_after, W, H)
+    except KeyboardInterrupt:  # Ctrl-C: close the window, or its thread keeps the process alive
+        viewer.close_external()
+    if viewer.run_in_thread and viewer.is_active and not viewer._thread.is_alive():
+        raise RenderError("the viewer window closed unexpectedly (see the messages above)")
+
+
+def check_display() -> None:
+    """Refuse to start the viewer where no window can open.
+
+    Raises:
+        RenderError: no ``DISPLAY``/``WAYLAND_DISPLAY`` on Linux, or the
+            display cannot be opened; the message suggests ``xvfb-run``.
+    """
+    hint = "run it on a desktop, or under a virtual display: xvfb-run -a pmjax view ..."
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise RenderError(f"pmjax view needs a display and DISPLAY is not set; {hint}")
+    try:
+        import pyglet
+
+        pyglet.display.get_display()
+    except Exception as exc:  # pyglet raises its own types for an unreachable display
+        raise RenderError(f"cannot open the display {os.environ.get('DISPLAY', '')!r} "
+                          f"({type(exc).__name__}: {exc}); {hint}") from exc
+
+
+def _follow(viewer, scene, nodes, pm, start, state, caption, began, close_after, W, H):
+    """Re-refine whenever the camera moves, until the window closes (or its
+    thread dies: a window that failed to open ends the loop too)."""
+    last_pose, frustum_node = None, None
+    while viewer.is_active and viewer._thread.is_alive():
         with viewer.render_lock:
             pose = np.array(scene.get_pose(viewer._camera_node))
         if state.dirty or last_pose is None or not np.allclose(pose, last_pose):

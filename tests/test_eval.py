@@ -14,6 +14,8 @@ import time
 import numpy as np
 import pytest
 
+from pmjax._atomic import TEMP_MARK
+
 import pmjax
 from pmjax._camera_table import (CameraError, fly_rows, orbit_rows, random_rows, read_camera_table,
                                  table_from_cameras, write_camera_table)
@@ -194,7 +196,7 @@ def test_a_bad_model_stops_the_job_and_keeps_earlier_parts(cow, tmp_path):
         evaluate([cow, str(bad)], ["orbit:20"], out, taus=[1.0], chunk=8, compile_cache=None, progress=False)
     got = rows(out)
     assert np.array_equal(got["camera"], np.arange(20)) and set(got["model"]) == {"cow"}
-    assert not [n for n in os.listdir(out) if n.startswith(".tmp-")]
+    assert not [n for n in os.listdir(out) if TEMP_MARK in n]
     # While a run holds the folder, a second run is refused.
     with pmjax._eval._lock_folder(out):
         with pytest.raises(EvalError, match="another pmjax eval is writing into this folder"):

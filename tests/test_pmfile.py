@@ -8,6 +8,8 @@ import zipfile
 import numpy as np
 import pytest
 
+from pmjax._atomic import TEMP_MARK
+
 import pmjax
 from pmjax import PMFormatError, read_pm, save_pm
 
@@ -46,7 +48,7 @@ def test_round_trip_is_exact(saved):
         assert np.array_equal(a, getattr(back, name)), name
         assert a.dtype == getattr(back, name).dtype
     assert back.header["build"]["metric"] == "quadric"
-    assert not [p for p in os.listdir(path.parent) if p.startswith(".tmp-")]
+    assert not [p for p in os.listdir(path.parent) if TEMP_MARK in p]
 
 
 def test_truncated_file(saved, tmp_path):

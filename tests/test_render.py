@@ -14,6 +14,8 @@ import time
 import numpy as np
 import pytest
 
+from pmjax._atomic import TEMP_MARK
+
 import pmjax
 
 
@@ -225,7 +227,7 @@ def test_render_refuses_an_unknown_video_format(cow, tmp_path):
                        capture_output=True, text=True)
     assert r.returncode == 2
     assert "must be .mp4, .gif or a directory" in r.stderr
-    assert not out.exists() and not list(tmp_path.glob(".tmp-*"))
+    assert not out.exists() and not list(tmp_path.glob("*" + TEMP_MARK + "*"))
 
 
 def test_geomorph_spreads_a_refinement_change(cow, renderer):

@@ -14,7 +14,7 @@ from pmjax.builders import BuildOptions, build_pm
 @pytest.fixture(scope="module", params=["none", "one"])
 def tiny(request, data_path, tmp_path_factory):
     v, f, _, _ = pmjax.load_clean_mesh(data_path("cow.ply"))
-    options = BuildOptions(max_error=-1.0) if request.param == "none" else \
+    options = BuildOptions(target_vertices=len(v)) if request.param == "none" else \
         BuildOptions(target_vertices=len(v) - 1, linear=True)
     data = build_pm(v, f, options)
     assert data.n_pcols == (0 if request.param == "none" else 1)
