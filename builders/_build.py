@@ -12,6 +12,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pmjax._pmfile import METRICS, PMData, file_sha256  # noqa: F401 (re-exported)
+from pmjax._meshio import check_float32_precision
 
 from . import _quadrics as qd
 from ._attributes import HierarchyAttributes
@@ -143,6 +144,7 @@ def build_pm(
     options.validate()
     t0 = time.perf_counter()
     v0 = np.asarray(vertices, np.float64)
+    check_float32_precision(v0)
     f0 = np.asarray(faces, np.int64)
     # The arrays should come from clean_mesh; say so rather than fail deep inside.
     if v0.ndim != 2 or v0.shape[1] != 3 or f0.ndim != 2 or f0.shape[1] != 3 or len(f0) == 0:

@@ -4,7 +4,9 @@ Any format trimesh reads is accepted. The cleaning is explicit and reported, so
 a user knows what was changed: non-finite coordinates, out-of-range indices,
 degenerate and duplicate faces and unreferenced vertices are either removed
 (with a count in the report) or, when nothing usable is left, refused with a
-:class:`MeshError` that names the file and the element.
+:class:`MeshError` that names the file and the element. A triangle soup (an
+STL file: no vertex shared by two faces) is welded first, merging vertices
+whose coordinates are equal in float32, the precision pmjax stores.
 """
 
 from __future__ import annotations
@@ -29,19 +31,77 @@ class CleanReport:
     degenerate_faces: int = 0
     duplicate_faces: int = 0
     unreferenced_vertices: int = 0
+    welded_vertices: int = 0  # merged into another vertex, not lost
 
     def messages(self) -> list[str]:
         """Human-readable lines, one per non-zero count."""
         out = []
         for field in dataclasses.fields(self):
             n = getattr(self, field.name)
-            if n:
+            if n and field.name == "welded_vertices":
+                out.append(f"welded a triangle soup: merged {n} vertices into others with equal float32 "
+                           "coordinates (tolerance: float32 rounding)")
+            elif n:
                 out.append(f"removed {n} {field.name.replace('_', ' ')}")
         return out
 
 
+def weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Merge vertices whose coordinates are equal once rounded to float32.
+
+    Returns:
+        ``(vertices, faces, kept)``: the first of each group of equal vertices
+        is kept, in input order (``kept``: their input indices), and faces
+        are renumbered to them.
+    """
+    _, first, inverse = np.unique(vertices.astype(np.float32), axis=0, return_index=True, return_inverse=True)
+    # Keep the kept vertices in input order (np.unique sorts them).
+    order = np.argsort(first, kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return vertices[first[order]], rank[inverse.ravel()][faces], first[order]
+
+
+# Largest float32 spacing allowed at the model's farthest coordinate, as a
+# share of its bounding-box diagonal (reached ~128 diagonals from the origin).
+PRECISION_LIMIT = 2.0 ** -16
+
+
+def check_float32_precision(vertices: np.ndarray, *, source: str = "<array>") -> None:
+    """Refuse a model that float32 positions, which pmjax stores, would damage.
+
+    Coordinates already exact in float32 lose nothing. Otherwise the float32
+    spacing at the largest coordinate must stay below ``PRECISION_LIMIT`` of the
+    bounding-box diagonal: a small model far from the origin (a survey offset)
+    would otherwise collapse onto a few points.
+
+    Raises:
+        MeshError: naming ``source``, the offset, the size and the remedy.
+    """
+    v = np.asarray(vertices, np.float64)
+    v = v[np.all(np.isfinite(v), axis=1)]
+    if len(v) == 0 or np.array_equal(v.astype(np.float32).astype(np.float64), v):
+        return
+    diag = float(np.linalg.norm(np.ptp(v, axis=0)))
+    far = float(np.abs(v).max())
+    spacing = float(np.spacing(np.float32(far)))
+    if spacing > PRECISION_LIMIT * diag:
+        centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
+        raise MeshError(
+            f"{source}: coordinates reach {far:.6g} but the model is only {diag:.6g} across: pmjax stores float32 "
+            f"positions, spaced {spacing:.3g} there ({spacing / diag:.1e} of the model), which would merge its "
+            f"vertices. Translate the model near the origin first (its bounding-box centre is "
+            f"{np.array2string(centre, precision=6)})"
+        )
+
+
+def is_soup(faces: np.ndarray, n_vertices: int) -> bool:
+    """Whether no vertex is shared by two faces (and there are two faces or more)."""
+    return len(faces) > 1 and int(np.bincount(faces.ravel(), minlength=n_vertices).max()) <= 1
+
+
 def clean_mesh(
-    vertices, faces, *, source: str = "<array>"
+    vertices, faces, *, source: str = "<array>", weld_soup: bool | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, CleanReport]:
     """Validate and clean a triangle mesh.
 
@@ -49,10 +109,14 @@ def clean_mesh(
         vertices: ``(V, 3)`` coordinates, any real dtype.
         faces: ``(F, 3)`` integer vertex indices.
         source: name used in error messages (usually the file path).
+        weld_soup: weld vertices with equal float32 coordinates first
+            (:func:`weld`); ``None`` welds a triangle soup only (no vertex
+            shared by two faces, as STL files store meshes).
 
     Returns:
         ``(vertices float64[V', 3], faces int32[F', 3], kept int64[V'], report)``
-        where ``kept[i]`` is the input index of output vertex ``i``.
+        where ``kept[i]`` is the input index of output vertex ``i`` (for a
+        welded mesh, the first input vertex of its group).
 
     Raises:
         MeshError: wrong shapes or dtypes, or no valid face left.
@@ -79,6 +143,14 @@ def clean_mesh(
     in_range = np.all((f >= 0) & (f < nv), axis=1)
     out_of_range = int((~in_range).sum())
     f = f[in_range]
+
+    # A triangle soup has one vertex per corner: weld it, or every face would
+    # be its own part. Welded ids stand for their group's first input vertex.
+    original_ids = np.arange(nv)
+    welded = 0
+    if weld_soup or (weld_soup is None and is_soup(f, nv)):
+        v, f, original_ids = weld(v, f)
+        welded, nv = nv - len(v), len(v)
 
     # Non-finite coordinates poison every quadric they touch: drop the vertex
     # and the faces that use it.
@@ -127,8 +199,11 @@ def clean_mesh(
         duplicate_faces=int(duplicates),
         # Non-finite vertices lose all their faces, so they are never kept.
         unreferenced_vertices=int(nv - len(kept) - nonfinite),
+        welded_vertices=welded,
     )
-    return v[kept], remap[f].astype(np.int32), kept, report
+    # Judged on what is kept: cleaning may leave a smaller model.
+    check_float32_precision(v[kept], source=source)
+    return v[kept], remap[f].astype(np.int32), original_ids[kept], report
 
 
 def read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
