@@ -12,7 +12,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ._pmfile import PMData, read_arrays
-from ._structure import check_structure, remember_structure, structure_known
+from ._structure import NestingCheck, check_normals, check_structure, remember_structure, structure_known
 from ._subtree import SubtreeBounds, subtree_bounds
 
 
@@ -149,8 +149,14 @@ class ProgressiveMesh(eqx.Module):
         return eqx.tree_at(lambda m: (m.vertices, m.attributes), self, (self.vertices.astype(dtype), attrs))
 
     @staticmethod
-    def from_data(pm: PMData) -> "ProgressiveMesh":
-        """Device copy of host arrays (:class:`pmjax.PMData`)."""
+    def from_data(pm: PMData, *, nesting=None) -> "ProgressiveMesh":
+        """Device copy of host arrays (:class:`pmjax.PMData`).
+
+        Args:
+            pm: the host arrays.
+            nesting: optional :class:`pmjax._structure.NestingCheck`, run on
+                the subtree-bound pass (``pmjax.load`` uses it).
+        """
         V0, P = pm.n_original_vertices, pm.n_pcols
         parent = np.full(V0 + P, -1, np.int32)
         parent[pm.v1] = np.arange(P)
@@ -165,7 +171,7 @@ class ProgressiveMesh(eqx.Module):
         # Bounds from the float32 values the tests read.
         host = {k: np.asarray(getattr(attributes, k)) for k in ("center", "axis", "sin_alpha", "cos_alpha")}
         bounds = subtree_bounds(host["center"].T, host["axis"].T, pm.radius, host["sin_alpha"], host["cos_alpha"],
-                                pm.delta, pm.mu, child1, child2, pm.batch_offsets)
+                                pm.delta, pm.mu, child1, child2, pm.batch_offsets, nesting=nesting)
         roots, depth = forest_generations(parent[V0:], pm.batch_offsets)
         table = np.concatenate([np.atleast_2d(np.asarray(getattr(attributes, k))) for k in TABLE_ATTRIBUTES]
                                + [bounds[k].reshape(1, P) for k in TABLE_BOUNDS]).T
@@ -212,12 +218,16 @@ def load(path: str | os.PathLike) -> ProgressiveMesh:
     data, fingerprint = read_arrays(path)
     if structure_known(fingerprint):
         return ProgressiveMesh.from_data(data)
+    source = os.fspath(path)
     # The structure check runs beside the device copy (both mostly NumPy,
-    # which releases the GIL); validate_pm has already bounded every index,
-    # so the copy is safe on a forged file, and it is never returned.
+    # which releases the GIL), and the attributes' nesting inside the copy's
+    # subtree-bound pass, which gathers the same parent-child pairs.
+    # validate_pm has already bounded every index, so the copy is safe on a
+    # forged file, and it is never returned.
+    check_normals(data, source)
     with ThreadPoolExecutor(max_workers=1) as pool:
-        check = pool.submit(check_structure, data, source=os.fspath(path), threads=1)
-        pm = ProgressiveMesh.from_data(data)
+        check = pool.submit(check_structure, data, source=source, threads=1, nesting=False)
+        pm = ProgressiveMesh.from_data(data, nesting=NestingCheck(data, source))
         check.result()
     remember_structure(fingerprint)
     return pm

@@ -92,7 +92,7 @@ def remember_structure(fingerprint: str) -> None:
         pass
 
 
-def check_structure(pm: PMData, *, source: str = "<memory>", threads: int = 2) -> None:
+def check_structure(pm: PMData, *, source: str = "<memory>", threads: int = 2, nesting: bool = True) -> None:
     """Refuse a hierarchy whose structure the engine cannot trust.
 
     Assumes :func:`pmjax.validate_pm` passed (ranges, consumption once, batch
@@ -101,21 +101,35 @@ def check_structure(pm: PMData, *, source: str = "<memory>", threads: int = 2) -
     Args:
         pm: the hierarchy.
         source: the name errors give (usually the file path).
-        threads: 2 runs the face checks and the attribute checks side by side
-            (NumPy releases the GIL); 1 runs them in the calling thread.
+        threads: 2 runs the face checks beside the attribute checks (NumPy
+            releases the GIL); 1 runs them in the calling thread.
+        nesting: also check the normals and that each pcol's attributes
+            hold its created children's. ``pmjax.load`` turns it off here: it
+            checks the normals first and the nesting inside the subtree bounds
+            it computes anyway (:class:`NestingCheck`), which gather the same
+            parent-child pairs.
 
     Raises:
         PMFormatError: naming ``source`` and the first offending face or pcol.
     """
     # Gathers index with intp: NumPy converts int32 indices on every call.
     corners = np.ascontiguousarray(pm.faces.T, dtype=np.intp)  # [3, F]: one row per corner
+
+    def attributes():
+        if nesting:
+            check_normals(pm, source)
+        check = NestingCheck(pm, source)
+        check.original_children()
+        if nesting:
+            check.created_children()
+
     if threads < 2:
         _check_faces(pm, corners, source)
-        _check_attributes(pm, source)
+        attributes()
         return
     with ThreadPoolExecutor(max_workers=1) as pool:
         faces = pool.submit(_check_faces, pm, corners, source)
-        _check_attributes(pm, source)
+        attributes()
         faces.result()
 
 
@@ -253,43 +267,70 @@ def _check_killers(pm: PMData, corners, tin, size, chains, source: str) -> None:
         )
 
 
-def _check_attributes(pm: PMData, source: str) -> None:
-    V0, P = pm.n_original_vertices, pm.n_pcols
-    # Normals: unit length, checked in float32 (its error is far below the slack).
+def check_normals(pm: PMData, source: str) -> None:
+    """Unit normals (an original vertex with no net face area may have zero)."""
+    V0 = pm.n_original_vertices
     length = np.sqrt(np.einsum("ij,ij->i", pm.normals, pm.normals))
     off_unit = np.abs(length - 1.0) > NORMAL_SLACK
     off_unit[:V0] &= length[:V0] != 0.0
     _fail(off_unit, source, "vertex {}: normal is not of unit length")
-    if P == 0:
-        return
-    # Every vertex's attributes in one 40-byte row (originals: zero radius,
-    # cone and deviations), gathered as opaque rows: a child costs one random
-    # read, not ten. Columns: x, y, z, nx, ny, nz, radius, alpha, delta, mu.
-    table = np.empty((V0 + P, 10), np.float32)
-    table[:V0, 6:] = 0.0
-    table[:, 0:3] = pm.vertices
-    table[:, 3:6] = pm.normals
-    for k, attr in enumerate(("radius", "alpha", "delta", "mu")):
-        table[V0:, 6 + k] = getattr(pm, attr)
-    rows = table.view(np.dtype((np.void, 40))).ravel()
-    column = dict(radius=6, alpha=7, delta=8, mu=9)
-    bound = sphere_slack(pm.vertices, pm.radius) + pm.radius
-    cone_checked = pm.alpha < np.pi - CONE_SLACK
-    x_p = pm.vertices[V0:].astype(np.float64)
-    n_p = pm.normals[V0:].astype(np.float64)
-    for name in ("v1", "v2"):
-        c = getattr(pm, name).astype(np.intp)
-        child = rows[c].view(np.float32).reshape(P, 10)
-        # |x_p - x_c| + r_c <= r_p + slack, in float64
-        d = x_p - child[:, 0:3]
-        d *= d
-        reach = np.sqrt(d[:, 0] + d[:, 1] + d[:, 2]) + child[:, 6]
-        _fail(reach > bound, source, f"pcol {{}}: sphere does not contain its {name} child's sphere")
-        # angle(n_p, n_c) + alpha_c <= alpha_p + slack, unless alpha_p is pi
-        d = n_p * child[:, 3:6]
-        spread = np.arccos(np.clip(d[:, 0] + d[:, 1] + d[:, 2], -1.0, 1.0)) + child[:, 7]
-        _fail((spread > pm.alpha + CONE_SLACK) & cone_checked & (c >= V0), source,
-              f"pcol {{}}: normal cone does not contain its {name} child's cone")
-        # An original child has zeros here, which every pcol passes.
-        for attr in ("delta", "mu", "alpha"):
-            _fail(child[:, column[attr]] > getattr(pm, attr), source, f"pcol {{}}: {attr} smaller than its {name} child's")
+
+
+class NestingCheck:
+    """Each pcol's attributes hold its children's, within float32 rounding.
+
+    Sphere: ``|x_p − x_c| + r_c <= r_p + slack`` (:func:`sphere_slack`); cone
+    (created children): ``angle(n_p, n_c) + alpha_c <= alpha_p + CONE_SLACK``
+    unless ``alpha_p`` is already π; ``delta``, ``mu``, ``alpha`` at least the
+    child's. Made once per hierarchy (it first checks that normals are unit);
+    :meth:`original_children` checks the pcols' original children and
+    :meth:`created_children` the created ones, which ``pmjax.load`` does
+    instead by passing the object to :func:`pmjax._subtree.subtree_bounds`.
+    """
+
+    def __init__(self, pm: PMData, source: str):
+        self.pm, self.source = pm, source
+        self.radius = pm.radius.astype(np.float64)
+        self.limit = sphere_slack(pm.vertices, pm.radius) + self.radius
+        alpha = pm.alpha.astype(np.float64)
+        self.alpha = alpha
+        self.cone_limit = np.where(alpha < np.pi - CONE_SLACK, alpha + CONE_SLACK, np.inf)
+        self.deviations = (("delta", pm.delta), ("mu", pm.mu), ("alpha", pm.alpha))
+
+    def _raise(self, bad, p, which, what):
+        first = int(p[np.flatnonzero(bad)[0]])
+        raise PMFormatError(f"{self.source}: pcol {first}: {what.format(child=f'its v{which} child')}")
+
+    def __call__(self, p, q, gap, turn, which) -> None:
+        """Check parents ``p`` against created children ``q`` (pcol ids)."""
+        bad = gap + self.radius[q] > self.limit[p]
+        if bad.any():
+            self._raise(bad, p, which, "sphere does not contain {child}'s sphere")
+        bad = turn + self.alpha[q] > self.cone_limit[p]
+        if bad.any():
+            self._raise(bad, p, which, "normal cone does not contain {child}'s cone")
+        for name, a in self.deviations:
+            bad = a[q] > a[p]
+            if bad.any():
+                self._raise(bad, p, which, f"{name} smaller than {{child}}'s")
+
+    def original_children(self) -> None:
+        """Spheres around original children (they have no cone or deviation)."""
+        pm, V0 = self.pm, self.pm.n_original_vertices
+        x = np.ascontiguousarray(pm.vertices.T, dtype=np.float64)  # [3, V]
+        for which, v in ((1, pm.v1), (2, pm.v2)):
+            p = np.flatnonzero(v < V0)
+            c = v[p].astype(np.intp)
+            d = [x[k][V0 + p] - x[k][c] for k in range(3)]
+            bad = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]) > self.limit[p]
+            if bad.any():
+                self._raise(bad, p, which, "sphere does not contain {child}'s sphere")
+
+    def created_children(self) -> None:
+        """The created children, through the same pass as the subtree bounds."""
+        from ._subtree import subtree_bounds
+
+        pm, V0 = self.pm, self.pm.n_original_vertices
+        child = [np.where(v >= V0, v - V0, -1) for v in (pm.v1, pm.v2)]
+        subtree_bounds(pm.vertices[V0:], pm.normals[V0:], pm.radius, np.sin(self.alpha), np.cos(self.alpha),
+                       pm.delta, pm.mu, *child, pm.batch_offsets, nesting=self)
