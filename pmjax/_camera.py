@@ -225,10 +225,12 @@ def look_at_rotations(eye, target, up) -> np.ndarray:
 
 
 def look_at(eye, target, up=(0.0, 1.0, 0.0), *, fov_y_deg=45.0, width=800, height=600, near=None, far=None,
-            orthographic=False, ortho_height=1.0) -> Camera:
+            orthographic=False, ortho_height=1.0, host=False) -> Camera:
     """Camera at ``eye`` looking at ``target`` (numpy inputs, one camera).
 
     ``near``/``far`` default to 1e-3 and 1e3 times the eye–target distance.
+    ``host=True`` keeps the fields as float64 NumPy values (for writing
+    camera files exactly); by default they are float32 JAX arrays.
 
     Raises:
         CameraError: a value out of range: eye, target or up not 3 finite
@@ -252,13 +254,14 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0), *, fov_y_deg=45.0, width=800, heigh
                         np.array([ortho_height]), np.array([width]), np.array([height]),
                         np.array([orthographic]), where="look_at: ")
     rotation = look_at_rotations(eye[None], target[None], up[None])[0]
+    value = (lambda x: np.asarray(x, np.float64)) if host else (lambda x: jnp.asarray(x, jnp.float32))
     return Camera(
-        eye=jnp.asarray(eye, jnp.float32),
-        rotation=jnp.asarray(rotation, jnp.float32),
-        fov_y=jnp.asarray(math.radians(fov_y_deg), jnp.float32),
-        near=jnp.asarray(near, jnp.float32),
-        far=jnp.asarray(far, jnp.float32),
-        ortho_height=jnp.asarray(ortho_height, jnp.float32),
+        eye=value(eye),
+        rotation=value(rotation),
+        fov_y=value(math.radians(fov_y_deg)),
+        near=value(near),
+        far=value(far),
+        ortho_height=value(ortho_height),
         width=int(width),
         height=int(height),
         orthographic=bool(orthographic),

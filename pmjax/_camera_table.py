@@ -78,23 +78,25 @@ class CameraTable:
         return CameraTable(**{f.name: None if getattr(self, f.name) is None else getattr(self, f.name)[lo:hi]
                               for f in dataclasses.fields(self)})
 
-    def batches(self) -> Iterator[tuple[np.ndarray, Camera]]:
+    def batches(self, dtype=np.float32) -> Iterator[tuple[np.ndarray, Camera]]:
         """``(row indices, Camera batch)`` per projection (perspective,
         orthographic), rows in increasing order within each; image sizes are
-        traced, so they need no batch of their own."""
+        traced, so they need no batch of their own. Fields are host NumPy
+        arrays of ``dtype`` (float64 keeps the table's values exactly)."""
         for ortho in (False, True):
             idx = np.flatnonzero(self.orthographic == ortho)
             if len(idx):
                 # Host (NumPy) float32 fields: refine_batch cuts its chunks on the host.
                 yield idx, Camera(
-                    eye=self.eye[idx].astype(np.float32), rotation=self.rotation[idx].astype(np.float32),
-                    fov_y=self.fov_y[idx].astype(np.float32), near=self.near[idx].astype(np.float32),
-                    far=self.far[idx].astype(np.float32), ortho_height=self.ortho_height[idx].astype(np.float32),
+                    eye=self.eye[idx].astype(dtype), rotation=self.rotation[idx].astype(dtype),
+                    fov_y=self.fov_y[idx].astype(dtype), near=self.near[idx].astype(dtype),
+                    far=self.far[idx].astype(dtype), ortho_height=self.ortho_height[idx].astype(dtype),
                     width=self.width[idx], height=self.height[idx], orthographic=ortho)
 
-    def camera(self) -> Camera:
-        """All rows as one Camera batch (they must share the projection)."""
-        groups = list(self.batches())
+    def camera(self, dtype=np.float32) -> Camera:
+        """All rows as one Camera batch (they must share the projection);
+        fields as in :meth:`batches`."""
+        groups = list(self.batches(dtype))
         if len(groups) != 1:
             raise CameraError("perspective and orthographic cameras in one set; use batches()")
         return groups[0][1]

@@ -1,4 +1,4 @@
-"""The ``pmjax`` command line: build, info, lod, refine, path, demo."""
+"""The ``pmjax`` command line: build, info, lod, camera, refine, path, eval, render, figures, view, demo."""
 
 from __future__ import annotations
 
@@ -40,6 +40,8 @@ def _real(low: float = 0.0, high: float = math.inf, *, open_low=False, open_high
             return value
         ok = (math.isfinite(value) and (value > low if open_low else value >= low)
               and (value < high if open_high else value <= high))
+        if not ok and math.isinf(low) and math.isinf(high):
+            raise argparse.ArgumentTypeError(f"{text} is not a finite number")
         if not ok:
             where = f"{'(' if open_low else '['}{low:g}, {high:g}{')' if open_high or math.isinf(high) else ']'}"
             raise argparse.ArgumentTypeError(f"{text} is out of range (must be in {where}"
@@ -49,7 +51,8 @@ def _real(low: float = 0.0, high: float = math.inf, *, open_low=False, open_high
     return parse
 
 
-TAU = _real(0.0, infinite=True)  # pixels; inf collapses everything collapsible
+TAU = _real(0.0, infinite=True)
+FINITE = _real(-math.inf)  # pixels; inf collapses everything collapsible
 COUNT = _whole(1)
 SIZE = _whole(1, 65536)
 
@@ -178,9 +181,14 @@ def cmd_refine(args) -> int:
 
     import pmjax
 
+    if args.camera is None and args.target is None:
+        raise ValueError("--eye needs --target")
     pm = pmjax.load(args.pm)
-    cams = pmjax.load_cameras(args.camera)
-    cam = pmjax._camera.index_camera(cams, 0)
+    if args.camera:
+        cam = pmjax._camera.index_camera(pmjax.load_cameras(args.camera), 0)
+    else:
+        cam = pmjax.look_at(args.eye, args.target, args.up, width=args.size[0], height=args.size[1],
+                            fov_y_deg=args.fov)
     r = pmjax.refine(pm, cam, args.tau, tests=_tests(args), method=args.method)
     r.n_faces.block_until_ready()
     t = time.perf_counter()
@@ -268,6 +276,43 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def _model_vertices(path: str) -> np.ndarray:
+    """The original vertices of a ``.pmz``, or of a mesh file once cleaned
+    (the vertices a hierarchy built from it would have)."""
+    import pmjax
+
+    if path.endswith(".pmz"):
+        pm = pmjax.read_pm(path)
+        return pm.vertices[: pm.n_original_vertices]
+    return pmjax.load_clean_mesh(path)[0]
+
+
+def cmd_camera(args) -> int:
+    import pmjax
+    from pmjax._camera_table import fly_rows, orbit_rows, random_rows, table_from_cameras
+
+    image = dict(width=args.size[0], height=args.size[1], fov_y_deg=args.fov)
+    if args.kind == "look-at":
+        near_far = {k: getattr(args, k) for k in ("near", "far") if getattr(args, k) is not None}
+        table = table_from_cameras(pmjax.look_at(args.eye, args.target, args.up, **image, **near_far, host=True))
+    else:
+        v = _model_vertices(args.model)
+        if args.kind == "orbit":
+            table = orbit_rows(v, args.n, 0, args.n, elevation_deg=args.elevation, **image)
+        elif args.kind == "fly":
+            table = fly_rows(v, args.n, 0, args.n, **image)
+        else:
+            table = random_rows(v, args.seed, 0, args.n, **image)
+    ext = os.path.splitext(args.output)[1].lower()
+    if ext in (".npz", ".parquet"):
+        pmjax.write_camera_table(table, args.output)
+    else:
+        pmjax.save_cameras(table.camera(np.float64), args.output)
+    n = len(table)
+    print(f"{args.output}: {n} camera{'s' if n != 1 else ''} ({args.kind})")
+    return 0
+
+
 def _path_cameras(pm, args):
     import pmjax
 
@@ -305,7 +350,8 @@ def cmd_figures(args) -> int:
 def cmd_view(args) -> int:
     from pmjax.render import run_viewer
 
-    run_viewer(args.pm, tau=args.tau, size=tuple(args.size), close_after=args.close_after)
+    run_viewer(args.pm, tau=args.tau, size=tuple(args.size), close_after=args.close_after,
+               camera_file=args.camera_file)
     return 0
 
 
@@ -412,15 +458,63 @@ def build_parser() -> argparse.ArgumentParser:
                        help="refinement engine, same results: front (output-sensitive), dense (every pcol), "
                             "auto (front from 100,000 pcols on; docs/front.md)")
 
+    def add_image_args(p, note=""):
+        p.add_argument("--fov", type=_real(0.0, 180.0, open_low=True, open_high=True), default=45.0,
+                       help=f"vertical field of view, degrees{note} (default 45)")
+        p.add_argument("--size", type=SIZE, nargs=2, default=(800, 600), metavar=("W", "H"),
+                       help=f"image size in pixels{note} (default 800 600)")
+
+    def add_look_at_args(p, required):
+        p.add_argument("--eye", type=FINITE, nargs=3, metavar=("X", "Y", "Z"), required=required,
+                       help="camera position (model units)")
+        p.add_argument("--target", type=FINITE, nargs=3, metavar=("X", "Y", "Z"), required=required,
+                       help="the point looked at")
+        p.add_argument("--up", type=FINITE, nargs=3, metavar=("X", "Y", "Z"), default=(0.0, 1.0, 0.0),
+                       help="up direction (default 0 1 0)")
+
     p = sub.add_parser("refine", help="refine for one camera and write the mesh",
-                       description="View-dependent refinement for the first camera of a camera file.")
+                       description="View-dependent refinement for one camera: the first of a camera file, "
+                                   "or --eye/--target.")
     p.add_argument("pm", help=".pmz file")
-    p.add_argument("--camera", required=True, help="camera file (.json or .csv, see docs/cameras.md)")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--camera", help="camera file (.json or .csv, see docs/cameras.md; `pmjax camera` writes one)")
+    g.add_argument("--eye", type=FINITE, nargs=3, metavar=("X", "Y", "Z"),
+                   help="camera position, with --target (model units)")
+    p.add_argument("--target", type=FINITE, nargs=3, metavar=("X", "Y", "Z"), help="the point looked at, with --eye")
+    p.add_argument("--up", type=FINITE, nargs=3, metavar=("X", "Y", "Z"), default=(0.0, 1.0, 0.0),
+                   help="up direction with --eye (default 0 1 0)")
+    add_image_args(p, note=" with --eye")
     p.add_argument("-o", "--output", required=True, help="output mesh")
     p.add_argument("--stats-json", help="write counts and timing as JSON")
     add_view_args(p)
     add_method_arg(p)
     p.set_defaults(func=cmd_refine)
+
+    p = sub.add_parser("camera", help="write cameras: one look-at view, the standard orbit, a fly-through, "
+                                      "random views",
+                       description="Write cameras to .json or .csv (read by --camera and --path) or to a .npz "
+                                   "or .parquet table (read by pmjax eval --cameras). The orbit, fly-through and "
+                                   "random views are placed round a model: a mesh file or a .pmz.")
+    kinds = p.add_subparsers(dest="kind", required=True)
+    k = kinds.add_parser("look-at", help="one camera at --eye looking at --target")
+    add_look_at_args(k, required=True)
+    k.add_argument("--near", type=_real(0.0, open_low=True), help="near plane distance (default: from the eye)")
+    k.add_argument("--far", type=_real(0.0, open_low=True), help="far plane distance")
+    for name, text in (("orbit", "the standard orbit: round the bounding-box centre at r / sin 22.5°, r the "
+                                 "half diagonal"),
+                       ("fly", "a fly-through from far in front, close past the side and round the back"),
+                       ("random", "random views round the model (directions uniform, distances log-uniform)")):
+        k = kinds.add_parser(name, help=text, description=text)
+        k.add_argument("model", help="mesh file or .pmz the cameras are placed round")
+        k.add_argument("-n", type=COUNT, default=240, help="number of cameras (default 240)")
+        if name == "orbit":
+            k.add_argument("--elevation", type=_real(-90.0, 90.0), default=20.0, help="degrees (default 20)")
+        if name == "random":
+            k.add_argument("--seed", type=_whole(0), default=0, help="seed (default 0)")
+    for k in kinds.choices.values():
+        add_image_args(k)
+        k.add_argument("-o", "--output", required=True, help="output .json, .csv, .npz or .parquet")
+        k.set_defaults(func=cmd_camera)
 
     p = sub.add_parser("path", help="refine along a camera path, one CSV row per camera",
                        description="Per-camera faces, vertices, executed pcols and milliseconds.")
@@ -496,11 +590,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("view", help="interactive viewer (needs a display)",
                        description="pyrender Viewer, re-refined as the camera moves. Keys: '=' / '-' raise / "
                                    "lower tau, 'p' freeze or release a phantom camera, '1' '2' '3' toggle the "
-                                   "frustum / orientation / screen test, 'e' wireframe overlay, 'q' quit.")
+                                   "frustum / orientation / screen test, 'e' wireframe overlay, 'c' save the "
+                                   "camera (--camera-file), 'q' quit.")
     p.add_argument("pm", help=".pmz file")
     p.add_argument("--tau", type=TAU, default=1.0, help="initial tolerance in pixels")
     p.add_argument("--size", type=SIZE, nargs=2, default=(800, 600), metavar=("W", "H"), help="window size")
     p.add_argument("--close-after", type=_real(0.0), default=0.0, help="close after this many seconds (0: never)")
+    p.add_argument("--camera-file", default="view-camera.json",
+                   help="where the 'c' key saves the current camera (default ./view-camera.json)")
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("demo", help="build the bundled model and refine it along the standard orbit",
@@ -516,6 +613,8 @@ OUTPUTS = {
     "build": [("output", False)],
     "lod": [("output", False)],
     "refine": [("output", False), ("stats_json", False)],
+    "camera": [("output", False)],
+    "view": [("camera_file", False)],
     "path": [("csv", False)],
     "eval": [("output", True)],
     "figures": [("output", True)],

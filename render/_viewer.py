@@ -10,7 +10,7 @@ import time
 import jax
 import numpy as np
 
-from pmjax import Camera, Tests, index_camera, load, refine, standard_orbit
+from pmjax import Camera, Tests, index_camera, load, refine, save_cameras, standard_orbit
 
 from ._gl import RenderError, pyrender_module
 from ._offscreen import refined_arrays
@@ -24,6 +24,7 @@ KEYS = {
     "2": "toggle the orientation test",
     "3": "toggle the screen-space test",
     "e": "toggle the wireframe overlay",
+    "c": "save the current camera to the camera file (JSON)",
 }
 
 
@@ -38,6 +39,8 @@ class ViewerState:
     wireframe: bool = False
     phantom: Camera | None = None
     freeze_requested: bool = False
+    save_requested: bool = False
+    camera_file: str = "view-camera.json"
     dirty: bool = True
 
     def tests(self) -> Tests:
@@ -57,6 +60,10 @@ def _key_actions(state: ViewerState) -> dict:
         state.freeze_requested = True
         state.dirty = True
 
+    def save(viewer):
+        state.save_requested = True
+        state.dirty = True
+
     return {
         "=": (change(tau=lambda t: t * 2.0),),
         "-": (change(tau=lambda t: t / 2.0),),
@@ -65,6 +72,7 @@ def _key_actions(state: ViewerState) -> dict:
         "2": (change(orientation=lambda b: not b),),
         "3": (change(screen=lambda b: not b),),
         "e": (change(wireframe=lambda b: not b),),
+        "c": (save,),
     }
 
 
@@ -77,7 +85,8 @@ def camera_from_pose(pose, like: Camera, width: int, height: int) -> Camera:
     )
 
 
-def run_viewer(path: str, *, tau: float = 1.0, size=(800, 600), close_after: float = 0.0) -> None:
+def run_viewer(path: str, *, tau: float = 1.0, size=(800, 600), close_after: float = 0.0,
+               camera_file: str = "view-camera.json") -> None:
     """Open ``pmjax view``: an interactive window (needs a display, e.g. Xvfb).
 
     Args:
@@ -85,6 +94,8 @@ def run_viewer(path: str, *, tau: float = 1.0, size=(800, 600), close_after: flo
         tau: initial tolerance in pixels.
         size: window ``(width, height)``.
         close_after: close after this many seconds (0: when the user quits).
+        camera_file: where the ``c`` key saves the current camera (JSON, as
+            :func:`pmjax.save_cameras` writes and ``--camera`` reads).
     """
     check_display()
     pyrender = pyrender_module(offscreen=False)
@@ -92,7 +103,7 @@ def run_viewer(path: str, *, tau: float = 1.0, size=(800, 600), close_after: flo
     W, H = int(size[0]), int(size[1])
     verts = np.asarray(pm.vertices)[: pm.n_original_vertices]
     start = index_camera(standard_orbit(verts, 240, width=W, height=H), 0)
-    state = ViewerState(tau=float(tau))
+    state = ViewerState(tau=float(tau), camera_file=camera_file)
     first = refine(pm, start, state.tau)
     v, f, _, normals = refined_arrays(pm, first)
     scene, nodes = build_scene(v, f, start, light=False, normals=normals)
@@ -144,6 +155,11 @@ def _follow(viewer, scene, nodes, pm, start, state, caption, began, close_after,
             if state.freeze_requested:
                 state.phantom = None if state.phantom is not None else current
                 state.freeze_requested = False
+            saved = ""
+            if state.save_requested:
+                save_cameras(current, state.camera_file)
+                state.save_requested = False
+                saved = f"  saved camera to {state.camera_file}"
             state.dirty = False
             target = state.phantom if state.phantom is not None else current
             t = time.perf_counter()
@@ -153,7 +169,7 @@ def _follow(viewer, scene, nodes, pm, start, state, caption, began, close_after,
             v, f, _, normals = refined_arrays(pm, ref)
             text = (f"faces {int(ref.n_faces)}  refine {ms:.1f} ms  tau {state.tau:g} px  tests "
                     f"{'F' if state.frustum else '-'}{'O' if state.orientation else '-'}"
-                    f"{'S' if state.screen else '-'}{'  phantom' if state.phantom is not None else ''}")
+                    f"{'S' if state.screen else '-'}{'  phantom' if state.phantom is not None else ''}{saved}")
             with viewer.render_lock:
                 for n in nodes:
                     scene.remove_node(n)

@@ -144,3 +144,43 @@ def test_camera_files_are_refused_by_camera_and_key(tmp_path, doc, message):
     # A single camera with the file's keys is fine.
     path.write_text(json.dumps({"eye": [0, 0, 1], "target": [0, 0, 0], "orthographic": True, "width": 64}))
     assert int(pmjax.load_cameras(path).width[0]) == 64
+
+
+def test_camera_command_writes_every_kind(tmp_path, built, data_path, capsys):
+    model = data_path("cow.ply")
+    pm_path = tmp_path / "cow.pmz"
+    pmjax.save_pm(built("cow.ply"), pm_path)
+    v = pmjax.read_pm(pm_path).vertices[: pmjax.read_pm(pm_path).n_original_vertices]
+    # look-at: the values typed, kept exactly, and the same view as --eye/--target on refine
+    cam = tmp_path / "cam.json"
+    assert main(["camera", "look-at", "--eye", "0", "1.5", "12", "--target", "0", "0.1", "0", "--size", "640",
+                 "480", "--fov", "30", "-o", str(cam)]) == 0
+    doc = json.loads(cam.read_text())
+    assert doc["cameras"][0]["eye"] == [0.0, 1.5, 12.0] and (doc["width"], doc["height"]) == (640, 480)
+    a, b = tmp_path / "a.ply", tmp_path / "b.ply"
+    assert main(["refine", str(pm_path), "--camera", str(cam), "-o", str(a)]) == 0
+    assert main(["refine", str(pm_path), "--eye", "0", "1.5", "12", "--target", "0", "0.1", "0", "--size", "640",
+                 "480", "--fov", "30", "-o", str(b)]) == 0
+    assert a.read_bytes() == b.read_bytes()
+    # orbit round a mesh file or its .pmz: the standard orbit
+    want = pmjax.standard_orbit(v, 24, width=400, height=300)
+    for src, out in ((model, "orbit.json"), (str(pm_path), "orbit.csv")):
+        assert main(["camera", "orbit", src, "-n", "24", "--size", "400", "300", "-o", str(tmp_path / out)]) == 0
+        got = pmjax.load_cameras(tmp_path / out)
+        assert camera_count(got) == 24 and np.array_equal(np.asarray(got.eye), np.asarray(want.eye))
+        assert np.allclose(np.asarray(got.rotation), np.asarray(want.rotation), atol=1e-7)
+    # random views and a fly-through, as tables for pmjax eval
+    assert main(["camera", "random", str(pm_path), "-n", "100", "--seed", "4", "-o", str(tmp_path / "r.npz")]) == 0
+    table = pmjax.read_camera_table(tmp_path / "r.npz")
+    assert np.array_equal(table.camera().eye, np.asarray(pmjax.random_views(v, 100, seed=4).eye))
+    assert main(["camera", "fly", model, "-n", "30", "-o", str(tmp_path / "f.parquet")]) == 0
+    assert len(pmjax.read_camera_table(tmp_path / "f.parquet")) == 30
+    capsys.readouterr()
+    # errors: a degenerate view, a missing --target, a non-finite coordinate
+    assert main(["camera", "look-at", "--eye", "0", "0", "0", "--target", "0", "0", "0", "-o", str(cam)]) == 2
+    assert "eye and target coincide" in capsys.readouterr().err
+    assert main(["refine", str(pm_path), "--eye", "0", "0", "5", "-o", str(a)]) == 2
+    assert "--eye needs --target" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["camera", "look-at", "--eye", "0", "0", "inf", "--target", "0", "0", "0", "-o", str(cam)])
+    assert "argument --eye: inf is not a finite number" in capsys.readouterr().err

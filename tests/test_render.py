@@ -167,10 +167,11 @@ def test_path_fidelity_columns(cow, tmp_path):
 
 
 @pytest.mark.skipif(not (shutil.which("Xvfb") and shutil.which("xdotool")), reason="needs Xvfb and xdotool")
-def test_viewer_in_a_real_window_reacts_to_keys(cow):
+def test_viewer_in_a_real_window_reacts_to_keys(cow, tmp_path):
     from PIL import ImageGrab
 
     path, _, _ = cow
+    saved = tmp_path / "seen.json"
     display = f":{90 + os.getpid() % 100}"
     xvfb = subprocess.Popen(["Xvfb", display, "-screen", "0", "640x480x24", "-nolisten", "tcp"],
                             stderr=subprocess.DEVNULL)
@@ -180,7 +181,8 @@ def test_viewer_in_a_real_window_reacts_to_keys(cow):
     try:
         time.sleep(1.0)
         viewer = subprocess.Popen([sys.executable, "-m", "pmjax", "view", path, "--size", "400", "300",
-                                   "--close-after", "90"], env=env, stderr=subprocess.PIPE, text=True)
+                                   "--close-after", "90", "--camera-file", str(saved)], env=env,
+                                  stderr=subprocess.PIPE, text=True)
 
         def window():
             r = subprocess.run(["xdotool", "search", "--name", "pmjax view"], env=env, capture_output=True,
@@ -213,6 +215,13 @@ def test_viewer_in_a_real_window_reacts_to_keys(cow):
         # the wireframe overlay darkens the edges of the model
         assert changed > 1000
         assert (after.sum(-1) < 200).sum() > (before.sum(-1) < 200).sum() + 150
+        # 'c' saves the current camera: the viewer's start view, 400 x 300
+        subprocess.run(["xdotool", "key", "--window", window()[0], "c"], env=env, check=True)
+        deadline = time.time() + 20
+        while not saved.exists() and time.time() < deadline:
+            time.sleep(0.3)
+        cam = pmjax.load_cameras(saved)
+        assert (int(cam.width[0]), int(cam.height[0])) == (400, 300)
     finally:
         if viewer is not None:
             viewer.terminate()
@@ -268,7 +277,7 @@ def test_render_and_path_with_geomorphs(cow, tmp_path):
     assert len(rows) == 5 and float(rows[0]["popping_mse"]) == 0.0 and float(rows[1]["popping_mse"]) > 0.0
     r = subprocess.run([sys.executable, "-m", "pmjax", "path", path, "--orbit", "2", "--fidelity", "--supersample", "0",
                         "-q"], capture_output=True, text=True)
-    assert r.returncode == 2 and "supersample must be >= 1, got 0" in r.stderr
+    assert r.returncode == 2 and "argument --supersample: 0 is out of range" in r.stderr
     gif = tmp_path / "g.gif"
     r = subprocess.run([sys.executable, "-m", "pmjax", "render", path, "--orbit", "5", "--geomorph", "4", "-o",
                         str(gif), "-q"], capture_output=True, text=True)
