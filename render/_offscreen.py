@@ -14,6 +14,7 @@ from pmjax._atomic import atomic_path, check_output_path
 
 from ._gl import RenderError, pyrender_module
 from ._scene import batch_levels, build_scene, face_levels, frustum_past_model
+from ._video import Mp4Writer
 
 
 _CONTEXTS: dict = {}
@@ -172,18 +173,26 @@ def check_frames_output(path: str, fps: int = 30) -> str:
 
 
 def write_frames(frames, path: str, fps: int = 30) -> None:
-    """Write RGB frames as a video (``.mp4``: imageio-ffmpeg; ``.gif``) or, for a
-    directory path or ``.png`` pattern, as numbered PNGs; atomically per file."""
-    import imageio.v2 as imageio
-
+    """Write RGB frames as a video (``.mp4``: H.264 through ffmpeg, started
+    without forking; ``.gif``: looping, at ``fps``) or, for a directory path or
+    ``.png`` pattern, as numbered PNGs; atomically per file."""
     path = os.fspath(path)
     ext = check_frames_output(path, fps)
-    if ext in (".mp4", ".gif"):
+    if ext == ".mp4":
+        with atomic_path(path, ext) as tmp, Mp4Writer(tmp, fps) as video:
+            for frame in frames:
+                video.append(frame)
+        return
+    if ext == ".gif":
+        from PIL import Image
+
+        images = [Image.fromarray(np.asarray(frame, np.uint8)) for frame in frames]
+        if not images:
+            raise ValueError(f"{path}: no frames to write")
         with atomic_path(path, ext) as tmp:
-            kw = dict(fps=fps, macro_block_size=1) if ext == ".mp4" else dict(duration=1.0 / fps, loop=0)
-            with imageio.get_writer(tmp, format="FFMPEG" if ext == ".mp4" else "GIF", mode="I", **kw) as w:
-                for frame in frames:
-                    w.append_data(frame)
+            # GIF delays are whole hundredths of a second: the nearest to 1/fps.
+            images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], loop=0,
+                           duration=10 * max(1, round(100 / fps)))
         return
     folder = path if ext == "" else os.path.dirname(path) or "."
     os.makedirs(folder, exist_ok=True)

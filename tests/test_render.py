@@ -122,18 +122,30 @@ def test_batch_level_colours_and_wireframe(cow, renderer):
 
 @pytest.mark.parametrize("ext", [".gif", ".mp4"])
 def test_video_has_one_frame_per_camera(cow, tmp_path, ext):
-    import imageio.v2 as imageio
-
     path, _, _ = cow
     out = tmp_path / f"orbit{ext}"
-    r = subprocess.run([sys.executable, "-m", "pmjax", "render", path, "--orbit", "7", "-o", str(out), "-q"],
-                       capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "pmjax", "render", path, "--orbit", "7", "-o", str(out), "-q",
+                        "--fps", "20"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
-    reader = imageio.get_reader(str(out))
-    frames = [np.asarray(f) for f in reader]
+    assert "Warning" not in r.stderr and "fork" not in r.stderr  # the encoder is spawned, not forked
+    # Decode in a process without JAX (imageio's reader forks ffmpeg).
+    decoded = tmp_path / "frames.npy"
+    code = ("import sys, numpy as np, imageio.v2 as imageio; r = imageio.get_reader(sys.argv[1]); "
+            "np.save(sys.argv[2], np.stack([np.asarray(f)[..., :3] for f in r])); "
+            "print(r.get_meta_data().get('fps', 0))")
+    fps = subprocess.run([sys.executable, "-c", code, str(out), str(decoded)], capture_output=True, text=True,
+                         check=True).stdout.strip()
+    frames = np.load(decoded)
     assert len(frames) == 7
     assert frames[0].shape[:2] == (600, 800)
     assert not np.array_equal(frames[0], frames[3])  # the camera moves
+    if ext == ".mp4":
+        assert float(fps) == 20
+    else:  # a GIF plays at the path's rate: 50 ms per frame at 20 fps, looping
+        from PIL import Image
+
+        gif = Image.open(out)
+        assert gif.info["duration"] == 50 and gif.info["loop"] == 0
 
 
 def test_figures_command(cow, tmp_path):
