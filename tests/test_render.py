@@ -159,9 +159,14 @@ def test_figures_command(cow, tmp_path):
     faces = [out[f"screen_tau{t}"][1] for t in (1, 4, 16)]
     assert faces[0] > faces[1] > faces[2]
     for name, (path, _) in out.items():
-        img = imageio.imread(path)
-        assert img.shape[:2] == (240, 320) and (img.sum(-1) < 700).mean() > 0.01, name
-    assert _red(imageio.imread(out["phantom"][0])).sum() > 50
+        img = imageio.imread(path)[..., :3].astype(int)
+        band, view = img[:-240], img[-240:]
+        assert img.shape[1] == 320 and len(band) > 20, name
+        assert (view.sum(-1) < 700).mean() > 0.01, name  # the model is drawn
+        assert (band.sum(-1) < 200).mean() > 0.01, name  # the title and caption are written above it
+        bluish = (band[..., 2] > band[..., 0] + 60).sum()  # the batch-level ramp in the legend
+        assert (bluish > 10) == (not name.startswith("screen")), name
+    assert _red(imageio.imread(out["phantom"][0])[-240:]).sum() > 50
 
 
 def test_path_fidelity_columns(cow, tmp_path):
