@@ -1,4 +1,4 @@
-"""Refinement attributes of every pcol, monotone up the hierarchy (DESIGN §2).
+"""Refinement attributes of every pcol, monotone up the hierarchy (docs/design.md).
 
 All four are computed batch by batch (children always come from earlier
 batches), each batch one vectorized step:
@@ -10,7 +10,7 @@ batches), each batch one vectorized step:
   ``min(π, max_c angle(n_p, n_c) + alpha_c)``; an original vertex's cone
   covers the normals of its faces.
 - ``delta`` (along the normal) and ``mu`` (uniform), following the screen-space
-  test of DESIGN §3 (Hoppe 1997's notation): ``delta`` bounds the distance of
+  test of docs/design.md (Hoppe 1997's notation): ``delta`` bounds the distance of
   every original vertex below from the tangent plane at the pcol vertex; ``mu``
   is the part of that residual that can point off the normal, ``delta ·
   sin(min(alpha, π/2))``, and at least the distance by which an original vertex

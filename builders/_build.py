@@ -1,5 +1,5 @@
 """Batched pair-contraction builder: a whole batch of independent collapses per
-vectorized step (DESIGN §5). The output is a :class:`pmjax.PMData`."""
+vectorized step (docs/design.md). The output is a :class:`pmjax.PMData`."""
 
 from __future__ import annotations
 

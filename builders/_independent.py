@@ -1,4 +1,4 @@
-"""Parallel greedy choice of non-conflicting collapses (DESIGN §5, step 5).
+"""Parallel greedy choice of non-conflicting collapses (docs/design.md).
 
 Two candidates conflict when their domains (faces touching either endpoint)
 share a face. A candidate is taken when it is the cheapest among all remaining

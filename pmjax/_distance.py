@@ -1,4 +1,4 @@
-"""Exact surface-to-surface distances by area sampling (DESIGN §6).
+"""Exact surface-to-surface distances by area sampling (docs/render.md).
 
 Points are sampled uniformly by area on one surface; their distance to the
 other surface is the exact point-to-triangle distance to the nearest

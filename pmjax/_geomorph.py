@@ -4,7 +4,7 @@ When a pcol starts or stops executing between frames, the hard engine moves
 vertices by the whole collapse at once (popping). Here each pcol keeps a
 weight in [0, 1] that walks toward its target (1 executed, 0 not) by
 ``1 / frames`` per frame; positions (and normals) are
-:func:`pmjax.geomorph_blend` of those weights, the same blend as the soft refinement's (DESIGN §4) driven by
+:func:`pmjax.geomorph_blend` of those weights, the same blend as the soft refinement's (docs/soft.md) driven by
 time instead of temperature.
 
 Only visible changes are blended. A pcol that the frustum or orientation

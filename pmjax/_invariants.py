@@ -1,4 +1,4 @@
-"""Deep checks of the hierarchy rules of DESIGN §2 (beyond :func:`validate_pm`).
+"""Deep checks of the hierarchy rules of docs/format.md (beyond :func:`validate_pm`).
 
 :func:`check_invariants` recomputes what the builder claims, by other means:
 

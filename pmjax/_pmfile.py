@@ -232,7 +232,7 @@ def read_arrays(path: str | os.PathLike) -> tuple[PMData, str]:
 
 
 def validate_pm(pm: PMData, *, source: str = "<memory>") -> None:
-    """Check dtypes, shapes, index ranges and the hierarchy rules of DESIGN §2.
+    """Check dtypes, shapes, index ranges and the hierarchy rules of docs/format.md.
 
     Checks the structure that every consumer relies on: created vertices are
     made by earlier batches, each vertex is consumed at most once, killers and

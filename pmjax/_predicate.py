@@ -1,4 +1,4 @@
-"""The three refinement tests of DESIGN §3, one vectorized predicate over pcols.
+"""The three refinement tests of docs/design.md, one vectorized predicate over pcols.
 
 ``collapse_mask`` (``view_collapse_mask`` for a :class:`View`) is THE
 definition of "this pcol may be collapsed for this view": the engine and the
@@ -162,7 +162,7 @@ def screen_tolerance(attrs: PcolAttributes, camera: Camera, sqrt=jnp.sqrt) -> Fl
 
 
 def small_on_screen(attrs: PcolAttributes, camera: Camera, tau) -> Bool[Array, " P"]:
-    """Screen-space deviation below ``tau`` pixels (DESIGN §3)."""
+    """Screen-space deviation below ``tau`` pixels (Hoppe 1997's test, docs/design.md)."""
     view = View.of(camera, tau)
     return _small(*_screen_terms(attrs, view), view.kappa2)
 

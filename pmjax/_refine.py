@@ -1,6 +1,6 @@
 """View-dependent refinement: the Visualizer's inverse traversal, batch by batch.
 
-``executed(p) = collapse(p) and exists(v1) and exists(v2)`` (DESIGN §3). Pcols
+``executed(p) = collapse(p) and exists(v1) and exists(v2)`` (docs/design.md). Pcols
 of one batch only depend on earlier batches, so the sequential loop becomes
 one vectorized predicate over all pcols plus one gather per batch, each batch
 a static slice under ``jit``.
@@ -577,7 +577,7 @@ def critical_tolerances(pm: ProgressiveMesh, camera: Camera, tests: Tests = ALL_
     """``eps[P]`` such that, for this view, ``executed(p) ⇔ tau > eps(p)``.
 
     ``eps(p) = max(t_p, eps(children))`` with ``t_p`` from
-    :func:`pmjax.critical_tau` (DESIGN §3): the whole family of refinements of
+    :func:`pmjax.critical_tau` (docs/design.md): the whole family of refinements of
     one view in one array.
     """
     # Materialized once, as in refine (dragon 3.5 -> 2.9 ms).

@@ -31,7 +31,7 @@ def representatives(pm: PMData, executed: np.ndarray) -> np.ndarray:
 
     Returns:
         ``int64[V0 + P]``: ``rep(v) = rep(parent(v))`` if the pcol consuming
-        ``v`` ran, else ``v`` (DESIGN §3).
+        ``v`` ran, else ``v`` (docs/design.md).
     """
     V0 = pm.n_original_vertices
     parent = parents(pm)

@@ -1,4 +1,4 @@
-"""Soft refinement: the three tests as smooth margins, differentiable (DESIGN §4).
+"""Soft refinement: the three tests as smooth margins, differentiable (docs/soft.md).
 
 Each hard test ``a > b`` becomes ``sigmoid((a − b) / (s · T))``: the margin
 ``a − b`` is the very difference the hard test compares (same float
@@ -122,8 +122,8 @@ def geomorph_blend(pm: ProgressiveMesh, weight: Float[Array, " P"], values: Floa
     """Blend a per-vertex attribute along every vertex's ancestor chain.
 
     ``value(v) + Σ_k w(a_k)·(value(a_k) − value(a_{k−1}))`` over the chain
-    ``a_0 = v, a_1, …`` of vertices made by the pcols consuming them (DESIGN
-    §4). With the 0/1 weights of an executed set this is the value of ``v``'s
+    ``a_0 = v, a_1, …`` of vertices made by the pcols consuming them (docs/soft.md).
+    With the 0/1 weights of an executed set this is the value of ``v``'s
     representative; in between, a straight blend toward it.
 
     Args:
