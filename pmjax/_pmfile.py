@@ -110,6 +110,8 @@ def save_pm(pm: PMData, path: str | os.PathLike) -> None:
     """
     path = os.fspath(path)
     validate_pm(pm, source=path)
+    check_structure(pm, source=path)
+    sums = {name: _sha256(a) for name, a in pm.arrays().items()}
     header = dict(pm.header)
     header.update(
         magic=MAGIC,
@@ -120,9 +122,8 @@ def save_pm(pm: PMData, path: str | os.PathLike) -> None:
             P=pm.n_pcols,
             B=pm.n_batches,
         ),
-        array_sha256={name: _sha256(a) for name, a in pm.arrays().items()},
+        array_sha256=sums,
     )
-    check_structure(pm, source=path)
     with atomic_path(path, ".pmz") as tmp:
         with open(tmp, "wb") as fh:
             with zipfile.ZipFile(fh, "w", compression=zipfile.ZIP_STORED) as zf:
@@ -133,6 +134,8 @@ def save_pm(pm: PMData, path: str | os.PathLike) -> None:
                     zf.writestr(name + ".npy", buf.getvalue())
             fh.flush()
             os.fsync(fh.fileno())
+    # Checked above: a later load of these bytes need not check again.
+    remember_structure(content_fingerprint(sums))
 
 
 def file_sha256(path) -> str:
@@ -227,8 +230,12 @@ def read_arrays(path: str | os.PathLike) -> tuple[PMData, str]:
             raise PMFormatError(
                 f"{path}: header count {key}={counts.get(key)!r} but arrays give {value}"
             )
-    fingerprint = hashlib.sha256(json.dumps(digests, sort_keys=True).encode()).hexdigest()
-    return pm, fingerprint
+    return pm, content_fingerprint(digests)
+
+
+def content_fingerprint(sums: dict) -> str:
+    """SHA-256 over the arrays' SHA-256s: names a hierarchy's content."""
+    return hashlib.sha256(json.dumps(sums, sort_keys=True).encode()).hexdigest()
 
 
 def validate_pm(pm: PMData, *, source: str = "<memory>") -> None:

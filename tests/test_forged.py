@@ -208,5 +208,9 @@ def test_a_passed_structure_is_remembered_by_content(cow, tmp_path, monkeypatch)
     assert other != fingerprint and not pmjax.structure_known(other)
     with pytest.raises(PMFormatError):
         pmjax.load(bad)
+    # save_pm checks before writing, so what it wrote is known at once.
+    monkeypatch.setenv("PMJAX_KNOWN_STRUCTURES", str(tmp_path / "known2"))
+    save_pm(pm, tmp_path / "again.pmz")
+    assert pmjax.structure_known(pmjax.read_arrays(tmp_path / "again.pmz")[1])
     monkeypatch.setenv("PMJAX_KNOWN_STRUCTURES", "")
     assert not pmjax.structure_known(fingerprint)
