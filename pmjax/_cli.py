@@ -621,6 +621,7 @@ OUTPUTS = {
     "demo": [("out", True)],
 }
 
+
 def check_outputs(args) -> None:
     """Refuse unusable output paths before any work (one rule for every
     command: see :func:`pmjax._atomic.check_output_path`)."""
@@ -641,7 +642,11 @@ def _parse(parser: argparse.ArgumentParser, argv):
 
     args, extra = parser.parse_known_args(argv)
     if extra:
-        sub = parser._subparsers._group_actions[0].choices[args.command]
+        # The innermost subcommand named (``camera orbit`` is two levels).
+        sub = parser
+        while sub._subparsers is not None:
+            group = sub._subparsers._group_actions[0]
+            sub = group.choices[getattr(args, group.dest)]
         known = [o for a in sub._actions for o in a.option_strings]
         hints = [m for x in extra for m in difflib.get_close_matches(x.split("=")[0], known, n=1)]
         sub.error(f"unrecognized arguments: {' '.join(extra)}"
