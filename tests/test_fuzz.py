@@ -7,7 +7,7 @@ save/read round trip). The engine's compile depends on the hierarchy's batch
 structure, so the refine-against-oracle step builds groups of meshes side by
 side as one multi-part model (one compile per group).
 
-``PMJAX_FUZZ=N`` sets the number of meshes (default 400, about a minute);
+``PMJAX_FUZZ=N`` sets the number of meshes (default 300, about a minute);
 ``PMJAX_FUZZ_SEED`` the seed. A long manual run::
 
     PMJAX_FUZZ=5000 PMJAX_FUZZ_SEED=1 pytest tests/test_fuzz.py -q
@@ -25,9 +25,9 @@ import pmjax
 from pmjax._oracle import oracle_refine
 from pmjax.builders import BuildOptions, build_pm
 
-N = int(os.environ.get("PMJAX_FUZZ", "400"))
+N = int(os.environ.get("PMJAX_FUZZ", "300"))
 SEED = int(os.environ.get("PMJAX_FUZZ_SEED", "0"))
-GROUP = 50
+GROUP = 60
 
 
 def _blob(rng):
