@@ -345,13 +345,15 @@ def evaluate(
             folder holding another job.
     """
     from ._pmfile import PMFormatError, read_pm
+    from ._refine import check_budget, check_tau
 
     if bool(len(taus)) == bool(len(budgets)):
         raise EvalError("give tolerances (taus) or face budgets, not " + ("both" if len(taus) else "neither"))
-    values = [float(t) for t in taus] or [int(b) for b in budgets]
-    for v in values:
-        if not (np.isfinite(v) and v >= 0):
-            raise EvalError(f"{'tau' if taus else 'budget'} {v} must be finite and >= 0")
+    # The rules of refine_batch and faces_for_budget: tau >= 0 (inf allowed), budgets whole >= 0.
+    try:
+        values = [check_tau(t) for t in taus] or [check_budget(b) for b in budgets]
+    except ValueError as exc:
+        raise EvalError(str(exc)) from None
     if not models:
         raise EvalError("no models")
     if chunk < 1 or batch_chunk < 1:

@@ -286,6 +286,18 @@ def _method(pm: ProgressiveMesh, method: str, predicate, batch: bool = False) ->
     return method
 
 
+def check_tau(tau) -> float:
+    """A host tolerance as a ``float``: >= 0, ``inf`` allowed (every collapsible
+    pcol), NaN refused (``ValueError``)."""
+    try:
+        value = float(tau)
+    except (TypeError, ValueError):
+        raise ValueError(f"tau must be a number >= 0, got {tau!r}") from None
+    if not value >= 0:
+        raise ValueError(f"tau must be >= 0 (inf: every collapsible pcol; not NaN), got {tau}")
+    return value
+
+
 def _host_tau(tau):
     """A host scalar tau as float32 (a new value does not recompile), checked;
     a JAX array is passed on and checked inside the compiled call."""
@@ -295,8 +307,7 @@ def _host_tau(tau):
         tau = np.asarray(tau, np.float32)
         if tau.shape != ():
             raise ValueError(f"tau must be a scalar, got shape {tau.shape}")
-        if not tau >= 0:
-            raise ValueError(f"tau must be >= 0 (inf: every collapsible pcol; not NaN), got {tau}")
+        check_tau(tau)
     return tau
 
 
@@ -483,8 +494,7 @@ def refine_batch(
     K = camera_count(cameras)
     if K == 0:
         raise ValueError("refine_batch needs a camera batch (leading axis); use refine for one camera")
-    if not tau >= 0:
-        raise ValueError(f"tau must be >= 0 (inf: every collapsible pcol), got {tau}")
+    tau = check_tau(tau)
     chunk = -(-max(1, min(int(chunk), K)) // WORD) * WORD
     outs = []
     starts = range(0, K, chunk)

@@ -163,6 +163,12 @@ def test_api_parameters_have_one_rule(spot_pm):
                       (dict(target_faces=1.5), "target_faces")]:
         with pytest.raises(ValueError, match=name):
             BuildOptions(**bad).validate()
+    # Evaluation jobs follow the same rules (and accept tau = inf like refine_batch).
+    from pmjax._eval import EvalError
+    for bad in (dict(taus=[np.nan]), dict(budgets=[2.5]), dict(budgets=[-1])):
+        with pytest.raises(EvalError, match="tau must be >= 0|face budget must be a whole number"):
+            pmjax.evaluate([spot_pm], ["orbit:4"], "never", compile_cache=None, progress=False, **bad)
+    assert not os.path.exists("never")
     from pmjax.render import render_path
     with pytest.raises(ValueError, match="fps must be"):
         render_path(pm, cams, 1.0, "never.mp4", fps=0)
