@@ -114,9 +114,49 @@ def run_viewer(path: str, *, tau: float = 1.0, size=(800, 600), close_after: flo
         use_direct_lighting=True, window_title=f"pmjax view {path}",
         caption=[dict(caption, text="pmjax")],
     )
-    began = time.time()
+    # Re-refine whenever the camera moves, until the window closes (or its
+    # thread dies: a window that failed to open ends the loop too).
+    began, last_pose, frustum_node = time.time(), None, None
     try:
-        _follow(viewer, scene, nodes, pm, start, state, caption, began, close_after, W, H)
+        while viewer.is_active and viewer._thread.is_alive():
+            with viewer.render_lock:
+                pose = np.array(scene.get_pose(viewer._camera_node))
+            if state.dirty or last_pose is None or not np.allclose(pose, last_pose):
+                last_pose = pose
+                current = camera_from_pose(pose, start, W, H)
+                if state.freeze_requested:
+                    state.phantom = None if state.phantom is not None else current
+                    state.freeze_requested = False
+                saved = ""
+                if state.save_requested:
+                    save_cameras(current, state.camera_file)
+                    state.save_requested = False
+                    saved = f"  saved camera to {state.camera_file}"
+                state.dirty = False
+                target = state.phantom if state.phantom is not None else current
+                t = time.perf_counter()
+                ref = refine(pm, target, state.tau, state.tests())
+                jax.block_until_ready(ref.n_faces)
+                ms = 1e3 * (time.perf_counter() - t)
+                v, f, _, normals = refined_arrays(pm, ref)
+                text = (f"faces {int(ref.n_faces)}  refine {ms:.1f} ms  tau {state.tau:g} px  tests "
+                        f"{'F' if state.frustum else '-'}{'O' if state.orientation else '-'}"
+                        f"{'S' if state.screen else '-'}{'  phantom' if state.phantom is not None else ''}{saved}")
+                with viewer.render_lock:
+                    for n in nodes:
+                        scene.remove_node(n)
+                    nodes = add_mesh(scene, v, f, wireframe=state.wireframe, normals=normals)
+                    if frustum_node is not None:
+                        scene.remove_node(frustum_node)
+                        frustum_node = None
+                    if state.phantom is not None:
+                        frustum_node = scene.add(lines_mesh(frustum_past_model(pm, state.phantom)),
+                                                 name="phantom-frustum")
+                    viewer.viewer_flags["caption"] = [dict(caption, text=text)]
+            if close_after and time.time() - began > close_after:
+                viewer.close_external()
+                break
+            time.sleep(0.03)
     except KeyboardInterrupt:  # Ctrl-C: close the window, or its thread keeps the process alive
         viewer.close_external()
     if viewer.run_in_thread and viewer.is_active and not viewer._thread.is_alive():
@@ -141,48 +181,4 @@ def check_display() -> None:
         raise RenderError(f"cannot open the display {os.environ.get('DISPLAY', '')!r} "
                           f"({type(exc).__name__}: {exc}); {hint}") from exc
 
-
-def _follow(viewer, scene, nodes, pm, start, state, caption, began, close_after, W, H):
-    """Re-refine whenever the camera moves, until the window closes (or its
-    thread dies: a window that failed to open ends the loop too)."""
-    last_pose, frustum_node = None, None
-    while viewer.is_active and viewer._thread.is_alive():
-        with viewer.render_lock:
-            pose = np.array(scene.get_pose(viewer._camera_node))
-        if state.dirty or last_pose is None or not np.allclose(pose, last_pose):
-            last_pose = pose
-            current = camera_from_pose(pose, start, W, H)
-            if state.freeze_requested:
-                state.phantom = None if state.phantom is not None else current
-                state.freeze_requested = False
-            saved = ""
-            if state.save_requested:
-                save_cameras(current, state.camera_file)
-                state.save_requested = False
-                saved = f"  saved camera to {state.camera_file}"
-            state.dirty = False
-            target = state.phantom if state.phantom is not None else current
-            t = time.perf_counter()
-            ref = refine(pm, target, state.tau, state.tests())
-            jax.block_until_ready(ref.n_faces)
-            ms = 1e3 * (time.perf_counter() - t)
-            v, f, _, normals = refined_arrays(pm, ref)
-            text = (f"faces {int(ref.n_faces)}  refine {ms:.1f} ms  tau {state.tau:g} px  tests "
-                    f"{'F' if state.frustum else '-'}{'O' if state.orientation else '-'}"
-                    f"{'S' if state.screen else '-'}{'  phantom' if state.phantom is not None else ''}{saved}")
-            with viewer.render_lock:
-                for n in nodes:
-                    scene.remove_node(n)
-                nodes = add_mesh(scene, v, f, wireframe=state.wireframe, normals=normals)
-                if frustum_node is not None:
-                    scene.remove_node(frustum_node)
-                    frustum_node = None
-                if state.phantom is not None:
-                    frustum_node = scene.add(lines_mesh(frustum_past_model(pm, state.phantom)),
-                                             name="phantom-frustum")
-                viewer.viewer_flags["caption"] = [dict(caption, text=text)]
-        if close_after and time.time() - began > close_after:
-            viewer.close_external()
-            break
-        time.sleep(0.03)
 
