@@ -148,17 +148,11 @@ def file_sha256(path) -> str:
     return h.hexdigest()
 
 
-def read_pm(path: str | os.PathLike, *, verify: bool = True) -> PMData:
-    """Read and fully validate a ``.pmz`` file.
-
-    Args:
-        path: the file.
-        verify: also check the hierarchy's structure (killers, batch
-            independence, monotone attributes; :func:`pmjax.check_structure`),
-            unless a file with the same array checksums passed it before on
-            this machine (:func:`pmjax.structure_known`). ``False`` is only
-            for measuring what that check costs: a file read without it may
-            be forged.
+def read_pm(path: str | os.PathLike) -> PMData:
+    """Read and fully validate a ``.pmz`` file, its structure included
+    (:func:`pmjax.check_structure`), unless content with the same array
+    checksums passed that check before on this machine
+    (:func:`pmjax.structure_known`).
 
     Raises:
         PMFormatError: naming the file and what is wrong (magic, version, a
@@ -166,7 +160,7 @@ def read_pm(path: str | os.PathLike, *, verify: bool = True) -> PMData:
             structure).
     """
     pm, fingerprint = read_arrays(path)
-    if verify and not structure_known(fingerprint):
+    if not structure_known(fingerprint):
         check_structure(pm, source=os.fspath(path))
         remember_structure(fingerprint)
     return pm

@@ -124,11 +124,11 @@ def check_structure(pm: PMData, *, source: str = "<memory>", threads: int = 2, n
             check.created_children()
 
     if threads < 2:
-        _check_faces(pm, corners, source)
+        _check_faces_and_killers(pm, corners, source)
         attributes()
         return
     with ThreadPoolExecutor(max_workers=1) as pool:
-        faces = pool.submit(_check_faces, pm, corners, source)
+        faces = pool.submit(_check_faces_and_killers, pm, corners, source)
         attributes()
         faces.result()
 
@@ -138,7 +138,7 @@ def _fail(mask: np.ndarray, source: str, what: str) -> None:
         raise PMFormatError(f"{source}: {what.format(int(np.flatnonzero(mask)[0]))}")
 
 
-def _check_faces(pm: PMData, corners: np.ndarray, source: str) -> None:
+def _check_faces_and_killers(pm: PMData, corners: np.ndarray, source: str) -> None:
     f0, f1, f2 = corners
     # A repeated corner: the face has no area and its killer is undefined.
     _fail((f0 == f1) | (f1 == f2) | (f0 == f2), source, "face {} repeats a vertex")
