@@ -43,7 +43,7 @@ import numpy as np
 
 from ._model import PcolAttributes
 from ._predicate import view_collapse_mask
-from ._subtree import SubtreeBounds, subtree_collapses
+from ._subtree import FrontBounds, subtree_collapses
 
 
 def gather(values, indices):
@@ -143,17 +143,18 @@ def forest_generations(parent: np.ndarray, batch_offsets) -> tuple[np.ndarray, n
 
 # Columns of ProgressiveMesh.table: these attributes (center and axis three
 # columns each), then these subtree bounds.
-TABLE_ATTRIBUTES = ("center", "axis", "radius", "alpha", "sin_alpha", "cos_alpha", "delta", "mu")
-TABLE_BOUNDS = ("reach", "spread", "cone", "error")
+TABLE_ATTRIBUTES = ("center", "axis", "radius", "sin_alpha", "cos_alpha", "delta", "mu")
+TABLE_BOUNDS = ("reach", "spread", "facing", "error", "axis_scale")
 
 
 def _gathered(pm, ids):
     """The attributes and subtree bounds of pcols ``ids``, from one row each."""
     rows = gather(pm.table, ids).T  # [16, C]
-    # Columns 0-2 centre, 3-5 axis, then one column per remaining attribute.
+    # Columns 0-2 centre, 3-5 axis, then one column per remaining attribute
+    # (not alpha: the tests read its sine and cosine), then the bounds.
     scalars = {k: rows[4 + i] for i, k in enumerate(TABLE_ATTRIBUTES) if i >= 2}
-    attrs = PcolAttributes(center=rows[0:3], axis=rows[3:6], **scalars)
-    bounds = SubtreeBounds(**{k: rows[12 + i] for i, k in enumerate(TABLE_BOUNDS)})
+    attrs = PcolAttributes(center=rows[0:3], axis=rows[3:6], alpha=None, **scalars)
+    bounds = FrontBounds(**{k: rows[11 + i] for i, k in enumerate(TABLE_BOUNDS)})
     return attrs, bounds
 
 
@@ -261,7 +262,7 @@ def traverse(pm, decide, capacities, lanes_dtype):
 def one_camera_decide(view, tests):
     """``decide`` for :func:`traverse` with one camera's :class:`View`."""
 
-    def decide(attrs: PcolAttributes, bounds: SubtreeBounds):
+    def decide(attrs: PcolAttributes, bounds: FrontBounds):
         collapse = view_collapse_mask(attrs, view, tests, rows=False)
         return collapse, subtree_collapses(attrs.center, attrs.axis, bounds, view, tests)
 

@@ -13,7 +13,7 @@ from jaxtyping import Array, Float, Int
 
 from ._pmfile import PMData, read_arrays
 from ._structure import NestingCheck, check_normals, check_structure, remember_structure, structure_known
-from ._subtree import SubtreeBounds, subtree_bounds
+from ._subtree import SubtreeBounds, front_bounds, subtree_bounds
 
 
 class PcolAttributes(eqx.Module):
@@ -173,8 +173,9 @@ class ProgressiveMesh(eqx.Module):
         bounds = subtree_bounds(host["center"].T, host["axis"].T, pm.radius, host["sin_alpha"], host["cos_alpha"],
                                 pm.delta, pm.mu, child1, child2, pm.batch_offsets, nesting=nesting)
         roots, depth = forest_generations(parent[V0:], pm.batch_offsets)
+        rows = front_bounds(bounds, host["axis"])
         table = np.concatenate([np.atleast_2d(np.asarray(getattr(attributes, k))) for k in TABLE_ATTRIBUTES]
-                               + [bounds[k].reshape(1, P) for k in TABLE_BOUNDS]).T
+                               + [rows[k].reshape(1, P) for k in TABLE_BOUNDS]).T
         return ProgressiveMesh(
             vertices=jnp.asarray(pm.vertices),
             faces=jnp.asarray(pm.faces),

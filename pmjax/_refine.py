@@ -15,7 +15,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, Bool, Float, Int, UInt32
 
 from ._bitsets import WORD, column_popcounts, pack_cameras, unpack_cameras, weight_bits_for
 from ._camera import Camera, camera_count, index_camera
@@ -436,6 +436,36 @@ def _counts_chunk(pm, cameras, tau, tests, predicate, context, combine, want_mas
     return out + ((unpack_cameras(words),) if want_masks else ())
 
 
+def word_counts(pm: ProgressiveMesh, visited, ran):
+    """:func:`front_counts` for a word of 32 cameras, from the executed words
+    ``ran`` of the visited pcols: per camera, the pcols that did not run and
+    the faces they keep are column popcounts (one per bit plane of the kill
+    counts), not sums over 32 unpacked rows."""
+    P = pm.n_pcols
+    if P == 0:
+        return tuple(jnp.full(WORD, v, jnp.int32) for v in (pm.n_faces, pm.n_original_vertices, 0))
+    valid = visited < P
+    kills = jnp.where(valid, gather(pm.kills, jnp.minimum(visited, P - 1)), 0)
+    not_ran = jnp.where(valid, ~ran, jnp.uint32(0))[:, None]  # [C, 1]
+    n_not_run = column_popcounts(not_ran)
+    kept = jnp.zeros(WORD, jnp.int32)
+    for b in range(weight_bits_for(pm.max_kills)):
+        kept = kept + (column_popcounts(jnp.where((((kills >> b) & 1) == 1)[:, None], not_ran, jnp.uint32(0))) << b)
+    n_exec = P - n_not_run
+    return pm.n_faces - pm.total_kills + kept, pm.n_original_vertices - n_exec, n_exec
+
+
+def pack_word(mask: Bool[Array, "32 N"]) -> UInt32[Array, " N"]:
+    """One word of 32 cameras per column: bit ``c`` is ``mask[c]``. An
+    unrolled OR of shifted rows, one elementwise loop (the reduction over
+    the camera axis of :func:`pmjax._bitsets.pack_cameras` ran 3x slower on
+    the front's gathered columns)."""
+    word = mask[0].astype(jnp.uint32)
+    for c in range(1, WORD):
+        word = word | (mask[c].astype(jnp.uint32) << c)
+    return word
+
+
 def executed_and_killed(pm: ProgressiveMesh, words):
     """Per camera, executed pcols and the faces they kill, from executed
     camera bitsets ``uint32[P, W]`` (:func:`propagate`).
@@ -546,14 +576,23 @@ def nearby_order(eyes: np.ndarray) -> np.ndarray:
     return np.argsort(code, kind="stable")
 
 
-def _front_counts(pm: ProgressiveMesh, cameras: Camera, tau, tests: Tests, want_masks: bool):
+def _front_counts(pm: ProgressiveMesh, cameras: Camera, tau, tests: Tests, want_masks: bool, want_front=False):
+    """Counts (and on request dense masks, or each word's front) of a chunk of
+    cameras, 32 per word, through :func:`_front_counts_chunk`; the buffers
+    are grown and the chunk redone when a word needed more."""
     out = pm.plan.run(("word", tests, cameras.orthographic),
-                      lambda capacities: _front_counts_chunk(pm, cameras, tau, tests, capacities, want_masks))
+                      lambda capacities: _front_counts_chunk(pm, cameras, tau, tests, capacities, want_masks,
+                                                             want_front))
     return out[:-1]
 
 
-@functools.partial(jax.jit, static_argnames=("tests", "capacities", "want_masks"))
-def _front_counts_chunk(pm, cameras, tau, tests, capacities, want_masks):
+@functools.partial(jax.jit, static_argnames=("tests", "capacities", "want_masks", "want_front"))
+def _front_counts_chunk(pm, cameras, tau, tests, capacities, want_masks, want_front=False):
+    """Per camera ``(faces, vertices, executed)``, then ``executed`` masks
+    ``bool[K, P]`` if ``want_masks``, then, if ``want_front``, per word of 32
+    cameras the visited pcols ``int32[W, C]`` and their executed words
+    ``uint32[W, C]``, and last the buffers each word needed. ``tau``: a
+    scalar or one per camera."""
     views = View.batch(cameras, tau)
     words = views.values.reshape(views.values.shape[0], -1, WORD)  # [22, W, 32]
 
@@ -563,20 +602,24 @@ def _front_counts_chunk(pm, cameras, tau, tests, capacities, want_masks):
         def decide(attrs, bounds):
             collapse = group.map(lambda v: view_collapse_mask(attrs, v, tests, rows=False))
             whole = group.map(lambda v: subtree_collapses(attrs.center, attrs.axis, bounds, v, tests))
-            return pack_cameras(collapse)[:, 0], pack_cameras(whole)[:, 0]
+            return pack_word(collapse), pack_word(whole)
 
         visited, ran, needed = traverse(pm, decide, capacities, jnp.uint32)
-        not_ran = unpack_cameras(~ran[:, None]) & (visited < pm.n_pcols)[None, :]  # [32, C]
-        counts = front_counts(pm, visited, not_ran)
+        counts = word_counts(pm, visited, ran)
         masks = ()
         if want_masks:
             dense = jnp.full(pm.n_pcols, ~jnp.uint32(0)).at[visited].set(ran, mode="drop")
             masks = (unpack_cameras(dense[:, None]),)
-        return counts + masks + (needed,)
+        front = (visited, ran) if want_front else ()
+        return counts + masks + front + (needed,)
 
-    out = jax.vmap(one_word, in_axes=1)(words)
-    # Words back to cameras: [W, 32, ...] -> [K, ...]; ``needed`` stays per word.
-    return tuple(x.reshape((-1,) + x.shape[2:]) for x in out[:-1]) + (out[-1],)
+    # lax.map, not vmap: under vmap each generation's conditional becomes a
+    # select that runs every generation at full capacity.
+    out = jax.lax.map(one_word, jnp.moveaxis(words, 1, 0))
+    n_front = 2 if want_front else 0
+    # Words back to cameras: [W, 32, ...] -> [K, ...]; the fronts and ``needed`` stay per word.
+    per_camera = out[:len(out) - 1 - n_front]
+    return tuple(x.reshape((-1,) + x.shape[2:]) for x in per_camera) + tuple(out[len(per_camera):])
 
 
 # -- critical tolerances ----------------------------------------------------------

@@ -70,6 +70,38 @@ class SubtreeBounds(eqx.Module):
     error: Float[Array, " P"]
 
 
+class FrontBounds(eqx.Module):
+    """The subtree bounds as the traversal reads them, per-pcol factors
+    precomputed so that no camera lane recomputes them (float32).
+
+    Attributes:
+        reach, spread, error: as :class:`SubtreeBounds`.
+        facing: ``sin(cone + ANGLE_MARGIN)`` rounded up, or 2 (no bound) when
+            ``cone + ANGLE_MARGIN >= π/2``.
+        axis_scale: ``1 / |axis|`` (0 for a zero axis): the projection on
+            the unit axis is ``(v · axis) · axis_scale``.
+    """
+
+    reach: Float[Array, " P"]
+    spread: Float[Array, " P"]
+    facing: Float[Array, " P"]
+    error: Float[Array, " P"]
+    axis_scale: Float[Array, " P"]
+
+
+def front_bounds(bounds: dict, axis) -> dict:
+    """:class:`FrontBounds` fields (host float32 arrays) from the
+    :func:`subtree_bounds` of pcols with cone axes ``axis [3, P]``."""
+    cone = np.asarray(bounds["cone"], np.float64) + ANGLE_MARGIN
+    up = lambda x: np.nextafter(x.astype(np.float32), np.float32(np.inf))
+    facing = np.where(cone < math.pi / 2, up(np.sin(np.minimum(cone, math.pi / 2))), np.float32(2.0))
+    n = np.asarray(axis, np.float64)
+    length = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    scale = np.where(length > 0, 1.0 / np.where(length > 0, length, 1.0), 0.0).astype(np.float32)
+    return dict(reach=bounds["reach"], spread=bounds["spread"], facing=facing.astype(np.float32),
+                error=bounds["error"], axis_scale=scale)
+
+
 def subtree_bounds(center, axis, radius, sin_alpha, cos_alpha, delta, mu, child1, child2, batch_offsets,
                    nesting=None) -> dict:
     """The four subtree bounds of every pcol, bottom-up, batch by batch.
@@ -137,7 +169,7 @@ def _rows_dot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-def subtree_collapses(center, axis, bounds: SubtreeBounds, view: View, tests) -> Bool[Array, " N"]:
+def subtree_collapses(center, axis, bounds: FrontBounds, view: View, tests) -> Bool[Array, " N"]:
     """Per pcol: does every pcol of its subtree collapse for this view?
 
     ``True`` is a guarantee (the tests of every pcol below would say
@@ -145,12 +177,12 @@ def subtree_collapses(center, axis, bounds: SubtreeBounds, view: View, tests) ->
 
     Args:
         center, axis: ``[3, N]`` rows of the pcols' centres and axes.
-        bounds: :class:`SubtreeBounds` of the same ``N`` pcols.
+        bounds: :class:`FrontBounds` of the same ``N`` pcols.
         view: one camera's :class:`View`.
         tests: :class:`pmjax.Tests`; a test switched off bounds nothing.
     """
     f32 = lambda x: jnp.asarray(x, jnp.float32)
-    reach, spread, cone, error = bounds.reach, bounds.spread, bounds.cone, bounds.error
+    reach, spread, error = bounds.reach, bounds.spread, bounds.error
     v = [center[i] - view.eye[i] for i in range(3)]
     out = jnp.zeros(reach.shape, bool)
     if tests.frustum:
@@ -164,26 +196,22 @@ def subtree_collapses(center, axis, bounds: SubtreeBounds, view: View, tests) ->
     if view.orthographic:
         if tests.orientation:
             # theta + cone < π/2 − margin, as cos(theta) > sin(cone + margin).
-            h = _rows_dot(axis, view.forward) / jnp.sqrt(_rows_dot(axis, axis))
-            out = out | ((cone < f32(math.pi / 2 - ANGLE_MARGIN)) & (h > jnp.sin(cone + f32(ANGLE_MARGIN))))
+            out = out | (_rows_dot(axis, view.forward) * bounds.axis_scale > bounds.facing)
         if tests.screen:
             out = out | (error * error < view.kappa2 * f32(1 - SCREEN_MARGIN))
         return out
     d2 = _rows_dot(v, v)
-    d = jnp.sqrt(d2)
     if tests.orientation:
-        # theta + beta < phi = π/2 − cone − margin, without inverse trigonometry:
-        # cos(theta + beta) > cos(phi) = sin(cone + margin), with cos(theta) =
-        # h / d, sin(beta) = reach / d. Rounding moves the angle by far less
-        # than the margin.
-        length = d * jnp.sqrt(_rows_dot(axis, axis))
-        cos_t = _rows_dot(v, axis) / jnp.where(length > 0, length, 1.0)
-        sin_t = jnp.sqrt(jnp.maximum(1.0 - cos_t * cos_t, 0.0))
-        sin_b = reach / jnp.where(d > 0, d, 1.0)
-        cos_b = jnp.sqrt(jnp.maximum(1.0 - sin_b * sin_b, 0.0))
-        facing = (cos_t > 0) & (cos_t * cos_b - sin_t * sin_b > jnp.sin(cone + f32(ANGLE_MARGIN)))
-        out = out | ((d > reach) & (length > 0) & (cone < f32(math.pi / 2 - ANGLE_MARGIN)) & facing)
+        # theta + beta < π/2 − cone − margin, without inverse trigonometry:
+        # cos(theta + beta) > sin(cone + margin) = facing, with cos(theta) =
+        # a / d (a the eye vector's projection on the unit axis) and
+        # sin(beta) = reach / d; times d², two roots and no division.
+        # Rounding moves the angle by far less than the margin.
+        a = _rows_dot(v, axis) * bounds.axis_scale
+        lhs = a * jnp.sqrt(jnp.maximum(d2 - reach * reach, 0.0)) - reach * jnp.sqrt(jnp.maximum(d2 - a * a, 0.0))
+        out = out | ((d2 > reach * reach) & (a > 0) & (lhs > d2 * bounds.facing))
     if tests.screen:
+        d = jnp.sqrt(d2)
         room = d - spread - f32(SCREEN_MARGIN) * (d + spread)
         out = out | ((room > 0) & (error * error < view.kappa2 * room * room * f32(1 - SCREEN_MARGIN)))
     return out

@@ -78,12 +78,13 @@ class View(eqx.Module):
 
     @staticmethod
     def batch(cameras: Camera, tau) -> "View":
-        """The constants of K cameras as rows, ``values[22, K]``; map a test
-        over the cameras with :meth:`map`."""
+        """The constants of K cameras as rows, ``values[22, K]``, for one
+        ``tau`` or one per camera (``[K]``); map a test over the cameras with
+        :meth:`map`."""
         # Stacked from per-constant rows: a transpose of ``[K, 22]`` would be
         # turned into a column-major layout of the same memory, whose rows are
         # strided (4x slower).
-        values = jnp.stack(jax.vmap(_values, in_axes=(0, None))(cameras, tau))
+        values = jnp.stack(jax.vmap(_values, in_axes=(0, 0 if jnp.ndim(tau) else None))(cameras, tau))
         return View(jax.lax.optimization_barrier(values), cameras.orthographic)
 
     def map(self, fn):

@@ -1,0 +1,256 @@
+"""Coherent camera paths: every frame refined exactly as alone, 32 consecutive frames at a time.
+
+Consecutive cameras of a path see nearly the same front. The output-sensitive
+traversal (:mod:`pmjax._front`) can carry one bit per camera: a pcol is
+visited when any camera of a word visits it, and each camera's tests and
+subtree bounds are evaluated as one lane of the word. Run on 32 consecutive
+frames, the union of their fronts is little larger than one frame's, so each
+pcol near the front is fetched once for 32 frames and tested for all of them
+in one vectorized pass: the coherence of the path is what makes the word cheap.
+
+Exactness. Frame ``c`` of a word gets, for every pcol, its own
+``view_collapse_mask`` bit and its own subtree-bound bit (the very functions of
+:func:`pmjax.refine`, on the same float32 values), and a pcol it does not
+visit lies under a subtree its own bound decided. So its executed set, counts,
+faces and ``vref`` are those of ``refine(pm, camera_c, tau_c)``, bit for bit.
+No state is carried from one word to the next: a cut or a teleport costs
+nothing special, a frame's result never depends on the frames before it
+(unlike SrMesh's adapted mesh), and a path of any length runs in the memory of
+one chunk of frames.
+
+A face budget per frame needs, for that frame, the critical tolerance of every
+pcol (:func:`pmjax.faces_for_budget`); that part is computed per frame, and
+the frames are then refined as a path at the tolerances found.
+"""
+
+from __future__ import annotations
+
+from typing import Iterator
+
+import jax
+import numpy as np
+
+from ._bitsets import WORD
+from ._camera import Camera, check_camera_values
+from ._model import ProgressiveMesh
+from ._predicate import ALL_TESTS, Tests
+from ._refine import Refinement, _front_counts, check_budget, check_tau, faces_for_budget, refine
+
+# Frames per compiled call: eight words. Memory is bounded by one chunk.
+CHUNK = 8 * WORD
+
+
+class PathError(ValueError):
+    """A path that cannot be refined: empty, a bad camera or tolerance (the message names the frame)."""
+
+
+def check_path(cameras: Camera, tau=1.0, budget=None, *, paths: bool = False):
+    """Validate a camera path and its tolerances.
+
+    Args:
+        cameras: a camera batch, leading axis time ``[T]`` (or ``[K, T]``, K
+            paths, when ``paths``).
+        tau: a scalar or one per frame (``[T]`` or ``[K, T]``), pixels, >= 0.
+        budget: ``None``, or a face budget, a scalar or one per frame.
+
+    Returns:
+        ``(host cameras with leading axes flattened, taus float32[N], budgets
+        int64[N] or None, shape)``, ``shape`` the leading axes.
+
+    Raises:
+        PathError: naming the first bad frame.
+    """
+    eye = np.asarray(cameras.eye)
+    axes = 2 if paths else 1
+    if eye.ndim != axes + 1:
+        want = "[K, T]" if paths else "[T]"
+        raise PathError(f"a path needs cameras with leading axes {want} (time last), got eye of shape {eye.shape}")
+    shape = eye.shape[:-1]
+    if 0 in shape:
+        raise PathError(f"the path is empty (cameras of shape {shape}): give at least one frame")
+    host = jax.tree.map(lambda a: np.asarray(a).reshape((-1,) + np.shape(a)[axes:]), cameras)
+    n = int(np.prod(shape))
+    where = lambda i: f"frame {np.unravel_index(i, shape)[-1]}" + (f" of path {i // shape[-1]}" if paths else "")
+    rotation = host.rotation.reshape(n, 9)
+    bad = np.flatnonzero(~np.all(np.isfinite(rotation), axis=1))
+    if len(bad):
+        raise PathError(f"{where(bad[0])}: the camera rotation must be finite")
+    try:
+        check_camera_values(host.eye, np.degrees(host.fov_y), host.near, host.far, host.ortho_height, host.width,
+                            host.height, cameras.orthographic, row="frame")
+    except ValueError as e:
+        # Re-worded with the path's own frame numbering.
+        frame = int(str(e).split(":")[0].split()[-1])
+        raise PathError(f"{where(frame)}:{str(e).split(':', 1)[1]}") from None
+    size = np.stack([host.width, host.height], axis=1)
+    first = size.reshape(shape + (2,)).reshape(-1, shape[-1], 2)[:, :1]
+    changed = np.flatnonzero(np.any(size.reshape(-1, shape[-1], 2) != first, axis=2).reshape(-1))
+    if len(changed):
+        i = changed[0]
+        w, h = size[i]
+        w0, h0 = size[i - i % shape[-1]]
+        raise PathError(f"{where(i)}: image size {w}x{h} differs from the path's first frame ({w0}x{h0}); "
+                        "a path keeps one image size")
+    taus = _per_frame(tau, shape, "tau", where, lambda t: np.float32(check_tau(t)))
+    budgets = None if budget is None else _per_frame(budget, shape, "budget", where, check_budget).astype(np.int64)
+    return host, taus.astype(np.float32), budgets, shape
+
+
+def _per_frame(value, shape, what, where, check) -> np.ndarray:
+    """A scalar or per-frame value as a flat array, each entry checked."""
+    values = np.asarray(value)
+    if values.ndim == 0:
+        return np.full(int(np.prod(shape)), check(values.item()))
+    if values.shape != shape:
+        raise PathError(f"{what} must be a scalar or one per frame (shape {shape}), got shape {values.shape}")
+    out = []
+    for i, v in enumerate(values.reshape(-1)):
+        try:
+            out.append(check(v.item()))
+        except ValueError as e:
+            raise PathError(f"{where(i)}: {e}") from None
+    return np.asarray(out)
+
+
+def _budget_taus(pm, host, budgets, tests):
+    """Per frame, the tolerance :func:`pmjax.faces_for_budget` finds."""
+    cam = lambda i: jax.tree.map(lambda a: a[i], host)
+    return np.array([faces_for_budget(pm, cam(i), int(b), tests)[0] for i, b in enumerate(budgets)], np.float32)
+
+
+def _word_padded(n_frames: int, path_length: int) -> np.ndarray:
+    """Frame indices with each path padded to whole words (repeating its last
+    frame), so that no word straddles two paths."""
+    per_path = -(-path_length // WORD) * WORD
+    paths = n_frames // path_length
+    within = np.minimum(np.arange(per_path), path_length - 1)
+    return (np.arange(paths)[:, None] * path_length + within[None, :]).reshape(-1)
+
+
+def _chunk_spans(n_frames: int) -> list[tuple[int, int]]:
+    """``(start, size)`` of the compiled calls over ``n_frames`` (a multiple of
+    32): whole chunks, then the rest in power-of-two words, so that few
+    shapes are compiled and a short path is padded little."""
+    spans, start = [], 0
+    while start < n_frames:
+        n = min(CHUNK, WORD << int(np.log2((n_frames - start) // WORD)))
+        spans.append((start, n))
+        start += n
+    return spans
+
+
+def _chunks(pm, host, taus, tests, path_length, want_front):
+    """Run the word traversal chunk by chunk; yield ``(frames, outputs)``
+    for each chunk, ``frames`` the flat frame index of each camera (``-1``
+    for padding)."""
+    order = _word_padded(len(taus), path_length)
+    real = np.ones(len(order), bool)
+    real[1:] = order[1:] != order[:-1]
+    for start, n in _chunk_spans(len(order)):
+        idx = order[start:start + n]
+        part = jax.tree.map(lambda a: a[idx], host)
+        out = _front_counts(pm, part, taus[idx], tests, False, want_front=want_front)
+        yield np.where(real[start:start + n], idx, -1), out
+
+
+def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, tests: Tests = ALL_TESTS,
+                coherent: bool = True) -> Iterator[Refinement]:
+    """The refinements of an ordered camera path, one per frame, streamed.
+
+    Each is exactly ``pmjax.refine(pm, camera_t, tau_t, tests)`` (executed
+    set, faces, ``vref``, counts). With ``coherent`` (default) 32 consecutive
+    frames are traversed together (module doc); memory stays that of one chunk
+    of frames, whatever the path's length.
+
+    Args:
+        pm: :class:`ProgressiveMesh`.
+        cameras: camera batch, leading axis time ``[T]``.
+        tau: pixels, a scalar or ``[T]`` (a tolerance changing along the path).
+        budget: optional face budget, a scalar or ``[T]``: each frame's
+            tolerance is then :func:`pmjax.faces_for_budget`'s (``tau`` is
+            ignored).
+        tests: :class:`Tests`.
+        coherent: ``False`` refines each frame alone with :func:`pmjax.refine`
+            (same results; for comparison).
+
+    Yields:
+        :class:`Refinement` per frame, in order.
+
+    Raises:
+        PathError: an empty path, a non-finite camera, an image size that
+            changes along the path, a bad ``tau`` or budget (naming the frame).
+    """
+    host, taus, budgets, shape = check_path(cameras, tau, budget)
+    if budgets is not None:
+        taus = _budget_taus(pm, host, budgets, tests)
+    if not coherent or pm.n_pcols == 0:
+        for i in range(len(taus)):
+            yield refine(pm, jax.tree.map(lambda a: a[i], host), taus[i], tests)
+        return
+    for frames, (faces, vertices, executed, visited, ran) in _chunks(pm, host, taus, tests, shape[-1], True):
+        faces, vertices, executed = np.asarray(faces), np.asarray(vertices), np.asarray(executed)
+        visited, ran = np.asarray(visited), np.asarray(ran)
+        for w in range(visited.shape[0]):
+            # The word's visited pcols once; each frame reads its own bit.
+            keep = visited[w] < pm.n_pcols
+            ids, bits = visited[w][keep], ran[w][keep]
+            for lane in range(WORD):
+                k = w * WORD + lane
+                if k >= len(frames) or frames[k] < 0:
+                    continue
+                yield Refinement(pm=pm, visited=ids, visited_executed=((bits >> lane) & 1).astype(bool), dense=None,
+                                 n_faces=faces[k], n_vertices=vertices[k], n_executed=executed[k])
+
+
+def path_counts(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, tests: Tests = ALL_TESTS,
+                coherent: bool = True, paths: bool = False, progress: bool = False) -> dict:
+    """Per-frame counts along one path, or K paths advanced together.
+
+    The counts of :func:`refine_path` without the per-frame results: what
+    offline evaluation of camera paths needs.
+
+    Args:
+        pm: :class:`ProgressiveMesh`.
+        cameras: camera batch, leading axes ``[T]``, or ``[K, T]`` with ``paths``.
+        tau, budget, tests, coherent: as :func:`refine_path`.
+        paths: the cameras are K paths of T frames (``[K, T]``); words never
+            mix two paths.
+        progress: a progress bar over the chunks.
+
+    Returns:
+        dict of NumPy arrays shaped like the leading axes: ``faces``,
+        ``vertices``, ``executed_count`` (int32) and ``tau`` (float32, the
+        tolerance each frame was refined at).
+    """
+    host, taus, budgets, shape = check_path(cameras, tau, budget, paths=paths)
+    if budgets is not None:
+        taus = _budget_taus(pm, host, budgets, tests)
+    n = len(taus)
+    cols = [np.zeros(n, np.int32) for _ in range(3)]
+    if not coherent or pm.n_pcols == 0:
+        for i in range(n):
+            r = refine(pm, jax.tree.map(lambda a: a[i], host), taus[i], tests)
+            for col, v in zip(cols, (r.n_faces, r.n_vertices, r.n_executed)):
+                col[i] = int(v)
+    else:
+        chunks = _chunks(pm, host, taus, tests, shape[-1], False)
+        if progress:
+            from tqdm import tqdm
+
+            chunks = tqdm(chunks, total=len(_chunk_spans(len(_word_padded(n, shape[-1])))), unit="chunk", desc="path")
+        for frames, out in chunks:
+            real = frames >= 0
+            for col, v in zip(cols, out):
+                col[frames[real]] = np.asarray(v)[real]
+    faces, vertices, executed = (c.reshape(shape) for c in cols)
+    return dict(faces=faces, vertices=vertices, executed_count=executed, tau=taus.reshape(shape))
+
+
+def path_refinement_pairs(pm: ProgressiveMesh, cameras: Camera, tau, *, tests: Tests = ALL_TESTS,
+                          coherent: bool = True) -> Iterator[tuple[Refinement, Refinement]]:
+    """Per frame, ``(refinement at tau, refinement at tau 0)``: the executed
+    set and the pcols a view hides (culled or facing away: what runs even at
+    tau 0, :func:`pmjax.hidden_pcols`), as a geomorphed path needs them."""
+    return zip(refine_path(pm, cameras, tau, tests=tests, coherent=coherent),
+               refine_path(pm, cameras, 0.0, tests=tests, coherent=coherent))
+

@@ -1,0 +1,177 @@
+"""Coherent camera paths: every frame exactly as pmjax.refine gives it alone."""
+
+import equinox as eqx
+import jax
+import numpy as np
+import pytest
+
+import pmjax
+from pmjax import _path
+from pmjax._camera import index_camera, stack_cameras
+
+
+@pytest.fixture(scope="module", autouse=True)
+def release_compiled_kernels():
+    """The word traversal's programs are large: release them after this module
+    (see tests/test_front.py)."""
+    yield
+    jax.clear_caches()
+
+
+def model(built, name, pair_distance=0.0):
+    data = built(name, pair_distance)
+    return data, pmjax.ProgressiveMesh.from_data(data)
+
+
+def originals(data):
+    return data.vertices[: data.n_original_vertices]
+
+
+def assert_frame_equal(r, cam, tau, pm, where, full=False):
+    want = pmjax.refine(pm, cam, tau, method="dense")
+    for field in ("n_faces", "n_vertices", "n_executed"):
+        assert int(getattr(r, field)) == int(getattr(want, field)), (where, field)
+    assert np.array_equal(np.asarray(r.executed), np.asarray(want.executed)), where
+    if full:
+        assert np.array_equal(np.asarray(r.active), np.asarray(want.active)), where
+        assert np.array_equal(np.asarray(r.rep), np.asarray(want.rep)), where
+
+
+def walk(data, n, seed, step=0.02, cuts=()):
+    """A random path of small steps round the model, with jumps at ``cuts``."""
+    v0 = originals(data)
+    c, r = v0.mean(0), np.linalg.norm(np.ptp(v0, 0))
+    rng = np.random.default_rng(seed)
+    eye = c + 1.5 * r * np.array([0.3, 0.4, 1.0])
+    eyes = []
+    for i in range(n):
+        if i in cuts:
+            d = rng.normal(size=3)
+            eye = c + rng.uniform(0.3, 3.0) * r * d / np.linalg.norm(d)
+        eye = eye + step * r * rng.normal(size=3)
+        eyes.append(eye)
+    return stack_cameras([pmjax.look_at(e, c + 0.05 * r * rng.normal(size=3)) for e in eyes])
+
+
+@pytest.mark.parametrize("name, pair_distance", [("cow.ply", 0.0), ("cessna.ply", 0.02), ("terrain_gcanyon.ply", 0.0)])
+def test_path_equals_refine_per_frame(built, name, pair_distance):
+    data, pm = model(built, name, pair_distance)
+    v0 = originals(data)
+    c, r = v0.mean(0), np.linalg.norm(np.ptp(v0, 0))
+    paths = {
+        "orbit": pmjax.standard_orbit(v0, 40),
+        # Enters the bounding sphere and passes through the model.
+        "fly": pmjax.fly_through([(c + [0, 0, 2 * r], c), (c + [0, 0, 0.1 * r], c), (c - [0, 0, 2 * r], c)], 36),
+        "walk with cuts": walk(data, 70, seed=len(name), cuts=(20, 21, 50)),
+    }
+    for label, cams in paths.items():
+        got = list(pmjax.refine_path(pm, cams, 1.0))
+        assert len(got) == pmjax.camera_count(cams)
+        for i, res in enumerate(got):
+            assert_frame_equal(res, index_camera(cams, i), 1.0, pm, (label, i), full=i % 9 == 0)
+        counts = pmjax.path_counts(pm, cams, 1.0)
+        assert counts["faces"].tolist() == [int(x.n_faces) for x in got]
+        assert counts["executed_count"].tolist() == [int(x.n_executed) for x in got]
+
+
+def test_tau_along_the_path_budgets_and_orthographic(built):
+    data, pm = model(built, "bunny.ply")
+    v0 = originals(data)
+    cams = pmjax.standard_orbit(v0, 40)
+    taus = np.geomspace(1e-3, 64, 40).astype(np.float32)
+    taus[7] = 0.0
+    for i, res in enumerate(pmjax.refine_path(pm, cams, taus)):
+        assert_frame_equal(res, index_camera(cams, i), taus[i], pm, i)
+    budgets = np.linspace(200, 6000, 40).astype(int)
+    counts = pmjax.path_counts(pm, cams, budget=budgets)
+    for i in range(0, 40, 13):
+        tau, faces = pmjax.faces_for_budget(pm, index_camera(cams, i), int(budgets[i]))
+        assert counts["tau"][i] == tau and counts["faces"][i] == faces, i
+    c, r = v0.mean(0), np.linalg.norm(np.ptp(v0, 0))
+    ortho = stack_cameras([pmjax.look_at(c + r * np.array([np.cos(a), 0.3, np.sin(a)]), c, orthographic=True,
+                                         ortho_height=h * r, near=1e-3, far=10 * r)
+                           for a, h in zip(np.linspace(0, 2, 33), np.linspace(0.3, 2.0, 33))])
+    for i, res in enumerate(pmjax.refine_path(pm, ortho, 2.0)):
+        assert_frame_equal(res, index_camera(ortho, i), 2.0, pm, ("ortho", i))
+
+
+def test_many_paths_and_random_paths(built):
+    """K paths advanced together; random small-step paths on several models
+    with random tolerances (property test: every frame as refine)."""
+    for name, seed in (("cow.ply", 1), ("bunny.ply", 2)):
+        data, pm = model(built, name)
+        K, T = 3, 37
+        flat = [walk(data, T, seed=seed * 10 + k, step=0.05, cuts=(11,)) for k in range(K)]
+        cams = jax.tree.map(lambda *a: np.stack(a), *flat)
+        tau = np.random.default_rng(seed).uniform(0, 8, (K, T)).astype(np.float32)
+        counts = pmjax.path_counts(pm, cams, tau, paths=True)
+        assert counts["faces"].shape == (K, T)
+        for k in range(K):
+            for t in range(T):
+                want = pmjax.refine(pm, index_camera(flat[k], t), tau[k, t], method="dense")
+                assert int(counts["faces"][k, t]) == int(want.n_faces), (name, k, t)
+                assert int(counts["vertices"][k, t]) == int(want.n_vertices), (name, k, t)
+        per_frame = pmjax.path_counts(pm, flat[0], tau[0], coherent=False)
+        assert np.array_equal(per_frame["faces"], counts["faces"][0])
+
+
+def test_hidden_pcols_are_the_tau_zero_refinement(built):
+    """A geomorphed path takes the hidden pcols from the refinement at tau 0."""
+    data, pm = model(built, "cow.ply")
+    cams = pmjax.standard_orbit(originals(data), 32)
+    for i, (at_tau, at_zero) in enumerate(_path.path_refinement_pairs(pm, cams, 1.0)):
+        if i % 8:
+            continue
+        cam = index_camera(cams, i)
+        assert np.array_equal(np.asarray(at_zero.executed), np.asarray(pmjax.hidden_pcols(pm, cam))), i
+        assert_frame_equal(at_tau, cam, 1.0, pm, i)
+
+
+def test_long_path_streams_in_flat_memory(built, monkeypatch):
+    """The refinements are computed one chunk of frames at a time, as they are
+    consumed; counts of a long path never hold more than one chunk."""
+    data, pm = model(built, "cow.ply")
+    cams = pmjax.standard_orbit(originals(data), 1200)
+    sizes = []
+    real = _path._front_counts
+    monkeypatch.setattr(_path, "_front_counts", lambda pm, part, *a, **k: sizes.append(
+        pmjax.camera_count(part)) or real(pm, part, *a, **k))
+    frames = pmjax.refine_path(pm, cams, 1.0)
+    first = next(frames)
+    assert sizes == [_path.CHUNK] and int(first.n_faces) > 0  # one chunk computed, not the path
+    for _ in range(_path.CHUNK):
+        next(frames)
+    assert sizes == [_path.CHUNK] * 2
+    sizes.clear()
+    counts = pmjax.path_counts(pm, cams, 1.0)
+    assert len(counts["faces"]) == 1200 and max(sizes) == _path.CHUNK and sum(sizes) == 1216
+
+
+def test_bad_paths_name_the_frame(built):
+    data, pm = model(built, "cow.ply")
+    cams = pmjax.standard_orbit(originals(data), 12)
+    with pytest.raises(pmjax.PathError, match="empty"):
+        next(pmjax.refine_path(pm, index_camera(cams, slice(0, 0)), 1.0))
+    with pytest.raises(pmjax.PathError, match="leading axes"):
+        pmjax.path_counts(pm, index_camera(cams, 0), 1.0)
+    host = jax.tree.map(np.asarray, cams)
+    eye = host.eye.copy()
+    eye[7, 1] = np.nan
+    with pytest.raises(pmjax.PathError, match="frame 7: eye must be finite"):
+        pmjax.path_counts(pm, eqx.tree_at(lambda c: c.eye, host, eye), 1.0)
+    width = host.width.copy()
+    width[5] = 640
+    with pytest.raises(pmjax.PathError, match="frame 5: image size 640x600 differs"):
+        list(pmjax.refine_path(pm, eqx.tree_at(lambda c: c.width, host, width), 1.0))
+    rotation = host.rotation.copy()
+    rotation[4, 0, 0] = np.inf
+    with pytest.raises(pmjax.PathError, match="frame 4: the camera rotation"):
+        pmjax.path_counts(pm, eqx.tree_at(lambda c: c.rotation, host, rotation), 1.0)
+    taus = np.ones(12, np.float32)
+    taus[3] = np.nan
+    with pytest.raises(pmjax.PathError, match="frame 3: tau must be >= 0"):
+        pmjax.path_counts(pm, cams, taus)
+    with pytest.raises(pmjax.PathError, match="one per frame"):
+        pmjax.path_counts(pm, cams, np.ones(5))
+    with pytest.raises(pmjax.PathError, match="frame 2: a face budget"):
+        pmjax.path_counts(pm, cams, budget=[10, 10, -1] + [10] * 9)
