@@ -15,12 +15,21 @@ def release_compiled_kernels():
     """The word traversal's programs are large: release them after this module
     (see tests/test_front.py)."""
     yield
+    _MESHES.clear()
     jax.clear_caches()
 
 
+_MESHES = {}
+
+
 def model(built, name, pair_distance=0.0):
-    data = built(name, pair_distance)
-    return data, pmjax.ProgressiveMesh.from_data(data)
+    """One device mesh per model for the module: its traversal buffers, once
+    fitted, serve every test (each new buffer set is a compilation)."""
+    key = (name, pair_distance)
+    if key not in _MESHES:
+        data = built(name, pair_distance)
+        _MESHES[key] = data, pmjax.ProgressiveMesh.from_data(data)
+    return _MESHES[key]
 
 
 def originals(data):
@@ -53,18 +62,28 @@ def walk(data, n, seed, step=0.02, cuts=()):
     return stack_cameras([pmjax.look_at(e, c + 0.05 * r * rng.normal(size=3)) for e in eyes])
 
 
-@pytest.mark.parametrize("name, pair_distance", [("cow.ply", 0.0), ("cessna.ply", 0.02), ("terrain_gcanyon.ply", 0.0)])
-def test_path_equals_refine_per_frame(built, name, pair_distance):
-    data, pm = model(built, name, pair_distance)
+def paths_of(data, kinds):
+    """Paths of 32 frames (one word: one compiled shape for the whole module)."""
     v0 = originals(data)
     c, r = v0.mean(0), np.linalg.norm(np.ptp(v0, 0))
-    paths = {
-        "orbit": pmjax.standard_orbit(v0, 40),
+    make = {
+        "orbit": lambda: pmjax.standard_orbit(v0, 32),
         # Enters the bounding sphere and passes through the model.
-        "fly": pmjax.fly_through([(c + [0, 0, 2 * r], c), (c + [0, 0, 0.1 * r], c), (c - [0, 0, 2 * r], c)], 36),
-        "walk with cuts": walk(data, 70, seed=len(name), cuts=(20, 21, 50)),
+        "fly": lambda: pmjax.fly_through([(c + [0, 0, 2 * r], c), (c + [0, 0, 0.1 * r], c), (c - [0, 0, 2 * r], c)],
+                                         32),
+        "walk with cuts": lambda: walk(data, 32, seed=len(kinds), cuts=(10, 11, 25)),
     }
-    for label, cams in paths.items():
+    return {k: make[k]() for k in kinds}
+
+
+@pytest.mark.parametrize("name, pair_distance, kinds", [
+    ("cow.ply", 0.0, ("orbit", "fly", "walk with cuts")),
+    ("cessna.ply", 0.02, ("walk with cuts",)),  # parts merged by virtual pairs
+    ("terrain_gcanyon.ply", 0.0, ("fly",)),
+])
+def test_path_equals_refine_per_frame(built, name, pair_distance, kinds):
+    data, pm = model(built, name, pair_distance)
+    for label, cams in paths_of(data, kinds).items():
         got = list(pmjax.refine_path(pm, cams, 1.0))
         assert len(got) == pmjax.camera_count(cams)
         for i, res in enumerate(got):
@@ -75,32 +94,32 @@ def test_path_equals_refine_per_frame(built, name, pair_distance):
 
 
 def test_tau_along_the_path_budgets_and_orthographic(built):
-    data, pm = model(built, "bunny.ply")
+    data, pm = model(built, "cow.ply")
     v0 = originals(data)
-    cams = pmjax.standard_orbit(v0, 40)
-    taus = np.geomspace(1e-3, 64, 40).astype(np.float32)
+    cams = pmjax.standard_orbit(v0, 32)
+    taus = np.geomspace(1e-3, 64, 32).astype(np.float32)
     taus[7] = 0.0
     for i, res in enumerate(pmjax.refine_path(pm, cams, taus)):
         assert_frame_equal(res, index_camera(cams, i), taus[i], pm, i)
-    budgets = np.linspace(200, 6000, 40).astype(int)
+    budgets = np.linspace(100, 3000, 32).astype(int)
     counts = pmjax.path_counts(pm, cams, budget=budgets)
-    for i in range(0, 40, 13):
+    for i in range(0, 32, 10):
         tau, faces = pmjax.faces_for_budget(pm, index_camera(cams, i), int(budgets[i]))
         assert counts["tau"][i] == tau and counts["faces"][i] == faces, i
     c, r = v0.mean(0), np.linalg.norm(np.ptp(v0, 0))
     ortho = stack_cameras([pmjax.look_at(c + r * np.array([np.cos(a), 0.3, np.sin(a)]), c, orthographic=True,
                                          ortho_height=h * r, near=1e-3, far=10 * r)
-                           for a, h in zip(np.linspace(0, 2, 33), np.linspace(0.3, 2.0, 33))])
+                           for a, h in zip(np.linspace(0, 2, 32), np.linspace(0.3, 2.0, 32))])
     for i, res in enumerate(pmjax.refine_path(pm, ortho, 2.0)):
         assert_frame_equal(res, index_camera(ortho, i), 2.0, pm, ("ortho", i))
 
 
 def test_many_paths_and_random_paths(built):
-    """K paths advanced together; random small-step paths on several models
-    with random tolerances (property test: every frame as refine)."""
-    for name, seed in (("cow.ply", 1), ("bunny.ply", 2)):
+    """K paths advanced together; random small-step paths with random
+    tolerances (property test: every frame as refine)."""
+    for name, seed in (("cow.ply", 1),):
         data, pm = model(built, name)
-        K, T = 3, 37
+        K, T = 2, 19  # each path padded to one word: 64 frames, one more compiled shape
         flat = [walk(data, T, seed=seed * 10 + k, step=0.05, cuts=(11,)) for k in range(K)]
         cams = jax.tree.map(lambda *a: np.stack(a), *flat)
         tau = np.random.default_rng(seed).uniform(0, 8, (K, T)).astype(np.float32)
@@ -131,20 +150,22 @@ def test_long_path_streams_in_flat_memory(built, monkeypatch):
     """The refinements are computed one chunk of frames at a time, as they are
     consumed; counts of a long path never hold more than one chunk."""
     data, pm = model(built, "cow.ply")
-    cams = pmjax.standard_orbit(originals(data), 1200)
+    monkeypatch.setattr(_path, "CHUNK", 64)  # small chunks: shapes already compiled above
+    cams = pmjax.standard_orbit(originals(data), 200)
     sizes = []
     real = _path._front_counts
     monkeypatch.setattr(_path, "_front_counts", lambda pm, part, *a, **k: sizes.append(
         pmjax.camera_count(part)) or real(pm, part, *a, **k))
     frames = pmjax.refine_path(pm, cams, 1.0)
     first = next(frames)
-    assert sizes == [_path.CHUNK] and int(first.n_faces) > 0  # one chunk computed, not the path
-    for _ in range(_path.CHUNK):
+    assert sizes == [64] and int(first.n_faces) > 0  # one chunk computed, not the path
+    for _ in range(64):
         next(frames)
-    assert sizes == [_path.CHUNK] * 2
+    assert sizes == [64, 64]
     sizes.clear()
     counts = pmjax.path_counts(pm, cams, 1.0)
-    assert len(counts["faces"]) == 1200 and max(sizes) == _path.CHUNK and sum(sizes) == 1216
+    # 200 frames padded to 224: three chunks and a word.
+    assert len(counts["faces"]) == 200 and sizes == [64, 64, 64, 32]
 
 
 def test_bad_paths_name_the_frame(built):
