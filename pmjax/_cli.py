@@ -205,32 +205,23 @@ def cmd_refine(args) -> int:
 
 
 def cmd_path(args) -> int:
-    import time
-
-    import jax
-
     import pmjax
-    from tqdm import tqdm
 
     pm = pmjax.load(args.pm)
     cams = _path_cameras(pm, args)
     tests = _tests(args)
     K = pmjax._camera.camera_count(cams)
-    rows = []
-    first = pmjax.refine(pm, pmjax._camera.index_camera(cams, 0), args.tau, tests=tests, method=args.method)
-    first.n_faces.block_until_ready()  # compile once, outside the timings
-    for i in tqdm(range(K), unit="frame", desc="path", disable=args.quiet):
-        cam = pmjax._camera.index_camera(cams, i)
-        t = time.perf_counter()
-        r = pmjax.refine(pm, cam, args.tau, tests=tests, method=args.method)
-        jax.block_until_ready(r)
-        rows.append(dict(frame=i, **_stats(r, 1e3 * (time.perf_counter() - t))))
+    counts = pmjax.path_counts(pm, cams, args.tau, tests=tests, coherent=not args.per_frame, method=args.method,
+                               timing=True, progress=not args.quiet)
+    rows = [dict(frame=i, faces=int(counts["faces"][i]), vertices=int(counts["vertices"][i]),
+                 executed=int(counts["executed_count"][i]), milliseconds=round(float(counts["milliseconds"][i]), 4))
+            for i in range(K)]
     cols = ["frame", "faces", "vertices", "executed", "milliseconds"]
     if args.fidelity:
         from pmjax.render import path_fidelity
 
         fidelity = path_fidelity(pm, cams, args.tau, tests=tests, geomorph=args.geomorph,
-                                 supersample=args.supersample, progress=not args.quiet)
+                                 supersample=args.supersample, coherent=not args.per_frame, progress=not args.quiet)
         for row, fid in zip(rows, fidelity):
             row.update({k: round(float(fid[k]), 6) for k in FIDELITY_COLUMNS})
         cols += list(FIDELITY_COLUMNS)
@@ -239,8 +230,9 @@ def cmd_path(args) -> int:
         _write_text(args.csv, "\n".join(lines) + "\n")
     faces = np.array([r["faces"] for r in rows])
     ms = np.array([r["milliseconds"] for r in rows])
+    how = "each frame alone" if args.per_frame else "32 consecutive frames at a time"
     print(f"{K} frames at tau={args.tau}: faces median {int(np.median(faces))} "
-          f"(min {faces.min()}, max {faces.max()}), median {np.median(ms):.3f} ms/frame")
+          f"(min {faces.min()}, max {faces.max()}), median {np.median(ms):.3f} ms/frame ({how})")
     if args.fidelity:
         share = np.array([r["differing_share"] for r in rows])
         pop = np.array([r["popping_share"] for r in rows[1:]]) if K > 1 else np.zeros(1)
@@ -332,7 +324,7 @@ def cmd_render(args) -> int:
         view = overview_camera(np.asarray(pm.vertices)[: pm.n_original_vertices], pmjax.index_camera(cams, 0))
     out = render_path(pm, cams, args.tau, args.output, tests=_tests(args), wireframe=args.wireframe,
                       color_levels=args.levels, phantom=view, geomorph=args.geomorph, fps=args.fps,
-                      progress=not args.quiet)
+                      coherent=not args.per_frame, progress=not args.quiet)
     print(f"{args.output}: {out['frames']} frames, faces median {int(np.median(out['faces']))}")
     return 0
 
@@ -444,6 +436,11 @@ def build_parser() -> argparse.ArgumentParser:
                        "at r / sin 22.5°, r the half diagonal, 20° elevation)")
         g.add_argument("--path", help="camera file (.json or .csv)")
 
+    def add_per_frame_arg(p):
+        p.add_argument("--per-frame", action="store_true",
+                       help="refine each frame alone (same results) instead of 32 consecutive frames at a time "
+                            "(docs/path.md)")
+
     def add_geomorph_arg(p):
         p.add_argument("--geomorph", type=_whole(0), default=0, metavar="N",
                        help="blend refinement changes over N frames instead of popping (default 0: off)")
@@ -453,9 +450,9 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--no", action="append", choices=("frustum", "orientation", "screen"),
                        help="switch a test off (repeatable)")
 
-    def add_method_arg(p):
+    def add_method_arg(p, note=""):
         p.add_argument("--method", choices=("auto", "front", "dense"), default="auto",
-                       help="refinement engine, same results: front (output-sensitive), dense (every pcol), "
+                       help=f"refinement engine{note}, same results: front (output-sensitive), dense (every pcol), "
                             "auto (front from 100,000 pcols on; docs/front.md)")
 
     def add_image_args(p, note=""):
@@ -527,9 +524,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--supersample", type=_whole(1, 16), default=2, metavar="S",
                    help="fidelity renders: S×S samples per pixel (default 2; popping wants 4, docs/soft.md)")
     add_geomorph_arg(p)
+    add_per_frame_arg(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_view_args(p)
-    add_method_arg(p)
+    add_method_arg(p, note=" of --per-frame")
     p.set_defaults(func=cmd_path)
 
     p = sub.add_parser("eval", help="evaluate models x camera sets x tolerances into a Parquet dataset",
@@ -577,6 +575,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="watch from a fixed overview camera, with each path camera's frustum drawn")
     p.add_argument("--fps", type=_whole(1, 1000), default=30, help="frames per second of the video")
     add_geomorph_arg(p)
+    add_per_frame_arg(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     add_view_args(p)
     p.set_defaults(func=cmd_render)

@@ -25,6 +25,7 @@ the frames are then refined as a path at the tolerances found.
 
 from __future__ import annotations
 
+import time
 from typing import Iterator
 
 import jax
@@ -203,7 +204,8 @@ def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, t
 
 
 def path_counts(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, tests: Tests = ALL_TESTS,
-                coherent: bool = True, paths: bool = False, progress: bool = False) -> dict:
+                coherent: bool = True, method: str = "auto", paths: bool = False, timing: bool = False,
+                progress: bool = False) -> dict:
     """Per-frame counts along one path, or K paths advanced together.
 
     The counts of :func:`refine_path` without the per-frame results: what
@@ -213,37 +215,62 @@ def path_counts(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, t
         pm: :class:`ProgressiveMesh`.
         cameras: camera batch, leading axes ``[T]``, or ``[K, T]`` with ``paths``.
         tau, budget, tests, coherent: as :func:`refine_path`.
+        method: the engine of :func:`pmjax.refine` without ``coherent``.
         paths: the cameras are K paths of T frames (``[K, T]``); words never
             mix two paths.
-        progress: a progress bar over the chunks.
+        timing: also return ``milliseconds`` per frame: with ``coherent``,
+            the wall time of the frame's chunk over its frames, after the
+            kernels of every chunk size were compiled on the path's first
+            frames; else each frame's own ``refine`` (compiled beforehand).
+        progress: a progress bar over the chunks (or frames).
 
     Returns:
         dict of NumPy arrays shaped like the leading axes: ``faces``,
-        ``vertices``, ``executed_count`` (int32) and ``tau`` (float32, the
-        tolerance each frame was refined at).
+        ``vertices``, ``executed_count`` (int32), ``tau`` (float32, the
+        tolerance each frame was refined at) and, with ``timing``,
+        ``milliseconds`` (float64).
     """
     host, taus, budgets, shape = check_path(cameras, tau, budget, paths=paths)
     if budgets is not None:
         taus = _budget_taus(pm, host, budgets, tests)
     n = len(taus)
     cols = [np.zeros(n, np.int32) for _ in range(3)]
+    ms = np.zeros(n)
+    bar = lambda it, total, unit: it
+    if progress:
+        from tqdm import tqdm
+
+        bar = lambda it, total, unit: tqdm(it, total=total, unit=unit, desc="path")
     if not coherent or pm.n_pcols == 0:
-        for i in range(n):
-            r = refine(pm, jax.tree.map(lambda a: a[i], host), taus[i], tests)
+        frame = lambda i: jax.tree.map(lambda a: a[i], host)
+        if timing:  # compile outside the timings
+            jax.block_until_ready(refine(pm, frame(0), taus[0], tests, method=method))
+        for i in bar(range(n), n, "frame"):
+            t = time.perf_counter()
+            r = jax.block_until_ready(refine(pm, frame(i), taus[i], tests, method=method))
+            ms[i] = 1e3 * (time.perf_counter() - t)
             for col, v in zip(cols, (r.n_faces, r.n_vertices, r.n_executed)):
                 col[i] = int(v)
     else:
+        padded = len(_word_padded(n, shape[-1]))
+        if timing:  # one call per chunk size on the first frames: compiled, and buffers fitted
+            for size in sorted({size for _, size in _chunk_spans(padded)}):
+                idx = np.minimum(np.arange(size), n - 1)
+                _front_counts(pm, jax.tree.map(lambda a: a[idx], host), taus[idx], tests, False)
         chunks = _chunks(pm, host, taus, tests, shape[-1], False)
-        if progress:
-            from tqdm import tqdm
-
-            chunks = tqdm(chunks, total=len(_chunk_spans(len(_word_padded(n, shape[-1])))), unit="chunk", desc="path")
-        for frames, out in chunks:
+        t = time.perf_counter()
+        for frames, out in bar(chunks, len(_chunk_spans(padded)), "chunk"):
             real = frames >= 0
             for col, v in zip(cols, out):
                 col[frames[real]] = np.asarray(v)[real]
-    faces, vertices, executed = (c.reshape(shape) for c in cols)
-    return dict(faces=faces, vertices=vertices, executed_count=executed, tau=taus.reshape(shape))
+            now = time.perf_counter()
+            ms[frames[real]] = 1e3 * (now - t) / max(1, int(real.sum()))
+            t = now
+    out = dict(zip(("faces", "vertices", "executed_count"), (c.reshape(shape) for c in cols)))
+    out["tau"] = taus.reshape(shape)
+    if timing:
+        out["milliseconds"] = ms.reshape(shape)
+    return out
 
 
 def path_refinement_pairs(pm: ProgressiveMesh, cameras: Camera, tau, *, tests: Tests = ALL_TESTS,

@@ -64,7 +64,7 @@ def silhouette_difference(renderer, mesh_a, mesh_b, camera: Camera) -> dict:
 
 
 def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Tests = ALL_TESTS,
-                  geomorph: int = 0, supersample: int = 2, float_color: bool = True,
+                  geomorph: int = 0, supersample: int = 2, float_color: bool = True, coherent: bool = True,
                   progress: bool = False) -> list[dict]:
     """Per frame: faces, share of the model's pixels that differ from the
     original mesh's render (and PSNR), the part of that share due to geometry
@@ -84,6 +84,8 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
         float_color: compare the unrounded supersampled averages
             (:class:`Renderer`), so changes below one 8-bit level count as
             their size, not as a 0-or-1 rounding flip.
+        coherent: refine 32 consecutive frames at a time (same refinements,
+            :func:`pmjax.refine_path`).
 
     Returns:
         list of dicts (one per camera) with ``faces``, ``differing_share``,
@@ -96,7 +98,8 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
     ov, of, on = original_arrays(pm)
     rows, previous = [], None
     with Renderer(int(first.width), int(first.height), supersample, float_color) as r:
-        frames = path_geometry(pm, cameras, tau, tests=tests, geomorph=geomorph, progress=progress, desc="fidelity")
+        frames = path_geometry(pm, cameras, tau, tests=tests, geomorph=geomorph, coherent=coherent, progress=progress,
+                               desc="fidelity")
         for i, (cam, v, f, _, n) in enumerate(frames):
             t = time.perf_counter()
             rgb, depth = r.render_mesh(v, f, cam, normals=n)

@@ -7,8 +7,9 @@ from typing import Optional
 
 import numpy as np
 
-from pmjax import ALL_TESTS, Camera, ProgressiveMesh, Refinement, Tests, camera_count, index_camera, refine
-from pmjax import critical_tolerances, geomorph_mesh, geomorph_start, geomorph_step, hierarchy_normals
+from pmjax import ALL_TESTS, Camera, ProgressiveMesh, Refinement, Tests, camera_count, index_camera
+from pmjax import geomorph_mesh, geomorph_start, geomorph_step, hierarchy_normals, refine_path
+from pmjax._path import path_refinement_pairs
 from pmjax._atomic import atomic_path, check_output_path
 
 
@@ -209,12 +210,14 @@ def write_png(path: str, image) -> None:
 
 
 def path_geometry(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Tests = ALL_TESTS, geomorph: int = 0,
-                  color_levels=False, progress: bool = False, desc: str = "frames"):
+                  color_levels=False, coherent: bool = True, progress: bool = False, desc: str = "frames"):
     """Refine every camera of a path and yield what to draw, frame by frame.
 
     Args:
         geomorph: blend refinement changes over this many frames
             (:func:`pmjax.geomorph_step`); 0 or 1 draws each hard refinement.
+        coherent: refine 32 consecutive frames at a time
+            (:func:`pmjax.refine_path`, the same refinements as frame by frame).
 
     Yields:
         ``(camera, vertices, faces, face levels or None, normals)``.
@@ -227,14 +230,16 @@ def path_geometry(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
         from tqdm import tqdm
 
         it = tqdm(it, unit="frame", desc=desc)
-    for i in it:
+    if geomorph > 1:
+        # The executed set at tau and the hidden pcols (those that run even
+        # at tau 0: culled or facing away, as hidden_pcols) of each frame.
+        frames = path_refinement_pairs(pm, cameras, tau, tests=tests, coherent=coherent)
+    else:
+        frames = ((r, None) for r in refine_path(pm, cameras, tau, tests=tests, coherent=coherent))
+    for i, (refined, at_zero) in zip(it, frames):
         cam = index_camera(cameras, i)
         if geomorph > 1:
-            # One predicate pass gives both the executed set (exactly
-            # ``tau > eps``, as refine's) and the hidden pcols (``eps < 0``,
-            # as hidden_pcols).
-            eps = critical_tolerances(pm, cam, tests)
-            executed, hidden = np.float32(tau) > eps, eps < 0
+            executed, hidden = np.asarray(refined.executed), np.asarray(at_zero.executed)
             if morph is None:
                 morph = geomorph_start(executed, hidden)
             else:
@@ -242,13 +247,13 @@ def path_geometry(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
             v, f, ids, normals = geomorph_mesh(pm, morph, shading_normals(pm))
             levels = face_levels(f, batch_levels(pm, ids)) if color_levels else None
         else:
-            v, f, levels, normals = refined_arrays(pm, refine(pm, cam, tau, tests), color_levels=color_levels)
+            v, f, levels, normals = refined_arrays(pm, refined, color_levels=color_levels)
         yield cam, v, f, levels, normals
 
 
 def render_path(pm: ProgressiveMesh, cameras: Camera, tau: float, out: str, *, tests: Tests = ALL_TESTS,
                 wireframe=False, color_levels=False, phantom: Optional[Camera] = None, geomorph: int = 0,
-                fps: int = 30, progress: bool = True) -> dict:
+                fps: int = 30, coherent: bool = True, progress: bool = True) -> dict:
     """Refine and render every camera of a path; write ``out`` (.mp4/.gif/PNG folder).
 
     Args:
@@ -256,6 +261,7 @@ def render_path(pm: ProgressiveMesh, cameras: Camera, tau: float, out: str, *, t
             from this fixed overview camera, with the path camera's frustum drawn.
         geomorph: blend refinement changes over this many frames instead of
             popping (:func:`pmjax.geomorph_step`); 0 or 1: off.
+        coherent: see :func:`path_geometry`.
 
     Returns:
         dict with ``faces`` (int per frame) and ``frames`` (count).
@@ -268,8 +274,8 @@ def render_path(pm: ProgressiveMesh, cameras: Camera, tau: float, out: str, *, t
     def frames():
         with Renderer(view.width, view.height) as r:
             for cam, v, f, levels, normals in path_geometry(pm, cameras, tau, tests=tests, geomorph=geomorph,
-                                                            color_levels=color_levels, progress=progress,
-                                                            desc="render"):
+                                                            color_levels=color_levels, coherent=coherent,
+                                                            progress=progress, desc="render"):
                 faces.append(len(f))
                 lines = frustum_past_model(pm, cam) if phantom is not None else None
                 yield r.render_mesh(v, f, view if phantom is not None else cam, levels=levels, n_batches=n_batches,

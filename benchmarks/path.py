@@ -1,0 +1,144 @@
+"""Camera-path benchmark: coherent paths (32 consecutive frames per word) against per-frame refines.
+
+Usage: python benchmarks/path.py [--models cow,bunny,terrain_gcanyon,terrain_sthelens,dragon]
+       [--frames 240] [--tau 1] [--paths 256] [--many-model dragon] [--repeats 3] [--json FILE]
+
+Per model and path (the standard orbit; a fly-through from far in front, close
+past the side and round the back; the orbit jittered as if hand-held), all in
+the same run: each frame refined alone by the dense engine and by the
+output-sensitive one (medians over frames, after compilation), and the whole
+path through ``pmjax.path_counts`` (counts) and ``pmjax.refine_path`` (a
+``Refinement`` per frame), amortized per frame, medians over repeats. The
+visited share is, per word of 32 frames, the pcols the word's traversal looked
+at over P, and over what one frame alone visits. Many paths: ``--paths`` orbits
+of different radii and elevations advanced together, against ``refine_batch``
+on the same cameras (dense and front), cameras per second.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+
+import jax
+import numpy as np
+
+sys.path.insert(0, __file__.rsplit("/", 1)[0])
+from _common import machine, median_time, write_json  # noqa: E402
+from refine import pm_file  # noqa: E402
+
+import pmjax  # noqa: E402
+from pmjax._camera import index_camera, stack_cameras  # noqa: E402
+from pmjax._camera_table import fly_rows  # noqa: E402
+
+
+def paths_for(v0, frames, seed=0):
+    """The three paths of the benchmark, ``{name: Camera [frames]}``."""
+    orbit = pmjax.standard_orbit(v0, frames)
+    rng = np.random.default_rng(seed)
+    c, r = v0.mean(0), 0.5 * np.linalg.norm(np.ptp(v0, 0))
+    # Hand-held: the orbit's eyes shaken by 1 % of the model's size, the aim by 2 %.
+    eyes = np.asarray(orbit.eye) + 0.01 * r * rng.normal(size=(frames, 3))
+    aims = c + 0.02 * r * rng.normal(size=(frames, 3))
+    hand = stack_cameras([pmjax.look_at(e, a) for e, a in zip(eyes, aims)])
+    return {"orbit": orbit, "fly-through": fly_rows(v0, frames, 0, frames).camera(np.float32), "hand-held": hand}
+
+
+def per_frame_ms(pm, cams, tau, method):
+    views = [index_camera(cams, i) for i in range(pmjax.camera_count(cams))]
+    for cam in views:  # compile, and grow the front's buffers to the whole path
+        jax.block_until_ready(pmjax.refine(pm, cam, tau, method=method))
+    out = []
+    for cam in views:
+        t = time.perf_counter()
+        jax.block_until_ready(pmjax.refine(pm, cam, tau, method=method))
+        out.append(time.perf_counter() - t)
+    return 1e3 * statistics.median(out)
+
+
+def one_path(name, pm, label, cams, tau, repeats):
+    T = pmjax.camera_count(cams)
+    # Compile every kernel the path uses and grow the buffers to the whole
+    # path (a grown buffer set compiles anew), and check the counts against
+    # per-frame refines on a few frames.
+    for _ in range(2):
+        counts = pmjax.path_counts(pm, cams, tau)
+    for i in range(0, T, max(1, T // 6)):
+        assert int(counts["faces"][i]) == int(pmjax.refine(pm, index_camera(cams, i), tau, method="dense").n_faces)
+    sum(1 for _ in pmjax.refine_path(pm, cams, tau))
+    dense = per_frame_ms(pm, cams, tau, "dense")
+    front = per_frame_ms(pm, cams, tau, "front")
+    sec, _ = median_time(lambda: pmjax.path_counts(pm, cams, tau), repeats)
+    counts_ms = 1e3 * sec / T
+    sec, _ = median_time(lambda: sum(1 for _ in pmjax.refine_path(pm, cams, tau)), repeats)
+    path_ms = 1e3 * sec / T
+    union = [r.n_visited for i, r in enumerate(pmjax.refine_path(pm, cams, tau)) if i % 32 == 0]
+    own = [pmjax.refine(pm, index_camera(cams, i), tau, method="front").n_visited for i in range(0, T, 32)]
+    row = dict(model=name, path=label, pcols=pm.n_pcols, frames=T, faces=int(np.median(counts["faces"])),
+               dense_ms=dense, front_ms=front, path_counts_ms=counts_ms, refine_path_ms=path_ms,
+               visited_share=float(np.median(union)) / pm.n_pcols, union_over_one=float(np.median(union) / np.median(own)))
+    print(f"{name:16s} {label:11s} P {pm.n_pcols:7d} faces {row['faces']:6d} | per frame: dense {dense:6.3f} "
+          f"front {front:6.3f} ms | path: counts {counts_ms:6.3f} ({dense / counts_ms:5.1f}x dense, "
+          f"{front / counts_ms:4.1f}x front), refine_path {path_ms:6.3f} ms ({dense / path_ms:5.1f}x, "
+          f"{front / path_ms:4.1f}x) | visited {row['visited_share']:5.1%} of P, "
+          f"{row['union_over_one']:.2f}x one frame's", flush=True)
+    return row
+
+
+def many_paths(name, n_paths, frames, tau, repeats):
+    pm = pmjax.load(pm_file(name))
+    v0 = np.asarray(pm.vertices)[: pm.n_original_vertices]
+    rng = np.random.default_rng(n_paths)
+    c, r = v0.mean(0), 0.5 * np.linalg.norm(np.ptp(v0, 0))
+    orbits = []
+    for _ in range(n_paths):
+        radius, elevation = r / np.sin(np.radians(22.5)) * rng.uniform(0.6, 1.6), np.radians(rng.uniform(-30, 60))
+        a = np.linspace(0, 2 * np.pi, frames, endpoint=False) + rng.uniform(0, 2 * np.pi)
+        eyes = c + radius * np.stack([np.cos(elevation) * np.cos(a), np.full(frames, np.sin(elevation)),
+                                      np.cos(elevation) * np.sin(a)], 1)
+        orbits.append(stack_cameras([pmjax.look_at(e, c) for e in eyes]))
+    grid = jax.tree.map(lambda *a: np.stack(a), *orbits)  # [K, T]
+    flat = jax.tree.map(lambda a: a.reshape((-1,) + a.shape[2:]), grid)
+    K = n_paths * frames
+    for _ in range(2):  # compile, grow the buffers to every path
+        pmjax.path_counts(pm, grid, tau, paths=True)
+    sec, _ = median_time(lambda: pmjax.path_counts(pm, grid, tau, paths=True), repeats)
+    row = dict(model=name, paths=n_paths, frames=frames, path_cameras_per_s=K / sec)
+    for m in ("dense", "front"):
+        for _ in range(2):
+            pmjax.refine_batch(pm, flat, tau, method=m)
+        sec, _ = median_time(lambda: pmjax.refine_batch(pm, flat, tau, method=m), repeats)
+        row[f"batch_{m}_cameras_per_s"] = K / sec
+    print(f"{name}: {n_paths} orbits x {frames} frames: paths together {row['path_cameras_per_s']:8.0f} cameras/s, "
+          f"refine_batch dense {row['batch_dense_cameras_per_s']:7.0f} ({row['path_cameras_per_s'] / row['batch_dense_cameras_per_s']:.1f}x), "
+          f"front {row['batch_front_cameras_per_s']:7.0f}", flush=True)
+    return row
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--models", default="cow,bunny,terrain_gcanyon,terrain_sthelens,dragon")
+    ap.add_argument("--frames", type=int, default=240)
+    ap.add_argument("--tau", type=float, default=1.0)
+    ap.add_argument("--paths", type=int, default=256, help="orbits advanced together (0: skip)")
+    ap.add_argument("--many-model", default="dragon")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--json", help="also write results as JSON")
+    args = ap.parse_args()
+    print(f"machine: {machine()}\n")
+    rows = []
+    for name in args.models.split(","):
+        pm = pmjax.load(pm_file(name))
+        v0 = np.asarray(pm.vertices)[: pm.n_original_vertices]
+        for label, cams in paths_for(v0, args.frames).items():
+            rows.append(one_path(name, pm, label, cams, args.tau, args.repeats))
+        jax.clear_caches()  # each hierarchy compiles its own kernels
+    many = [many_paths(args.many_model, args.paths, args.frames, args.tau, args.repeats)] if args.paths else []
+    if args.json:
+        write_json(args.json, dict(machine=machine(), paths=rows, many=many))
+
+
+if __name__ == "__main__":
+    main()
