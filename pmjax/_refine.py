@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int, UInt32
 
+from . import _native
 from ._bitsets import WORD, column_popcounts, pack_cameras, unpack_cameras, weight_bits_for
 from ._camera import Camera, camera_count, index_camera
 from ._front import gather, one_camera_decide, traverse
@@ -174,6 +175,11 @@ class Refinement(eqx.Module):
         """``bool[P]`` pcols executed."""
         if self.dense is not None:
             return self.dense.executed
+        if isinstance(self.visited, np.ndarray):  # host lists (C traversal, paths): no compile per length
+            out = np.ones(self.pm.n_pcols, bool)
+            out[self.visited[self.visited < self.pm.n_pcols]] = np.asarray(self.visited_executed)[
+                self.visited < self.pm.n_pcols]
+            return jnp.asarray(out)
         return _spread_executed(self.visited, self.visited_executed, self.pm.n_pcols)
 
     @property
@@ -195,6 +201,8 @@ class Refinement(eqx.Module):
         """Pcols whose decision the engine looked at (``P`` for the dense engine)."""
         if self.visited is None:
             return self.pm.n_pcols
+        if isinstance(self.visited, np.ndarray):
+            return int(np.count_nonzero(self.visited < self.pm.n_pcols))
         return int(jnp.sum(self.visited < self.pm.n_pcols))
 
     def mesh(self, pm: Optional[ProgressiveMesh] = None):
@@ -214,9 +222,12 @@ class Refinement(eqx.Module):
             raise ValueError("Refinement.mesh: pm is not the mesh this refinement was made for "
                              f"({pm.n_pcols} pcols, {pm.n_faces} faces; refined: {self.pm.n_pcols}, {self.pm.n_faces})")
         if self.dense is None:
+            visited, ran = np.asarray(self.visited), np.asarray(self.visited_executed)
+            if _native.available():
+                return _native.front_mesh(self.pm, visited, ran, int(self.n_faces), int(self.n_vertices))
             from ._front_mesh import front_mesh
 
-            return front_mesh(self.pm, np.asarray(self.visited), np.asarray(self.visited_executed))
+            return front_mesh(self.pm, visited, ran)
         active = np.asarray(self.dense.active)
         faces = np.asarray(self.dense.rep)[np.asarray(self.pm.faces)[active]]
         ids, inverse = np.unique(faces, return_inverse=True)
@@ -358,6 +369,10 @@ def refine(
 
 
 def _refine_front(pm: ProgressiveMesh, camera: Camera, tau, tests: Tests) -> Refinement:
+    if _native.available():
+        visited, ran, n_faces, n_vertices, n_executed = _native.refine_one(pm, camera, tau, tests)
+        return Refinement(pm=pm, visited=visited, visited_executed=ran, dense=None, n_faces=n_faces,
+                          n_vertices=n_vertices, n_executed=n_executed)
     # The one host synchronisation: did every generation fit its buffer?
     out = pm.plan.run(("one", tests, camera.orthographic),
                       lambda capacities: _front_refine(pm, camera, tau, tests, capacities))
@@ -534,9 +549,10 @@ def refine_batch(
         starts = tqdm(starts, unit="chunk", desc="refine")
     tau32 = jnp.float32(tau)
     front = _method(pm, method, predicate, batch=True) == "front"
-    # The front engine groups nearby cameras into words; results go back to
-    # the caller's order.
-    order = nearby_order(np.asarray(cameras.eye)) if front else np.arange(K)
+    native = front and _native.available()
+    # The front engine as JAX kernels groups nearby cameras into words;
+    # results go back to the caller's order. The C loops take cameras one by one.
+    order = nearby_order(np.asarray(cameras.eye)) if front and not native else np.arange(K)
     # Chunks are cut on the host (one transfer of the batch, then NumPy
     # indexing: slicing device arrays costs a dispatch per field and chunk,
     # measured at half the time of a bunny batch), and their results are read
@@ -545,7 +561,9 @@ def refine_batch(
     for s in starts:
         idx = order[np.minimum(np.arange(s, s + chunk), K - 1)]  # pad by repeating the last
         part = jax.tree.map(lambda a: a[idx], host)
-        if front:
+        if native:
+            res = _native.refine_many(pm, part, tau32, tests, return_masks)
+        elif front:
             res = _front_counts(pm, part, tau32, tests, return_masks)
         else:
             res = _counts_chunk(pm, part, tau32, tests, predicate, context, combine, return_masks)

@@ -52,6 +52,11 @@ SCREEN_MARGIN = 2.0 ** -14
 # relative, while the eye stays far enough from every sphere below that
 # d² − r² ≥ sin²(0.05)·d² keeps its rounding near 5e-5: a 25x margin.
 ANGLE_MARGIN = 0.05
+# Float32 rounding is relative only between underflow and overflow (XLA on the
+# CPU flushes subnormals to zero): a bound decides nothing where a
+# descendant's own comparison could leave [LOW, HIGH].
+LOW = 2.0 ** -100
+HIGH = 2.0 ** 100
 
 
 class SubtreeBounds(eqx.Module):
@@ -191,14 +196,16 @@ def subtree_collapses(center, axis, bounds: FrontBounds, view: View, tests) -> B
         sx, sy, lx, ly, near, far = z * k(0) + k(2), z * k(1) + k(3), k(4), k(5), k(6), k(7)
         size = (jnp.abs(x) + jnp.abs(y) + jnp.abs(z) + reach) * (1 + jnp.abs(k(0)) + jnp.abs(k(1)) + lx + ly)
         m = f32(MARGIN) * (size + jnp.abs(k(2)) + jnp.abs(k(3)) + jnp.abs(near) + jnp.abs(far))
-        out = out | (z + reach < near - m) | (z - reach > far + m)
-        out = out | (sx - jnp.abs(x) + reach * lx < -m) | (sy - jnp.abs(y) + reach * ly < -m)
+        outside = (z + reach < near - m) | (z - reach > far + m)
+        outside = outside | (sx - jnp.abs(x) + reach * lx < -m) | (sy - jnp.abs(y) + reach * ly < -m)
+        out = out | (outside & (m > f32(LOW)) & (m < f32(HIGH)))
     if view.orthographic:
         if tests.orientation:
             # theta + cone < π/2 − margin, as cos(theta) > sin(cone + margin).
             out = out | (_rows_dot(axis, view.forward) * bounds.axis_scale > bounds.facing)
         if tests.screen:
-            out = out | (error * error < view.kappa2 * f32(1 - SCREEN_MARGIN))
+            e2 = error * error
+            out = out | ((e2 < view.kappa2 * f32(1 - SCREEN_MARGIN)) & (view.kappa2 > f32(LOW)) & (e2 < f32(HIGH)))
         return out
     d2 = _rows_dot(v, v)
     if tests.orientation:
@@ -209,9 +216,14 @@ def subtree_collapses(center, axis, bounds: FrontBounds, view: View, tests) -> B
         # Rounding moves the angle by far less than the margin.
         a = _rows_dot(v, axis) * bounds.axis_scale
         lhs = a * jnp.sqrt(jnp.maximum(d2 - reach * reach, 0.0)) - reach * jnp.sqrt(jnp.maximum(d2 - a * a, 0.0))
-        out = out | ((d2 > reach * reach) & (a > 0) & (lhs > d2 * bounds.facing))
+        d = jnp.sqrt(d2)
+        in_range = ((d - reach) * (d - reach) > f32(2.0 ** -80)) & ((d + reach) * (d + reach) < f32(HIGH))
+        out = out | ((d2 > reach * reach) & (a > 0) & (lhs > d2 * bounds.facing) & in_range)
     if tests.screen:
         d = jnp.sqrt(d2)
         room = d - spread - f32(SCREEN_MARGIN) * (d + spread)
-        out = out | ((room > 0) & (error * error < view.kappa2 * room * room * f32(1 - SCREEN_MARGIN)))
+        room2, far2, e2 = room * room, (d + spread) * (d + spread), error * error
+        in_range = (view.kappa2 * jnp.minimum(room2, room2 * room2) > f32(LOW)) & \
+            (view.kappa2 * far2 * far2 < f32(HIGH)) & (e2 * far2 < f32(HIGH))
+        out = out | ((room > 0) & (e2 < view.kappa2 * room2 * f32(1 - SCREEN_MARGIN)) & in_range)
     return out

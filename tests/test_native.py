@@ -1,0 +1,168 @@
+"""The front engine's C loops: certified decisions, exact refinements and meshes.
+
+Every test compares with the float32 predicate, the dense engine or the
+JAX traversal; none checks the C code against itself.
+"""
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import pmjax
+from pmjax import _native
+from pmjax._camera import index_camera, stack_cameras
+
+pytestmark = pytest.mark.skipif(not _native.available(), reason="the C loops are not built (no C compiler)")
+
+TAUS = (0.0, 1e-3, 1.0, 4.0, 1e6)
+
+
+def views_of(data, n, seed):
+    v0 = data.vertices[: data.n_original_vertices]
+    return pmjax.random_views(v0, n, seed=seed, min_scale=0.05, max_scale=6.0)
+
+
+def orthographic_views(data):
+    v0 = data.vertices[: data.n_original_vertices]
+    c, r = v0.mean(0), np.linalg.norm(np.ptp(v0, 0))
+    return [pmjax.look_at(c + d, c, orthographic=True, ortho_height=h, near=1e-3, far=10 * r)
+            for d, h in (([0, 0, r], 0.5 * r), ([r, 0.3 * r, 0], 2 * r))]
+
+
+def assert_refinements_equal(a, b, where):
+    for field in ("executed", "active", "rep"):
+        assert np.array_equal(np.asarray(getattr(a, field)), np.asarray(getattr(b, field))), (where, field)
+    for field in ("n_faces", "n_vertices", "n_executed"):
+        assert int(getattr(a, field)) == int(getattr(b, field)), (where, field)
+
+
+TESTS = (pmjax.ALL_TESTS, pmjax.Tests(frustum=False), pmjax.Tests(orientation=False), pmjax.Tests(screen=False))
+
+
+@pytest.mark.parametrize("name", ["cow.ply", "bunny.ply", "terrain_gcanyon.ply"])
+def test_certified_decisions_equal_the_float32_predicate(built, name):
+    """Over every pcol: a decision the C code is sure of is the float32
+    predicate's bit, and a subtree bound that says "whole" holds for every
+    pcol below (each of them collapses). Unsure decisions are rare."""
+    data = built(name)
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    kids = np.asarray(pm.children)
+    cams = [index_camera(views_of(data, 6, seed=3), i) for i in range(6)] + orthographic_views(data)
+    checked = unsure = 0
+    for cam in cams:
+        for tests in TESTS:
+            for tau in (0.0, 1.0, 4.0):
+                got = _native.decide_all(pm, cam, tau, tests)
+                want = np.asarray(pmjax.collapse_mask(pm.attributes, cam, jnp.float32(tau), tests))
+                own = got & 3
+                sure = own != _native.UNSURE
+                assert np.array_equal(own[sure] == _native.YES, want[sure]), (cam.orthographic, tests, tau)
+                checked += int(sure.sum())
+                unsure += int((~sure).sum())
+                # "whole" at p: every pcol of p's subtree collapses (children
+                # come from earlier batches, so one pass from the first batch
+                # gives "the whole subtree collapses" per pcol).
+                all_below = want.copy()
+                for p in range(pm.n_pcols):
+                    for k in kids[p]:
+                        if k >= 0:
+                            all_below[p] &= all_below[k]
+                whole = (got & 4) != 0
+                assert np.all(all_below[whole]), (cam.orthographic, tests, tau)
+    assert checked > 0 and unsure <= 1e-4 * checked
+
+
+@pytest.mark.parametrize("name, pair_distance", [("cow.ply", 0.0), ("bunny.ply", 0.0), ("cessna.ply", 0.02),
+                                                 ("terrain_gcanyon.ply", 0.0)])
+def test_native_refine_equals_dense(built, name, pair_distance):
+    data = built(name, pair_distance)
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = [index_camera(views_of(data, 6, seed=len(name)), i) for i in range(6)] + orthographic_views(data)
+    for i, cam in enumerate(cams):
+        for tau in TAUS:
+            native = pmjax.refine(pm, cam, tau, method="front")
+            assert isinstance(native.visited, np.ndarray)  # the C loops ran
+            assert_refinements_equal(native, pmjax.refine(pm, cam, tau, method="dense"), (i, tau))
+
+
+def test_unsure_decisions_are_asked_of_the_float32_predicate(built):
+    """At tau equal to pcols' critical tolerances the screen test is a float
+    tie: the C code must leave those pcols unsure, and the answer is still the
+    dense engine's, one float step below, at and above the tie."""
+    data = built("bunny.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cam = index_camera(pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 4), 1)
+    t = np.asarray(pmjax.critical_tau(pm.attributes, cam))
+    picks = np.random.default_rng(1).choice(np.flatnonzero(np.isfinite(t) & (t > 0.2) & (t < 5)), 8, replace=False)
+    unsure = 0
+    for p in picks:
+        for tau in (np.nextafter(t[p], np.float32(0)), t[p], np.nextafter(t[p], np.float32(np.inf))):
+            unsure += int(_native.decide_all(pm, cam, tau, pmjax.ALL_TESTS)[p] & 3 == _native.UNSURE)
+            assert_refinements_equal(pmjax.refine(pm, cam, tau, method="front"),
+                                     pmjax.refine(pm, cam, tau, method="dense"), tau)
+    assert unsure >= len(picks)  # at least the tie itself is never guessed
+
+
+def test_extreme_scales_fall_back_to_the_float32_predicate(built):
+    """A model scaled to 1e-18 or 1e15 units (float32 products near the
+    smallest normal, or huge): the certification stays exact."""
+    data = built("cow.ply")
+    for scale in (1e-18, 1e15):
+        scaled = dataclasses.replace(data, vertices=(data.vertices * scale).astype(np.float32),
+                                     radius=(data.radius * scale).astype(np.float32),
+                                     delta=(data.delta * scale).astype(np.float32),
+                                     mu=(data.mu * scale).astype(np.float32))
+        pm = pmjax.ProgressiveMesh.from_data(scaled)
+        v0 = scaled.vertices[: scaled.n_original_vertices].astype(np.float64)
+        for i in range(3):
+            cam = index_camera(pmjax.random_views(v0, 3, seed=i, min_scale=0.5, max_scale=3.0), i)
+            for tau in (0.0, 1.0, 8.0):
+                assert_refinements_equal(pmjax.refine(pm, cam, tau, method="front"),
+                                         pmjax.refine(pm, cam, tau, method="dense"), (scale, tau))
+
+
+@pytest.mark.parametrize("name", ["cow.ply", "bunny.ply", "cessna.ply", "terrain_gcanyon.ply"])
+def test_native_mesh_equals_dense_mesh(built, name):
+    data = built(name, 0.02 if name == "cessna.ply" else 0.0)
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = [index_camera(views_of(data, 5, seed=9), i) for i in range(5)] + orthographic_views(data)
+    for i, cam in enumerate(cams):
+        for tau in (0.0, 1.0, 16.0, np.inf):
+            got = pmjax.refine(pm, cam, tau, method="front").mesh()
+            want = pmjax.refine(pm, cam, tau, method="dense").mesh(pm)
+            for a, b in zip(got, want):
+                assert a.dtype == b.dtype and np.array_equal(a, b), (i, tau)
+
+
+def test_native_batch_equals_dense(built):
+    data = built("bunny.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = stack_cameras([index_camera(views_of(data, 70, seed=2), i) for i in range(70)])
+    for tau in (0.0, 1.0, 4.0):
+        native = pmjax.refine_batch(pm, cams, tau, chunk=64, return_masks=True, method="front")
+        dense = pmjax.refine_batch(pm, cams, tau, chunk=64, return_masks=True, method="dense")
+        for key in dense:
+            assert np.array_equal(native[key], dense[key]), (tau, key)
+    one = _native.refine_many(pm, cams, np.float32(1.0), pmjax.ALL_TESTS, False, threads=1)
+    two = _native.refine_many(pm, cams, np.float32(1.0), pmjax.ALL_TESTS, False, threads=2)
+    assert all(np.array_equal(a, b) for a, b in zip(one, two))
+
+
+def test_dragon_front_visits_a_small_share(built):
+    """Structural: on the dragon at tau = 1 the front engine visits a few
+    percent of the pcols (about twice those not executed), with the dense
+    engine's results."""
+    data = built("dragon.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 3)
+    for i in range(3):
+        cam = index_camera(cams, i)
+        front = pmjax.refine(pm, cam, 1.0)  # "auto" is the front engine here
+        assert front.dense is None
+        if i == 0:
+            assert_refinements_equal(front, pmjax.refine(pm, cam, 1.0, method="dense"), "dragon")
+        not_run = data.n_pcols - int(front.n_executed)
+        assert front.n_visited < 0.08 * data.n_pcols
+        assert not_run < front.n_visited < 4 * not_run
