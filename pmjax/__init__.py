@@ -15,6 +15,7 @@ from ._model import PcolAttributes, ProgressiveMesh, load
 from ._view import kappa
 from ._predicate import ALL_TESTS, Tests, collapse_mask, critical_tau, oriented_away, outside_frustum, small_on_screen
 from ._refine import Refinement, critical_tolerances, faces_for_budget, propagate, refine, refine_batch
+from ._native import available as native_available
 from ._path import PathError, path_counts, refine_path
 from ._oracle import oracle_refine
 from ._soft import SoftRefinement, geomorph_blend, geomorph_positions, soft_refine, soft_tests, soft_weights
@@ -90,6 +91,7 @@ __all__ = [
     "faces_for_budget",
     "propagate",
     "refine",
+    "native_available",
     "refine_batch",
     "refine_path",
     "path_counts",

@@ -45,56 +45,64 @@ enum { TEST_FRUSTUM = 1, TEST_ORIENTATION = 2, TEST_SCREEN = 4, ORTHOGRAPHIC = 8
 enum { NO = 0, YES = 1, UNSURE = 2, WHOLE = 4 };
 
 /* Margins of the subtree bounds: pmjax/_subtree.py MARGIN, SCREEN_MARGIN. */
-static const double MARGIN = 0x1p-16;
-static const double SCREEN_MARGIN = 0x1p-14;
-
-/* Forward error of a float32 evaluation: every comparison below has at most
- * 16 roundings on any path from its inputs, so a float32 value lies within
- * GAMMA * M of the exact one, M being the same formula over absolute values
- * (Higham, Accuracy and Stability, ch. 3). The unit is inflated by 2^-50 to
- * cover this file's own float64 rounding of the value and of M. */
-static const double U32 = 0x1p-24 + 0x1p-50;
-#define GAMMA (16.0 * U32 / (1.0 - 16.0 * U32))
-/* With flush to zero (XLA on the CPU) an operation can also lose up to the
- * smallest normal float32, scaled by at most two downstream factors; FLUSH
- * times the pcol's factor bound covers the 64 operations of the predicate. */
-static const double FLUSH = 256.0 * 0x1p-126;
+#define MARGIN 0x1p-16f
+#define SCREEN_MARGIN 0x1p-14f
 
 /* Float32 rounding is relative only between underflow and overflow: a
  * comparison whose magnitudes leave [LOW, HIGH] is not certified, and a
- * subtree bound decides nothing where a descendant's test could leave it. */
-static const double LOW = 0x1p-100, HIGH = 0x1p100;
+ * subtree bound decides nothing where a descendant's test could leave it
+ * (pmjax/_subtree.py LOW, HIGH). */
+#define LOW 0x1p-100f
+#define HIGH 0x1p100f
 
-/* Is a < b, for the float32 evaluation, given d = a - b and the magnitude m? */
-static inline int less(double d, double m, double slack)
-{
-    if (!(m < HIGH)) /* overflow possible, or not finite */
-        return UNSURE;
-    double bound = GAMMA * m + slack;
-    if (d < -bound)
-        return YES;
-    if (d > bound)
-        return NO;
-    if (m == 0.0 && d == 0.0) /* every term exactly zero: 0 < 0 */
-        return NO;
-    return UNSURE; /* too close, or not finite */
-}
+/* Certification. A comparison a < b of the float32 predicate is evaluated
+ * here as d = a - b with the magnitude m (the same formula over absolute
+ * values). Any float32 evaluation of it with at most 16 roundings on a path
+ * (fused multiply-adds or not, any association) lies within GAMMA16 * m of the
+ * exact value (Higham, Accuracy and Stability, ch. 3), this one as much as
+ * XLA's; the view constants here are computed on the host, off XLA's by at most
+ * VIEW relative in any one factor of a term. So |d| > REL * m (+ the flush
+ * slack) fixes the sign of XLA's d. REL covers m's own rounding too. */
+#define GAMMA16 (16.0f * 0x1p-24f / (1.0f - 16.0f * 0x1p-24f))
+#define VIEW 0x1p-20f
+#define REL ((2.0f * GAMMA16 + VIEW) * (1.0f + 0x1p-18f))
+/* With flush to zero (XLA on the CPU) an operation can also lose up to the
+ * smallest normal float32, which downstream factors scale: FLUSH times the
+ * square of a bound on those factors covers the predicate's operations. */
+#define FLUSH 0x1p-118f
 
-/* Three-valued or / and. */
-static inline int or3(int a, int b) { return (a == YES || b == YES) ? YES : (a == NO && b == NO) ? NO : UNSURE; }
-static inline int and3(int a, int b) { return (a == NO || b == NO) ? NO : (a == YES && b == YES) ? YES : UNSURE; }
-
+/* Two sure-bits per decision: Y (surely true), N (surely false); neither:
+ * unsure. */
 typedef struct {
-    const float *table;     /* [P, ROW] */
-    const int32_t *children; /* [P, 2], -1: an original vertex */
-    const int32_t *kills;   /* [P] */
+    int y, n;
+} Sure;
+
+static inline Sure less(float d, float m, float slack)
+{
+    float bound = REL * m + slack;
+    int ok = m < HIGH; /* false for an overflow, inf or NaN */
+    Sure s = {ok & (d < -bound), ok & ((d > bound) | ((m == 0.0f) & (d == 0.0f)))};
+    return s;
+}
+static inline Sure sure_or(Sure a, Sure b) { Sure s = {a.y | b.y, a.n & b.n}; return s; }
+static inline Sure sure_and(Sure a, Sure b) { Sure s = {a.y & b.y, a.n | b.n}; return s; }
+
+/* The hierarchy in breadth-first order of its forest (pmjax/_native.py
+ * NativeMesh): position q holds pcol order[q]; the created children of q sit
+ * side by side at kids[q] >> 2 (their number in the low two bits), so a pruned
+ * breadth-first walk reads the table in increasing order. */
+typedef struct {
+    const float *table;   /* [P, ROW], by position */
+    const int32_t *kids;  /* [P] first child's position << 2 | number of created children */
+    const int32_t *kills; /* [P] by position */
+    const int32_t *order; /* [P] pcol at each position */
     int64_t n_pcols;
 } Mesh;
 
-/* One camera's constants in float64 (exact copies of the float32 values). */
+/* One camera's constants (float32, host-computed, see VIEW). */
 typedef struct {
-    double e[3], r[3], u[3], f[3], k[8], kappa2;
-    double kabs; /* 1 + |a_x| + |a_y| + l_x + l_y + kappa2: the view's factor bound */
+    float e[3], r[3], u[3], f[3], k[8], kappa2;
+    float kabs; /* 1 + |a_x| + |a_y| + l_x + l_y + |b_x| + |b_y| + kappa2: the view's factor bound */
     int flags;
 } View;
 
@@ -109,181 +117,390 @@ static void load_view(View *v, const float *values, int flags)
     for (int i = 0; i < 8; i++)
         v->k[i] = values[K + i];
     v->kappa2 = values[KAPPA2];
-    v->kabs = 1.0 + fabs(v->k[0]) + fabs(v->k[1]) + fabs(v->k[4]) + fabs(v->k[5]) + fabs(v->kappa2);
+    v->kabs = 1.0f + fabsf(v->k[0]) + fabsf(v->k[1]) + fabsf(v->k[2]) + fabsf(v->k[3]) + fabsf(v->k[4]) +
+              fabsf(v->k[5]) + fabsf(v->kappa2);
     v->flags = flags;
 }
 
-static inline double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
-static inline double adot3(const double *a, const double *b)
+#define BLOCK 16
+#ifndef AHEAD
+#define AHEAD 64 /* queue slots between a row's prefetch and its use */
+#endif
+
+/* max(x, 0) as a select (fmaxf is a library call for its NaN rules). */
+static inline float pos(float x) { return x > 0.0f ? x : 0.0f; }
+
+/* The rows of a block of pcols as columns: col[c][j] is column c of pcol j. */
+typedef float Columns[ROW][BLOCK];
+
+/* Every pcol of a block at once, without branches (the compiler vectorizes
+ * the loop over the block): its subtree bound (pmjax/_subtree.py
+ * subtree_collapses: does every pcol below collapse?) and its own decision
+ * (pmjax/_predicate.py view_collapse_mask), certified. state[j] = own
+ * decision (YES, NO, UNSURE) | WHOLE. */
+/* One camera's constants as the per-lane decision reads them. */
+typedef struct {
+    float ex, ey, ez;
+    float R0, R1, R2, U0, U1, U2, F0, F1, F2; /* right, up, forward */
+    float k0, k1, k2, k3, k4, k5, k6, k7;     /* Camera.frustum_frame constants */
+    float kappa2, kabs;
+    float kfac; /* 1 + |a_x| + |a_y| + l_x + l_y */
+    float kpad; /* |b_x| + |b_y| + |near| + |far| */
+    int frustum, orientation, screen;
+} Lane;
+
+static inline Lane lane_of(const View *w)
 {
-    return fabs(a[0] * b[0]) + fabs(a[1] * b[1]) + fabs(a[2] * b[2]);
+    const float *k = w->k;
+    Lane L = {w->e[0], w->e[1], w->e[2], w->r[0], w->r[1], w->r[2], w->u[0], w->u[1], w->u[2], w->f[0], w->f[1],
+              w->f[2], k[0], k[1], k[2], k[3], k[4], k[5], k[6], k[7], w->kappa2, w->kabs, 0, 0, 0, 0, 0};
+    L.kfac = 1 + fabsf(w->k[0]) + fabsf(w->k[1]) + w->k[4] + w->k[5];
+    L.kpad = fabsf(w->k[2]) + fabsf(w->k[3]) + fabsf(w->k[6]) + fabsf(w->k[7]);
+    L.frustum = (w->flags & TEST_FRUSTUM) != 0, L.orientation = (w->flags & TEST_ORIENTATION) != 0;
+    L.screen = (w->flags & TEST_SCREEN) != 0;
+    return L;
 }
 
-/* Subtree bound (pmjax/_subtree.py subtree_collapses, in float64): does every
- * pcol below collapse? v is centre - eye, d2 = |v|^2. Each bound also asks
- * that the descendants' own comparisons stay within [LOW, HIGH] (as
- * subtree_collapses does), where float32 rounding is relative. */
-static int whole(const View *w, const float *row, const double *v, double d2)
+/* One pcol's row as named scalars (the vectorizer keeps a struct of scalars
+ * in registers, where an array would be memory). */
+typedef struct {
+    float cx, cy, cz, nx, ny, nz, radius, sin_a, cos_a, delta, mu, reach, spread, facing, error, axis_scale;
+} Pcol;
+
+static inline Pcol pcol_at(float (*restrict col)[BLOCK], int j)
 {
-    const double reach = row[REACH], spread = row[SPREAD], error = row[ERROR];
-    const double *k = w->k;
-    if (w->flags & TEST_FRUSTUM) {
-        double x = dot3(v, w->r), y = dot3(v, w->u), z = dot3(v, w->f);
-        double sx = z * k[0] + k[2], sy = z * k[1] + k[3];
-        double size = (fabs(x) + fabs(y) + fabs(z) + reach) * (1 + fabs(k[0]) + fabs(k[1]) + k[4] + k[5]);
-        double m = MARGIN * (size + fabs(k[2]) + fabs(k[3]) + fabs(k[6]) + fabs(k[7]));
-        if (m > LOW && m < HIGH &&
-            (z + reach < k[6] - m || z - reach > k[7] + m || sx - fabs(x) + reach * k[4] < -m ||
-             sy - fabs(y) + reach * k[5] < -m))
-            return 1;
-    }
-    const double n[3] = {row[NX], row[NY], row[NZ]};
-    if (w->flags & ORTHOGRAPHIC) {
-        if ((w->flags & TEST_ORIENTATION) && dot3(n, w->f) * row[AXIS_SCALE] > row[FACING])
-            return 1;
-        if ((w->flags & TEST_SCREEN) && w->kappa2 > LOW && error * error < HIGH &&
-            error * error < w->kappa2 * (1 - SCREEN_MARGIN))
-            return 1;
-        return 0;
-    }
-    double d = sqrt(d2);
-    if (w->flags & TEST_ORIENTATION) {
-        double a = dot3(v, n) * row[AXIS_SCALE];
-        double gap = d - reach, far = d + reach;
-        if (d2 > reach * reach && a > 0 && gap * gap > 0x1p-80 && far * far < HIGH) {
-            double lhs = a * sqrt(fmax(d2 - reach * reach, 0.0)) - reach * sqrt(fmax(d2 - a * a, 0.0));
-            if (lhs > d2 * row[FACING])
-                return 1;
+    Pcol q = {col[CX][j],     col[CY][j],    col[CZ][j],     col[NX][j],    col[NY][j],     col[NZ][j],
+              col[RADIUS][j], col[SIN_A][j], col[COS_A][j],  col[DELTA][j], col[MU][j],     col[REACH][j],
+              col[SPREAD][j], col[FACING][j], col[ERROR][j], col[AXIS_SCALE][j]};
+    return q;
+}
+
+static inline Pcol pcol_of(const float *row)
+{
+    Pcol q = {row[CX],     row[CY],    row[CZ],    row[NX],    row[NY],    row[NZ],
+              row[RADIUS], row[SIN_A], row[COS_A], row[DELTA], row[MU],    row[REACH],
+              row[SPREAD], row[FACING], row[ERROR], row[AXIS_SCALE]};
+    return q;
+}
+
+/* One pcol (q) under one camera (L): its subtree bound (pmjax/_subtree.py
+ * subtree_collapses: does every pcol below collapse?) and its own decision
+ * (pmjax/_predicate.py view_collapse_mask), certified. Returns the own
+ * decision (YES, NO, UNSURE) | WHOLE. No branches: the loops that call it, over
+ * the pcols of a block or over the frames of a word, are vectorized. */
+static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, const Pcol q, const int ortho)
+{
+    const float R0 = L->R0, R1 = L->R1, R2 = L->R2, U0 = L->U0, U1 = L->U1, U2 = L->U2;
+    const float F0 = L->F0, F1 = L->F1, F2 = L->F2;
+    const float k0 = L->k0, k1 = L->k1, k2 = L->k2, k3 = L->k3, k4 = L->k4, k5 = L->k5, k6 = L->k6, k7 = L->k7;
+    const float kappa2 = L->kappa2, kabs = L->kabs, kfac = L->kfac, kpad = L->kpad;
+    const int frustum = L->frustum, orientation = L->orientation, screen = L->screen;
+    {
+        const float vx = q.cx - L->ex, vy = q.cy - L->ey, vz = q.cz - L->ez;
+        const float nx = q.nx, ny = q.ny, nz = q.nz;
+        const float r = q.radius, ar = fabsf(r), sa = q.sin_a, ca = q.cos_a;
+        const float delta = q.delta, mu = q.mu;
+        const float reach = q.reach, spread = q.spread, error = q.error;
+        const float d2 = vx * vx + vy * vy + vz * vz;
+        const float d = sqrtf(d2);
+        const float avx = fabsf(vx), avy = fabsf(vy), avz = fabsf(vz);
+        const float x = vx * R0 + vy * R1 + vz * R2;
+        const float y = vx * U0 + vy * U1 + vz * U2;
+        const float z = vx * F0 + vy * F1 + vz * F2;
+        const float mx = avx * fabsf(R0) + avy * fabsf(R1) + avz * fabsf(R2);
+        const float my = avx * fabsf(U0) + avy * fabsf(U1) + avz * fabsf(U2);
+        const float mz = avx * fabsf(F0) + avy * fabsf(F1) + avz * fabsf(F2);
+        const float sx = z * k0 + k2, sy = z * k1 + k3;
+        const float hf = nx * F0 + ny * F1 + nz * F2; /* axis along the view (orthographic) */
+        const float mhf = fabsf(nx * F0) + fabsf(ny * F1) + fabsf(nz * F2);
+        const float hv = vx * nx + vy * ny + vz * nz; /* eye vector along the axis (perspective) */
+        const float mhv = fabsf(vx * nx) + fabsf(vy * ny) + fabsf(vz * nz);
+
+        /* -- subtree bound -- */
+        int whole = 0;
+        {
+            float size = (fabsf(x) + fabsf(y) + fabsf(z) + reach) * kfac;
+            float m = MARGIN * (size + kpad);
+            int out = (z + reach < k6 - m) | (z - reach > k7 + m) | (sx - fabsf(x) + reach * k4 < -m) |
+                      (sy - fabsf(y) + reach * k5 < -m);
+            whole |= frustum & out & (m > LOW) & (m < HIGH);
         }
-    }
-    if (w->flags & TEST_SCREEN) {
-        double room = d - spread - SCREEN_MARGIN * (d + spread);
-        double room2 = room * room, far2 = (d + spread) * (d + spread);
-        if (room > 0 && w->kappa2 * fmin(room2, room2 * room2) > LOW && w->kappa2 * far2 * far2 < HIGH &&
-            error * error * far2 < HIGH && error * error < w->kappa2 * room2 * (1 - SCREEN_MARGIN))
-            return 1;
-    }
-    return 0;
-}
-
-/* The pcol's own decision (pmjax/_predicate.py view_collapse_mask), certified
- * against every float32 evaluation: YES, NO or UNSURE. */
-static int collapse(const View *w, const float *row, const double *v, double d2)
-{
-    const double r = row[RADIUS], ar = fabs(r), sa = row[SIN_A], ca = row[COS_A], delta = row[DELTA], mu = row[MU];
-    const double n[3] = {row[NX], row[NY], row[NZ]};
-    const double *k = w->k;
-    const double av = fabs(v[0]) + fabs(v[1]) + fabs(v[2]);
-    const double an = fabs(n[0]) + fabs(n[1]) + fabs(n[2]);
-    /* Flush slack: the smallest normal times a bound on any two factors that
-     * can multiply a flushed intermediate downstream. */
-    const double scale = 1 + av + ar + an + fabs(sa) + fabs(ca) + fabs(delta) + fabs(mu);
-    const double slack = FLUSH * scale * scale * scale * scale * w->kabs * w->kabs;
-    if (!(scale < 0x1p40 && w->kabs < 0x1p40 && d2 < HIGH)) /* intermediates could overflow */
-        return UNSURE;
-    int out = NO;
-    if (w->flags & TEST_FRUSTUM) {
-        /* (z + r < near) | (z - r > far) | (sx - |x| < -r lx) | (sy - |y| < -r ly) */
-        double x = dot3(v, w->r), y = dot3(v, w->u), z = dot3(v, w->f);
-        double mx = adot3(v, w->r), my = adot3(v, w->u), mz = adot3(v, w->f);
-        double sx = z * k[0] + k[2], sy = z * k[1] + k[3];
-        double msx = mz * fabs(k[0]) + fabs(k[2]), msy = mz * fabs(k[1]) + fabs(k[3]);
-        out = or3(out, less(z + r - k[6], mz + ar + fabs(k[6]), slack));
-        out = or3(out, less(k[7] - (z - r), fabs(k[7]) + mz + ar, slack));
-        out = or3(out, less(sx - fabs(x) + r * k[4], msx + mx + ar * fabs(k[4]), slack));
-        out = or3(out, less(sy - fabs(y) + r * k[5], msy + my + ar * fabs(k[5]), slack));
-        if (out == YES)
-            return YES;
-    }
-    double h, mh, s, ms, normal2, mnormal2;
-    if (w->flags & ORTHOGRAPHIC) {
-        h = dot3(n, w->f);
-        mh = adot3(n, w->f);
-        s = 1.0;
-        ms = 1.0;
-        normal2 = delta * delta * (1.0 - h * h);
-        mnormal2 = delta * delta * (1.0 + mh * mh);
-    } else {
-        h = dot3(v, n);
-        mh = adot3(v, n);
-        s = d2; /* d2 is a sum of squares: its magnitude is itself */
-        ms = d2;
-        normal2 = delta * delta * (d2 - h * h);
-        mnormal2 = delta * delta * (d2 + mh * mh);
-    }
-    if (w->flags & TEST_ORIENTATION) {
-        int away;
-        if (w->flags & ORTHOGRAPHIC) {
-            /* (ca > 0) & (h > sa) */
-            away = and3(ca > 0 ? YES : NO, less(sa - h, fabs(sa) + mh, slack));
+        const float e2 = error * error;
+        if (ortho) {
+            whole |= orientation & (hf * q.axis_scale > q.facing);
+            whole |= screen & (e2 < kappa2 * (1 - SCREEN_MARGIN)) & (kappa2 > LOW) & (e2 < HIGH);
         } else {
-            /* (t2 > 0) & (ca > 0) & (ca ca t2 > sr sr) & (g > 0) & (g g > sa sa t2) */
-            double t2 = d2 - r * r, mt2 = d2 + r * r;
-            double sr = sa * r, g = h - ca * r, mg = mh + fabs(ca) * ar;
-            away = ca > 0 ? YES : NO;
-            away = and3(away, less(-t2, mt2, slack));
-            away = and3(away, less(sr * sr - ca * ca * t2, sr * sr + ca * ca * mt2, slack));
-            away = and3(away, less(-g, mg, slack));
-            away = and3(away, less(sa * sa * t2 - g * g, sa * sa * mt2 + mg * mg, slack));
+            float a = hv * q.axis_scale;
+            float lhs = a * sqrtf(pos(d2 - reach * reach)) - reach * sqrtf(pos(d2 - a * a));
+            float gap = d - reach, far = d + reach;
+            whole |= orientation & (d2 > reach * reach) & (a > 0) & (lhs > d2 * q.facing) &
+                     (gap * gap > 0x1p-80f) & (far * far < HIGH);
+            float room = d - spread - SCREEN_MARGIN * (d + spread);
+            float room2 = room * room, far2 = (d + spread) * (d + spread);
+            whole |= screen & (room > 0) & (e2 < kappa2 * room2 * (1 - SCREEN_MARGIN)) &
+                     (kappa2 * (room2 < 1.0f ? room2 * room2 : room2) > LOW) & (kappa2 * far2 * far2 < HIGH) &
+                     (e2 * far2 < HIGH);
         }
-        out = or3(out, away);
-        if (out == YES)
-            return YES;
+
+        /* -- own decision, certified -- */
+        /* Flush slack: the smallest normal scaled by a bound on the factors
+         * that can multiply a flushed intermediate downstream (squared: at
+         * most two such factors). Beyond the guard nothing is certified. */
+        const float scale = 1 + avx + avy + avz + ar + fabsf(nx) + fabsf(ny) + fabsf(nz) + fabsf(sa) + fabsf(ca) +
+                            fabsf(delta) + fabsf(mu);
+        const float factor = scale * scale * kabs;
+        const float slack = FLUSH * factor * factor;
+        const int guard = (scale < 0x1p24f) & (kabs < 0x1p16f) & (d2 < HIGH);
+        Sure out = {0, 1};
+        {
+            /* (z + r < near) | (z - r > far) | (sx - |x| < -r lx) | (sy - |y| < -r ly) */
+            const float msx = mz * fabsf(k0) + fabsf(k2), msy = mz * fabsf(k1) + fabsf(k3);
+            Sure f = less(z + r - k6, mz + ar + fabsf(k6), slack);
+            f = sure_or(f, less(k7 - (z - r), fabsf(k7) + mz + ar, slack));
+            f = sure_or(f, less(sx - fabsf(x) + r * k4, msx + mx + ar * fabsf(k4), slack));
+            f = sure_or(f, less(sy - fabsf(y) + r * k5, msy + my + ar * fabsf(k5), slack));
+            out.y = frustum & f.y;
+            out.n = (!frustum) | f.n;
+        }
+        const float h = ortho ? hf : hv, mh = ortho ? mhf : mhv;
+        const float s = ortho ? 1.0f : d2; /* d2 is a sum of squares: its magnitude is itself */
+        {
+            /* ca > 0 is exact, but XLA reads a subnormal ca as 0. */
+            const Sure cos_positive = {ca >= 0x1p-126f, ca <= 0.0f};
+            Sure away;
+            if (ortho) {
+                /* (ca > 0) & (h > sa) */
+                away = sure_and(cos_positive, less(sa - h, fabsf(sa) + mh, slack));
+            } else {
+                /* (t2 > 0) & (ca > 0) & (ca ca t2 > sr sr) & (g > 0) & (g g > sa sa t2) */
+                float t2 = d2 - r * r, mt2 = d2 + r * r;
+                float sr = sa * r, g = h - ca * r, mg = mh + fabsf(ca) * ar;
+                away = sure_and(cos_positive, less(-t2, mt2, slack));
+                away = sure_and(away, less(sr * sr - ca * ca * t2, sr * sr + ca * ca * mt2, slack));
+                away = sure_and(away, less(-g, mg, slack));
+                away = sure_and(away, less(sa * sa * t2 - g * g, sa * sa * mt2 + mg * mg, slack));
+            }
+            away.y &= orientation;
+            away.n |= !orientation;
+            out = sure_or(out, away);
+        }
+        {
+            /* (mu2 < kappa2 s) & (normal2 < kappa2 s s) */
+            const float normal2 = delta * delta * (s - h * h), mnormal2 = delta * delta * (s + mh * mh);
+            Sure small = less(mu * mu - kappa2 * s, mu * mu + kappa2 * s, slack);
+            small = sure_and(small, less(normal2 - kappa2 * s * s, mnormal2 + kappa2 * s * s, slack));
+            small.y &= screen;
+            small.n |= !screen;
+            out = sure_or(out, small);
+        }
+        /* YES = 1, NO = 0, UNSURE = 2, WHOLE = 4, without branches. */
+        const int yes = guard & out.y, sure = guard & (out.y | out.n);
+        return yes | (!sure << 1) | ((whole != 0) << 2);
     }
-    if (w->flags & TEST_SCREEN) {
-        /* (mu2 < kappa2 s) & (normal2 < kappa2 s s) */
-        double kappa2 = w->kappa2, limit = kappa2 * s;
-        int small = less(mu * mu - limit, mu * mu + kappa2 * ms, slack);
-        small = and3(small, less(normal2 - limit * s, mnormal2 + kappa2 * ms * ms, slack));
-        out = or3(out, small);
+}
+
+/* A block of pcols under one camera. */
+static inline __attribute__((always_inline)) void decide_lanes(const View *w, float (*restrict col)[BLOCK],
+                                                               int32_t *restrict state, const int ortho)
+{
+    /* The constants in a local: the stores to state[] could otherwise alias
+     * them and force a reload per lane (no vectorization). */
+    const Lane L = lane_of(w);
+#pragma omp simd
+    for (int j = 0; j < BLOCK; j++)
+        state[j] = decide_one(&L, pcol_at(col, j), ortho);
+}
+
+/* The two projections, each a loop without branches, compiled for the
+ * vector units the processor has. */
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#define VECTOR_CLONES __attribute__((target_clones("avx512f", "avx2", "default")))
+#else
+#define VECTOR_CLONES
+#endif
+VECTOR_CLONES static void decide_perspective(const View *w, Columns col, int32_t *state)
+{
+    decide_lanes(w, col, state, 0);
+}
+VECTOR_CLONES static void decide_orthographic(const View *w, Columns col, int32_t *state)
+{
+    decide_lanes(w, col, state, 1);
+}
+/* Lane results as int32, so that the loop runs at the floats' vector width
+ * (byte results made the compiler pick 16-byte vectors). */
+static void decide_block(const View *w, Columns col, int32_t *state)
+{
+    if (w->flags & ORTHOGRAPHIC)
+        decide_orthographic(w, col, state);
+    else
+        decide_perspective(w, col, state);
+}
+
+/* Rows ids[0..n) into columns; the rest of the block repeats the first row,
+ * whose decisions are not read (arbitrary values there could be subnormal,
+ * which costs the vector unit a microcode assist per instruction). A row is
+ * ROW = 16 floats and a block BLOCK = 16 rows, so this is a 16 x 16
+ * transpose: in registers where the processor has AVX-512 or AVX2 (a third of
+ * the time of element copies, which also stall the column loads after them). */
+static void gather_scalar(const float *const *rows, Columns col)
+{
+    for (int j = 0; j < BLOCK; j++)
+        for (int c = 0; c < ROW; c++)
+            col[c][j] = rows[j][c];
+}
+
+#if defined(__x86_64__) && defined(__GNUC__)
+#include <immintrin.h>
+
+__attribute__((target("avx512f"))) static void gather_avx512(const float *const *rows, Columns col)
+{
+    __m512 r[16], t[16];
+    for (int j = 0; j < 16; j++)
+        r[j] = _mm512_loadu_ps(rows[j]);
+    /* Pairs of rows interleaved, then pairs of pairs, then 128-bit lanes twice. */
+    for (int j = 0; j < 16; j += 2) {
+        t[j] = _mm512_unpacklo_ps(r[j], r[j + 1]);
+        t[j + 1] = _mm512_unpackhi_ps(r[j], r[j + 1]);
     }
-    return out;
+    for (int j = 0; j < 16; j += 4) {
+        __m512d a = _mm512_castps_pd(t[j]), b = _mm512_castps_pd(t[j + 1]);
+        __m512d c = _mm512_castps_pd(t[j + 2]), d = _mm512_castps_pd(t[j + 3]);
+        r[j] = _mm512_castpd_ps(_mm512_unpacklo_pd(a, c));
+        r[j + 1] = _mm512_castpd_ps(_mm512_unpackhi_pd(a, c));
+        r[j + 2] = _mm512_castpd_ps(_mm512_unpacklo_pd(b, d));
+        r[j + 3] = _mm512_castpd_ps(_mm512_unpackhi_pd(b, d));
+    }
+    for (int j = 0; j < 4; j++) {
+        t[j] = _mm512_shuffle_f32x4(r[j], r[j + 4], 0x88);
+        t[j + 4] = _mm512_shuffle_f32x4(r[j], r[j + 4], 0xdd);
+        t[j + 8] = _mm512_shuffle_f32x4(r[j + 8], r[j + 12], 0x88);
+        t[j + 12] = _mm512_shuffle_f32x4(r[j + 8], r[j + 12], 0xdd);
+    }
+    for (int j = 0; j < 8; j++) {
+        _mm512_storeu_ps(col[j], _mm512_shuffle_f32x4(t[j], t[j + 8], 0x88));
+        _mm512_storeu_ps(col[j + 8], _mm512_shuffle_f32x4(t[j], t[j + 8], 0xdd));
+    }
+}
+
+/* One 8 x 8 quarter: rows[0..8) from column c0 into col[c0..c0+8)[j0..j0+8). */
+__attribute__((target("avx2"))) static inline void transpose8(const float *const *rows, int c0, Columns col, int j0)
+{
+    __m256 r[8], t[8], u[8];
+    for (int j = 0; j < 8; j++)
+        r[j] = _mm256_loadu_ps(rows[j] + c0);
+    for (int j = 0; j < 8; j += 2) {
+        t[j] = _mm256_unpacklo_ps(r[j], r[j + 1]);
+        t[j + 1] = _mm256_unpackhi_ps(r[j], r[j + 1]);
+    }
+    for (int j = 0; j < 8; j += 4) {
+        u[j] = _mm256_shuffle_ps(t[j], t[j + 2], _MM_SHUFFLE(1, 0, 1, 0));
+        u[j + 1] = _mm256_shuffle_ps(t[j], t[j + 2], _MM_SHUFFLE(3, 2, 3, 2));
+        u[j + 2] = _mm256_shuffle_ps(t[j + 1], t[j + 3], _MM_SHUFFLE(1, 0, 1, 0));
+        u[j + 3] = _mm256_shuffle_ps(t[j + 1], t[j + 3], _MM_SHUFFLE(3, 2, 3, 2));
+    }
+    for (int j = 0; j < 4; j++) {
+        _mm256_storeu_ps(col[c0 + j] + j0, _mm256_permute2f128_ps(u[j], u[j + 4], 0x20));
+        _mm256_storeu_ps(col[c0 + j + 4] + j0, _mm256_permute2f128_ps(u[j], u[j + 4], 0x31));
+    }
+}
+
+__attribute__((target("avx2"))) static void gather_avx2(const float *const *rows, Columns col)
+{
+    transpose8(rows, 0, col, 0);
+    transpose8(rows, 8, col, 0);
+    transpose8(rows + 8, 0, col, 8);
+    transpose8(rows + 8, 8, col, 8);
+}
+#endif
+
+typedef void (*GatherFn)(const float *const *, Columns);
+
+static GatherFn gather_for_this_cpu(void)
+{
+#if defined(__x86_64__) && defined(__GNUC__)
+    __builtin_cpu_init();
+    if (__builtin_cpu_supports("avx512f"))
+        return gather_avx512;
+    if (__builtin_cpu_supports("avx2"))
+        return gather_avx2;
+#endif
+    return gather_scalar;
+}
+
+static inline void gather_block(const float *table, const int32_t *ids, int64_t n, Columns col)
+{
+    static GatherFn gather = NULL; /* set once; racing threads write the same value */
+    if (!gather)
+        gather = gather_for_this_cpu();
+    const float *rows[BLOCK];
+    for (int64_t j = 0; j < BLOCK; j++)
+        rows[j] = table + (int64_t)ids[j < n ? j : 0] * ROW;
+    gather(rows, col);
 }
 
 /* Top-down traversal from the roots, breadth first: slot i holds pcol ids[i]
  * with state[i]; kid[2i], kid[2i+1] are the slots of its children (-1: not
  * visited, which means original or decided, and so executed). Returns the
  * number of slots; unsure[] receives the slots whose own decision is
- * UNSURE, *n_unsure their number. Capacity: P slots. */
+ * UNSURE, *n_unsure their number. Capacity: P slots. Slots are decided a
+ * block at a time; the children of a block are pushed behind the queue. */
 static int64_t traverse(const Mesh *pm, const View *w, const int32_t *roots, int64_t n_roots, int32_t *ids,
-                        int32_t *kid, uint8_t *state, int32_t *unsure, int64_t *n_unsure)
+                        int32_t *kid, uint8_t *state, int32_t *unsure, int64_t *n_unsure, const int32_t *known,
+                        const uint8_t *known_yes, int64_t n_known)
 {
     int64_t n = 0, m = 0;
+    Columns col;
+    int32_t decided[BLOCK];
     for (int64_t i = 0; i < n_roots; i++)
         ids[n++] = roots[i];
-    for (int64_t i = 0; i < n; i++) {
-        const float *row = pm->table + (int64_t)ids[i] * ROW;
-        double v[3] = {(double)row[CX] - w->e[0], (double)row[CY] - w->e[1], (double)row[CZ] - w->e[2]};
-        double d2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
-        kid[2 * i] = kid[2 * i + 1] = -1;
-        if (whole(w, row, v, d2)) {
-            state[i] = WHOLE | YES;
-            continue;
+    for (int64_t i = 0; i < n;) {
+        int64_t nb = n - i < BLOCK ? n - i : BLOCK;
+        /* The rows a few blocks ahead in the queue, so that they arrive in
+         * time without more requests in flight than the memory system holds. */
+        for (int64_t j = i + AHEAD; j < i + AHEAD + nb && j < n; j++) {
+            __builtin_prefetch(pm->table + (int64_t)ids[j] * ROW);
+            __builtin_prefetch(pm->kids + ids[j]);
         }
-        int own = collapse(w, row, v, d2);
-        state[i] = (uint8_t)own;
-        if (own == UNSURE)
-            unsure[m++] = (int32_t)i;
-        /* The children are visited whatever this pcol does: each may run
-         * on its own. Their rows are fetched ahead of their turn. */
-        const int32_t *c = pm->children + 2 * (int64_t)ids[i];
-        for (int j = 0; j < 2; j++) {
-            if (c[j] >= 0) {
-                __builtin_prefetch(pm->table + (int64_t)c[j] * ROW);
-                kid[2 * i + j] = (int32_t)n;
-                ids[n++] = c[j];
+        gather_block(pm->table, ids + i, nb, col);
+        decide_block(w, col, decided);
+        for (int64_t j = i; j < i + nb; j++) {
+            const int32_t own = decided[j - i];
+            kid[2 * j] = kid[2 * j + 1] = -1;
+            if (own & WHOLE) {
+                state[j] = WHOLE | YES;
+                continue;
+            }
+            state[j] = (uint8_t)own;
+            if (own == UNSURE) {
+                /* Decided by the caller (the float32 predicate) on an earlier pass? */
+                int64_t q = 0;
+                while (q < n_known && known[q] != pm->order[ids[j]])
+                    q++;
+                if (q < n_known)
+                    state[j] = known_yes[q] ? YES : NO;
+                else
+                    unsure[m++] = (int32_t)j;
+            }
+            /* The children are visited whatever this pcol does (each may run
+             * on its own); their rows are fetched ahead of their turn. */
+            const int32_t first = pm->kids[ids[j]] >> 2, count = pm->kids[ids[j]] & 3;
+            for (int t = 0; t < count; t++) {
+                kid[2 * j + t] = (int32_t)n;
+                ids[n++] = first + t;
             }
         }
+        i += nb;
     }
     *n_unsure = m;
     return n;
 }
 
 /* Bottom-up: a slot ran if its subtree was decided, or it collapses and both
- * children ran (children always sit in later slots). Writes ran[] (0/1) and
- * the counts: pcols that did not run and the faces they keep. */
+ * children ran (children always sit in later slots). Writes ran[] (0/1), the
+ * counts (pcols that did not run, the faces they keep) and pcols[], the pcol
+ * of each slot (ids[] holds positions). */
 static void resolve(const Mesh *pm, int64_t n, const int32_t *ids, const int32_t *kid, const uint8_t *state,
-                    uint8_t *ran, int64_t *n_not_run, int64_t *kept)
+                    uint8_t *ran, int32_t *pcols, int64_t *n_not_run, int64_t *kept)
 {
     int64_t not_run = 0, keep = 0;
     for (int64_t i = n - 1; i >= 0; i--) {
@@ -299,6 +516,7 @@ static void resolve(const Mesh *pm, int64_t n, const int32_t *ids, const int32_t
             not_run++;
             keep += pm->kills[ids[i]];
         }
+        pcols[i] = pm->order[ids[i]];
     }
     *n_not_run = not_run;
     *kept = keep;
@@ -307,63 +525,239 @@ static void resolve(const Mesh *pm, int64_t n, const int32_t *ids, const int32_t
 /* ---- entry points (ctypes) ---------------------------------------------- */
 
 /* One camera. Traverses, and resolves unless a decision is unsure; returns
- * the number of visited slots. out[0] = unsure slots (then call
- * pmx_resolve after deciding them), out[1] = pcols not run, out[2] = faces
- * they keep. */
-int64_t pmx_refine(const float *table, const int32_t *children, const int32_t *kills, int64_t n_pcols,
-                   const int32_t *roots, int64_t n_roots, const float *view, int flags, int32_t *ids, int32_t *kid,
-                   uint8_t *state, uint8_t *ran, int32_t *unsure, int64_t *out)
+ * the number of visited slots (ids[]: their positions). out[0] = unsure
+ * slots (decide them, then call pmx_resolve), out[1] = pcols not run,
+ * out[2] = faces they keep; pcols[]: the slots' pcols once resolved. */
+int64_t pmx_refine(const float *table, const int32_t *kids, const int32_t *kills, const int32_t *order,
+                   int64_t n_pcols, const int32_t *roots, int64_t n_roots, const float *view, int flags, int32_t *ids,
+                   int32_t *kid, uint8_t *state, uint8_t *ran, int32_t *pcols, int32_t *unsure, int64_t *out)
 {
-    Mesh pm = {table, children, kills, n_pcols};
+    Mesh pm = {table, kids, kills, order, n_pcols};
     View w;
     load_view(&w, view, flags);
     int64_t m = 0;
-    int64_t n = traverse(&pm, &w, roots, n_roots, ids, kid, state, unsure, &m);
+    int64_t n = traverse(&pm, &w, roots, n_roots, ids, kid, state, unsure, &m, NULL, NULL, 0);
     out[0] = m;
     out[1] = out[2] = 0;
     if (m == 0)
-        resolve(&pm, n, ids, kid, state, ran, &out[1], &out[2]);
+        resolve(&pm, n, ids, kid, state, ran, pcols, &out[1], &out[2]);
     return n;
 }
 
 /* The bottom-up pass after the unsure decisions were written into state[]
  * (YES or NO). */
-void pmx_resolve(const int32_t *kills, int64_t n, const int32_t *ids, const int32_t *kid, const uint8_t *state,
-                 uint8_t *ran, int64_t *out)
+void pmx_resolve(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids, const int32_t *kid,
+                 const uint8_t *state, uint8_t *ran, int32_t *pcols, int64_t *out)
 {
-    Mesh pm = {NULL, NULL, kills, 0};
-    resolve(&pm, n, ids, kid, state, ran, &out[0], &out[1]);
+    Mesh pm = {NULL, NULL, kills, order, 0};
+    resolve(&pm, n, ids, kid, state, ran, pcols, &out[0], &out[1]);
 }
 
 /* Cameras k0..k1-1 of views [K, 22], each traversed and resolved with the
  * same scratch. counts[3k..3k+2] = visited slots, pcols not run, faces they
- * keep; status[k] = 1 when the camera had an unsure decision (its counts are
- * then not written: the caller refines it alone). masks: optional [K, P]
- * executed bytes. */
-void pmx_refine_many(const float *table, const int32_t *children, const int32_t *kills, int64_t n_pcols,
-                     const int32_t *roots, int64_t n_roots, const float *views, int flags, int64_t k0, int64_t k1,
-                     int32_t *ids, int32_t *kid, uint8_t *state, uint8_t *ran, int32_t *unsure, int64_t *counts,
-                     uint8_t *status, uint8_t *masks)
+ * keep. A camera with unsure decisions gets status[k] = their number (its
+ * counts are not written) and, if at most UNSURE_PER_CAMERA, their pcols in
+ * unsure_pcols[k * UNSURE_PER_CAMERA...]: the caller decides them and calls
+ * again with known (pcols, decisions per camera, known_count[k] of them at
+ * known[k * UNSURE_PER_CAMERA...]). masks: optional [K, P] executed bytes. */
+#define UNSURE_PER_CAMERA 16
+void pmx_refine_many(const float *table, const int32_t *kids, const int32_t *kills, const int32_t *order,
+                     int64_t n_pcols, const int32_t *roots, int64_t n_roots, const float *views, int flags, int64_t k0,
+                     int64_t k1, int32_t *ids, int32_t *kid, uint8_t *state, uint8_t *ran, int32_t *pcols,
+                     int32_t *unsure, int64_t *counts, int32_t *status, int32_t *unsure_pcols, const int32_t *known,
+                     const uint8_t *known_yes, const int32_t *known_count, uint8_t *masks)
 {
-    Mesh pm = {table, children, kills, n_pcols};
+    Mesh pm = {table, kids, kills, order, n_pcols};
     for (int64_t c = k0; c < k1; c++) {
         View w;
         load_view(&w, views + 22 * c, flags);
-        int64_t m = 0;
-        int64_t n = traverse(&pm, &w, roots, n_roots, ids, kid, state, unsure, &m);
-        status[c] = m > 0;
-        if (m > 0)
+        int64_t m = 0, nk = known_count ? known_count[c] : 0;
+        if (known_count && nk == 0)
+            continue; /* an again-call: this camera is done */
+        int64_t n = traverse(&pm, &w, roots, n_roots, ids, kid, state, unsure, &m,
+                             known ? known + c * UNSURE_PER_CAMERA : NULL,
+                             known ? known_yes + c * UNSURE_PER_CAMERA : NULL, nk);
+        status[c] = (int32_t)m;
+        if (m > 0) {
+            for (int64_t q = 0; q < m && q < UNSURE_PER_CAMERA; q++)
+                unsure_pcols[c * UNSURE_PER_CAMERA + q] = order[ids[unsure[q]]];
             continue;
-        resolve(&pm, n, ids, kid, state, ran, &counts[3 * c + 1], &counts[3 * c + 2]);
+        }
+        resolve(&pm, n, ids, kid, state, ran, pcols, &counts[3 * c + 1], &counts[3 * c + 2]);
         counts[3 * c] = n;
         if (masks) {
             uint8_t *row = masks + c * n_pcols;
             memset(row, 1, (size_t)n_pcols);
             for (int64_t i = 0; i < n; i++)
                 if (!ran[i])
-                    row[ids[i]] = 0;
+                    row[pcols[i]] = 0;
         }
     }
+}
+
+/* ---- words: consecutive frames of a camera path together ---------------- */
+
+/* A word holds FRAMES consecutive frames of a path, one bit each. A pcol is
+ * visited once for the frames whose traversal reaches it, its row read once,
+ * and each frame's own decision and subtree bound evaluated in one vectorized
+ * pass over the frames: consecutive frames share most of their front, so the
+ * word visits little more than one frame alone (docs/path.md). */
+#define FRAMES 16
+typedef uint16_t Lanes;
+
+/* The word's cameras, struct of arrays (one Lane per frame). */
+typedef struct {
+    float ex[FRAMES], ey[FRAMES], ez[FRAMES], R[3][FRAMES], U[3][FRAMES], F[3][FRAMES], k[8][FRAMES];
+    float kappa2[FRAMES], kabs[FRAMES], kfac[FRAMES], kpad[FRAMES];
+    int frustum, orientation, screen, ortho;
+} Frames;
+
+static void load_frames(Frames *fr, const float *views, int n_frames, int flags)
+{
+    for (int l = 0; l < FRAMES; l++) {
+        View w;
+        load_view(&w, views + 22 * (l < n_frames ? l : 0), flags); /* spare lanes repeat frame 0 */
+        Lane L = lane_of(&w);
+        fr->ex[l] = L.ex, fr->ey[l] = L.ey, fr->ez[l] = L.ez;
+        fr->R[0][l] = L.R0, fr->R[1][l] = L.R1, fr->R[2][l] = L.R2;
+        fr->U[0][l] = L.U0, fr->U[1][l] = L.U1, fr->U[2][l] = L.U2;
+        fr->F[0][l] = L.F0, fr->F[1][l] = L.F1, fr->F[2][l] = L.F2;
+        const float k[8] = {L.k0, L.k1, L.k2, L.k3, L.k4, L.k5, L.k6, L.k7};
+        for (int i = 0; i < 8; i++)
+            fr->k[i][l] = k[i];
+        fr->kappa2[l] = L.kappa2, fr->kabs[l] = L.kabs, fr->kfac[l] = L.kfac, fr->kpad[l] = L.kpad;
+        fr->frustum = L.frustum, fr->orientation = L.orientation, fr->screen = L.screen;
+    }
+    fr->ortho = (flags & ORTHOGRAPHIC) != 0;
+}
+
+static inline Lane frame_at(const Frames *fr, int l)
+{
+    Lane L = {fr->ex[l],    fr->ey[l],    fr->ez[l],    fr->R[0][l],   fr->R[1][l],   fr->R[2][l],
+              fr->U[0][l],  fr->U[1][l],  fr->U[2][l],  fr->F[0][l],   fr->F[1][l],   fr->F[2][l],
+              fr->k[0][l],  fr->k[1][l],  fr->k[2][l],  fr->k[3][l],   fr->k[4][l],   fr->k[5][l],
+              fr->k[6][l],  fr->k[7][l],  fr->kappa2[l], fr->kabs[l],  fr->kfac[l],   fr->kpad[l],
+              fr->frustum,  fr->orientation, fr->screen};
+    return L;
+}
+
+static inline __attribute__((always_inline)) void decide_frames_lanes(const Frames *restrict fr, const float *row,
+                                                                      int32_t *restrict code, const int ortho)
+{
+    const Pcol q = pcol_of(row);
+#pragma omp simd
+    for (int l = 0; l < FRAMES; l++) {
+        const Lane L = frame_at(fr, l);
+        code[l] = decide_one(&L, q, ortho);
+    }
+}
+VECTOR_CLONES static void decide_frames_perspective(const Frames *fr, const float *row, int32_t *code)
+{
+    decide_frames_lanes(fr, row, code, 0);
+}
+VECTOR_CLONES static void decide_frames_orthographic(const Frames *fr, const float *row, int32_t *code)
+{
+    decide_frames_lanes(fr, row, code, 1);
+}
+
+/* One word. Slot i holds position ids[i], visited by the frames visit[i];
+ * whole[i], yes[i] are the frames whose subtree bound decided it and whose own
+ * decision is yes. Returns the number of slots; the slots with unsure frames
+ * go to unsure_slots[] with the frames in unsure_lanes[] (out[0] of them):
+ * decide them, set their yes[] bits and call pmx_resolve_word. */
+int64_t pmx_refine_word(const float *table, const int32_t *kids, const int32_t *order, const int32_t *roots,
+                        int64_t n_roots, const float *views, int n_frames, int flags, int32_t *ids, int32_t *kid,
+                        Lanes *visit, Lanes *whole, Lanes *yes, int32_t *unsure_slots, Lanes *unsure_lanes,
+                        int64_t *out)
+{
+    Frames fr;
+    load_frames(&fr, views, n_frames, flags);
+    const Lanes active = (Lanes)((1u << n_frames) - 1);
+    int32_t code[FRAMES];
+    int64_t n = 0, m = 0;
+    for (int64_t i = 0; i < n_roots; i++) {
+        ids[n] = roots[i];
+        visit[n++] = active;
+    }
+    for (int64_t i = 0; i < n; i++) {
+        if (i + AHEAD < n) {
+            __builtin_prefetch(table + (int64_t)ids[i + AHEAD] * ROW);
+            __builtin_prefetch(kids + ids[i + AHEAD]);
+        }
+        const float *row = table + (int64_t)ids[i] * ROW;
+        if (fr.ortho)
+            decide_frames_orthographic(&fr, row, code);
+        else
+            decide_frames_perspective(&fr, row, code);
+        Lanes wh = 0, y = 0, u = 0;
+        for (int l = 0; l < FRAMES; l++) {
+            wh |= (Lanes)(((code[l] & WHOLE) != 0) << l);
+            y |= (Lanes)(((code[l] & 3) == YES) << l);
+            u |= (Lanes)(((code[l] & 3) == UNSURE) << l);
+        }
+        const Lanes v = visit[i], open = v & (Lanes)~wh;
+        whole[i] = v & wh;
+        yes[i] = open & y;
+        if (open & u) {
+            unsure_slots[m] = (int32_t)i;
+            unsure_lanes[m++] = open & u;
+        }
+        kid[2 * i] = kid[2 * i + 1] = -1;
+        if (!open)
+            continue;
+        /* The children, for the frames that did not decide this subtree. */
+        const int32_t first = kids[ids[i]] >> 2, count = kids[ids[i]] & 3;
+        for (int t = 0; t < count; t++) {
+            kid[2 * i + t] = (int32_t)n;
+            visit[n] = open;
+            ids[n++] = first + t;
+        }
+    }
+    out[0] = m;
+    return n;
+}
+
+/* Bottom-up for a word: per frame, a slot ran if the frame did not visit it
+ * (decided above), its bound decided it, or it collapses and both children
+ * ran. Writes ran[], pcols[] (each slot's pcol) and per frame the pcols that
+ * did not run (not_run[FRAMES]) and the faces they keep (kept[FRAMES]). */
+void pmx_resolve_word(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids, const int32_t *kid,
+                      const Lanes *visit, const Lanes *whole, const Lanes *yes, Lanes *ran, int32_t *pcols,
+                      int64_t *not_run, int64_t *kept)
+{
+    for (int l = 0; l < FRAMES; l++)
+        not_run[l] = kept[l] = 0;
+    for (int64_t i = n - 1; i >= 0; i--) {
+        int32_t k1 = kid[2 * i], k2 = kid[2 * i + 1];
+        Lanes below = (Lanes)((k1 < 0 ? 0xFFFF : ran[k1]) & (k2 < 0 ? 0xFFFF : ran[k2]));
+        Lanes r = (Lanes)(~visit[i] | whole[i] | (yes[i] & below));
+        ran[i] = r;
+        pcols[i] = order[ids[i]];
+        Lanes failed = (Lanes)~r;
+        if (failed) {
+            int32_t k = kills[ids[i]];
+            for (int l = 0; l < FRAMES; l++) {
+                int bit = (failed >> l) & 1;
+                not_run[l] += bit;
+                kept[l] += bit * k;
+            }
+        }
+    }
+}
+
+/* Frame `lane` of a resolved word as one refinement's lists: the pcols it
+ * visited, whether each ran, their positions. Returns their number. */
+int64_t pmx_word_frame(int64_t n, const int32_t *ids, const int32_t *pcols, const Lanes *visit, const Lanes *ran,
+                       int lane, int32_t *out_pcols, uint8_t *out_ran, int32_t *out_positions)
+{
+    int64_t c = 0;
+    for (int64_t i = 0; i < n; i++)
+        if ((visit[i] >> lane) & 1) {
+            out_pcols[c] = pcols[i];
+            out_ran[c] = (ran[i] >> lane) & 1;
+            out_positions[c++] = ids[i];
+        }
+    return c;
 }
 
 /* Every pcol's own decision (YES, NO or UNSURE) and subtree bound (out[p]
@@ -373,127 +767,169 @@ void pmx_decide_all(const float *table, int64_t n_pcols, const float *view, int 
 {
     View w;
     load_view(&w, view, flags);
-    for (int64_t p = 0; p < n_pcols; p++) {
-        const float *row = table + p * ROW;
-        double v[3] = {(double)row[CX] - w.e[0], (double)row[CY] - w.e[1], (double)row[CZ] - w.e[2]};
-        double d2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
-        out[p] = (uint8_t)(collapse(&w, row, v, d2) | (whole(&w, row, v, d2) ? WHOLE : 0));
+    Columns col;
+    int32_t state[BLOCK];
+    int32_t ids[BLOCK];
+    for (int64_t p = 0; p < n_pcols; p += BLOCK) {
+        int64_t nb = n_pcols - p < BLOCK ? n_pcols - p : BLOCK;
+        for (int64_t j = 0; j < nb; j++)
+            ids[j] = (int32_t)(p + j);
+        gather_block(table, ids, nb, col);
+        decide_block(&w, col, state);
+        for (int64_t j = 0; j < nb; j++)
+            out[p + j] = (uint8_t)state[j];
     }
 }
 
 /* ---- the mesh from the front --------------------------------------------- */
 
+/* Per pcol, what the mesh needs of it, in one record (pmjax/_native.py
+ * MeshArrays): its two vertices, their depth-first starts and positions, and
+ * where its kill list starts in the kill data. */
+typedef struct {
+    int32_t kill_first, kill_count, vertex[2], start[2];
+    float position[2][3];
+} PcolRecord;
+
+/* A face with the depth-first starts of its corners. */
+typedef struct {
+    int32_t face, start[3];
+} FaceRecord;
+
+/* A front vertex: its depth-first start, id and position. */
+typedef struct {
+    int32_t start, vertex;
+    float position[3];
+} FrontVertex;
+
 static inline void set_bit(uint64_t *bits, int64_t i) { bits[i >> 6] |= (uint64_t)1 << (i & 63); }
+
+/* Rank of bit i among the set bits (bit i set): set bits before word i/64
+ * (prefix[]) plus those below it in its word. */
+static inline int64_t rank_of(const uint64_t *bits, const int32_t *prefix, int64_t i)
+{
+    uint64_t below = bits[i >> 6] & ((((uint64_t)2) << (i & 63)) - 1);
+    return prefix[i >> 6] + __builtin_popcountll(below) - 1;
+}
+
+static void prefix_counts(const uint64_t *bits, int64_t words, int32_t *prefix)
+{
+    int32_t total = 0;
+    for (int64_t w = 0; w < words; w++) {
+        prefix[w] = total;
+        total += __builtin_popcountll(bits[w]);
+    }
+}
 
 /* The refined mesh from the pcols that did not run (pmjax/_front_mesh.py):
  * drawn faces are the base faces and those pcols' kill lists; each corner's
  * representative is the front vertex whose depth-first interval holds the
- * corner's position, found by a rank query on a bitmap of the front's
- * interval starts. faces_out [n_faces, 3] (indices into ids_out), ids_out
- * [<= front size] the vertex ids used, increasing. Returns the number of
- * ids, or -1 if the faces found are not n_faces (inconsistent input).
+ * corner's position. Every order and index comes from a rank in a bitmap
+ * (faces, front starts, vertex ids), so that besides those small bitmaps a
+ * pcol that did not run costs one record and its kill data, and nothing reads
+ * an array over all faces or vertices at random.
  *
- * Scratch (zero on entry, zero again on return): mark [P] bytes,
- * start_bits [V0/64 + 1], face_bits [F/64 + 1], vertex_bits [(V0+P)/64 + 1]
- * words; free scratch: rank_base [V0/64 + 1], owner_at [V0], sorted
- * [front], new_index [V0 + P] int32. */
-int64_t pmx_front_mesh(int64_t n_original, int64_t n_pcols, int64_t n_faces_total, const int32_t *not_run,
-                       int64_t n_not_run, const int64_t *kill_starts, const int32_t *kill_faces,
-                       const int32_t *base_faces, int64_t n_base, const int32_t *pair, const int32_t *roots,
-                       int64_t n_roots, const int32_t *lone, int64_t n_lone, const int32_t *start,
-                       const int32_t *face_start, int64_t n_faces, int32_t *faces_out, int32_t *ids_out,
+ * visited, visited_ran, visited_at: a refinement's visited pcols, whether
+ * each ran, and their positions, the index of records[] (breadth-first, so
+ * that the records are read in nearly increasing order). not_run, not_run_at:
+ * scratch [P]. Writes faces_out [n_faces, 3] (indices into ids_out, faces in increasing
+ * order), ids_out and positions_out (the vertices used, by increasing id).
+ * Returns their number, or -1 if the faces found are not n_faces.
+ *
+ * Scratch: mark [P] bytes, start_bits [V0/64+1], face_bits [F/64+1],
+ * vertex_bits [(V0+P)/64+1] words (zero on entry and on return);
+ * start_prefix, face_prefix, vertex_prefix int32 as their bitmaps; front,
+ * sorted [V0] FrontVertex; drawn [F] FaceRecord. */
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+__attribute__((target_clones("popcnt", "default"))) /* popcount in one instruction, not a call */
+#endif
+int64_t pmx_front_mesh(int64_t n_original, int64_t n_pcols, int64_t n_faces_total, const int32_t *visited,
+                       const uint8_t *visited_ran, const int32_t *visited_at, int64_t n_visited,
+                       int32_t *not_run, int32_t *not_run_at, const PcolRecord *records, const FaceRecord *kill_data,
+                       const FaceRecord *base, int64_t n_base, const FrontVertex *tops, const int32_t *top_pcol,
+                       int64_t n_tops, int64_t n_faces, int32_t *faces_out, int32_t *ids_out, float *positions_out,
                        uint8_t *mark, uint64_t *start_bits, uint64_t *face_bits, uint64_t *vertex_bits,
-                       int32_t *rank_base, int32_t *owner_at, int32_t *sorted, int32_t *new_index)
+                       int32_t *start_prefix, int32_t *face_prefix, int32_t *vertex_prefix, FrontVertex *front,
+                       FrontVertex *sorted, FaceRecord *drawn)
 {
     const int64_t V0 = n_original;
-    /* The front: below each pcol that did not run, its vertices that are
-     * original or whose own pcol ran; the roots that ran; the lone originals.
-     * Each marks its depth-first start. */
-    for (int64_t i = 0; i < n_not_run; i++)
-        mark[not_run[i]] = 1;
-    int64_t n_front = 0;
-#define ADD_FRONT(u)                                                                                               \
-    do {                                                                                                           \
-        int64_t s_ = start[(u)];                                                                                   \
-        set_bit(start_bits, s_);                                                                                   \
-        owner_at[s_] = (int32_t)(u);                                                                               \
-        n_front++;                                                                                                 \
-    } while (0)
-    for (int64_t i = 0; i < n_not_run; i++)
-        for (int j = 0; j < 2; j++) {
-            int64_t u = pair[2 * (int64_t)not_run[i] + j];
-            if (u < V0 || !mark[u - V0])
-                ADD_FRONT(u);
+    const int64_t start_words = V0 / 64 + 1, face_words = n_faces_total / 64 + 1;
+    const int64_t vertex_words = (V0 + n_pcols) / 64 + 1;
+    int64_t n_not_run = 0;
+    for (int64_t i = 0; i < n_visited; i++)
+        if (!visited_ran[i]) {
+            not_run[n_not_run] = visited[i];
+            not_run_at[n_not_run++] = visited_at[i];
+            mark[visited[i]] = 1;
         }
-    for (int64_t i = 0; i < n_roots; i++)
-        if (!mark[roots[i]])
-            ADD_FRONT(V0 + roots[i]);
-    for (int64_t i = 0; i < n_lone; i++)
-        ADD_FRONT(lone[i]);
-#undef ADD_FRONT
-    /* Ranks: the front in depth-first order, and the starts before each word. */
-    const int64_t words = V0 / 64 + 1;
-    int64_t rank = 0;
-    for (int64_t wd = 0; wd < words; wd++) {
-        rank_base[wd] = (int32_t)rank;
-        uint64_t b = start_bits[wd];
-        while (b) {
-            int bit = __builtin_ctzll(b);
-            sorted[rank++] = owner_at[wd * 64 + bit];
-            b &= b - 1;
-        }
-    }
-    /* Drawn faces, in increasing order through a bitmap. */
-    for (int64_t i = 0; i < n_base; i++)
-        set_bit(face_bits, base_faces[i]);
+    /* The front and the drawn faces. Below each pcol that did not run: its
+     * vertices that are original or whose own pcol ran, and its kill list. */
+    int64_t n_front = 0, n_drawn = 0;
     for (int64_t i = 0; i < n_not_run; i++) {
-        int64_t p = not_run[i];
-        for (int64_t j = kill_starts[p]; j < kill_starts[p + 1]; j++)
-            set_bit(face_bits, kill_faces[j]);
-    }
-    /* Each corner's front vertex; the vertices used, marked by id. */
-    int64_t n_drawn = 0;
-    const int64_t face_words = n_faces_total / 64 + 1;
-    for (int64_t wd = 0; wd < face_words; wd++) {
-        uint64_t b = face_bits[wd];
-        face_bits[wd] = 0;
-        while (b) {
-            int64_t f = wd * 64 + __builtin_ctzll(b);
-            b &= b - 1;
-            if (n_drawn < n_faces)
-                for (int j = 0; j < 3; j++) {
-                    int64_t pos = face_start[3 * f + j];
-                    uint64_t below = start_bits[pos >> 6] & ((((uint64_t)2) << (pos & 63)) - 1);
-                    int32_t u = sorted[rank_base[pos >> 6] + __builtin_popcountll(below) - 1];
-                    faces_out[3 * n_drawn + j] = u;
-                    set_bit(vertex_bits, u);
-                }
+        const PcolRecord *r = records + not_run_at[i];
+        for (int j = 0; j < 2; j++) {
+            int64_t u = r->vertex[j];
+            if (u < V0 || !mark[u - V0]) {
+                FrontVertex *f = front + n_front++;
+                f->start = r->start[j];
+                f->vertex = (int32_t)u;
+                memcpy(f->position, r->position[j], sizeof f->position);
+                set_bit(start_bits, r->start[j]);
+            }
+        }
+        for (int32_t j = 0; j < r->kill_count; j++) {
+            drawn[n_drawn] = kill_data[r->kill_first + j];
+            set_bit(face_bits, drawn[n_drawn].face);
             n_drawn++;
         }
     }
-    /* Output ids in increasing order, and each one's index. */
-    int64_t n_ids = 0;
-    const int64_t vertex_words = (V0 + n_pcols) / 64 + 1;
-    for (int64_t wd = 0; wd < vertex_words; wd++) {
-        uint64_t b = vertex_bits[wd];
-        if (!b)
-            continue;
-        vertex_bits[wd] = 0;
-        while (b) {
-            int64_t u = wd * 64 + __builtin_ctzll(b);
-            b &= b - 1;
-            new_index[u] = (int32_t)n_ids;
-            ids_out[n_ids++] = (int32_t)u;
+    /* The tops: the roots that ran (top_pcol >= 0) and the lone originals. */
+    for (int64_t i = 0; i < n_tops; i++)
+        if (top_pcol[i] < 0 || !mark[top_pcol[i]]) {
+            front[n_front++] = tops[i];
+            set_bit(start_bits, tops[i].start);
+        }
+    for (int64_t i = 0; i < n_base; i++)
+        set_bit(face_bits, base[i].face);
+    const int64_t total = n_drawn + n_base;
+    /* The front in depth-first order: each vertex goes to the rank of its start. */
+    prefix_counts(start_bits, start_words, start_prefix);
+    for (int64_t i = 0; i < n_front; i++)
+        sorted[rank_of(start_bits, start_prefix, front[i].start)] = front[i];
+    /* Each drawn face at its rank; each corner the front vertex holding it. */
+    prefix_counts(face_bits, face_words, face_prefix);
+    for (int64_t i = 0; i < total && total == n_faces; i++) {
+        const FaceRecord *f = i < n_drawn ? drawn + i : base + (i - n_drawn);
+        int32_t *row = faces_out + 3 * rank_of(face_bits, face_prefix, f->face);
+        for (int c = 0; c < 3; c++) {
+            int32_t u = sorted[rank_of(start_bits, start_prefix, f->start[c])].vertex;
+            row[c] = u;
+            set_bit(vertex_bits, u);
         }
     }
-    int64_t corners = 3 * (n_drawn < n_faces ? n_drawn : n_faces);
-    for (int64_t i = 0; i < corners; i++)
-        faces_out[i] = new_index[faces_out[i]];
+    /* Vertex ids to their rank among the vertices used; those vertices out. */
+    int64_t n_ids = 0;
+    if (total == n_faces) {
+        prefix_counts(vertex_bits, vertex_words, vertex_prefix);
+        for (int64_t i = 0; i < 3 * n_faces; i++)
+            faces_out[i] = (int32_t)rank_of(vertex_bits, vertex_prefix, faces_out[i]);
+        for (int64_t i = 0; i < n_front; i++) {
+            int64_t u = sorted[i].vertex;
+            if (vertex_bits[u >> 6] >> (u & 63) & 1) {
+                int64_t k = rank_of(vertex_bits, vertex_prefix, u);
+                ids_out[k] = (int32_t)u;
+                memcpy(positions_out + 3 * k, sorted[i].position, 3 * sizeof(float));
+                n_ids++;
+            }
+        }
+    }
     /* Leave the scratch as found. */
     for (int64_t i = 0; i < n_not_run; i++)
         mark[not_run[i]] = 0;
-    memset(start_bits, 0, sizeof(uint64_t) * (size_t)words);
-    return n_drawn == n_faces ? n_ids : -1;
+    memset(start_bits, 0, sizeof(uint64_t) * (size_t)start_words);
+    memset(face_bits, 0, sizeof(uint64_t) * (size_t)face_words);
+    memset(vertex_bits, 0, sizeof(uint64_t) * (size_t)vertex_words);
+    return total == n_faces ? n_ids : -1;
 }
 
 /* A module, so that setuptools builds and installs this file like any

@@ -26,6 +26,7 @@ from __future__ import annotations
 import ctypes
 import functools
 import importlib.util
+import math
 import os
 import threading
 
@@ -52,16 +53,22 @@ def _load():
         return None
     lib = ctypes.CDLL(spec.origin)
     lib.pmx_refine.restype = _i64
-    lib.pmx_refine.argtypes = [_p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _p, _p, _p, _p, _p, _p]
+    lib.pmx_refine.argtypes = [_p, _p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _p, _p, _p, _p, _p, _p, _p]
     lib.pmx_resolve.restype = None
-    lib.pmx_resolve.argtypes = [_p, _i64, _p, _p, _p, _p, _p]
+    lib.pmx_resolve.argtypes = [_p, _p, _i64, _p, _p, _p, _p, _p, _p]
     lib.pmx_refine_many.restype = None
-    lib.pmx_refine_many.argtypes = [_p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _i64, _i64] + [_p] * 8
+    lib.pmx_refine_many.argtypes = [_p, _p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _i64, _i64] + [_p] * 13
+    lib.pmx_refine_word.restype = _i64
+    lib.pmx_refine_word.argtypes = [_p, _p, _p, _p, _i64, _p, ctypes.c_int, ctypes.c_int] + [_p] * 8
+    lib.pmx_resolve_word.restype = None
+    lib.pmx_resolve_word.argtypes = [_p, _p, _i64] + [_p] * 9
+    lib.pmx_word_frame.restype = _i64
+    lib.pmx_word_frame.argtypes = [_i64, _p, _p, _p, _p, ctypes.c_int, _p, _p, _p]
     lib.pmx_decide_all.restype = None
     lib.pmx_decide_all.argtypes = [_p, _i64, _p, ctypes.c_int, _p]
     lib.pmx_front_mesh.restype = _i64
-    lib.pmx_front_mesh.argtypes = [_i64, _i64, _i64, _p, _i64, _p, _p, _p, _i64, _p, _p, _i64, _p, _i64, _p, _p,
-                                   _i64] + [_p] * 10
+    lib.pmx_front_mesh.argtypes = [_i64, _i64, _i64, _p, _p, _p, _i64, _p, _p, _p, _p, _p, _i64, _p, _p, _i64,
+                                   _i64] + [_p] * 13
     return lib
 
 
@@ -100,7 +107,7 @@ def decide_all(pm, camera, tau, tests) -> np.ndarray:
     ``UNSURE``) with bit 4 set where its subtree bound decides its subtree."""
     host = native_mesh(pm)
     out = np.empty(host.n_pcols, np.uint8)
-    values = view_values(camera, tau)  # held: the call reads it
+    values = host_view(camera, tau)  # held: the call reads it
     _LIB.pmx_decide_all(_ptr(host.table), host.n_pcols, _ptr(values), flags_of(tests, camera.orthographic),
                         _ptr(out))
     return out
@@ -115,9 +122,25 @@ def flags_of(tests, orthographic: bool) -> int:
             | TEST_SCREEN * bool(tests.screen) | ORTHOGRAPHIC * bool(orthographic))
 
 
+# The records of the front mesh (PcolRecord, FaceRecord, FrontVertex in
+# _front_native.c): all fields 4 bytes, so no padding on either side.
+PCOL_RECORD = np.dtype([("kill_first", "<i4"), ("kill_count", "<i4"), ("vertex", "<i4", 2), ("start", "<i4", 2),
+                        ("position", "<f4", (2, 3))])
+FACE_RECORD = np.dtype([("face", "<i4"), ("start", "<i4", 3)])
+FRONT_VERTEX = np.dtype([("start", "<i4"), ("vertex", "<i4"), ("position", "<f4", 3)])
+
+
 class _Scratch:
     """One thread's buffers for one mesh: the traversal's slots (capacity
-    P), and the mesh's bitmaps and tables (zero between calls)."""
+    P), and the mesh's bitmaps and tables (zero between calls); ``p_*`` are
+    their addresses, taken once."""
+
+    def __getattr__(self, name):
+        if name.startswith("p_"):
+            value = _ptr(getattr(self, name[2:]))
+            setattr(self, name, value)
+            return value
+        raise AttributeError(name)
 
     def __init__(self, n_original, n_pcols, n_faces):
         P, V0 = n_pcols, n_original
@@ -125,17 +148,23 @@ class _Scratch:
         self.kid = np.empty(2 * P, np.int32)
         self.state = np.empty(P, np.uint8)
         self.ran = np.empty(P, np.uint8)
+        self.pcols = np.empty(P, np.int32)
         self.unsure = np.empty(P, np.int32)
         self.out = np.zeros(3, np.int64)
-        # Front mesh.
+        # Front mesh: bitmaps (zero between calls), their prefix counts, the
+        # front vertices as found and in depth-first order, the drawn faces.
         self.mark = np.zeros(P, np.uint8)
+        self.not_run = np.empty(P, np.int32)
+        self.not_run_at = np.empty(P, np.int32)
         self.start_bits = np.zeros(V0 // 64 + 1, np.uint64)
         self.face_bits = np.zeros(n_faces // 64 + 1, np.uint64)
         self.vertex_bits = np.zeros((V0 + P) // 64 + 1, np.uint64)
-        self.rank_base = np.empty(V0 // 64 + 1, np.int32)
-        self.owner_at = np.empty(V0, np.int32)
-        self.sorted = np.empty(max(V0, 1), np.int32)
-        self.new_index = np.empty(V0 + P, np.int32)
+        self.start_prefix = np.empty(V0 // 64 + 1, np.int32)
+        self.face_prefix = np.empty(n_faces // 64 + 1, np.int32)
+        self.vertex_prefix = np.empty((V0 + P) // 64 + 1, np.int32)
+        self.front = np.empty(max(V0, 1), FRONT_VERTEX)
+        self.sorted = np.empty(max(V0, 1), FRONT_VERTEX)
+        self.drawn = np.empty(max(n_faces, 1), FACE_RECORD)
 
 
 class NativeMesh:
@@ -144,14 +173,42 @@ class NativeMesh:
 
     def __init__(self, pm):
         self.n_pcols, self.n_original, self.n_faces = pm.n_pcols, pm.n_original_vertices, pm.n_faces
-        self.table = np.ascontiguousarray(np.asarray(pm.table), np.float32)
-        self.children = np.ascontiguousarray(np.asarray(pm.children), np.int32)
-        self.kills = np.ascontiguousarray(np.asarray(pm.kills), np.int32)
-        self.roots = np.ascontiguousarray(np.asarray(pm.roots), np.int32)
-        self.total_kills = int(self.kills.sum(dtype=np.int64))
+        self.table = np.ascontiguousarray(np.asarray(pm.table), np.float32)  # by pcol (decide_all)
+        kills = np.asarray(pm.kills).astype(np.int32)
+        self.total_kills = int(kills.sum(dtype=np.int64))
+        # Breadth-first layout of the forest: the roots, then their created
+        # children side by side, generation by generation, so that a pruned
+        # breadth-first walk reads the table in increasing order.
+        children = np.asarray(pm.children)
+        level, order, first, count = np.asarray(pm.roots).astype(np.int64), [], [], []
+        placed = 0
+        while len(level):
+            order.append(level)
+            kids = children[level]
+            n_kids = (kids >= 0).sum(1)
+            placed += len(level)
+            first.append(placed + np.concatenate([[0], np.cumsum(n_kids)[:-1]]))
+            count.append(n_kids)
+            level = kids.reshape(-1)[kids.reshape(-1) >= 0].astype(np.int64)
+        order = np.concatenate(order) if order else np.zeros(0, np.int64)
+        first = np.concatenate(first) if first else np.zeros(0, np.int64)
+        count = np.concatenate(count) if count else np.zeros(0, np.int64)
+        assert len(order) == self.n_pcols
+        self.order = order.astype(np.int32)
+        self.bfs_table = np.ascontiguousarray(self.table[order])
+        self.kids = ((first << 2) | count).astype(np.int32)
+        self.bfs_kills = np.ascontiguousarray(kills[order])
+        self.roots = np.arange(len(np.asarray(pm.roots)), dtype=np.int32)  # positions
         self._local = threading.local()
         self._mesh = None
         self._mesh_lock = threading.Lock()
+
+    def __getattr__(self, name):  # p_NAME: the address of array NAME, taken once
+        if name.startswith("p_"):
+            value = _ptr(getattr(self, name[2:]))
+            setattr(self, name, value)
+            return value
+        raise AttributeError(name)
 
     def scratch(self) -> _Scratch:
         s = getattr(self._local, "scratch", None)
@@ -165,18 +222,36 @@ class NativeMesh:
         return (np.int32(self.n_faces - self.total_kills + kept), np.int32(self.n_original - n_exec),
                 np.int32(n_exec))
 
-    def mesh_arrays(self, pm):
-        """The front mesh's host arrays (:class:`pmjax._front_mesh._HostMesh`), int32."""
+    def mesh_arrays(self, pm) -> dict:
+        """The front mesh's records, built once from the depth-first layout of
+        :class:`pmjax._front_mesh._HostMesh`: per pcol its two vertices with
+        their starts and positions and its kill list's place; per killed face
+        (in kill order) and per base face, the face and its corners' starts;
+        the tops (roots, with their pcol, and lone originals, with -1)."""
         with self._mesh_lock:
             if self._mesh is None:
                 from ._front_mesh import _host
 
                 h = _host(pm)
-                c32 = lambda a: np.ascontiguousarray(a, np.int32)
-                self._mesh = dict(
-                    kill_starts=np.ascontiguousarray(h.kill_starts, np.int64), kill_faces=c32(h.kill_faces),
-                    base_faces=c32(h.base_faces), pair=c32(h.pair), roots=c32(h.roots), lone=c32(h.lone),
-                    start=c32(h.start), face_start=c32(h.face_start), vertices=h.vertices)
+                # By breadth-first position, kill lists concatenated in that
+                # order: a refinement's pcols are read in nearly increasing order.
+                pair, count = h.pair[self.order], np.diff(h.kill_starts)[self.order]
+                first = np.concatenate([[0], np.cumsum(count)[:-1]])
+                killed = h.kill_faces[np.repeat(h.kill_starts[:-1][self.order] - first, count) +
+                                      np.arange(int(count.sum()))]
+                records = np.zeros(self.n_pcols, PCOL_RECORD)
+                records["kill_first"] = first
+                records["kill_count"] = count
+                records["vertex"] = pair
+                records["start"] = h.start[pair]
+                records["position"] = h.vertices[pair]
+                faces = lambda ids: np.rec.fromarrays([ids, h.face_start[ids]], dtype=FACE_RECORD)
+                top_vertex = np.concatenate([self.n_original + h.roots, h.lone])
+                tops = np.rec.fromarrays([h.start[top_vertex], top_vertex, h.vertices[top_vertex]],
+                                         dtype=FRONT_VERTEX)
+                self._mesh = dict(records=records, kill_data=faces(killed), base=faces(h.base_faces),
+                                  tops=tops, top_pcol=np.concatenate([h.roots, np.full(len(h.lone), -1)]).astype(
+                                      np.int32))
             return self._mesh
 
 
@@ -189,6 +264,67 @@ def native_mesh(pm) -> NativeMesh:
         if host is None or host.n_faces != pm.n_faces:
             host = pm.plan.host["native"] = NativeMesh(pm)
         return host
+
+
+def host_view(camera, tau) -> np.ndarray:
+    """``float32[22]``: :func:`host_views` of one camera, in scalar arithmetic
+    (a quarter of the time of the array version on one camera)."""
+    f = lambda a: float(np.asarray(a))
+    eye, rot = np.asarray(camera.eye, np.float64).reshape(3), np.asarray(camera.rotation, np.float64).reshape(3, 3)
+    near, far, width, height = f(camera.near), f(camera.far), f(camera.width), f(camera.height)
+    aspect = width / height
+    if camera.orthographic:
+        ortho_height = f(camera.ortho_height)
+        b_y = 0.5 * ortho_height
+        consts = [0.0, 0.0, b_y * aspect, b_y, 1.0, 1.0]
+        unit = ortho_height / height
+    else:
+        a_y = math.tan(0.5 * f(camera.fov_y))
+        a_x = a_y * aspect
+        consts = [a_x, a_y, 0.0, 0.0, math.sqrt(1 + a_x * a_x), math.sqrt(1 + a_y * a_y)]
+        unit = 2 * a_y / height
+    kappa = unit * float(tau)
+    values = list(eye) + list(rot[:, 0]) + list(rot[:, 1]) + list(-rot[:, 2]) + consts + [near, far, unit]
+    with np.errstate(over="ignore"):
+        return np.array(values + [kappa * kappa], np.float32)
+
+
+def host_views(cameras, tau) -> np.ndarray:
+    """``float32[K, 22]`` :class:`View` constants of a camera batch (or
+    ``[22]`` of one camera), computed on the host.
+
+    Eye, axes and clip distances are the camera's own float32 values, as in
+    :class:`View`; the slopes, plane scales and ``kappa²`` come from
+    ``tan``/``sqrt`` in float64 here and in float32 in XLA, so they differ by
+    a few float32 ulps, far inside the 2^-17 the C certification allows
+    (``VIEW`` in ``_front_native.c``; measured in tests/test_native.py).
+    Computing them here saves a compiled call per camera.
+    """
+    f64 = lambda a: np.asarray(a, np.float64)
+    eye, rot = f64(cameras.eye), f64(cameras.rotation)
+    single = eye.ndim == 1
+    eye, rot = eye.reshape(-1, 3), rot.reshape(-1, 3, 3)
+    n = len(eye)
+    col = lambda a: np.broadcast_to(f64(a).reshape(-1), (n,))
+    fov, near, far, ortho_height = col(cameras.fov_y), col(cameras.near), col(cameras.far), col(cameras.ortho_height)
+    width, height = col(cameras.width), col(cameras.height)
+    aspect = width / height
+    zero, one = np.zeros(n), np.ones(n)
+    if cameras.orthographic:
+        b_y = 0.5 * ortho_height
+        consts = [zero, zero, b_y * aspect, b_y, one, one]
+        unit = ortho_height / height
+    else:
+        a_y = np.tan(0.5 * fov)
+        a_x = a_y * aspect
+        consts = [a_x, a_y, zero, zero, np.sqrt(1 + a_x * a_x), np.sqrt(1 + a_y * a_y)]
+        unit = 2 * a_y / height
+    kappa = unit * col(tau)
+    out = np.concatenate([eye, rot[:, :, 0], rot[:, :, 1], -rot[:, :, 2], np.stack(consts + [near, far], 1),
+                          unit[:, None], (kappa * kappa)[:, None]], axis=1)
+    with np.errstate(over="ignore"):
+        out = np.ascontiguousarray(out, np.float32)
+    return out[0] if single else out
 
 
 @jax.jit
@@ -239,26 +375,53 @@ def refine_one(pm, camera, tau, tests):
     """One camera through the C traversal.
 
     Returns:
-        ``(visited int32[n], executed bool[n], n_faces, n_vertices, n_executed)``.
+        ``(visited int32[n], executed bool[n], positions int32[n], n_faces,
+        n_vertices, n_executed)``: the visited pcols, whether each ran, and
+        their breadth-first positions (what the C front mesh reads).
     """
     host = native_mesh(pm)
     s = host.scratch()
-    values = view_values(camera, tau)
+    values = host_view(camera, tau)
     flags = flags_of(tests, camera.orthographic)
-    n = _LIB.pmx_refine(_ptr(host.table), _ptr(host.children), _ptr(host.kills), host.n_pcols, _ptr(host.roots),
-                        len(host.roots), _ptr(values), flags, _ptr(s.ids), _ptr(s.kid), _ptr(s.state),
-                        _ptr(s.ran), _ptr(s.unsure), _ptr(s.out))
+    n = _LIB.pmx_refine(host.p_bfs_table, host.p_kids, host.p_bfs_kills, host.p_order, host.n_pcols, host.p_roots,
+                        len(host.roots), _ptr(values), flags, s.p_ids, s.p_kid, s.p_state, s.p_ran, s.p_pcols,
+                        s.p_unsure, s.p_out)
     n_unsure = int(s.out[0])
     if n_unsure:
         slots = s.unsure[:n_unsure]
-        s.state[slots] = np.where(decide_unsure(pm, s.ids[slots], values, tests, camera.orthographic), YES, NO)
-        _LIB.pmx_resolve(_ptr(host.kills), n, _ptr(s.ids), _ptr(s.kid), _ptr(s.state), _ptr(s.ran),
+        # Asked of the float32 predicate with XLA's own constants.
+        exact = view_values(camera, tau)
+        pcols = host.order[s.ids[slots]]  # ids hold positions
+        s.state[slots] = np.where(decide_unsure(pm, pcols, exact, tests, camera.orthographic), YES, NO)
+        _LIB.pmx_resolve(host.p_bfs_kills, host.p_order, n, s.p_ids, s.p_kid, s.p_state, s.p_ran, s.p_pcols,
                          _ptr(s.out[1:]))
-    return (s.ids[:n].copy(), s.ran[:n].astype(bool)) + host.counts(int(s.out[1]), int(s.out[2]))
+    return (s.pcols[:n].copy(), s.ran[:n].view(bool).copy(), s.ids[:n].copy()) + host.counts(int(s.out[1]),
+                                                                                            int(s.out[2]))
+
+
+# Unsure pcols a camera of a batch may have for the batched answer (the C
+# UNSURE_PER_CAMERA); a camera with more is refined alone.
+UNSURE_PER_CAMERA = 16
+
+
+@functools.partial(jax.jit, static_argnames=("tests", "orthographic"))
+def _decide_pairs(pm, ids, cameras, tau, tests, orthographic):
+    """The float32 predicate's decision for pcol ``ids[i]`` under camera ``i``."""
+    from ._front import _gathered
+    from ._predicate import view_collapse_mask
+
+    attrs, _ = _gathered(pm, ids)
+    views = View.batch(cameras, tau)
+    one = lambda a, v: view_collapse_mask(a, View(v, orthographic), tests, rows=False)
+    return jax.vmap(one, in_axes=(0, 1))(jax.tree.map(lambda x: x.T[:, :, None] if x.ndim == 2 else x[:, None],
+                                                      attrs), views.values)[:, 0]
 
 
 def refine_many(pm, cameras, tau, tests, want_masks: bool, threads: int | None = None):
     """A camera batch through the C traversal, the cameras split over threads.
+
+    Cameras with unsure decisions are traversed again with the float32
+    predicate's answers for those pcols, asked for the whole batch in one call.
 
     Returns:
         ``(faces, vertices, executed_count)`` int32 ``[K]`` and, with
@@ -267,38 +430,64 @@ def refine_many(pm, cameras, tau, tests, want_masks: bool, threads: int | None =
     from ._camera import index_camera
 
     host = native_mesh(pm)
-    values = views_values(cameras, tau)
+    values = host_views(cameras, tau)
     K = values.shape[0]
     flags = flags_of(tests, cameras.orthographic)
     counts = np.zeros((K, 3), np.int64)
-    status = np.zeros(K, np.uint8)
+    status = np.zeros(K, np.int32)
+    unsure = np.zeros((K, UNSURE_PER_CAMERA), np.int32)
     masks = np.empty((K, host.n_pcols), np.uint8) if want_masks else None
     threads = max(1, min(threads or _cores(), K))
-
-    def run(k0, k1):
-        s = host.scratch()
-        _LIB.pmx_refine_many(_ptr(host.table), _ptr(host.children), _ptr(host.kills), host.n_pcols,
-                             _ptr(host.roots), len(host.roots), _ptr(values), flags, k0, k1, _ptr(s.ids),
-                             _ptr(s.kid), _ptr(s.state), _ptr(s.ran), _ptr(s.unsure), _ptr(counts), _ptr(status),
-                             _ptr(masks) if masks is not None else None)
-
     bounds = np.linspace(0, K, threads + 1).astype(int)
-    if threads == 1:
-        run(0, K)
-    else:
+
+    def run(k0, k1, known=None, known_yes=None, known_count=None):
+        s = host.scratch()
+        _LIB.pmx_refine_many(host.p_bfs_table, host.p_kids, host.p_bfs_kills, host.p_order, host.n_pcols,
+                             host.p_roots, len(host.roots), _ptr(values), flags, k0, k1, s.p_ids, s.p_kid, s.p_state,
+                             s.p_ran, s.p_pcols, s.p_unsure, _ptr(counts), _ptr(status), _ptr(unsure),
+                             None if known is None else _ptr(known), None if known is None else _ptr(known_yes),
+                             None if known is None else _ptr(known_count), None if masks is None else _ptr(masks))
+
+    def parallel(*args):
+        if threads == 1:
+            return run(0, K, *args)
         # ctypes releases the GIL for the call: the threads run in parallel.
-        workers = [threading.Thread(target=run, args=(int(a), int(b))) for a, b in zip(bounds[:-1], bounds[1:])]
+        workers = [threading.Thread(target=run, args=(int(a), int(b)) + args) for a, b in zip(bounds[:-1], bounds[1:])]
         for w in workers:
             w.start()
         for w in workers:
             w.join()
+
+    parallel()
+    again = np.flatnonzero((status > 0) & (status <= UNSURE_PER_CAMERA))
+    if len(again):
+        # One call answers every unsure (camera, pcol) pair of the batch.
+        cam_of = np.repeat(again, status[again])
+        pcol_of = np.concatenate([unsure[k, :status[k]] for k in again])
+        n = len(pcol_of)
+        pad = np.zeros(_bucket(n), np.int64)
+        pad[:n] = np.arange(n)
+        batch = jax.tree.map(lambda a: np.asarray(a)[cam_of[pad]] if np.ndim(a) else a, cameras)
+        taus = np.broadcast_to(np.asarray(tau, np.float32), (K,))[cam_of[pad]]
+        yes = np.asarray(_decide_pairs(pm, pcol_of[pad].astype(np.int32), batch, taus, tests,
+                                       cameras.orthographic))[:n]
+        known = np.zeros((K, UNSURE_PER_CAMERA), np.int32)
+        known_yes = np.zeros((K, UNSURE_PER_CAMERA), np.uint8)
+        known_count = np.zeros(K, np.int32)
+        starts = np.concatenate([[0], np.cumsum(status[again])[:-1]])
+        for k, a in zip(again, starts):
+            known[k, :status[k]] = pcol_of[a:a + status[k]]
+            known_yes[k, :status[k]] = yes[a:a + status[k]]
+            known_count[k] = status[k]
+        status[again] = 0
+        parallel(known, known_yes, known_count)
     n_exec = host.n_pcols - counts[:, 1]
     faces = host.n_faces - host.total_kills + counts[:, 2]
     out = [faces.astype(np.int32), (host.n_original - n_exec).astype(np.int32), n_exec.astype(np.int32)]
-    # A camera with an unsure decision is refined alone (it then asks the
-    # float32 predicate for those pcols).
+    # A camera still unsure (its answers uncovered new unsure pcols below, or
+    # it had too many) is refined alone.
     for k in np.flatnonzero(status):
-        ids, ran, f, v, e = refine_one(pm, index_camera(cameras, int(k)), tau[k] if np.ndim(tau) else tau, tests)
+        ids, ran, _, f, v, e = refine_one(pm, index_camera(cameras, int(k)), tau[k] if np.ndim(tau) else tau, tests)
         out[0][k], out[1][k], out[2][k] = f, v, e
         if masks is not None:
             masks[k] = 1
@@ -308,6 +497,79 @@ def refine_many(pm, cameras, tau, tests, want_masks: bool, threads: int | None =
     return tuple(out)
 
 
+# Frames of a path traversed together (FRAMES in _front_native.c).
+FRAMES = 16
+
+
+class _WordScratch:
+    """One thread's buffers for words of FRAMES frames (capacity P slots)."""
+
+    def __init__(self, n_pcols):
+        P = n_pcols
+        self.ids, self.kid, self.pcols = np.empty(P, np.int32), np.empty(2 * P, np.int32), np.empty(P, np.int32)
+        self.visit, self.whole, self.yes, self.ran = (np.empty(P, np.uint16) for _ in range(4))
+        self.unsure_slots, self.unsure_lanes = np.empty(P, np.int32), np.empty(P, np.uint16)
+        self.out = np.zeros(1, np.int64)
+        self.not_run, self.kept = np.zeros(FRAMES, np.int64), np.zeros(FRAMES, np.int64)
+
+
+def _word_scratch(host) -> _WordScratch:
+    s = getattr(host._local, "words", None)
+    if s is None:
+        s = host._local.words = _WordScratch(host.n_pcols)
+    return s
+
+
+def refine_word(pm, cameras, taus, tests, frames: bool):
+    """Up to FRAMES consecutive frames of a path through the C word traversal.
+
+    Args:
+        cameras: a host camera batch of at most FRAMES consecutive frames.
+        taus: ``float32`` per frame.
+        frames: also return each frame's lists for a :class:`pmjax.Refinement`.
+
+    Returns:
+        ``(counts, lists)``: ``counts`` ``(faces, vertices, executed)`` int
+        arrays over the frames; ``lists``, with ``frames``, per frame
+        ``(visited, executed, positions)`` (else ``None``).
+    """
+    host = native_mesh(pm)
+    word = host_views(cameras, taus)
+    nf = word.shape[0]
+    s = _word_scratch(host)
+    n = _LIB.pmx_refine_word(host.p_bfs_table, host.p_kids, host.p_order, host.p_roots, len(host.roots), _ptr(word),
+                             nf, flags_of(tests, cameras.orthographic), _ptr(s.ids), _ptr(s.kid), _ptr(s.visit),
+                             _ptr(s.whole), _ptr(s.yes), _ptr(s.unsure_slots), _ptr(s.unsure_lanes), _ptr(s.out))
+    m = int(s.out[0])
+    if m:
+        # Every unsure (frame, pcol) of the word in one call of the float32 predicate.
+        slots, lanes = s.unsure_slots[:m], s.unsure_lanes[:m].astype(np.int64)
+        slot_of, lane_of = np.nonzero((lanes[:, None] >> np.arange(FRAMES)) & 1)
+        pairs = len(slot_of)
+        pad = np.zeros(_bucket(pairs), np.int64)
+        pad[:pairs] = np.arange(pairs)
+        frame = lane_of[pad]
+        batch = jax.tree.map(lambda a: np.asarray(a)[frame], cameras)
+        pcols = host.order[s.ids[slots[slot_of[pad]]]]
+        yes = np.asarray(_decide_pairs(pm, pcols.astype(np.int32), batch, np.asarray(taus, np.float32)[frame], tests,
+                                       cameras.orthographic))[:pairs]
+        for slot, lane in zip(slots[slot_of[yes]], lane_of[yes]):
+            s.yes[slot] |= np.uint16(1 << int(lane))
+    _LIB.pmx_resolve_word(host.p_bfs_kills, host.p_order, n, _ptr(s.ids), _ptr(s.kid), _ptr(s.visit), _ptr(s.whole),
+                          _ptr(s.yes), _ptr(s.ran), _ptr(s.pcols), _ptr(s.not_run), _ptr(s.kept))
+    n_exec = host.n_pcols - s.not_run[:nf]
+    counts = (host.n_faces - host.total_kills + s.kept[:nf], host.n_original - n_exec, n_exec)
+    if not frames:
+        return counts, None
+    lists = []
+    for lane in range(nf):
+        vis, ran, at = np.empty(n, np.int32), np.empty(n, np.uint8), np.empty(n, np.int32)
+        c = _LIB.pmx_word_frame(n, _ptr(s.ids), _ptr(s.pcols), _ptr(s.visit), _ptr(s.ran), lane, _ptr(vis), _ptr(ran),
+                                _ptr(at))
+        lists.append((vis[:c].copy(), ran[:c].view(bool).copy(), at[:c].copy()))
+    return counts, lists
+
+
 def _cores() -> int:
     try:
         return len(os.sched_getaffinity(0))
@@ -315,21 +577,30 @@ def _cores() -> int:
         return os.cpu_count() or 1
 
 
-def front_mesh(pm, visited: np.ndarray, visited_executed: np.ndarray, n_faces: int, n_vertices: int):
-    """:func:`pmjax._front_mesh.front_mesh` through the C loop (same arrays)."""
+def front_mesh(pm, visited: np.ndarray, visited_executed: np.ndarray, positions: np.ndarray, n_faces: int,
+               n_vertices: int):
+    """:func:`pmjax._front_mesh.front_mesh` through the C loop (same arrays).
+
+    Args:
+        positions: the visited pcols' breadth-first positions (from :func:`refine_one`).
+        n_faces, n_vertices: the refinement's counts (the sizes of the output;
+            the vertices used are at most the front).
+    """
     host = native_mesh(pm)
     m = host.mesh_arrays(pm)
     s = host.scratch()
-    not_run = np.ascontiguousarray(visited[(visited < pm.n_pcols) & ~visited_executed], np.int32)
+    visited = np.ascontiguousarray(visited, np.int32)
+    ran = np.ascontiguousarray(visited_executed).view(np.uint8)
+    at = np.ascontiguousarray(positions, np.int32)
     faces = np.empty((n_faces, 3), np.int32)
     ids = np.empty(max(n_vertices, 1), np.int32)
+    positions = np.empty((max(n_vertices, 1), 3), np.float32)
     n_ids = _LIB.pmx_front_mesh(
-        host.n_original, host.n_pcols, host.n_faces, _ptr(not_run), len(not_run), _ptr(m["kill_starts"]),
-        _ptr(m["kill_faces"]), _ptr(m["base_faces"]), len(m["base_faces"]), _ptr(m["pair"]), _ptr(m["roots"]),
-        len(m["roots"]), _ptr(m["lone"]), len(m["lone"]), _ptr(m["start"]), _ptr(m["face_start"]), n_faces,
-        _ptr(faces), _ptr(ids), _ptr(s.mark), _ptr(s.start_bits), _ptr(s.face_bits), _ptr(s.vertex_bits),
-        _ptr(s.rank_base), _ptr(s.owner_at), _ptr(s.sorted), _ptr(s.new_index))
+        host.n_original, host.n_pcols, host.n_faces, _ptr(visited), _ptr(ran), _ptr(at), len(visited), s.p_not_run,
+        s.p_not_run_at, _ptr(m["records"]),
+        _ptr(m["kill_data"]), _ptr(m["base"]), len(m["base"]), _ptr(m["tops"]), _ptr(m["top_pcol"]), len(m["tops"]),
+        n_faces, _ptr(faces), _ptr(ids), _ptr(positions), s.p_mark, s.p_start_bits, s.p_face_bits, s.p_vertex_bits,
+        s.p_start_prefix, s.p_face_prefix, s.p_vertex_prefix, s.p_front, s.p_sorted, s.p_drawn)
     if n_ids < 0:
         raise RuntimeError("front mesh: the faces drawn do not match the refinement's face count")
-    ids = ids[:n_ids].copy()
-    return m["vertices"][ids], faces, ids
+    return positions[:n_ids].copy(), faces, ids[:n_ids].copy()

@@ -31,6 +31,7 @@ from typing import Iterator
 import jax
 import numpy as np
 
+from . import _native
 from ._bitsets import WORD
 from ._camera import Camera, check_camera_values
 from ._model import ProgressiveMesh
@@ -119,10 +120,10 @@ def _budget_taus(pm, host, budgets, tests):
     return np.array([faces_for_budget(pm, cam(i), int(b), tests)[0] for i, b in enumerate(budgets)], np.float32)
 
 
-def _word_padded(n_frames: int, path_length: int) -> np.ndarray:
-    """Frame indices with each path padded to whole words (repeating its last
-    frame), so that no word straddles two paths."""
-    per_path = -(-path_length // WORD) * WORD
+def _word_padded(n_frames: int, path_length: int, word: int = WORD) -> np.ndarray:
+    """Frame indices with each path padded to whole words of ``word`` frames
+    (repeating its last frame), so that no word straddles two paths."""
+    per_path = -(-path_length // word) * word
     paths = n_frames // path_length
     within = np.minimum(np.arange(per_path), path_length - 1)
     return (np.arange(paths)[:, None] * path_length + within[None, :]).reshape(-1)
@@ -152,6 +153,49 @@ def _chunks(pm, host, taus, tests, path_length, want_front):
         part = jax.tree.map(lambda a: a[idx], host)
         out = _front_counts(pm, part, taus[idx], tests, False, want_front=want_front)
         yield np.where(real[start:start + n], idx, -1), out
+
+
+def _native_words(pm, host, taus, tests, path_length, frames: bool, part=None):
+    """The C word traversal over the frames (each path padded to whole words):
+    yields ``(frame index per lane, -1 for padding), counts, lists``.
+    ``part = (i, n)``: only the i-th of n contiguous shares of the words."""
+    order = _word_padded(len(taus), path_length, _native.FRAMES)
+    real = np.ones(len(order), bool)
+    real[1:] = order[1:] != order[:-1]
+    words = len(order) // _native.FRAMES
+    lo, hi = (0, words) if part is None else (words * part[0] // part[1], words * (part[0] + 1) // part[1])
+    for w in range(lo, hi):  # one word at a time: memory stays that of one word
+        idx = order[w * _native.FRAMES:(w + 1) * _native.FRAMES]
+        counts, lists = _native.refine_word(pm, jax.tree.map(lambda a: a[idx], host), taus[idx], tests, frames)
+        yield np.where(real[w * _native.FRAMES:(w + 1) * _native.FRAMES], idx, -1), counts, lists
+
+
+def _native_path_counts(pm, host, taus, tests, path_length, cols, ms, bar):
+    """:func:`path_counts` through the C word traversal, the words split over the cores."""
+    import threading
+
+    threads = _native._cores()
+    timings = [[] for _ in range(threads)]
+
+    def run(i):
+        t = time.perf_counter()
+        for frames, counts, _ in _native_words(pm, host, taus, tests, path_length, False, (i, threads)):
+            real = frames >= 0
+            for col, v in zip(cols, counts):
+                col[frames[real]] = np.asarray(v)[real]
+            now = time.perf_counter()
+            timings[i].append((frames[real], now - t))
+            t = now
+
+    workers = [threading.Thread(target=run, args=(i,)) for i in range(threads)]
+    for w in bar(workers, threads, "share"):
+        w.start()
+    for w in workers:
+        w.join()
+    # A word's wall time over its frames, over the threads that ran side by side.
+    for share in timings:
+        for frames, seconds in share:
+            ms[frames] = 1e3 * seconds / max(1, len(frames)) / threads
 
 
 def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, tests: Tests = ALL_TESTS,
@@ -187,6 +231,15 @@ def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, t
     if not coherent or pm.n_pcols == 0:
         for i in range(len(taus)):
             yield refine(pm, jax.tree.map(lambda a: a[i], host), taus[i], tests)
+        return
+    if _native.available():
+        for frames, counts, lists in _native_words(pm, host, taus, tests, shape[-1], True):
+            for lane, frame in enumerate(frames):
+                if frame >= 0:
+                    visited, ran, at = lists[lane]
+                    yield Refinement(pm=pm, visited=visited, visited_executed=ran, dense=None,
+                                     n_faces=np.int32(counts[0][lane]), n_vertices=np.int32(counts[1][lane]),
+                                     n_executed=np.int32(counts[2][lane]), front_positions=at)
         return
     for frames, (faces, vertices, executed, visited, ran) in _chunks(pm, host, taus, tests, shape[-1], True):
         faces, vertices, executed = np.asarray(faces), np.asarray(vertices), np.asarray(executed)
@@ -251,6 +304,8 @@ def path_counts(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, t
             ms[i] = 1e3 * (time.perf_counter() - t)
             for col, v in zip(cols, (r.n_faces, r.n_vertices, r.n_executed)):
                 col[i] = int(v)
+    elif _native.available():
+        _native_path_counts(pm, host, taus, tests, shape[-1], cols, ms, bar)
     else:
         padded = len(_word_padded(n, shape[-1]))
         if timing:  # one call per chunk size on the first frames: compiled, and buffers fitted

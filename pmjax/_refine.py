@@ -8,6 +8,7 @@ a static slice under ``jit``.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import Optional
 
@@ -143,8 +144,17 @@ class DenseRefinement(eqx.Module):
     rep: Int[Array, " V"]
 
 
-class Refinement(eqx.Module):
+@functools.partial(jax.tree_util.register_dataclass,
+                   data_fields=["pm", "visited", "visited_executed", "dense", "n_faces", "n_vertices", "n_executed",
+                                "front_positions"],
+                   meta_fields=[])
+@dataclasses.dataclass(frozen=True)
+class Refinement:
     """The result of refining a progressive mesh for one view.
+
+    An immutable pytree (a frozen dataclass registered with JAX): it is made
+    and read on the host once per view, where an ``equinox.Module``'s
+    construction checks and bound methods cost more than a small refine.
 
     The output-sensitive engine (``method="front"``) keeps only the pcols its
     traversal visited and whether each ran; every other pcol lies under a
@@ -160,6 +170,9 @@ class Refinement(eqx.Module):
         dense: :class:`DenseRefinement` from the dense engine, else ``None``.
         n_faces, n_vertices, n_executed: counts (``n_vertices`` = V0 − executed,
             the vertex front).
+        front_positions: ``int32[C]`` the visited pcols' places in the C
+            loops' breadth-first layout, which their front mesh reads (``None``
+            from the other engines).
     """
 
     pm: ProgressiveMesh
@@ -169,6 +182,7 @@ class Refinement(eqx.Module):
     n_faces: Int[Array, ""]
     n_vertices: Int[Array, ""]
     n_executed: Int[Array, ""]
+    front_positions: Optional[Int[Array, " C"]] = None
 
     @property
     def executed(self) -> Bool[Array, " P"]:
@@ -223,8 +237,9 @@ class Refinement(eqx.Module):
                              f"({pm.n_pcols} pcols, {pm.n_faces} faces; refined: {self.pm.n_pcols}, {self.pm.n_faces})")
         if self.dense is None:
             visited, ran = np.asarray(self.visited), np.asarray(self.visited_executed)
-            if _native.available():
-                return _native.front_mesh(self.pm, visited, ran, int(self.n_faces), int(self.n_vertices))
+            if self.front_positions is not None and _native.available():
+                return _native.front_mesh(self.pm, visited, ran, self.front_positions, int(self.n_faces),
+                                          int(self.n_vertices))
             from ._front_mesh import front_mesh
 
             return front_mesh(self.pm, visited, ran)
@@ -272,18 +287,22 @@ def _finish(pm: ProgressiveMesh, executed):
 
 METHODS = ("auto", "front", "dense")
 
-# "auto" refines one camera with the front engine from this many pcols on;
-# below it the dense engine is faster (docs/front.md, 2 cores: bunny, 34,819
-# pcols, 0.58 against 0.86 ms front; St Helens, 148,883, 1.97 against 1.34;
-# dragon, 436,325, 5.90 against 2.43) and compiles in a third of the time.
+# "auto" picks the front engine (docs/front.md, same-run measurements on 2
+# cores): with the C loops, for one camera on every hierarchy (cow, 2,896
+# pcols: 1.9x faster than dense; dragon, 436,325: 8.7x) and for camera batches
+# from FRONT_BATCH_FROM_PCOLS on (St Helens, 148,883: 1.06x; dragon: 1.4x;
+# below, the dense engine's vectorized batch is faster: bunny 0.28x). Without
+# them, the front engine as JAX kernels wins for one camera only from
+# FRONT_FROM_PCOLS on (bunny 0.63x, St Helens 1.44x, dragon 2.06x) and never
+# for batches.
 FRONT_FROM_PCOLS = 100_000
+FRONT_BATCH_FROM_PCOLS = 150_000
 
 
 def _method(pm: ProgressiveMesh, method: str, predicate, batch: bool = False) -> str:
-    """The engine a call uses. ``"auto"``: the front engine for one camera on a
-    large hierarchy; the dense engine for camera batches (faster there today),
-    small hierarchies, and a user predicate (it has no subtree bound, so only
-    the dense engine can apply it)."""
+    """The engine a call uses. ``"auto"``: the front engine where it is the
+    faster (above); the dense engine for a user predicate (it has no subtree
+    bound, so only the dense engine can apply it)."""
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     if method == "front" and predicate is not None:
@@ -292,8 +311,11 @@ def _method(pm: ProgressiveMesh, method: str, predicate, batch: bool = False) ->
     if pm.n_pcols == 0:
         return "dense"
     if method == "auto":
-        large = pm.n_pcols >= FRONT_FROM_PCOLS
-        return "front" if predicate is None and large and not batch else "dense"
+        if predicate is not None:
+            return "dense"
+        if _native.available():
+            return "front" if not batch or pm.n_pcols >= FRONT_BATCH_FROM_PCOLS else "dense"
+        return "front" if not batch and pm.n_pcols >= FRONT_FROM_PCOLS else "dense"
     return method
 
 
@@ -344,11 +366,12 @@ def refine(
         predicate, context, combine: optional user test, see
             :func:`pmjax.collapse_mask`.
         method: ``"front"``: output-sensitive traversal from the roots, pruned
-            by subtree bounds (cost ∝ the pcols near the front);
-            ``"dense"``: every pcol tested and propagated (the reference);
-            ``"auto"`` (default): ``"front"`` from ``FRONT_FROM_PCOLS`` pcols
-            on, else ``"dense"``; always ``"dense"`` with a user predicate
-            (which has no subtree bound). All give the same bits.
+            by subtree bounds (cost ∝ the pcols near the front; C loops where
+            they are built, else JAX kernels); ``"dense"``: every pcol tested
+            and propagated (the reference); ``"auto"`` (default): ``"front"``
+            where it is faster (every hierarchy with the C loops; from
+            ``FRONT_FROM_PCOLS`` pcols without), ``"dense"`` with a user
+            predicate (which has no subtree bound). All give the same bits.
 
     Returns:
         :class:`Refinement` (device arrays; ``.mesh()`` gives NumPy arrays).
@@ -370,9 +393,9 @@ def refine(
 
 def _refine_front(pm: ProgressiveMesh, camera: Camera, tau, tests: Tests) -> Refinement:
     if _native.available():
-        visited, ran, n_faces, n_vertices, n_executed = _native.refine_one(pm, camera, tau, tests)
+        visited, ran, positions, n_faces, n_vertices, n_executed = _native.refine_one(pm, camera, tau, tests)
         return Refinement(pm=pm, visited=visited, visited_executed=ran, dense=None, n_faces=n_faces,
-                          n_vertices=n_vertices, n_executed=n_executed)
+                          n_vertices=n_vertices, n_executed=n_executed, front_positions=positions)
     # The one host synchronisation: did every generation fit its buffer?
     out = pm.plan.run(("one", tests, camera.orthographic),
                       lambda capacities: _front_refine(pm, camera, tau, tests, capacities))
@@ -527,10 +550,12 @@ def refine_batch(
         chunk: cameras per vmapped call, rounded up to a multiple of 32 (one
             bitset word); the last chunk is padded.
         return_masks: also return ``executed`` masks ``bool[K, P]``.
-        method: ``"dense"`` (and ``"auto"``: faster for batches today, see
-            docs/front.md) or ``"front"``, which traverses, per group of 32
-            cameras, the union of their fronts (one bit per camera), with the
-            cameras reordered so that nearby eyes share a group. Same results.
+        method: ``"dense"``, ``"front"`` (each camera traversed by the C
+            loops, the cameras split over the cores; as JAX kernels where the
+            loops are not built, per group of 32 cameras the union of their
+            fronts) or ``"auto"``: the front engine with the C loops from
+            ``FRONT_BATCH_FROM_PCOLS`` pcols on, else dense (docs/front.md).
+            Same results.
 
     Returns:
         dict of NumPy arrays: ``faces``, ``vertices``, ``executed_count``

@@ -6,6 +6,7 @@ JAX traversal; none checks the C code against itself.
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -166,3 +167,55 @@ def test_dragon_front_visits_a_small_share(built):
         not_run = data.n_pcols - int(front.n_executed)
         assert front.n_visited < 0.08 * data.n_pcols
         assert not_run < front.n_visited < 4 * not_run
+
+
+@pytest.mark.parametrize("orthographic", [False, True])
+def test_host_view_constants_are_within_the_allowance(orthographic):
+    """The C loops read view constants computed on the host; the
+    certification allows them 2^-20 relative from XLA's (VIEW in
+    _front_native.c). They must stay well inside it, for one camera and for
+    batches."""
+    v0 = np.random.default_rng(0).normal(size=(100, 3)).astype(np.float32)
+    cams = pmjax.random_views(v0, 400, seed=1, min_scale=0.05, max_scale=6.0)
+    if orthographic:
+        cams = pmjax.Camera(cams.eye, cams.rotation, cams.fov_y, cams.near, cams.far, cams.ortho_height, cams.width,
+                            cams.height, orthographic=True)
+    for tau in (0.0, 1e-3, 1.0, 4.0, 1e6):
+        batch = _native.host_views(cams, tau).astype(np.float64)
+        for i in range(0, 400, 8):
+            cam = index_camera(cams, i)
+            xla = _native.view_values(cam, tau).astype(np.float64)
+            one = _native.host_view(cam, tau).astype(np.float64)
+            for host in (batch[i], one):
+                rel = np.abs(host - xla) / np.maximum(np.abs(xla), np.finfo(np.float32).tiny)
+                assert np.all(rel <= 2.0 ** -21), (tau, i, np.log2(rel.max()))
+
+
+def test_batch_at_a_float_tie_asks_the_predicate_once_per_batch(built):
+    """A batch refined at a pcol's critical tolerance has unsure decisions in
+    many cameras; they are answered for the whole batch and the cameras
+    traversed again: the same bits as the dense engine."""
+    data = built("bunny.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    orbit = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 4)
+    cam = index_camera(orbit, 1)
+    t = np.asarray(pmjax.critical_tau(pm.attributes, cam))
+    p = np.flatnonzero(np.isfinite(t) & (t > 0.5) & (t < 4))[0]
+    cams = stack_cameras([cam] * 40 + [index_camera(orbit, i) for i in range(4)])
+    assert _native.decide_all(pm, cam, t[p], pmjax.ALL_TESTS)[p] & 3 == _native.UNSURE
+    native = pmjax.refine_batch(pm, cams, t[p], chunk=64, return_masks=True, method="front")
+    dense = pmjax.refine_batch(pm, cams, t[p], chunk=64, return_masks=True, method="dense")
+    for key in dense:
+        assert np.array_equal(native[key], dense[key]), key
+
+
+def test_refinement_is_a_pytree_of_its_arrays(built):
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cam = index_camera(views_of(data, 2, seed=5), 0)
+    r = pmjax.refine(pm, cam, 1.0, method="front")
+    copy = jax.tree.map(lambda x: x, r)
+    assert isinstance(copy, pmjax.Refinement) and copy is not r
+    assert np.array_equal(copy.visited, r.visited) and int(copy.n_faces) == int(r.n_faces)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        r.n_faces = 0

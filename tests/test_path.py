@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import pmjax
-from pmjax import _path
+from pmjax import _native, _path
 from pmjax._camera import index_camera, stack_cameras
 
 
@@ -146,11 +146,43 @@ def test_hidden_pcols_are_the_tau_zero_refinement(built):
         assert_frame_equal(at_tau, cam, 1.0, pm, i)
 
 
-def test_long_path_streams_in_flat_memory(built, monkeypatch):
-    """The refinements are computed one chunk of frames at a time, as they are
-    consumed; counts of a long path never hold more than one chunk."""
+@pytest.mark.skipif(not _native.available(), reason="the C loops are not built")
+def test_long_path_streams_word_by_word(built, monkeypatch):
+    """With the C loops, the refinements are computed one word of 16 frames at
+    a time, as they are consumed; counts never hold more than a word per core."""
     data, pm = model(built, "cow.ply")
-    monkeypatch.setattr(_path, "CHUNK", 64)  # small chunks: shapes already compiled above
+    cams = pmjax.standard_orbit(originals(data), 200)
+    sizes = []
+    real = _native.refine_word
+    monkeypatch.setattr(_native, "refine_word", lambda pm, part, *a, **k: sizes.append(
+        pmjax.camera_count(part)) or real(pm, part, *a, **k))
+    frames = pmjax.refine_path(pm, cams, 1.0)
+    first = next(frames)
+    assert sizes == [16] and int(first.n_faces) > 0  # one word computed, not the path
+    for _ in range(16):
+        next(frames)
+    assert sizes == [16, 16]
+    sizes.clear()
+    counts = pmjax.path_counts(pm, cams, 1.0)
+    # 200 frames padded to 208: thirteen words.
+    assert len(counts["faces"]) == 200 and sizes == [16] * 13
+    assert counts["faces"].tolist() == [int(r.n_faces) for r in pmjax.refine_path(pm, cams, 1.0)]
+
+
+def test_path_as_jax_kernels_is_exact_and_streams(built, monkeypatch):
+    """The word traversal as JAX kernels (where the C loops are not built): 32
+    frames per word, each as refine alone; the refinements are computed one
+    chunk of frames at a time, as they are consumed, and counts of a long path
+    never hold more than one chunk."""
+    data, pm = model(built, "cow.ply")
+    monkeypatch.setattr(_native, "_enabled", False)
+    monkeypatch.setattr(_path, "CHUNK", 64)  # small chunks: few compiled shapes
+    walked = paths_of(data, ("walk with cuts",))["walk with cuts"]
+    got = list(pmjax.refine_path(pm, walked, 1.0))
+    assert got[0].front_positions is None  # not the C loops
+    for i, res in enumerate(got):
+        assert_frame_equal(res, index_camera(walked, i), 1.0, pm, i, full=i % 9 == 0)
+    assert pmjax.path_counts(pm, walked, 1.0)["faces"].tolist() == [int(x.n_faces) for x in got]
     cams = pmjax.standard_orbit(originals(data), 200)
     sizes = []
     real = _path._front_counts
@@ -162,10 +194,6 @@ def test_long_path_streams_in_flat_memory(built, monkeypatch):
     for _ in range(64):
         next(frames)
     assert sizes == [64, 64]
-    sizes.clear()
-    counts = pmjax.path_counts(pm, cams, 1.0)
-    # 200 frames padded to 224: three chunks and a word.
-    assert len(counts["faces"]) == 200 and sizes == [64, 64, 64, 32]
 
 
 def test_bad_paths_name_the_frame(built):

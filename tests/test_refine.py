@@ -223,17 +223,32 @@ def coverage(cam, vertices, faces, w=200, h=150):
     px = (x + 1) * 0.5 * w
     py = (1 - y) * 0.5 * h
     img = np.zeros((h, w), bool)
+    faces = np.asarray(faces)
+    xs, ys = px[faces], py[faces]  # [F, 3]
+    x0 = np.maximum(0, np.floor(xs.min(1))).astype(int)
+    y0 = np.maximum(0, np.floor(ys.min(1))).astype(int)
+    x1 = np.minimum(w, np.ceil(xs.max(1))).astype(int)
+    y1 = np.minimum(h, np.ceil(ys.max(1))).astype(int)
+
+    def inside(xs, ys, X, Y):
+        # Edge functions of each triangle at pixel centres X, Y (either winding).
+        d = [(xs[:, (k + 1) % 3, None] - xs[:, k, None]) * (Y - ys[:, k, None])
+             - (ys[:, (k + 1) % 3, None] - ys[:, k, None]) * (X - xs[:, k, None]) for k in range(3)]
+        return ((d[0] >= 0) & (d[1] >= 0) & (d[2] >= 0)) | ((d[0] <= 0) & (d[1] <= 0) & (d[2] <= 0))
+
+    # Small triangles (bounding box within 4 x 4 pixels, nearly all of them):
+    # their candidate pixel centres at once.
+    small = (x1 - x0 <= 4) & (y1 - y0 <= 4) & (x1 > x0) & (y1 > y0)
+    gy, gx = np.mgrid[0:4, 0:4]
+    X = x0[small, None] + gx.reshape(1, -1)
+    Y = y0[small, None] + gy.reshape(1, -1)
+    hit = inside(xs[small], ys[small], X + 0.5, Y + 0.5) & (X < x1[small, None]) & (Y < y1[small, None])
+    img[Y[hit], X[hit]] = True
+    # The others one by one.
     gy, gx = np.mgrid[0:h, 0:w] + 0.5
-    for tri in faces:
-        xs, ys = px[tri], py[tri]
-        x0, x1 = int(max(0, np.floor(xs.min()))), int(min(w, np.ceil(xs.max())))
-        y0, y1 = int(max(0, np.floor(ys.min()))), int(min(h, np.ceil(ys.max())))
-        if x0 >= x1 or y0 >= y1:
-            continue
-        X, Y = gx[y0:y1, x0:x1], gy[y0:y1, x0:x1]
-        d = [(xs[(k + 1) % 3] - xs[k]) * (Y - ys[k]) - (ys[(k + 1) % 3] - ys[k]) * (X - xs[k]) for k in range(3)]
-        inside = ((d[0] >= 0) & (d[1] >= 0) & (d[2] >= 0)) | ((d[0] <= 0) & (d[1] <= 0) & (d[2] <= 0))
-        img[y0:y1, x0:x1] |= inside
+    for f in np.flatnonzero(~small & (x1 > x0) & (y1 > y0)):
+        X, Y = gx[y0[f]:y1[f], x0[f]:x1[f]].reshape(1, -1), gy[y0[f]:y1[f], x0[f]:x1[f]].reshape(1, -1)
+        img[y0[f]:y1[f], x0[f]:x1[f]] |= inside(xs[f:f + 1], ys[f:f + 1], X, Y).reshape(y1[f] - y0[f], x1[f] - x0[f])
     return img
 
 
