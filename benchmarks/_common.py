@@ -31,8 +31,11 @@ def machine() -> str:
     usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     if usable < os.cpu_count():
         cores += f" (pinned to {usable})"
+    import pmjax
+
+    loops = "front engine as C loops" if pmjax.native_available() else "front engine as JAX kernels"
     return (f"{cpu}, {cores}, Python {platform.python_version()}, numpy {numpy.__version__}, "
-            f"jax {jax.__version__} ({backend})")
+            f"jax {jax.__version__} ({backend}), {loops}")
 
 
 def pin_cores(n: int) -> None:

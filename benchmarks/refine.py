@@ -170,6 +170,17 @@ def front_vs_dense(name, frames, tau, K, chunk):
                visited=int(np.median(visited)), not_executed=int(np.median(not_run)),
                dense_ms=med["dense"], front_ms=med["front"], mesh_dense_ms=med["mesh_dense"],
                mesh_front_ms=med["mesh_front"])
+    # Exact face budgets (faces_for_budget) on a few orbit frames, the budget
+    # being the frame's own count at tau (so both methods must find tau back).
+    budget = {m: [] for m in ("dense", "front")}
+    for cam in views[:: max(1, frames // 12)]:
+        faces = int(pmjax.refine(pm, cam, tau, method="dense").n_faces)
+        for m in ("dense", "front"):
+            pmjax.faces_for_budget(pm, cam, faces, method=m)  # compile
+            t0 = time.perf_counter()
+            pmjax.faces_for_budget(pm, cam, faces, method=m)
+            budget[m].append(time.perf_counter() - t0)
+    row["budget_dense_ms"], row["budget_front_ms"] = (1e3 * statistics.median(budget[m]) for m in ("dense", "front"))
     rv = pmjax.random_views(data.vertices[: data.n_original_vertices], K, seed=K, min_scale=0.8, max_scale=3)
     for m in ("dense", "front"):
         pmjax.refine_batch(pm, rv, tau, chunk=chunk, method=m)  # compile (and grow buffers)
@@ -179,7 +190,8 @@ def front_vs_dense(name, frames, tau, K, chunk):
           f"{row['visited'] / max(1, row['not_executed']):.2f}x not executed, {row['visited'] / row['faces']:.2f}x faces) | "
           f"refine dense {med['dense']:6.3f} front {med['front']:6.3f} ms ({med['dense'] / med['front']:4.2f}x) | "
           f"mesh dense {med['mesh_dense']:6.3f} front {med['mesh_front']:6.3f} ms "
-          f"({med['mesh_dense'] / med['mesh_front']:4.2f}x) | batch K={K}: dense {row['batch_dense_cameras_per_s']:7.0f} "
+          f"({med['mesh_dense'] / med['mesh_front']:4.2f}x) | budget dense {row['budget_dense_ms']:6.2f} front "
+          f"{row['budget_front_ms']:6.2f} ms | batch K={K}: dense {row['batch_dense_cameras_per_s']:7.0f} "
           f"front {row['batch_front_cameras_per_s']:7.0f} cameras/s", flush=True)
     return row
 

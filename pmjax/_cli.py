@@ -179,6 +179,8 @@ def _tests(args):
 def cmd_refine(args) -> int:
     import time
 
+    import jax
+
     import pmjax
 
     if args.camera is None and args.target is None:
@@ -190,10 +192,10 @@ def cmd_refine(args) -> int:
         cam = pmjax.look_at(args.eye, args.target, args.up, width=args.size[0], height=args.size[1],
                             fov_y_deg=args.fov)
     r = pmjax.refine(pm, cam, args.tau, tests=_tests(args), method=args.method)
-    r.n_faces.block_until_ready()
+    jax.block_until_ready(r)
     t = time.perf_counter()
     r = pmjax.refine(pm, cam, args.tau, tests=_tests(args), method=args.method)
-    r.n_faces.block_until_ready()
+    jax.block_until_ready(r)
     ms = 1e3 * (time.perf_counter() - t)
     v, f, _ = r.mesh(pm)
     _write_mesh(args.output, v, f)
@@ -230,7 +232,8 @@ def cmd_path(args) -> int:
         _write_text(args.csv, "\n".join(lines) + "\n")
     faces = np.array([r["faces"] for r in rows])
     ms = np.array([r["milliseconds"] for r in rows])
-    how = "each frame alone" if args.per_frame else "32 consecutive frames at a time"
+    how = "each frame alone" if args.per_frame else \
+        f"{16 if pmjax.native_available() else 32} consecutive frames at a time"
     print(f"{K} frames at tau={args.tau}: faces median {int(np.median(faces))} "
           f"(min {faces.min()}, max {faces.max()}), median {np.median(ms):.3f} ms/frame ({how})")
     if args.fidelity:
@@ -438,7 +441,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     def add_per_frame_arg(p):
         p.add_argument("--per-frame", action="store_true",
-                       help="refine each frame alone (same results) instead of 32 consecutive frames at a time "
+                       help="refine each frame alone (same results) instead of consecutive frames together "
                             "(docs/path.md)")
 
     def add_geomorph_arg(p):

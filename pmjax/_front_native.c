@@ -117,8 +117,10 @@ static void load_view(View *v, const float *values, int flags)
     for (int i = 0; i < 8; i++)
         v->k[i] = values[K + i];
     v->kappa2 = values[KAPPA2];
+    /* An infinite kappa2 (tau = inf) enters only the screen test, which treats
+     * it apart: it does not bound the other tests' factors. */
     v->kabs = 1.0f + fabsf(v->k[0]) + fabsf(v->k[1]) + fabsf(v->k[2]) + fabsf(v->k[3]) + fabsf(v->k[4]) +
-              fabsf(v->k[5]) + fabsf(v->kappa2);
+              fabsf(v->k[5]) + (isinf(v->kappa2) ? 0.0f : fabsf(v->kappa2));
     v->flags = flags;
 }
 
@@ -195,6 +197,7 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
     const float k0 = L->k0, k1 = L->k1, k2 = L->k2, k3 = L->k3, k4 = L->k4, k5 = L->k5, k6 = L->k6, k7 = L->k7;
     const float kappa2 = L->kappa2, kabs = L->kabs, kfac = L->kfac, kpad = L->kpad;
     const int frustum = L->frustum, orientation = L->orientation, screen = L->screen;
+    const int kinf = kappa2 == INFINITY;
     {
         const float vx = q.cx - L->ex, vy = q.cy - L->ey, vz = q.cz - L->ez;
         const float nx = q.nx, ny = q.ny, nz = q.nz;
@@ -229,6 +232,7 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
         if (ortho) {
             whole |= orientation & (hf * q.axis_scale > q.facing);
             whole |= screen & (e2 < kappa2 * (1 - SCREEN_MARGIN)) & (kappa2 > LOW) & (e2 < HIGH);
+            whole |= screen & kinf & (e2 < HIGH); /* every finite deviation is below inf */
         } else {
             float a = hv * q.axis_scale;
             float lhs = a * sqrtf(pos(d2 - reach * reach)) - reach * sqrtf(pos(d2 - a * a));
@@ -240,6 +244,9 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
             whole |= screen & (room > 0) & (e2 < kappa2 * room2 * (1 - SCREEN_MARGIN)) &
                      (kappa2 * (room2 < 1.0f ? room2 * room2 : room2) > LOW) & (kappa2 * far2 * far2 < HIGH) &
                      (e2 * far2 < HIGH);
+            /* tau = inf: a pcol below is small when its distance squared is
+             * positive in float32 (then inf * d2 is inf) and its terms finite. */
+            whole |= screen & kinf & (room > 0) & (room2 > LOW) & (e2 * far2 < HIGH);
         }
 
         /* -- own decision, certified -- */
@@ -289,6 +296,11 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
             const float normal2 = delta * delta * (s - h * h), mnormal2 = delta * delta * (s + mh * mh);
             Sure small = less(mu * mu - kappa2 * s, mu * mu + kappa2 * s, slack);
             small = sure_and(small, less(normal2 - kappa2 * s * s, mnormal2 + kappa2 * s * s, slack));
+            /* tau = inf: small exactly when s > 0 in float32 (inf * s is inf, inf
+             * * 0 is NaN) and mu2, normal2 are finite. */
+            const int positive = ortho | (d2 > LOW), finite = (mu * mu + mnormal2) < HIGH;
+            small.y = (kinf & positive & finite) | (!kinf & small.y);
+            small.n = !kinf & small.n;
             small.y &= screen;
             small.n |= !screen;
             out = sure_or(out, small);

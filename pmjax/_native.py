@@ -371,8 +371,8 @@ def decide_unsure(pm, ids: np.ndarray, values: np.ndarray, tests, orthographic: 
     return np.asarray(_decide(pm, padded, jnp.asarray(values), tests, orthographic))[:n]
 
 
-def refine_one(pm, camera, tau, tests):
-    """One camera through the C traversal.
+def refine_one(pm, camera, tau, tests, lists: bool = True):
+    """One camera through the C traversal (``lists=False``: the counts only).
 
     Returns:
         ``(visited int32[n], executed bool[n], positions int32[n], n_faces,
@@ -395,8 +395,10 @@ def refine_one(pm, camera, tau, tests):
         s.state[slots] = np.where(decide_unsure(pm, pcols, exact, tests, camera.orthographic), YES, NO)
         _LIB.pmx_resolve(host.p_bfs_kills, host.p_order, n, s.p_ids, s.p_kid, s.p_state, s.p_ran, s.p_pcols,
                          _ptr(s.out[1:]))
-    return (s.pcols[:n].copy(), s.ran[:n].view(bool).copy(), s.ids[:n].copy()) + host.counts(int(s.out[1]),
-                                                                                            int(s.out[2]))
+    counts = host.counts(int(s.out[1]), int(s.out[2]))
+    if not lists:
+        return counts
+    return (s.pcols[:n].copy(), s.ran[:n].view(bool).copy(), s.ids[:n].copy()) + counts
 
 
 # Unsure pcols a camera of a batch may have for the batched answer (the C
@@ -415,6 +417,41 @@ def _decide_pairs(pm, ids, cameras, tau, tests, orthographic):
     one = lambda a, v: view_collapse_mask(a, View(v, orthographic), tests, rows=False)
     return jax.vmap(one, in_axes=(0, 1))(jax.tree.map(lambda x: x.T[:, :, None] if x.ndim == 2 else x[:, None],
                                                       attrs), views.values)[:, 0]
+
+
+def counts_one(pm, camera, tau, tests):
+    """``(n_faces, n_vertices, n_executed)`` of one camera through the C
+    traversal, without the lists (:func:`refine_one`)."""
+    return refine_one(pm, camera, tau, tests, lists=False)
+
+
+def faces_for_budget(pm, camera, budget: int, tests):
+    """:func:`pmjax.faces_for_budget` from exact counts of the C traversal.
+
+    The face count is non-increasing in ``tau`` and non-negative float32 values
+    are ordered as their bit patterns, so a bisection over the patterns finds the
+    smallest ``tau`` whose count is not above ``budget``: the same answer as
+    the sort of every pcol's critical tolerance, from about 33 refinements that
+    each cost what the view's front costs.
+    """
+    faces = lambda t: int(counts_one(pm, camera, np.float32(t), tests)[0])
+    finest = faces(0.0)
+    if finest <= budget:
+        return np.float32(0.0), finest
+    coarsest = faces(np.inf)
+    if coarsest > budget:
+        return np.float32(np.inf), coarsest
+    # Invariant: above the budget at lo, within it at hi.
+    lo, hi = 0, int(np.float32(np.inf).view(np.int32))
+    at_hi = coarsest
+    while hi - lo > 1:
+        mid = lo + (hi - lo) // 2
+        f = faces(np.int32(mid).view(np.float32))
+        if f <= budget:
+            hi, at_hi = mid, f
+        else:
+            lo = mid
+    return np.int32(hi).view(np.float32), at_hi
 
 
 def refine_many(pm, cameras, tau, tests, want_masks: bool, threads: int | None = None):

@@ -1,26 +1,26 @@
-"""Coherent camera paths: every frame refined exactly as alone, 32 consecutive frames at a time.
+"""Coherent camera paths: every frame refined exactly as alone, consecutive frames together.
 
 Consecutive cameras of a path see nearly the same front. The output-sensitive
-traversal (:mod:`pmjax._front`) can carry one bit per camera: a pcol is
-visited when any camera of a word visits it, and each camera's tests and
-subtree bounds are evaluated as one lane of the word. Run on 32 consecutive
-frames, the union of their fronts is little larger than one frame's, so each
-pcol near the front is fetched once for 32 frames and tested for all of them
-in one vectorized pass: the coherence of the path is what makes the word cheap.
+traversal carries one bit per frame: a pcol is visited when any frame of a
+word visits it, and each frame's tests and subtree bounds are evaluated as one
+lane of the word. Run on consecutive frames, the union of their fronts is
+little larger than one frame's, so each pcol near the front is fetched once for
+the word and tested for all its frames in one vectorized pass: the coherence of
+the path is what makes the word cheap. A word is 16 frames in the C loops
+(:func:`pmjax._native.refine_word`) and 32 as JAX kernels (where the loops are
+not built; :mod:`pmjax._front`).
 
-Exactness. Frame ``c`` of a word gets, for every pcol, its own
-``view_collapse_mask`` bit and its own subtree-bound bit (the very functions of
-:func:`pmjax.refine`, on the same float32 values), and a pcol it does not
-visit lies under a subtree its own bound decided. So its executed set, counts,
-faces and ``vref`` are those of ``refine(pm, camera_c, tau_c)``, bit for bit.
-No state is carried from one word to the next: a cut or a teleport costs
-nothing special, a frame's result never depends on the frames before it
-(unlike SrMesh's adapted mesh), and a path of any length runs in the memory of
-one chunk of frames.
+Exactness. Frame ``c`` of a word gets, for every pcol, its own decision (the
+float32 predicate's bit, certified or computed) and its own subtree-bound bit,
+as :func:`pmjax.refine` gets them, and a pcol it does not visit lies under a
+subtree its own bound decided. So its executed set, counts, faces and ``vref``
+are those of ``refine(pm, camera_c, tau_c)``, bit for bit. No state is carried
+from one word to the next: a cut or a teleport costs nothing special, a frame's
+result never depends on the frames before it (unlike SrMesh's adapted mesh),
+and a path of any length runs in the memory of one word (or chunk of words).
 
-A face budget per frame needs, for that frame, the critical tolerance of every
-pcol (:func:`pmjax.faces_for_budget`); that part is computed per frame, and
-the frames are then refined as a path at the tolerances found.
+A face budget per frame is solved per frame (:func:`pmjax.faces_for_budget`),
+and the frames are then refined as a path at the tolerances found.
 """
 
 from __future__ import annotations
@@ -203,9 +203,10 @@ def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, t
     """The refinements of an ordered camera path, one per frame, streamed.
 
     Each is exactly ``pmjax.refine(pm, camera_t, tau_t, tests)`` (executed
-    set, faces, ``vref``, counts). With ``coherent`` (default) 32 consecutive
-    frames are traversed together (module doc); memory stays that of one chunk
-    of frames, whatever the path's length.
+    set, faces, ``vref``, counts). With ``coherent`` (default) consecutive
+    frames are traversed together, 16 per word in the C loops (32 as JAX
+    kernels; module doc); memory stays that of one word (or chunk of words),
+    whatever the path's length.
 
     Args:
         pm: :class:`ProgressiveMesh`.

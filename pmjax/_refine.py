@@ -691,19 +691,25 @@ def check_budget(budget) -> int:
     return int(budget)
 
 
-def faces_for_budget(pm: ProgressiveMesh, camera: Camera, budget: int, tests: Tests = ALL_TESTS):
+def faces_for_budget(pm: ProgressiveMesh, camera: Camera, budget: int, tests: Tests = ALL_TESTS,
+                     method: str = "auto"):
     """The smallest ``tau`` whose face count is the largest not above ``budget``.
 
-    One sort of the critical tolerances: a pcol runs at ``tau`` iff
+    Dense: one sort of the critical tolerances: a pcol runs at ``tau`` iff
     ``eps < tau``, so the face count at ``tau`` is ``F`` minus the faces killed
     by the pcols with ``eps < tau``. Even ``tau = 0`` runs the pcols with
-    ``eps < 0`` (culled: outside the frustum or facing away).
+    ``eps < 0`` (culled: outside the frustum or facing away). Front: a
+    bisection over the float32 bit patterns of ``tau`` on exact counts of the
+    output-sensitive engine (about 33 refinements, each costing what the
+    view's front costs); the same answer (docs/front.md).
 
     Args:
         pm: :class:`ProgressiveMesh`.
         camera: one camera.
         budget: faces, a whole number >= 0.
         tests: :class:`Tests`.
+        method: ``"front"`` (the C loops), ``"dense"`` or ``"auto"`` (front
+            where the C loops are built).
 
     Returns:
         ``(tau, faces)``: ``tau`` (pixels, float32) and the face count there,
@@ -715,6 +721,13 @@ def faces_for_budget(pm: ProgressiveMesh, camera: Camera, budget: int, tests: Te
         ValueError: a budget that is negative, fractional, NaN or not a number.
     """
     budget = check_budget(budget)
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    if method == "front" and not _native.available():
+        raise ValueError("faces_for_budget(method='front') needs the C loops (pmjax.native_available()); "
+                         "use method='dense' or 'auto'")
+    if method != "dense" and _native.available() and pm.n_pcols > 0:
+        return _native.faces_for_budget(pm, camera, budget, tests)
     eps = np.asarray(critical_tolerances(pm, camera, tests), np.float32)
     kills = np.asarray(pm.kills)
     order = np.argsort(eps, kind="stable")

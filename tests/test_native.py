@@ -219,3 +219,23 @@ def test_refinement_is_a_pytree_of_its_arrays(built):
     assert np.array_equal(copy.visited, r.visited) and int(copy.n_faces) == int(r.n_faces)
     with pytest.raises(dataclasses.FrozenInstanceError):
         r.n_faces = 0
+
+
+@pytest.mark.parametrize("name", ["cow.ply", "bunny.ply"])
+def test_budget_by_bisection_equals_the_sort(built, name):
+    """faces_for_budget from output-sensitive counts (a bisection over the
+    float32 patterns of tau) gives the dense sort's tau and face count, bit
+    for bit, at budgets across the whole range and at its ends."""
+    data = built(name)
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = [index_camera(views_of(data, 3, seed=11), i) for i in range(3)] + orthographic_views(data)[:1]
+    for cam in cams:
+        finest = int(pmjax.refine(pm, cam, 0.0, method="dense").n_faces)
+        coarsest = int(pmjax.refine(pm, cam, np.inf, method="dense").n_faces)
+        budgets = sorted({0, coarsest - 1, coarsest, finest, finest + 5,
+                          *np.linspace(coarsest, finest, 7).astype(int).tolist()})
+        for budget in budgets:
+            want = pmjax.faces_for_budget(pm, cam, budget, method="dense")
+            got = pmjax.faces_for_budget(pm, cam, budget, method="front")
+            assert got[1] == want[1] and np.float32(got[0]).tobytes() == np.float32(want[0]).tobytes(), budget
+            assert int(pmjax.refine(pm, cam, got[0], method="dense").n_faces) == got[1]
