@@ -1,4 +1,4 @@
-"""Camera-path benchmark: coherent paths (32 consecutive frames per word) against per-frame refines.
+"""Camera-path benchmark: coherent paths (consecutive frames per word) against per-frame refines.
 
 Usage: python benchmarks/path.py [--models cow,bunny,terrain_gcanyon,terrain_sthelens,dragon]
        [--frames 240] [--tau 1] [--paths 256] [--many-model dragon] [--repeats 3] [--json FILE]
@@ -9,8 +9,9 @@ the same run: each frame refined alone by the dense engine and by the
 output-sensitive one (medians over frames, after compilation), and the whole
 path through ``pmjax.path_counts`` (counts) and ``pmjax.refine_path`` (a
 ``Refinement`` per frame), amortized per frame, medians over repeats. The
-visited share is, per word of 32 frames, the pcols the word's traversal looked
-at over P, and over what one frame alone visits. Many paths: ``--paths`` orbits
+visited share is, per word of consecutive frames (16 with the C loops, 32 as JAX
+kernels), the pcols the word's traversal looked at over P, and over what one
+frame alone visits. Many paths: ``--paths`` orbits
 of different radii and elevations advanced together, against ``refine_batch``
 on the same cameras (dense and front), cameras per second.
 """
@@ -74,8 +75,14 @@ def one_path(name, pm, label, cams, tau, repeats):
     counts_ms = 1e3 * sec / T
     sec, _ = median_time(lambda: sum(1 for _ in pmjax.refine_path(pm, cams, tau)), repeats)
     path_ms = 1e3 * sec / T
-    union = [r.n_visited for i, r in enumerate(pmjax.refine_path(pm, cams, tau)) if i % 32 == 0]
-    own = [pmjax.refine(pm, index_camera(cams, i), tau, method="front").n_visited for i in range(0, T, 32)]
+    if pmjax.native_available():  # words of 16 frames: the pcols each word visited
+        word = pmjax._native.FRAMES
+        union = [pmjax._native.refine_word(pm, index_camera(cams, slice(i, i + word)), np.full(word, tau, np.float32),
+                                           pmjax.ALL_TESTS, False)[2] for i in range(0, T - word + 1, word)]
+    else:  # words of 32 frames as JAX kernels
+        word = 32
+        union = [r.n_visited for i, r in enumerate(pmjax.refine_path(pm, cams, tau)) if i % word == 0]
+    own = [pmjax.refine(pm, index_camera(cams, i), tau, method="front").n_visited for i in range(0, T, word)]
     row = dict(model=name, path=label, pcols=pm.n_pcols, frames=T, faces=int(np.median(counts["faces"])),
                dense_ms=dense, front_ms=front, path_counts_ms=counts_ms, refine_path_ms=path_ms,
                visited_share=float(np.median(union)) / pm.n_pcols, union_over_one=float(np.median(union) / np.median(own)))

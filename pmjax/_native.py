@@ -603,21 +603,23 @@ def _word_scratch(host) -> _WordScratch:
     return s
 
 
-def refine_word(pm, cameras, taus, tests, frames: bool):
+def refine_word(pm, cameras, taus, tests, frames: bool, values=None):
     """Up to FRAMES consecutive frames of a path through the C word traversal.
 
     Args:
         cameras: a host camera batch of at most FRAMES consecutive frames.
         taus: ``float32`` per frame.
         frames: also return each frame's lists for a :class:`pmjax.Refinement`.
+        values: the frames' :func:`host_views`, if the caller has them.
 
     Returns:
-        ``(counts, lists)``: ``counts`` ``(faces, vertices, executed)`` int
-        arrays over the frames; ``lists``, with ``frames``, per frame
-        ``(visited, executed, positions)`` (else ``None``).
+        ``(counts, lists, union)``: ``counts`` ``(faces, vertices, executed)``
+        int arrays over the frames; ``lists``, with ``frames``, per frame
+        ``(visited, executed, positions)`` (else ``None``); ``union`` the
+        pcols the word visited.
     """
     host = native_mesh(pm)
-    word = host_views(cameras, taus)
+    word = np.ascontiguousarray(host_views(cameras, taus) if values is None else values)
     nf = word.shape[0]
     s = _word_scratch(host)
     n = _LIB.pmx_refine_word(host.p_bfs_table, host.p_kids, host.p_order, host.p_roots, len(host.roots), _ptr(word),
@@ -643,14 +645,14 @@ def refine_word(pm, cameras, taus, tests, frames: bool):
     n_exec = host.n_pcols - s.not_run[:nf]
     counts = (host.n_faces - host.total_kills + s.kept[:nf], host.n_original - n_exec, n_exec)
     if not frames:
-        return counts, None
+        return counts, None, n
     lists = []
     for lane in range(nf):
         vis, ran, at = np.empty(n, np.int32), np.empty(n, np.uint8), np.empty(n, np.int32)
         c = _LIB.pmx_word_frame(n, _ptr(s.ids), _ptr(s.pcols), _ptr(s.visit), _ptr(s.ran), lane, _ptr(vis), _ptr(ran),
                                 _ptr(at))
         lists.append((vis[:c].copy(), ran[:c].view(bool).copy(), at[:c].copy()))
-    return counts, lists
+    return counts, lists, n
 
 
 def _cores() -> int:

@@ -157,17 +157,29 @@ def _chunks(pm, host, taus, tests, path_length, want_front):
 
 def _native_words(pm, host, taus, tests, path_length, frames: bool, part=None):
     """The C word traversal over the frames (each path padded to whole words):
-    yields ``(frame index per lane, -1 for padding), counts, lists``.
+    yields ``(frame index per lane, -1 for padding), counts, lists``, a word
+    at a time (the views of WORDS_AT_ONCE words computed together).
     ``part = (i, n)``: only the i-th of n contiguous shares of the words."""
-    order = _word_padded(len(taus), path_length, _native.FRAMES)
+    F = _native.FRAMES
+    order = _word_padded(len(taus), path_length, F)
     real = np.ones(len(order), bool)
     real[1:] = order[1:] != order[:-1]
-    words = len(order) // _native.FRAMES
+    words = len(order) // F
     lo, hi = (0, words) if part is None else (words * part[0] // part[1], words * (part[0] + 1) // part[1])
-    for w in range(lo, hi):  # one word at a time: memory stays that of one word
-        idx = order[w * _native.FRAMES:(w + 1) * _native.FRAMES]
-        counts, lists = _native.refine_word(pm, jax.tree.map(lambda a: a[idx], host), taus[idx], tests, frames)
-        yield np.where(real[w * _native.FRAMES:(w + 1) * _native.FRAMES], idx, -1), counts, lists
+    for w0 in range(lo, hi, WORDS_AT_ONCE):  # memory: a few words at a time
+        w1 = min(hi, w0 + WORDS_AT_ONCE)
+        idx = order[w0 * F:w1 * F]
+        cams = jax.tree.map(lambda a: a[idx], host)
+        values = _native.host_views(cams, taus[idx])
+        for w in range(w1 - w0):
+            at = slice(w * F, (w + 1) * F)
+            counts, lists, _ = _native.refine_word(pm, jax.tree.map(lambda a: a[at], cams), taus[idx][at], tests,
+                                                   frames, values[at])
+            yield np.where(real[w0 * F:w1 * F][at], idx[at], -1), counts, lists
+
+
+# Words whose camera constants are computed in one host pass (the C loops).
+WORDS_AT_ONCE = 16
 
 
 def _native_path_counts(pm, host, taus, tests, path_length, cols, ms, bar):
