@@ -148,7 +148,6 @@ typedef struct {
     float kappa2, kabs;
     float kfac; /* 1 + |a_x| + |a_y| + l_x + l_y */
     float kpad; /* |b_x| + |b_y| + |near| + |far| */
-    float Rmax, Umax, Fmax; /* largest |component| of each axis (magnitudes: sum |v_i||R_i| <= |v|_1 Rmax) */
     int frustum, orientation, screen;
 } Lane;
 
@@ -156,12 +155,9 @@ static inline Lane lane_of(const View *w)
 {
     const float *k = w->k;
     Lane L = {w->e[0], w->e[1], w->e[2], w->r[0], w->r[1], w->r[2], w->u[0], w->u[1], w->u[2], w->f[0], w->f[1],
-              w->f[2], k[0], k[1], k[2], k[3], k[4], k[5], k[6], k[7], w->kappa2, w->kabs, 0, 0, 0, 0, 0, 0, 0, 0};
+              w->f[2], k[0], k[1], k[2], k[3], k[4], k[5], k[6], k[7], w->kappa2, w->kabs, 0, 0, 0, 0, 0};
     L.kfac = 1 + fabsf(w->k[0]) + fabsf(w->k[1]) + w->k[4] + w->k[5];
     L.kpad = fabsf(w->k[2]) + fabsf(w->k[3]) + fabsf(w->k[6]) + fabsf(w->k[7]);
-    L.Rmax = fmaxf(fabsf(w->r[0]), fmaxf(fabsf(w->r[1]), fabsf(w->r[2])));
-    L.Umax = fmaxf(fabsf(w->u[0]), fmaxf(fabsf(w->u[1]), fabsf(w->u[2])));
-    L.Fmax = fmaxf(fabsf(w->f[0]), fmaxf(fabsf(w->f[1]), fabsf(w->f[2])));
     L.frustum = (w->flags & TEST_FRUSTUM) != 0, L.orientation = (w->flags & TEST_ORIENTATION) != 0;
     L.screen = (w->flags & TEST_SCREEN) != 0;
     return L;
@@ -214,15 +210,11 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
         const float x = vx * R0 + vy * R1 + vz * R2;
         const float y = vx * U0 + vy * U1 + vz * U2;
         const float z = vx * F0 + vy * F1 + vz * F2;
-        /* Magnitudes need only bound the formulas over absolute values. */
-        const float av = avx + avy + avz;
-        const float mx = av * L->Rmax, my = av * L->Umax, mz = av * L->Fmax;
+        const float mx = avx * fabsf(R0) + avy * fabsf(R1) + avz * fabsf(R2);
+        const float my = avx * fabsf(U0) + avy * fabsf(U1) + avz * fabsf(U2);
+        const float mz = avx * fabsf(F0) + avy * fabsf(F1) + avz * fabsf(F2);
         const float sx = z * k0 + k2, sy = z * k1 + k3;
         const float hf = nx * F0 + ny * F1 + nz * F2; /* axis along the view (orthographic) */
-        /* The projections on the axis keep their exact magnitudes: they are
-         * compared near zero (grazing views), where a looser bound would leave
-         * many more decisions unsure. */
-        const float an = fabsf(nx) + fabsf(ny) + fabsf(nz);
         const float mhf = fabsf(nx * F0) + fabsf(ny * F1) + fabsf(nz * F2);
         const float hv = vx * nx + vy * ny + vz * nz; /* eye vector along the axis (perspective) */
         const float mhv = fabsf(vx * nx) + fabsf(vy * ny) + fabsf(vz * nz);
@@ -261,7 +253,8 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
         /* Flush slack: the smallest normal scaled by a bound on the factors
          * that can multiply a flushed intermediate downstream (squared: at
          * most two such factors). Beyond the guard nothing is certified. */
-        const float scale = 1 + av + ar + an + fabsf(sa) + fabsf(ca) + fabsf(delta) + fabsf(mu);
+        const float scale = 1 + avx + avy + avz + ar + fabsf(nx) + fabsf(ny) + fabsf(nz) + fabsf(sa) + fabsf(ca) +
+                            fabsf(delta) + fabsf(mu);
         const float factor = scale * scale * kabs;
         const float slack = FLUSH * factor * factor;
         const int guard = (scale < 0x1p24f) & (kabs < 0x1p16f) & (d2 < HIGH);
@@ -627,7 +620,7 @@ typedef uint16_t Lanes;
 /* The word's cameras, struct of arrays (one Lane per frame). */
 typedef struct {
     float ex[FRAMES], ey[FRAMES], ez[FRAMES], R[3][FRAMES], U[3][FRAMES], F[3][FRAMES], k[8][FRAMES];
-    float kappa2[FRAMES], kabs[FRAMES], kfac[FRAMES], kpad[FRAMES], Rmax[FRAMES], Umax[FRAMES], Fmax[FRAMES];
+    float kappa2[FRAMES], kabs[FRAMES], kfac[FRAMES], kpad[FRAMES];
     int frustum, orientation, screen, ortho;
 } Frames;
 
@@ -645,7 +638,6 @@ static void load_frames(Frames *fr, const float *views, int n_frames, int flags)
         for (int i = 0; i < 8; i++)
             fr->k[i][l] = k[i];
         fr->kappa2[l] = L.kappa2, fr->kabs[l] = L.kabs, fr->kfac[l] = L.kfac, fr->kpad[l] = L.kpad;
-        fr->Rmax[l] = L.Rmax, fr->Umax[l] = L.Umax, fr->Fmax[l] = L.Fmax;
         fr->frustum = L.frustum, fr->orientation = L.orientation, fr->screen = L.screen;
     }
     fr->ortho = (flags & ORTHOGRAPHIC) != 0;
@@ -657,7 +649,7 @@ static inline Lane frame_at(const Frames *fr, int l)
               fr->U[0][l],  fr->U[1][l],  fr->U[2][l],  fr->F[0][l],   fr->F[1][l],   fr->F[2][l],
               fr->k[0][l],  fr->k[1][l],  fr->k[2][l],  fr->k[3][l],   fr->k[4][l],   fr->k[5][l],
               fr->k[6][l],  fr->k[7][l],  fr->kappa2[l], fr->kabs[l],  fr->kfac[l],   fr->kpad[l],
-              fr->Rmax[l],  fr->Umax[l],  fr->Fmax[l],  fr->frustum,   fr->orientation, fr->screen};
+              fr->frustum,  fr->orientation, fr->screen};
     return L;
 }
 
