@@ -129,8 +129,8 @@ def batched(name, ks, tau, chunk):
     for K in ks:
         cams = pmjax.random_views(data.vertices[: data.n_original_vertices], K, seed=K, min_scale=0.8, max_scale=3)
         c = min(chunk, K)
-        pmjax.refine_batch(pm, cams, tau, chunk=c)  # compile
-        med, _ = median_time(lambda: pmjax.refine_batch(pm, cams, tau, chunk=c), 3)
+        pmjax.refine_batch(pm, cams, tau, chunk=c, method="dense")  # compile
+        med, _ = median_time(lambda: pmjax.refine_batch(pm, cams, tau, chunk=c, method="dense"), 3)
         rows.append(dict(model=name, K=K, chunk=c, seconds=med, cameras_per_s=K / med))
         print(f"{name} K={K:5d} chunk={c:4d}: {med * 1e3:9.1f} ms  {K / med:9.0f} cameras/s "
               f"({1e3 * med / K:.3f} ms/camera)", flush=True)

@@ -456,7 +456,7 @@ def build_parser() -> argparse.ArgumentParser:
     def add_method_arg(p, note=""):
         p.add_argument("--method", choices=("auto", "front", "dense"), default="auto",
                        help=f"refinement engine{note}, same results: front (output-sensitive), dense (every pcol), "
-                            "auto (front from 100,000 pcols on; docs/front.md)")
+                            "auto (front where it is faster; docs/front.md)")
 
     def add_image_args(p, note=""):
         p.add_argument("--fov", type=_real(0.0, 180.0, open_low=True, open_high=True), default=45.0,

@@ -709,7 +709,7 @@ def faces_for_budget(pm: ProgressiveMesh, camera: Camera, budget: int, tests: Te
         budget: faces, a whole number >= 0.
         tests: :class:`Tests`.
         method: ``"front"`` (the C loops), ``"dense"`` or ``"auto"`` (front
-            where the C loops are built).
+            with the C loops from ``FRONT_FROM_PCOLS`` pcols on, else dense).
 
     Returns:
         ``(tau, faces)``: ``tau`` (pixels, float32) and the face count there,
@@ -726,7 +726,10 @@ def faces_for_budget(pm: ProgressiveMesh, camera: Camera, budget: int, tests: Te
     if method == "front" and not _native.available():
         raise ValueError("faces_for_budget(method='front') needs the C loops (pmjax.native_available()); "
                          "use method='dense' or 'auto'")
-    if method != "dense" and _native.available() and pm.n_pcols > 0:
+    # The bisection pays about 20 refines: faster than the sort from about
+    # FRONT_FROM_PCOLS pcols on (St Helens 2.3x, dragon 3.8x; bunny 0.57x).
+    front = method == "front" or (method == "auto" and pm.n_pcols >= FRONT_FROM_PCOLS)
+    if front and _native.available() and pm.n_pcols > 0:
         return _native.faces_for_budget(pm, camera, budget, tests)
     eps = np.asarray(critical_tolerances(pm, camera, tests), np.float32)
     kills = np.asarray(pm.kills)
