@@ -6,22 +6,23 @@
  * and a visited pcol costs its own arithmetic. The results are the bits of
  * the dense engine:
  *
- *  - a pcol's subtree bound is evaluated in float64 with the margins of
- *    pmjax/_subtree.py (sound: "whole" guarantees that every pcol below
- *    collapses under the float32 predicate);
+ *  - a pcol's subtree bound is pmjax/_subtree.py's, with its margins and
+ *    range guards (sound: "whole" guarantees that every pcol below collapses
+ *    under the float32 predicate);
  *  - a pcol's own decision is certified: every comparison of the float32
- *    predicate (pmjax/_predicate.py) is evaluated in float64 together with a
- *    bound on how far ANY float32 evaluation of the same formula can be from
- *    the exact value (fused multiply-adds or not, any association, flush to
- *    zero). When the exact margin exceeds that bound, the float32 predicate
- *    must return the same bit; otherwise the pcol is "uncertain" and the
- *    caller decides it with the float32 predicate itself;
+ *    predicate (pmjax/_predicate.py) is evaluated here (in float32) together
+ *    with a bound on how far ANY float32 evaluation of the same formula can be
+ *    from the exact value (fused multiply-adds or not, any association, flush
+ *    to zero), this one included. When the margin exceeds twice that bound,
+ *    the float32 predicate must return the same bit; otherwise the pcol is
+ *    "unsure" and the caller decides it with the float32 predicate itself;
  *  - the bottom-up recurrence is the dense engine's.
  *
- * Struct of arrays as in the rest of pmjax; one 64-byte row per pcol (the
- * traversal reads scattered pcols). Every entry point takes its scratch from
- * the caller and leaves it as it found it, so threads with their own scratch
- * may call concurrently. No allocation, no global state.
+ * One 64-byte row per pcol (the traversal reads scattered pcols), in the
+ * forest's breadth-first order. Every entry point takes its scratch from the
+ * caller and leaves it as it found it, so threads with their own scratch may
+ * call concurrently. No allocation; the only global is the transpose chosen
+ * for the processor, set once.
  */
 
 #define PY_SSIZE_T_CLEAN
@@ -851,7 +852,7 @@ static void prefix_counts(const uint64_t *bits, int64_t words, int32_t *prefix)
  * Scratch: mark [P] bytes, start_bits [V0/64+1], face_bits [F/64+1],
  * vertex_bits [(V0+P)/64+1] words (zero on entry and on return);
  * start_prefix, face_prefix, vertex_prefix int32 as their bitmaps; front,
- * sorted [V0] FrontVertex; drawn [F] FaceRecord. */
+ * sorted [V0] FrontVertex; drawn [F] FaceRecord; front_index [V0] int32. */
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
 __attribute__((target_clones("popcnt", "default"))) /* popcount in one instruction, not a call */
 #endif
@@ -862,22 +863,33 @@ int64_t pmx_front_mesh(int64_t n_original, int64_t n_pcols, int64_t n_faces_tota
                        int64_t n_tops, int64_t n_faces, int32_t *faces_out, int32_t *ids_out, float *positions_out,
                        uint8_t *mark, uint64_t *start_bits, uint64_t *face_bits, uint64_t *vertex_bits,
                        int32_t *start_prefix, int32_t *face_prefix, int32_t *vertex_prefix, FrontVertex *front,
-                       FrontVertex *sorted, FaceRecord *drawn)
+                       FrontVertex *sorted, FaceRecord *drawn, int32_t *front_index)
 {
     const int64_t V0 = n_original;
     const int64_t start_words = V0 / 64 + 1, face_words = n_faces_total / 64 + 1;
     const int64_t vertex_words = (V0 + n_pcols) / 64 + 1;
+    /* The records and kill lists of the pcols that did not run are sparse in
+     * arrays far larger than the cache, so each is a miss: requested
+     * MESH_AHEAD pcols early, the misses overlap. */
+    const int64_t MESH_AHEAD = 16;
     int64_t n_not_run = 0;
-    for (int64_t i = 0; i < n_visited; i++)
+    for (int64_t i = 0; i < n_visited; i++) {
+        if (i + MESH_AHEAD < n_visited)
+            __builtin_prefetch(mark + visited[i + MESH_AHEAD], 1);
         if (!visited_ran[i]) {
             not_run[n_not_run] = visited[i];
             not_run_at[n_not_run++] = visited_at[i];
             mark[visited[i]] = 1;
         }
+    }
     /* The front and the drawn faces. Below each pcol that did not run: its
      * vertices that are original or whose own pcol ran, and its kill list. */
     int64_t n_front = 0, n_drawn = 0;
     for (int64_t i = 0; i < n_not_run; i++) {
+        if (i + MESH_AHEAD < n_not_run)
+            __builtin_prefetch(records + not_run_at[i + MESH_AHEAD]);
+        if (i + MESH_AHEAD / 2 < n_not_run) /* its record was requested MESH_AHEAD / 2 steps ago */
+            __builtin_prefetch(kill_data + records[not_run_at[i + MESH_AHEAD / 2]].kill_first);
         const PcolRecord *r = records + not_run_at[i];
         for (int j = 0; j < 2; j++) {
             int64_t u = r->vertex[j];
@@ -908,32 +920,37 @@ int64_t pmx_front_mesh(int64_t n_original, int64_t n_pcols, int64_t n_faces_tota
     prefix_counts(start_bits, start_words, start_prefix);
     for (int64_t i = 0; i < n_front; i++)
         sorted[rank_of(start_bits, start_prefix, front[i].start)] = front[i];
-    /* Each drawn face at its rank; each corner the front vertex holding it. */
-    prefix_counts(face_bits, face_words, face_prefix);
-    for (int64_t i = 0; i < total && total == n_faces; i++) {
-        const FaceRecord *f = i < n_drawn ? drawn + i : base + (i - n_drawn);
-        int32_t *row = faces_out + 3 * rank_of(face_bits, face_prefix, f->face);
-        for (int c = 0; c < 3; c++) {
-            int32_t u = sorted[rank_of(start_bits, start_prefix, f->start[c])].vertex;
-            row[c] = u;
-            set_bit(vertex_bits, u);
-        }
-    }
-    /* Vertex ids to their rank among the vertices used; those vertices out. */
+    /* Each drawn face at its rank; each corner first the rank of the front
+     * vertex holding it (front_index: -1 unused, 0 used). */
     int64_t n_ids = 0;
     if (total == n_faces) {
-        prefix_counts(vertex_bits, vertex_words, vertex_prefix);
-        for (int64_t i = 0; i < 3 * n_faces; i++)
-            faces_out[i] = (int32_t)rank_of(vertex_bits, vertex_prefix, faces_out[i]);
-        for (int64_t i = 0; i < n_front; i++) {
-            int64_t u = sorted[i].vertex;
-            if (vertex_bits[u >> 6] >> (u & 63) & 1) {
-                int64_t k = rank_of(vertex_bits, vertex_prefix, u);
-                ids_out[k] = (int32_t)u;
-                memcpy(positions_out + 3 * k, sorted[i].position, 3 * sizeof(float));
-                n_ids++;
+        memset(front_index, 0xff, sizeof(int32_t) * (size_t)n_front);
+        prefix_counts(face_bits, face_words, face_prefix);
+        for (int64_t i = 0; i < total; i++) {
+            const FaceRecord *f = i < n_drawn ? drawn + i : base + (i - n_drawn);
+            int32_t *row = faces_out + 3 * rank_of(face_bits, face_prefix, f->face);
+            for (int c = 0; c < 3; c++) {
+                int32_t k = (int32_t)rank_of(start_bits, start_prefix, f->start[c]);
+                row[c] = k;
+                front_index[k] = 0;
             }
         }
+        /* The vertices used in increasing id order (the ids' bitmap), each
+         * front vertex's output index, then the corners through it. */
+        for (int64_t k = 0; k < n_front; k++)
+            if (front_index[k] == 0)
+                set_bit(vertex_bits, sorted[k].vertex);
+        prefix_counts(vertex_bits, vertex_words, vertex_prefix);
+        for (int64_t k = 0; k < n_front; k++)
+            if (front_index[k] == 0) {
+                int64_t out = rank_of(vertex_bits, vertex_prefix, sorted[k].vertex);
+                front_index[k] = (int32_t)out;
+                ids_out[out] = sorted[k].vertex;
+                memcpy(positions_out + 3 * out, sorted[k].position, 3 * sizeof(float));
+                n_ids++;
+            }
+        for (int64_t i = 0; i < 3 * n_faces; i++)
+            faces_out[i] = front_index[faces_out[i]];
     }
     /* Leave the scratch as found. */
     for (int64_t i = 0; i < n_not_run; i++)

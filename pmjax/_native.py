@@ -5,8 +5,9 @@ dozen XLA kernels per generation of the pcol forest, whatever their size
 (docs/front.md). The same traversal as a C loop costs only the pcols it
 visits. Its results are the dense engine's bits:
 
-- the subtree bound is evaluated in float64 with the margins of
-  :mod:`pmjax._subtree` (sound);
+- the subtree bound is :func:`pmjax._subtree.subtree_collapses`, with its
+  margins and range guards, in float32 (sound as it is there: the margins
+  dominate the rounding of the bound and of the tests below);
 - each visited pcol's own decision is *certified*: the C code evaluates every
   comparison of the float32 predicate exactly enough, with a bound on how far
   any float32 evaluation of it can be (fused multiply-adds or not, flush to
@@ -68,7 +69,7 @@ def _load():
     lib.pmx_decide_all.argtypes = [_p, _i64, _p, ctypes.c_int, _p]
     lib.pmx_front_mesh.restype = _i64
     lib.pmx_front_mesh.argtypes = [_i64, _i64, _i64, _p, _p, _p, _i64, _p, _p, _p, _p, _p, _i64, _p, _p, _i64,
-                                   _i64] + [_p] * 13
+                                   _i64] + [_p] * 14
     return lib
 
 
@@ -165,6 +166,7 @@ class _Scratch:
         self.front = np.empty(max(V0, 1), FRONT_VERTEX)
         self.sorted = np.empty(max(V0, 1), FRONT_VERTEX)
         self.drawn = np.empty(max(n_faces, 1), FACE_RECORD)
+        self.front_index = np.empty(max(V0, 1), np.int32)
 
 
 class NativeMesh:
@@ -193,7 +195,8 @@ class NativeMesh:
         order = np.concatenate(order) if order else np.zeros(0, np.int64)
         first = np.concatenate(first) if first else np.zeros(0, np.int64)
         count = np.concatenate(count) if count else np.zeros(0, np.int64)
-        assert len(order) == self.n_pcols
+        if len(order) != self.n_pcols:  # every pcol lies below a root (the structure check's forest)
+            raise ValueError(f"the pcol forest reaches {len(order)} of {self.n_pcols} pcols from its roots")
         self.order = order.astype(np.int32)
         self.bfs_table = np.ascontiguousarray(self.table[order])
         self.kids = ((first << 2) | count).astype(np.int32)
@@ -296,8 +299,8 @@ def host_views(cameras, tau) -> np.ndarray:
     Eye, axes and clip distances are the camera's own float32 values, as in
     :class:`View`; the slopes, plane scales and ``kappa²`` come from
     ``tan``/``sqrt`` in float64 here and in float32 in XLA, so they differ by
-    a few float32 ulps, far inside the 2^-17 the C certification allows
-    (``VIEW`` in ``_front_native.c``; measured in tests/test_native.py).
+    a few float32 ulps, inside the 2^-20 relative the C certification allows
+    (``VIEW`` in ``_front_native.c``; tests/test_native.py checks 2^-21).
     Computing them here saves a compiled call per camera.
     """
     f64 = lambda a: np.asarray(a, np.float64)
@@ -334,19 +337,10 @@ def _view_values(camera, tau):
     return View.of(camera, tau).values
 
 
-@jax.jit
-def _views_values(cameras, tau):
-    return View.batch(cameras, tau).values.T  # [K, 22]
-
-
 def view_values(camera, tau) -> np.ndarray:
-    """``float32[22]`` :class:`View` constants of one camera, as the dense engine sees them."""
+    """``float32[22]`` :class:`View` constants of one camera, as the dense engine
+    sees them (XLA's own; the unsure decisions are asked with these)."""
     return np.ascontiguousarray(np.asarray(_view_values(camera, jnp.asarray(tau, jnp.float32))))
-
-
-def views_values(cameras, tau) -> np.ndarray:
-    """``float32[K, 22]`` for a camera batch."""
-    return np.ascontiguousarray(np.asarray(_views_values(cameras, jnp.asarray(tau, jnp.float32))))
 
 
 def _bucket(n: int) -> int:
@@ -685,7 +679,7 @@ def front_mesh(pm, visited: np.ndarray, visited_executed: np.ndarray, positions:
         s.p_not_run_at, _ptr(m["records"]),
         _ptr(m["kill_data"]), _ptr(m["base"]), len(m["base"]), _ptr(m["tops"]), _ptr(m["top_pcol"]), len(m["tops"]),
         n_faces, _ptr(faces), _ptr(ids), _ptr(positions), s.p_mark, s.p_start_bits, s.p_face_bits, s.p_vertex_bits,
-        s.p_start_prefix, s.p_face_prefix, s.p_vertex_prefix, s.p_front, s.p_sorted, s.p_drawn)
+        s.p_start_prefix, s.p_face_prefix, s.p_vertex_prefix, s.p_front, s.p_sorted, s.p_drawn, s.p_front_index)
     if n_ids < 0:
         raise RuntimeError("front mesh: the faces drawn do not match the refinement's face count")
     return positions[:n_ids].copy(), faces, ids[:n_ids].copy()

@@ -114,24 +114,41 @@ def test_tau_along_the_path_budgets_and_orthographic(built):
         assert_frame_equal(res, index_camera(ortho, i), 2.0, pm, ("ortho", i))
 
 
-def test_many_paths_and_random_paths(built):
-    """K paths advanced together; random small-step paths with random
-    tolerances (property test: every frame as refine)."""
-    for name, seed in (("cow.ply", 1),):
-        data, pm = model(built, name)
-        K, T = 2, 19  # each path padded to one word: 64 frames, one more compiled shape
-        flat = [walk(data, T, seed=seed * 10 + k, step=0.05, cuts=(11,)) for k in range(K)]
-        cams = jax.tree.map(lambda *a: np.stack(a), *flat)
-        tau = np.random.default_rng(seed).uniform(0, 8, (K, T)).astype(np.float32)
-        counts = pmjax.path_counts(pm, cams, tau, paths=True)
-        assert counts["faces"].shape == (K, T)
-        for k in range(K):
-            for t in range(T):
-                want = pmjax.refine(pm, index_camera(flat[k], t), tau[k, t], method="dense")
-                assert int(counts["faces"][k, t]) == int(want.n_faces), (name, k, t)
-                assert int(counts["vertices"][k, t]) == int(want.n_vertices), (name, k, t)
-        per_frame = pmjax.path_counts(pm, flat[0], tau[0], coherent=False)
-        assert np.array_equal(per_frame["faces"], counts["faces"][0])
+@pytest.mark.parametrize("name, pair_distance, seed", [
+    ("cow.ply", 0.0, 1),
+    ("bunny.ply", 0.0, 2),
+    ("cessna.ply", 0.02, 3),  # parts merged by virtual pairs
+    ("terrain_gcanyon.ply", 0.0, 4),
+])
+def test_many_random_paths_on_several_models(built, name, pair_distance, seed):
+    """Property test: K random paths (small steps, random cuts, a tolerance
+    drawn per frame) advanced together; every
+    frame's counts as the dense engine's for that camera alone, and one path's
+    executed sets bit for bit."""
+    data, pm = model(built, name, pair_distance)
+    rng = np.random.default_rng(seed)
+    K, T = 3, 21  # each path padded to one word (32 frames)
+    flat = [walk(data, T, seed=seed * 10 + k, step=float(rng.uniform(0.005, 0.08)),
+                 cuts=tuple(rng.choice(T, 2, replace=False))) for k in range(K)]
+    cams = jax.tree.map(lambda *a: np.stack(a), *flat)
+    levels = np.array([0.0, 0.5, 1.0, 4.0], np.float32)
+    tau = levels[rng.integers(len(levels), size=(K, T))]
+    counts = pmjax.path_counts(pm, cams, tau, paths=True)
+    assert counts["faces"].shape == (K, T)
+    # The oracle: the dense engine per camera, one batch per tolerance.
+    everything = jax.tree.map(lambda a: a.reshape((K * T,) + a.shape[2:]), cams)
+    for level in levels:
+        at = np.flatnonzero(tau.reshape(-1) == level)
+        if len(at) == 0:
+            continue
+        want = pmjax.refine_batch(pm, index_camera(everything, at), float(level), method="dense")
+        for field in ("faces", "vertices", "executed_count"):
+            assert counts[field].reshape(-1)[at].tolist() == want[field].tolist(), (name, level, field)
+    for t, res in enumerate(pmjax.refine_path(pm, flat[0], tau[0])):
+        if t % 4 == 0:
+            assert_frame_equal(res, index_camera(flat[0], t), tau[0, t], pm, (name, t))
+    per_frame = pmjax.path_counts(pm, flat[0], tau[0], coherent=False)
+    assert np.array_equal(per_frame["faces"], counts["faces"][0])
 
 
 def test_hidden_pcols_are_the_tau_zero_refinement(built):
@@ -146,22 +163,30 @@ def test_hidden_pcols_are_the_tau_zero_refinement(built):
         assert_frame_equal(at_tau, cam, 1.0, pm, i)
 
 
+def streams(monkeypatch, owner, name, pm, cams, size):
+    """Record the cameras of each call of ``owner.name`` while ``refine_path``
+    is consumed: one call of ``size`` for the first frame, a second once
+    ``size`` more are taken, nothing computed ahead. Returns the record."""
+    sizes = []
+    real = getattr(owner, name)
+    monkeypatch.setattr(owner, name, lambda pm, part, *a, **k: sizes.append(
+        pmjax.camera_count(part)) or real(pm, part, *a, **k))
+    frames = pmjax.refine_path(pm, cams, 1.0)
+    first = next(frames)
+    assert sizes == [size] and int(first.n_faces) > 0  # one part computed, not the path
+    for _ in range(size):
+        next(frames)
+    assert sizes == [size, size]
+    return sizes
+
+
 @pytest.mark.skipif(not _native.available(), reason="the C loops are not built")
 def test_long_path_streams_word_by_word(built, monkeypatch):
     """With the C loops, the refinements are computed one word of 16 frames at
     a time, as they are consumed; counts never hold more than a word per core."""
     data, pm = model(built, "cow.ply")
     cams = pmjax.standard_orbit(originals(data), 200)
-    sizes = []
-    real = _native.refine_word
-    monkeypatch.setattr(_native, "refine_word", lambda pm, part, *a, **k: sizes.append(
-        pmjax.camera_count(part)) or real(pm, part, *a, **k))
-    frames = pmjax.refine_path(pm, cams, 1.0)
-    first = next(frames)
-    assert sizes == [16] and int(first.n_faces) > 0  # one word computed, not the path
-    for _ in range(16):
-        next(frames)
-    assert sizes == [16, 16]
+    sizes = streams(monkeypatch, _native, "refine_word", pm, cams, 16)
     sizes.clear()
     counts = pmjax.path_counts(pm, cams, 1.0)
     # 200 frames padded to 208: thirteen words.
@@ -177,23 +202,13 @@ def test_path_as_jax_kernels_is_exact_and_streams(built, monkeypatch):
     data, pm = model(built, "cow.ply")
     monkeypatch.setattr(_native, "_enabled", False)
     monkeypatch.setattr(_path, "CHUNK", 64)  # small chunks: few compiled shapes
-    walked = paths_of(data, ("walk with cuts",))["walk with cuts"]
+    walked = walk(data, 64, seed=5, cuts=(10, 11, 40))  # one chunk: the streaming's compiled shape
     got = list(pmjax.refine_path(pm, walked, 1.0))
     assert got[0].front_positions is None  # not the C loops
     for i, res in enumerate(got):
         assert_frame_equal(res, index_camera(walked, i), 1.0, pm, i, full=i % 9 == 0)
     assert pmjax.path_counts(pm, walked, 1.0)["faces"].tolist() == [int(x.n_faces) for x in got]
-    cams = pmjax.standard_orbit(originals(data), 200)
-    sizes = []
-    real = _path._front_counts
-    monkeypatch.setattr(_path, "_front_counts", lambda pm, part, *a, **k: sizes.append(
-        pmjax.camera_count(part)) or real(pm, part, *a, **k))
-    frames = pmjax.refine_path(pm, cams, 1.0)
-    first = next(frames)
-    assert sizes == [64] and int(first.n_faces) > 0  # one chunk computed, not the path
-    for _ in range(64):
-        next(frames)
-    assert sizes == [64, 64]
+    streams(monkeypatch, _path, "_front_counts", pm, pmjax.standard_orbit(originals(data), 200), 64)
 
 
 def test_bad_paths_name_the_frame(built):
