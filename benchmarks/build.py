@@ -1,11 +1,20 @@
 """Builder benchmark: time, memory, hierarchy size and LOD quality vs fast-simplification.
 
 Usage: python benchmarks/build.py [--models bunny,dragon,terrain_sthelens] [--repeats 3] [--samples 200000]
+       python benchmarks/build.py --sweep 0.25,0.5,0.75,1 [--models bunny,dragon] [--repeats 3]
 
 Each model is built in a fresh subprocess (so peak RSS is that build's alone);
 quality is the symmetric Hausdorff and RMS distance / bbox diagonal between the
 original and the LOD at ~10 % and ~1 % of the faces, next to fast-simplification
 at the same face counts, in the same run.
+
+``--sweep`` builds each model in process at each batch share (the share of the
+cheapest candidates a batch may take from) and reports, against one
+fast-simplification run to 1 % of the faces timed in the same process: build
+time (median of the repeats) and its ratio to fast-simplification, batches,
+RMS and Hausdorff distance / diagonal at 10 % and 1 %, and the faces drawn at
+tau = 1 px along the standard orbit (median of 24 frames, the hierarchy's
+quality for view-dependent use: fewer faces for the same error is better).
 """
 
 from __future__ import annotations
@@ -53,11 +62,45 @@ def one_model(name: str, repeats: int, samples: int) -> dict:
     return row
 
 
+def sweep_model(name: str, shares: list[float], repeats: int, samples: int) -> list[dict]:
+    import fast_simplification
+
+    import pmjax
+    from pmjax.builders import BuildOptions, build_pm
+
+    v, f, _, _ = pmjax.load_clean_mesh(DATA / f"{name}.ply")
+    diag = float(np.linalg.norm(np.ptp(v, 0)))
+    v32, f32 = v.astype(np.float32), f.astype(np.int32)
+    fs_s, _ = median_time(lambda: fast_simplification.simplify(v32, f32, target_reduction=0.99), repeats)
+    rows = []
+    for share in shares:
+        holder = {}
+        build_s, _ = median_time(lambda: holder.update(pm=build_pm(v, f, BuildOptions(batch_share=share))), repeats)
+        data = holder["pm"]
+        row = dict(model=name, batch_share=share, build_s=build_s, fs_1pct_s=fs_s, batches=data.n_batches,
+                   pcols=data.n_pcols)
+        for frac in (0.1, 0.01):
+            n = pmjax.pcols_for_faces(data, int(frac * len(f)))
+            lv, lf, _ = pmjax.mesh_for_executed(data, pmjax.prefix_executed(data, n))
+            d = pmjax.surface_distance((v, f), (lv, lf), samples)
+            row[f"rms_{frac}"], row[f"hausdorff_{frac}"] = d["rms"] / diag, d["hausdorff"] / diag
+        pm = pmjax.ProgressiveMesh.from_data(data)
+        cams = pmjax.standard_orbit(v, 24)
+        row["faces_tau1"] = int(np.median(pmjax.refine_batch(pm, cams, 1.0)["faces"]))
+        rows.append(row)
+        print(f"{name:8s} share {share:4.2f}: build {build_s:6.2f} s ({build_s / fs_s:5.1f}x fast-simplification "
+              f"{fs_s:.2f} s) | {row['batches']:3d} batches | 10 %: RMS {row['rms_0.1']:.3e} Hausdorff "
+              f"{row['hausdorff_0.1']:.3e} | 1 %: RMS {row['rms_0.01']:.3e} Hausdorff {row['hausdorff_0.01']:.3e} | "
+              f"faces at tau 1: {row['faces_tau1']}", flush=True)
+    return rows
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--models", default="bunny,dragon,terrain_sthelens")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--samples", type=int, default=200_000)
+    ap.add_argument("--sweep", help="comma-separated batch shares to compare (in process)")
     ap.add_argument("--one", help=argparse.SUPPRESS)
     ap.add_argument("--json", help="also write the rows as JSON")
     args = ap.parse_args()
@@ -65,6 +108,12 @@ def main():
         print(json.dumps(one_model(args.one, args.repeats, args.samples)))
         return
     print(f"machine: {machine()}")
+    if args.sweep:
+        shares = [float(x) for x in args.sweep.split(",")]
+        rows = [r for name in args.models.split(",") for r in sweep_model(name, shares, args.repeats, args.samples)]
+        if args.json:
+            write_json(args.json, dict(machine=machine(), sweep=rows))
+        return
     rows = []
     for name in args.models.split(","):
         out = subprocess.run([sys.executable, __file__, "--one", name, "--repeats", str(args.repeats),
