@@ -798,9 +798,10 @@ void pmx_decide_all(const float *table, int64_t n_pcols, const float *view, int 
 
 /* Per pcol, what the mesh needs of it, in one record (pmjax/_native.py
  * MeshArrays): its two vertices, their depth-first starts and positions, and
- * where its kill list starts in the kill data. */
+ * where its kill list starts in the kill data, and the breadth-first position
+ * of the pcol that made each vertex (-1: an original). */
 typedef struct {
-    int32_t kill_first, kill_count, vertex[2], start[2];
+    int32_t kill_first, kill_count, vertex[2], start[2], made_at[2];
     float position[2][3];
 } PcolRecord;
 
@@ -844,12 +845,12 @@ static void prefix_counts(const uint64_t *bits, int64_t words, int32_t *prefix)
  *
  * visited, visited_ran, visited_at: a refinement's visited pcols, whether
  * each ran, and their positions, the index of records[] (breadth-first, so
- * that the records are read in nearly increasing order). not_run, not_run_at:
+ * that the records are read in nearly increasing order). not_run_at:
  * scratch [P]. Writes faces_out [n_faces, 3] (indices into ids_out, faces in increasing
  * order), ids_out and positions_out (the vertices used, by increasing id).
  * Returns their number, or -1 if the faces found are not n_faces.
  *
- * Scratch: mark [P] bytes, start_bits [V0/64+1], face_bits [F/64+1],
+ * Scratch: mark [P] bytes (by breadth-first position), start_bits [V0/64+1], face_bits [F/64+1],
  * vertex_bits [(V0+P)/64+1] words (zero on entry and on return);
  * start_prefix, face_prefix, vertex_prefix int32 as their bitmaps; front,
  * sorted [V0] FrontVertex; drawn [F] FaceRecord; front_index [V0] int32. */
@@ -858,8 +859,8 @@ __attribute__((target_clones("popcnt", "default"))) /* popcount in one instructi
 #endif
 int64_t pmx_front_mesh(int64_t n_original, int64_t n_pcols, int64_t n_faces_total, const int32_t *visited,
                        const uint8_t *visited_ran, const int32_t *visited_at, int64_t n_visited,
-                       int32_t *not_run, int32_t *not_run_at, const PcolRecord *records, const FaceRecord *kill_data,
-                       const FaceRecord *base, int64_t n_base, const FrontVertex *tops, const int32_t *top_pcol,
+                       int32_t *not_run_at, const PcolRecord *records, const FaceRecord *kill_data,
+                       const FaceRecord *base, int64_t n_base, const FrontVertex *tops, const int32_t *top_at,
                        int64_t n_tops, int64_t n_faces, int32_t *faces_out, int32_t *ids_out, float *positions_out,
                        uint8_t *mark, uint64_t *start_bits, uint64_t *face_bits, uint64_t *vertex_bits,
                        int32_t *start_prefix, int32_t *face_prefix, int32_t *vertex_prefix, FrontVertex *front,
@@ -874,12 +875,9 @@ int64_t pmx_front_mesh(int64_t n_original, int64_t n_pcols, int64_t n_faces_tota
     const int64_t MESH_AHEAD = 16;
     int64_t n_not_run = 0;
     for (int64_t i = 0; i < n_visited; i++) {
-        if (i + MESH_AHEAD < n_visited)
-            __builtin_prefetch(mark + visited[i + MESH_AHEAD], 1);
         if (!visited_ran[i]) {
-            not_run[n_not_run] = visited[i];
             not_run_at[n_not_run++] = visited_at[i];
-            mark[visited[i]] = 1;
+            mark[visited_at[i]] = 1;
         }
     }
     /* The front and the drawn faces. Below each pcol that did not run: its
@@ -893,7 +891,7 @@ int64_t pmx_front_mesh(int64_t n_original, int64_t n_pcols, int64_t n_faces_tota
         const PcolRecord *r = records + not_run_at[i];
         for (int j = 0; j < 2; j++) {
             int64_t u = r->vertex[j];
-            if (u < V0 || !mark[u - V0]) {
+            if (r->made_at[j] < 0 || !mark[r->made_at[j]]) {
                 FrontVertex *f = front + n_front++;
                 f->start = r->start[j];
                 f->vertex = (int32_t)u;
@@ -907,9 +905,9 @@ int64_t pmx_front_mesh(int64_t n_original, int64_t n_pcols, int64_t n_faces_tota
             n_drawn++;
         }
     }
-    /* The tops: the roots that ran (top_pcol >= 0) and the lone originals. */
+    /* The tops: the roots that ran (top_at >= 0) and the lone originals. */
     for (int64_t i = 0; i < n_tops; i++)
-        if (top_pcol[i] < 0 || !mark[top_pcol[i]]) {
+        if (top_at[i] < 0 || !mark[top_at[i]]) {
             front[n_front++] = tops[i];
             set_bit(start_bits, tops[i].start);
         }
@@ -954,7 +952,7 @@ int64_t pmx_front_mesh(int64_t n_original, int64_t n_pcols, int64_t n_faces_tota
     }
     /* Leave the scratch as found. */
     for (int64_t i = 0; i < n_not_run; i++)
-        mark[not_run[i]] = 0;
+        mark[not_run_at[i]] = 0;
     memset(start_bits, 0, sizeof(uint64_t) * (size_t)start_words);
     memset(face_bits, 0, sizeof(uint64_t) * (size_t)face_words);
     memset(vertex_bits, 0, sizeof(uint64_t) * (size_t)vertex_words);

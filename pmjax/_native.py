@@ -68,7 +68,7 @@ def _load():
     lib.pmx_decide_all.restype = None
     lib.pmx_decide_all.argtypes = [_p, _i64, _p, ctypes.c_int, _p]
     lib.pmx_front_mesh.restype = _i64
-    lib.pmx_front_mesh.argtypes = [_i64, _i64, _i64, _p, _p, _p, _i64, _p, _p, _p, _p, _p, _i64, _p, _p, _i64,
+    lib.pmx_front_mesh.argtypes = [_i64, _i64, _i64, _p, _p, _p, _i64, _p, _p, _p, _p, _i64, _p, _p, _i64,
                                    _i64] + [_p] * 14
     return lib
 
@@ -126,7 +126,7 @@ def flags_of(tests, orthographic: bool) -> int:
 # The records of the front mesh (PcolRecord, FaceRecord, FrontVertex in
 # _front_native.c): all fields 4 bytes, so no padding on either side.
 PCOL_RECORD = np.dtype([("kill_first", "<i4"), ("kill_count", "<i4"), ("vertex", "<i4", 2), ("start", "<i4", 2),
-                        ("position", "<f4", (2, 3))])
+                        ("made_at", "<i4", 2), ("position", "<f4", (2, 3))])
 FACE_RECORD = np.dtype([("face", "<i4"), ("start", "<i4", 3)])
 FRONT_VERTEX = np.dtype([("start", "<i4"), ("vertex", "<i4"), ("position", "<f4", 3)])
 
@@ -155,7 +155,6 @@ class _Scratch:
         # Front mesh: bitmaps (zero between calls), their prefix counts, the
         # front vertices as found and in depth-first order, the drawn faces.
         self.mark = np.zeros(P, np.uint8)
-        self.not_run = np.empty(P, np.int32)
         self.not_run_at = np.empty(P, np.int32)
         self.start_bits = np.zeros(V0 // 64 + 1, np.uint64)
         self.face_bits = np.zeros(n_faces // 64 + 1, np.uint64)
@@ -230,7 +229,8 @@ class NativeMesh:
         :class:`pmjax._front_mesh._HostMesh`: per pcol its two vertices with
         their starts and positions and its kill list's place; per killed face
         (in kill order) and per base face, the face and its corners' starts;
-        the tops (roots, with their pcol, and lone originals, with -1)."""
+        the tops (roots, with their breadth-first position, and lone
+        originals, with -1)."""
         with self._mesh_lock:
             if self._mesh is None:
                 from ._front_mesh import _host
@@ -247,13 +247,18 @@ class NativeMesh:
                 records["kill_count"] = count
                 records["vertex"] = pair
                 records["start"] = h.start[pair]
+                # Where the pcol that made each vertex sits (-1: an original).
+                at = np.empty(self.n_pcols, np.int32)
+                at[self.order] = np.arange(self.n_pcols, dtype=np.int32)
+                made = pair - self.n_original
+                records["made_at"] = np.where(made >= 0, at[np.maximum(made, 0)], -1)
                 records["position"] = h.vertices[pair]
                 faces = lambda ids: np.rec.fromarrays([ids, h.face_start[ids]], dtype=FACE_RECORD)
                 top_vertex = np.concatenate([self.n_original + h.roots, h.lone])
                 tops = np.rec.fromarrays([h.start[top_vertex], top_vertex, h.vertices[top_vertex]],
                                          dtype=FRONT_VERTEX)
                 self._mesh = dict(records=records, kill_data=faces(killed), base=faces(h.base_faces),
-                                  tops=tops, top_pcol=np.concatenate([h.roots, np.full(len(h.lone), -1)]).astype(
+                                  tops=tops, top_at=np.concatenate([at[h.roots], np.full(len(h.lone), -1)]).astype(
                                       np.int32))
             return self._mesh
 
@@ -675,9 +680,8 @@ def front_mesh(pm, visited: np.ndarray, visited_executed: np.ndarray, positions:
     ids = np.empty(max(n_vertices, 1), np.int32)
     positions = np.empty((max(n_vertices, 1), 3), np.float32)
     n_ids = _LIB.pmx_front_mesh(
-        host.n_original, host.n_pcols, host.n_faces, _ptr(visited), _ptr(ran), _ptr(at), len(visited), s.p_not_run,
-        s.p_not_run_at, _ptr(m["records"]),
-        _ptr(m["kill_data"]), _ptr(m["base"]), len(m["base"]), _ptr(m["tops"]), _ptr(m["top_pcol"]), len(m["tops"]),
+        host.n_original, host.n_pcols, host.n_faces, _ptr(visited), _ptr(ran), _ptr(at), len(visited), s.p_not_run_at, _ptr(m["records"]),
+        _ptr(m["kill_data"]), _ptr(m["base"]), len(m["base"]), _ptr(m["tops"]), _ptr(m["top_at"]), len(m["tops"]),
         n_faces, _ptr(faces), _ptr(ids), _ptr(positions), s.p_mark, s.p_start_bits, s.p_face_bits, s.p_vertex_bits,
         s.p_start_prefix, s.p_face_prefix, s.p_vertex_prefix, s.p_front, s.p_sorted, s.p_drawn, s.p_front_index)
     if n_ids < 0:
