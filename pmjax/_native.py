@@ -152,8 +152,10 @@ class _Scratch:
         self.pcols = np.empty(P, np.int32)
         self.unsure = np.empty(P, np.int32)
         self.out = np.zeros(3, np.int64)
-        # Front mesh: bitmaps (zero between calls), their prefix counts, the
-        # front vertices as found and in depth-first order, the drawn faces.
+        # Front mesh: the pcols that did not run (marked by breadth-first
+        # position), bitmaps (zero between calls), their prefix counts, the
+        # front vertices as found and in depth-first order, the drawn faces,
+        # each front vertex's output index.
         self.mark = np.zeros(P, np.uint8)
         self.not_run_at = np.empty(P, np.int32)
         self.start_bits = np.zeros(V0 // 64 + 1, np.uint64)
@@ -680,8 +682,9 @@ def front_mesh(pm, visited: np.ndarray, visited_executed: np.ndarray, positions:
     ids = np.empty(max(n_vertices, 1), np.int32)
     positions = np.empty((max(n_vertices, 1), 3), np.float32)
     n_ids = _LIB.pmx_front_mesh(
-        host.n_original, host.n_pcols, host.n_faces, _ptr(visited), _ptr(ran), _ptr(at), len(visited), s.p_not_run_at, _ptr(m["records"]),
-        _ptr(m["kill_data"]), _ptr(m["base"]), len(m["base"]), _ptr(m["tops"]), _ptr(m["top_at"]), len(m["tops"]),
+        host.n_original, host.n_pcols, host.n_faces, _ptr(visited), _ptr(ran), _ptr(at), len(visited), s.p_not_run_at,
+        _ptr(m["records"]), _ptr(m["kill_data"]), _ptr(m["base"]), len(m["base"]), _ptr(m["tops"]), _ptr(m["top_at"]),
+        len(m["tops"]),
         n_faces, _ptr(faces), _ptr(ids), _ptr(positions), s.p_mark, s.p_start_bits, s.p_face_bits, s.p_vertex_bits,
         s.p_start_prefix, s.p_face_prefix, s.p_vertex_prefix, s.p_front, s.p_sorted, s.p_drawn, s.p_front_index)
     if n_ids < 0:
