@@ -852,7 +852,8 @@ static void prefix_counts(const uint64_t *bits, int64_t words, int32_t *prefix)
  *
  * Scratch: mark [P] bytes (by breadth-first position), start_bits [V0/64+1], face_bits [F/64+1],
  * vertex_bits [(V0+P)/64+1] words (zero on entry and on return);
- * start_prefix, face_prefix, vertex_prefix int32 as their bitmaps; front,
+ * start_prefix, face_prefix, vertex_prefix int32 as their bitmaps; front
+ * [V0 + 1] (the vertices not kept are written one slot past the front),
  * sorted [V0] FrontVertex; drawn [F] FaceRecord; front_index [V0] int32. */
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
 __attribute__((target_clones("popcnt", "default"))) /* popcount in one instruction, not a call */
@@ -873,12 +874,16 @@ int64_t pmx_front_mesh(int64_t n_original, int64_t n_pcols, int64_t n_faces_tota
      * arrays far larger than the cache, so each is a miss: requested
      * MESH_AHEAD pcols early, the misses overlap. */
     const int64_t MESH_AHEAD = 16;
+    /* Without branches: whether a visited pcol ran is a coin toss to the
+     * branch predictor. Every slot is written, the count advances on those
+     * that did not run (mark is zero on entry, so a pcol that ran keeps 0). */
     int64_t n_not_run = 0;
     for (int64_t i = 0; i < n_visited; i++) {
-        if (!visited_ran[i]) {
-            not_run_at[n_not_run++] = visited_at[i];
-            mark[visited_at[i]] = 1;
-        }
+        const int32_t at = visited_at[i];
+        const uint8_t not_ran = !visited_ran[i];
+        not_run_at[n_not_run] = at;
+        n_not_run += not_ran;
+        mark[at] = not_ran;
     }
     /* The front and the drawn faces. Below each pcol that did not run: its
      * vertices that are original or whose own pcol ran, and its kill list. */
@@ -890,14 +895,16 @@ int64_t pmx_front_mesh(int64_t n_original, int64_t n_pcols, int64_t n_faces_tota
             __builtin_prefetch(kill_data + records[not_run_at[i + MESH_AHEAD / 2]].kill_first);
         const PcolRecord *r = records + not_run_at[i];
         for (int j = 0; j < 2; j++) {
-            int64_t u = r->vertex[j];
-            if (r->made_at[j] < 0 || !mark[r->made_at[j]]) {
-                FrontVertex *f = front + n_front++;
-                f->start = r->start[j];
-                f->vertex = (int32_t)u;
-                memcpy(f->position, r->position[j], sizeof f->position);
-                set_bit(start_bits, r->start[j]);
-            }
+            /* Without branches too: the vertex is written, and kept when it is
+             * original or its own pcol ran. */
+            const int32_t made = r->made_at[j];
+            const int kept = (made < 0) | !mark[made < 0 ? 0 : made];
+            FrontVertex *f = front + n_front;
+            f->start = r->start[j];
+            f->vertex = r->vertex[j];
+            memcpy(f->position, r->position[j], sizeof f->position);
+            n_front += kept;
+            start_bits[r->start[j] >> 6] |= (uint64_t)kept << (r->start[j] & 63);
         }
         for (int32_t j = 0; j < r->kill_count; j++) {
             drawn[n_drawn] = kill_data[r->kill_first + j];

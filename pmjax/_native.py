@@ -164,7 +164,7 @@ class _Scratch:
         self.start_prefix = np.empty(V0 // 64 + 1, np.int32)
         self.face_prefix = np.empty(n_faces // 64 + 1, np.int32)
         self.vertex_prefix = np.empty((V0 + P) // 64 + 1, np.int32)
-        self.front = np.empty(max(V0, 1), FRONT_VERTEX)
+        self.front = np.empty(V0 + 1, FRONT_VERTEX)  # one slot past the front (_front_native.c)
         self.sorted = np.empty(max(V0, 1), FRONT_VERTEX)
         self.drawn = np.empty(max(n_faces, 1), FACE_RECORD)
         self.front_index = np.empty(max(V0, 1), np.int32)
