@@ -689,4 +689,6 @@ def front_mesh(pm, visited: np.ndarray, visited_executed: np.ndarray, positions:
         s.p_start_prefix, s.p_face_prefix, s.p_vertex_prefix, s.p_front, s.p_sorted, s.p_drawn, s.p_front_index)
     if n_ids < 0:
         raise RuntimeError("front mesh: the faces drawn do not match the refinement's face count")
-    return positions[:n_ids].copy(), faces, ids[:n_ids].copy()
+    # The vertices used are a few fewer than the refinement's count (those
+    # left without a face): views of the first n_ids, not copies.
+    return positions[:n_ids], faces, ids[:n_ids]
