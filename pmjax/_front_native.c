@@ -843,23 +843,23 @@ static void prefix_counts(const uint64_t *bits, int64_t words, int32_t *prefix)
  * pcol that did not run costs one record and its kill data, and nothing reads
  * an array over all faces or vertices at random.
  *
- * visited, visited_ran, visited_at: a refinement's visited pcols, whether
- * each ran, and their positions, the index of records[] (breadth-first, so
- * that the records are read in nearly increasing order). not_run_at:
- * scratch [P]. Writes faces_out [n_faces, 3] (indices into ids_out, faces in increasing
+ * visited_ran, visited_at: whether each of a refinement's visited pcols ran,
+ * and their positions, the index of records[] (breadth-first, so that the
+ * records are read in nearly increasing order). not_run_at: scratch [P].
+ * Writes faces_out [n_faces, 3] (indices into ids_out, faces in increasing
  * order), ids_out and positions_out (the vertices used, by increasing id).
  * Returns their number, or -1 if the faces found are not n_faces.
  *
- * Scratch: mark [P] bytes (by breadth-first position), start_bits [V0/64+1], face_bits [F/64+1],
- * vertex_bits [(V0+P)/64+1] words (zero on entry and on return);
+ * Scratch: mark [P] bytes (by breadth-first position), start_bits [V0/64+1],
+ * face_bits [F/64+1], vertex_bits [(V0+P)/64+1] words (zero on entry and on return);
  * start_prefix, face_prefix, vertex_prefix int32 as their bitmaps; front
  * [V0 + 1] (the vertices not kept are written one slot past the front),
  * sorted [V0] FrontVertex; drawn [F] FaceRecord; front_index [V0] int32. */
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
 __attribute__((target_clones("popcnt", "default"))) /* popcount in one instruction, not a call */
 #endif
-int64_t pmx_front_mesh(int64_t n_original, int64_t n_pcols, int64_t n_faces_total, const int32_t *visited,
-                       const uint8_t *visited_ran, const int32_t *visited_at, int64_t n_visited,
+int64_t pmx_front_mesh(int64_t n_original, int64_t n_pcols, int64_t n_faces_total, const uint8_t *visited_ran,
+                       const int32_t *visited_at, int64_t n_visited,
                        int32_t *not_run_at, const PcolRecord *records, const FaceRecord *kill_data,
                        const FaceRecord *base, int64_t n_base, const FrontVertex *tops, const int32_t *top_at,
                        int64_t n_tops, int64_t n_faces, int32_t *faces_out, int32_t *ids_out, float *positions_out,

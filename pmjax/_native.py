@@ -68,7 +68,7 @@ def _load():
     lib.pmx_decide_all.restype = None
     lib.pmx_decide_all.argtypes = [_p, _i64, _p, ctypes.c_int, _p]
     lib.pmx_front_mesh.restype = _i64
-    lib.pmx_front_mesh.argtypes = [_i64, _i64, _i64, _p, _p, _p, _i64, _p, _p, _p, _p, _i64, _p, _p, _i64,
+    lib.pmx_front_mesh.argtypes = [_i64, _i64, _i64, _p, _p, _i64, _p, _p, _p, _p, _i64, _p, _p, _i64,
                                    _i64] + [_p] * 14
     return lib
 
@@ -668,6 +668,8 @@ def front_mesh(pm, visited: np.ndarray, visited_executed: np.ndarray, positions:
     """:func:`pmjax._front_mesh.front_mesh` through the C loop (same arrays).
 
     Args:
+        visited: the visited pcols (as for the NumPy version; the loop reads
+            their ``positions`` instead).
         positions: the visited pcols' breadth-first positions (from :func:`refine_one`).
         n_faces, n_vertices: the refinement's counts (the sizes of the output;
             the vertices used are at most the front).
@@ -675,14 +677,13 @@ def front_mesh(pm, visited: np.ndarray, visited_executed: np.ndarray, positions:
     host = native_mesh(pm)
     m = host.mesh_arrays(pm)
     s = host.scratch()
-    visited = np.ascontiguousarray(visited, np.int32)
     ran = np.ascontiguousarray(visited_executed).view(np.uint8)
     at = np.ascontiguousarray(positions, np.int32)
     faces = np.empty((n_faces, 3), np.int32)
     ids = np.empty(max(n_vertices, 1), np.int32)
     positions = np.empty((max(n_vertices, 1), 3), np.float32)
     n_ids = _LIB.pmx_front_mesh(
-        host.n_original, host.n_pcols, host.n_faces, _ptr(visited), _ptr(ran), _ptr(at), len(visited), s.p_not_run_at,
+        host.n_original, host.n_pcols, host.n_faces, _ptr(ran), _ptr(at), len(at), s.p_not_run_at,
         _ptr(m["records"]), _ptr(m["kill_data"]), _ptr(m["base"]), len(m["base"]), _ptr(m["tops"]), _ptr(m["top_at"]),
         len(m["tops"]),
         n_faces, _ptr(faces), _ptr(ids), _ptr(positions), s.p_mark, s.p_start_bits, s.p_face_bits, s.p_vertex_bits,
