@@ -699,9 +699,10 @@ def faces_for_budget(pm: ProgressiveMesh, camera: Camera, budget: int, tests: Te
     ``eps < tau``, so the face count at ``tau`` is ``F`` minus the faces killed
     by the pcols with ``eps < tau``. Even ``tau = 0`` runs the pcols with
     ``eps < 0`` (culled: outside the frustum or facing away). Front: a
-    bisection over the float32 bit patterns of ``tau`` on exact counts of the
-    output-sensitive engine (about 33 refinements, each costing what the
-    view's front costs); the same answer (docs/front.md).
+    search over the float32 bit patterns of ``tau`` (a bracket, then regula
+    falsi on ``log tau``) on exact counts of the output-sensitive engine
+    (about 24 refinements, each costing what the view's front costs); the same
+    answer (docs/design.md).
 
     Args:
         pm: :class:`ProgressiveMesh`.
@@ -726,8 +727,8 @@ def faces_for_budget(pm: ProgressiveMesh, camera: Camera, budget: int, tests: Te
     if method == "front" and not _native.available():
         raise ValueError("faces_for_budget(method='front') needs the C loops (pmjax.native_available()); "
                          "use method='dense' or 'auto'")
-    # The bisection pays about 20 refines: faster than the sort from about
-    # FRONT_FROM_PCOLS pcols on (St Helens 2.3x, dragon 3.8x; bunny 0.57x).
+    # The search pays about 24 refines: faster than the sort from about
+    # FRONT_FROM_PCOLS pcols on (measured in docs/front.md).
     front = method == "front" or (method == "auto" and pm.n_pcols >= FRONT_FROM_PCOLS)
     if front and _native.available() and pm.n_pcols > 0:
         return _native.faces_for_budget(pm, camera, budget, tests)

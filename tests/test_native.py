@@ -222,8 +222,8 @@ def test_refinement_is_a_pytree_of_its_arrays(built):
 
 
 @pytest.mark.parametrize("name", ["cow.ply", "bunny.ply"])
-def test_budget_by_bisection_equals_the_sort(built, name):
-    """faces_for_budget from output-sensitive counts (a bisection over the
+def test_budget_by_search_equals_the_sort(built, name):
+    """faces_for_budget from output-sensitive counts (a search over the
     float32 patterns of tau) gives the dense sort's tau and face count, bit
     for bit, at budgets across the whole range and at its ends."""
     data = built(name)

@@ -122,9 +122,8 @@ def test_tau_along_the_path_budgets_and_orthographic(built):
 ])
 def test_many_random_paths_on_several_models(built, name, pair_distance, seed):
     """Property test: K random paths (small steps, random cuts, a tolerance
-    drawn per frame) advanced together; every
-    frame's counts as the dense engine's for that camera alone, and one path's
-    executed sets bit for bit."""
+    drawn per frame) advanced together; every frame's counts as the dense
+    engine's for that camera alone, and one path's executed sets bit for bit."""
     data, pm = model(built, name, pair_distance)
     rng = np.random.default_rng(seed)
     K, T = 3, 21  # each path padded to one word (32 frames)
