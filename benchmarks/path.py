@@ -33,6 +33,7 @@ from refine import pm_file  # noqa: E402
 import pmjax  # noqa: E402
 from pmjax._camera import index_camera, stack_cameras  # noqa: E402
 from pmjax._camera_table import fly_rows  # noqa: E402
+from pmjax._path import frames_per_word  # noqa: E402
 
 
 def paths_for(v0, frames, seed=0):
@@ -75,12 +76,11 @@ def one_path(name, pm, label, cams, tau, repeats):
     counts_ms = 1e3 * sec / T
     sec, _ = median_time(lambda: sum(1 for _ in pmjax.refine_path(pm, cams, tau)), repeats)
     path_ms = 1e3 * sec / T
-    if pmjax.native_available():  # words of 16 frames: the pcols each word visited
-        word = pmjax._native.FRAMES
+    word = frames_per_word()
+    if pmjax.native_available():  # the pcols each word of the C loops visited
         union = [pmjax._native.refine_word(pm, index_camera(cams, slice(i, i + word)), np.full(word, tau, np.float32),
                                            pmjax.ALL_TESTS, False)[2] for i in range(0, T - word + 1, word)]
-    else:  # words of 32 frames as JAX kernels
-        word = 32
+    else:  # words as JAX kernels
         union = [r.n_visited for i, r in enumerate(pmjax.refine_path(pm, cams, tau)) if i % word == 0]
     own = [pmjax.refine(pm, index_camera(cams, i), tau, method="front").n_visited for i in range(0, T, word)]
     row = dict(model=name, path=label, pcols=pm.n_pcols, frames=T, faces=int(np.median(counts["faces"])),

@@ -208,6 +208,7 @@ def cmd_refine(args) -> int:
 
 def cmd_path(args) -> int:
     import pmjax
+    from pmjax._path import frames_per_word
 
     pm = pmjax.load(args.pm)
     cams = _path_cameras(pm, args)
@@ -232,8 +233,7 @@ def cmd_path(args) -> int:
         _write_text(args.csv, "\n".join(lines) + "\n")
     faces = np.array([r["faces"] for r in rows])
     ms = np.array([r["milliseconds"] for r in rows])
-    how = "each frame alone" if args.per_frame else \
-        f"{16 if pmjax.native_available() else 32} consecutive frames at a time"
+    how = "each frame alone" if args.per_frame else f"{frames_per_word()} consecutive frames at a time"
     print(f"{K} frames at tau={args.tau}: faces median {int(np.median(faces))} "
           f"(min {faces.min()}, max {faces.max()}), median {np.median(ms):.3f} ms/frame ({how})")
     if args.fidelity:

@@ -155,6 +155,11 @@ def _chunks(pm, host, taus, tests, path_length, want_front):
         yield np.where(real[start:start + n], idx, -1), out
 
 
+def frames_per_word() -> int:
+    """Consecutive frames traversed together: 16 in the C loops, 32 as JAX kernels."""
+    return _native.FRAMES if _native.available() else WORD
+
+
 def _native_words(pm, host, taus, tests, path_length, frames: bool, part=None):
     """The C word traversal over the frames (each path padded to whole words):
     yields ``(frame index per lane, -1 for padding), counts, lists``, a word
@@ -169,13 +174,14 @@ def _native_words(pm, host, taus, tests, path_length, frames: bool, part=None):
     for w0 in range(lo, hi, WORDS_AT_ONCE):  # memory: a few words at a time
         w1 = min(hi, w0 + WORDS_AT_ONCE)
         idx = order[w0 * F:w1 * F]
-        cams = jax.tree.map(lambda a: a[idx], host)
-        values = _native.host_views(cams, taus[idx])
+        cams, word_taus = jax.tree.map(lambda a: a[idx], host), taus[idx]
+        values = _native.host_views(cams, word_taus)
+        lanes = np.where(real[w0 * F:w1 * F], idx, -1)
         for w in range(w1 - w0):
             at = slice(w * F, (w + 1) * F)
-            counts, lists, _ = _native.refine_word(pm, jax.tree.map(lambda a: a[at], cams), taus[idx][at], tests,
+            counts, lists, _ = _native.refine_word(pm, jax.tree.map(lambda a: a[at], cams), word_taus[at], tests,
                                                    frames, values[at])
-            yield np.where(real[w0 * F:w1 * F][at], idx[at], -1), counts, lists
+            yield lanes[at], counts, lists
 
 
 # Words whose camera constants are computed in one host pass (the C loops).
