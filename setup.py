@@ -1,8 +1,9 @@
-"""Build of the one compiled part: the C loops of the output-sensitive engine.
+"""Build of the compiled parts: the C loops of the output-sensitive engine and of the builder.
 
-Everything else is in pyproject.toml. The extension is optional: where it
-cannot be compiled (no C compiler), pmjax installs without it and its
-front engine runs as JAX kernels instead (``pmjax.native_available()``).
+Everything else is in pyproject.toml. The extensions are optional: where they
+cannot be compiled (no C compiler), pmjax installs without them, its front
+engine runs as JAX kernels instead (``pmjax.native_available()``) and the
+builder chooses its batches with NumPy (the same hierarchies, slower).
 """
 
 from setuptools import Extension, setup
@@ -20,6 +21,14 @@ setup(
             extra_compile_args=["-O3", "-std=c99", "-fno-math-errno", "-fno-trapping-math", "-ffp-contract=off",
                                 "-fopenmp-simd"],
             optional=True,
-        )
+        ),
+        # The builder's batch choice (builders/_build_native.c): the NumPy
+        # builder's arithmetic in its order, so no contraction either.
+        Extension(
+            "pmjax.builders._build_native",
+            sources=["builders/_build_native.c"],
+            extra_compile_args=["-O3", "-std=c99", "-ffp-contract=off"],
+            optional=True,
+        ),
     ]
 )

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import _native as native
 from . import _quadrics as qd
 from ._threads import split_rows
 from ._topology import VertexFaces
@@ -51,6 +52,8 @@ def evaluate_metric(
     """
     if metric == "quadric":
         # Gathers included: the halves also fetch their own rows in parallel.
+        if native.available():
+            return split_rows(lambda a, b: native.quadric_placement(quadric, pos, a, b), a, b)
         return split_rows(lambda a, b: qd.optimal_placement(quadric[a] + quadric[b], pos[a], pos[b]), a, b)
     pa, pb = pos[a], pos[b]
     if metric == "edge":

@@ -1,0 +1,392 @@
+/* The builder's batch choice as plain C loops: which of a batch's eligible
+ * collapses are valid, and which of those are taken as an independent set.
+ *
+ * builders/_independent.py chooses the set in parallel rounds of array
+ * reductions; with fixed priorities those rounds take exactly what a
+ * sequential greedy over the candidates in cost order takes. Here the greedy
+ * runs sequentially, and also works out the round in which the parallel
+ * version decides each candidate, so that its round cap (late rounds are
+ * left to the next batch) keeps the same set: the hierarchy is the NumPy
+ * builder's, bit for bit. builders/_validity.py is the validity test; the
+ * arithmetic here is its arithmetic in the same order (no contraction), so
+ * the verdicts are its verdicts.
+ *
+ * Two candidates conflict when their domains (the faces touching either
+ * endpoint) share a face, i.e. when one has an endpoint on a face of the
+ * other's domain.
+ *  - A candidate with a cheaper taken conflicting candidate is dead: it is
+ *    removed at the end of the earliest such candidate's round.
+ *  - Any other candidate is a round winner: the round after every cheaper
+ *    conflicting candidate has been removed. Its validity decides whether
+ *    it is taken; an invalid winner is removed without blocking anything.
+ *
+ * The buffers are the caller's, allocated once per build (no allocation
+ * here, and no fresh pages to fault in every batch).
+ */
+
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* What a candidate became (builders/_native.py). */
+enum { DEAD = 0, TAKEN = 1, INVALID = 2, UNCHECKED = 3 };
+
+#define NEVER INT32_MAX
+
+/* How many candidates ahead the greedy prefetches, per stage. */
+#define AHEAD 8
+
+/* The greedy's state of a vertex: the earliest round of a taken candidate
+ * with the vertex on a face of its domain (NEVER: none), and the latest
+ * removal round of a processed candidate with an endpoint there. One row,
+ * so that a candidate's two checks cost two cache lines. */
+typedef struct {
+    int32_t blocked, round;
+} Vertex;
+
+/* The caller's buffers (builders/_native.py Scratch), sized for every
+ * vertex id and face of the build. start and face are the current faces
+ * around each vertex (pmx_vertex_faces); the stamps are zero between calls;
+ * the rest each call sets itself. */
+typedef struct {
+    int32_t *start;      /* [n_vertices + 1]: faces around v are face[start[v] .. start[v + 1]) */
+    int32_t *face;       /* [3 F], ascending face ids per vertex */
+    Vertex *vertex;      /* [n_vertices] */
+    int32_t *side_a;     /* [n_vertices]: link-test stamps */
+    int32_t *side_b;     /* [n_vertices] */
+} Scratch;
+
+typedef struct {
+    int64_t n_faces, n_vertices;
+    const int32_t *faces;
+    const double *pos;
+    const uint8_t *boundary;
+    double min_area2;
+    Scratch s;
+    int32_t stamp; /* the candidate last link-tested */
+} Mesh;
+
+/* The faces around each vertex (start, face): counts, then starts, then a
+ * fill that advances each start to its end; shifting back by one restores
+ * them. Built once per batch, for the batch choice. */
+void pmx_vertex_faces(int64_t n_faces, const int32_t *faces, int64_t n_vertices, int32_t *start, int32_t *face) {
+    memset(start, 0, ((size_t)n_vertices + 1) * sizeof(int32_t));
+    for (int64_t i = 0; i < 3 * n_faces; i++) start[faces[i] + 1]++;
+    for (int64_t v = 0; v < n_vertices; v++) start[v + 1] += start[v];
+    for (int64_t f = 0; f < n_faces; f++)
+        for (int k = 0; k < 3; k++) face[start[faces[3 * f + k]]++] = (int32_t)f;
+    for (int64_t v = n_vertices; v > 0; v--) start[v] = start[v - 1];
+    start[0] = 0;
+}
+
+/* index[i] = position of keys[i] in old_keys, or -1; both ascending (a
+ * merge). Returns 0, or -1 if keys are not ascending. */
+int64_t pmx_lookup_sorted(int64_t n_old, const int64_t *old_keys, int64_t n, const int64_t *keys, int64_t *index) {
+    for (int64_t i = 1; i < n; i++)
+        if (keys[i] <= keys[i - 1]) return -1;
+    int64_t j = 0;
+    for (int64_t i = 0; i < n; i++) {
+        while (j < n_old && old_keys[j] < keys[i]) j++;
+        index[i] = (j < n_old && old_keys[j] == keys[i]) ? j : -1;
+    }
+    return 0;
+}
+
+/* The current mesh, for the validity test and the greedy; the link-test
+ * stamps start at zero (they are left zero). */
+static void start_mesh(Mesh *m, int64_t n_faces, const int32_t *faces, int64_t n_vertices, const double *pos,
+                       const uint8_t *boundary, double min_area2, Scratch s) {
+    m->n_faces = n_faces;
+    m->n_vertices = n_vertices;
+    m->faces = faces;
+    m->pos = pos;
+    m->boundary = boundary;
+    m->min_area2 = min_area2;
+    m->s = s;
+    m->stamp = 0;
+}
+
+static void end_mesh(Mesh *m) {
+    if (m->stamp == 0) return;
+    memset(m->s.side_a, 0, (size_t)m->n_vertices * sizeof(int32_t));
+    memset(m->s.side_b, 0, (size_t)m->n_vertices * sizeof(int32_t));
+}
+
+static void cross(const double u[3], const double v[3], double out[3]) {
+    out[0] = u[1] * v[2] - u[2] * v[1];
+    out[1] = u[2] * v[0] - u[0] * v[2];
+    out[2] = u[0] * v[1] - u[1] * v[0];
+}
+
+static double dot(const double u[3], const double v[3]) { return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]; }
+
+static int has(const int32_t *t, int32_t v) { return t[0] == v || t[1] == v || t[2] == v; }
+
+/* builders/_validity.py collapse_is_valid for one candidate: no domain face
+ * flips or degenerates when a and b move to x; with the link test, the
+ * common neighbours of a and b are exactly the apexes of the faces on edge
+ * ab, and no interior edge joins two border vertices. */
+static int collapse_is_valid(Mesh *m, int32_t a, int32_t b, const double *x, int link_test) {
+    const int32_t *start = m->s.start, *around = m->s.face;
+    int64_t apexes = 0;
+    for (int side = 0; side < 2; side++) {
+        int32_t v = side ? b : a;
+        for (int32_t j = start[v]; j < start[v + 1]; j++) {
+            const int32_t *t = m->faces + 3 * (int64_t)around[j];
+            int with_a = has(t, a), with_b = has(t, b);
+            if (side && with_a) continue; /* seen from a's side already */
+            if (with_a && with_b) {       /* vanishes with the collapse */
+                apexes++;
+                continue;
+            }
+            /* Rotate the moving corner to the front; compare the doubled-area
+             * normal before and after it moves to x. */
+            int c = (t[0] == a || t[0] == b) ? 0 : (t[1] == a || t[1] == b) ? 1 : 2;
+            const double *q0 = m->pos + 3 * (int64_t)t[c];
+            const double *q1 = m->pos + 3 * (int64_t)t[(c + 1) % 3];
+            const double *q2 = m->pos + 3 * (int64_t)t[(c + 2) % 3];
+            double e1[3] = {q1[0] - q0[0], q1[1] - q0[1], q1[2] - q0[2]};
+            double e2[3] = {q2[0] - q0[0], q2[1] - q0[1], q2[2] - q0[2]};
+            double n1[3] = {q1[0] - x[0], q1[1] - x[1], q1[2] - x[2]};
+            double n2[3] = {q2[0] - x[0], q2[1] - x[1], q2[2] - x[2]};
+            double before[3], after[3];
+            cross(e1, e2, before);
+            cross(n1, n2, after);
+            if (dot(after, before) <= 0.0 || dot(after, after) <= m->min_area2) return 0;
+        }
+    }
+    if (!link_test) return 1;
+    /* Distinct vertices other than a and b on faces holding a, then those
+     * of them also on faces holding b. */
+    int32_t stamp = ++m->stamp;
+    int64_t common = 0;
+    for (int32_t j = start[a]; j < start[a + 1]; j++) {
+        const int32_t *t = m->faces + 3 * (int64_t)around[j];
+        for (int k = 0; k < 3; k++)
+            if (t[k] != a && t[k] != b) m->s.side_a[t[k]] = stamp;
+    }
+    for (int32_t j = start[b]; j < start[b + 1]; j++) {
+        const int32_t *t = m->faces + 3 * (int64_t)around[j];
+        for (int k = 0; k < 3; k++) {
+            int32_t u = t[k];
+            if (u != a && u != b && m->s.side_a[u] == stamp && m->s.side_b[u] != stamp) {
+                m->s.side_b[u] = stamp;
+                common++;
+            }
+        }
+    }
+    int pinch = apexes >= 2 && m->boundary[a] && m->boundary[b];
+    return common == apexes && !pinch;
+}
+
+/* ok[i] = validity of moving candidate k = idx[i] (a[k], b[k]) to x[k] (3
+ * doubles) on the current faces. */
+void pmx_collapse_valid(int64_t n, const int64_t *idx, const int32_t *a, const int32_t *b, const double *x,
+                        const uint8_t *link_test, int64_t n_faces, const int32_t *faces, int64_t n_vertices,
+                        const double *pos, const uint8_t *boundary, double min_area2, int32_t *start, int32_t *face,
+                        Vertex *vertex, int32_t *side_a, int32_t *side_b, uint8_t *ok) {
+    Mesh m;
+    start_mesh(&m, n_faces, faces, n_vertices, pos, boundary, min_area2,
+               (Scratch){start, face, vertex, side_a, side_b});
+    for (int64_t i = 0; i < n; i++) {
+        int64_t k = idx[i];
+        ok[i] = (uint8_t)collapse_is_valid(&m, a[k], b[k], x + 3 * k, link_test[k]);
+    }
+    end_mesh(&m);
+}
+
+/* The greedy over candidates idx[0 .. n-1] (cheapest first). For each, state
+ * (DEAD, TAKEN, INVALID, or UNCHECKED: a winner after max_rounds, once a
+ * candidate was taken within them, so never chosen) and round (the round
+ * of the parallel version in which it is removed). assume_valid: the
+ * candidates were found valid already. Returns the last round the parallel
+ * version runs: max_rounds, or the first round that takes something if
+ * that is later; NEVER if nothing is taken.
+ *
+ * Conflicts are found through vertices: j conflicts with i when an endpoint
+ * of j is a corner of a face around an endpoint of i. A dead candidate
+ * therefore costs two vertex rows; only winners walk their faces. */
+int64_t pmx_select_independent(int64_t n, const int64_t *idx, const int32_t *a, const int32_t *b, const double *x,
+                               const uint8_t *link_test, int64_t n_faces, const int32_t *faces, int64_t n_vertices,
+                               const double *pos, const uint8_t *boundary, double min_area2, int32_t *start,
+                               int32_t *face, Vertex *vertex, int32_t *side_a, int32_t *side_b, int assume_valid,
+                               int64_t max_rounds, uint8_t *state, int32_t *round) {
+    Mesh m;
+    start_mesh(&m, n_faces, faces, n_vertices, pos, boundary, min_area2, (Scratch){start, face, vertex, side_a, side_b});
+    for (int64_t v = 0; v < n_vertices; v++) vertex[v] = (Vertex){NEVER, 0};
+    int64_t first_taken = NEVER;
+    for (int64_t i = 0; i < n; i++) {
+        /* Candidates come in cost order, scattered over the mesh: fetch the
+         * next ones' endpoints, then their vertex rows, while this one runs. */
+        if (i + 2 * AHEAD < n) __builtin_prefetch(a + idx[i + 2 * AHEAD]), __builtin_prefetch(b + idx[i + 2 * AHEAD]);
+        if (i + AHEAD < n) {
+            int64_t k1 = idx[i + AHEAD];
+            __builtin_prefetch(vertex + a[k1]);
+            __builtin_prefetch(vertex + b[k1]);
+            __builtin_prefetch(start + a[k1]);
+            __builtin_prefetch(start + b[k1]);
+        }
+        int64_t k = idx[i];
+        int32_t ends[2] = {a[k], b[k]};
+        Vertex *va = vertex + ends[0], *vb = vertex + ends[1];
+        int32_t r = va->blocked < vb->blocked ? va->blocked : vb->blocked;
+        if (r != NEVER) {
+            state[i] = DEAD;
+        } else {
+            /* A winner the round after its cheaper conflicting candidates left. */
+            r = 0;
+            for (int e = 0; e < 2; e++)
+                for (int32_t j = start[ends[e]]; j < start[ends[e] + 1]; j++) {
+                    const int32_t *t = faces + 3 * (int64_t)face[j];
+                    for (int c = 0; c < 3; c++)
+                        if (vertex[t[c]].round > r) r = vertex[t[c]].round;
+                }
+            r++;
+            if (assume_valid)
+                state[i] = TAKEN;
+            else if (r > max_rounds && first_taken <= max_rounds)
+                state[i] = UNCHECKED;
+            else
+                state[i] = collapse_is_valid(&m, ends[0], ends[1], x + 3 * k, link_test[k]) ? TAKEN : INVALID;
+            if (state[i] == TAKEN) {
+                if (r < first_taken) first_taken = r;
+                /* Every vertex of its domain is blocked from this round on. */
+                for (int e = 0; e < 2; e++)
+                    for (int32_t j = start[ends[e]]; j < start[ends[e] + 1]; j++) {
+                        const int32_t *t = faces + 3 * (int64_t)face[j];
+                        for (int c = 0; c < 3; c++)
+                            if (vertex[t[c]].blocked > r) vertex[t[c]].blocked = r;
+                    }
+            }
+        }
+        round[i] = r;
+        if (va->round < r) va->round = r;
+        if (vb->round < r) vb->round = r;
+    }
+    end_mesh(&m);
+    if (first_taken == NEVER) return NEVER;
+    return first_taken > max_rounds ? first_taken : max_rounds;
+}
+
+/* builders/_quadrics.py evaluate: x^T A x + 2 b^T x + c of a packed quadric,
+ * term by term in its order. */
+static double evaluate(const double *q, const double *x) {
+    double X = x[0], Y = x[1], Z = x[2];
+    return q[0] * X * X + 2 * q[1] * X * Y + 2 * q[2] * X * Z + 2 * q[3] * X + q[4] * Y * Y + 2 * q[5] * Y * Z +
+           2 * q[6] * Y + q[7] * Z * Z + 2 * q[8] * Z + q[9];
+}
+
+/* NumPy's minimum and maximum: NaN wins. */
+static double np_minimum(double u, double v) { return (u <= v || isnan(u)) ? u : v; }
+static double np_maximum(double u, double v) { return (u >= v || isnan(u)) ? u : v; }
+
+static double norm3(const double u[3]) { return sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]); }
+
+static void sum_quadrics(const double *quadric, int32_t a, int32_t b, double q[10]) {
+    for (int k = 0; k < 10; k++) q[k] = quadric[10 * (int64_t)a + k] + quadric[10 * (int64_t)b + k];
+}
+
+/* scale[i] = trace / 3 of the summed quadric of pair (a[i], b[i]), for
+ * callers that raise it to the third power themselves. */
+void pmx_quadric_scale(int64_t n, const int32_t *a, const int32_t *b, const double *quadric, double *scale) {
+    for (int64_t i = 0; i < n; i++) {
+        double q[10];
+        sum_quadrics(quadric, a[i], b[i], q);
+        scale[i] = (q[0] + q[4] + q[7]) / 3.0;
+    }
+}
+
+/* Where the solvability threshold 1e-9 scale^3 is not given, it is NumPy's
+ * power, whose rounding is NumPy's own (its SIMD kernels differ from the C
+ * library's pow in the last bits). scale * scale * scale is within a few
+ * units in the last place of it; a determinant closer to it than this
+ * relative margin is left to the caller, who applies NumPy's power. */
+#define THRESHOLD_MARGIN 1e-9
+
+/* builders/_quadrics.py optimal_placement of the summed quadrics of pairs
+ * (a[i], b[i]): the adjugate solution where |det| > the threshold and it
+ * lands within the pair's length of its midpoint and is no dearer than an
+ * endpoint, else the best of the two endpoints and the midpoint (first of
+ * equals). x: (n, 3) out; cost: (n,) out, >= 0.
+ * threshold: (n,) given thresholds, or NULL: then rows whose determinant is
+ * too close to the threshold to decide are skipped and their numbers
+ * written to unsure; returns how many (0 when threshold is given). */
+int64_t pmx_quadric_placement(int64_t n, const int32_t *a, const int32_t *b, const double *quadric,
+                              const double *pos, const double *threshold, double *x, double *cost, int64_t *unsure) {
+    int64_t n_unsure = 0;
+    for (int64_t i = 0; i < n; i++) {
+        /* The pairs' quadric rows are scattered over the hierarchy: fetch
+         * those of the pairs ahead (two cache lines a row). */
+        if (i + AHEAD < n) {
+            const double *qa = quadric + 10 * (int64_t)a[i + AHEAD], *qb = quadric + 10 * (int64_t)b[i + AHEAD];
+            __builtin_prefetch(qa), __builtin_prefetch(qa + 9), __builtin_prefetch(qb), __builtin_prefetch(qb + 9);
+            __builtin_prefetch(pos + 3 * (int64_t)a[i + AHEAD]), __builtin_prefetch(pos + 3 * (int64_t)b[i + AHEAD]);
+        }
+        double q[10];
+        sum_quadrics(quadric, a[i], b[i], q);
+        double a00 = q[0], a01 = q[1], a02 = q[2], b0 = q[3], a11 = q[4], a12 = q[5], b1 = q[6], a22 = q[7], b2 = q[8];
+        double c00 = a11 * a22 - a12 * a12;
+        double c01 = a02 * a12 - a01 * a22;
+        double c02 = a01 * a12 - a02 * a11;
+        double c11 = a00 * a22 - a02 * a02;
+        double c12 = a01 * a02 - a00 * a12;
+        double c22 = a00 * a11 - a01 * a01;
+        double det = a00 * c00 + a01 * c01 + a02 * c02;
+        int solvable;
+        if (threshold) {
+            solvable = fabs(det) > threshold[i];
+        } else {
+            double scale = (a00 + a11 + a22) / 3.0;
+            double t = 1e-9 * (scale * scale * scale), d = fabs(det);
+            /* Decided when the margin holds (NaN compares false both ways). */
+            if (d > t + THRESHOLD_MARGIN * fabs(t))
+                solvable = 1;
+            else if (d < t - THRESHOLD_MARGIN * fabs(t))
+                solvable = 0;
+            else {
+                unsure[n_unsure++] = i;
+                continue;
+            }
+        }
+        double inv_det = solvable ? 1.0 / det : 0.0;
+        double *xi = x + 3 * i;
+        xi[0] = -(c00 * b0 + c01 * b1 + c02 * b2) * inv_det;
+        xi[1] = -(c01 * b0 + c11 * b1 + c12 * b2) * inv_det;
+        xi[2] = -(c02 * b0 + c12 * b1 + c22 * b2) * inv_det;
+        const double *pa = pos + 3 * (int64_t)a[i], *pb = pos + 3 * (int64_t)b[i];
+        double mid[3], edge[3], off[3];
+        for (int k = 0; k < 3; k++) {
+            mid[k] = 0.5 * (pa[k] + pb[k]);
+            edge[k] = pb[k] - pa[k];
+            off[k] = xi[k] - mid[k];
+        }
+        solvable = solvable && norm3(off) <= norm3(edge);
+        double c = evaluate(q, xi);
+        if (!solvable || c > np_minimum(evaluate(q, pa), evaluate(q, pb))) {
+            /* The first of the cheapest options; a NaN cost is picked first. */
+            const double *option[3] = {pa, pb, mid};
+            int pick = 0;
+            double best = evaluate(q, pa);
+            for (int o = 1; o < 3 && !isnan(best); o++) {
+                double e = evaluate(q, option[o]);
+                if (e < best || isnan(e)) {
+                    best = e;
+                    pick = o;
+                }
+            }
+            for (int k = 0; k < 3; k++) xi[k] = option[pick][k];
+            c = np_maximum(best, 0.0);
+        }
+        cost[i] = np_maximum(c, 0.0);
+    }
+    return n_unsure;
+}
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_build_native",
+                                    "The builder's batch choice as C loops (called through ctypes).", -1, NULL};
+
+PyMODINIT_FUNC PyInit__build_native(void) { return PyModule_Create(&module); }

@@ -1,0 +1,229 @@
+"""The builder's batch choice as C loops (``builders/_build_native.c``), called through ctypes.
+
+The NumPy builder chooses a batch in parallel rounds of array reductions
+(:func:`select_independent`) and checks validity with array gathers
+(:func:`collapse_is_valid`); on the dragon these were half of the build. The C
+loops run the equivalent sequential greedy and the same validity arithmetic,
+and work out each candidate's round of the parallel version so that its round
+cap takes the same set: the hierarchy is bit for bit the NumPy builder's
+(tests/test_build_native.py). The library is the optional extension
+``pmjax.builders._build_native``; where it is missing, or ``PMJAX_NATIVE=0``
+is set, the builder runs its NumPy path.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import importlib.util
+import os
+
+import numpy as np
+
+# What a candidate became (the C enum).
+DEAD, TAKEN, INVALID, UNCHECKED = 0, 1, 2, 3
+_NEVER = np.iinfo(np.int32).max
+
+_p = ctypes.c_void_p
+_i64 = ctypes.c_int64
+
+
+def _load():
+    if os.environ.get("PMJAX_NATIVE", "1") == "0":
+        return None
+    spec = importlib.util.find_spec("pmjax.builders._build_native")
+    if spec is None or not spec.origin:
+        return None
+    lib = ctypes.CDLL(spec.origin)
+    lib.pmx_vertex_faces.restype = None
+    lib.pmx_vertex_faces.argtypes = [_i64, _p, _i64, _p, _p]
+    lib.pmx_lookup_sorted.restype = _i64
+    lib.pmx_lookup_sorted.argtypes = [_i64, _p, _i64, _p, _p]
+    mesh = [_i64, _p, _i64, _p, _p, ctypes.c_double] + [_p] * 5  # Mesh._args
+    lib.pmx_collapse_valid.restype = None
+    lib.pmx_collapse_valid.argtypes = [_i64] + [_p] * 5 + mesh + [_p]
+    lib.pmx_select_independent.restype = _i64
+    lib.pmx_select_independent.argtypes = [_i64] + [_p] * 5 + mesh + [ctypes.c_int, _i64, _p, _p]
+    lib.pmx_quadric_scale.restype = None
+    lib.pmx_quadric_scale.argtypes = [_i64, _p, _p, _p, _p]
+    lib.pmx_quadric_placement.restype = _i64
+    lib.pmx_quadric_placement.argtypes = [_i64, _p, _p, _p, _p, _p, _p, _p, _p]
+    return lib
+
+
+_LIB = _load()
+# Tests switch the C loops off to compare with the NumPy path (use_native).
+_enabled = True
+
+
+def available() -> bool:
+    """Whether the builder's batch choice runs as the compiled C loops."""
+    return _LIB is not None and _enabled
+
+
+class use_native:
+    """``with use_native(False): ...`` builds with the NumPy batch choice;
+    ``True`` restores the C loops where they are built."""
+
+    def __init__(self, on: bool):
+        self.on = on
+
+    def __enter__(self):
+        global _enabled
+        self.before, _enabled = _enabled, self.on
+        return self
+
+    def __exit__(self, *exc):
+        global _enabled
+        _enabled = self.before
+
+
+class Scratch:
+    """Buffers of the C loops for one build, allocated once: the faces
+    around each vertex (CSR), the greedy's state per vertex (round blocked
+    from, last removal round) and two stamp arrays (zero between calls),
+    ``int32`` each.
+
+    Args:
+        n_vertices: bound on the build's vertex ids; n_faces: its face count.
+    """
+
+    def __init__(self, n_vertices: int, n_faces: int):
+        self.start = np.empty(n_vertices + 1, np.int32)
+        self.face = np.empty(3 * n_faces, np.int32)
+        self.vertex = np.empty((n_vertices, 2), np.int32)
+        self.side_a = np.zeros(n_vertices, np.int32)
+        self.side_b = np.zeros(n_vertices, np.int32)
+        self.pointers = tuple(getattr(self, k).ctypes.data for k in ("start", "face", "vertex", "side_a", "side_b"))
+
+
+class Mesh:
+    """The current mesh as the C loops read it: its arrays in their dtypes
+    (held, so that the pointers stay valid) and the faces around each vertex,
+    built here into the scratch (so one mesh at a time per scratch).
+
+    Args:
+        faces: ``(F, 3)`` current faces; n_vertices: bound on vertex ids.
+        pos: ``(N, 3)`` float64 positions, ``N >= n_vertices``.
+        scratch: the build's :class:`Scratch`.
+    """
+
+    def __init__(self, faces, n_vertices, pos, scratch: Scratch):
+        self.faces = np.ascontiguousarray(faces, np.int32)
+        self.n_vertices = int(n_vertices)
+        self.pos = np.ascontiguousarray(pos, np.float64)
+        self.scratch = scratch
+        if (len(scratch.vertex) < self.n_vertices or len(scratch.face) < 3 * len(self.faces)
+                or len(self.pos) < self.n_vertices):
+            raise ValueError("builder: the C loops' buffers are smaller than the mesh")
+        _LIB.pmx_vertex_faces(len(self.faces), self.faces.ctypes.data, self.n_vertices, scratch.start.ctypes.data,
+                              scratch.face.ctypes.data)
+
+    def _args(self, boundary_vertex, min_area2):
+        boundary = np.ascontiguousarray(boundary_vertex, np.uint8)
+        if len(boundary) < self.n_vertices:
+            raise ValueError("builder: a border flag is missing for some vertex")
+        self._boundary = boundary  # held during the call
+        return (len(self.faces), self.faces.ctypes.data, self.n_vertices, self.pos.ctypes.data,
+                boundary.ctypes.data, float(min_area2), *self.scratch.pointers)
+
+
+def lookup_sorted(old_keys: np.ndarray, keys: np.ndarray):
+    """``index[i]``: position of ``keys[i]`` in ``old_keys`` or -1 (both
+    ascending ``int64``), or ``None`` where ``keys`` are not ascending."""
+    old_keys = np.ascontiguousarray(old_keys, np.int64)
+    keys = np.ascontiguousarray(keys, np.int64)
+    index = np.empty(len(keys), np.int64)
+    if _LIB.pmx_lookup_sorted(len(old_keys), old_keys.ctypes.data, len(keys), keys.ctypes.data, index.ctypes.data):
+        return None
+    return index
+
+
+class Candidates:
+    """All of a batch's candidates in the dtypes the C loops read: endpoints
+    ``a, b`` ``(C,)``, placements ``x`` ``(C, 3)``, ``link_test`` ``(C,)``."""
+
+    def __init__(self, a, b, x, link_test):
+        self.a = np.ascontiguousarray(a, np.int32)
+        self.b = np.ascontiguousarray(b, np.int32)
+        self.x = np.ascontiguousarray(x, np.float64)
+        self.link = np.ascontiguousarray(link_test, np.uint8)
+
+    def _args(self, idx):
+        return (len(idx), idx.ctypes.data, self.a.ctypes.data, self.b.ctypes.data, self.x.ctypes.data,
+                self.link.ctypes.data)
+
+
+def collapse_is_valid(mesh: Mesh, cand: Candidates, idx: np.ndarray, boundary_vertex, min_area2) -> np.ndarray:
+    """``bool[len(idx)]``: :func:`builders._validity.collapse_is_valid` of
+    the candidates ``idx`` (ids into ``cand``), with the border flags
+    ``boundary_vertex`` (``bool[n_vertices]``) and degenerate-face bound
+    ``min_area2`` (squared doubled area)."""
+    idx = np.ascontiguousarray(idx, np.int64)
+    ok = np.empty(len(idx), np.uint8)
+    _LIB.pmx_collapse_valid(*cand._args(idx), *mesh._args(boundary_vertex, min_area2), ok.ctypes.data)
+    return ok.view(bool)
+
+
+def select_independent(mesh: Mesh, cand: Candidates, idx: np.ndarray, boundary_vertex, min_area2, *,
+                       assume_valid: bool, max_rounds: int = 64):
+    """The batch of :func:`builders._independent.select_independent` with
+    :func:`collapse_is_valid` as its check.
+
+    Args:
+        mesh: the current mesh.
+        cand: the batch's candidates.
+        idx: ``(E,)`` ids of the eligible ones, cheapest first.
+        boundary_vertex, min_area2: as for :func:`collapse_is_valid`.
+        assume_valid: every eligible candidate is known valid (checked up front).
+        max_rounds: the round cap of the parallel version.
+
+    Returns:
+        ``(chosen, invalid, checked)``: positions in ``idx`` of the chosen
+        candidates, ascending; positions of the round winners found invalid;
+        how many winners were checked (0 with ``assume_valid``).
+    """
+    idx = np.ascontiguousarray(idx, np.int64)
+    state = np.empty(len(idx), np.uint8)
+    rounds = np.empty(len(idx), np.int32)
+    last = _LIB.pmx_select_independent(*cand._args(idx), *mesh._args(boundary_vertex, min_area2), int(assume_valid),
+                                       int(max_rounds),
+                                       state.ctypes.data, rounds.ctypes.data)
+    within = rounds <= last
+    chosen = np.flatnonzero(within & (state == TAKEN))
+    invalid = np.flatnonzero(within & (state == INVALID))
+    checked = 0 if assume_valid else len(chosen) + len(invalid)
+    return chosen, invalid, checked
+
+
+def quadric_placement(quadric: np.ndarray, pos: np.ndarray, a: np.ndarray, b: np.ndarray):
+    """:func:`builders._quadrics.optimal_placement` of ``quadric[a] +
+    quadric[b]`` between ``pos[a]`` and ``pos[b]``, the same bits.
+
+    Args:
+        quadric: ``float64[N, 10]`` packed quadrics (row-major).
+        pos: ``float64[N, 3]`` positions; a, b: ``(C,)`` vertex ids.
+
+    Returns:
+        ``(position (C, 3), cost (C,))``.
+    """
+    quadric = np.ascontiguousarray(quadric, np.float64)
+    pos = np.ascontiguousarray(pos, np.float64)
+    a, b = np.ascontiguousarray(a, np.int32), np.ascontiguousarray(b, np.int32)
+    x = np.empty((len(a), 3))
+    cost = np.empty(len(a))
+    unsure = np.empty(len(a), np.int64)
+    n_unsure = _LIB.pmx_quadric_placement(len(a), a.ctypes.data, b.ctypes.data, quadric.ctypes.data,
+                                          pos.ctypes.data, None, x.ctypes.data, cost.ctypes.data, unsure.ctypes.data)
+    if n_unsure:
+        # A determinant at the solvability threshold: the threshold as
+        # optimal_placement computes it, with NumPy's power.
+        rows = unsure[:n_unsure]
+        ua, ub = a[rows], b[rows]
+        scale = np.empty(len(rows))
+        _LIB.pmx_quadric_scale(len(rows), ua.ctypes.data, ub.ctypes.data, quadric.ctypes.data, scale.ctypes.data)
+        threshold = 1e-9 * scale**3
+        ux, ucost = np.empty((len(rows), 3)), np.empty(len(rows))
+        _LIB.pmx_quadric_placement(len(rows), ua.ctypes.data, ub.ctypes.data, quadric.ctypes.data, pos.ctypes.data,
+                                   threshold.ctypes.data, ux.ctypes.data, ucost.ctypes.data, None)
+        x[rows], cost[rows] = ux, ucost
+    return x, cost

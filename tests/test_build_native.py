@@ -1,0 +1,244 @@
+"""The builder's C loops against its NumPy path: the same hierarchy bit for bit,
+and each loop against the NumPy function it replaces (including the round cap
+of the parallel greedy, invalid winners, and placements at the solvability
+threshold)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import pmjax
+from pmjax.builders import BuildOptions, build_pm
+from pmjax.builders import _native as native
+
+pytestmark = pytest.mark.skipif(native._LIB is None, reason="the builder's C loops are not built (no C compiler)")
+
+
+def assert_same_bits(one, other):
+    for key, value in one.arrays().items():
+        got = getattr(other, key)
+        assert got.dtype == value.dtype and got.shape == value.shape, key
+        assert got.tobytes() == value.tobytes(), key
+
+
+def numpy_build(v, f, options=BuildOptions()):
+    with native.use_native(False):
+        assert not native.available()
+        return build_pm(v, f, options)
+
+
+def test_bunny_hierarchy_is_the_numpy_builders(built, data_path):
+    v, f, _, _ = pmjax.load_clean_mesh(data_path("bunny.ply"))
+    assert native.available()
+    assert_same_bits(built("bunny.ply"), numpy_build(v, f))
+
+
+@pytest.mark.parametrize(
+    "name, options",
+    [
+        ("cow", dict(batch_share=0.15, target_faces=300)),
+        ("cow", dict(metric="edge:2,quadric", allow_topology_change=True, target_vertices=400)),
+        ("cessna", dict(pair_distance=0.02)),
+        ("terrain_gcanyon", dict(batch_share=1.0)),
+    ],
+)
+def test_other_builds_are_the_numpy_builders(data_path, name, options):
+    """Targets, a metric schedule (the edge metric's costs with the C batch
+    choice), virtual pairs (no link test), open borders."""
+    v, f, _, _ = pmjax.load_clean_mesh(data_path(f"{name}.ply"))
+    assert_same_bits(build_pm(v, f, BuildOptions(**options)), numpy_build(v, f, BuildOptions(**options)))
+
+
+@pytest.fixture(scope="module")
+def first_batch(data_path):
+    """The bunny's first batch: current faces, positions, candidates with
+    placements and costs, eligible ids (cheapest half), border flags."""
+    from pmjax.builders import _quadrics as qd
+    from pmjax.builders._build import _cheapest
+    from pmjax.builders._topology import unique_edges
+
+    v, f, _, _ = pmjax.load_clean_mesh(data_path("bunny.ply"))
+    V0 = len(v)
+    pos = np.zeros((2 * V0, 3))
+    pos[:V0] = v
+    quadric = np.zeros((2 * V0, 10))
+    quadric[:V0] = qd.vertex_quadrics(v, f, V0)
+    cur = f.astype(np.int32)
+    ea, eb, ecount, _ = unique_edges(cur)
+    x, cost = qd.optimal_placement(quadric[ea] + quadric[eb], pos[ea], pos[eb])
+    elig = _cheapest(cost, len(cost) // 2)
+    boundary = np.zeros(V0, bool)
+    boundary[ea[ecount == 1]] = boundary[eb[ecount == 1]] = True
+    diag = float(np.linalg.norm(np.ptp(v, 0)))
+    return dict(pos=pos, quadric=quadric, cur=cur, a=ea, b=eb, x=x, elig=elig, boundary=boundary,
+                min_area2=(1e-12 * diag * diag) ** 2, n=V0)
+
+
+def numpy_validity(batch, x, link):
+    """builders/_validity.py's check as select_independent calls it, over
+    candidate ids into batch["elig"]; records what it found invalid."""
+    from pmjax.builders._validity import collapse_is_valid
+
+    e = batch["elig"]
+    invalid = []
+
+    def check(ids, pair, face):
+        k = e[ids]
+        ok = collapse_is_valid(batch["pos"], batch["cur"], batch["a"][k], batch["b"][k], x[k], pair, face,
+                               min_area2=batch["min_area2"], link_test=link[k], boundary_vertex=batch["boundary"])
+        invalid.append(ids[~ok])
+        return ok
+
+    return check, invalid
+
+
+def spoiled_placements(batch, share, seed):
+    """Placements with ``share`` of the candidates thrown far off (their
+    faces flip: invalid winners), the cheapest ones among them."""
+    rng = np.random.default_rng(seed)
+    x = batch["x"].copy()
+    e = batch["elig"]
+    far = e[rng.random(len(e)) < share]
+    x[far] += 10.0 * rng.normal(size=(len(far), 3))
+    return x
+
+
+@pytest.mark.parametrize("max_rounds", [1, 2, 3, 64])
+@pytest.mark.parametrize("share", [0.0, 0.2])
+def test_greedy_takes_the_parallel_rounds_set_under_every_cap(first_batch, max_rounds, share):
+    from pmjax.builders._independent import select_independent
+
+    batch = first_batch
+    x = spoiled_placements(batch, share, seed=max_rounds)
+    link = np.random.default_rng(1).random(len(batch["a"])) < 0.8
+    e = batch["elig"]
+    check, invalid = numpy_validity(batch, x, link)
+    want = select_independent(batch["a"][e], batch["b"][e], batch["cur"], batch["n"], check, max_rounds=max_rounds)
+    mesh = native.Mesh(batch["cur"], batch["n"], batch["pos"], native.Scratch(batch["n"], len(batch["cur"])))
+    cand = native.Candidates(batch["a"], batch["b"], x, link)
+    chosen, bad, checked = native.select_independent(mesh, cand, e, batch["boundary"], batch["min_area2"],
+                                                     assume_valid=False, max_rounds=max_rounds)
+    want_invalid = np.sort(np.concatenate(invalid))
+    assert np.array_equal(chosen, want)
+    assert np.array_equal(bad, want_invalid)
+    assert checked == len(want) + len(want_invalid)
+    assert len(want) > 0 and (share == 0 or len(want_invalid) > 0)
+
+    # Known valid up front: no check, the same rounds.
+    want_all = select_independent(batch["a"][e], batch["b"][e], batch["cur"], batch["n"],
+                                  lambda ids, pair, face: np.ones(len(ids), bool), max_rounds=max_rounds)
+    chosen, bad, checked = native.select_independent(mesh, cand, e, batch["boundary"], batch["min_area2"],
+                                                     assume_valid=True, max_rounds=max_rounds)
+    assert np.array_equal(chosen, want_all) and len(bad) == 0 and checked == 0
+
+
+def test_greedy_goes_past_the_cap_until_something_is_taken(first_batch):
+    """When every winner of the first rounds is invalid, the parallel rounds
+    run on until a round takes something; so must the C greedy. Three
+    candidates around one vertex, the first two invalid: rounds 1 and 2 take
+    nothing, round 3 takes the third, under a cap of 1 round."""
+    from pmjax.builders._independent import select_independent
+
+    batch = first_batch
+    u = np.flatnonzero(np.bincount(batch["a"]) >= 3)[0]
+    e = np.flatnonzero(batch["a"] == u)[:3]
+    x = batch["x"].copy()
+    x[e[:2]] += 50.0  # their faces flip
+    link = np.ones(len(batch["a"]), bool)
+    check, invalid = numpy_validity(dict(batch, elig=e), x, link)
+    want = select_independent(batch["a"][e], batch["b"][e], batch["cur"], batch["n"], check, max_rounds=1)
+    mesh = native.Mesh(batch["cur"], batch["n"], batch["pos"], native.Scratch(batch["n"], len(batch["cur"])))
+    cand = native.Candidates(batch["a"], batch["b"], x, link)
+    chosen, bad, checked = native.select_independent(mesh, cand, e, batch["boundary"], batch["min_area2"],
+                                                     assume_valid=False, max_rounds=1)
+    assert want.tolist() == [2] and chosen.tolist() == [2]
+    assert bad.tolist() == [0, 1] == np.sort(np.concatenate(invalid)).tolist() and checked == 3
+
+
+def test_validity_is_the_numpy_validity(first_batch):
+    from pmjax.builders._topology import VertexFaces
+    from pmjax.builders._validity import collapse_is_valid
+
+    batch = first_batch
+    x = spoiled_placements(batch, 0.1, seed=7)
+    link = np.random.default_rng(2).random(len(batch["a"])) < 0.5
+    idx = np.sort(batch["elig"])
+    a, b = batch["a"][idx], batch["b"][idx]
+    pair, face = VertexFaces(batch["cur"], batch["n"]).of_pairs(a, b, batch["cur"])
+    want = collapse_is_valid(batch["pos"], batch["cur"], a, b, x[idx], pair, face, min_area2=batch["min_area2"],
+                             link_test=link[idx], boundary_vertex=batch["boundary"])
+    mesh = native.Mesh(batch["cur"], batch["n"], batch["pos"], native.Scratch(batch["n"], len(batch["cur"])))
+    got = native.collapse_is_valid(mesh, native.Candidates(batch["a"], batch["b"], x, link), idx,
+                                   batch["boundary"], batch["min_area2"])
+    assert np.array_equal(got, want)
+    assert 0 < np.count_nonzero(~want) < len(want)
+
+
+def test_placement_is_the_numpy_placement(first_batch):
+    """Real pairs, then random quadrics with singular, rank-deficient,
+    NaN and infinite rows."""
+    from pmjax.builders import _quadrics as qd
+
+    batch = first_batch
+    a, b = batch["a"], batch["b"]
+    want = qd.optimal_placement(batch["quadric"][a] + batch["quadric"][b], batch["pos"][a], batch["pos"][b])
+    got = native.quadric_placement(batch["quadric"], batch["pos"], a, b)
+    assert all(u.tobytes() == w.tobytes() for u, w in zip(got, want))
+
+    rng = np.random.default_rng(4)
+    n = 4000
+    quadric = rng.normal(size=(2 * n, 10))
+    quadric[: n // 4] = 0.0  # zero sums: no solution
+    plane = rng.normal(size=(n // 4, 4))
+    quadric[n // 4 : n // 2] = plane[:, [0, 0, 0, 0, 1, 1, 1, 2, 2, 3]] * plane[:, [0, 1, 2, 3, 1, 2, 3, 2, 3, 3]]
+    quadric[n // 2 : n // 2 + 10, 3] = np.nan
+    quadric[n // 2 + 10 : n // 2 + 20, 0] = np.inf
+    pos = rng.normal(size=(2 * n, 3))
+    pa, pb = np.arange(n, dtype=np.int32), (np.arange(n, dtype=np.int32) + n)
+    quadric[n:] = 0.0  # the second endpoints add nothing: the rows above are the pairs' sums
+    want = qd.optimal_placement(quadric[pa] + quadric[pb], pos[pa], pos[pb])
+    got = native.quadric_placement(quadric, pos, pa, pb)
+    assert all(u.tobytes() == w.tobytes() for u, w in zip(got, want))
+
+
+def test_placement_at_the_solvability_threshold_uses_numpys_power():
+    """A determinant equal to 1e-9 scale^3 up to rounding: the C loop leaves
+    it to NumPy's power, and the result is optimal_placement's."""
+    from pmjax.builders import _quadrics as qd
+
+    e = 1e-9 * (2 / 3) ** 3
+    for _ in range(5):  # e = 1e-9 ((2 + e) / 3)^3, the fixed point
+        e = 1e-9 * ((2 + e) / 3) ** 3
+    rows = []
+    for scale in (1.0, 1 + 2**-40, 1 - 2**-40, 1 + 2**-30):
+        q = np.zeros(10)
+        q[[0, 4]] = 1.0
+        q[7] = e * scale
+        q[3], q[6], q[8], q[9] = 0.1, -0.2, 1e-12, 1.0
+        rows.append(q)
+    quadric = np.concatenate([np.array(rows), np.zeros((len(rows), 10))])
+    pos = np.random.default_rng(0).normal(size=(2 * len(rows), 3))
+    a = np.arange(len(rows), dtype=np.int32)
+    b = a + len(rows)
+    x, cost, unsure = np.empty((len(a), 3)), np.empty(len(a)), np.empty(len(a), np.int64)
+    n_unsure = native._LIB.pmx_quadric_placement(len(a), a.ctypes.data, b.ctypes.data, quadric.ctypes.data,
+                                                 pos.ctypes.data, None, x.ctypes.data, cost.ctypes.data,
+                                                 unsure.ctypes.data)
+    assert n_unsure == len(rows)
+    want = qd.optimal_placement(quadric[a] + quadric[b], pos[a], pos[b])
+    got = native.quadric_placement(quadric, pos, a, b)
+    assert all(u.tobytes() == w.tobytes() for u, w in zip(got, want))
+
+
+def test_sorted_lookup_is_the_binary_search():
+    rng = np.random.default_rng(6)
+    old = np.unique(rng.integers(0, 10_000, 3000))
+    keys = np.unique(rng.integers(0, 10_000, 2000))
+    index = native.lookup_sorted(old, keys)
+    i = np.minimum(np.searchsorted(old, keys), len(old) - 1)
+    assert np.array_equal(index >= 0, old[i] == keys)
+    assert np.array_equal(index[index >= 0], i[index >= 0])
+    assert native.lookup_sorted(old, keys[::-1]) is None
+    assert np.array_equal(native.lookup_sorted(old[:0], keys), np.full(len(keys), -1))
+    assert len(native.lookup_sorted(old, keys[:0])) == 0
