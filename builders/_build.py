@@ -157,14 +157,16 @@ def build_pm(
     pos[:V0] = v0
     normals = np.zeros((cap, 3))
     diag = float(np.linalg.norm(np.ptp(v0, axis=0)))
-    quadric = np.zeros((cap, 10))
-    quadric[:V0] = qd.vertex_quadrics(v0, f0, V0, options.boundary_weight)
-    # Doubled-area² under which a face counts as degenerate.
-    min_area2 = (1e-12 * diag * diag) ** 2
-
     # Current faces in current vertex ids. Ids stay below 2 V0, so int32:
     # half the memory traffic of int64 in every face gather.
     cur = f0.astype(np.int32)
+    # The first batch's edges give the quadrics their border edges too.
+    first_edges = unique_edges(cur)
+    quadric = np.zeros((cap, 10))
+    quadric[:V0] = qd.vertex_quadrics(v0, f0, V0, options.boundary_weight, first_edges)
+    # Doubled-area² under which a face counts as degenerate.
+    min_area2 = (1e-12 * diag * diag) ** 2
+
     fid = np.arange(F)  # their original face ids
     killer = np.full(F, -1, np.int32)
     v1s, v2s, costs, metric_ids, offsets = [], [], [], [], [0]
@@ -197,7 +199,8 @@ def build_pm(
             metric = options.metric_for_batch(batch)
 
             # Candidates: every edge, plus close vertex pairs that share no edge.
-            ea, eb, ecount, keys = unique_edges(cur)
+            ea, eb, ecount, keys = first_edges or unique_edges(cur)
+            first_edges = None
             a, b = ea, eb
             if options.pair_distance > 0:
                 live = np.unique(cur)
@@ -443,9 +446,14 @@ def _cheapest(cost: np.ndarray, k: int) -> np.ndarray:
     ``k`` of ``np.argsort(cost, kind="stable")``, without sorting the rest
     (a batch takes the cheapest share; sorting all candidates was the
     builder's largest single cost on the dragon)."""
-    if k >= len(cost):
+    if k >= len(cost) and not native.available():
         return _stable_argsort(cost)
     kth = np.partition(cost, k - 1)[k - 1]
+    if native.available():
+        # A stable radix sort of the picked costs' bits (C), 2-3x faster.
+        pick = native.cheapest(cost, k, kth)
+        if pick is not None:
+            return pick
     # Everything cheaper than the k-th cost, then its ties by index.
     below = np.flatnonzero(cost < kth)
     ties = np.flatnonzero(cost == kth)[: k - len(below)]

@@ -48,16 +48,24 @@ typedef struct {
     int32_t blocked, round;
 } Vertex;
 
-/* The caller's buffers (builders/_native.py Scratch), sized for every
- * vertex id and face of the build. start and face are the current faces
- * around each vertex (pmx_vertex_faces); the stamps are zero between calls;
- * the rest each call sets itself. */
+/* The faces around a vertex: face[first .. first + count). */
 typedef struct {
-    int32_t *start;      /* [n_vertices + 1]: faces around v are face[start[v] .. start[v + 1]) */
-    int32_t *face;       /* [3 F], ascending face ids per vertex */
-    Vertex *vertex;      /* [n_vertices] */
-    int32_t *side_a;     /* [n_vertices]: link-test stamps */
-    int32_t *side_b;     /* [n_vertices] */
+    int32_t first, count;
+} Around;
+
+/* The caller's buffers (builders/_native.py Scratch), sized for every
+ * vertex id and face of the build. Only the rows of vertices with a face
+ * are ever set or read, so a batch costs its faces, not the ids so far.
+ * around and face are the current faces around each vertex
+ * (pmx_vertex_faces); the link-test stamps only grow, from call to call
+ * (stamp[0] is the last one used). */
+typedef struct {
+    Around *around;  /* [n_vertices] */
+    int32_t *face;   /* [3 F], ascending face ids per vertex */
+    Vertex *vertex;  /* [n_vertices] */
+    int32_t *side_a; /* [n_vertices]: link-test stamps */
+    int32_t *side_b; /* [n_vertices] */
+    int32_t *stamp;  /* [1] */
 } Scratch;
 
 typedef struct {
@@ -67,20 +75,28 @@ typedef struct {
     const uint8_t *boundary;
     double min_area2;
     Scratch s;
-    int32_t stamp; /* the candidate last link-tested */
 } Mesh;
 
-/* The faces around each vertex (start, face): counts, then starts, then a
- * fill that advances each start to its end; shifting back by one restores
- * them. Built once per batch, for the batch choice. */
-void pmx_vertex_faces(int64_t n_faces, const int32_t *faces, int64_t n_vertices, int32_t *start, int32_t *face) {
-    memset(start, 0, ((size_t)n_vertices + 1) * sizeof(int32_t));
-    for (int64_t i = 0; i < 3 * n_faces; i++) start[faces[i] + 1]++;
-    for (int64_t v = 0; v < n_vertices; v++) start[v + 1] += start[v];
+/* The faces around each vertex with a face: its count, then its first slot
+ * (in order of first appearance), then a fill that counts again. */
+void pmx_vertex_faces(int64_t n_faces, const int32_t *faces, Around *around, int32_t *face) {
+    int64_t n = 3 * n_faces;
+    for (int64_t i = 0; i < n; i++) around[faces[i]] = (Around){-1, 0};
+    for (int64_t i = 0; i < n; i++) around[faces[i]].count++;
+    int32_t next = 0;
+    for (int64_t i = 0; i < n; i++) {
+        Around *r = around + faces[i];
+        if (r->first < 0) {
+            r->first = next;
+            next += r->count;
+            r->count = 0;
+        }
+    }
     for (int64_t f = 0; f < n_faces; f++)
-        for (int k = 0; k < 3; k++) face[start[faces[3 * f + k]]++] = (int32_t)f;
-    for (int64_t v = n_vertices; v > 0; v--) start[v] = start[v - 1];
-    start[0] = 0;
+        for (int k = 0; k < 3; k++) {
+            Around *r = around + faces[3 * f + k];
+            face[r->first + r->count++] = (int32_t)f;
+        }
 }
 
 /* index[i] = position of keys[i] in old_keys, or -1; both ascending (a
@@ -96,8 +112,7 @@ int64_t pmx_lookup_sorted(int64_t n_old, const int64_t *old_keys, int64_t n, con
     return 0;
 }
 
-/* The current mesh, for the validity test and the greedy; the link-test
- * stamps start at zero (they are left zero). */
+/* The current mesh, for the validity test and the greedy. */
 static void start_mesh(Mesh *m, int64_t n_faces, const int32_t *faces, int64_t n_vertices, const double *pos,
                        const uint8_t *boundary, double min_area2, Scratch s) {
     m->n_faces = n_faces;
@@ -107,13 +122,16 @@ static void start_mesh(Mesh *m, int64_t n_faces, const int32_t *faces, int64_t n
     m->boundary = boundary;
     m->min_area2 = min_area2;
     m->s = s;
-    m->stamp = 0;
 }
 
-static void end_mesh(Mesh *m) {
-    if (m->stamp == 0) return;
-    memset(m->s.side_a, 0, (size_t)m->n_vertices * sizeof(int32_t));
-    memset(m->s.side_b, 0, (size_t)m->n_vertices * sizeof(int32_t));
+/* A fresh link-test stamp; once they run out, every stamp starts again. */
+static int32_t next_stamp(Mesh *m) {
+    if (*m->s.stamp == INT32_MAX) {
+        memset(m->s.side_a, 0, (size_t)m->n_vertices * sizeof(int32_t));
+        memset(m->s.side_b, 0, (size_t)m->n_vertices * sizeof(int32_t));
+        *m->s.stamp = 0;
+    }
+    return ++*m->s.stamp;
 }
 
 static void cross(const double u[3], const double v[3], double out[3]) {
@@ -131,12 +149,13 @@ static int has(const int32_t *t, int32_t v) { return t[0] == v || t[1] == v || t
  * common neighbours of a and b are exactly the apexes of the faces on edge
  * ab, and no interior edge joins two border vertices. */
 static int collapse_is_valid(Mesh *m, int32_t a, int32_t b, const double *x, int link_test) {
-    const int32_t *start = m->s.start, *around = m->s.face;
+    const Around *around = m->s.around;
+    const int32_t *face = m->s.face;
     int64_t apexes = 0;
     for (int side = 0; side < 2; side++) {
-        int32_t v = side ? b : a;
-        for (int32_t j = start[v]; j < start[v + 1]; j++) {
-            const int32_t *t = m->faces + 3 * (int64_t)around[j];
+        Around r = around[side ? b : a];
+        for (int32_t j = r.first; j < r.first + r.count; j++) {
+            const int32_t *t = m->faces + 3 * (int64_t)face[j];
             int with_a = has(t, a), with_b = has(t, b);
             if (side && with_a) continue; /* seen from a's side already */
             if (with_a && with_b) {       /* vanishes with the collapse */
@@ -162,15 +181,16 @@ static int collapse_is_valid(Mesh *m, int32_t a, int32_t b, const double *x, int
     if (!link_test) return 1;
     /* Distinct vertices other than a and b on faces holding a, then those
      * of them also on faces holding b. */
-    int32_t stamp = ++m->stamp;
+    int32_t stamp = next_stamp(m);
     int64_t common = 0;
-    for (int32_t j = start[a]; j < start[a + 1]; j++) {
-        const int32_t *t = m->faces + 3 * (int64_t)around[j];
+    Around ra = around[a], rb = around[b];
+    for (int32_t j = ra.first; j < ra.first + ra.count; j++) {
+        const int32_t *t = m->faces + 3 * (int64_t)face[j];
         for (int k = 0; k < 3; k++)
             if (t[k] != a && t[k] != b) m->s.side_a[t[k]] = stamp;
     }
-    for (int32_t j = start[b]; j < start[b + 1]; j++) {
-        const int32_t *t = m->faces + 3 * (int64_t)around[j];
+    for (int32_t j = rb.first; j < rb.first + rb.count; j++) {
+        const int32_t *t = m->faces + 3 * (int64_t)face[j];
         for (int k = 0; k < 3; k++) {
             int32_t u = t[k];
             if (u != a && u != b && m->s.side_a[u] == stamp && m->s.side_b[u] != stamp) {
@@ -187,16 +207,15 @@ static int collapse_is_valid(Mesh *m, int32_t a, int32_t b, const double *x, int
  * doubles) on the current faces. */
 void pmx_collapse_valid(int64_t n, const int64_t *idx, const int32_t *a, const int32_t *b, const double *x,
                         const uint8_t *link_test, int64_t n_faces, const int32_t *faces, int64_t n_vertices,
-                        const double *pos, const uint8_t *boundary, double min_area2, int32_t *start, int32_t *face,
-                        Vertex *vertex, int32_t *side_a, int32_t *side_b, uint8_t *ok) {
+                        const double *pos, const uint8_t *boundary, double min_area2, Around *around,
+                        int32_t *face, Vertex *vertex, int32_t *side_a, int32_t *side_b, int32_t *stamp, uint8_t *ok) {
     Mesh m;
     start_mesh(&m, n_faces, faces, n_vertices, pos, boundary, min_area2,
-               (Scratch){start, face, vertex, side_a, side_b});
+               (Scratch){around, face, vertex, side_a, side_b, stamp});
     for (int64_t i = 0; i < n; i++) {
         int64_t k = idx[i];
         ok[i] = (uint8_t)collapse_is_valid(&m, a[k], b[k], x + 3 * k, link_test[k]);
     }
-    end_mesh(&m);
 }
 
 /* The greedy over candidates idx[0 .. n-1] (cheapest first). For each, state
@@ -212,12 +231,13 @@ void pmx_collapse_valid(int64_t n, const int64_t *idx, const int32_t *a, const i
  * therefore costs two vertex rows; only winners walk their faces. */
 int64_t pmx_select_independent(int64_t n, const int64_t *idx, const int32_t *a, const int32_t *b, const double *x,
                                const uint8_t *link_test, int64_t n_faces, const int32_t *faces, int64_t n_vertices,
-                               const double *pos, const uint8_t *boundary, double min_area2, int32_t *start,
-                               int32_t *face, Vertex *vertex, int32_t *side_a, int32_t *side_b, int assume_valid,
-                               int64_t max_rounds, uint8_t *state, int32_t *round) {
+                               const double *pos, const uint8_t *boundary, double min_area2, Around *around,
+                               int32_t *face, Vertex *vertex, int32_t *side_a, int32_t *side_b, int32_t *stamp,
+                               int assume_valid, int64_t max_rounds, uint8_t *state, int32_t *round) {
     Mesh m;
-    start_mesh(&m, n_faces, faces, n_vertices, pos, boundary, min_area2, (Scratch){start, face, vertex, side_a, side_b});
-    for (int64_t v = 0; v < n_vertices; v++) vertex[v] = (Vertex){NEVER, 0};
+    start_mesh(&m, n_faces, faces, n_vertices, pos, boundary, min_area2,
+               (Scratch){around, face, vertex, side_a, side_b, stamp});
+    for (int64_t i = 0; i < 3 * n_faces; i++) vertex[faces[i]] = (Vertex){NEVER, 0};
     int64_t first_taken = NEVER;
     for (int64_t i = 0; i < n; i++) {
         /* Candidates come in cost order, scattered over the mesh: fetch the
@@ -227,8 +247,8 @@ int64_t pmx_select_independent(int64_t n, const int64_t *idx, const int32_t *a, 
             int64_t k1 = idx[i + AHEAD];
             __builtin_prefetch(vertex + a[k1]);
             __builtin_prefetch(vertex + b[k1]);
-            __builtin_prefetch(start + a[k1]);
-            __builtin_prefetch(start + b[k1]);
+            __builtin_prefetch(around + a[k1]);
+            __builtin_prefetch(around + b[k1]);
         }
         int64_t k = idx[i];
         int32_t ends[2] = {a[k], b[k]};
@@ -239,12 +259,14 @@ int64_t pmx_select_independent(int64_t n, const int64_t *idx, const int32_t *a, 
         } else {
             /* A winner the round after its cheaper conflicting candidates left. */
             r = 0;
-            for (int e = 0; e < 2; e++)
-                for (int32_t j = start[ends[e]]; j < start[ends[e] + 1]; j++) {
+            for (int e = 0; e < 2; e++) {
+                Around re = around[ends[e]];
+                for (int32_t j = re.first; j < re.first + re.count; j++) {
                     const int32_t *t = faces + 3 * (int64_t)face[j];
                     for (int c = 0; c < 3; c++)
                         if (vertex[t[c]].round > r) r = vertex[t[c]].round;
                 }
+            }
             r++;
             if (assume_valid)
                 state[i] = TAKEN;
@@ -255,19 +277,20 @@ int64_t pmx_select_independent(int64_t n, const int64_t *idx, const int32_t *a, 
             if (state[i] == TAKEN) {
                 if (r < first_taken) first_taken = r;
                 /* Every vertex of its domain is blocked from this round on. */
-                for (int e = 0; e < 2; e++)
-                    for (int32_t j = start[ends[e]]; j < start[ends[e] + 1]; j++) {
+                for (int e = 0; e < 2; e++) {
+                    Around re = around[ends[e]];
+                    for (int32_t j = re.first; j < re.first + re.count; j++) {
                         const int32_t *t = faces + 3 * (int64_t)face[j];
                         for (int c = 0; c < 3; c++)
                             if (vertex[t[c]].blocked > r) vertex[t[c]].blocked = r;
                     }
+                }
             }
         }
         round[i] = r;
         if (va->round < r) va->round = r;
         if (vb->round < r) vb->round = r;
     }
-    end_mesh(&m);
     if (first_taken == NEVER) return NEVER;
     return first_taken > max_rounds ? first_taken : max_rounds;
 }
@@ -384,6 +407,71 @@ int64_t pmx_quadric_placement(int64_t n, const int32_t *a, const int32_t *b, con
         cost[i] = np_maximum(c, 0.0);
     }
     return n_unsure;
+}
+
+/* builders/_build.py _cheapest: the k cheapest of cost[0 .. n-1] in stable
+ * cost order (ties by index), given kth, the k-th smallest cost. Those
+ * below kth and the first ties at it are picked in index order, then put in
+ * cost order by a stable radix sort of their bits (11 bits a pass; passes
+ * where every key has the same digit are skipped). out: [k] ids; key, tmp:
+ * [2 k] scratch each. Returns 0, or -1 if a cost is NaN. */
+#define DIGIT 8
+int64_t pmx_cheapest(int64_t n, const double *cost, int64_t k, double kth, int64_t *out, uint64_t *key, uint64_t *tmp) {
+    int64_t below = 0;
+    for (int64_t i = 0; i < n; i++) {
+        if (isnan(cost[i])) return -1;
+        below += cost[i] < kth;
+    }
+    int64_t ties = k - below, m = 0;
+    for (int64_t i = 0; i < n && m < k; i++)
+        if (cost[i] < kth || (cost[i] == kth && ties-- > 0)) out[m++] = i;
+    /* Keys whose unsigned order is the float order (-0 counts as +0). */
+    for (int64_t i = 0; i < k; i++) {
+        double c = cost[out[i]];
+        uint64_t bits;
+        if (c == 0.0) c = 0.0;
+        memcpy(&bits, &c, sizeof bits);
+        key[2 * i] = (bits >> 63) ? ~bits : bits | (1ULL << 63);
+        key[2 * i + 1] = (uint64_t)out[i];
+    }
+    uint64_t *src = key, *dst = tmp;
+    static const int n_digits = (64 + DIGIT - 1) / DIGIT;
+    for (int d = 0; d < n_digits; d++) {
+        int shift = d * DIGIT;
+        int64_t count[1 << DIGIT];
+        memset(count, 0, sizeof count);
+        for (int64_t i = 0; i < k; i++) count[(src[2 * i] >> shift) & ((1 << DIGIT) - 1)]++;
+        if (k == 0 || count[(src[0] >> shift) & ((1 << DIGIT) - 1)] == k) continue;
+        int64_t sum = 0;
+        for (int b = 0; b < (1 << DIGIT); b++) {
+            int64_t c = count[b];
+            count[b] = sum;
+            sum += c;
+        }
+        for (int64_t i = 0; i < k; i++) {
+            int64_t at = count[(src[2 * i] >> shift) & ((1 << DIGIT) - 1)]++;
+            dst[2 * at] = src[2 * i];
+            dst[2 * at + 1] = src[2 * i + 1];
+        }
+        uint64_t *t = src;
+        src = dst;
+        dst = t;
+    }
+    for (int64_t i = 0; i < k; i++) out[i] = (int64_t)src[2 * i + 1];
+    return 0;
+}
+
+/* builders/_quadrics.py scatter_add: out[index[i]][c] += columns[c][i / repeat]
+ * for every i in order, column by column the order of NumPy's bincount (so
+ * the same sums, bit for bit), all k columns in one pass. columns: k
+ * contiguous columns of n_rows; out: (n_out, k), zero on entry. */
+void pmx_scatter_add(int64_t n_index, const int64_t *index, int64_t k, const double *columns, int64_t n_rows,
+                     int64_t repeat, double *out) {
+    for (int64_t i = 0; i < n_index; i++) {
+        double *row = out + index[i] * k;
+        const double *value = columns + i / repeat;
+        for (int64_t c = 0; c < k; c++) row[c] += value[c * n_rows];
+    }
 }
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_build_native",

@@ -35,14 +35,18 @@ def _load():
         return None
     lib = ctypes.CDLL(spec.origin)
     lib.pmx_vertex_faces.restype = None
-    lib.pmx_vertex_faces.argtypes = [_i64, _p, _i64, _p, _p]
+    lib.pmx_vertex_faces.argtypes = [_i64, _p, _p, _p]
     lib.pmx_lookup_sorted.restype = _i64
     lib.pmx_lookup_sorted.argtypes = [_i64, _p, _i64, _p, _p]
-    mesh = [_i64, _p, _i64, _p, _p, ctypes.c_double] + [_p] * 5  # Mesh._args
+    mesh = [_i64, _p, _i64, _p, _p, ctypes.c_double] + [_p] * 6  # Mesh._args
     lib.pmx_collapse_valid.restype = None
     lib.pmx_collapse_valid.argtypes = [_i64] + [_p] * 5 + mesh + [_p]
     lib.pmx_select_independent.restype = _i64
     lib.pmx_select_independent.argtypes = [_i64] + [_p] * 5 + mesh + [ctypes.c_int, _i64, _p, _p]
+    lib.pmx_cheapest.restype = _i64
+    lib.pmx_cheapest.argtypes = [_i64, _p, _i64, ctypes.c_double, _p, _p, _p]
+    lib.pmx_scatter_add.restype = None
+    lib.pmx_scatter_add.argtypes = [_i64, _p, _i64, _p, _i64, _i64, _p]
     lib.pmx_quadric_scale.restype = None
     lib.pmx_quadric_scale.argtypes = [_i64, _p, _p, _p, _p]
     lib.pmx_quadric_placement.restype = _i64
@@ -78,22 +82,25 @@ class use_native:
 
 
 class Scratch:
-    """Buffers of the C loops for one build, allocated once: the faces
-    around each vertex (CSR), the greedy's state per vertex (round blocked
-    from, last removal round) and two stamp arrays (zero between calls),
-    ``int32`` each.
+    """Buffers of the C loops for one build, allocated once (``int32``
+    each): the faces around each vertex (first slot and count per vertex,
+    and the slots), the greedy's state per vertex (round blocked from, last
+    removal round), and two arrays of link-test stamps with the last stamp
+    used (stamps only grow, so the arrays are never cleared).
 
     Args:
         n_vertices: bound on the build's vertex ids; n_faces: its face count.
     """
 
     def __init__(self, n_vertices: int, n_faces: int):
-        self.start = np.empty(n_vertices + 1, np.int32)
+        self.around = np.empty((n_vertices, 2), np.int32)
         self.face = np.empty(3 * n_faces, np.int32)
         self.vertex = np.empty((n_vertices, 2), np.int32)
         self.side_a = np.zeros(n_vertices, np.int32)
         self.side_b = np.zeros(n_vertices, np.int32)
-        self.pointers = tuple(getattr(self, k).ctypes.data for k in ("start", "face", "vertex", "side_a", "side_b"))
+        self.stamp = np.zeros(1, np.int32)
+        names = ("around", "face", "vertex", "side_a", "side_b", "stamp")
+        self.pointers = tuple(getattr(self, k).ctypes.data for k in names)
 
 
 class Mesh:
@@ -115,7 +122,9 @@ class Mesh:
         if (len(scratch.vertex) < self.n_vertices or len(scratch.face) < 3 * len(self.faces)
                 or len(self.pos) < self.n_vertices):
             raise ValueError("builder: the C loops' buffers are smaller than the mesh")
-        _LIB.pmx_vertex_faces(len(self.faces), self.faces.ctypes.data, self.n_vertices, scratch.start.ctypes.data,
+        if len(self.faces) and not (0 <= self.faces.min() and self.faces.max() < self.n_vertices):
+            raise ValueError(f"builder: a face vertex id is outside 0 .. {self.n_vertices - 1}")
+        _LIB.pmx_vertex_faces(len(self.faces), self.faces.ctypes.data, scratch.around.ctypes.data,
                               scratch.face.ctypes.data)
 
     def _args(self, boundary_vertex, min_area2):
@@ -227,3 +236,32 @@ def quadric_placement(quadric: np.ndarray, pos: np.ndarray, a: np.ndarray, b: np
                                    threshold.ctypes.data, ux.ctypes.data, ucost.ctypes.data, None)
         x[rows], cost[rows] = ux, ucost
     return x, cost
+
+
+def cheapest(cost: np.ndarray, k: int, kth: float):
+    """The first ``k`` of ``np.argsort(cost, kind="stable")`` given the
+    ``k``-th smallest cost ``kth`` (``1 <= k <= len(cost)``), or ``None``
+    where a cost is NaN."""
+    cost = np.ascontiguousarray(cost, np.float64)
+    out = np.empty(k, np.int64)
+    key, tmp = np.empty(2 * k, np.uint64), np.empty(2 * k, np.uint64)
+    if _LIB.pmx_cheapest(len(cost), cost.ctypes.data, k, float(kth), out.ctypes.data, key.ctypes.data,
+                         tmp.ctypes.data):
+        return None
+    return out
+
+
+def scatter_add(columns: np.ndarray, index: np.ndarray, n: int, repeat: int) -> np.ndarray:
+    """:func:`builders._quadrics.scatter_add` of the ``(k, N)`` contiguous
+    float64 ``columns``: ``out[index[i]] += columns[:, i // repeat]``, the
+    same sums in the same order, as ``(n, k)``."""
+    columns = np.ascontiguousarray(columns, np.float64)
+    index = np.ascontiguousarray(index, np.int64)
+    if len(index) and not (0 <= index.min() and index.max() < n):
+        raise ValueError(f"scatter_add: an index is outside 0 .. {n - 1}")
+    if len(index) > repeat * columns.shape[1]:
+        raise ValueError("scatter_add: more indices than values")
+    out = np.zeros((n, len(columns)))
+    _LIB.pmx_scatter_add(len(index), index.ctypes.data, len(columns), columns.ctypes.data, columns.shape[1], repeat,
+                         out.ctypes.data)
+    return out

@@ -39,13 +39,15 @@ def test_bunny_hierarchy_is_the_numpy_builders(built, data_path):
     [
         ("cow", dict(batch_share=0.15, target_faces=300)),
         ("cow", dict(metric="edge:2,quadric", allow_topology_change=True, target_vertices=400)),
+        ("cow", dict(metric="quadric-memoryless:3,pm:3,hybrid:3,quadric", target_faces=1000)),
         ("cessna", dict(pair_distance=0.02)),
         ("terrain_gcanyon", dict(batch_share=1.0)),
     ],
 )
 def test_other_builds_are_the_numpy_builders(data_path, name, options):
-    """Targets, a metric schedule (the edge metric's costs with the C batch
-    choice), virtual pairs (no link test), open borders."""
+    """Targets, metric schedules (costs from NumPy with the C batch choice,
+    quadrics rebuilt from the faces every batch), virtual pairs (no link
+    test), open borders."""
     v, f, _, _ = pmjax.load_clean_mesh(data_path(f"{name}.ply"))
     assert_same_bits(build_pm(v, f, BuildOptions(**options)), numpy_build(v, f, BuildOptions(**options)))
 
@@ -242,3 +244,20 @@ def test_sorted_lookup_is_the_binary_search():
     assert native.lookup_sorted(old, keys[::-1]) is None
     assert np.array_equal(native.lookup_sorted(old[:0], keys), np.full(len(keys), -1))
     assert len(native.lookup_sorted(old, keys[:0])) == 0
+
+
+def test_scatter_add_is_the_bincount_sums():
+    """One pass over the rows gives bincount's sums per column, bit for bit
+    (the same additions in the same order); bad indices are refused."""
+    from pmjax.builders import _quadrics as qd
+
+    rng = np.random.default_rng(8)
+    values = rng.normal(size=(5000, 10)) * 10.0 ** rng.integers(-8, 8, (5000, 1))
+    for repeat in (1, 3):
+        index = rng.integers(0, 700, repeat * len(values)).astype(np.int32)
+        got = qd.scatter_add(values, index, 800, repeat)
+        with native.use_native(False):
+            want = qd.scatter_add(values, index, 800, repeat)
+        assert got.shape == want.shape == (800, 10) and got.tobytes() == want.tobytes()
+    with pytest.raises(ValueError, match="outside"):
+        native.scatter_add(values.T, np.array([0, 800]), 800, 1)
