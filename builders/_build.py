@@ -494,14 +494,17 @@ def _sorted_by_key(keys, x, cost):
 def _cached_costs(cache, keys, metric, pos, cur, quadric, a, b, boundary_weight):
     """Costs from ``cache = (metric, keys, x, cost)`` where the pair is known."""
     _, old_keys, old_x, old_cost = cache
-    # Edges come in key order: a merge finds them (C), else a binary search.
-    index = native.lookup_sorted(old_keys, keys) if native.available() else None
-    if index is not None:
-        known = index >= 0
-        i = np.maximum(index, 0)
-    else:
-        i = np.minimum(np.searchsorted(old_keys, keys), len(old_keys) - 1)
-        known = old_keys[i] == keys
+    # Edges come in key order: a merge carries the known rows (C).
+    carried = native.carry_costs(old_keys, old_x, old_cost, keys) if native.available() else None
+    if carried is not None:
+        x, cost, fresh = carried
+        if metric == "quadric":
+            native.quadric_placement(quadric, pos, a, b, rows=fresh, x=x, cost=cost)
+        else:
+            x[fresh], cost[fresh] = evaluate_metric(metric, pos, cur, quadric, a[fresh], b[fresh], boundary_weight)
+        return x, cost
+    i = np.minimum(np.searchsorted(old_keys, keys), len(old_keys) - 1)
+    known = old_keys[i] == keys
     x = old_x[i]
     cost = old_cost[i]
     fresh = ~known

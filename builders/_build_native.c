@@ -99,17 +99,25 @@ void pmx_vertex_faces(int64_t n_faces, const int32_t *faces, Around *around, int
         }
 }
 
-/* index[i] = position of keys[i] in old_keys, or -1; both ascending (a
- * merge). Returns 0, or -1 if keys are not ascending. */
-int64_t pmx_lookup_sorted(int64_t n_old, const int64_t *old_keys, int64_t n, const int64_t *keys, int64_t *index) {
+/* Costs and placements of the pairs known from the last batch: keys[i]
+ * found in old_keys (both ascending, a merge) copies its row; the others'
+ * positions go to fresh. Returns how many are fresh, or -1 if keys are not
+ * ascending. */
+int64_t pmx_carry_costs(int64_t n_old, const int64_t *old_keys, const double *old_x, const double *old_cost, int64_t n,
+                        const int64_t *keys, double *x, double *cost, int64_t *fresh) {
     for (int64_t i = 1; i < n; i++)
         if (keys[i] <= keys[i - 1]) return -1;
-    int64_t j = 0;
+    int64_t j = 0, n_fresh = 0;
     for (int64_t i = 0; i < n; i++) {
         while (j < n_old && old_keys[j] < keys[i]) j++;
-        index[i] = (j < n_old && old_keys[j] == keys[i]) ? j : -1;
+        if (j < n_old && old_keys[j] == keys[i]) {
+            for (int k = 0; k < 3; k++) x[3 * i + k] = old_x[3 * j + k];
+            cost[i] = old_cost[j];
+        } else {
+            fresh[n_fresh++] = i;
+        }
     }
-    return 0;
+    return n_fresh;
 }
 
 /* The current mesh, for the validity test and the greedy. */
@@ -331,26 +339,30 @@ void pmx_quadric_scale(int64_t n, const int32_t *a, const int32_t *b, const doub
 #define THRESHOLD_MARGIN 1e-9
 
 /* builders/_quadrics.py optimal_placement of the summed quadrics of pairs
- * (a[i], b[i]): the adjugate solution where |det| > the threshold and it
- * lands within the pair's length of its midpoint and is no dearer than an
- * endpoint, else the best of the two endpoints and the midpoint (first of
- * equals). x: (n, 3) out; cost: (n,) out, >= 0.
- * threshold: (n,) given thresholds, or NULL: then rows whose determinant is
- * too close to the threshold to decide are skipped and their numbers
+ * (a[r], b[r]) for the rows r = rows[i] (rows NULL: r = i), i < n: the
+ * adjugate solution where |det| > the threshold and it lands within the
+ * pair's length of its midpoint and is no dearer than an endpoint, else the
+ * best of the two endpoints and the midpoint (first of equals). Writes
+ * x[r] (3 doubles) and cost[r] >= 0.
+ * threshold: [n] given thresholds (by i), or NULL: then rows whose
+ * determinant is too close to the threshold to decide are skipped and
  * written to unsure; returns how many (0 when threshold is given). */
-int64_t pmx_quadric_placement(int64_t n, const int32_t *a, const int32_t *b, const double *quadric,
-                              const double *pos, const double *threshold, double *x, double *cost, int64_t *unsure) {
+int64_t pmx_quadric_placement(int64_t n, const int64_t *rows, const int32_t *a, const int32_t *b,
+                              const double *quadric, const double *pos, const double *threshold, double *x,
+                              double *cost, int64_t *unsure) {
     int64_t n_unsure = 0;
     for (int64_t i = 0; i < n; i++) {
         /* The pairs' quadric rows are scattered over the hierarchy: fetch
          * those of the pairs ahead (two cache lines a row). */
         if (i + AHEAD < n) {
-            const double *qa = quadric + 10 * (int64_t)a[i + AHEAD], *qb = quadric + 10 * (int64_t)b[i + AHEAD];
+            int64_t r = rows ? rows[i + AHEAD] : i + AHEAD;
+            const double *qa = quadric + 10 * (int64_t)a[r], *qb = quadric + 10 * (int64_t)b[r];
             __builtin_prefetch(qa), __builtin_prefetch(qa + 9), __builtin_prefetch(qb), __builtin_prefetch(qb + 9);
-            __builtin_prefetch(pos + 3 * (int64_t)a[i + AHEAD]), __builtin_prefetch(pos + 3 * (int64_t)b[i + AHEAD]);
+            __builtin_prefetch(pos + 3 * (int64_t)a[r]), __builtin_prefetch(pos + 3 * (int64_t)b[r]);
         }
+        int64_t r = rows ? rows[i] : i;
         double q[10];
-        sum_quadrics(quadric, a[i], b[i], q);
+        sum_quadrics(quadric, a[r], b[r], q);
         double a00 = q[0], a01 = q[1], a02 = q[2], b0 = q[3], a11 = q[4], a12 = q[5], b1 = q[6], a22 = q[7], b2 = q[8];
         double c00 = a11 * a22 - a12 * a12;
         double c01 = a02 * a12 - a01 * a22;
@@ -371,16 +383,16 @@ int64_t pmx_quadric_placement(int64_t n, const int32_t *a, const int32_t *b, con
             else if (d < t - THRESHOLD_MARGIN * fabs(t))
                 solvable = 0;
             else {
-                unsure[n_unsure++] = i;
+                unsure[n_unsure++] = r;
                 continue;
             }
         }
         double inv_det = solvable ? 1.0 / det : 0.0;
-        double *xi = x + 3 * i;
+        double *xi = x + 3 * r;
         xi[0] = -(c00 * b0 + c01 * b1 + c02 * b2) * inv_det;
         xi[1] = -(c01 * b0 + c11 * b1 + c12 * b2) * inv_det;
         xi[2] = -(c02 * b0 + c12 * b1 + c22 * b2) * inv_det;
-        const double *pa = pos + 3 * (int64_t)a[i], *pb = pos + 3 * (int64_t)b[i];
+        const double *pa = pos + 3 * (int64_t)a[r], *pb = pos + 3 * (int64_t)b[r];
         double mid[3], edge[3], off[3];
         for (int k = 0; k < 3; k++) {
             mid[k] = 0.5 * (pa[k] + pb[k]);
@@ -404,7 +416,7 @@ int64_t pmx_quadric_placement(int64_t n, const int32_t *a, const int32_t *b, con
             for (int k = 0; k < 3; k++) xi[k] = option[pick][k];
             c = np_maximum(best, 0.0);
         }
-        cost[i] = np_maximum(c, 0.0);
+        cost[r] = np_maximum(c, 0.0);
     }
     return n_unsure;
 }
@@ -472,6 +484,33 @@ void pmx_scatter_add(int64_t n_index, const int64_t *index, int64_t k, const dou
         const double *value = columns + i / repeat;
         for (int64_t c = 0; c < k; c++) row[c] += value[c * n_rows];
     }
+}
+
+/* The three edge keys of each face (builders/_topology.py edge_keys of
+ * corners k and k + 1): min << 32 | max. */
+void pmx_edge_keys(int64_t n_faces, const int32_t *faces, int64_t *keys) {
+    for (int64_t f = 0; f < n_faces; f++)
+        for (int k = 0; k < 3; k++) {
+            int64_t u = faces[3 * f + k], w = faces[3 * f + (k + 1) % 3];
+            keys[3 * f + k] = u < w ? (u << 32 | w) : (w << 32 | u);
+        }
+}
+
+/* The distinct keys of sorted keys[0 .. n-1], with their ends and counts.
+ * Returns how many. */
+int64_t pmx_key_runs(int64_t n, const int64_t *keys, int64_t *unique, int32_t *lo, int32_t *hi, int64_t *count) {
+    int64_t m = 0;
+    for (int64_t i = 0; i < n; i++) {
+        if (m && unique[m - 1] == keys[i]) {
+            count[m - 1]++;
+            continue;
+        }
+        unique[m] = keys[i];
+        lo[m] = (int32_t)(keys[i] >> 32);
+        hi[m] = (int32_t)(keys[i] & 0xFFFFFFFF);
+        count[m++] = 1;
+    }
+    return m;
 }
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_build_native",

@@ -53,7 +53,7 @@ def evaluate_metric(
     if metric == "quadric":
         # Gathers included: the halves also fetch their own rows in parallel.
         if native.available():
-            return split_rows(lambda a, b: native.quadric_placement(quadric, pos, a, b), a, b)
+            return native.quadric_placement(quadric, pos, a, b)
         return split_rows(lambda a, b: qd.optimal_placement(quadric[a] + quadric[b], pos[a], pos[b]), a, b)
     pa, pb = pos[a], pos[b]
     if metric == "edge":

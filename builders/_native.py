@@ -19,6 +19,8 @@ import os
 
 import numpy as np
 
+from ._threads import split_range
+
 # What a candidate became (the C enum).
 DEAD, TAKEN, INVALID, UNCHECKED = 0, 1, 2, 3
 _NEVER = np.iinfo(np.int32).max
@@ -36,8 +38,12 @@ def _load():
     lib = ctypes.CDLL(spec.origin)
     lib.pmx_vertex_faces.restype = None
     lib.pmx_vertex_faces.argtypes = [_i64, _p, _p, _p]
-    lib.pmx_lookup_sorted.restype = _i64
-    lib.pmx_lookup_sorted.argtypes = [_i64, _p, _i64, _p, _p]
+    lib.pmx_edge_keys.restype = None
+    lib.pmx_edge_keys.argtypes = [_i64, _p, _p]
+    lib.pmx_key_runs.restype = _i64
+    lib.pmx_key_runs.argtypes = [_i64, _p, _p, _p, _p, _p]
+    lib.pmx_carry_costs.restype = _i64
+    lib.pmx_carry_costs.argtypes = [_i64, _p, _p, _p, _i64, _p, _p, _p, _p]
     mesh = [_i64, _p, _i64, _p, _p, ctypes.c_double] + [_p] * 6  # Mesh._args
     lib.pmx_collapse_valid.restype = None
     lib.pmx_collapse_valid.argtypes = [_i64] + [_p] * 5 + mesh + [_p]
@@ -50,7 +56,7 @@ def _load():
     lib.pmx_quadric_scale.restype = None
     lib.pmx_quadric_scale.argtypes = [_i64, _p, _p, _p, _p]
     lib.pmx_quadric_placement.restype = _i64
-    lib.pmx_quadric_placement.argtypes = [_i64, _p, _p, _p, _p, _p, _p, _p, _p]
+    lib.pmx_quadric_placement.argtypes = [_i64] + [_p] * 9
     return lib
 
 
@@ -136,15 +142,43 @@ class Mesh:
                 boundary.ctypes.data, float(min_area2), *self.scratch.pointers)
 
 
-def lookup_sorted(old_keys: np.ndarray, keys: np.ndarray):
-    """``index[i]``: position of ``keys[i]`` in ``old_keys`` or -1 (both
-    ascending ``int64``), or ``None`` where ``keys`` are not ascending."""
+def unique_edges(faces: np.ndarray):
+    """:func:`builders._topology.unique_edges` of ``int32`` faces, the same
+    arrays: the keys made and counted in C around NumPy's sort."""
+    faces = np.ascontiguousarray(faces, np.int32)
+    keys = np.empty(3 * len(faces), np.int64)
+    _LIB.pmx_edge_keys(len(faces), faces.ctypes.data, keys.ctypes.data)
+    keys.sort()
+    unique, count = np.empty(len(keys), np.int64), np.empty(len(keys), np.int64)
+    lo, hi = np.empty(len(keys), np.int32), np.empty(len(keys), np.int32)
+    n = _LIB.pmx_key_runs(len(keys), keys.ctypes.data, unique.ctypes.data, lo.ctypes.data, hi.ctypes.data,
+                          count.ctypes.data)
+    return lo[:n].copy(), hi[:n].copy(), count[:n].copy(), unique[:n].copy()
+
+
+def carry_costs(old_keys: np.ndarray, old_x: np.ndarray, old_cost: np.ndarray, keys: np.ndarray):
+    """Placements and costs of the pairs ``keys`` known from the last batch.
+
+    Args:
+        old_keys: ``(M,)`` ascending ``int64`` pair keys; old_x ``(M, 3)``,
+            old_cost ``(M,)`` their placements and costs.
+        keys: ``(C,)`` this batch's pair keys.
+
+    Returns:
+        ``(x (C, 3), cost (C,), fresh)`` with ``fresh`` the positions of the
+        pairs not known (their rows unset), or ``None`` where ``keys`` are
+        not ascending.
+    """
     old_keys = np.ascontiguousarray(old_keys, np.int64)
+    old_x = np.ascontiguousarray(old_x, np.float64)
+    old_cost = np.ascontiguousarray(old_cost, np.float64)
     keys = np.ascontiguousarray(keys, np.int64)
-    index = np.empty(len(keys), np.int64)
-    if _LIB.pmx_lookup_sorted(len(old_keys), old_keys.ctypes.data, len(keys), keys.ctypes.data, index.ctypes.data):
+    x, cost, fresh = np.empty((len(keys), 3)), np.empty(len(keys)), np.empty(len(keys), np.int64)
+    n_fresh = _LIB.pmx_carry_costs(len(old_keys), old_keys.ctypes.data, old_x.ctypes.data, old_cost.ctypes.data,
+                                   len(keys), keys.ctypes.data, x.ctypes.data, cost.ctypes.data, fresh.ctypes.data)
+    if n_fresh < 0:
         return None
-    return index
+    return x, cost, fresh[:n_fresh]
 
 
 class Candidates:
@@ -204,37 +238,53 @@ def select_independent(mesh: Mesh, cand: Candidates, idx: np.ndarray, boundary_v
     return chosen, invalid, checked
 
 
-def quadric_placement(quadric: np.ndarray, pos: np.ndarray, a: np.ndarray, b: np.ndarray):
+def quadric_placement(quadric: np.ndarray, pos: np.ndarray, a: np.ndarray, b: np.ndarray, rows=None, x=None,
+                      cost=None):
     """:func:`builders._quadrics.optimal_placement` of ``quadric[a] +
-    quadric[b]`` between ``pos[a]`` and ``pos[b]``, the same bits.
+    quadric[b]`` between ``pos[a]`` and ``pos[b]``, the same bits, on both
+    cores for many pairs.
 
     Args:
         quadric: ``float64[N, 10]`` packed quadrics (row-major).
         pos: ``float64[N, 3]`` positions; a, b: ``(C,)`` vertex ids.
+        rows: positions of the pairs to place (``None``: all); their
+            results go to those rows of ``x`` and ``cost``.
+        x, cost: ``(C, 3)`` and ``(C,)`` float64 outputs to fill, or
+            ``None`` for new ones.
 
     Returns:
-        ``(position (C, 3), cost (C,))``.
+        ``(x, cost)``.
     """
     quadric = np.ascontiguousarray(quadric, np.float64)
     pos = np.ascontiguousarray(pos, np.float64)
     a, b = np.ascontiguousarray(a, np.int32), np.ascontiguousarray(b, np.int32)
-    x = np.empty((len(a), 3))
-    cost = np.empty(len(a))
-    unsure = np.empty(len(a), np.int64)
-    n_unsure = _LIB.pmx_quadric_placement(len(a), a.ctypes.data, b.ctypes.data, quadric.ctypes.data,
-                                          pos.ctypes.data, None, x.ctypes.data, cost.ctypes.data, unsure.ctypes.data)
-    if n_unsure:
-        # A determinant at the solvability threshold: the threshold as
-        # optimal_placement computes it, with NumPy's power.
-        rows = unsure[:n_unsure]
-        ua, ub = a[rows], b[rows]
-        scale = np.empty(len(rows))
-        _LIB.pmx_quadric_scale(len(rows), ua.ctypes.data, ub.ctypes.data, quadric.ctypes.data, scale.ctypes.data)
-        threshold = 1e-9 * scale**3
-        ux, ucost = np.empty((len(rows), 3)), np.empty(len(rows))
-        _LIB.pmx_quadric_placement(len(rows), ua.ctypes.data, ub.ctypes.data, quadric.ctypes.data, pos.ctypes.data,
-                                   threshold.ctypes.data, ux.ctypes.data, ucost.ctypes.data, None)
-        x[rows], cost[rows] = ux, ucost
+    x = np.empty((len(a), 3)) if x is None else x
+    cost = np.empty(len(a)) if cost is None else cost
+    if not (x.flags.c_contiguous and cost.flags.c_contiguous and x.dtype == cost.dtype == np.float64
+            and x.shape == (len(a), 3) and cost.shape == (len(a),)):
+        raise ValueError("quadric_placement: x and cost must be contiguous float64 (C, 3) and (C,)")
+    rows = np.arange(len(a), dtype=np.int64) if rows is None else np.ascontiguousarray(rows, np.int64)
+    if len(rows) and not (0 <= rows.min() and rows.max() < len(a)):
+        raise ValueError(f"quadric_placement: a row is outside 0 .. {len(a) - 1}")
+
+    def place(lo, hi):
+        part = rows[lo:hi]
+        unsure = np.empty(len(part), np.int64)
+        n_unsure = _LIB.pmx_quadric_placement(len(part), part.ctypes.data, a.ctypes.data, b.ctypes.data,
+                                              quadric.ctypes.data, pos.ctypes.data, None, x.ctypes.data,
+                                              cost.ctypes.data, unsure.ctypes.data)
+        if n_unsure:
+            # A determinant at the solvability threshold: the threshold as
+            # optimal_placement computes it, with NumPy's power.
+            at = unsure[:n_unsure]
+            ua, ub = a[at], b[at]
+            scale = np.empty(len(at))
+            _LIB.pmx_quadric_scale(len(at), ua.ctypes.data, ub.ctypes.data, quadric.ctypes.data, scale.ctypes.data)
+            threshold = 1e-9 * scale**3
+            _LIB.pmx_quadric_placement(len(at), at.ctypes.data, a.ctypes.data, b.ctypes.data, quadric.ctypes.data,
+                                       pos.ctypes.data, threshold.ctypes.data, x.ctypes.data, cost.ctypes.data, None)
+
+    split_range(place, len(rows))
     return x, cost
 
 

@@ -67,3 +67,15 @@ def split_items(fn, items: list) -> None:
     first = _pool().submit(fn, items[:h])
     fn(items[h:])
     first.result()
+
+
+def split_range(fn, n: int) -> None:
+    """``fn(0, n)`` as ``fn(0, h)`` on the worker thread and ``fn(h, n)``
+    here (for row ranges written in place, disjoint between the halves)."""
+    if n < MIN_ROWS or not _two_cores():
+        fn(0, n)
+        return
+    h = n // 2
+    first = _pool().submit(fn, 0, h)
+    fn(h, n)
+    first.result()

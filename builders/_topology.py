@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import _native as native
+
 
 def expand_ranges(starts: np.ndarray, counts: np.ndarray):
     """Flatten the ranges ``[starts[i], starts[i] + counts[i])``.
@@ -69,6 +71,8 @@ def unique_edges(faces: np.ndarray):
         faces' integer type); ``face_count`` is how many faces use the edge
         (1 on a boundary, 2 inside a manifold); ``keys`` their :func:`edge_keys`.
     """
+    if native.available() and faces.dtype == np.int32:
+        return native.unique_edges(faces)
     a = faces.ravel()
     b = faces[:, [1, 2, 0]].ravel()
     keys, counts = np.unique(edge_keys(a, b), return_counts=True)

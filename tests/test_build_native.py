@@ -224,7 +224,7 @@ def test_placement_at_the_solvability_threshold_uses_numpys_power():
     a = np.arange(len(rows), dtype=np.int32)
     b = a + len(rows)
     x, cost, unsure = np.empty((len(a), 3)), np.empty(len(a)), np.empty(len(a), np.int64)
-    n_unsure = native._LIB.pmx_quadric_placement(len(a), a.ctypes.data, b.ctypes.data, quadric.ctypes.data,
+    n_unsure = native._LIB.pmx_quadric_placement(len(a), None, a.ctypes.data, b.ctypes.data, quadric.ctypes.data,
                                                  pos.ctypes.data, None, x.ctypes.data, cost.ctypes.data,
                                                  unsure.ctypes.data)
     assert n_unsure == len(rows)
@@ -233,17 +233,26 @@ def test_placement_at_the_solvability_threshold_uses_numpys_power():
     assert all(u.tobytes() == w.tobytes() for u, w in zip(got, want))
 
 
-def test_sorted_lookup_is_the_binary_search():
+def test_known_costs_are_carried_and_the_rest_placed_in_place(first_batch):
+    """Rows known from the last batch are copied by key (a merge), the fresh
+    ones found; placing only the fresh rows in place gives the full result."""
+    batch = first_batch
+    a, b, keys = batch["a"], batch["b"], (batch["a"].astype(np.int64) << 32) | batch["b"]
+    x, cost = native.quadric_placement(batch["quadric"], batch["pos"], a, b)
     rng = np.random.default_rng(6)
-    old = np.unique(rng.integers(0, 10_000, 3000))
-    keys = np.unique(rng.integers(0, 10_000, 2000))
-    index = native.lookup_sorted(old, keys)
-    i = np.minimum(np.searchsorted(old, keys), len(old) - 1)
-    assert np.array_equal(index >= 0, old[i] == keys)
-    assert np.array_equal(index[index >= 0], i[index >= 0])
-    assert native.lookup_sorted(old, keys[::-1]) is None
-    assert np.array_equal(native.lookup_sorted(old[:0], keys), np.full(len(keys), -1))
-    assert len(native.lookup_sorted(old, keys[:0])) == 0
+    known = np.sort(rng.choice(len(keys), len(keys) // 2, replace=False))
+    extra = keys.max() + 1 + np.arange(5)  # keys of pairs gone since
+    old_keys = np.sort(np.concatenate([keys[known], extra]))
+    at = np.searchsorted(old_keys, keys[known])
+    old_x, old_cost = np.full((len(old_keys), 3), np.nan), np.full(len(old_keys), np.nan)
+    old_x[at], old_cost[at] = x[known], cost[known]
+    cx, ccost, fresh = native.carry_costs(old_keys, old_x, old_cost, keys)
+    assert np.array_equal(fresh, np.setdiff1d(np.arange(len(keys)), known))
+    native.quadric_placement(batch["quadric"], batch["pos"], a, b, rows=fresh, x=cx, cost=ccost)
+    assert cx.tobytes() == x.tobytes() and ccost.tobytes() == cost.tobytes()
+    assert native.carry_costs(old_keys, old_x, old_cost, keys[::-1]) is None
+    with pytest.raises(ValueError, match="outside"):
+        native.quadric_placement(batch["quadric"], batch["pos"], a, b, rows=[len(a)], x=cx, cost=ccost)
 
 
 def test_scatter_add_is_the_bincount_sums():
@@ -261,3 +270,16 @@ def test_scatter_add_is_the_bincount_sums():
         assert got.shape == want.shape == (800, 10) and got.tobytes() == want.tobytes()
     with pytest.raises(ValueError, match="outside"):
         native.scatter_add(values.T, np.array([0, 800]), 800, 1)
+
+
+def test_edges_are_the_numpy_edges(first_batch):
+    """Keys made and counted in C around NumPy's sort: unique_edges' arrays,
+    dtypes included, on a real mesh and on an open fan with repeated edges."""
+    from pmjax.builders import _topology
+
+    fan = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 1], [4, 2, 1], [4, 1, 2]], np.int32)
+    for faces in (first_batch["cur"], fan, fan[:0]):
+        got = _topology.unique_edges(faces)
+        with native.use_native(False):
+            want = _topology.unique_edges(faces)
+        assert all(u.dtype == w.dtype and np.array_equal(u, w) for u, w in zip(got, want))
