@@ -248,15 +248,40 @@ int64_t pmx_select_independent(int64_t n, const int64_t *idx, const int32_t *a, 
     for (int64_t i = 0; i < 3 * n_faces; i++) vertex[faces[i]] = (Vertex){NEVER, 0};
     int64_t first_taken = NEVER;
     for (int64_t i = 0; i < n; i++) {
-        /* Candidates come in cost order, scattered over the mesh: fetch the
-         * next ones' endpoints, then their vertex rows, while this one runs. */
-        if (i + 2 * AHEAD < n) __builtin_prefetch(a + idx[i + 2 * AHEAD]), __builtin_prefetch(b + idx[i + 2 * AHEAD]);
+        /* Candidates come in cost order, scattered over the mesh: fetch what
+         * the next ones read while this one runs. Their endpoints, then their
+         * vertex rows; then, for those not blocked so far (likely winners,
+         * which walk their faces), their faces, then their corners' rows. */
+        if (i + 3 * AHEAD < n) __builtin_prefetch(a + idx[i + 3 * AHEAD]), __builtin_prefetch(b + idx[i + 3 * AHEAD]);
+        if (i + 2 * AHEAD < n) {
+            int64_t k2 = idx[i + 2 * AHEAD];
+            __builtin_prefetch(vertex + a[k2]);
+            __builtin_prefetch(vertex + b[k2]);
+            __builtin_prefetch(around + a[k2]);
+            __builtin_prefetch(around + b[k2]);
+        }
         if (i + AHEAD < n) {
             int64_t k1 = idx[i + AHEAD];
-            __builtin_prefetch(vertex + a[k1]);
-            __builtin_prefetch(vertex + b[k1]);
-            __builtin_prefetch(around + a[k1]);
-            __builtin_prefetch(around + b[k1]);
+            if (vertex[a[k1]].blocked == NEVER && vertex[b[k1]].blocked == NEVER)
+                for (int e = 0; e < 2; e++) {
+                    Around re = around[e ? b[k1] : a[k1]];
+                    for (int32_t j = re.first; j < re.first + re.count; j++)
+                        __builtin_prefetch(faces + 3 * (int64_t)face[j]);
+                }
+        }
+        if (i + AHEAD / 2 < n) {
+            int64_t k1 = idx[i + AHEAD / 2];
+            if (vertex[a[k1]].blocked == NEVER && vertex[b[k1]].blocked == NEVER)
+                for (int e = 0; e < 2; e++) {
+                    Around re = around[e ? b[k1] : a[k1]];
+                    for (int32_t j = re.first; j < re.first + re.count; j++) {
+                        const int32_t *t = faces + 3 * (int64_t)face[j];
+                        for (int c = 0; c < 3; c++) {
+                            __builtin_prefetch(vertex + t[c]);
+                            __builtin_prefetch(pos + 3 * (int64_t)t[c]);
+                        }
+                    }
+                }
         }
         int64_t k = idx[i];
         int32_t ends[2] = {a[k], b[k]};
@@ -421,14 +446,10 @@ int64_t pmx_quadric_placement(int64_t n, const int64_t *rows, const int32_t *a, 
     return n_unsure;
 }
 
-/* builders/_build.py _cheapest: the k cheapest of cost[0 .. n-1] in stable
- * cost order (ties by index), given kth, the k-th smallest cost. Those
- * below kth and the first ties at it are picked in index order, then put in
- * cost order by a stable radix sort of their bits (11 bits a pass; passes
- * where every key has the same digit are skipped). out: [k] ids; key, tmp:
- * [2 k] scratch each. Returns 0, or -1 if a cost is NaN. */
-#define DIGIT 8
-int64_t pmx_cheapest(int64_t n, const double *cost, int64_t k, double kth, int64_t *out, uint64_t *key, uint64_t *tmp) {
+/* builders/_build.py _cheapest, first half: the ids of the k cheapest of
+ * cost[0 .. n-1] in index order, given kth, the k-th smallest cost: those
+ * below it, then the first ties at it. Returns 0, or -1 if a cost is NaN. */
+int64_t pmx_pick_cheapest(int64_t n, const double *cost, int64_t k, double kth, int64_t *out) {
     int64_t below = 0;
     for (int64_t i = 0; i < n; i++) {
         if (isnan(cost[i])) return -1;
@@ -437,40 +458,33 @@ int64_t pmx_cheapest(int64_t n, const double *cost, int64_t k, double kth, int64
     int64_t ties = k - below, m = 0;
     for (int64_t i = 0; i < n && m < k; i++)
         if (cost[i] < kth || (cost[i] == kth && ties-- > 0)) out[m++] = i;
-    /* Keys whose unsigned order is the float order (-0 counts as +0). */
-    for (int64_t i = 0; i < k; i++) {
-        double c = cost[out[i]];
-        uint64_t bits;
-        if (c == 0.0) c = 0.0;
-        memcpy(&bits, &c, sizeof bits);
-        key[2 * i] = (bits >> 63) ? ~bits : bits | (1ULL << 63);
-        key[2 * i + 1] = (uint64_t)out[i];
-    }
-    uint64_t *src = key, *dst = tmp;
-    static const int n_digits = (64 + DIGIT - 1) / DIGIT;
-    for (int d = 0; d < n_digits; d++) {
-        int shift = d * DIGIT;
-        int64_t count[1 << DIGIT];
-        memset(count, 0, sizeof count);
-        for (int64_t i = 0; i < k; i++) count[(src[2 * i] >> shift) & ((1 << DIGIT) - 1)]++;
-        if (k == 0 || count[(src[0] >> shift) & ((1 << DIGIT) - 1)] == k) continue;
-        int64_t sum = 0;
-        for (int b = 0; b < (1 << DIGIT); b++) {
-            int64_t c = count[b];
-            count[b] = sum;
-            sum += c;
-        }
-        for (int64_t i = 0; i < k; i++) {
-            int64_t at = count[(src[2 * i] >> shift) & ((1 << DIGIT) - 1)]++;
-            dst[2 * at] = src[2 * i];
-            dst[2 * at + 1] = src[2 * i + 1];
-        }
-        uint64_t *t = src;
-        src = dst;
-        dst = t;
-    }
-    for (int64_t i = 0; i < k; i++) out[i] = (int64_t)src[2 * i + 1];
     return 0;
+}
+
+static int by_value(const void *p, const void *q) {
+    int64_t u = *(const int64_t *)p, v = *(const int64_t *)q;
+    return (u > v) - (u < v);
+}
+
+/* Second half: order[] sorts value[] (not stably); put each run of equal
+ * values back in ascending order[] (= index order), which makes the sort
+ * stable. */
+void pmx_stable_ties(int64_t n, const double *value, int64_t *order) {
+    int64_t i = 0;
+    while (i < n) {
+        int64_t j = i + 1;
+        while (j < n && value[order[j]] == value[order[i]]) j++;
+        if (j - i > 16) {
+            qsort(order + i, (size_t)(j - i), sizeof *order, by_value);
+        } else {
+            for (int64_t u = i + 1; u < j; u++) {
+                int64_t o = order[u], w = u;
+                for (; w > i && order[w - 1] > o; w--) order[w] = order[w - 1];
+                order[w] = o;
+            }
+        }
+        i = j;
+    }
 }
 
 /* builders/_quadrics.py scatter_add: out[index[i]][c] += columns[c][i / repeat]

@@ -49,8 +49,10 @@ def _load():
     lib.pmx_collapse_valid.argtypes = [_i64] + [_p] * 5 + mesh + [_p]
     lib.pmx_select_independent.restype = _i64
     lib.pmx_select_independent.argtypes = [_i64] + [_p] * 5 + mesh + [ctypes.c_int, _i64, _p, _p]
-    lib.pmx_cheapest.restype = _i64
-    lib.pmx_cheapest.argtypes = [_i64, _p, _i64, ctypes.c_double, _p, _p, _p]
+    lib.pmx_pick_cheapest.restype = _i64
+    lib.pmx_pick_cheapest.argtypes = [_i64, _p, _i64, ctypes.c_double, _p]
+    lib.pmx_stable_ties.restype = None
+    lib.pmx_stable_ties.argtypes = [_i64, _p, _p]
     lib.pmx_scatter_add.restype = None
     lib.pmx_scatter_add.argtypes = [_i64, _p, _i64, _p, _i64, _i64, _p]
     lib.pmx_quadric_scale.restype = None
@@ -291,14 +293,17 @@ def quadric_placement(quadric: np.ndarray, pos: np.ndarray, a: np.ndarray, b: np
 def cheapest(cost: np.ndarray, k: int, kth: float):
     """The first ``k`` of ``np.argsort(cost, kind="stable")`` given the
     ``k``-th smallest cost ``kth`` (``1 <= k <= len(cost)``), or ``None``
-    where a cost is NaN."""
+    where a cost is NaN: the picked ids come in index order (C), NumPy's
+    quicksort orders their costs, and runs of equal costs are put back in
+    index order (C)."""
     cost = np.ascontiguousarray(cost, np.float64)
-    out = np.empty(k, np.int64)
-    key, tmp = np.empty(2 * k, np.uint64), np.empty(2 * k, np.uint64)
-    if _LIB.pmx_cheapest(len(cost), cost.ctypes.data, k, float(kth), out.ctypes.data, key.ctypes.data,
-                         tmp.ctypes.data):
+    pick = np.empty(k, np.int64)
+    if _LIB.pmx_pick_cheapest(len(cost), cost.ctypes.data, k, float(kth), pick.ctypes.data):
         return None
-    return out
+    value = cost[pick]
+    order = np.argsort(value, kind="quicksort")
+    _LIB.pmx_stable_ties(len(order), value.ctypes.data, order.ctypes.data)
+    return pick[order]
 
 
 def scatter_add(columns: np.ndarray, index: np.ndarray, n: int, repeat: int) -> np.ndarray:
