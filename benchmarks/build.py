@@ -3,10 +3,13 @@
 Usage: python benchmarks/build.py [--models bunny,dragon,terrain_sthelens] [--repeats 3] [--samples 200000]
        python benchmarks/build.py --sweep 0.25,0.5,0.75,1 [--models bunny,dragon] [--repeats 3]
 
-Each model is built in a fresh subprocess (so peak RSS is that build's alone);
-quality is the symmetric Hausdorff and RMS distance / bbox diagonal between the
-original and the LOD at ~10 % and ~1 % of the faces, next to fast-simplification
-at the same face counts, in the same run.
+Each model is built in a fresh subprocess (so peak RSS is that process's:
+loading, building and measuring); builds alternate with fast-simplification runs
+to 1 % of the faces in that process, and the ratio of the medians is reported,
+with the build time of the same hierarchy without the C loops. Quality is the
+symmetric Hausdorff and RMS distance / bbox diagonal between the original and the
+LOD at ~10 % and ~1 % of the faces, next to fast-simplification at the same face
+counts, in the same run.
 
 ``--sweep`` builds each model in process at each batch share (the share of the
 cheapest candidates a batch may take from) and reports, against one
@@ -36,18 +39,34 @@ def one_model(name: str, repeats: int, samples: int) -> dict:
     import pmjax
     from pmjax.builders import build_pm
 
+    from pmjax.builders import _native
+
     v, f, _, _ = pmjax.load_clean_mesh(DATA / f"{name}.ply")
-    holder = {}
-    med, times = median_time(lambda: holder.update(pm=build_pm(v, f)), repeats)
-    pm = holder["pm"]
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    diag = float(np.linalg.norm(np.ptp(v, 0)))
-    row = dict(model=name, faces=len(f), vertices=len(v), build_s=med, build_runs_s=times, peak_rss_mb=peak_mb,
-               pcols=pm.n_pcols, batches=pm.n_batches, base_faces=pm.header["build"]["base_faces"], quality=[])
     try:
         import fast_simplification
     except ImportError:
         fast_simplification = None
+    # Builds alternate with fast-simplification runs to 1 %, so that both
+    # see the same load on the machine.
+    holder, times, fs_times = {}, [], []
+    v32, f32 = v.astype(np.float32), f.astype(np.int32)
+    for _ in range(repeats):
+        if fast_simplification is not None:
+            fs_times.append(median_time(lambda: fast_simplification.simplify(v32, f32, target_reduction=0.99), 1)[0])
+        times.append(median_time(lambda: holder.update(pm=build_pm(v, f)), 1)[0])
+    med = float(np.median(times))
+    pm = holder["pm"]
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    # The same hierarchy without the C loops (NumPy batch choice).
+    numpy_s = None
+    if _native.available():
+        with _native.use_native(False):
+            numpy_s, _ = median_time(lambda: build_pm(v, f), repeats)
+    diag = float(np.linalg.norm(np.ptp(v, 0)))
+    row = dict(model=name, faces=len(f), vertices=len(v), build_s=med, build_runs_s=times, peak_rss_mb=peak_mb,
+               fs_1pct_s=float(np.median(fs_times)) if fs_times else None, fs_runs_s=fs_times,
+               numpy_build_s=numpy_s, native=_native.available(),
+               pcols=pm.n_pcols, batches=pm.n_batches, base_faces=pm.header["build"]["base_faces"], quality=[])
     for frac in (0.1, 0.01):
         n = pmjax.pcols_for_faces(pm, int(frac * len(f)))
         lv, lf, _ = pmjax.mesh_for_executed(pm, pmjax.prefix_executed(pm, n))
@@ -123,6 +142,12 @@ def main():
         print(f"\n{name}: {r['faces']} faces -> {r['pcols']} pcols, {r['batches']} batches, base {r['base_faces']} faces")
         print(f"  build median of {args.repeats}: {r['build_s']:.2f} s  (runs: {', '.join(f'{t:.2f}' for t in r['build_runs_s'])})"
               f"  peak RSS {r['peak_rss_mb']:.0f} MB")
+        if r["fs_1pct_s"]:
+            print(f"  fast-simplification to 1 %, same process: {r['fs_1pct_s']:.2f} s  (runs: "
+                  f"{', '.join(f'{t:.2f}' for t in r['fs_runs_s'])})  ->  build / fast-simplification "
+                  f"{r['build_s'] / r['fs_1pct_s']:.2f}x")
+        if r["numpy_build_s"]:
+            print(f"  without the C loops (NumPy batch choice, same hierarchy): {r['numpy_build_s']:.2f} s")
         for q in r["quality"]:
             line = f"  {q['fraction']:>4.0%}: {q['faces']} faces  RMS/diag {q['rms']:.3e}  Hausdorff/diag {q['hausdorff']:.3e}"
             if "fs_rms" in q:

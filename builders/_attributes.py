@@ -139,9 +139,11 @@ class HierarchyAttributes:
             written before :meth:`add_batch` is called for it; rows are only read.
         faces: ``int[F, 3]`` original faces.
         n_original: ``V0``, the number of original vertices.
+        edges: :func:`builders._topology.unique_edges` of ``faces`` if the
+            caller has them (``None``: counted here).
     """
 
-    def __init__(self, vertices, normals, faces, n_original: int):
+    def __init__(self, vertices, normals, faces, n_original: int, edges=None):
         n, V0 = len(vertices), n_original
         self.vertices, self.normals, self.V0 = vertices, normals, V0
         self.radius = np.zeros(n)  # per vertex; originals stay 0
@@ -153,7 +155,7 @@ class HierarchyAttributes:
         # Topmost vertex reached so far from each original vertex (its leaf chain).
         self.top = np.arange(V0)
         # Original vertices on an open border (an edge of one face).
-        ea, eb, count, _ = unique_edges(np.asarray(faces))
+        ea, eb, count, _ = edges if edges is not None else unique_edges(np.asarray(faces))
         self.on_border = np.zeros(V0, bool)
         self.on_border[ea[count == 1]] = True
         self.on_border[eb[count == 1]] = True

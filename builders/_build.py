@@ -182,7 +182,7 @@ def build_pm(
     # so a second thread computes them batch by batch while the next batch is
     # chosen (about a sixth of the dragon's build).
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="pmjax-attributes") as beside:
-        jobs = [beside.submit(_start_attributes, pos, normals, f0, V0)]
+        jobs = [beside.submit(_start_attributes, pos, normals, f0, V0, first_edges)]
         invalid_share = 0.0  # of the last validity checks
         known_invalid = KnownInvalid()
         # Buffers of the batch choice's C loops, once for the whole build.
@@ -408,10 +408,11 @@ def _select_batch_native(a, b, x, link_test, elig, min_area2, boundary_vertex, e
     return elig[chosen], invalid, (len(invalid) + skipped) / max(checked + skipped, 1)
 
 
-def _start_attributes(pos, normals, faces, V0):
-    """Normals of the original vertices, then their attribute state."""
+def _start_attributes(pos, normals, faces, V0, edges):
+    """Normals of the original vertices, then their attribute state
+    (``edges``: :func:`unique_edges` of ``faces``)."""
     normals[:V0] = vertex_normals(pos[:V0], faces, V0)
-    return HierarchyAttributes(pos, normals, faces, V0)
+    return HierarchyAttributes(pos, normals, faces, V0, edges)
 
 
 def _attribute_batch(start, pos, normals, cur, first, ca, cb, maybe_border):
@@ -436,6 +437,11 @@ def _attribute_batch(start, pos, normals, cur, first, ca, cb, maybe_border):
 def _new_vertex_normals(pos, faces, first, k):
     """Area-weighted unit normals of vertices ``first .. first+k-1``."""
     corner = faces.ravel() - first
+    if native.available():
+        # The corners of older vertices skipped in the pass (C), not
+        # selected out of a repeated copy.
+        cross = np.ascontiguousarray(qd.face_cross(pos, faces).T)
+        return unit(native.scatter_add(cross, corner, k, 3, skip_negative=True))
     new = corner >= 0
     cross = np.repeat(qd.face_cross(pos, faces), 3, axis=0)
     return unit(qd.scatter_add(cross[new], corner[new], k))

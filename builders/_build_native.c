@@ -490,10 +490,12 @@ void pmx_stable_ties(int64_t n, const double *value, int64_t *order) {
 /* builders/_quadrics.py scatter_add: out[index[i]][c] += columns[c][i / repeat]
  * for every i in order, column by column the order of NumPy's bincount (so
  * the same sums, bit for bit), all k columns in one pass. columns: k
- * contiguous columns of n_rows; out: (n_out, k), zero on entry. */
+ * contiguous columns of n_rows; out: (n_out, k), zero on entry. A negative
+ * index skips its value. */
 void pmx_scatter_add(int64_t n_index, const int64_t *index, int64_t k, const double *columns, int64_t n_rows,
                      int64_t repeat, double *out) {
     for (int64_t i = 0; i < n_index; i++) {
+        if (index[i] < 0) continue; /* not wanted */
         double *row = out + index[i] * k;
         const double *value = columns + i / repeat;
         for (int64_t c = 0; c < k; c++) row[c] += value[c * n_rows];

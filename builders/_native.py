@@ -306,13 +306,14 @@ def cheapest(cost: np.ndarray, k: int, kth: float):
     return pick[order]
 
 
-def scatter_add(columns: np.ndarray, index: np.ndarray, n: int, repeat: int) -> np.ndarray:
+def scatter_add(columns: np.ndarray, index: np.ndarray, n: int, repeat: int, skip_negative: bool = False) -> np.ndarray:
     """:func:`builders._quadrics.scatter_add` of the ``(k, N)`` contiguous
     float64 ``columns``: ``out[index[i]] += columns[:, i // repeat]``, the
-    same sums in the same order, as ``(n, k)``."""
+    same sums in the same order, as ``(n, k)``; with ``skip_negative``, a
+    negative index adds nothing (the sums of ``index >= 0`` alone)."""
     columns = np.ascontiguousarray(columns, np.float64)
     index = np.ascontiguousarray(index, np.int64)
-    if len(index) and not (0 <= index.min() and index.max() < n):
+    if len(index) and not ((skip_negative or 0 <= index.min()) and index.max() < n):
         raise ValueError(f"scatter_add: an index is outside 0 .. {n - 1}")
     if len(index) > repeat * columns.shape[1]:
         raise ValueError("scatter_add: more indices than values")
