@@ -267,17 +267,20 @@ def build_pm(
             k = len(chosen)
             new = next_id + np.arange(k)
             pos[new] = x[chosen]
-            quadric[new] = quadric[ca] + quadric[cb]
-            remap = np.arange(next_id + k, dtype=np.int32)
-            remap[ca] = new
-            remap[cb] = new
             known_invalid.forget_around(cur, np.concatenate([ca, cb]), next_id)
-            cur = remap[cur]
-            c0, c1, c2 = cur[:, 0], cur[:, 1], cur[:, 2]
-            dead = (c0 == c1) | (c1 == c2) | (c0 == c2)
-            merged = np.where((c0 == c1) | (c0 == c2), c0, c1)
-            killer[fid[dead]] = (merged[dead] - V0).astype(np.int32)
-            cur, fid = cur[~dead], fid[~dead]
+            if scratch is not None:
+                cur, fid = native.apply_batch(scratch, cur, fid, ca, cb, next_id, V0, killer, quadric)
+            else:
+                quadric[new] = quadric[ca] + quadric[cb]
+                remap = np.arange(next_id + k, dtype=np.int32)
+                remap[ca] = new
+                remap[cb] = new
+                cur = remap[cur]
+                c0, c1, c2 = cur[:, 0], cur[:, 1], cur[:, 2]
+                dead = (c0 == c1) | (c1 == c2) | (c0 == c2)
+                merged = np.where((c0 == c1) | (c0 == c2), c0, c1)
+                killer[fid[dead]] = (merged[dead] - V0).astype(np.int32)
+                cur, fid = cur[~dead], fid[~dead]
             # Normals and attributes of the new vertices, beside the next batch.
             maybe_border = boundary_vertex[ca] | boundary_vertex[cb]
             jobs.append(beside.submit(_attribute_batch, jobs[0], pos, normals, cur, next_id, ca, cb, maybe_border))
@@ -436,12 +439,10 @@ def _attribute_batch(start, pos, normals, cur, first, ca, cb, maybe_border):
 
 def _new_vertex_normals(pos, faces, first, k):
     """Area-weighted unit normals of vertices ``first .. first+k-1``."""
-    corner = faces.ravel() - first
     if native.available():
-        # The corners of older vertices skipped in the pass (C), not
-        # selected out of a repeated copy.
-        cross = np.ascontiguousarray(qd.face_cross(pos, faces).T)
-        return unit(native.scatter_add(cross, corner, k, 3, skip_negative=True))
+        # Face normals made and summed in one pass (C), older corners skipped.
+        return unit(native.new_vertex_normals(pos, faces, first, k))
+    corner = faces.ravel() - first
     new = corner >= 0
     cross = np.repeat(qd.face_cross(pos, faces), 3, axis=0)
     return unit(qd.scatter_add(cross[new], corner[new], k))

@@ -490,12 +490,10 @@ void pmx_stable_ties(int64_t n, const double *value, int64_t *order) {
 /* builders/_quadrics.py scatter_add: out[index[i]][c] += columns[c][i / repeat]
  * for every i in order, column by column the order of NumPy's bincount (so
  * the same sums, bit for bit), all k columns in one pass. columns: k
- * contiguous columns of n_rows; out: (n_out, k), zero on entry. A negative
- * index skips its value. */
+ * contiguous columns of n_rows; out: (n_out, k), zero on entry. */
 void pmx_scatter_add(int64_t n_index, const int64_t *index, int64_t k, const double *columns, int64_t n_rows,
                      int64_t repeat, double *out) {
     for (int64_t i = 0; i < n_index; i++) {
-        if (index[i] < 0) continue; /* not wanted */
         double *row = out + index[i] * k;
         const double *value = columns + i / repeat;
         for (int64_t c = 0; c < k; c++) row[c] += value[c * n_rows];
@@ -526,6 +524,62 @@ int64_t pmx_key_runs(int64_t n, const int64_t *keys, int64_t *unique, int32_t *l
         hi[m] = (int32_t)(keys[i] & 0xFFFFFFFF);
         count[m++] = 1;
     }
+    return m;
+}
+
+/* builders/_build.py _new_vertex_normals before the unit scaling: for each
+ * face in order, its doubled-area normal (builders/_quadrics.py face_cross,
+ * the same arithmetic) added to each of its corners with an id >= first
+ * (out row id - first). out: (k, 3), zero on entry. */
+void pmx_new_vertex_normals(int64_t n_faces, const int32_t *faces, const double *pos, int64_t first, double *out) {
+    for (int64_t f = 0; f < n_faces; f++) {
+        const int32_t *t = faces + 3 * f;
+        if (t[0] < first && t[1] < first && t[2] < first) continue;
+        const double *p0 = pos + 3 * (int64_t)t[0], *p1 = pos + 3 * (int64_t)t[1], *p2 = pos + 3 * (int64_t)t[2];
+        double u[3] = {p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]};
+        double v[3] = {p2[0] - p0[0], p2[1] - p0[1], p2[2] - p0[2]};
+        double c[3];
+        cross(u, v, c);
+        for (int k = 0; k < 3; k++)
+            if (t[k] >= first) {
+                double *row = out + 3 * (t[k] - first);
+                row[0] += c[0];
+                row[1] += c[1];
+                row[2] += c[2];
+            }
+    }
+}
+
+/* The batch applied to the faces. The corners of pair i (a[i], b[i]) become
+ * first + i (rename: the caller's identity map over all ids, left as it
+ * was); a face two of whose corners meet dies, and its killer is the pcol
+ * of the vertex they meet in (merged - V0, as builders/_build.py names it);
+ * the living faces and their ids are written in order to out_faces and
+ * out_fid. quadric rows first + i get the sums of their pairs' rows.
+ * Returns how many faces live. */
+int64_t pmx_apply_batch(int64_t n_faces, const int32_t *faces, const int64_t *fid, int64_t k, const int32_t *a,
+                        const int32_t *b, int64_t first, int32_t *rename, int64_t V0, int32_t *killer,
+                        double *quadric, int32_t *out_faces, int64_t *out_fid) {
+    for (int64_t i = 0; i < k; i++) {
+        rename[a[i]] = rename[b[i]] = (int32_t)(first + i);
+        double *q = quadric + 10 * (first + i);
+        const double *qa = quadric + 10 * (int64_t)a[i], *qb = quadric + 10 * (int64_t)b[i];
+        for (int c = 0; c < 10; c++) q[c] = qa[c] + qb[c];
+    }
+    int64_t m = 0;
+    for (int64_t f = 0; f < n_faces; f++) {
+        int32_t c0 = rename[faces[3 * f]], c1 = rename[faces[3 * f + 1]], c2 = rename[faces[3 * f + 2]];
+        if (c0 == c1 || c1 == c2 || c0 == c2) {
+            int32_t merged = (c0 == c1 || c0 == c2) ? c0 : c1;
+            killer[fid[f]] = (int32_t)(merged - V0);
+        } else {
+            out_faces[3 * m] = c0;
+            out_faces[3 * m + 1] = c1;
+            out_faces[3 * m + 2] = c2;
+            out_fid[m++] = fid[f];
+        }
+    }
+    for (int64_t i = 0; i < k; i++) rename[a[i]] = a[i], rename[b[i]] = b[i];
     return m;
 }
 

@@ -55,6 +55,10 @@ def _load():
     lib.pmx_stable_ties.argtypes = [_i64, _p, _p]
     lib.pmx_scatter_add.restype = None
     lib.pmx_scatter_add.argtypes = [_i64, _p, _i64, _p, _i64, _i64, _p]
+    lib.pmx_new_vertex_normals.restype = None
+    lib.pmx_new_vertex_normals.argtypes = [_i64, _p, _p, _i64, _p]
+    lib.pmx_apply_batch.restype = _i64
+    lib.pmx_apply_batch.argtypes = [_i64, _p, _p, _i64, _p, _p, _i64, _p, _i64, _p, _p, _p, _p]
     lib.pmx_quadric_scale.restype = None
     lib.pmx_quadric_scale.argtypes = [_i64, _p, _p, _p, _p]
     lib.pmx_quadric_placement.restype = _i64
@@ -93,8 +97,9 @@ class Scratch:
     """Buffers of the C loops for one build, allocated once (``int32``
     each): the faces around each vertex (first slot and count per vertex,
     and the slots), the greedy's state per vertex (round blocked from, last
-    removal round), and two arrays of link-test stamps with the last stamp
-    used (stamps only grow, so the arrays are never cleared).
+    removal round), two arrays of link-test stamps with the last stamp
+    used (stamps only grow, so the arrays are never cleared), and an
+    identity map of vertex ids that a batch renames and restores.
 
     Args:
         n_vertices: bound on the build's vertex ids; n_faces: its face count.
@@ -107,6 +112,7 @@ class Scratch:
         self.side_a = np.zeros(n_vertices, np.int32)
         self.side_b = np.zeros(n_vertices, np.int32)
         self.stamp = np.zeros(1, np.int32)
+        self.rename = np.arange(n_vertices, dtype=np.int32)  # the identity between batches
         names = ("around", "face", "vertex", "side_a", "side_b", "stamp")
         self.pointers = tuple(getattr(self, k).ctypes.data for k in names)
 
@@ -306,14 +312,13 @@ def cheapest(cost: np.ndarray, k: int, kth: float):
     return pick[order]
 
 
-def scatter_add(columns: np.ndarray, index: np.ndarray, n: int, repeat: int, skip_negative: bool = False) -> np.ndarray:
+def scatter_add(columns: np.ndarray, index: np.ndarray, n: int, repeat: int) -> np.ndarray:
     """:func:`builders._quadrics.scatter_add` of the ``(k, N)`` contiguous
     float64 ``columns``: ``out[index[i]] += columns[:, i // repeat]``, the
-    same sums in the same order, as ``(n, k)``; with ``skip_negative``, a
-    negative index adds nothing (the sums of ``index >= 0`` alone)."""
+    same sums in the same order, as ``(n, k)``."""
     columns = np.ascontiguousarray(columns, np.float64)
     index = np.ascontiguousarray(index, np.int64)
-    if len(index) and not ((skip_negative or 0 <= index.min()) and index.max() < n):
+    if len(index) and not (0 <= index.min() and index.max() < n):
         raise ValueError(f"scatter_add: an index is outside 0 .. {n - 1}")
     if len(index) > repeat * columns.shape[1]:
         raise ValueError("scatter_add: more indices than values")
@@ -321,3 +326,47 @@ def scatter_add(columns: np.ndarray, index: np.ndarray, n: int, repeat: int, ski
     _LIB.pmx_scatter_add(len(index), index.ctypes.data, len(columns), columns.ctypes.data, columns.shape[1], repeat,
                          out.ctypes.data)
     return out
+
+
+def new_vertex_normals(pos: np.ndarray, faces: np.ndarray, first: int, k: int) -> np.ndarray:
+    """``(k, 3)`` sums of the doubled-area normals of ``faces`` at their
+    corners ``first .. first+k-1`` (not yet unit length): the sums of
+    :func:`builders._quadrics.face_cross` rows that :func:`scatter_add`
+    makes, bit for bit, in one pass."""
+    faces = np.ascontiguousarray(faces, np.int32)
+    pos = np.ascontiguousarray(pos, np.float64)
+    if len(faces) and not (faces.max() < min(first + k, len(pos)) and faces.min() >= 0):
+        raise ValueError("new_vertex_normals: a face vertex id is outside the positions")
+    out = np.zeros((k, 3))
+    _LIB.pmx_new_vertex_normals(len(faces), faces.ctypes.data, pos.ctypes.data, first, out.ctypes.data)
+    return out
+
+
+def apply_batch(scratch: Scratch, faces, fid, a, b, first: int, V0: int, killer, quadric):
+    """Apply a batch of collapses: pair ``(a[i], b[i])`` becomes vertex
+    ``first + i``, whose quadric row is the pair's sum; faces two of whose
+    corners meet die, with ``killer[fid] = merged vertex - V0``.
+
+    Args:
+        scratch: the build's :class:`Scratch` (its identity map).
+        faces: ``(F, 3)`` int32 current faces; fid: ``(F,)`` int64 their
+            original ids.
+        a, b: ``(k,)`` the batch's pairs; first: the first new id.
+        V0: the number of original vertices.
+        killer: ``int32[F0]``, written where faces die.
+        quadric: ``float64[N, 10]`` (row-major), rows ``first ..`` written.
+
+    Returns:
+        ``(faces, fid)`` of the living faces, in order (new arrays).
+    """
+    faces = np.ascontiguousarray(faces, np.int32)
+    fid = np.ascontiguousarray(fid, np.int64)
+    a, b = np.ascontiguousarray(a, np.int32), np.ascontiguousarray(b, np.int32)
+    if not (killer.dtype == np.int32 and killer.flags.c_contiguous and quadric.dtype == np.float64
+            and quadric.flags.c_contiguous and first + len(a) <= min(len(quadric), len(scratch.rename))):
+        raise ValueError("apply_batch: killer must be contiguous int32, quadric contiguous float64 with room")
+    out_faces, out_fid = np.empty_like(faces), np.empty_like(fid)
+    m = _LIB.pmx_apply_batch(len(faces), faces.ctypes.data, fid.ctypes.data, len(a), a.ctypes.data, b.ctypes.data,
+                             first, scratch.rename.ctypes.data, V0, killer.ctypes.data, quadric.ctypes.data,
+                             out_faces.ctypes.data, out_fid.ctypes.data)
+    return out_faces[:m], out_fid[:m]
