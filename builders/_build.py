@@ -14,10 +14,10 @@ from scipy.spatial import cKDTree
 from pmjax._pmfile import METRICS, PMData, file_sha256  # noqa: F401 (re-exported)
 from pmjax._meshio import check_float32_precision
 
+from . import _native as native
 from . import _quadrics as qd
 from ._attributes import HierarchyAttributes
 from ._independent import domain_of_independent, select_independent
-from . import _native as native
 from ._metrics import CACHEABLE, METRIC_NAMES, evaluate_metric
 from ._rows import any3, unit
 from ._threads import split_pairs
@@ -187,7 +187,7 @@ def build_pm(
         quadric[:V0] = qd.vertex_quadrics(v0, f0, V0, options.boundary_weight, first_edges)
         invalid_share = 0.0  # of the last validity checks
         known_invalid = KnownInvalid()
-        # Buffers of the batch choice's C loops, once for the whole build.
+        # Buffers of the C loops, once for the whole build.
         scratch = native.Scratch(cap, F) if native.available() else None
         for batch in range(options.max_batches):
             n_faces = len(cur)
@@ -237,7 +237,7 @@ def build_pm(
             # before giving up (stopping there left the dragon at 2,891 faces).
             shares = [1.0] if options.linear else sorted({options.batch_share, 1.0})
             # The C loops read the faces around each vertex, built once a batch.
-            mesh = native.Mesh(cur, next_id, pos, scratch) if scratch is not None else None
+            mesh = native.Mesh(cur, next_id, pos, scratch) if scratch is not None and not options.linear else None
             for share in shares:
                 elig = within[_cheapest(cost[within], max(1, int(math.ceil(share * len(within)))))]
                 eager = not options.linear and len(elig) <= EAGER_VALIDITY and invalid_share >= EAGER_INVALID_SHARE
@@ -459,7 +459,8 @@ def _cheapest(cost: np.ndarray, k: int) -> np.ndarray:
         return _stable_argsort(cost)
     kth = np.partition(cost, k - 1)[k - 1]
     if native.available():
-        # A stable radix sort of the picked costs' bits (C), 2-3x faster.
+        # Picked in index order and their ties put back in it (C), around
+        # NumPy's quicksort of the picked costs.
         pick = native.cheapest(cost, k, kth)
         if pick is not None:
             return pick

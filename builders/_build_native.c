@@ -1,15 +1,16 @@
-/* The builder's batch choice as plain C loops: which of a batch's eligible
- * collapses are valid, and which of those are taken as an independent set.
+/* The builder's per-batch steps that walk the mesh, as plain C loops: the
+ * faces around each vertex, edge keys, costs carried by key and quadric
+ * placements, the cheapest share, validity, the choice of independent
+ * collapses, applying a batch, and new vertices' normals.
  *
- * builders/_independent.py chooses the set in parallel rounds of array
- * reductions; with fixed priorities those rounds take exactly what a
- * sequential greedy over the candidates in cost order takes. Here the greedy
- * runs sequentially, and also works out the round in which the parallel
- * version decides each candidate, so that its round cap (late rounds are
- * left to the next batch) keeps the same set: the hierarchy is the NumPy
- * builder's, bit for bit. builders/_validity.py is the validity test; the
- * arithmetic here is its arithmetic in the same order (no contraction), so
- * the verdicts are its verdicts.
+ * Each loop is a NumPy step of builders/ with its arithmetic in the same
+ * order (no contraction), so a build with these loops is the NumPy build,
+ * bit for bit. builders/_independent.py chooses the set in parallel rounds
+ * of array reductions; with fixed priorities those rounds take exactly what
+ * a sequential greedy over the candidates in cost order takes. Here the
+ * greedy runs sequentially, and also works out the round in which the
+ * parallel version decides each candidate, so that its round cap (late
+ * rounds are left to the next batch) keeps the same set.
  *
  * Two candidates conflict when their domains (the faces touching either
  * endpoint) share a face, i.e. when one has an endpoint on a face of the

@@ -1,41 +1,38 @@
-"""The builder's batch choice as C loops (``builders/_build_native.c``), called through ctypes.
+"""The builder's C loops (``builders/_build_native.c``), called through ctypes.
 
-The NumPy builder chooses a batch in parallel rounds of array reductions
-(:func:`select_independent`) and checks validity with array gathers
-(:func:`collapse_is_valid`); on the dragon these were half of the build. The C
-loops run the equivalent sequential greedy and the same validity arithmetic,
-and work out each candidate's round of the parallel version so that its round
-cap takes the same set: the hierarchy is bit for bit the NumPy builder's
-(tests/test_build_native.py). The library is the optional extension
-``pmjax.builders._build_native``; where it is missing, or ``PMJAX_NATIVE=0``
-is set, the builder runs its NumPy path.
+The steps of a batch that walk the mesh: the faces around each vertex, the
+edges (keys counted around NumPy's sort), known costs carried by key and the
+quadric placement of fresh pairs, the cheapest share, the validity checks,
+the greedy choice of independent collapses, applying the batch, and the new
+vertices' normals. Each is the NumPy step's arithmetic in its order, and the
+greedy works out each candidate's round of the NumPy builder's parallel
+rounds, so that their round cap takes the same set: the hierarchy is bit for
+bit the NumPy builder's (tests/test_build_native.py). The library is the
+optional extension ``pmjax.builders._build_native``; where it is missing, or
+``PMJAX_NATIVE=0`` is set, the builder runs as NumPy.
 """
 
 from __future__ import annotations
 
 import ctypes
-import importlib.util
-import os
 
 import numpy as np
+
+from pmjax._native import open_library
 
 from ._threads import split_range
 
 # What a candidate became (the C enum).
 DEAD, TAKEN, INVALID, UNCHECKED = 0, 1, 2, 3
-_NEVER = np.iinfo(np.int32).max
 
 _p = ctypes.c_void_p
 _i64 = ctypes.c_int64
 
 
 def _load():
-    if os.environ.get("PMJAX_NATIVE", "1") == "0":
+    lib = open_library("pmjax.builders._build_native")
+    if lib is None:
         return None
-    spec = importlib.util.find_spec("pmjax.builders._build_native")
-    if spec is None or not spec.origin:
-        return None
-    lib = ctypes.CDLL(spec.origin)
     lib.pmx_vertex_faces.restype = None
     lib.pmx_vertex_faces.argtypes = [_i64, _p, _p, _p]
     lib.pmx_edge_keys.restype = None

@@ -46,13 +46,21 @@ _p = ctypes.c_void_p
 _i64 = ctypes.c_int64
 
 
-def _load():
+def open_library(module: str):
+    """The compiled extension ``module`` (a dotted name) as a ctypes library,
+    or ``None`` where it is not built or ``PMJAX_NATIVE=0`` is set."""
     if os.environ.get("PMJAX_NATIVE", "1") == "0":
         return None
-    spec = importlib.util.find_spec("pmjax._front_native")
+    spec = importlib.util.find_spec(module)
     if spec is None or not spec.origin:
         return None
-    lib = ctypes.CDLL(spec.origin)
+    return ctypes.CDLL(spec.origin)
+
+
+def _load():
+    lib = open_library("pmjax._front_native")
+    if lib is None:
+        return None
     lib.pmx_refine.restype = _i64
     lib.pmx_refine.argtypes = [_p, _p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _p, _p, _p, _p, _p, _p, _p]
     lib.pmx_resolve.restype = None
