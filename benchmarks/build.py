@@ -6,7 +6,8 @@ Usage: python benchmarks/build.py [--models bunny,dragon,terrain_sthelens] [--re
 Each model is built in a fresh subprocess: a first build gives the peak RSS
 (loading and building), then timed builds alternate with fast-simplification
 runs to 1 % of the faces in that process, and the ratio of the medians is
-reported, with the build time of the same hierarchy without the C loops. Quality is the
+reported; then the same back to back (all fast-simplification runs, then all
+builds); then the build time of the same hierarchy without the C loops. Quality is the
 symmetric Hausdorff and RMS distance / bbox diagonal between the original and the
 LOD at ~10 % and ~1 % of the faces, next to fast-simplification at the same face
 counts, in the same run.
@@ -60,6 +61,14 @@ def one_model(name: str, repeats: int, samples: int) -> dict:
         times.append(median_time(lambda: holder.update(pm=build_pm(v, f)), 1)[0])
     med = float(np.median(times))
     pm = holder["pm"]
+    # Back to back as well: all fast-simplification runs, then all builds
+    # (fast-simplification runs faster on warm caches; the other reading).
+    b2b_fs, b2b_build = [], []
+    if fast_simplification is not None:
+        for _ in range(repeats):
+            b2b_fs.append(median_time(lambda: fast_simplification.simplify(v32, f32, target_reduction=0.99), 1)[0])
+        for _ in range(repeats):
+            b2b_build.append(median_time(lambda: build_pm(v, f), 1)[0])
     # The same hierarchy without the C loops (NumPy batch choice).
     numpy_s = None
     if _native.available():
@@ -69,6 +78,7 @@ def one_model(name: str, repeats: int, samples: int) -> dict:
     row = dict(model=name, faces=len(f), vertices=len(v), build_s=med, build_runs_s=times, peak_rss_mb=peak_mb,
                fs_1pct_s=float(np.median(fs_times)) if fs_times else None, fs_runs_s=fs_times,
                numpy_build_s=numpy_s, native=_native.available(),
+               back_to_back=dict(fs_runs_s=b2b_fs, build_runs_s=b2b_build),
                pcols=pm.n_pcols, batches=pm.n_batches, base_faces=pm.header["build"]["base_faces"], quality=[])
     for frac in (0.1, 0.01):
         n = pmjax.pcols_for_faces(pm, int(frac * len(f)))
@@ -149,6 +159,11 @@ def main():
             print(f"  fast-simplification to 1 %, same process: {r['fs_1pct_s']:.2f} s  (runs: "
                   f"{', '.join(f'{t:.2f}' for t in r['fs_runs_s'])})  ->  build / fast-simplification "
                   f"{r['build_s'] / r['fs_1pct_s']:.2f}x")
+        b2b = r["back_to_back"]
+        if b2b["fs_runs_s"]:
+            fs_b, build_b = float(np.median(b2b["fs_runs_s"])), float(np.median(b2b["build_runs_s"]))
+            print(f"  back to back ({args.repeats} fast-simplification runs, then {args.repeats} builds): "
+                  f"{fs_b:.3f} s and {build_b:.3f} s  ->  {build_b / fs_b:.2f}x")
         if r["numpy_build_s"]:
             print(f"  without the C loops (NumPy batch choice, same hierarchy): {r['numpy_build_s']:.2f} s")
         for q in r["quality"]:
