@@ -360,9 +360,13 @@ void pmx_quadric_scale(int64_t n, const int32_t *a, const int32_t *b, const doub
 /* Where the solvability threshold 1e-9 scale^3 is not given, it is NumPy's
  * power, whose rounding is NumPy's own (its SIMD kernels differ from the C
  * library's pow in the last bits). scale * scale * scale is within a few
- * units in the last place of it; a determinant closer to it than this
- * relative margin is left to the caller, who applies NumPy's power. */
+ * units in the last place of it while the threshold stays far from
+ * underflow and overflow; a determinant closer to it than this relative
+ * margin, or a threshold outside that range, is left to the caller, who
+ * applies NumPy's power. */
 #define THRESHOLD_MARGIN 1e-9
+#define THRESHOLD_LOW 0x1p-900
+#define THRESHOLD_HIGH 0x1p900
 
 /* builders/_quadrics.py optimal_placement of the summed quadrics of pairs
  * (a[r], b[r]) for the rows r = rows[i] (rows NULL: r = i), i < n: the
@@ -403,10 +407,13 @@ int64_t pmx_quadric_placement(int64_t n, const int64_t *rows, const int32_t *a, 
         } else {
             double scale = (a00 + a11 + a22) / 3.0;
             double t = 1e-9 * (scale * scale * scale), d = fabs(det);
-            /* Decided when the margin holds (NaN compares false both ways). */
-            if (d > t + THRESHOLD_MARGIN * fabs(t))
+            /* Decided when the margin holds, with t far from underflow and
+             * overflow (where the rounding is not relative; NaN compares
+             * false everywhere). */
+            int in_range = fabs(t) > THRESHOLD_LOW && fabs(t) < THRESHOLD_HIGH;
+            if (in_range && d > t + THRESHOLD_MARGIN * fabs(t))
                 solvable = 1;
-            else if (d < t - THRESHOLD_MARGIN * fabs(t))
+            else if (in_range && d < t - THRESHOLD_MARGIN * fabs(t))
                 solvable = 0;
             else {
                 unsure[n_unsure++] = r;
@@ -585,6 +592,6 @@ int64_t pmx_apply_batch(int64_t n_faces, const int32_t *faces, const int64_t *fi
 }
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_build_native",
-                                    "The builder's batch choice as C loops (called through ctypes).", -1, NULL};
+                                    "The builder's per-batch C loops (called through ctypes).", -1, NULL};
 
 PyMODINIT_FUNC PyInit__build_native(void) { return PyModule_Create(&module); }

@@ -196,12 +196,15 @@ def test_placement_is_the_numpy_placement(first_batch):
     quadric[n // 4 : n // 2] = plane[:, [0, 0, 0, 0, 1, 1, 1, 2, 2, 3]] * plane[:, [0, 1, 2, 3, 1, 2, 3, 2, 3, 3]]
     quadric[n // 2 : n // 2 + 10, 3] = np.nan
     quadric[n // 2 + 10 : n // 2 + 20, 0] = np.inf
+    # Thresholds near underflow and overflow (left to NumPy's power).
+    for at, scale in ((n // 2 + 20, 1e-110), (n // 2 + 30, 1e-200), (n // 2 + 40, 1e110)):
+        quadric[at : at + 10] *= scale
     pos = rng.normal(size=(2 * n, 3))
     pa, pb = np.arange(n, dtype=np.int32), (np.arange(n, dtype=np.int32) + n)
     quadric[n:] = 0.0  # the second endpoints add nothing: the rows above are the pairs' sums
-    with np.errstate(invalid="ignore", over="ignore"):  # the NaN and infinite rows
+    with np.errstate(invalid="ignore", over="ignore"):  # the NaN, infinite and huge rows
         want = qd.optimal_placement(quadric[pa] + quadric[pb], pos[pa], pos[pb])
-    got = native.quadric_placement(quadric, pos, pa, pb)
+        got = native.quadric_placement(quadric, pos, pa, pb)
     assert all(u.tobytes() == w.tobytes() for u, w in zip(got, want))
 
 
