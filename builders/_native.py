@@ -15,9 +15,11 @@ optional extension ``pmjax.builders._build_native``; where it is missing, or
 from __future__ import annotations
 
 import ctypes
+import sys
 
 import numpy as np
 
+from pmjax import _native as _front_native
 from pmjax._native import open_library
 
 from ._threads import split_range
@@ -69,25 +71,15 @@ _enabled = True
 
 
 def available() -> bool:
-    """Whether the builder's batch choice runs as the compiled C loops."""
+    """Whether the builder's per-batch steps run as the compiled C loops."""
     return _LIB is not None and _enabled
 
 
-class use_native:
-    """``with use_native(False): ...`` builds with the NumPy batch choice;
-    ``True`` restores the C loops where they are built."""
+class use_native(_front_native.use_native):
+    """``with use_native(False): ...`` builds with NumPy alone; ``True``
+    restores the C loops where they are built."""
 
-    def __init__(self, on: bool):
-        self.on = on
-
-    def __enter__(self):
-        global _enabled
-        self.before, _enabled = _enabled, self.on
-        return self
-
-    def __exit__(self, *exc):
-        global _enabled
-        _enabled = self.before
+    switched = sys.modules[__name__]
 
 
 class Scratch:

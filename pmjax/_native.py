@@ -29,6 +29,7 @@ import functools
 import importlib.util
 import math
 import os
+import sys
 import threading
 
 import jax
@@ -96,19 +97,21 @@ _enabled = True
 
 class use_native:
     """``with use_native(False): ...`` runs the front engine as JAX kernels
-    (for comparisons); ``True`` restores the C loops where they are built."""
+    (for comparisons); ``True`` restores the C loops where they are built.
+    (A subclass with another ``switched`` module switches that module's
+    ``_enabled`` flag instead.)"""
+
+    switched = sys.modules[__name__]
 
     def __init__(self, on: bool):
         self.on = on
 
     def __enter__(self):
-        global _enabled
-        self.before, _enabled = _enabled, self.on
+        self.before, self.switched._enabled = self.switched._enabled, self.on
         return self
 
     def __exit__(self, *exc):
-        global _enabled
-        _enabled = self.before
+        self.switched._enabled = self.before
 
 
 def decide_all(pm, camera, tau, tests) -> np.ndarray:
