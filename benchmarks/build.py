@@ -38,42 +38,46 @@ def one_model(name: str, repeats: int, samples: int) -> dict:
     import resource
 
     import pmjax
-    from pmjax.builders import build_pm
-
-    from pmjax.builders import _native
+    from pmjax.builders import _native, build_pm
 
     v, f, _, _ = pmjax.load_clean_mesh(DATA / f"{name}.ply")
     try:
         import fast_simplification
     except ImportError:
         fast_simplification = None
+    v32, f32 = v.astype(np.float32), f.astype(np.int32)
+    holder = {}
+
+    def simplify():
+        fast_simplification.simplify(v32, f32, target_reduction=0.99)
+
+    def build():
+        holder.update(pm=build_pm(v, f))
+
     # A first build, alone in the process so far: the peak RSS is loading
     # and building (and this build's time, with fresh pages, is not counted).
-    holder = dict(pm=build_pm(v, f))
+    build()
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     # Then builds alternate with fast-simplification runs to 1 %, so that
     # both see the same load on the machine.
     times, fs_times = [], []
-    v32, f32 = v.astype(np.float32), f.astype(np.int32)
     for _ in range(repeats):
         if fast_simplification is not None:
-            fs_times.append(median_time(lambda: fast_simplification.simplify(v32, f32, target_reduction=0.99), 1)[0])
-        times.append(median_time(lambda: holder.update(pm=build_pm(v, f)), 1)[0])
+            fs_times.append(median_time(simplify, 1)[0])
+        times.append(median_time(build, 1)[0])
     med = float(np.median(times))
     pm = holder["pm"]
     # Back to back as well: all fast-simplification runs, then all builds
     # (fast-simplification runs faster on warm caches; the other reading).
     b2b_fs, b2b_build = [], []
     if fast_simplification is not None:
-        for _ in range(repeats):
-            b2b_fs.append(median_time(lambda: fast_simplification.simplify(v32, f32, target_reduction=0.99), 1)[0])
-        for _ in range(repeats):
-            b2b_build.append(median_time(lambda: build_pm(v, f), 1)[0])
+        _, b2b_fs = median_time(simplify, repeats)
+        _, b2b_build = median_time(build, repeats)
     # The same hierarchy without the C loops (NumPy batch choice).
     numpy_s = None
     if _native.available():
         with _native.use_native(False):
-            numpy_s, _ = median_time(lambda: build_pm(v, f), repeats)
+            numpy_s, _ = median_time(build, repeats)
     diag = float(np.linalg.norm(np.ptp(v, 0)))
     row = dict(model=name, faces=len(f), vertices=len(v), build_s=med, build_runs_s=times, peak_rss_mb=peak_mb,
                fs_1pct_s=float(np.median(fs_times)) if fs_times else None, fs_runs_s=fs_times,

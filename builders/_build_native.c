@@ -70,7 +70,7 @@ typedef struct {
 } Scratch;
 
 typedef struct {
-    int64_t n_faces, n_vertices;
+    int64_t n_vertices;
     const int32_t *faces;
     const double *pos;
     const uint8_t *boundary;
@@ -122,9 +122,8 @@ int64_t pmx_carry_costs(int64_t n_old, const int64_t *old_keys, const double *ol
 }
 
 /* The current mesh, for the validity test and the greedy. */
-static void start_mesh(Mesh *m, int64_t n_faces, const int32_t *faces, int64_t n_vertices, const double *pos,
-                       const uint8_t *boundary, double min_area2, Scratch s) {
-    m->n_faces = n_faces;
+static void start_mesh(Mesh *m, const int32_t *faces, int64_t n_vertices, const double *pos, const uint8_t *boundary,
+                       double min_area2, Scratch s) {
     m->n_vertices = n_vertices;
     m->faces = faces;
     m->pos = pos;
@@ -219,7 +218,7 @@ void pmx_collapse_valid(int64_t n, const int64_t *idx, const int32_t *a, const i
                         const double *pos, const uint8_t *boundary, double min_area2, Around *around,
                         int32_t *face, Vertex *vertex, int32_t *side_a, int32_t *side_b, int32_t *stamp, uint8_t *ok) {
     Mesh m;
-    start_mesh(&m, n_faces, faces, n_vertices, pos, boundary, min_area2,
+    start_mesh(&m, faces, n_vertices, pos, boundary, min_area2,
                (Scratch){around, face, vertex, side_a, side_b, stamp});
     for (int64_t i = 0; i < n; i++) {
         int64_t k = idx[i];
@@ -244,7 +243,7 @@ int64_t pmx_select_independent(int64_t n, const int64_t *idx, const int32_t *a, 
                                int32_t *face, Vertex *vertex, int32_t *side_a, int32_t *side_b, int32_t *stamp,
                                int assume_valid, int64_t max_rounds, uint8_t *state, int32_t *round) {
     Mesh m;
-    start_mesh(&m, n_faces, faces, n_vertices, pos, boundary, min_area2,
+    start_mesh(&m, faces, n_vertices, pos, boundary, min_area2,
                (Scratch){around, face, vertex, side_a, side_b, stamp});
     for (int64_t i = 0; i < 3 * n_faces; i++) vertex[faces[i]] = (Vertex){NEVER, 0};
     int64_t first_taken = NEVER;
