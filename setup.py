@@ -13,12 +13,14 @@ setup(
         Extension(
             "pmjax._front_native",
             sources=["pmjax/_front_native.c"],
-            # IEEE arithmetic as written (no contraction, no fast math: the
-            # certified decisions bound float32 rounding of the written
-            # formulas). No FP exceptions are enabled, so square roots and
-            # selects may be evaluated speculatively, and "omp simd" loops
-            # vectorize (no OpenMP runtime is used).
-            extra_compile_args=["-O3", "-std=c99", "-fno-math-errno", "-fno-trapping-math", "-ffp-contract=off",
+            # IEEE float32 arithmetic, no fast math. Multiply-adds may be
+            # fused: the certified decisions bound any evaluation of their
+            # formulas with at most 16 roundings on a path, fused or not, and
+            # the subtree bounds' margins dominate either rounding. No FP
+            # exceptions are enabled, so square roots and selects may be
+            # evaluated speculatively, and "omp simd" loops vectorize (no
+            # OpenMP runtime is used).
+            extra_compile_args=["-O3", "-std=c99", "-fno-math-errno", "-fno-trapping-math", "-ffp-contract=fast",
                                 "-fopenmp-simd"],
             optional=True,
         ),

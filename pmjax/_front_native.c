@@ -178,27 +178,22 @@ static inline Pcol pcol_at(float (*restrict col)[BLOCK], int j)
     return q;
 }
 
-static inline Pcol pcol_of(const float *row)
-{
-    Pcol q = {row[CX],     row[CY],    row[CZ],    row[NX],    row[NY],    row[NZ],
-              row[RADIUS], row[SIN_A], row[COS_A], row[DELTA], row[MU],    row[REACH],
-              row[SPREAD], row[FACING], row[ERROR], row[AXIS_SCALE]};
-    return q;
-}
-
 /* One pcol (q) under one camera (L): its subtree bound (pmjax/_subtree.py
  * subtree_collapses: does every pcol below collapse?) and its own decision
  * (pmjax/_predicate.py view_collapse_mask), certified. Returns the own
  * decision (YES, NO, UNSURE) | WHOLE. No branches: the loops that call it, over
- * the pcols of a block or over the frames of a word, are vectorized. */
-static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, const Pcol q, const int ortho)
+ * the pcols of a block or over the frames of a word, are vectorized. With
+ * all_tests (a constant), the view is a fast_view. */
+static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, const Pcol q, const int ortho,
+                                                                const int all_tests)
 {
     const float R0 = L->R0, R1 = L->R1, R2 = L->R2, U0 = L->U0, U1 = L->U1, U2 = L->U2;
     const float F0 = L->F0, F1 = L->F1, F2 = L->F2;
     const float k0 = L->k0, k1 = L->k1, k2 = L->k2, k3 = L->k3, k4 = L->k4, k5 = L->k5, k6 = L->k6, k7 = L->k7;
     const float kappa2 = L->kappa2, kabs = L->kabs, kfac = L->kfac, kpad = L->kpad;
-    const int frustum = L->frustum, orientation = L->orientation, screen = L->screen;
-    const int kinf = kappa2 == INFINITY;
+    const int frustum = all_tests | L->frustum, orientation = all_tests | L->orientation;
+    const int screen = all_tests | L->screen;
+    const int kinf = !all_tests & (kappa2 == INFINITY);
     {
         const float vx = q.cx - L->ex, vy = q.cy - L->ey, vz = q.cz - L->ez;
         const float nx = q.nx, ny = q.ny, nz = q.nz;
@@ -232,7 +227,7 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
         const float e2 = error * error;
         if (ortho) {
             whole |= orientation & (hf * q.axis_scale > q.facing);
-            whole |= screen & (e2 < kappa2 * (1 - SCREEN_MARGIN)) & (kappa2 > LOW) & (e2 < HIGH);
+            whole |= screen & (e2 < kappa2 * (1 - SCREEN_MARGIN)) & (all_tests | (kappa2 > LOW)) & (e2 < HIGH);
             whole |= screen & kinf & (e2 < HIGH); /* every finite deviation is below inf */
         } else {
             float a = hv * q.axis_scale;
@@ -258,7 +253,7 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
                             fabsf(delta) + fabsf(mu);
         const float factor = scale * scale * kabs;
         const float slack = FLUSH * factor * factor;
-        const int guard = (scale < 0x1p24f) & (kabs < 0x1p16f) & (d2 < HIGH);
+        const int guard = (scale < 0x1p24f) & (all_tests | (kabs < 0x1p16f)) & (d2 < HIGH);
         Sure out = {0, 1};
         {
             /* (z + r < near) | (z - r > far) | (sx - |x| < -r lx) | (sy - |y| < -r ly) */
@@ -312,41 +307,117 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
     }
 }
 
-/* A block of pcols under one camera. */
-static inline __attribute__((always_inline)) void decide_lanes(const View *w, float (*restrict col)[BLOCK],
-                                                               int32_t *restrict state, const int ortho)
+/* The usual view, for which decide_one is compiled with its uniform
+ * conditions as constants (GCC builds the mask of a condition that is uniform
+ * over the lanes bit by bit, 15 shifts and ors each): every test on, a finite
+ * kappa2 above LOW, view factors below 2^16. */
+static inline int fast_view(const View *w)
 {
-    /* The constants in a local: the stores to state[] could otherwise alias
-     * them and force a reload per lane (no vectorization). */
-    const Lane L = lane_of(w);
+    return (w->flags & 7) == 7 && !isinf(w->kappa2) && w->kappa2 > LOW && w->kabs < 0x1p16f;
+}
+
+/* The cameras of the lanes of one decision pass, struct of arrays: the
+ * frames of a word, or one camera in every lane (a block of pcols). Each lane
+ * reads its own camera and its own pcol, so that no condition is uniform over
+ * the lanes for the compiler (see fast_view). */
+typedef struct {
+    float ex[BLOCK], ey[BLOCK], ez[BLOCK], R[3][BLOCK], U[3][BLOCK], F[3][BLOCK], k[8][BLOCK];
+    float kappa2[BLOCK], kabs[BLOCK], kfac[BLOCK], kpad[BLOCK];
+    int frustum, orientation, screen, ortho, fast;
+} Frames;
+
+static void load_frames(Frames *fr, const float *views, int n_frames, int flags)
+{
+    for (int l = 0; l < BLOCK; l++) {
+        View w;
+        load_view(&w, views + 22 * (l < n_frames ? l : 0), flags); /* spare lanes repeat the first */
+        Lane L = lane_of(&w);
+        fr->ex[l] = L.ex, fr->ey[l] = L.ey, fr->ez[l] = L.ez;
+        fr->R[0][l] = L.R0, fr->R[1][l] = L.R1, fr->R[2][l] = L.R2;
+        fr->U[0][l] = L.U0, fr->U[1][l] = L.U1, fr->U[2][l] = L.U2;
+        fr->F[0][l] = L.F0, fr->F[1][l] = L.F1, fr->F[2][l] = L.F2;
+        const float k[8] = {L.k0, L.k1, L.k2, L.k3, L.k4, L.k5, L.k6, L.k7};
+        for (int i = 0; i < 8; i++)
+            fr->k[i][l] = k[i];
+        fr->kappa2[l] = L.kappa2, fr->kabs[l] = L.kabs, fr->kfac[l] = L.kfac, fr->kpad[l] = L.kpad;
+        fr->frustum = L.frustum, fr->orientation = L.orientation, fr->screen = L.screen;
+        fr->fast = (l == 0 || fr->fast) && fast_view(&w);
+    }
+    fr->ortho = (flags & ORTHOGRAPHIC) != 0;
+}
+
+static inline Lane frame_at(const Frames *fr, int l)
+{
+    Lane L = {fr->ex[l],    fr->ey[l],    fr->ez[l],    fr->R[0][l],   fr->R[1][l],   fr->R[2][l],
+              fr->U[0][l],  fr->U[1][l],  fr->U[2][l],  fr->F[0][l],   fr->F[1][l],   fr->F[2][l],
+              fr->k[0][l],  fr->k[1][l],  fr->k[2][l],  fr->k[3][l],   fr->k[4][l],   fr->k[5][l],
+              fr->k[6][l],  fr->k[7][l],  fr->kappa2[l], fr->kabs[l],  fr->kfac[l],   fr->kpad[l],
+              fr->frustum,  fr->orientation, fr->screen};
+    return L;
+}
+
+/* Lane l: pcol col[.][l] under camera l. */
+static inline __attribute__((always_inline)) void decide_lanes(const Frames *restrict fr, float (*restrict col)[BLOCK],
+                                                               int32_t *restrict code, const int ortho)
+{
+    if (fr->fast) {
 #pragma omp simd
-    for (int j = 0; j < BLOCK; j++)
-        state[j] = decide_one(&L, pcol_at(col, j), ortho);
+        for (int l = 0; l < BLOCK; l++) {
+            const Lane L = frame_at(fr, l);
+            code[l] = decide_one(&L, pcol_at(col, l), ortho, 1);
+        }
+    } else {
+#pragma omp simd
+        for (int l = 0; l < BLOCK; l++) {
+            const Lane L = frame_at(fr, l);
+            code[l] = decide_one(&L, pcol_at(col, l), ortho, 0);
+        }
+    }
 }
 
 /* The two projections, each a loop without branches, compiled for the
- * vector units the processor has. */
+ * vector units the processor has; the usual views (fast_view) with their
+ * uniform conditions as constants. */
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
 #define VECTOR_CLONES __attribute__((target_clones("avx512f", "avx2", "default")))
 #else
 #define VECTOR_CLONES
 #endif
-VECTOR_CLONES static void decide_perspective(const View *w, Columns col, int32_t *state)
+VECTOR_CLONES static void decide_perspective(const Frames *fr, Columns col, int32_t *code)
 {
-    decide_lanes(w, col, state, 0);
+    decide_lanes(fr, col, code, 0);
 }
-VECTOR_CLONES static void decide_orthographic(const View *w, Columns col, int32_t *state)
+VECTOR_CLONES static void decide_orthographic(const Frames *fr, Columns col, int32_t *code)
 {
-    decide_lanes(w, col, state, 1);
+    decide_lanes(fr, col, code, 1);
 }
-/* Lane results as int32, so that the loop runs at the floats' vector width
- * (byte results made the compiler pick 16-byte vectors). */
-static void decide_block(const View *w, Columns col, int32_t *state)
+/* One pcol's row in every lane (the frames of a word), broadcast here at the
+ * vector width of the decision that reads it. */
+static inline __attribute__((always_inline)) void decide_row_lanes(const Frames *fr, const float *row, int32_t *code,
+                                                                   const int ortho)
 {
-    if (w->flags & ORTHOGRAPHIC)
-        decide_orthographic(w, col, state);
-    else
-        decide_perspective(w, col, state);
+    Columns col;
+    for (int c = 0; c < ROW; c++)
+        for (int l = 0; l < BLOCK; l++)
+            col[c][l] = row[c];
+    decide_lanes(fr, col, code, ortho);
+}
+VECTOR_CLONES static void decide_row_perspective(const Frames *fr, const float *row, int32_t *code)
+{
+    decide_row_lanes(fr, row, code, 0);
+}
+VECTOR_CLONES static void decide_row_orthographic(const Frames *fr, const float *row, int32_t *code)
+{
+    decide_row_lanes(fr, row, code, 1);
+}
+
+/* The lanes of a block: code[l] = WHOLE where the subtree bound decides, |
+ * the own decision (YES, NO, UNSURE). Lane results as int32, so that the
+ * loops run at the floats' vector width (byte results made the compiler pick
+ * 16-byte vectors). */
+static void decide_block(const Frames *fr, Columns col, int32_t *code)
+{
+    (fr->ortho ? decide_orthographic : decide_perspective)(fr, col, code);
 }
 
 /* Rows ids[0..n) into columns; the rest of the block repeats the first row,
@@ -457,7 +528,7 @@ static inline void gather_block(const float *table, const int32_t *ids, int64_t 
  * number of slots; unsure[] receives the slots whose own decision is
  * UNSURE, *n_unsure their number. Capacity: P slots. Slots are decided a
  * block at a time; the children of a block are pushed behind the queue. */
-static int64_t traverse(const Mesh *pm, const View *w, const int32_t *roots, int64_t n_roots, int32_t *ids,
+static int64_t traverse(const Mesh *pm, const Frames *w, const int32_t *roots, int64_t n_roots, int32_t *ids,
                         int32_t *kid, uint8_t *state, int32_t *unsure, int64_t *n_unsure, const int32_t *known,
                         const uint8_t *known_yes, int64_t n_known)
 {
@@ -546,8 +617,8 @@ int64_t pmx_refine(const float *table, const int32_t *kids, const int32_t *kills
                    int32_t *kid, uint8_t *state, uint8_t *ran, int32_t *pcols, int32_t *unsure, int64_t *out)
 {
     Mesh pm = {table, kids, kills, order, n_pcols};
-    View w;
-    load_view(&w, view, flags);
+    Frames w;
+    load_frames(&w, view, 1, flags);
     int64_t m = 0;
     int64_t n = traverse(&pm, &w, roots, n_roots, ids, kid, state, unsure, &m, NULL, NULL, 0);
     out[0] = m;
@@ -582,8 +653,8 @@ void pmx_refine_many(const float *table, const int32_t *kids, const int32_t *kil
 {
     Mesh pm = {table, kids, kills, order, n_pcols};
     for (int64_t c = k0; c < k1; c++) {
-        View w;
-        load_view(&w, views + 22 * c, flags);
+        Frames w;
+        load_frames(&w, views + 22 * c, 1, flags);
         int64_t m = 0, nk = known_count ? known_count[c] : 0;
         if (known_count && nk == 0)
             continue; /* an again-call: this camera is done */
@@ -615,63 +686,8 @@ void pmx_refine_many(const float *table, const int32_t *kids, const int32_t *kil
  * and each frame's own decision and subtree bound evaluated in one vectorized
  * pass over the frames: consecutive frames share most of their front, so the
  * word visits little more than one frame alone (docs/path.md). */
-#define FRAMES 16
+#define FRAMES BLOCK
 typedef uint16_t Lanes;
-
-/* The word's cameras, struct of arrays (one Lane per frame). */
-typedef struct {
-    float ex[FRAMES], ey[FRAMES], ez[FRAMES], R[3][FRAMES], U[3][FRAMES], F[3][FRAMES], k[8][FRAMES];
-    float kappa2[FRAMES], kabs[FRAMES], kfac[FRAMES], kpad[FRAMES];
-    int frustum, orientation, screen, ortho;
-} Frames;
-
-static void load_frames(Frames *fr, const float *views, int n_frames, int flags)
-{
-    for (int l = 0; l < FRAMES; l++) {
-        View w;
-        load_view(&w, views + 22 * (l < n_frames ? l : 0), flags); /* spare lanes repeat frame 0 */
-        Lane L = lane_of(&w);
-        fr->ex[l] = L.ex, fr->ey[l] = L.ey, fr->ez[l] = L.ez;
-        fr->R[0][l] = L.R0, fr->R[1][l] = L.R1, fr->R[2][l] = L.R2;
-        fr->U[0][l] = L.U0, fr->U[1][l] = L.U1, fr->U[2][l] = L.U2;
-        fr->F[0][l] = L.F0, fr->F[1][l] = L.F1, fr->F[2][l] = L.F2;
-        const float k[8] = {L.k0, L.k1, L.k2, L.k3, L.k4, L.k5, L.k6, L.k7};
-        for (int i = 0; i < 8; i++)
-            fr->k[i][l] = k[i];
-        fr->kappa2[l] = L.kappa2, fr->kabs[l] = L.kabs, fr->kfac[l] = L.kfac, fr->kpad[l] = L.kpad;
-        fr->frustum = L.frustum, fr->orientation = L.orientation, fr->screen = L.screen;
-    }
-    fr->ortho = (flags & ORTHOGRAPHIC) != 0;
-}
-
-static inline Lane frame_at(const Frames *fr, int l)
-{
-    Lane L = {fr->ex[l],    fr->ey[l],    fr->ez[l],    fr->R[0][l],   fr->R[1][l],   fr->R[2][l],
-              fr->U[0][l],  fr->U[1][l],  fr->U[2][l],  fr->F[0][l],   fr->F[1][l],   fr->F[2][l],
-              fr->k[0][l],  fr->k[1][l],  fr->k[2][l],  fr->k[3][l],   fr->k[4][l],   fr->k[5][l],
-              fr->k[6][l],  fr->k[7][l],  fr->kappa2[l], fr->kabs[l],  fr->kfac[l],   fr->kpad[l],
-              fr->frustum,  fr->orientation, fr->screen};
-    return L;
-}
-
-static inline __attribute__((always_inline)) void decide_frames_lanes(const Frames *restrict fr, const float *row,
-                                                                      int32_t *restrict code, const int ortho)
-{
-    const Pcol q = pcol_of(row);
-#pragma omp simd
-    for (int l = 0; l < FRAMES; l++) {
-        const Lane L = frame_at(fr, l);
-        code[l] = decide_one(&L, q, ortho);
-    }
-}
-VECTOR_CLONES static void decide_frames_perspective(const Frames *fr, const float *row, int32_t *code)
-{
-    decide_frames_lanes(fr, row, code, 0);
-}
-VECTOR_CLONES static void decide_frames_orthographic(const Frames *fr, const float *row, int32_t *code)
-{
-    decide_frames_lanes(fr, row, code, 1);
-}
 
 /* One word. Slot i holds position ids[i], visited by the frames visit[i];
  * whole[i], yes[i] are the frames whose subtree bound decided it and whose own
@@ -697,11 +713,9 @@ int64_t pmx_refine_word(const float *table, const int32_t *kids, const int32_t *
             __builtin_prefetch(table + (int64_t)ids[i + AHEAD] * ROW);
             __builtin_prefetch(kids + ids[i + AHEAD]);
         }
+        /* The pcol under every frame of the word. */
         const float *row = table + (int64_t)ids[i] * ROW;
-        if (fr.ortho)
-            decide_frames_orthographic(&fr, row, code);
-        else
-            decide_frames_perspective(&fr, row, code);
+        (fr.ortho ? decide_row_orthographic : decide_row_perspective)(&fr, row, code);
         Lanes wh = 0, y = 0, u = 0;
         for (int l = 0; l < FRAMES; l++) {
             wh |= (Lanes)(((code[l] & WHOLE) != 0) << l);
@@ -778,8 +792,8 @@ int64_t pmx_word_frame(int64_t n, const int32_t *ids, const int32_t *pcols, cons
  * predicate over whole hierarchies. */
 void pmx_decide_all(const float *table, int64_t n_pcols, const float *view, int flags, uint8_t *out)
 {
-    View w;
-    load_view(&w, view, flags);
+    Frames w;
+    load_frames(&w, view, 1, flags);
     Columns col;
     int32_t state[BLOCK];
     int32_t ids[BLOCK];
