@@ -149,7 +149,11 @@ TABLE_BOUNDS = ("reach", "spread", "facing", "error", "axis_scale")
 
 def _gathered(pm, ids):
     """The attributes and subtree bounds of pcols ``ids``, from one row each."""
-    rows = gather(pm.table, ids).T  # [16, C]
+    return table_columns(gather(pm.table, ids).T)
+
+
+def table_columns(rows):
+    """``(PcolAttributes, FrontBounds)`` of table rows as columns ``[16, C]``."""
     # Columns 0-2 centre, 3-5 axis, then one column per remaining attribute
     # (not alpha: the tests read its sine and cosine), then the bounds.
     scalars = {k: rows[4 + i] for i, k in enumerate(TABLE_ATTRIBUTES) if i >= 2}

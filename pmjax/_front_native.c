@@ -32,8 +32,18 @@
 #include <stdint.h>
 #include <string.h>
 
-/* Columns of ProgressiveMesh.table (pmjax/_front.py TABLE_ATTRIBUTES, TABLE_BOUNDS). */
-enum { CX, CY, CZ, NX, NY, NZ, RADIUS, SIN_A, COS_A, DELTA, MU, REACH, SPREAD, FACING, ERROR, AXIS_SCALE, ROW };
+/* Columns of ProgressiveMesh.table (pmjax/_front.py TABLE_ATTRIBUTES, TABLE_BOUNDS).
+ * The last, 1 / |axis| there, is not read: in the breadth-first table
+ * (pmjax/_native.py NativeMesh) it holds the pcol's KIDS (int32 bits), so that
+ * a visit reads one cache line. */
+enum { CX, CY, CZ, NX, NY, NZ, RADIUS, SIN_A, COS_A, DELTA, MU, REACH, SPREAD, FACING, ERROR, KIDS, ROW };
+
+/* The orientation bound projects the eye vector on the unit axis. It bounds
+ * something only where the pcol's axis is unit within 1e-3 (elsewhere facing
+ * is 2, pmjax/_subtree.py), so 1 / |axis| > AXIS_LOW, and the bound only grows
+ * with the projection: the projection on the axis times AXIS_LOW is a lower
+ * bound that keeps it sound. */
+#define AXIS_LOW 0.998f
 
 /* Layout of View.values (pmjax/_view.py). */
 enum { EYE = 0, RIGHT = 3, UP = 6, FORWARD = 9, K = 12, ONE_PIXEL = 20, KAPPA2 = 21 };
@@ -75,13 +85,13 @@ enum { NO = 0, YES = 1, UNSURE = 2, WHOLE = 4 };
 /* Two sure-bits per decision: Y (surely true), N (surely false); neither:
  * unsure. */
 typedef struct {
-    int y, n;
+    _Bool y, n;
 } Sure;
 
 static inline Sure less(float d, float m, float slack)
 {
     float bound = REL * m + slack;
-    int ok = m < HIGH; /* false for an overflow, inf or NaN */
+    _Bool ok = m < HIGH; /* false for an overflow, inf or NaN */
     Sure s = {ok & (d < -bound), ok & ((d > bound) | ((m == 0.0f) & (d == 0.0f)))};
     return s;
 }
@@ -90,11 +100,11 @@ static inline Sure sure_and(Sure a, Sure b) { Sure s = {a.y & b.y, a.n | b.n}; r
 
 /* The hierarchy in breadth-first order of its forest (pmjax/_native.py
  * NativeMesh): position q holds pcol order[q]; the created children of q sit
- * side by side at kids[q] >> 2 (their number in the low two bits), so a pruned
+ * side by side at kids >> 2 (their number in the low two bits, kids the row's
+ * KIDS column), so a pruned
  * breadth-first walk reads the table in increasing order. */
 typedef struct {
-    const float *table;   /* [P, ROW], by position */
-    const int32_t *kids;  /* [P] first child's position << 2 | number of created children */
+    const float *table;   /* [P, ROW], by position; KIDS: first child's position << 2 | number of created children */
     const int32_t *kills; /* [P] by position */
     const int32_t *order; /* [P] pcol at each position */
     int64_t n_pcols;
@@ -167,14 +177,14 @@ static inline Lane lane_of(const View *w)
 /* One pcol's row as named scalars (the vectorizer keeps a struct of scalars
  * in registers, where an array would be memory). */
 typedef struct {
-    float cx, cy, cz, nx, ny, nz, radius, sin_a, cos_a, delta, mu, reach, spread, facing, error, axis_scale;
+    float cx, cy, cz, nx, ny, nz, radius, sin_a, cos_a, delta, mu, reach, spread, facing, error;
 } Pcol;
 
 static inline Pcol pcol_at(float (*restrict col)[BLOCK], int j)
 {
     Pcol q = {col[CX][j],     col[CY][j],    col[CZ][j],     col[NX][j],    col[NY][j],     col[NZ][j],
               col[RADIUS][j], col[SIN_A][j], col[COS_A][j],  col[DELTA][j], col[MU][j],     col[REACH][j],
-              col[SPREAD][j], col[FACING][j], col[ERROR][j], col[AXIS_SCALE][j]};
+              col[SPREAD][j], col[FACING][j], col[ERROR][j]};
     return q;
 }
 
@@ -191,9 +201,9 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
     const float F0 = L->F0, F1 = L->F1, F2 = L->F2;
     const float k0 = L->k0, k1 = L->k1, k2 = L->k2, k3 = L->k3, k4 = L->k4, k5 = L->k5, k6 = L->k6, k7 = L->k7;
     const float kappa2 = L->kappa2, kabs = L->kabs, kfac = L->kfac, kpad = L->kpad;
-    const int frustum = all_tests | L->frustum, orientation = all_tests | L->orientation;
-    const int screen = all_tests | L->screen;
-    const int kinf = !all_tests & (kappa2 == INFINITY);
+    const _Bool frustum = all_tests | L->frustum, orientation = all_tests | L->orientation;
+    const _Bool screen = all_tests | L->screen;
+    const _Bool kinf = !all_tests & (kappa2 == INFINITY);
     {
         const float vx = q.cx - L->ex, vy = q.cy - L->ey, vz = q.cz - L->ez;
         const float nx = q.nx, ny = q.ny, nz = q.nz;
@@ -216,21 +226,21 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
         const float mhv = fabsf(vx * nx) + fabsf(vy * ny) + fabsf(vz * nz);
 
         /* -- subtree bound -- */
-        int whole = 0;
+        _Bool whole = 0;
         {
             float size = (fabsf(x) + fabsf(y) + fabsf(z) + reach) * kfac;
             float m = MARGIN * (size + kpad);
-            int out = (z + reach < k6 - m) | (z - reach > k7 + m) | (sx - fabsf(x) + reach * k4 < -m) |
+            _Bool out = (z + reach < k6 - m) | (z - reach > k7 + m) | (sx - fabsf(x) + reach * k4 < -m) |
                       (sy - fabsf(y) + reach * k5 < -m);
             whole |= frustum & out & (m > LOW) & (m < HIGH);
         }
         const float e2 = error * error;
         if (ortho) {
-            whole |= orientation & (hf * q.axis_scale > q.facing);
+            whole |= orientation & (hf * AXIS_LOW > q.facing);
             whole |= screen & (e2 < kappa2 * (1 - SCREEN_MARGIN)) & (all_tests | (kappa2 > LOW)) & (e2 < HIGH);
             whole |= screen & kinf & (e2 < HIGH); /* every finite deviation is below inf */
         } else {
-            float a = hv * q.axis_scale;
+            float a = hv * AXIS_LOW;
             float lhs = a * sqrtf(pos(d2 - reach * reach)) - reach * sqrtf(pos(d2 - a * a));
             float gap = d - reach, far = d + reach;
             whole |= orientation & (d2 > reach * reach) & (a > 0) & (lhs > d2 * q.facing) &
@@ -253,7 +263,7 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
                             fabsf(delta) + fabsf(mu);
         const float factor = scale * scale * kabs;
         const float slack = FLUSH * factor * factor;
-        const int guard = (scale < 0x1p24f) & (all_tests | (kabs < 0x1p16f)) & (d2 < HIGH);
+        const _Bool guard = (scale < 0x1p24f) & (all_tests | (kabs < 0x1p16f)) & (d2 < HIGH);
         Sure out = {0, 1};
         {
             /* (z + r < near) | (z - r > far) | (sx - |x| < -r lx) | (sy - |y| < -r ly) */
@@ -294,7 +304,7 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
             small = sure_and(small, less(normal2 - kappa2 * s * s, mnormal2 + kappa2 * s * s, slack));
             /* tau = inf: small exactly when s > 0 in float32 (inf * s is inf, inf
              * * 0 is NaN) and mu2, normal2 are finite. */
-            const int positive = ortho | (d2 > LOW), finite = (mu * mu + mnormal2) < HIGH;
+            const _Bool positive = ortho | (d2 > LOW), finite = (mu * mu + mnormal2) < HIGH;
             small.y = (kinf & positive & finite) | ((!kinf) & small.y);
             small.n = (!kinf) & small.n;
             small.y &= screen;
@@ -302,7 +312,7 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
             out = sure_or(out, small);
         }
         /* YES = 1, NO = 0, UNSURE = 2, WHOLE = 4, without branches. */
-        const int yes = guard & out.y, sure = guard & (out.y | out.n);
+        const _Bool yes = guard & out.y, sure = guard & (out.y | out.n);
         return yes | (!sure << 1) | ((whole != 0) << 2);
     }
 }
@@ -526,7 +536,7 @@ static inline void gather_block(const float *table, const int32_t *ids, int64_t 
  * with state[i]; kid[2i], kid[2i+1] are the slots of its children (-1: not
  * visited, which means original or decided, and so executed). Returns the
  * number of slots; unsure[] receives the slots whose own decision is
- * UNSURE, *n_unsure their number. Capacity: P slots. Slots are decided a
+ * UNSURE, *n_unsure their number. Capacity: P + 2 slots. Slots are decided a
  * block at a time; the children of a block are pushed behind the queue. */
 static int64_t traverse(const Mesh *pm, const Frames *w, const int32_t *roots, int64_t n_roots, int32_t *ids,
                         int32_t *kid, uint8_t *state, int32_t *unsure, int64_t *n_unsure, const int32_t *known,
@@ -543,19 +553,16 @@ static int64_t traverse(const Mesh *pm, const Frames *w, const int32_t *roots, i
          * time without more requests in flight than the memory system holds. */
         for (int64_t j = i + AHEAD; j < i + AHEAD + nb && j < n; j++) {
             __builtin_prefetch(pm->table + (int64_t)ids[j] * ROW);
-            __builtin_prefetch(pm->kids + ids[j]);
         }
         gather_block(pm->table, ids + i, nb, col);
         decide_block(w, col, decided);
         for (int64_t j = i; j < i + nb; j++) {
+            /* Without branches but for the rare unsure decisions: whether the
+             * bound decided a slot is a coin toss to the branch predictor. */
             const int32_t own = decided[j - i];
-            kid[2 * j] = kid[2 * j + 1] = -1;
-            if (own & WHOLE) {
-                state[j] = WHOLE | YES;
-                continue;
-            }
-            state[j] = (uint8_t)own;
-            if (own == UNSURE) {
+            const int open = !(own & WHOLE);
+            state[j] = open ? (uint8_t)own : (WHOLE | YES);
+            if (open & (own == UNSURE)) {
                 /* Decided by the caller (the float32 predicate) on an earlier pass? */
                 int64_t q = 0;
                 while (q < n_known && known[q] != pm->order[ids[j]])
@@ -565,13 +572,17 @@ static int64_t traverse(const Mesh *pm, const Frames *w, const int32_t *roots, i
                 else
                     unsure[m++] = (int32_t)j;
             }
-            /* The children are visited whatever this pcol does (each may run
-             * on its own); their rows are fetched ahead of their turn. */
-            const int32_t first = pm->kids[ids[j]] >> 2, count = pm->kids[ids[j]] & 3;
-            for (int t = 0; t < count; t++) {
-                kid[2 * j + t] = (int32_t)n;
-                ids[n++] = first + t;
-            }
+            /* The children of an open slot are visited whatever it does (each
+             * may run on its own); their rows are fetched ahead of their turn.
+             * Two are written and those that exist counted (2 spare slots). */
+            int32_t kids;
+            memcpy(&kids, &col[KIDS][j - i], sizeof kids);
+            const int32_t first = kids >> 2, count = open ? kids & 3 : 0;
+            kid[2 * j] = count > 0 ? (int32_t)n : -1;
+            kid[2 * j + 1] = count > 1 ? (int32_t)n + 1 : -1;
+            ids[n] = first;
+            ids[n + 1] = first + 1;
+            n += count;
         }
         i += nb;
     }
@@ -582,25 +593,21 @@ static int64_t traverse(const Mesh *pm, const Frames *w, const int32_t *roots, i
 /* Bottom-up: a slot ran if its subtree was decided, or it collapses and both
  * children ran (children always sit in later slots). Writes ran[] (0/1), the
  * counts (pcols that did not run, the faces they keep) and pcols[], the pcol
- * of each slot (ids[] holds positions). */
+ * of each slot (ids[] holds positions; optional). */
 static void resolve(const Mesh *pm, int64_t n, const int32_t *ids, const int32_t *kid, const uint8_t *state,
                     uint8_t *ran, int32_t *pcols, int64_t *n_not_run, int64_t *kept)
 {
     int64_t not_run = 0, keep = 0;
     for (int64_t i = n - 1; i >= 0; i--) {
-        int r;
-        if (state[i] & WHOLE)
-            r = 1;
-        else {
-            int k1 = kid[2 * i], k2 = kid[2 * i + 1];
-            r = (state[i] == YES) && (k1 < 0 || ran[k1]) && (k2 < 0 || ran[k2]);
-        }
+        /* Without branches: whether a slot ran is a coin toss too. */
+        const int32_t k1 = kid[2 * i], k2 = kid[2 * i + 1];
+        const int below = ((k1 < 0) | ran[k1 < 0 ? 0 : k1]) & ((k2 < 0) | ran[k2 < 0 ? 0 : k2]);
+        const int r = ((state[i] & WHOLE) != 0) | ((state[i] == YES) & below);
         ran[i] = (uint8_t)r;
-        if (!r) {
-            not_run++;
-            keep += pm->kills[ids[i]];
-        }
-        pcols[i] = pm->order[ids[i]];
+        not_run += !r;
+        keep += (!r) * pm->kills[ids[i]];
+        if (pcols) /* not for counts alone: order[] is read at random */
+            pcols[i] = pm->order[ids[i]];
     }
     *n_not_run = not_run;
     *kept = keep;
@@ -612,11 +619,11 @@ static void resolve(const Mesh *pm, int64_t n, const int32_t *ids, const int32_t
  * the number of visited slots (ids[]: their positions). out[0] = unsure
  * slots (decide them, then call pmx_resolve), out[1] = pcols not run,
  * out[2] = faces they keep; pcols[]: the slots' pcols once resolved. */
-int64_t pmx_refine(const float *table, const int32_t *kids, const int32_t *kills, const int32_t *order,
+int64_t pmx_refine(const float *table, const int32_t *kills, const int32_t *order,
                    int64_t n_pcols, const int32_t *roots, int64_t n_roots, const float *view, int flags, int32_t *ids,
                    int32_t *kid, uint8_t *state, uint8_t *ran, int32_t *pcols, int32_t *unsure, int64_t *out)
 {
-    Mesh pm = {table, kids, kills, order, n_pcols};
+    Mesh pm = {table, kills, order, n_pcols};
     Frames w;
     load_frames(&w, view, 1, flags);
     int64_t m = 0;
@@ -633,7 +640,7 @@ int64_t pmx_refine(const float *table, const int32_t *kids, const int32_t *kills
 void pmx_resolve(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids, const int32_t *kid,
                  const uint8_t *state, uint8_t *ran, int32_t *pcols, int64_t *out)
 {
-    Mesh pm = {NULL, NULL, kills, order, 0};
+    Mesh pm = {NULL, kills, order, 0};
     resolve(&pm, n, ids, kid, state, ran, pcols, &out[0], &out[1]);
 }
 
@@ -645,13 +652,13 @@ void pmx_resolve(const int32_t *kills, const int32_t *order, int64_t n, const in
  * again with known (pcols, decisions per camera, known_count[k] of them at
  * known[k * UNSURE_PER_CAMERA...]). masks: optional [K, P] executed bytes. */
 #define UNSURE_PER_CAMERA 16
-void pmx_refine_many(const float *table, const int32_t *kids, const int32_t *kills, const int32_t *order,
+void pmx_refine_many(const float *table, const int32_t *kills, const int32_t *order,
                      int64_t n_pcols, const int32_t *roots, int64_t n_roots, const float *views, int flags, int64_t k0,
                      int64_t k1, int32_t *ids, int32_t *kid, uint8_t *state, uint8_t *ran, int32_t *pcols,
                      int32_t *unsure, int64_t *counts, int32_t *status, int32_t *unsure_pcols, const int32_t *known,
                      const uint8_t *known_yes, const int32_t *known_count, uint8_t *masks)
 {
-    Mesh pm = {table, kids, kills, order, n_pcols};
+    Mesh pm = {table, kills, order, n_pcols};
     for (int64_t c = k0; c < k1; c++) {
         Frames w;
         load_frames(&w, views + 22 * c, 1, flags);
@@ -667,7 +674,7 @@ void pmx_refine_many(const float *table, const int32_t *kids, const int32_t *kil
                 unsure_pcols[c * UNSURE_PER_CAMERA + q] = order[ids[unsure[q]]];
             continue;
         }
-        resolve(&pm, n, ids, kid, state, ran, pcols, &counts[3 * c + 1], &counts[3 * c + 2]);
+        resolve(&pm, n, ids, kid, state, ran, masks ? pcols : NULL, &counts[3 * c + 1], &counts[3 * c + 2]);
         counts[3 * c] = n;
         if (masks) {
             uint8_t *row = masks + c * n_pcols;
@@ -694,7 +701,7 @@ typedef uint16_t Lanes;
  * decision is yes. Returns the number of slots; the slots with unsure frames
  * go to unsure_slots[] with the frames in unsure_lanes[] (out[0] of them):
  * decide them, set their yes[] bits and call pmx_resolve_word. */
-int64_t pmx_refine_word(const float *table, const int32_t *kids, const int32_t *order, const int32_t *roots,
+int64_t pmx_refine_word(const float *table, const int32_t *order, const int32_t *roots,
                         int64_t n_roots, const float *views, int n_frames, int flags, int32_t *ids, int32_t *kid,
                         Lanes *visit, Lanes *whole, Lanes *yes, int32_t *unsure_slots, Lanes *unsure_lanes,
                         int64_t *out)
@@ -709,10 +716,8 @@ int64_t pmx_refine_word(const float *table, const int32_t *kids, const int32_t *
         visit[n++] = active;
     }
     for (int64_t i = 0; i < n; i++) {
-        if (i + AHEAD < n) {
+        if (i + AHEAD < n)
             __builtin_prefetch(table + (int64_t)ids[i + AHEAD] * ROW);
-            __builtin_prefetch(kids + ids[i + AHEAD]);
-        }
         /* The pcol under every frame of the word. */
         const float *row = table + (int64_t)ids[i] * ROW;
         (fr.ortho ? decide_row_orthographic : decide_row_perspective)(&fr, row, code);
@@ -733,7 +738,9 @@ int64_t pmx_refine_word(const float *table, const int32_t *kids, const int32_t *
         if (!open)
             continue;
         /* The children, for the frames that did not decide this subtree. */
-        const int32_t first = kids[ids[i]] >> 2, count = kids[ids[i]] & 3;
+        int32_t kids;
+        memcpy(&kids, row + KIDS, sizeof kids);
+        const int32_t first = kids >> 2, count = kids & 3;
         for (int t = 0; t < count; t++) {
             kid[2 * i + t] = (int32_t)n;
             visit[n] = open;
@@ -746,30 +753,42 @@ int64_t pmx_refine_word(const float *table, const int32_t *kids, const int32_t *
 
 /* Bottom-up for a word: per frame, a slot ran if the frame did not visit it
  * (decided above), its bound decided it, or it collapses and both children
- * ran. Writes ran[], pcols[] (each slot's pcol) and per frame the pcols that
- * did not run (not_run[FRAMES]) and the faces they keep (kept[FRAMES]). */
-void pmx_resolve_word(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids, const int32_t *kid,
-                      const Lanes *visit, const Lanes *whole, const Lanes *yes, Lanes *ran, int32_t *pcols,
-                      int64_t *not_run, int64_t *kept)
+ * ran. Writes ran[], pcols[] (each slot's pcol; optional) and per frame the
+ * pcols that did not run (not_run[FRAMES]) and the faces they keep
+ * (kept[FRAMES]). */
+VECTOR_CLONES static void resolve_word(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids,
+                                       const int32_t *kid, const Lanes *visit, const Lanes *whole, const Lanes *yes,
+                                       Lanes *ran, int32_t *pcols, int64_t *not_run, int64_t *kept)
 {
-    for (int l = 0; l < FRAMES; l++)
-        not_run[l] = kept[l] = 0;
+    /* Per-frame counts as int32 lanes (one vector add per slot that failed
+     * somewhere; no count exceeds P or F). */
+    int32_t failures[FRAMES] = {0}, keeps[FRAMES] = {0};
     for (int64_t i = n - 1; i >= 0; i--) {
         int32_t k1 = kid[2 * i], k2 = kid[2 * i + 1];
         Lanes below = (Lanes)((k1 < 0 ? 0xFFFF : ran[k1]) & (k2 < 0 ? 0xFFFF : ran[k2]));
         Lanes r = (Lanes)(~visit[i] | whole[i] | (yes[i] & below));
         ran[i] = r;
-        pcols[i] = order[ids[i]];
-        Lanes failed = (Lanes)~r;
+        if (pcols) /* not for counts alone: order[] is read at random */
+            pcols[i] = order[ids[i]];
+        const uint32_t failed = (Lanes)~r;
         if (failed) {
-            int32_t k = kills[ids[i]];
+            const int32_t k = kills[ids[i]];
+#pragma omp simd
             for (int l = 0; l < FRAMES; l++) {
-                int bit = (failed >> l) & 1;
-                not_run[l] += bit;
-                kept[l] += bit * k;
+                const int32_t bit = (int32_t)((failed >> l) & 1);
+                failures[l] += bit;
+                keeps[l] += bit * k;
             }
         }
     }
+    for (int l = 0; l < FRAMES; l++)
+        not_run[l] = failures[l], kept[l] = keeps[l];
+}
+void pmx_resolve_word(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids, const int32_t *kid,
+                      const Lanes *visit, const Lanes *whole, const Lanes *yes, Lanes *ran, int32_t *pcols,
+                      int64_t *not_run, int64_t *kept)
+{
+    resolve_word(kills, order, n, ids, kid, visit, whole, yes, ran, pcols, not_run, kept);
 }
 
 /* Frame `lane` of a resolved word as one refinement's lists: the pcols it

@@ -63,13 +63,13 @@ def _load():
     if lib is None:
         return None
     lib.pmx_refine.restype = _i64
-    lib.pmx_refine.argtypes = [_p, _p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _p, _p, _p, _p, _p, _p, _p]
+    lib.pmx_refine.argtypes = [_p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _p, _p, _p, _p, _p, _p, _p]
     lib.pmx_resolve.restype = None
     lib.pmx_resolve.argtypes = [_p, _p, _i64, _p, _p, _p, _p, _p, _p]
     lib.pmx_refine_many.restype = None
-    lib.pmx_refine_many.argtypes = [_p, _p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _i64, _i64] + [_p] * 13
+    lib.pmx_refine_many.argtypes = [_p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _i64, _i64] + [_p] * 13
     lib.pmx_refine_word.restype = _i64
-    lib.pmx_refine_word.argtypes = [_p, _p, _p, _p, _i64, _p, ctypes.c_int, ctypes.c_int] + [_p] * 8
+    lib.pmx_refine_word.argtypes = [_p, _p, _p, _i64, _p, ctypes.c_int, ctypes.c_int] + [_p] * 8
     lib.pmx_resolve_word.restype = None
     lib.pmx_resolve_word.argtypes = [_p, _p, _i64] + [_p] * 9
     lib.pmx_word_frame.restype = _i64
@@ -156,7 +156,7 @@ class _Scratch:
 
     def __init__(self, n_original, n_pcols, n_faces):
         P, V0 = n_pcols, n_original
-        self.ids = np.empty(P, np.int32)
+        self.ids = np.empty(P + 2, np.int32)  # two spare slots (traverse in _front_native.c)
         self.kid = np.empty(2 * P, np.int32)
         self.state = np.empty(P, np.uint8)
         self.ran = np.empty(P, np.uint8)
@@ -210,8 +210,10 @@ class NativeMesh:
         if len(order) != self.n_pcols:  # every pcol lies below a root (the structure check's forest)
             raise ValueError(f"the pcol forest reaches {len(order)} of {self.n_pcols} pcols from its roots")
         self.order = order.astype(np.int32)
+        # Each row's last column (1 / |axis|, which the C loops do not read)
+        # holds its first child's position << 2 | its number of children.
         self.bfs_table = np.ascontiguousarray(self.table[order])
-        self.kids = ((first << 2) | count).astype(np.int32)
+        self.bfs_table[:, -1] = ((first << 2) | count).astype(np.int32).view(np.float32)
         self.bfs_kills = np.ascontiguousarray(kills[order])
         self.roots = np.arange(len(np.asarray(pm.roots)), dtype=np.int32)  # positions
         self._local = threading.local()
@@ -367,20 +369,27 @@ def _bucket(n: int) -> int:
 
 
 @functools.partial(jax.jit, static_argnames=("tests", "orthographic"))
-def _decide(pm, ids, values, tests, orthographic):
-    from ._front import _gathered
+def _decide(rows, values, tests, orthographic):
+    from ._front import table_columns
     from ._predicate import view_collapse_mask
 
-    attrs, _ = _gathered(pm, ids)
+    attrs, _ = table_columns(rows.T)
     return view_collapse_mask(attrs, View(values, orthographic), tests, rows=False)
+
+
+def _rows(host, pcols: np.ndarray) -> np.ndarray:
+    """Table rows of ``pcols`` padded to a :func:`_bucket` (gathered here: a
+    compiled call with the mesh's arrays as arguments costs several times
+    more to dispatch)."""
+    padded = np.zeros(_bucket(len(pcols)), np.int64)
+    padded[:len(pcols)] = pcols
+    return host.table[padded]
 
 
 def decide_unsure(pm, ids: np.ndarray, values: np.ndarray, tests, orthographic: bool) -> np.ndarray:
     """The float32 predicate's own decisions for pcols ``ids`` (the unsure ones)."""
-    n = len(ids)
-    padded = np.zeros(_bucket(n), np.int32)
-    padded[:n] = ids
-    return np.asarray(_decide(pm, padded, jnp.asarray(values), tests, orthographic))[:n]
+    rows = _rows(native_mesh(pm), ids)
+    return np.asarray(_decide(rows, jnp.asarray(values), tests, orthographic))[:len(ids)]
 
 
 def refine_one(pm, camera, tau, tests, lists: bool = True):
@@ -395,7 +404,7 @@ def refine_one(pm, camera, tau, tests, lists: bool = True):
     s = host.scratch()
     values = host_view(camera, tau)
     flags = flags_of(tests, camera.orthographic)
-    n = _LIB.pmx_refine(host.p_bfs_table, host.p_kids, host.p_bfs_kills, host.p_order, host.n_pcols, host.p_roots,
+    n = _LIB.pmx_refine(host.p_bfs_table, host.p_bfs_kills, host.p_order, host.n_pcols, host.p_roots,
                         len(host.roots), _ptr(values), flags, s.p_ids, s.p_kid, s.p_state, s.p_ran, s.p_pcols,
                         s.p_unsure, s.p_out)
     n_unsure = int(s.out[0])
@@ -419,12 +428,12 @@ UNSURE_PER_CAMERA = 16
 
 
 @functools.partial(jax.jit, static_argnames=("tests", "orthographic"))
-def _decide_pairs(pm, ids, cameras, tau, tests, orthographic):
-    """The float32 predicate's decision for pcol ``ids[i]`` under camera ``i``."""
-    from ._front import _gathered
+def _decide_pairs(rows, cameras, tau, tests, orthographic):
+    """The float32 predicate's decision for table row ``rows[i]`` under camera ``i``."""
+    from ._front import table_columns
     from ._predicate import view_collapse_mask
 
-    attrs, _ = _gathered(pm, ids)
+    attrs, _ = table_columns(rows.T)
     views = View.batch(cameras, tau)
     one = lambda a, v: view_collapse_mask(a, View(v, orthographic), tests, rows=False)
     return jax.vmap(one, in_axes=(0, 1))(jax.tree.map(lambda x: x.T[:, :, None] if x.ndim == 2 else x[:, None],
@@ -538,7 +547,7 @@ def refine_many(pm, cameras, tau, tests, want_masks: bool, threads: int | None =
 
     def run(k0, k1, known=None, known_yes=None, known_count=None):
         s = host.scratch()
-        _LIB.pmx_refine_many(host.p_bfs_table, host.p_kids, host.p_bfs_kills, host.p_order, host.n_pcols,
+        _LIB.pmx_refine_many(host.p_bfs_table, host.p_bfs_kills, host.p_order, host.n_pcols,
                              host.p_roots, len(host.roots), _ptr(values), flags, k0, k1, s.p_ids, s.p_kid, s.p_state,
                              s.p_ran, s.p_pcols, s.p_unsure, _ptr(counts), _ptr(status), _ptr(unsure),
                              None if known is None else _ptr(known), None if known is None else _ptr(known_yes),
@@ -565,7 +574,7 @@ def refine_many(pm, cameras, tau, tests, want_masks: bool, threads: int | None =
         pad[:n] = np.arange(n)
         batch = jax.tree.map(lambda a: np.asarray(a)[cam_of[pad]] if np.ndim(a) else a, cameras)
         taus = np.broadcast_to(np.asarray(tau, np.float32), (K,))[cam_of[pad]]
-        yes = np.asarray(_decide_pairs(pm, pcol_of[pad].astype(np.int32), batch, taus, tests,
+        yes = np.asarray(_decide_pairs(_rows(host, pcol_of), batch, taus, tests,
                                        cameras.orthographic))[:n]
         known = np.zeros((K, UNSURE_PER_CAMERA), np.int32)
         known_yes = np.zeros((K, UNSURE_PER_CAMERA), np.uint8)
@@ -635,7 +644,7 @@ def refine_word(pm, cameras, taus, tests, frames: bool, values=None):
     word = np.ascontiguousarray(host_views(cameras, taus) if values is None else values)
     nf = word.shape[0]
     s = _word_scratch(host)
-    n = _LIB.pmx_refine_word(host.p_bfs_table, host.p_kids, host.p_order, host.p_roots, len(host.roots), _ptr(word),
+    n = _LIB.pmx_refine_word(host.p_bfs_table, host.p_order, host.p_roots, len(host.roots), _ptr(word),
                              nf, flags_of(tests, cameras.orthographic), _ptr(s.ids), _ptr(s.kid), _ptr(s.visit),
                              _ptr(s.whole), _ptr(s.yes), _ptr(s.unsure_slots), _ptr(s.unsure_lanes), _ptr(s.out))
     m = int(s.out[0])
@@ -649,12 +658,14 @@ def refine_word(pm, cameras, taus, tests, frames: bool, values=None):
         frame = lane_of[pad]
         batch = jax.tree.map(lambda a: np.asarray(a)[frame], cameras)
         pcols = host.order[s.ids[slots[slot_of[pad]]]]
-        yes = np.asarray(_decide_pairs(pm, pcols.astype(np.int32), batch, np.asarray(taus, np.float32)[frame], tests,
+        yes = np.asarray(_decide_pairs(_rows(host, pcols), batch, np.asarray(taus, np.float32)[frame], tests,
                                        cameras.orthographic))[:pairs]
         for slot, lane in zip(slots[slot_of[yes]], lane_of[yes]):
             s.yes[slot] |= np.uint16(1 << int(lane))
+    # Each slot's pcol only for the frames' lists (a read at random per slot).
     _LIB.pmx_resolve_word(host.p_bfs_kills, host.p_order, n, _ptr(s.ids), _ptr(s.kid), _ptr(s.visit), _ptr(s.whole),
-                          _ptr(s.yes), _ptr(s.ran), _ptr(s.pcols), _ptr(s.not_run), _ptr(s.kept))
+                          _ptr(s.yes), _ptr(s.ran), _ptr(s.pcols) if frames else None, _ptr(s.not_run),
+                          _ptr(s.kept))
     n_exec = host.n_pcols - s.not_run[:nf]
     counts = (host.n_faces - host.total_kills + s.kept[:nf], host.n_original - n_exec, n_exec)
     if not frames:
