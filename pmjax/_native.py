@@ -379,8 +379,8 @@ def _decide(rows, values, tests, orthographic):
 
 def _rows(host, pcols: np.ndarray) -> np.ndarray:
     """Table rows of ``pcols`` padded to a :func:`_bucket` (gathered here: a
-    compiled call with the mesh's arrays as arguments costs several times
-    more to dispatch)."""
+    compiled call that takes the mesh's arrays and gathers them measured 1.5x
+    the dispatch time, 0.28 against 0.18 ms)."""
     padded = np.zeros(_bucket(len(pcols)), np.int64)
     padded[:len(pcols)] = pcols
     return host.table[padded]
