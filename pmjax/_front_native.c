@@ -366,23 +366,25 @@ static inline Lane frame_at(const Frames *fr, int l)
     return L;
 }
 
-/* Lane l: pcol col[.][l] under camera l. */
+/* Lane l: pcol col[.][l] under camera l; all_tests a constant (decide_one). */
+static inline __attribute__((always_inline)) void decide_each_lane(const Frames *restrict fr,
+                                                                   float (*restrict col)[BLOCK],
+                                                                   int32_t *restrict code, const int ortho,
+                                                                   const int all_tests)
+{
+#pragma omp simd
+    for (int l = 0; l < BLOCK; l++) {
+        const Lane L = frame_at(fr, l);
+        code[l] = decide_one(&L, pcol_at(col, l), ortho, all_tests);
+    }
+}
 static inline __attribute__((always_inline)) void decide_lanes(const Frames *restrict fr, float (*restrict col)[BLOCK],
                                                                int32_t *restrict code, const int ortho)
 {
-    if (fr->fast) {
-#pragma omp simd
-        for (int l = 0; l < BLOCK; l++) {
-            const Lane L = frame_at(fr, l);
-            code[l] = decide_one(&L, pcol_at(col, l), ortho, 1);
-        }
-    } else {
-#pragma omp simd
-        for (int l = 0; l < BLOCK; l++) {
-            const Lane L = frame_at(fr, l);
-            code[l] = decide_one(&L, pcol_at(col, l), ortho, 0);
-        }
-    }
+    if (fr->fast)
+        decide_each_lane(fr, col, code, ortho, 1);
+    else
+        decide_each_lane(fr, col, code, ortho, 0);
 }
 
 /* The two projections, each a loop without branches, compiled for the
