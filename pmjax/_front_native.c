@@ -188,6 +188,45 @@ static inline Pcol pcol_at(float (*restrict col)[BLOCK], int j)
     return q;
 }
 
+/* The subtree bounds (pmjax/_subtree.py subtree_collapses), each "does every
+ * pcol below collapse?" by one test, for an eye at distance d (d2 = d * d in
+ * float32) and camera coordinates x, y, z of the pcol's centre. A bound's
+ * reach or spread may be grown to cover several eyes at once (decide_fat). */
+
+/* The reach sphere outside a frustum plane, by the margin. */
+static inline _Bool bound_outside(float x, float y, float z, float reach, float k0, float k1, float k2, float k3,
+                                  float k4, float k5, float k6, float k7, float kfac, float kpad)
+{
+    const float sx = z * k0 + k2, sy = z * k1 + k3;
+    const float size = (fabsf(x) + fabsf(y) + fabsf(z) + reach) * kfac;
+    const float m = MARGIN * (size + kpad);
+    const _Bool out = (z + reach < k6 - m) | (z - reach > k7 + m) | (sx - fabsf(x) + reach * k4 < -m) |
+                      (sy - fabsf(y) + reach * k5 < -m);
+    return out & (m > LOW) & (m < HIGH);
+}
+
+/* Every cone below facing away from every eye ray into the reach sphere
+ * (perspective; hv the eye vector along the axis). */
+static inline _Bool bound_away(float hv, float d2, float d, float reach, float facing)
+{
+    const float a = hv * AXIS_LOW;
+    const float lhs = a * sqrtf(pos(d2 - reach * reach)) - reach * sqrtf(pos(d2 - a * a));
+    const float gap = d - reach, far = d + reach;
+    return (d2 > reach * reach) & (a > 0) & (lhs > d2 * facing) & (gap * gap > 0x1p-80f) & (far * far < HIGH);
+}
+
+/* Every error below under the screen tolerance (perspective; false for an
+ * infinite kappa2, which decide_one treats apart), for eyes at distances
+ * between d_lo and d_hi (one eye: both d). */
+static inline _Bool bound_small(float d_lo, float d_hi, float spread, float e2, float kappa2)
+{
+    const float room = d_lo - spread - SCREEN_MARGIN * (d_hi + spread);
+    const float room2 = room * room, far2 = (d_hi + spread) * (d_hi + spread);
+    return (room > 0) & (e2 < kappa2 * room2 * (1 - SCREEN_MARGIN)) &
+           (kappa2 * (room2 < 1.0f ? room2 * room2 : room2) > LOW) & (kappa2 * far2 * far2 < HIGH) &
+           (e2 * far2 < HIGH);
+}
+
 /* One pcol (q) under one camera (L): its subtree bound (pmjax/_subtree.py
  * subtree_collapses: does every pcol below collapse?) and its own decision
  * (pmjax/_predicate.py view_collapse_mask), certified. Returns the own
@@ -226,33 +265,20 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
         const float mhv = fabsf(vx * nx) + fabsf(vy * ny) + fabsf(vz * nz);
 
         /* -- subtree bound -- */
-        _Bool whole = 0;
-        {
-            float size = (fabsf(x) + fabsf(y) + fabsf(z) + reach) * kfac;
-            float m = MARGIN * (size + kpad);
-            _Bool out = (z + reach < k6 - m) | (z - reach > k7 + m) | (sx - fabsf(x) + reach * k4 < -m) |
-                      (sy - fabsf(y) + reach * k5 < -m);
-            whole |= frustum & out & (m > LOW) & (m < HIGH);
-        }
+        _Bool whole = frustum & bound_outside(x, y, z, reach, L->k0, L->k1, L->k2, L->k3, L->k4, L->k5, L->k6,
+                                              L->k7, kfac, kpad);
         const float e2 = error * error;
         if (ortho) {
             whole |= orientation & (hf * AXIS_LOW > q.facing);
             whole |= screen & (e2 < kappa2 * (1 - SCREEN_MARGIN)) & (all_tests | (kappa2 > LOW)) & (e2 < HIGH);
             whole |= screen & kinf & (e2 < HIGH); /* every finite deviation is below inf */
         } else {
-            float a = hv * AXIS_LOW;
-            float lhs = a * sqrtf(pos(d2 - reach * reach)) - reach * sqrtf(pos(d2 - a * a));
-            float gap = d - reach, far = d + reach;
-            whole |= orientation & (d2 > reach * reach) & (a > 0) & (lhs > d2 * q.facing) &
-                     (gap * gap > 0x1p-80f) & (far * far < HIGH);
-            float room = d - spread - SCREEN_MARGIN * (d + spread);
-            float room2 = room * room, far2 = (d + spread) * (d + spread);
-            whole |= screen & (room > 0) & (e2 < kappa2 * room2 * (1 - SCREEN_MARGIN)) &
-                     (kappa2 * (room2 < 1.0f ? room2 * room2 : room2) > LOW) & (kappa2 * far2 * far2 < HIGH) &
-                     (e2 * far2 < HIGH);
+            whole |= orientation & bound_away(hv, d2, d, reach, q.facing);
+            whole |= screen & bound_small(d, d, spread, e2, kappa2);
             /* tau = inf: a pcol below is small when its distance squared is
              * positive in float32 (then inf * d2 is inf) and its terms finite. */
-            whole |= screen & kinf & (room > 0) & (room2 > LOW) & (e2 * far2 < HIGH);
+            float room = d - spread - SCREEN_MARGIN * (d + spread);
+            whole |= screen & kinf & (room > 0) & (room * room > LOW) & (e2 * (d + spread) * (d + spread) < HIGH);
         }
 
         /* -- own decision, certified -- */
@@ -421,6 +447,211 @@ VECTOR_CLONES static void decide_row_perspective(const Frames *fr, const float *
 VECTOR_CLONES static void decide_row_orthographic(const Frames *fr, const float *row, int32_t *code)
 {
     decide_row_lanes(fr, row, code, 1);
+}
+
+/* ---- the frames of a word at once: a "fat" camera ------------------------ */
+
+/* Consecutive frames of a path see nearly the same thing, so most pcols of a
+ * word are decided alike by all its frames. A fat camera covers the word's
+ * frames (host-computed, pmjax/_native.py fat_camera; all of them perspective
+ * views with every test on and the same intrinsics and tolerance):
+ *
+ *  - every frame's eye lies within rho of the eye centre e, so every
+ *    distance from a frame's eye is within rho of the distance from e, and
+ *    the rays from a frame's eye into a sphere are rays from e into the
+ *    sphere grown by rho;
+ *  - every frame's eye lies within a capsule (a segment a + [0, 1] ab, the
+ *    path's chord, grown by its radius), so every distance from a frame's eye
+ *    is at least the distance from the segment less the radius, and at most
+ *    the distance from its farther end plus the radius (tighter than the
+ *    ball for the distance tests along a path);
+ *  - in camera coordinates a point c of frame f is R_f (c - p) + t_f for a
+ *    pivot p (the point the frames look at, where there is one); with
+ *    |R_f - R| <= eps (spectral norm) and |t_f - t| <= tau, it lies within
+ *    shift(c) = tau + eps |c - p| of R (c - p) + t.
+ *
+ * A pcol is decided for all the frames in one pass over 16 pcols when either
+ *
+ *  - FAT_WHOLE: a subtree bound holds with the sphere grown to cover every
+ *    frame (the geometric facts above; the bounds' margins cover this
+ *    evaluation's rounding as they cover a frame's), so every frame's
+ *    subtree collapses; or
+ *  - FAT_NO: for every frame, every test of the float32 predicate surely
+ *    says "keep": each comparison is bounded over the frames by a value
+ *    computed here from the fat camera, with a magnitude that bounds both
+ *    this evaluation's and any frame's (so `less` certifies it as it
+ *    certifies a frame's comparison).
+ *
+ * Otherwise (about a quarter of a word's slots along an orbit) the frames are
+ * decided one by one. Either way every frame gets the bits of its own
+ * refinement. */
+typedef struct {
+    float ex, ey, ez, rho;                            /* eye centre; |e_f - e| <= rho */
+    float px, py, pz;                                 /* pivot */
+    float R0, R1, R2, U0, U1, U2, F0, F1, F2;         /* reference rotation (right, up, forward) */
+    float tx, ty, tz;                                 /* the pivot in reference camera coordinates */
+    float eps, tau;                                   /* |R_f - R| <= eps, |R_f (p - e_f) - t| <= tau */
+    float ax, ay, az, abx, aby, abz, ab_inv, capsule; /* every e_f within capsule of a + [0, 1] ab; 1 / |ab|^2 */
+    float k0, k1, k2, k3, k4, k5, kappa2, kfac, kabs; /* the frames' common constants */
+    float near_lo, near_hi, far_lo, far_hi, kpad;     /* clip distances over the frames, the largest kpad */
+} Fat;
+
+/* Layout of the host's fat camera (pmjax/_native.py FAT_VALUES). */
+enum {
+    FAT_EYE = 0, FAT_RHO = 3, FAT_PIVOT = 4, FAT_ROTATION = 7, FAT_T = 16, FAT_EPS = 19, FAT_TAU = 20,
+    FAT_SEGMENT = 21, FAT_STEP = 24, FAT_STEP_INV = 27, FAT_CAPSULE = 28, FAT_N = 29
+};
+
+/* Decisions of the fat pass. */
+enum { FAT_OPEN = 0, FAT_WHOLE = 1, FAT_NO = 2 };
+
+/* Frames can share a fat camera: perspective views of the usual kind
+ * (fast_view) with the same constants (intrinsics and tolerance) but for
+ * the clip distances. */
+static int fat_applies(const Frames *fr, int n_frames)
+{
+    if (!fr->fast || fr->ortho)
+        return 0;
+    for (int l = 1; l < n_frames; l++) {
+        for (int i = 0; i < 6; i++)
+            if (fr->k[i][l] != fr->k[i][0])
+                return 0;
+        if (fr->kappa2[l] != fr->kappa2[0])
+            return 0;
+    }
+    return 1;
+}
+
+static void load_fat(Fat *W, const float *fat, const Frames *fr, int n_frames)
+{
+    W->ex = fat[FAT_EYE], W->ey = fat[FAT_EYE + 1], W->ez = fat[FAT_EYE + 2], W->rho = fat[FAT_RHO];
+    W->px = fat[FAT_PIVOT], W->py = fat[FAT_PIVOT + 1], W->pz = fat[FAT_PIVOT + 2];
+    const float *R = fat + FAT_ROTATION;
+    W->R0 = R[0], W->R1 = R[1], W->R2 = R[2], W->U0 = R[3], W->U1 = R[4], W->U2 = R[5];
+    W->F0 = R[6], W->F1 = R[7], W->F2 = R[8];
+    W->tx = fat[FAT_T], W->ty = fat[FAT_T + 1], W->tz = fat[FAT_T + 2];
+    W->eps = fat[FAT_EPS], W->tau = fat[FAT_TAU];
+    W->ax = fat[FAT_SEGMENT], W->ay = fat[FAT_SEGMENT + 1], W->az = fat[FAT_SEGMENT + 2];
+    W->abx = fat[FAT_STEP], W->aby = fat[FAT_STEP + 1], W->abz = fat[FAT_STEP + 2];
+    W->ab_inv = fat[FAT_STEP_INV], W->capsule = fat[FAT_CAPSULE];
+    W->k0 = fr->k[0][0], W->k1 = fr->k[1][0], W->k2 = fr->k[2][0], W->k3 = fr->k[3][0];
+    W->k4 = fr->k[4][0], W->k5 = fr->k[5][0];
+    W->kappa2 = fr->kappa2[0], W->kfac = fr->kfac[0], W->kabs = fr->kabs[0];
+    W->near_lo = W->near_hi = fr->k[6][0], W->far_lo = W->far_hi = fr->k[7][0], W->kpad = fr->kpad[0];
+    for (int l = 1; l < n_frames; l++) {
+        W->near_lo = fminf(W->near_lo, fr->k[6][l]), W->near_hi = fmaxf(W->near_hi, fr->k[6][l]);
+        W->far_lo = fminf(W->far_lo, fr->k[7][l]), W->far_hi = fmaxf(W->far_hi, fr->k[7][l]);
+        W->kpad = fmaxf(W->kpad, fr->kpad[l]);
+    }
+}
+
+/* Grows a float32 sum of a few rounded terms past its exact value. */
+#define GROW (1.0f + 0x1p-22f)
+/* Grows a float32 bound on a frame's magnitude (computed with a few
+ * roundings from d, which is within a few ulps of the exact distance). */
+#define GROW_M (1.0f + 0x1p-18f)
+
+/* One pcol under every frame of the fat camera W: FAT_WHOLE, FAT_NO or
+ * FAT_OPEN (decide the frames one by one). No branches (vectorized over the
+ * pcols of a block). */
+static inline __attribute__((always_inline)) int32_t decide_fat_one(const Fat *W, const Pcol q)
+{
+    const float rho = W->rho, eps = W->eps, tau = W->tau, kappa2 = W->kappa2, kfac = W->kfac, kpad = W->kpad;
+    const float k0 = W->k0, k1 = W->k1, k2 = W->k2, k3 = W->k3, k4 = W->k4, k5 = W->k5;
+    const float nx = q.nx, ny = q.ny, nz = q.nz, r = q.radius, ar = fabsf(r), sa = q.sin_a, ca = q.cos_a;
+    const float delta = q.delta, mu = q.mu;
+    /* Distances from the eye centre: a frame's is within rho. */
+    const float vx = q.cx - W->ex, vy = q.cy - W->ey, vz = q.cz - W->ez;
+    const float d2 = vx * vx + vy * vy + vz * vz, d = sqrtf(d2);
+    const float dhi = d + rho, dlo = pos(d - rho), dhi2 = dhi * dhi;
+    const float v1 = fabsf(vx) + fabsf(vy) + fabsf(vz);
+    /* Tighter along a path: the distance from the capsule's segment, less
+     * the rounding of the projection (the point found is within
+     * 2^-18 (|c - a|_1 + |ab|_1) of the nearest), less the capsule radius;
+     * and the farther end, plus the radius. */
+    const float ox = q.cx - W->ax, oy = q.cy - W->ay, oz = q.cz - W->az;
+    const float along = (ox * W->abx + oy * W->aby + oz * W->abz) * W->ab_inv;
+    const float at = along > 0.0f ? (along < 1.0f ? along : 1.0f) : 0.0f;
+    const float fx = ox - at * W->abx, fy = oy - at * W->aby, fz = oz - at * W->abz;
+    const float bx = ox - W->abx, by = oy - W->aby, bz = oz - W->abz;
+    const float slop = 0x1p-18f * (fabsf(ox) + fabsf(oy) + fabsf(oz) + fabsf(W->abx) + fabsf(W->aby) + fabsf(W->abz));
+    const float path_lo = pos(sqrtf(fx * fx + fy * fy + fz * fz) - slop - W->capsule);
+    const float end_a = ox * ox + oy * oy + oz * oz, end_b = bx * bx + by * by + bz * bz;
+    const float path_hi = sqrtf(end_a > end_b ? end_a : end_b) + W->capsule;
+    /* Either bound holds: the tighter of each. */
+    const float near_d = dlo > path_lo ? dlo : path_lo, far_d = dhi < path_hi ? dhi : path_hi;
+    const float far_d2 = far_d * far_d;
+    /* Camera coordinates about the pivot: a frame's are within shift of these. */
+    const float px = q.cx - W->px, py = q.cy - W->py, pz = q.cz - W->pz;
+    const float dp = sqrtf(px * px + py * py + pz * pz);
+    const float x = px * W->R0 + py * W->R1 + pz * W->R2 + W->tx;
+    const float y = px * W->U0 + py * W->U1 + pz * W->U2 + W->ty;
+    const float z = px * W->F0 + py * W->F1 + pz * W->F2 + W->tz;
+    const float shift = (tau + eps * dp) * GROW; /* of the centre */
+    const float hv = vx * nx + vy * ny + vz * nz, mhv = fabsf(vx * nx) + fabsf(vy * ny) + fabsf(vz * nz);
+    const float n1 = fabsf(nx) + fabsf(ny) + fabsf(nz); /* >= |n| */
+
+    /* -- every frame's subtree bound, the spheres grown to cover the frames -- */
+    /* (outside the nearest near plane or beyond the farthest far plane) */
+    const float e2 = q.error * q.error;
+    const _Bool whole = bound_outside(x, y, z, (q.reach + tau + eps * (dp + q.reach)) * GROW, k0, k1, k2, k3, k4,
+                                      k5, W->near_lo, W->far_hi, kfac, kpad) |
+                        bound_away(hv, d2, d, (q.reach + rho) * GROW, q.facing) |
+                        bound_small(near_d, far_d, q.spread, e2, kappa2);
+
+    /* -- every frame's own decision surely "keep" -- */
+    /* Each comparison's bound over the frames, with the magnitude of this
+     * evaluation plus a bound on a frame's (factors as in decide_one, the
+     * eye's coordinates grown by rho). */
+    const float scale = (1 + v1 + 3 * rho + ar + n1 + fabsf(sa) + fabsf(ca) + fabsf(delta) + fabsf(mu)) * GROW_M;
+    const float factor = scale * scale * W->kabs;
+    const float slack = 2 * FLUSH * factor * factor;
+    const _Bool guard = (scale < 0x1p24f) & (dhi2 < HIGH);
+    /* Inside every frame's frustum: each plane's value at the centre, less
+     * its change over the frames (a plane's normal has length 1, or k4, k5
+     * for the side planes; the farthest near and nearest far plane), surely
+     * positive. kpad bounds every frame's clip distances. */
+    const float frame_m = (3 * dhi * GROW_M + ar) * kfac + kpad;
+    const float fat_m =
+        ((fabsf(px) + fabsf(py) + fabsf(pz)) * 3 + fabsf(W->tx) + fabsf(W->ty) + fabsf(W->tz) + ar + shift) *
+            kfac * GROW_M + kpad;
+    const float mf = frame_m + fat_m;
+    const _Bool inside = less(z + r - W->near_hi - shift, mf, slack).n & less(W->far_lo - (z - r) - shift, mf, slack).n &
+                         less(z * k0 + k2 - fabsf(x) + r * k4 - shift * k4 * GROW_M, mf, slack).n &
+                         less(z * k1 + k3 - fabsf(y) + r * k5 - shift * k5 * GROW_M, mf, slack).n;
+    /* Not facing away from any frame: the cone's cosine is not positive, or
+     * g = h - ca r is surely negative, or g^2 <= sa^2 t2 surely (h = v . n
+     * moves by at most rho |n| <= rho n1, t2 = d^2 - r^2). */
+    const float hshift = rho * n1 * GROW;
+    const float glo = hv - hshift - ca * r, ghi = hv + hshift - ca * r;
+    const float mg_fat = mhv + hshift + fabsf(ca) * ar, mg_frame = dhi * n1 * GROW_M + fabsf(ca) * ar;
+    const float g2 = glo * glo > ghi * ghi ? glo * glo : ghi * ghi;
+    const _Bool toward = (ca <= 0.0f) | less(ghi, mg_fat + mg_frame, slack).y |
+                         less(sa * sa * (dlo * dlo - r * r) - g2,
+                              2 * sa * sa * (dhi2 * GROW_M + r * r) + mg_fat * mg_fat + mg_frame * mg_frame, slack)
+                             .n;
+    /* Too coarse for every frame: mu^2 >= kappa2 d^2 surely, or delta^2 (d^2 -
+     * h^2) >= kappa2 d^4 surely, with d^2 - h^2 = |v x n|^2 + d^2 (1 - |n|^2)
+     * and |v x n| moving by at most rho |n|. */
+    const float wx = vy * nz - vz * ny, wy = vz * nx - vx * nz, wz = vx * ny - vy * nx;
+    const float wlo = pos(sqrtf(wx * wx + wy * wy + wz * wz) - hshift), mw = v1 * n1 + hshift;
+    const float nn = nx * nx + ny * ny + nz * nz;
+    const _Bool coarse =
+        less(mu * mu - kappa2 * far_d2, 2 * mu * mu + 2 * kappa2 * far_d2 * GROW_M, slack).n |
+        less(delta * delta * (wlo * wlo - dhi2 * pos(nn - 1)) - kappa2 * far_d2 * far_d2,
+             delta * delta * (mw * mw + dhi2 * (nn + 1) + dhi2 * (1 + n1 * n1) * GROW_M) +
+                 2 * kappa2 * far_d2 * far_d2 * GROW_M,
+             slack)
+            .n;
+    const _Bool keep = guard & inside & toward & coarse;
+    return whole ? FAT_WHOLE : (keep ? FAT_NO : FAT_OPEN);
+}
+
+VECTOR_CLONES static void decide_fat(const Fat *W, Columns col, int32_t *code)
+{
+#pragma omp simd
+    for (int l = 0; l < BLOCK; l++)
+        code[l] = decide_fat_one(W, pcol_at(col, l));
 }
 
 /* The lanes of a block: code[l] = WHOLE where the subtree bound decides, |
@@ -699,57 +930,81 @@ void pmx_refine_many(const float *table, const int32_t *kills, const int32_t *or
 typedef uint16_t Lanes;
 
 /* One word. Slot i holds position ids[i], visited by the frames visit[i];
- * whole[i], yes[i] are the frames whose subtree bound decided it and whose own
- * decision is yes. Returns the number of slots; the slots with unsure frames
- * go to unsure_slots[] with the frames in unsure_lanes[] (out[0] of them):
- * decide them, set their yes[] bits and call pmx_resolve_word. */
+ * whole[i], yes[i] are the frames whose subtree bound decided it (its own or
+ * the fat camera's) and whose own decision is yes. fat: the word's fat camera
+ * (FAT_N floats) or NULL; it is used where fat_applies. Returns the number of
+ * slots; the slots with unsure frames go to unsure_slots[] with the frames in
+ * unsure_lanes[] (out[0] of them): decide them, set their yes[] bits and call
+ * pmx_resolve_word. out[2]: the slots the fat camera decided. out: 3 slots. */
 int64_t pmx_refine_word(const float *table, const int32_t *order, const int32_t *roots,
-                        int64_t n_roots, const float *views, int n_frames, int flags, int32_t *ids, int32_t *kid,
-                        Lanes *visit, Lanes *whole, Lanes *yes, int32_t *unsure_slots, Lanes *unsure_lanes,
-                        int64_t *out)
+                        int64_t n_roots, const float *views, int n_frames, int flags, const float *fat,
+                        int32_t *ids, int32_t *kid, Lanes *visit, Lanes *whole, Lanes *yes, int32_t *unsure_slots,
+                        Lanes *unsure_lanes, int64_t *out)
 {
     Frames fr;
     load_frames(&fr, views, n_frames, flags);
+    Fat W;
+    int use_fat = fat != NULL && fat_applies(&fr, n_frames);
+    for (int i = 0; use_fat && i < FAT_N; i++)
+        use_fat = isfinite(fat[i]);
+    if (use_fat)
+        load_fat(&W, fat, &fr, n_frames);
     const Lanes active = (Lanes)((1u << n_frames) - 1);
-    int32_t code[FRAMES];
-    int64_t n = 0, m = 0;
+    int32_t code[FRAMES], fat_code[BLOCK];
+    Columns col;
+    int64_t n = 0, m = 0, at_once = 0;
     for (int64_t i = 0; i < n_roots; i++) {
         ids[n] = roots[i];
         visit[n++] = active;
     }
-    for (int64_t i = 0; i < n; i++) {
-        if (i + AHEAD < n)
-            __builtin_prefetch(table + (int64_t)ids[i + AHEAD] * ROW);
-        /* The pcol under every frame of the word. */
-        const float *row = table + (int64_t)ids[i] * ROW;
-        (fr.ortho ? decide_row_orthographic : decide_row_perspective)(&fr, row, code);
-        Lanes wh = 0, y = 0, u = 0;
-        for (int l = 0; l < FRAMES; l++) {
-            wh |= (Lanes)(((code[l] & WHOLE) != 0) << l);
-            y |= (Lanes)(((code[l] & 3) == YES) << l);
-            u |= (Lanes)(((code[l] & 3) == UNSURE) << l);
+    for (int64_t i0 = 0; i0 < n;) {
+        /* A block of slots under the fat camera first (children land behind
+         * the queue, after the block). */
+        const int64_t nb = n - i0 < BLOCK ? n - i0 : BLOCK;
+        if (use_fat) {
+            gather_block(table, ids + i0, nb, col);
+            decide_fat(&W, col, fat_code);
         }
-        const Lanes v = visit[i], open = v & (Lanes)~wh;
-        whole[i] = v & wh;
-        yes[i] = open & y;
-        if (open & u) {
-            unsure_slots[m] = (int32_t)i;
-            unsure_lanes[m++] = open & u;
+        for (int64_t i = i0; i < i0 + nb; i++) {
+            if (i + AHEAD < n)
+                __builtin_prefetch(table + (int64_t)ids[i + AHEAD] * ROW);
+            const float *row = table + (int64_t)ids[i] * ROW;
+            const int32_t fc = use_fat ? fat_code[i - i0] : FAT_OPEN;
+            at_once += fc != FAT_OPEN;
+            Lanes wh = fc == FAT_WHOLE ? (Lanes)0xFFFF : 0, y = 0, u = 0;
+            if (fc == FAT_OPEN) {
+                /* The pcol under every frame of the word, one by one. */
+                (fr.ortho ? decide_row_orthographic : decide_row_perspective)(&fr, row, code);
+                for (int l = 0; l < FRAMES; l++) {
+                    wh |= (Lanes)(((code[l] & WHOLE) != 0) << l);
+                    y |= (Lanes)(((code[l] & 3) == YES) << l);
+                    u |= (Lanes)(((code[l] & 3) == UNSURE) << l);
+                }
+            }
+            const Lanes v = visit[i], open = v & (Lanes)~wh;
+            whole[i] = v & wh;
+            yes[i] = open & y;
+            if (open & u) {
+                unsure_slots[m] = (int32_t)i;
+                unsure_lanes[m++] = open & u;
+            }
+            kid[2 * i] = kid[2 * i + 1] = -1;
+            if (!open)
+                continue;
+            /* The children, for the frames that did not decide this subtree. */
+            int32_t kids;
+            memcpy(&kids, row + KIDS, sizeof kids);
+            const int32_t first = kids >> 2, count = kids & 3;
+            for (int t = 0; t < count; t++) {
+                kid[2 * i + t] = (int32_t)n;
+                visit[n] = open;
+                ids[n++] = first + t;
+            }
         }
-        kid[2 * i] = kid[2 * i + 1] = -1;
-        if (!open)
-            continue;
-        /* The children, for the frames that did not decide this subtree. */
-        int32_t kids;
-        memcpy(&kids, row + KIDS, sizeof kids);
-        const int32_t first = kids >> 2, count = kids & 3;
-        for (int t = 0; t < count; t++) {
-            kid[2 * i + t] = (int32_t)n;
-            visit[n] = open;
-            ids[n++] = first + t;
-        }
+        i0 += nb;
     }
     out[0] = m;
+    out[2] = at_once;
     return n;
 }
 
@@ -793,6 +1048,34 @@ void pmx_resolve_word(const int32_t *kills, const int32_t *order, int64_t n, con
     resolve_word(kills, order, n, ids, kid, visit, whole, yes, ran, pcols, not_run, kept);
 }
 
+/* Words of FRAMES frames each, counts only: views [n_words * FRAMES, 22],
+ * fat [n_words, FAT_N] (or NULL). From word `first` on, each word is
+ * traversed and resolved, its frames' counts written to not_run[w * FRAMES
+ * ...] and kept[w * FRAMES ...] (as pmx_resolve_word). At a word with unsure
+ * decisions the loop stops and returns its index, its traversal in the
+ * scratch as pmx_refine_word leaves it (out[0] unsure slots, out[1] its
+ * slots): decide them, resolve it, and call again from the next word. Returns
+ * n_words when every word is counted. One call per share of a path keeps the
+ * interpreter out of the loop. */
+int64_t pmx_count_words(const float *table, const int32_t *kills, const int32_t *order, const int32_t *roots,
+                        int64_t n_roots, const float *views, const float *fat, int64_t first, int64_t n_words,
+                        int flags, int32_t *ids, int32_t *kid, Lanes *visit, Lanes *whole, Lanes *yes, Lanes *ran,
+                        int32_t *unsure_slots, Lanes *unsure_lanes, int64_t *out, int64_t *not_run, int64_t *kept)
+{
+    for (int64_t w = first; w < n_words; w++) {
+        const int64_t n = pmx_refine_word(table, order, roots, n_roots, views + w * FRAMES * 22, FRAMES, flags,
+                                          fat ? fat + w * FAT_N : NULL, ids, kid, visit, whole, yes, unsure_slots,
+                                          unsure_lanes, out);
+        if (out[0] > 0) {
+            out[1] = n;
+            return w;
+        }
+        resolve_word(kills, order, n, ids, kid, visit, whole, yes, ran, NULL, not_run + w * FRAMES,
+                     kept + w * FRAMES);
+    }
+    return n_words;
+}
+
 /* Frame `lane` of a resolved word as one refinement's lists: the pcols it
  * visited, whether each ran, their positions. Returns their number. */
 int64_t pmx_word_frame(int64_t n, const int32_t *ids, const int32_t *pcols, const Lanes *visit, const Lanes *ran,
@@ -826,6 +1109,33 @@ void pmx_decide_all(const float *table, int64_t n_pcols, const float *view, int 
         decide_block(&w, col, state);
         for (int64_t j = 0; j < nb; j++)
             out[p + j] = (uint8_t)state[j];
+    }
+}
+
+/* Every pcol under the fat camera of views [n_frames, 22] (FAT_WHOLE,
+ * FAT_NO or FAT_OPEN; all FAT_OPEN where the fat camera does not apply), for
+ * tests that compare it with every frame's float32 predicate. */
+void pmx_decide_fat_all(const float *table, int64_t n_pcols, const float *views, int n_frames, int flags,
+                        const float *fat, uint8_t *out)
+{
+    Frames fr;
+    load_frames(&fr, views, n_frames, flags);
+    if (!fat_applies(&fr, n_frames)) {
+        memset(out, FAT_OPEN, (size_t)n_pcols);
+        return;
+    }
+    Fat W;
+    load_fat(&W, fat, &fr, n_frames);
+    Columns col;
+    int32_t code[BLOCK], ids[BLOCK];
+    for (int64_t p = 0; p < n_pcols; p += BLOCK) {
+        int64_t nb = n_pcols - p < BLOCK ? n_pcols - p : BLOCK;
+        for (int64_t j = 0; j < nb; j++)
+            ids[j] = (int32_t)(p + j);
+        gather_block(table, ids, nb, col);
+        decide_fat(&W, col, code);
+        for (int64_t j = 0; j < nb; j++)
+            out[p + j] = (uint8_t)code[j];
     }
 }
 

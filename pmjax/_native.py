@@ -36,6 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._fat_camera import fat_cameras
 from ._view import View
 
 # Flags of the C entry points.
@@ -69,11 +70,15 @@ def _load():
     lib.pmx_refine_many.restype = None
     lib.pmx_refine_many.argtypes = [_p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _i64, _i64] + [_p] * 13
     lib.pmx_refine_word.restype = _i64
-    lib.pmx_refine_word.argtypes = [_p, _p, _p, _i64, _p, ctypes.c_int, ctypes.c_int] + [_p] * 8
+    lib.pmx_refine_word.argtypes = [_p, _p, _p, _i64, _p, ctypes.c_int, ctypes.c_int] + [_p] * 9
+    lib.pmx_count_words.restype = _i64
+    lib.pmx_count_words.argtypes = [_p, _p, _p, _p, _i64, _p, _p, _i64, _i64, ctypes.c_int] + [_p] * 11
     lib.pmx_resolve_word.restype = None
     lib.pmx_resolve_word.argtypes = [_p, _p, _i64] + [_p] * 9
     lib.pmx_word_frame.restype = _i64
     lib.pmx_word_frame.argtypes = [_i64, _p, _p, _p, _p, ctypes.c_int, _p, _p, _p]
+    lib.pmx_decide_fat_all.restype = None
+    lib.pmx_decide_fat_all.argtypes = [_p, _i64, _p, ctypes.c_int, ctypes.c_int, _p, _p]
     lib.pmx_decide_all.restype = None
     lib.pmx_decide_all.argtypes = [_p, _i64, _p, ctypes.c_int, _p]
     lib.pmx_front_mesh.restype = _i64
@@ -122,6 +127,20 @@ def decide_all(pm, camera, tau, tests) -> np.ndarray:
     values = host_view(camera, tau)  # held: the call reads it
     _LIB.pmx_decide_all(_ptr(host.table), host.n_pcols, _ptr(values), flags_of(tests, camera.orthographic),
                         _ptr(out))
+    return out
+
+
+def decide_fat_all(pm, cameras, taus, tests) -> np.ndarray:
+    """``uint8[P]``: every pcol under the fat camera of a few frames
+    (``FAT_OPEN`` 0, ``FAT_WHOLE`` 1: every frame's subtree collapses,
+    ``FAT_NO`` 2: no frame's own test collapses it); all 0 where the fat
+    camera does not apply."""
+    host = native_mesh(pm)
+    out = np.empty(host.n_pcols, np.uint8)
+    views = np.ascontiguousarray(host_views(cameras, taus), np.float32)
+    fat = fat_cameras(views[None])[0]
+    _LIB.pmx_decide_fat_all(_ptr(host.table), host.n_pcols, _ptr(views), len(views),
+                            flags_of(tests, cameras.orthographic), _ptr(fat), _ptr(out))
     return out
 
 
@@ -614,7 +633,7 @@ class _WordScratch:
         self.ids, self.kid, self.pcols = np.empty(P, np.int32), np.empty(2 * P, np.int32), np.empty(P, np.int32)
         self.visit, self.whole, self.yes, self.ran = (np.empty(P, np.uint16) for _ in range(4))
         self.unsure_slots, self.unsure_lanes = np.empty(P, np.int32), np.empty(P, np.uint16)
-        self.out = np.zeros(1, np.int64)
+        self.out = np.zeros(3, np.int64)  # unsure slots, slots, slots decided by the fat camera
         self.not_run, self.kept = np.zeros(FRAMES, np.int64), np.zeros(FRAMES, np.int64)
 
 
@@ -625,7 +644,66 @@ def _word_scratch(host) -> _WordScratch:
     return s
 
 
-def refine_word(pm, cameras, taus, tests, frames: bool, values=None):
+def _decide_word_unsure(host, s, cameras, taus, tests):
+    """The unsure (frame, pcol) pairs a word traversal left in the scratch
+    (``s.out[0]`` slots), decided in one call of the float32 predicate; their
+    yes bits set."""
+    m = int(s.out[0])
+    if m == 0:
+        return
+    slots, lanes = s.unsure_slots[:m], s.unsure_lanes[:m].astype(np.int64)
+    slot_of, lane_of = np.nonzero((lanes[:, None] >> np.arange(FRAMES)) & 1)
+    pairs = len(slot_of)
+    pad = np.zeros(_bucket(pairs), np.int64)
+    pad[:pairs] = np.arange(pairs)
+    frame = lane_of[pad]
+    batch = jax.tree.map(lambda a: np.asarray(a)[frame], cameras)
+    pcols = host.order[s.ids[slots[slot_of[pad]]]]
+    yes = np.asarray(_decide_pairs(_rows(host, pcols), batch, np.asarray(taus, np.float32)[frame], tests,
+                                   cameras.orthographic))[:pairs]
+    for slot, lane in zip(slots[slot_of[yes]], lane_of[yes]):
+        s.yes[slot] |= np.uint16(1 << int(lane))
+
+
+def count_words(pm, cameras, taus, tests, values, fats=None):
+    """Whole words of FRAMES frames through the C word traversal, counts only.
+
+    Args:
+        cameras: a host camera batch of ``W * FRAMES`` frames, word by word.
+        taus: ``float32 [W * FRAMES]``.
+        values: the frames' :func:`host_views`.
+        fats: the words' :func:`pmjax._fat_camera.fat_cameras`, or ``None``
+            (every frame decided alone).
+
+    Returns:
+        ``(faces, vertices, executed)``, int64 arrays over the frames.
+    """
+    host = native_mesh(pm)
+    s = _word_scratch(host)
+    views = np.ascontiguousarray(values, np.float32)
+    words = len(views) // FRAMES
+    fat = None if fats is None or cameras.orthographic else np.ascontiguousarray(fats, np.float32)
+    not_run, kept = np.zeros(words * FRAMES, np.int64), np.zeros(words * FRAMES, np.int64)
+    flags = flags_of(tests, cameras.orthographic)
+    w = 0
+    while w < words:
+        w = _LIB.pmx_count_words(host.p_bfs_table, host.p_bfs_kills, host.p_order, host.p_roots, len(host.roots),
+                                 _ptr(views), None if fat is None else _ptr(fat), w, words, flags, _ptr(s.ids),
+                                 _ptr(s.kid), _ptr(s.visit), _ptr(s.whole), _ptr(s.yes), _ptr(s.ran),
+                                 _ptr(s.unsure_slots), _ptr(s.unsure_lanes), _ptr(s.out), _ptr(not_run),
+                                 _ptr(kept))
+        if w < words:  # a word with unsure decisions: decide them, resolve it, go on
+            at = slice(w * FRAMES, (w + 1) * FRAMES)
+            _decide_word_unsure(host, s, jax.tree.map(lambda a: a[at], cameras), taus[at], tests)
+            _LIB.pmx_resolve_word(host.p_bfs_kills, host.p_order, int(s.out[1]), _ptr(s.ids), _ptr(s.kid),
+                                  _ptr(s.visit), _ptr(s.whole), _ptr(s.yes), _ptr(s.ran), None, _ptr(not_run[at]),
+                                  _ptr(kept[at]))
+            w += 1
+    n_exec = host.n_pcols - not_run
+    return host.n_faces - host.total_kills + kept, host.n_original - n_exec, n_exec
+
+
+def refine_word(pm, cameras, taus, tests, frames: bool, values=None, fat=True):
     """Up to FRAMES consecutive frames of a path through the C word traversal.
 
     Args:
@@ -633,6 +711,11 @@ def refine_word(pm, cameras, taus, tests, frames: bool, values=None):
         taus: ``float32`` per frame.
         frames: also return each frame's lists for a :class:`pmjax.Refinement`.
         values: the frames' :func:`host_views`, if the caller has them.
+        fat: decide a pcol for all frames at once where a fat camera
+            (:mod:`pmjax._fat_camera`) can: ``True``, or the frames'
+            :func:`pmjax._fat_camera.fat_cameras` row if the caller has it;
+            ``False`` decides every frame alone (the same results; for
+            comparison).
 
     Returns:
         ``(counts, lists, union)``: ``counts`` ``(faces, vertices, executed)``
@@ -644,24 +727,16 @@ def refine_word(pm, cameras, taus, tests, frames: bool, values=None):
     word = np.ascontiguousarray(host_views(cameras, taus) if values is None else values)
     nf = word.shape[0]
     s = _word_scratch(host)
+    # The frames at once where they decide alike (the C loops check that
+    # the fat camera applies: perspective, usual tests, shared intrinsics).
+    if fat is True:
+        fat = fat_cameras(word[None])[0]
+    fat = None if cameras.orthographic or fat is False else np.ascontiguousarray(fat, np.float32)
     n = _LIB.pmx_refine_word(host.p_bfs_table, host.p_order, host.p_roots, len(host.roots), _ptr(word),
-                             nf, flags_of(tests, cameras.orthographic), _ptr(s.ids), _ptr(s.kid), _ptr(s.visit),
+                             nf, flags_of(tests, cameras.orthographic), None if fat is None else _ptr(fat),
+                             _ptr(s.ids), _ptr(s.kid), _ptr(s.visit),
                              _ptr(s.whole), _ptr(s.yes), _ptr(s.unsure_slots), _ptr(s.unsure_lanes), _ptr(s.out))
-    m = int(s.out[0])
-    if m:
-        # Every unsure (frame, pcol) of the word in one call of the float32 predicate.
-        slots, lanes = s.unsure_slots[:m], s.unsure_lanes[:m].astype(np.int64)
-        slot_of, lane_of = np.nonzero((lanes[:, None] >> np.arange(FRAMES)) & 1)
-        pairs = len(slot_of)
-        pad = np.zeros(_bucket(pairs), np.int64)
-        pad[:pairs] = np.arange(pairs)
-        frame = lane_of[pad]
-        batch = jax.tree.map(lambda a: np.asarray(a)[frame], cameras)
-        pcols = host.order[s.ids[slots[slot_of[pad]]]]
-        yes = np.asarray(_decide_pairs(_rows(host, pcols), batch, np.asarray(taus, np.float32)[frame], tests,
-                                       cameras.orthographic))[:pairs]
-        for slot, lane in zip(slots[slot_of[yes]], lane_of[yes]):
-            s.yes[slot] |= np.uint16(1 << int(lane))
+    _decide_word_unsure(host, s, cameras, taus, tests)
     # Each slot's pcol only for the frames' lists (a read at random per slot).
     _LIB.pmx_resolve_word(host.p_bfs_kills, host.p_order, n, _ptr(s.ids), _ptr(s.kid), _ptr(s.visit), _ptr(s.whole),
                           _ptr(s.yes), _ptr(s.ran), _ptr(s.pcols) if frames else None, _ptr(s.not_run),

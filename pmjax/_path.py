@@ -34,6 +34,7 @@ import numpy as np
 from . import _native
 from ._bitsets import WORD
 from ._camera import Camera, check_camera_values
+from ._fat_camera import fat_cameras
 from ._model import ProgressiveMesh
 from ._predicate import ALL_TESTS, Tests
 from ._refine import Refinement, _front_counts, check_budget, check_tau, faces_for_budget, refine
@@ -160,27 +161,37 @@ def frames_per_word() -> int:
     return _native.FRAMES if _native.available() else WORD
 
 
-def _native_words(pm, host, taus, tests, path_length, frames: bool, part=None):
-    """The C word traversal over the frames (each path padded to whole words):
-    yields ``(frame index per lane, -1 for padding), counts, lists``, a word
-    at a time (the views of WORDS_AT_ONCE words computed together).
-    ``part = (i, n)``: only the i-th of n contiguous shares of the words."""
+def _word_blocks(host, taus, path_length, part=None):
+    """The word-padded frames (each path padded to whole words of the C
+    loops), WORDS_AT_ONCE words at a time (memory: a few words' constants):
+    yields ``(frame index per lane, -1 for padding), cameras, taus, views,
+    fat cameras``. ``part = (i, n)``: only the i-th of n contiguous shares of
+    the words."""
     F = _native.FRAMES
     order = _word_padded(len(taus), path_length, F)
     real = np.ones(len(order), bool)
     real[1:] = order[1:] != order[:-1]
     words = len(order) // F
     lo, hi = (0, words) if part is None else (words * part[0] // part[1], words * (part[0] + 1) // part[1])
-    for w0 in range(lo, hi, WORDS_AT_ONCE):  # memory: a few words at a time
+    for w0 in range(lo, hi, WORDS_AT_ONCE):
         w1 = min(hi, w0 + WORDS_AT_ONCE)
         idx = order[w0 * F:w1 * F]
         cams, word_taus = jax.tree.map(lambda a: a[idx], host), taus[idx]
         values = _native.host_views(cams, word_taus)
-        lanes = np.where(real[w0 * F:w1 * F], idx, -1)
-        for w in range(w1 - w0):
+        yield (np.where(real[w0 * F:w1 * F], idx, -1), cams, word_taus, values,
+               fat_cameras(values.reshape(w1 - w0, F, -1)))
+
+
+def _native_words(pm, host, taus, tests, path_length, frames: bool, part=None):
+    """The C word traversal over the frames, a word at a time: yields
+    ``(frame index per lane, -1 for padding), counts, lists``
+    (:func:`pmjax._native.refine_word`)."""
+    F = _native.FRAMES
+    for lanes, cams, word_taus, values, fats in _word_blocks(host, taus, path_length, part):
+        for w in range(len(fats)):
             at = slice(w * F, (w + 1) * F)
             counts, lists, _ = _native.refine_word(pm, jax.tree.map(lambda a: a[at], cams), word_taus[at], tests,
-                                                   frames, values[at])
+                                                   frames, values[at], fats[w])
             yield lanes[at], counts, lists
 
 
@@ -189,7 +200,8 @@ WORDS_AT_ONCE = 16
 
 
 def _native_path_counts(pm, host, taus, tests, path_length, cols, ms, bar):
-    """:func:`path_counts` through the C word traversal, the words split over the cores."""
+    """:func:`path_counts` through the C word traversal, the words split over
+    the cores (each share counted by one C call per block of words)."""
     import threading
 
     threads = _native._cores()
@@ -197,10 +209,11 @@ def _native_path_counts(pm, host, taus, tests, path_length, cols, ms, bar):
 
     def run(i):
         t = time.perf_counter()
-        for frames, counts, _ in _native_words(pm, host, taus, tests, path_length, False, (i, threads)):
+        for frames, cams, word_taus, values, fats in _word_blocks(host, taus, path_length, (i, threads)):
+            counts = _native.count_words(pm, cams, word_taus, tests, values, fats)
             real = frames >= 0
             for col, v in zip(cols, counts):
-                col[frames[real]] = np.asarray(v)[real]
+                col[frames[real]] = v[real]
             now = time.perf_counter()
             timings[i].append((frames[real], now - t))
             t = now
@@ -210,7 +223,7 @@ def _native_path_counts(pm, host, taus, tests, path_length, cols, ms, bar):
         w.start()
     for w in workers:
         w.join()
-    # A word's wall time over its frames, over the threads that ran side by side.
+    # A block's wall time over its frames, over the threads that ran side by side.
     for share in timings:
         for frames, seconds in share:
             ms[frames] = 1e3 * seconds / max(1, len(frames)) / threads

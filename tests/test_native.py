@@ -169,6 +169,82 @@ def test_dragon_front_visits_a_small_share(built):
         assert not_run < front.n_visited < 4 * not_run
 
 
+def fat_words(data):
+    """Words of frames for the fat camera: stretches of the standard orbit,
+    a random walk with a jump inside the word, a flight through the model's
+    bounding sphere, and unrelated random views (a fat camera that decides
+    little)."""
+    v0 = data.vertices[: data.n_original_vertices]
+    c, r = v0.mean(0), 0.5 * np.linalg.norm(np.ptp(v0, 0))
+    orbit = pmjax.standard_orbit(v0, 240)
+    words = {f"orbit {s}": jax.tree.map(lambda a: np.asarray(a)[s:s + 16], orbit) for s in (0, 96)}
+    rng = np.random.default_rng(7)
+    eyes = c + 2.5 * r * np.array([0.3, 0.4, 1.0]) + np.cumsum(0.03 * r * rng.normal(size=(16, 3)), 0)
+    eyes[9:] += 1.5 * r * np.array([1.0, -0.5, 0.2])  # a cut
+    words["walk with a cut"] = stack_cameras([pmjax.look_at(e, c + 0.1 * r * rng.normal(size=3)) for e in eyes])
+    line = c + r * np.linspace(2.0, -2.0, 16)[:, None] * np.array([0.2, 0.1, 1.0])
+    words["through the model"] = stack_cameras([pmjax.look_at(e, e - np.array([0.2, 0.1, 1.0]), near=1e-3 * r,
+                                                               far=20 * r) for e in line])
+    words["random views"] = views_of(data, 16, seed=11)
+    return words
+
+
+@pytest.mark.parametrize("name", ["cow.ply", "bunny.ply", "terrain_gcanyon.ply"])
+def test_fat_camera_decisions_hold_for_every_frame(built, name):
+    """Over every pcol, for words of frames: where the fat camera says
+    "whole", every frame's subtree collapses under the float32 predicate;
+    where it says "no", no frame's predicate collapses the pcol. Along an
+    orbit it decides most pcols; with a tolerance of 0 (not a usual view) it
+    decides none."""
+    data = built(name)
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    kids = np.asarray(pm.children)
+    for label, word in fat_words(data).items():
+        for tau in (1e-3, 1.0, 4.0, 0.0):
+            taus = np.full(16, tau, np.float32)
+            got = _native.decide_fat_all(pm, word, taus, pmjax.ALL_TESTS)
+            if tau == 0.0:
+                assert not np.any(got), label
+                continue
+            for f in range(16):
+                cam = index_camera(word, f)
+                want = np.asarray(pmjax.collapse_mask(pm.attributes, cam, jnp.float32(tau), pmjax.ALL_TESTS))
+                assert not np.any(want[got == 2]), (label, tau, f)
+                # Every pcol of the subtree collapses: batch by batch (children
+                # come from earlier batches).
+                all_below = want.copy()
+                for lo, hi in zip(pm.batch_offsets[:-1], pm.batch_offsets[1:]):
+                    for k in kids[lo:hi].T:
+                        has = k >= 0
+                        all_below[lo:hi][has] &= all_below[k[has]]
+                assert np.all(all_below[got == 1]), (label, tau, f)
+            if label.startswith("orbit") and tau == 1.0:
+                assert np.mean(got == 1) > 0.3 and np.any(got == 2), (label, np.bincount(got, minlength=3))
+
+
+def test_fat_camera_bounds_hold(built):
+    """The fat camera's bounds (recomputed here in float64) hold for every
+    frame of a word: eyes within rho of the centre and within the capsule of
+    the chord, rotations within eps, the pivot's camera coordinates within
+    tau."""
+    from pmjax._fat_camera import fat_cameras
+
+    data = built("cow.ply")
+    for label, word in fat_words(data).items():
+        views = _native.host_views(jax.tree.map(np.asarray, word), np.ones(16, np.float32))
+        fat = fat_cameras(views[None])[0].astype(np.float64)
+        eyes, rot = views[:, 0:3].astype(np.float64), views[:, 3:12].astype(np.float64).reshape(-1, 3, 3)
+        eye, rho, pivot, ref, t, eps, tau = fat[0:3], fat[3], fat[4:7], fat[7:16].reshape(3, 3), fat[16:19], \
+            fat[19], fat[20]
+        start, step, capsule = fat[21:24], fat[24:27], fat[28]
+        assert np.all(np.linalg.norm(eyes - eye, axis=1) <= rho), label
+        assert np.all(np.linalg.svd(rot - ref, compute_uv=False)[:, 0] <= eps), label
+        assert np.all(np.linalg.norm(np.einsum("fij,fj->fi", rot, pivot - eyes) - t, axis=1) <= tau), label
+        along = np.clip((eyes - start) @ step / max(step @ step, 1e-300), 0, 1)
+        assert np.all(np.linalg.norm(eyes - start - along[:, None] * step, axis=1) <= capsule), label
+        assert rho < 10 * max(np.linalg.norm(eyes - eye, axis=1).max(), 1e-30), label  # bounds, not infinities
+
+
 @pytest.mark.parametrize("orthographic", [False, True])
 def test_host_view_constants_are_within_the_allowance(orthographic):
     """The C loops read view constants computed on the host; the

@@ -182,14 +182,20 @@ def streams(monkeypatch, owner, name, pm, cams, size):
 @pytest.mark.skipif(not _native.available(), reason="the C loops are not built")
 def test_long_path_streams_word_by_word(built, monkeypatch):
     """With the C loops, the refinements are computed one word of 16 frames at
-    a time, as they are consumed; counts never hold more than a word per core."""
+    a time, as they are consumed; counts never hold more than a block of
+    words per core."""
     data, pm = model(built, "cow.ply")
     cams = pmjax.standard_orbit(originals(data), 200)
-    sizes = streams(monkeypatch, _native, "refine_word", pm, cams, 16)
-    sizes.clear()
+    streams(monkeypatch, _native, "refine_word", pm, cams, 16)
+    monkeypatch.setattr(_path, "WORDS_AT_ONCE", 4)
+    sizes = []
+    real = _native.count_words
+    monkeypatch.setattr(_native, "count_words", lambda pm, part, *a, **k: sizes.append(
+        pmjax.camera_count(part)) or real(pm, part, *a, **k))
+    monkeypatch.setattr(_native, "_cores", lambda: 2)
     counts = pmjax.path_counts(pm, cams, 1.0)
-    # 200 frames padded to 208: thirteen words.
-    assert len(counts["faces"]) == 200 and sizes == [16] * 13
+    # 200 frames padded to 208: thirteen words, shares of 6 and 7, blocks of at most 4.
+    assert len(counts["faces"]) == 200 and sorted(sizes) == sorted([64, 32, 64, 48])
     assert counts["faces"].tolist() == [int(r.n_faces) for r in pmjax.refine_path(pm, cams, 1.0)]
 
 
