@@ -430,23 +430,33 @@ VECTOR_CLONES static void decide_orthographic(const Frames *fr, Columns col, int
     decide_lanes(fr, col, code, 1);
 }
 /* One pcol's row in every lane (the frames of a word), broadcast here at the
- * vector width of the decision that reads it. */
-static inline __attribute__((always_inline)) void decide_row_lanes(const Frames *fr, const float *row, int32_t *code,
+ * vector width of the decision that reads it; the frames' decisions as
+ * masks (one bit per frame: WHOLE, YES, UNSURE), built at that width too. */
+typedef uint16_t Lanes;
+static inline __attribute__((always_inline)) void decide_row_lanes(const Frames *fr, const float *row, Lanes *masks,
                                                                    const int ortho)
 {
     Columns col;
+    int32_t code[BLOCK];
     for (int c = 0; c < ROW; c++)
         for (int l = 0; l < BLOCK; l++)
             col[c][l] = row[c];
     decide_lanes(fr, col, code, ortho);
+    Lanes wh = 0, y = 0, u = 0;
+    for (int l = 0; l < BLOCK; l++) {
+        wh |= (Lanes)(((code[l] & WHOLE) != 0) << l);
+        y |= (Lanes)(((code[l] & 3) == YES) << l);
+        u |= (Lanes)(((code[l] & 3) == UNSURE) << l);
+    }
+    masks[0] = wh, masks[1] = y, masks[2] = u;
 }
-VECTOR_CLONES static void decide_row_perspective(const Frames *fr, const float *row, int32_t *code)
+VECTOR_CLONES static void decide_row_perspective(const Frames *fr, const float *row, Lanes *masks)
 {
-    decide_row_lanes(fr, row, code, 0);
+    decide_row_lanes(fr, row, masks, 0);
 }
-VECTOR_CLONES static void decide_row_orthographic(const Frames *fr, const float *row, int32_t *code)
+VECTOR_CLONES static void decide_row_orthographic(const Frames *fr, const float *row, Lanes *masks)
 {
-    decide_row_lanes(fr, row, code, 1);
+    decide_row_lanes(fr, row, masks, 1);
 }
 
 /* ---- the frames of a word at once: a "fat" camera ------------------------ */
@@ -927,7 +937,6 @@ void pmx_refine_many(const float *table, const int32_t *kills, const int32_t *or
  * pass over the frames: consecutive frames share most of their front, so the
  * word visits little more than one frame alone (docs/path.md). */
 #define FRAMES BLOCK
-typedef uint16_t Lanes;
 
 /* One word. Slot i holds position ids[i], visited by the frames visit[i];
  * whole[i], yes[i] are the frames whose subtree bound decided it (its own or
@@ -950,7 +959,7 @@ int64_t pmx_refine_word(const float *table, const int32_t *order, const int32_t 
     if (use_fat)
         load_fat(&W, fat, &fr, n_frames);
     const Lanes active = (Lanes)((1u << n_frames) - 1);
-    int32_t code[FRAMES], fat_code[BLOCK];
+    int32_t fat_code[BLOCK];
     Columns col;
     int64_t n = 0, m = 0, at_once = 0;
     for (int64_t i = 0; i < n_roots; i++) {
@@ -971,16 +980,10 @@ int64_t pmx_refine_word(const float *table, const int32_t *order, const int32_t 
             const float *row = table + (int64_t)ids[i] * ROW;
             const int32_t fc = use_fat ? fat_code[i - i0] : FAT_OPEN;
             at_once += fc != FAT_OPEN;
-            Lanes wh = fc == FAT_WHOLE ? (Lanes)0xFFFF : 0, y = 0, u = 0;
-            if (fc == FAT_OPEN) {
-                /* The pcol under every frame of the word, one by one. */
-                (fr.ortho ? decide_row_orthographic : decide_row_perspective)(&fr, row, code);
-                for (int l = 0; l < FRAMES; l++) {
-                    wh |= (Lanes)(((code[l] & WHOLE) != 0) << l);
-                    y |= (Lanes)(((code[l] & 3) == YES) << l);
-                    u |= (Lanes)(((code[l] & 3) == UNSURE) << l);
-                }
-            }
+            Lanes masks[3] = {fc == FAT_WHOLE ? (Lanes)0xFFFF : 0, 0, 0};
+            if (fc == FAT_OPEN) /* the pcol under every frame of the word, one by one */
+                (fr.ortho ? decide_row_orthographic : decide_row_perspective)(&fr, row, masks);
+            const Lanes wh = masks[0], y = masks[1], u = masks[2];
             const Lanes v = visit[i], open = v & (Lanes)~wh;
             whole[i] = v & wh;
             yes[i] = open & y;

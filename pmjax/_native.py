@@ -644,29 +644,45 @@ def _word_scratch(host) -> _WordScratch:
     return s
 
 
-def _decide_word_unsure(host, s, cameras, taus, tests):
-    """The unsure (frame, pcol) pairs a word traversal left in the scratch
-    (``s.out[0]`` slots), decided in one call of the float32 predicate; their
-    yes bits set."""
-    m = int(s.out[0])
-    if m == 0:
+def _decide_word_unsure(host, words, cameras, taus, tests):
+    """The unsure (frame, pcol) pairs that word traversals left, decided in
+    one call of the float32 predicate; their yes bits set.
+
+    Args:
+        words: per word ``(first frame, ids, unsure slots, unsure lanes,
+            yes)``: the frame of lane 0 in ``cameras``, the word's slot
+            positions and its unsure slots and frames (as pmx_refine_word
+            leaves them), and its yes masks (updated here).
+        cameras, taus: the frames the words index.
+    """
+    slot_of, lane_of, word_of = [], [], []
+    for k, (_, _, slots, lanes, _) in enumerate(words):
+        so, lo = np.nonzero((lanes.astype(np.int64)[:, None] >> np.arange(FRAMES)) & 1)
+        slot_of.append(slots[so])
+        lane_of.append(lo)
+        word_of.append(np.full(len(so), k))
+    if not words:
         return
-    slots, lanes = s.unsure_slots[:m], s.unsure_lanes[:m].astype(np.int64)
-    slot_of, lane_of = np.nonzero((lanes[:, None] >> np.arange(FRAMES)) & 1)
+    slot_of, lane_of, word_of = np.concatenate(slot_of), np.concatenate(lane_of), np.concatenate(word_of)
     pairs = len(slot_of)
     pad = np.zeros(_bucket(pairs), np.int64)
     pad[:pairs] = np.arange(pairs)
-    frame = lane_of[pad]
+    first = np.array([w[0] for w in words])
+    frame = (first[word_of] + lane_of)[pad]
+    positions = np.array([words[k][1][slot] for k, slot in zip(word_of, slot_of)], np.int64)
     batch = jax.tree.map(lambda a: np.asarray(a)[frame], cameras)
-    pcols = host.order[s.ids[slots[slot_of[pad]]]]
-    yes = np.asarray(_decide_pairs(_rows(host, pcols), batch, np.asarray(taus, np.float32)[frame], tests,
-                                   cameras.orthographic))[:pairs]
-    for slot, lane in zip(slots[slot_of[yes]], lane_of[yes]):
-        s.yes[slot] |= np.uint16(1 << int(lane))
+    yes = np.asarray(_decide_pairs(_rows(host, host.order[positions[pad]]), batch,
+                                   np.asarray(taus, np.float32)[frame], tests, cameras.orthographic))[:pairs]
+    for k, slot, lane in zip(word_of[yes], slot_of[yes], lane_of[yes]):
+        words[k][4][slot] |= np.uint16(1 << int(lane))
 
 
 def count_words(pm, cameras, taus, tests, values, fats=None):
     """Whole words of FRAMES frames through the C word traversal, counts only.
+
+    Words with unsure decisions keep their traversal (a copy of the slots
+    they visited) until the end, where all their unsure pairs are decided in
+    one call of the float32 predicate and the words resolved.
 
     Args:
         cameras: a host camera batch of ``W * FRAMES`` frames, word by word.
@@ -685,6 +701,7 @@ def count_words(pm, cameras, taus, tests, values, fats=None):
     fat = None if fats is None or cameras.orthographic else np.ascontiguousarray(fats, np.float32)
     not_run, kept = np.zeros(words * FRAMES, np.int64), np.zeros(words * FRAMES, np.int64)
     flags = flags_of(tests, cameras.orthographic)
+    pending = []  # per word with unsure pairs: (word, traversal)
     w = 0
     while w < words:
         w = _LIB.pmx_count_words(host.p_bfs_table, host.p_bfs_kills, host.p_order, host.p_roots, len(host.roots),
@@ -692,13 +709,16 @@ def count_words(pm, cameras, taus, tests, values, fats=None):
                                  _ptr(s.kid), _ptr(s.visit), _ptr(s.whole), _ptr(s.yes), _ptr(s.ran),
                                  _ptr(s.unsure_slots), _ptr(s.unsure_lanes), _ptr(s.out), _ptr(not_run),
                                  _ptr(kept))
-        if w < words:  # a word with unsure decisions: decide them, resolve it, go on
-            at = slice(w * FRAMES, (w + 1) * FRAMES)
-            _decide_word_unsure(host, s, jax.tree.map(lambda a: a[at], cameras), taus[at], tests)
-            _LIB.pmx_resolve_word(host.p_bfs_kills, host.p_order, int(s.out[1]), _ptr(s.ids), _ptr(s.kid),
-                                  _ptr(s.visit), _ptr(s.whole), _ptr(s.yes), _ptr(s.ran), None, _ptr(not_run[at]),
-                                  _ptr(kept[at]))
+        if w < words:  # a word with unsure decisions: kept for the end
+            n, m = int(s.out[1]), int(s.out[0])
+            pending.append((w, [a[:k].copy() for a, k in ((s.ids, n), (s.kid, 2 * n), (s.visit, n), (s.whole, n),
+                                                            (s.yes, n), (s.unsure_slots, m), (s.unsure_lanes, m))]))
             w += 1
+    _decide_word_unsure(host, [(w * FRAMES, t[0], t[5], t[6], t[4]) for w, t in pending], cameras, taus, tests)
+    for w, (ids, kid, visit, whole, yes, _, _) in pending:
+        at = slice(w * FRAMES, (w + 1) * FRAMES)
+        _LIB.pmx_resolve_word(host.p_bfs_kills, host.p_order, len(ids), _ptr(ids), _ptr(kid), _ptr(visit),
+                              _ptr(whole), _ptr(yes), _ptr(s.ran), None, _ptr(not_run[at]), _ptr(kept[at]))
     n_exec = host.n_pcols - not_run
     return host.n_faces - host.total_kills + kept, host.n_original - n_exec, n_exec
 
@@ -736,7 +756,9 @@ def refine_word(pm, cameras, taus, tests, frames: bool, values=None, fat=True):
                              nf, flags_of(tests, cameras.orthographic), None if fat is None else _ptr(fat),
                              _ptr(s.ids), _ptr(s.kid), _ptr(s.visit),
                              _ptr(s.whole), _ptr(s.yes), _ptr(s.unsure_slots), _ptr(s.unsure_lanes), _ptr(s.out))
-    _decide_word_unsure(host, s, cameras, taus, tests)
+    m = int(s.out[0])
+    _decide_word_unsure(host, [(0, s.ids, s.unsure_slots[:m], s.unsure_lanes[:m], s.yes)] if m else [], cameras, taus,
+                        tests)
     # Each slot's pcol only for the frames' lists (a read at random per slot).
     _LIB.pmx_resolve_word(host.p_bfs_kills, host.p_order, n, _ptr(s.ids), _ptr(s.kid), _ptr(s.visit), _ptr(s.whole),
                           _ptr(s.yes), _ptr(s.ran), _ptr(s.pcols) if frames else None, _ptr(s.not_run),

@@ -161,33 +161,36 @@ def frames_per_word() -> int:
     return _native.FRAMES if _native.available() else WORD
 
 
-def _word_blocks(host, taus, path_length, part=None):
-    """The word-padded frames (each path padded to whole words of the C
-    loops), WORDS_AT_ONCE words at a time (memory: a few words' constants):
-    yields ``(frame index per lane, -1 for padding), cameras, taus, views,
-    fat cameras``. ``part = (i, n)``: only the i-th of n contiguous shares of
-    the words."""
-    F = _native.FRAMES
-    order = _word_padded(len(taus), path_length, F)
+def _word_order(n_frames: int, path_length: int):
+    """Frame index per lane of the C loops' words (each path padded to whole
+    words) and whether each lane is a real frame (not padding)."""
+    order = _word_padded(n_frames, path_length, _native.FRAMES)
     real = np.ones(len(order), bool)
     real[1:] = order[1:] != order[:-1]
-    words = len(order) // F
-    lo, hi = (0, words) if part is None else (words * part[0] // part[1], words * (part[0] + 1) // part[1])
-    for w0 in range(lo, hi, WORDS_AT_ONCE):
-        w1 = min(hi, w0 + WORDS_AT_ONCE)
-        idx = order[w0 * F:w1 * F]
-        cams, word_taus = jax.tree.map(lambda a: a[idx], host), taus[idx]
-        values = _native.host_views(cams, word_taus)
-        yield (np.where(real[w0 * F:w1 * F], idx, -1), cams, word_taus, values,
-               fat_cameras(values.reshape(w1 - w0, F, -1)))
+    return order, real
 
 
-def _native_words(pm, host, taus, tests, path_length, frames: bool, part=None):
-    """The C word traversal over the frames, a word at a time: yields
-    ``(frame index per lane, -1 for padding), counts, lists``
-    (:func:`pmjax._native.refine_word`)."""
+def _word_block(host, taus, order, real, w0: int, w1: int):
+    """Words ``w0..w1`` of the padded frames: ``(frame index per lane, -1
+    for padding), cameras, taus, views, fat cameras``, the views and fat
+    cameras computed in one host pass."""
     F = _native.FRAMES
-    for lanes, cams, word_taus, values, fats in _word_blocks(host, taus, path_length, part):
+    idx = order[w0 * F:w1 * F]
+    cams, word_taus = jax.tree.map(lambda a: a[idx], host), taus[idx]
+    values = _native.host_views(cams, word_taus)
+    return (np.where(real[w0 * F:w1 * F], idx, -1), cams, word_taus, values,
+            fat_cameras(values.reshape(w1 - w0, F, -1)))
+
+
+def _native_words(pm, host, taus, tests, path_length, frames: bool):
+    """The C word traversal over the frames, a word at a time (the constants
+    of WORDS_AT_ONCE words computed together): yields ``(frame index per
+    lane, -1 for padding), counts, lists`` (:func:`pmjax._native.refine_word`)."""
+    F = _native.FRAMES
+    order, real = _word_order(len(taus), path_length)
+    words = len(order) // F
+    for w0 in range(0, words, WORDS_AT_ONCE):  # memory: a few words at a time
+        lanes, cams, word_taus, values, fats = _word_block(host, taus, order, real, w0, min(words, w0 + WORDS_AT_ONCE))
         for w in range(len(fats)):
             at = slice(w * F, (w + 1) * F)
             counts, lists, _ = _native.refine_word(pm, jax.tree.map(lambda a: a[at], cams), word_taus[at], tests,
@@ -195,38 +198,56 @@ def _native_words(pm, host, taus, tests, path_length, frames: bool, part=None):
             yield lanes[at], counts, lists
 
 
-# Words whose camera constants are computed in one host pass (the C loops).
+# Words whose camera constants are computed in one host pass (the C loops),
+# and the most words counted by one C call.
 WORDS_AT_ONCE = 16
 
 
 def _native_path_counts(pm, host, taus, tests, path_length, cols, ms, bar):
-    """:func:`path_counts` through the C word traversal, the words split over
-    the cores (each share counted by one C call per block of words)."""
+    """:func:`path_counts` through the C word traversal: blocks of words
+    (at least two per core, at most WORDS_AT_ONCE words) taken by the cores
+    as they come free, each counted by one C call."""
+    import queue
     import threading
 
+    F = _native.FRAMES
+    order, real = _word_order(len(taus), path_length)
+    words = len(order) // F
     threads = _native._cores()
-    timings = [[] for _ in range(threads)]
+    size = max(1, min(WORDS_AT_ONCE, -(-words // (2 * threads))))
+    blocks = iter([(w0, min(words, w0 + size)) for w0 in range(0, words, size)])
+    n_blocks = -(-words // size)
+    take, done = threading.Lock(), queue.Queue()
 
-    def run(i):
-        t = time.perf_counter()
-        for frames, cams, word_taus, values, fats in _word_blocks(host, taus, path_length, (i, threads)):
-            counts = _native.count_words(pm, cams, word_taus, tests, values, fats)
-            real = frames >= 0
-            for col, v in zip(cols, counts):
-                col[frames[real]] = v[real]
-            now = time.perf_counter()
-            timings[i].append((frames[real], now - t))
-            t = now
+    def run():
+        try:
+            while True:
+                with take:
+                    span = next(blocks, None)
+                if span is None:
+                    return
+                t = time.perf_counter()
+                frames, cams, word_taus, values, fats = _word_block(host, taus, order, real, *span)
+                counts = _native.count_words(pm, cams, word_taus, tests, values, fats)
+                done.put((frames, counts, time.perf_counter() - t))
+        except BaseException as e:  # handed to the caller's thread
+            done.put(e)
 
-    workers = [threading.Thread(target=run, args=(i,)) for i in range(threads)]
-    for w in bar(workers, threads, "share"):
+    workers = [threading.Thread(target=run, daemon=True) for _ in range(threads)]
+    for w in workers:
         w.start()
+    for _ in bar(range(n_blocks), n_blocks, "block"):
+        got = done.get()
+        if isinstance(got, BaseException):
+            raise got
+        frames, counts, seconds = got
+        keep = frames >= 0
+        for col, v in zip(cols, counts):
+            col[frames[keep]] = v[keep]
+        # A block's wall time over its frames, over the cores that ran side by side.
+        ms[frames[keep]] = 1e3 * seconds / max(1, int(keep.sum())) / threads
     for w in workers:
         w.join()
-    # A block's wall time over its frames, over the threads that ran side by side.
-    for share in timings:
-        for frames, seconds in share:
-            ms[frames] = 1e3 * seconds / max(1, len(frames)) / threads
 
 
 def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, tests: Tests = ALL_TESTS,

@@ -194,8 +194,8 @@ def test_long_path_streams_word_by_word(built, monkeypatch):
         pmjax.camera_count(part)) or real(pm, part, *a, **k))
     monkeypatch.setattr(_native, "_cores", lambda: 2)
     counts = pmjax.path_counts(pm, cams, 1.0)
-    # 200 frames padded to 208: thirteen words, shares of 6 and 7, blocks of at most 4.
-    assert len(counts["faces"]) == 200 and sorted(sizes) == sorted([64, 32, 64, 48])
+    # 200 frames padded to 208: thirteen words in blocks of at most 4.
+    assert len(counts["faces"]) == 200 and sorted(sizes) == [16, 64, 64, 64]
     assert counts["faces"].tolist() == [int(r.n_faces) for r in pmjax.refine_path(pm, cams, 1.0)]
 
 
