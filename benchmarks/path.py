@@ -11,7 +11,8 @@ path through ``pmjax.path_counts`` (counts) and ``pmjax.refine_path`` (a
 ``Refinement`` per frame), amortized per frame, medians over repeats. The
 visited share is, per word of consecutive frames (16 with the C loops, 32 as JAX
 kernels), the pcols the word's traversal looked at over P, and over what one
-frame alone visits. Many paths: ``--paths`` orbits
+frame alone visits, and the share of those the C loops decided for all the
+word's frames at once (the fat camera). Many paths: ``--paths`` orbits
 of different radii and elevations advanced together, against ``refine_batch``
 on the same cameras (dense and front), cameras per second.
 """
@@ -77,20 +78,23 @@ def one_path(name, pm, label, cams, tau, repeats):
     sec, _ = median_time(lambda: sum(1 for _ in pmjax.refine_path(pm, cams, tau)), repeats)
     path_ms = 1e3 * sec / T
     word = frames_per_word()
-    if pmjax.native_available():  # the pcols each word of the C loops visited
-        union = [pmjax._native.refine_word(pm, index_camera(cams, slice(i, i + word)), np.full(word, tau, np.float32),
-                                           pmjax.ALL_TESTS, False)[2] for i in range(0, T - word + 1, word)]
+    at_once = [0]
+    if pmjax.native_available():  # the pcols each word of the C loops visited, and decided for all frames at once
+        words = [pmjax._native.refine_word(pm, index_camera(cams, slice(i, i + word)), np.full(word, tau, np.float32),
+                                           pmjax.ALL_TESTS, False)[2:] for i in range(0, T - word + 1, word)]
+        union, at_once = [u for u, _ in words], [a / u for u, a in words]
     else:  # words as JAX kernels
         union = [r.n_visited for i, r in enumerate(pmjax.refine_path(pm, cams, tau)) if i % word == 0]
     own = [pmjax.refine(pm, index_camera(cams, i), tau, method="front").n_visited for i in range(0, T, word)]
     row = dict(model=name, path=label, pcols=pm.n_pcols, frames=T, faces=int(np.median(counts["faces"])),
                dense_ms=dense, front_ms=front, path_counts_ms=counts_ms, refine_path_ms=path_ms,
-               visited_share=float(np.median(union)) / pm.n_pcols, union_over_one=float(np.median(union) / np.median(own)))
+               visited_share=float(np.median(union)) / pm.n_pcols, union_over_one=float(np.median(union) / np.median(own)),
+               decided_at_once=float(np.median(at_once)))
     print(f"{name:16s} {label:11s} P {pm.n_pcols:7d} faces {row['faces']:6d} | per frame: dense {dense:6.3f} "
           f"front {front:6.3f} ms | path: counts {counts_ms:6.3f} ({dense / counts_ms:5.1f}x dense, "
           f"{front / counts_ms:4.1f}x front), refine_path {path_ms:6.3f} ms ({dense / path_ms:5.1f}x, "
           f"{front / path_ms:4.1f}x) | visited {row['visited_share']:5.1%} of P, "
-          f"{row['union_over_one']:.2f}x one frame's", flush=True)
+          f"{row['union_over_one']:.2f}x one frame's, {row['decided_at_once']:.0%} decided at once", flush=True)
     return row
 
 

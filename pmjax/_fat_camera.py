@@ -12,9 +12,10 @@ reference (``_front_native.c`` explains how each test uses it):
   to the last's; distances along a path move much less than ``rho``);
 - ``pivot``, ``rotation``, ``t``, ``eps``, ``tau``: a point ``c`` in frame
   ``f``'s camera coordinates is ``R_f (c - pivot) + t_f``, with
-  ``|R_f - rotation| <= eps`` (spectral norm) and ``|t_f - t| <= tau``. The
-  pivot is the point the frames' view axes pass closest to (an orbit's
-  centre), so that turning the camera moves the points near it little.
+  ``|R_f - rotation| <= eps`` (spectral norm, bounded by Gershgorin's
+  circles) and ``|t_f - t| <= tau``. The pivot is the point the frames' view
+  axes pass closest to (an orbit's centre), so that turning the camera moves
+  the points near it little.
 
 Every bound is computed in float64 from the frames' float32 constants and
 rounded up to float32 with room for the float64 rounding, so it holds for the
@@ -76,7 +77,11 @@ def fat_cameras(views: np.ndarray) -> np.ndarray:
     eye = _to_f32(0.5 * (eyes.min(1) + eyes.max(1)))
     rho = _up(np.max(np.linalg.norm(eyes - eye[:, None], axis=2), axis=1))
     reference = rotations[:, v.shape[1] // 2]
-    eps = _up(np.max(np.linalg.norm(rotations - reference[:, None], 2, axis=(2, 3)), axis=1))
+    # |D|_2^2 is the largest eigenvalue of D^T D, at most its largest absolute
+    # row sum (Gershgorin; exact for a turn about one axis).
+    d = rotations - reference[:, None]
+    gram = np.einsum("wfki,wfkj->wfij", d, d)
+    eps = _up(np.sqrt(np.max(np.abs(gram).sum(3), axis=(1, 2))))
     pivot = _to_f32(_pivots(eyes, rotations[..., 2, :], eye))
     t = np.einsum("wfij,wfj->wfi", rotations, pivot[:, None] - eyes)
     centre = _to_f32(0.5 * (t.min(1) + t.max(1)))

@@ -161,10 +161,8 @@ FACE_RECORD = np.dtype([("face", "<i4"), ("start", "<i4", 3)])
 FRONT_VERTEX = np.dtype([("start", "<i4"), ("vertex", "<i4"), ("position", "<f4", 3)])
 
 
-class _Scratch:
-    """One thread's buffers for one mesh: the traversal's slots (capacity
-    P), and the mesh's bitmaps and tables (zero between calls); ``p_*`` are
-    their addresses, taken once."""
+class _Addresses:
+    """Buffers whose addresses ``p_NAME`` (of array ``NAME``) are taken once."""
 
     def __getattr__(self, name):
         if name.startswith("p_"):
@@ -172,6 +170,12 @@ class _Scratch:
             setattr(self, name, value)
             return value
         raise AttributeError(name)
+
+
+class _Scratch(_Addresses):
+    """One thread's buffers for one mesh: the traversal's slots (capacity
+    P), and the mesh's bitmaps and tables (zero between calls); ``p_*`` are
+    their addresses, taken once."""
 
     def __init__(self, n_original, n_pcols, n_faces):
         P, V0 = n_pcols, n_original
@@ -625,8 +629,9 @@ def refine_many(pm, cameras, tau, tests, want_masks: bool, threads: int | None =
 FRAMES = 16
 
 
-class _WordScratch:
-    """One thread's buffers for words of FRAMES frames (capacity P slots)."""
+class _WordScratch(_Addresses):
+    """One thread's buffers for words of FRAMES frames (capacity P slots;
+    ``p_*`` their addresses)."""
 
     def __init__(self, n_pcols):
         P = n_pcols
@@ -655,26 +660,25 @@ def _decide_word_unsure(host, words, cameras, taus, tests):
             leaves them), and its yes masks (updated here).
         cameras, taus: the frames the words index.
     """
-    slot_of, lane_of, word_of = [], [], []
-    for k, (_, _, slots, lanes, _) in enumerate(words):
-        so, lo = np.nonzero((lanes.astype(np.int64)[:, None] >> np.arange(FRAMES)) & 1)
-        slot_of.append(slots[so])
-        lane_of.append(lo)
-        word_of.append(np.full(len(so), k))
     if not words:
         return
-    slot_of, lane_of, word_of = np.concatenate(slot_of), np.concatenate(lane_of), np.concatenate(word_of)
-    pairs = len(slot_of)
+    # Every (frame, slot) pair, word by word.
+    sizes = [len(w[2]) for w in words]
+    slots, lanes = np.concatenate([w[2] for w in words]), np.concatenate([w[3] for w in words]).astype(np.int64)
+    positions = np.concatenate([w[1][w[2]] for w in words])
+    pair, lane_of = np.nonzero((lanes[:, None] >> np.arange(FRAMES)) & 1)
+    word_of, slot_of = np.repeat(np.arange(len(words)), sizes)[pair], slots[pair]
+    pairs = len(pair)
     pad = np.zeros(_bucket(pairs), np.int64)
     pad[:pairs] = np.arange(pairs)
     first = np.array([w[0] for w in words])
     frame = (first[word_of] + lane_of)[pad]
-    positions = np.array([words[k][1][slot] for k, slot in zip(word_of, slot_of)], np.int64)
     batch = jax.tree.map(lambda a: np.asarray(a)[frame], cameras)
-    yes = np.asarray(_decide_pairs(_rows(host, host.order[positions[pad]]), batch,
+    yes = np.asarray(_decide_pairs(_rows(host, host.order[positions[pair][pad]]), batch,
                                    np.asarray(taus, np.float32)[frame], tests, cameras.orthographic))[:pairs]
-    for k, slot, lane in zip(word_of[yes], slot_of[yes], lane_of[yes]):
-        words[k][4][slot] |= np.uint16(1 << int(lane))
+    for k, w in enumerate(words):
+        mine = yes & (word_of == k)
+        np.bitwise_or.at(w[4], slot_of[mine], (1 << lane_of[mine]).astype(np.uint16))
 
 
 def count_words(pm, cameras, taus, tests, values, fats=None):
@@ -705,10 +709,9 @@ def count_words(pm, cameras, taus, tests, values, fats=None):
     w = 0
     while w < words:
         w = _LIB.pmx_count_words(host.p_bfs_table, host.p_bfs_kills, host.p_order, host.p_roots, len(host.roots),
-                                 _ptr(views), None if fat is None else _ptr(fat), w, words, flags, _ptr(s.ids),
-                                 _ptr(s.kid), _ptr(s.visit), _ptr(s.whole), _ptr(s.yes), _ptr(s.ran),
-                                 _ptr(s.unsure_slots), _ptr(s.unsure_lanes), _ptr(s.out), _ptr(not_run),
-                                 _ptr(kept))
+                                 _ptr(views), None if fat is None else _ptr(fat), w, words, flags, s.p_ids,
+                                 s.p_kid, s.p_visit, s.p_whole, s.p_yes, s.p_ran, s.p_unsure_slots,
+                                 s.p_unsure_lanes, s.p_out, _ptr(not_run), _ptr(kept))
         if w < words:  # a word with unsure decisions: kept for the end
             n, m = int(s.out[1]), int(s.out[0])
             pending.append((w, [a[:k].copy() for a, k in ((s.ids, n), (s.kid, 2 * n), (s.visit, n), (s.whole, n),
@@ -718,7 +721,7 @@ def count_words(pm, cameras, taus, tests, values, fats=None):
     for w, (ids, kid, visit, whole, yes, _, _) in pending:
         at = slice(w * FRAMES, (w + 1) * FRAMES)
         _LIB.pmx_resolve_word(host.p_bfs_kills, host.p_order, len(ids), _ptr(ids), _ptr(kid), _ptr(visit),
-                              _ptr(whole), _ptr(yes), _ptr(s.ran), None, _ptr(not_run[at]), _ptr(kept[at]))
+                              _ptr(whole), _ptr(yes), s.p_ran, None, _ptr(not_run[at]), _ptr(kept[at]))
     n_exec = host.n_pcols - not_run
     return host.n_faces - host.total_kills + kept, host.n_original - n_exec, n_exec
 
@@ -738,10 +741,11 @@ def refine_word(pm, cameras, taus, tests, frames: bool, values=None, fat=True):
             comparison).
 
     Returns:
-        ``(counts, lists, union)``: ``counts`` ``(faces, vertices, executed)``
-        int arrays over the frames; ``lists``, with ``frames``, per frame
-        ``(visited, executed, positions)`` (else ``None``); ``union`` the
-        pcols the word visited.
+        ``(counts, lists, union, at_once)``: ``counts`` ``(faces, vertices,
+        executed)`` int arrays over the frames; ``lists``, with ``frames``,
+        per frame ``(visited, executed, positions)`` (else ``None``);
+        ``union`` the pcols the word visited, ``at_once`` those the fat
+        camera decided for every frame.
     """
     host = native_mesh(pm)
     word = np.ascontiguousarray(host_views(cameras, taus) if values is None else values)
@@ -754,26 +758,26 @@ def refine_word(pm, cameras, taus, tests, frames: bool, values=None, fat=True):
     fat = None if cameras.orthographic or fat is False else np.ascontiguousarray(fat, np.float32)
     n = _LIB.pmx_refine_word(host.p_bfs_table, host.p_order, host.p_roots, len(host.roots), _ptr(word),
                              nf, flags_of(tests, cameras.orthographic), None if fat is None else _ptr(fat),
-                             _ptr(s.ids), _ptr(s.kid), _ptr(s.visit),
-                             _ptr(s.whole), _ptr(s.yes), _ptr(s.unsure_slots), _ptr(s.unsure_lanes), _ptr(s.out))
+                             s.p_ids, s.p_kid, s.p_visit, s.p_whole, s.p_yes, s.p_unsure_slots, s.p_unsure_lanes,
+                             s.p_out)
     m = int(s.out[0])
     _decide_word_unsure(host, [(0, s.ids, s.unsure_slots[:m], s.unsure_lanes[:m], s.yes)] if m else [], cameras, taus,
                         tests)
     # Each slot's pcol only for the frames' lists (a read at random per slot).
-    _LIB.pmx_resolve_word(host.p_bfs_kills, host.p_order, n, _ptr(s.ids), _ptr(s.kid), _ptr(s.visit), _ptr(s.whole),
-                          _ptr(s.yes), _ptr(s.ran), _ptr(s.pcols) if frames else None, _ptr(s.not_run),
-                          _ptr(s.kept))
+    _LIB.pmx_resolve_word(host.p_bfs_kills, host.p_order, n, s.p_ids, s.p_kid, s.p_visit, s.p_whole, s.p_yes,
+                          s.p_ran, s.p_pcols if frames else None, s.p_not_run, s.p_kept)
     n_exec = host.n_pcols - s.not_run[:nf]
     counts = (host.n_faces - host.total_kills + s.kept[:nf], host.n_original - n_exec, n_exec)
+    at_once = int(s.out[2])
     if not frames:
-        return counts, None, n
+        return counts, None, n, at_once
     lists = []
     for lane in range(nf):
         vis, ran, at = np.empty(n, np.int32), np.empty(n, np.uint8), np.empty(n, np.int32)
-        c = _LIB.pmx_word_frame(n, _ptr(s.ids), _ptr(s.pcols), _ptr(s.visit), _ptr(s.ran), lane, _ptr(vis), _ptr(ran),
+        c = _LIB.pmx_word_frame(n, s.p_ids, s.p_pcols, s.p_visit, s.p_ran, lane, _ptr(vis), _ptr(ran),
                                 _ptr(at))
         lists.append((vis[:c].copy(), ran[:c].view(bool).copy(), at[:c].copy()))
-    return counts, lists, n
+    return counts, lists, n, at_once
 
 
 def _cores() -> int:

@@ -193,7 +193,7 @@ def _native_words(pm, host, taus, tests, path_length, frames: bool):
         lanes, cams, word_taus, values, fats = _word_block(host, taus, order, real, w0, min(words, w0 + WORDS_AT_ONCE))
         for w in range(len(fats)):
             at = slice(w * F, (w + 1) * F)
-            counts, lists, _ = _native.refine_word(pm, jax.tree.map(lambda a: a[at], cams), word_taus[at], tests,
+            counts, lists, _, _ = _native.refine_word(pm, jax.tree.map(lambda a: a[at], cams), word_taus[at], tests,
                                                    frames, values[at], fats[w])
             yield lanes[at], counts, lists
 
