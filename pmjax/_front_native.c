@@ -1094,6 +1094,26 @@ int64_t pmx_word_frame(int64_t n, const int32_t *ids, const int32_t *pcols, cons
     return c;
 }
 
+/* Every pcol of the table, a block at a time: under the cameras fr (one in
+ * every lane) or, with W, under the fat camera. */
+static void decide_every_block(const float *table, int64_t n_pcols, const Frames *fr, const Fat *W, uint8_t *out)
+{
+    Columns col;
+    int32_t code[BLOCK], ids[BLOCK];
+    for (int64_t p = 0; p < n_pcols; p += BLOCK) {
+        int64_t nb = n_pcols - p < BLOCK ? n_pcols - p : BLOCK;
+        for (int64_t j = 0; j < nb; j++)
+            ids[j] = (int32_t)(p + j);
+        gather_block(table, ids, nb, col);
+        if (W)
+            decide_fat(W, col, code);
+        else
+            decide_block(fr, col, code);
+        for (int64_t j = 0; j < nb; j++)
+            out[p + j] = (uint8_t)code[j];
+    }
+}
+
 /* Every pcol's own decision (YES, NO or UNSURE) and subtree bound (out[p]
  * |= WHOLE), for tests that compare the certification with the float32
  * predicate over whole hierarchies. */
@@ -1101,18 +1121,7 @@ void pmx_decide_all(const float *table, int64_t n_pcols, const float *view, int 
 {
     Frames w;
     load_frames(&w, view, 1, flags);
-    Columns col;
-    int32_t state[BLOCK];
-    int32_t ids[BLOCK];
-    for (int64_t p = 0; p < n_pcols; p += BLOCK) {
-        int64_t nb = n_pcols - p < BLOCK ? n_pcols - p : BLOCK;
-        for (int64_t j = 0; j < nb; j++)
-            ids[j] = (int32_t)(p + j);
-        gather_block(table, ids, nb, col);
-        decide_block(&w, col, state);
-        for (int64_t j = 0; j < nb; j++)
-            out[p + j] = (uint8_t)state[j];
-    }
+    decide_every_block(table, n_pcols, &w, NULL, out);
 }
 
 /* Every pcol under the fat camera of views [n_frames, 22] (FAT_WHOLE,
@@ -1129,17 +1138,7 @@ void pmx_decide_fat_all(const float *table, int64_t n_pcols, const float *views,
     }
     Fat W;
     load_fat(&W, fat, &fr, n_frames);
-    Columns col;
-    int32_t code[BLOCK], ids[BLOCK];
-    for (int64_t p = 0; p < n_pcols; p += BLOCK) {
-        int64_t nb = n_pcols - p < BLOCK ? n_pcols - p : BLOCK;
-        for (int64_t j = 0; j < nb; j++)
-            ids[j] = (int32_t)(p + j);
-        gather_block(table, ids, nb, col);
-        decide_fat(&W, col, code);
-        for (int64_t j = 0; j < nb; j++)
-            out[p + j] = (uint8_t)code[j];
-    }
+    decide_every_block(table, n_pcols, &fr, &W, out);
 }
 
 /* ---- the mesh from the front --------------------------------------------- */

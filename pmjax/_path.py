@@ -8,13 +8,17 @@ little larger than one frame's, so each pcol near the front is fetched once for
 the word and tested for all its frames in one vectorized pass: the coherence of
 the path is what makes the word cheap. A word is 16 frames in the C loops
 (:func:`pmjax._native.refine_word`) and 32 as JAX kernels (where the loops are
-not built; :mod:`pmjax._front`).
+not built; :mod:`pmjax._front`). In the C loops most pcols are decided for all
+of a word's frames at once, under a fat camera that covers them
+(:mod:`pmjax._fat_camera`).
 
 Exactness. Frame ``c`` of a word gets, for every pcol, its own decision (the
-float32 predicate's bit, certified or computed) and its own subtree-bound bit,
-as :func:`pmjax.refine` gets them, and a pcol it does not visit lies under a
-subtree its own bound decided. So its executed set, counts, faces and ``vref``
-are those of ``refine(pm, camera_c, tau_c)``, bit for bit. No state is carried
+float32 predicate's bit, certified or computed, or proved for every frame
+under the fat camera) and a sound subtree bound (its own or the fat camera's),
+and a pcol it does not visit lies under a subtree every pcol of which
+collapses for it. So its executed set, counts, faces and ``vref`` are those of
+``refine(pm, camera_c, tau_c)``, bit for bit (its list of visited pcols may be
+shorter). No state is carried
 from one word to the next: a cut or a teleport costs nothing special, a frame's
 result never depends on the frames before it (unlike SrMesh's adapted mesh),
 and a path of any length runs in the memory of one word (or chunk of words).
@@ -193,8 +197,8 @@ def _native_words(pm, host, taus, tests, path_length, frames: bool):
         lanes, cams, word_taus, values, fats = _word_block(host, taus, order, real, w0, min(words, w0 + WORDS_AT_ONCE))
         for w in range(len(fats)):
             at = slice(w * F, (w + 1) * F)
-            counts, lists, _, _ = _native.refine_word(pm, jax.tree.map(lambda a: a[at], cams), word_taus[at], tests,
-                                                   frames, values[at], fats[w])
+            counts, lists, _, _ = _native.refine_word(pm, jax.tree.map(lambda a: a[at], cams), word_taus[at],
+                                                      tests, frames, values[at], fats[w])
             yield lanes[at], counts, lists
 
 
