@@ -463,8 +463,9 @@ VECTOR_CLONES static void decide_row_orthographic(const Frames *fr, const float 
 
 /* Consecutive frames of a path see nearly the same thing, so most pcols of a
  * word are decided alike by all its frames. A fat camera covers the word's
- * frames (host-computed, pmjax/_native.py fat_camera; all of them perspective
- * views with every test on and the same intrinsics and tolerance):
+ * frames (host-computed, pmjax/_fat_camera.py fat_cameras; all of them
+ * perspective views with every test on and the same intrinsics and tolerance,
+ * the clip distances free):
  *
  *  - every frame's eye lies within rho of the eye centre e, so every
  *    distance from a frame's eye is within rho of the distance from e, and
@@ -492,7 +493,7 @@ VECTOR_CLONES static void decide_row_orthographic(const Frames *fr, const float 
  *    this evaluation's and any frame's (so `less` certifies it as it
  *    certifies a frame's comparison).
  *
- * Otherwise (about a quarter of a word's slots along an orbit) the frames are
+ * Otherwise (about one slot in six along the dragon's orbit) the frames are
  * decided one by one. Either way every frame gets the bits of its own
  * refinement. */
 typedef struct {
@@ -506,7 +507,7 @@ typedef struct {
     float near_lo, near_hi, far_lo, far_hi, kpad;     /* clip distances over the frames, the largest kpad */
 } Fat;
 
-/* Layout of the host's fat camera (pmjax/_native.py FAT_VALUES). */
+/* Layout of the host's fat camera (pmjax/_fat_camera.py FAT_VALUES). */
 enum {
     FAT_EYE = 0, FAT_RHO = 3, FAT_PIVOT = 4, FAT_ROTATION = 7, FAT_T = 16, FAT_EPS = 19, FAT_TAU = 20,
     FAT_SEGMENT = 21, FAT_STEP = 24, FAT_STEP_INV = 27, FAT_CAPSULE = 28, FAT_N = 29
@@ -515,13 +516,17 @@ enum {
 /* Decisions of the fat pass. */
 enum { FAT_OPEN = 0, FAT_WHOLE = 1, FAT_NO = 2 };
 
-/* Frames can share a fat camera: perspective views of the usual kind
- * (fast_view) with the same constants (intrinsics and tolerance) but for
- * the clip distances. */
-static int fat_applies(const Frames *fr, int n_frames)
+/* Frames can share the fat camera fat (FAT_N floats, or NULL): it is given
+ * and finite, and they are perspective views of the usual kind (fast_view)
+ * with the same constants (intrinsics and tolerance) but for the clip
+ * distances. */
+static int fat_applies(const Frames *fr, const float *fat, int n_frames)
 {
-    if (!fr->fast || fr->ortho)
+    if (!fat || !fr->fast || fr->ortho)
         return 0;
+    for (int i = 0; i < FAT_N; i++)
+        if (!isfinite(fat[i]))
+            return 0;
     for (int l = 1; l < n_frames; l++) {
         for (int i = 0; i < 6; i++)
             if (fr->k[i][l] != fr->k[i][0])
@@ -953,9 +958,7 @@ int64_t pmx_refine_word(const float *table, const int32_t *order, const int32_t 
     Frames fr;
     load_frames(&fr, views, n_frames, flags);
     Fat W;
-    int use_fat = fat != NULL && fat_applies(&fr, n_frames);
-    for (int i = 0; use_fat && i < FAT_N; i++)
-        use_fat = isfinite(fat[i]);
+    const int use_fat = fat_applies(&fr, fat, n_frames);
     if (use_fat)
         load_fat(&W, fat, &fr, n_frames);
     const Lanes active = (Lanes)((1u << n_frames) - 1);
@@ -1058,7 +1061,7 @@ void pmx_resolve_word(const int32_t *kills, const int32_t *order, int64_t n, con
  * decisions the loop stops and returns its index, its traversal in the
  * scratch as pmx_refine_word leaves it (out[0] unsure slots, out[1] its
  * slots): decide them, resolve it, and call again from the next word. Returns
- * n_words when every word is counted. One call per share of a path keeps the
+ * n_words when every word is counted. One call per block of words keeps the
  * interpreter out of the loop. */
 int64_t pmx_count_words(const float *table, const int32_t *kills, const int32_t *order, const int32_t *roots,
                         int64_t n_roots, const float *views, const float *fat, int64_t first, int64_t n_words,
@@ -1132,7 +1135,7 @@ void pmx_decide_fat_all(const float *table, int64_t n_pcols, const float *views,
 {
     Frames fr;
     load_frames(&fr, views, n_frames, flags);
-    if (!fat_applies(&fr, n_frames)) {
+    if (!fat_applies(&fr, fat, n_frames)) {
         memset(out, FAT_OPEN, (size_t)n_pcols);
         return;
     }

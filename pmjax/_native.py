@@ -256,8 +256,9 @@ class NativeMesh:
             s = self._local.scratch = _Scratch(self.n_original, self.n_pcols, self.n_faces)
         return s
 
-    def counts(self, n_not_run: int, kept: int):
-        """``(faces, vertices, executed)`` from the pcols that did not run."""
+    def counts(self, n_not_run, kept):
+        """``(faces, vertices, executed)`` (int32) from the pcols that did not
+        run and the faces they keep: numbers, or arrays of them."""
         n_exec = self.n_pcols - n_not_run
         return (np.int32(self.n_faces - self.total_kills + kept), np.int32(self.n_original - n_exec),
                 np.int32(n_exec))
@@ -696,16 +697,16 @@ def count_words(pm, cameras, taus, tests, values, fats=None):
             (every frame decided alone).
 
     Returns:
-        ``(faces, vertices, executed)``, int64 arrays over the frames.
+        ``(faces, vertices, executed)``, int32 arrays over the frames.
     """
     host = native_mesh(pm)
     s = _word_scratch(host)
     views = np.ascontiguousarray(values, np.float32)
     words = len(views) // FRAMES
-    fat = None if fats is None or cameras.orthographic else np.ascontiguousarray(fats, np.float32)
+    fat = None if fats is None else np.ascontiguousarray(fats, np.float32)  # the C loops check it applies
     not_run, kept = np.zeros(words * FRAMES, np.int64), np.zeros(words * FRAMES, np.int64)
     flags = flags_of(tests, cameras.orthographic)
-    pending = []  # per word with unsure pairs: (word, traversal)
+    pending = []  # per word with unsure pairs: (word, copies of its slots' arrays)
     w = 0
     while w < words:
         w = _LIB.pmx_count_words(host.p_bfs_table, host.p_bfs_kills, host.p_order, host.p_roots, len(host.roots),
@@ -714,16 +715,18 @@ def count_words(pm, cameras, taus, tests, values, fats=None):
                                  s.p_unsure_lanes, s.p_out, _ptr(not_run), _ptr(kept))
         if w < words:  # a word with unsure decisions: kept for the end
             n, m = int(s.out[1]), int(s.out[0])
-            pending.append((w, [a[:k].copy() for a, k in ((s.ids, n), (s.kid, 2 * n), (s.visit, n), (s.whole, n),
-                                                            (s.yes, n), (s.unsure_slots, m), (s.unsure_lanes, m))]))
+            pending.append((w, dict(ids=s.ids[:n].copy(), kid=s.kid[:2 * n].copy(), visit=s.visit[:n].copy(),
+                                    whole=s.whole[:n].copy(), yes=s.yes[:n].copy(),
+                                    slots=s.unsure_slots[:m].copy(), lanes=s.unsure_lanes[:m].copy())))
             w += 1
-    _decide_word_unsure(host, [(w * FRAMES, t[0], t[5], t[6], t[4]) for w, t in pending], cameras, taus, tests)
-    for w, (ids, kid, visit, whole, yes, _, _) in pending:
+    _decide_word_unsure(host, [(w * FRAMES, t["ids"], t["slots"], t["lanes"], t["yes"]) for w, t in pending],
+                        cameras, taus, tests)
+    for w, t in pending:
         at = slice(w * FRAMES, (w + 1) * FRAMES)
-        _LIB.pmx_resolve_word(host.p_bfs_kills, host.p_order, len(ids), _ptr(ids), _ptr(kid), _ptr(visit),
-                              _ptr(whole), _ptr(yes), s.p_ran, None, _ptr(not_run[at]), _ptr(kept[at]))
-    n_exec = host.n_pcols - not_run
-    return host.n_faces - host.total_kills + kept, host.n_original - n_exec, n_exec
+        _LIB.pmx_resolve_word(host.p_bfs_kills, host.p_order, len(t["ids"]), _ptr(t["ids"]), _ptr(t["kid"]),
+                              _ptr(t["visit"]), _ptr(t["whole"]), _ptr(t["yes"]), s.p_ran, None, _ptr(not_run[at]),
+                              _ptr(kept[at]))
+    return host.counts(not_run, kept)
 
 
 def refine_word(pm, cameras, taus, tests, frames: bool, values=None, fat=True):
@@ -755,7 +758,7 @@ def refine_word(pm, cameras, taus, tests, frames: bool, values=None, fat=True):
     # the fat camera applies: perspective, usual tests, shared intrinsics).
     if fat is True:
         fat = fat_cameras(word[None])[0]
-    fat = None if cameras.orthographic or fat is False else np.ascontiguousarray(fat, np.float32)
+    fat = None if fat is False else np.ascontiguousarray(fat, np.float32)
     n = _LIB.pmx_refine_word(host.p_bfs_table, host.p_order, host.p_roots, len(host.roots), _ptr(word),
                              nf, flags_of(tests, cameras.orthographic), None if fat is None else _ptr(fat),
                              s.p_ids, s.p_kid, s.p_visit, s.p_whole, s.p_yes, s.p_unsure_slots, s.p_unsure_lanes,
@@ -766,8 +769,7 @@ def refine_word(pm, cameras, taus, tests, frames: bool, values=None, fat=True):
     # Each slot's pcol only for the frames' lists (a read at random per slot).
     _LIB.pmx_resolve_word(host.p_bfs_kills, host.p_order, n, s.p_ids, s.p_kid, s.p_visit, s.p_whole, s.p_yes,
                           s.p_ran, s.p_pcols if frames else None, s.p_not_run, s.p_kept)
-    n_exec = host.n_pcols - s.not_run[:nf]
-    counts = (host.n_faces - host.total_kills + s.kept[:nf], host.n_original - n_exec, n_exec)
+    counts = host.counts(s.not_run[:nf], s.kept[:nf])
     at_once = int(s.out[2])
     if not frames:
         return counts, None, n, at_once
