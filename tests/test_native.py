@@ -245,6 +245,30 @@ def test_fat_camera_bounds_hold(built):
         assert rho < 10 * max(np.linalg.norm(eyes - eye, axis=1).max(), 1e-30), label  # bounds, not infinities
 
 
+def test_a_fat_camera_that_is_not_finite_is_not_used(built):
+    """A fat camera with a non-finite bound decides nothing at once: the
+    word's frames are decided one by one, with the same counts and lists as
+    without a fat camera (and as with a finite one)."""
+    from pmjax._fat_camera import FAT_VALUES
+
+    data = built("bunny.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    word = fat_words(data)["orbit 0"]
+    taus = np.ones(16, np.float32)
+    bad = np.full(FAT_VALUES, np.nan, np.float32)
+    alone = _native.refine_word(pm, word, taus, pmjax.ALL_TESTS, True, fat=False)
+    unused = _native.refine_word(pm, word, taus, pmjax.ALL_TESTS, True, fat=bad)
+    used = _native.refine_word(pm, word, taus, pmjax.ALL_TESTS, True, fat=True)
+    assert unused[3] == 0 and used[3] > 0
+    for got in (unused, used):
+        for a, b in zip(got[0], alone[0]):
+            assert np.array_equal(a, b)
+        for (v1, r1, _), (v2, r2, _) in zip(got[1], alone[1]):
+            assert np.array_equal(np.sort(v1[~r1]), np.sort(v2[~r2]))
+    for x, y in zip(unused[1], alone[1]):  # frame by frame: the very same lists
+        assert all(np.array_equal(a, b) for a, b in zip(x, y))
+
+
 @pytest.mark.parametrize("orthographic", [False, True])
 def test_host_view_constants_are_within_the_allowance(orthographic):
     """The C loops read view constants computed on the host; the
