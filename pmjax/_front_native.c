@@ -463,9 +463,8 @@ VECTOR_CLONES static void decide_row_orthographic(const Frames *fr, const float 
 
 /* Consecutive frames of a path see nearly the same thing, so most pcols of a
  * word are decided alike by all its frames. A fat camera covers the word's
- * frames (host-computed, pmjax/_fat_camera.py fat_cameras; all of them
- * perspective views with every test on and the same intrinsics and tolerance,
- * the clip distances free):
+ * frames (pmx_fat_cameras below; all of them perspective views with every
+ * test on and the same intrinsics and tolerance, the clip distances free):
  *
  *  - every frame's eye lies within rho of the eye centre e, so every
  *    distance from a frame's eye is within rho of the distance from e, and
@@ -507,7 +506,7 @@ typedef struct {
     float near_lo, near_hi, far_lo, far_hi, kpad;     /* clip distances over the frames, the largest kpad */
 } Fat;
 
-/* Layout of the host's fat camera (pmjax/_fat_camera.py FAT_VALUES). */
+/* Layout of a fat camera (pmjax/_native.py FAT_VALUES). */
 enum {
     FAT_EYE = 0, FAT_RHO = 3, FAT_PIVOT = 4, FAT_ROTATION = 7, FAT_T = 16, FAT_EPS = 19, FAT_TAU = 20,
     FAT_SEGMENT = 21, FAT_STEP = 24, FAT_STEP_INV = 27, FAT_CAPSULE = 28, FAT_N = 29
@@ -1142,6 +1141,196 @@ void pmx_decide_fat_all(const float *table, int64_t n_pcols, const float *views,
     Fat W;
     load_fat(&W, fat, &fr, n_frames);
     decide_every_block(table, n_pcols, &fr, &W, out);
+}
+
+/* ---- the fat camera of a word, from its frames --------------------------- */
+
+/* The bounds of the fat camera above, from the frames' float32 constants.
+ * Each is computed in double and rounded up to float32 with room for the
+ * double rounding, so it holds for the exact values. Only the bounds'
+ * soundness matters for exactness; the eye centre (the eyes' box centre), the
+ * reference rotation (the middle frame's), the pivot (the point the view axes
+ * pass closest to, least squares; an orbit's centre, so that turning the
+ * camera moves the points near it little) and t (the box centre of the
+ * pivot's camera coordinates) are free choices that only make the bounds
+ * tighter or looser. eps bounds the spectral norm by Gershgorin's circles. */
+
+/* Relative room above a double bound before rounding up to float32: covers
+ * the double arithmetic (about 2^-50 relative) many times over. */
+#define FAT_ROOM 0x1p-16
+
+/* A float32 value at least x (1 + FAT_ROOM). */
+static float fat_up(double x) { return nextafterf((float)(x * (1 + FAT_ROOM)), INFINITY); }
+
+/* x rounded to float32, held in double (exactly). */
+static double fat_f32(double x) { return (double)(float)x; }
+
+/* max and min that keep a NaN (fmax and fmin drop it, which would hide a
+ * frame that is not finite). */
+static double max_nan(double a, double b) { return a != a || a > b ? a : b; }
+static double min_nan(double a, double b) { return a != a || a < b ? a : b; }
+
+static double norm3(const double *v) { return sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]); }
+
+/* The smallest eigenvalue of the symmetric 3 x 3 matrix a (trigonometric
+ * closed form; NaN for a matrix that is not finite). */
+static double smallest_eigenvalue(const double a[3][3])
+{
+    const double p1 = a[0][1] * a[0][1] + a[0][2] * a[0][2] + a[1][2] * a[1][2];
+    const double q = (a[0][0] + a[1][1] + a[2][2]) / 3;
+    if (p1 == 0)
+        return min_nan(a[0][0], min_nan(a[1][1], a[2][2]));
+    const double p = sqrt(((a[0][0] - q) * (a[0][0] - q) + (a[1][1] - q) * (a[1][1] - q) +
+                           (a[2][2] - q) * (a[2][2] - q) + 2 * p1) / 6);
+    double b[3][3];
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++)
+            b[i][j] = (a[i][j] - (i == j ? q : 0)) / p;
+    double r = (b[0][0] * (b[1][1] * b[2][2] - b[1][2] * b[2][1]) - b[0][1] * (b[1][0] * b[2][2] - b[1][2] * b[2][0]) +
+                b[0][2] * (b[1][0] * b[2][1] - b[1][1] * b[2][0])) / 2;
+    r = r < -1 ? -1 : r > 1 ? 1 : r;
+    return q + 2 * p * cos(acos(r) / 3 + 2.0943951023931957);
+}
+
+/* The point closest to every view axis of the frames (least squares), or
+ * fallback where the axes are too near parallel to meet (a camera moving
+ * forward): sum over the frames of (I - n n^T) x = sum of (I - n n^T) e. */
+static void fat_pivot(const double (*eyes)[3], const double (*forward)[3], int n, const double *fallback,
+                      double *pivot)
+{
+    double a[3][3] = {{0}}, b[3] = {0};
+    for (int f = 0; f < n; f++)
+        for (int i = 0; i < 3; i++)
+            for (int j = 0; j < 3; j++) {
+                const double across = (i == j) - forward[f][i] * forward[f][j];
+                a[i][j] += across;
+                b[i] += across * eyes[f][j];
+            }
+    int meet = smallest_eigenvalue(a) > 1e-3 * n;
+    /* Cramer's rule: the adjugate's rows over the determinant. */
+    const double c0 = a[1][1] * a[2][2] - a[1][2] * a[2][1], c1 = a[1][2] * a[2][0] - a[1][0] * a[2][2];
+    const double c2 = a[1][0] * a[2][1] - a[1][1] * a[2][0];
+    const double det = a[0][0] * c0 + a[0][1] * c1 + a[0][2] * c2;
+    const double x[3] = {
+        (b[0] * c0 + a[0][1] * (b[2] * a[1][2] - b[1] * a[2][2]) + a[0][2] * (b[1] * a[2][1] - b[2] * a[1][1])) / det,
+        (a[0][0] * (b[1] * a[2][2] - b[2] * a[1][2]) + b[0] * c1 + a[0][2] * (b[2] * a[1][0] - b[1] * a[2][0])) / det,
+        (a[0][0] * (b[2] * a[1][1] - b[1] * a[2][1]) + a[0][1] * (b[1] * a[2][0] - b[2] * a[1][0]) + b[0] * c2) / det};
+    meet &= isfinite(x[0]) && isfinite(x[1]) && isfinite(x[2]);
+    for (int i = 0; i < 3; i++)
+        pivot[i] = meet ? x[i] : fallback[i];
+}
+
+/* The fat cameras of n_words words of n_frames frames (views [W, F, 22],
+ * the host's view constants) into out [W, FAT_N]; a word whose bounds are not
+ * finite gets NaN ones (under which nothing is decided at once). Returns -1
+ * (and writes nothing) unless 1 <= n_frames <= FAT_MAX_FRAMES. */
+#define FAT_MAX_FRAMES 64
+int pmx_fat_cameras(const float *views, int64_t n_words, int n_frames, float *out)
+{
+    if (n_frames < 1 || n_frames > FAT_MAX_FRAMES)
+        return -1;
+    const int F = n_frames;
+    double eyes[FAT_MAX_FRAMES][3], rot[FAT_MAX_FRAMES][3][3], forward[FAT_MAX_FRAMES][3];
+    double t[FAT_MAX_FRAMES][3];
+    for (int64_t w = 0; w < n_words; w++) {
+        const float *v = views + w * n_frames * 22;
+        float *o = out + w * FAT_N;
+        double lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
+        for (int f = 0; f < F; f++)
+            for (int i = 0; i < 3; i++) {
+                eyes[f][i] = v[22 * f + EYE + i];
+                for (int j = 0; j < 3; j++)
+                    rot[f][i][j] = v[22 * f + RIGHT + 3 * i + j];
+                forward[f][i] = v[22 * f + FORWARD + i];
+                lo[i] = min_nan(lo[i], eyes[f][i]), hi[i] = max_nan(hi[i], eyes[f][i]);
+            }
+        /* The eye ball: about the box's centre. */
+        double eye[3], rho = 0;
+        for (int i = 0; i < 3; i++)
+            eye[i] = fat_f32(0.5 * (lo[i] + hi[i]));
+        for (int f = 0; f < F; f++) {
+            const double d[3] = {eyes[f][0] - eye[0], eyes[f][1] - eye[1], eyes[f][2] - eye[2]};
+            rho = max_nan(rho, norm3(d));
+        }
+        /* The rotations about the middle frame's: |D|_2^2 is the largest
+         * eigenvalue of D^T D, at most its largest absolute row sum
+         * (Gershgorin; exact for a turn about one axis). */
+        const double (*ref)[3] = rot[F / 2];
+        double gersh = 0;
+        for (int f = 0; f < F; f++) {
+            double d[3][3];
+            for (int i = 0; i < 3; i++)
+                for (int j = 0; j < 3; j++)
+                    d[i][j] = rot[f][i][j] - ref[i][j];
+            for (int i = 0; i < 3; i++) {
+                double row = 0;
+                for (int j = 0; j < 3; j++)
+                    row += fabs(d[0][i] * d[0][j] + d[1][i] * d[1][j] + d[2][i] * d[2][j]);
+                gersh = max_nan(gersh, row);
+            }
+        }
+        /* The pivot, and its camera coordinates over the frames about their
+         * box's centre. The double products and sums of t round by at most
+         * 2^-50 of |pivot - eye|_1. */
+        double pivot[3];
+        fat_pivot((const double (*)[3])eyes, (const double (*)[3])forward, F, eye, pivot);
+        for (int i = 0; i < 3; i++)
+            pivot[i] = fat_f32(pivot[i]);
+        double tlo[3] = {INFINITY, INFINITY, INFINITY}, thi[3] = {-INFINITY, -INFINITY, -INFINITY}, spread1 = 0;
+        for (int f = 0; f < F; f++) {
+            const double d[3] = {pivot[0] - eyes[f][0], pivot[1] - eyes[f][1], pivot[2] - eyes[f][2]};
+            spread1 = max_nan(spread1, fabs(d[0]) + fabs(d[1]) + fabs(d[2]));
+            for (int i = 0; i < 3; i++) {
+                t[f][i] = rot[f][i][0] * d[0] + rot[f][i][1] * d[1] + rot[f][i][2] * d[2];
+                tlo[i] = min_nan(tlo[i], t[f][i]), thi[i] = max_nan(thi[i], t[f][i]);
+            }
+        }
+        double centre[3], tau = 0;
+        for (int i = 0; i < 3; i++)
+            centre[i] = fat_f32(0.5 * (tlo[i] + thi[i]));
+        for (int f = 0; f < F; f++) {
+            const double d[3] = {t[f][0] - centre[0], t[f][1] - centre[1], t[f][2] - centre[2]};
+            tau = max_nan(tau, norm3(d));
+        }
+        /* The capsule about the chord: each eye's distance from its nearest
+         * point of the (float32) segment the decisions use. */
+        const double *start = eyes[0];
+        double step[3], length2 = 0, capsule = 0, size1 = 0;
+        for (int i = 0; i < 3; i++) {
+            step[i] = fat_f32(eyes[F - 1][i] - start[i]);
+            length2 += step[i] * step[i];
+        }
+        for (int f = 0; f < F; f++) {
+            double along = 0;
+            for (int i = 0; i < 3; i++)
+                along += (eyes[f][i] - start[i]) * step[i];
+            along /= length2 > 0 ? length2 : 1.0;
+            along = along < 0 ? 0 : along > 1 ? 1 : along;
+            const double d[3] = {eyes[f][0] - (start[0] + along * step[0]), eyes[f][1] - (start[1] + along * step[1]),
+                                 eyes[f][2] - (start[2] + along * step[2])};
+            capsule = max_nan(capsule, norm3(d));
+            size1 = max_nan(size1, fabs(eyes[f][0]) + fabs(eyes[f][1]) + fabs(eyes[f][2]));
+        }
+        /* Any step inverse will do (the decisions allow for the projection's
+         * error); 0 for one point. */
+        const double step_inv = length2 > 0x1p-100 ? 1.0 / length2 : 0.0;
+        for (int i = 0; i < 3; i++) {
+            o[FAT_EYE + i] = (float)eye[i], o[FAT_PIVOT + i] = (float)pivot[i], o[FAT_T + i] = (float)centre[i];
+            o[FAT_SEGMENT + i] = (float)start[i], o[FAT_STEP + i] = (float)step[i];
+            for (int j = 0; j < 3; j++)
+                o[FAT_ROTATION + 3 * i + j] = (float)ref[i][j];
+        }
+        o[FAT_RHO] = fat_up(rho), o[FAT_EPS] = fat_up(sqrt(gersh));
+        o[FAT_TAU] = fat_up(tau + 0x1p-48 * spread1);
+        o[FAT_STEP_INV] = (float)step_inv, o[FAT_CAPSULE] = fat_up(capsule + 0x1p-48 * size1);
+        int finite = 1;
+        for (int i = 0; i < FAT_N; i++)
+            finite &= isfinite(o[i]) != 0;
+        if (!finite)
+            for (int i = 0; i < FAT_N; i++)
+                o[i] = NAN;
+    }
+    return 0;
 }
 
 /* ---- the mesh from the front --------------------------------------------- */

@@ -36,7 +36,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._fat_camera import fat_cameras
 from ._view import View
 
 # Flags of the C entry points.
@@ -77,6 +76,8 @@ def _load():
     lib.pmx_resolve_word.argtypes = [_p, _p, _i64] + [_p] * 9
     lib.pmx_word_frame.restype = _i64
     lib.pmx_word_frame.argtypes = [_i64, _p, _p, _p, _p, ctypes.c_int, _p, _p, _p]
+    lib.pmx_fat_cameras.restype = ctypes.c_int
+    lib.pmx_fat_cameras.argtypes = [_p, _i64, ctypes.c_int, _p]
     lib.pmx_decide_fat_all.restype = None
     lib.pmx_decide_fat_all.argtypes = [_p, _i64, _p, ctypes.c_int, ctypes.c_int, _p, _p]
     lib.pmx_decide_all.restype = None
@@ -127,6 +128,40 @@ def decide_all(pm, camera, tau, tests) -> np.ndarray:
     values = host_view(camera, tau)  # held: the call reads it
     _LIB.pmx_decide_all(_ptr(host.table), host.n_pcols, _ptr(values), flags_of(tests, camera.orthographic),
                         _ptr(out))
+    return out
+
+
+# Floats of a fat camera (FAT_N in _front_native.c): eye 3, rho, pivot 3,
+# rotation rows 9 (right, up, forward), t 3, eps, tau, start 3, step 3,
+# 1 / |step|^2, capsule.
+FAT_VALUES = 29
+# The most frames one fat camera covers (FAT_MAX_FRAMES in _front_native.c).
+FAT_MAX_FRAMES = 64
+
+
+def fat_cameras(views: np.ndarray) -> np.ndarray:
+    """The fat cameras of words of frames: per word, one set of bounds that
+    covers all its frames (a ball and a capsule about the eyes, a reference
+    rotation about the point the frames look at; "the fat camera of a word"
+    in ``_front_native.c`` defines them), computed in double from the
+    frames' constants and rounded up to float32, so that they hold for the
+    exact values.
+
+    Args:
+        views: ``float32 [W, F, 22]``, the view constants
+            (:func:`host_views`) of ``W`` words of ``F`` frames each,
+            ``1 <= F <= FAT_MAX_FRAMES``.
+
+    Returns:
+        ``float32 [W, FAT_VALUES]``; a word whose bounds are not finite has
+        NaN ones (under which nothing is decided at once).
+    """
+    views = np.ascontiguousarray(views, np.float32)
+    if views.ndim != 3 or views.shape[2] != 22 or not 1 <= views.shape[1] <= FAT_MAX_FRAMES:
+        raise ValueError(f"fat_cameras: views must be [W, F, 22] with 1 <= F <= {FAT_MAX_FRAMES}, got "
+                         f"{views.shape}")
+    out = np.empty((views.shape[0], FAT_VALUES), np.float32)
+    _LIB.pmx_fat_cameras(_ptr(views), views.shape[0], views.shape[1], _ptr(out))
     return out
 
 
@@ -693,7 +728,7 @@ def count_words(pm, cameras, taus, tests, values, fats=None):
         cameras: a host camera batch of ``W * FRAMES`` frames, word by word.
         taus: ``float32 [W * FRAMES]``.
         values: the frames' :func:`host_views`.
-        fats: the words' :func:`pmjax._fat_camera.fat_cameras`, or ``None``
+        fats: the words' :func:`fat_cameras`, or ``None``
             (every frame decided alone).
 
     Returns:
@@ -738,8 +773,8 @@ def refine_word(pm, cameras, taus, tests, frames: bool, values=None, fat=True):
         frames: also return each frame's lists for a :class:`pmjax.Refinement`.
         values: the frames' :func:`host_views`, if the caller has them.
         fat: decide a pcol for all frames at once where a fat camera
-            (:mod:`pmjax._fat_camera`) can: ``True``, or the frames'
-            :func:`pmjax._fat_camera.fat_cameras` row if the caller has it;
+            (:func:`fat_cameras`) can: ``True``, or the frames'
+            :func:`fat_cameras` row if the caller has it;
             ``False`` decides every frame alone (the same results; for
             comparison).
 

@@ -10,7 +10,7 @@ the path is what makes the word cheap. A word is 16 frames in the C loops
 (:func:`pmjax._native.refine_word`) and 32 as JAX kernels (where the loops are
 not built; :mod:`pmjax._front`). In the C loops most pcols are decided for all
 of a word's frames at once, under a fat camera that covers them
-(:mod:`pmjax._fat_camera`).
+(:func:`pmjax._native.fat_cameras`).
 
 Exactness. Frame ``c`` of a word gets, for every pcol, its own decision (the
 float32 predicate's bit, certified or computed, or proved for every frame
@@ -38,7 +38,6 @@ import numpy as np
 from . import _native
 from ._bitsets import WORD
 from ._camera import Camera, check_camera_values
-from ._fat_camera import fat_cameras
 from ._model import ProgressiveMesh
 from ._predicate import ALL_TESTS, Tests
 from ._refine import Refinement, _front_counts, check_budget, check_tau, faces_for_budget, refine
@@ -183,7 +182,7 @@ def _word_block(host, taus, order, real, w0: int, w1: int):
     cams, word_taus = jax.tree.map(lambda a: a[idx], host), taus[idx]
     values = _native.host_views(cams, word_taus)
     return (np.where(real[w0 * F:w1 * F], idx, -1), cams, word_taus, values,
-            fat_cameras(values.reshape(w1 - w0, F, -1)))
+            _native.fat_cameras(values.reshape(w1 - w0, F, -1)))
 
 
 def _native_words(pm, host, taus, tests, path_length, frames: bool):

@@ -227,12 +227,10 @@ def test_fat_camera_bounds_hold(built):
     frame of a word: eyes within rho of the centre and within the capsule of
     the chord, rotations within eps, the pivot's camera coordinates within
     tau."""
-    from pmjax._fat_camera import fat_cameras
-
     data = built("cow.ply")
     for label, word in fat_words(data).items():
         views = _native.host_views(jax.tree.map(np.asarray, word), np.ones(16, np.float32))
-        fat = fat_cameras(views[None])[0].astype(np.float64)
+        fat = _native.fat_cameras(views[None])[0].astype(np.float64)
         eyes, rot = views[:, 0:3].astype(np.float64), views[:, 3:12].astype(np.float64).reshape(-1, 3, 3)
         eye, rho, pivot, ref, t, eps, tau = fat[0:3], fat[3], fat[4:7], fat[7:16].reshape(3, 3), fat[16:19], \
             fat[19], fat[20]
@@ -249,13 +247,11 @@ def test_a_fat_camera_that_is_not_finite_is_not_used(built):
     """A fat camera with a non-finite bound decides nothing at once: the
     word's frames are decided one by one, with the same counts and lists as
     without a fat camera (and as with a finite one)."""
-    from pmjax._fat_camera import FAT_VALUES
-
     data = built("bunny.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
     word = fat_words(data)["orbit 0"]
     taus = np.ones(16, np.float32)
-    bad = np.full(FAT_VALUES, np.nan, np.float32)
+    bad = np.full(_native.FAT_VALUES, np.nan, np.float32)
     alone = _native.refine_word(pm, word, taus, pmjax.ALL_TESTS, True, fat=False)
     unused = _native.refine_word(pm, word, taus, pmjax.ALL_TESTS, True, fat=bad)
     used = _native.refine_word(pm, word, taus, pmjax.ALL_TESTS, True, fat=True)
