@@ -1053,32 +1053,183 @@ void pmx_resolve_word(const int32_t *kills, const int32_t *order, int64_t n, con
     resolve_word(kills, order, n, ids, kid, visit, whole, yes, ran, pcols, not_run, kept);
 }
 
+/* ---- unsure pairs of counted words, decided later ------------------------ */
+
+/* A word with unsure (frame, pcol) pairs is resolved at once as if each were
+ * "keep" (its yes bit clear), and its chains are recorded: the unsure slots
+ * and their ancestors up to the roots, the only slots whose ran bits can
+ * change when a pair turns out "collapse". Once the pairs are decided (one
+ * call of the float32 predicate for many words), the chains are resolved
+ * again and the word's counts corrected. A record is [word, nodes] and then
+ * NODE_N int32 per node, the nodes by decreasing slot (children first). */
+enum {
+    NODE_SLOT, NODE_K1, NODE_K2, /* the slot; its children's nodes in the record (-1: not a node) */
+    NODE_RAN_K1, NODE_RAN_K2,    /* the children's ran bits (all set: no child) */
+    NODE_VISIT, NODE_WHOLE, NODE_YES, NODE_RAN, NODE_KILLS, NODE_POSITION, NODE_UNSURE, NODE_N
+};
+
+/* a[0..n) in decreasing order (heapsort: in place, no allocation, n log n
+ * even for the many unsure slots of a float tie). */
+static void sort_descending(int32_t *a, int64_t n)
+{
+    /* A min-heap, whose smallest goes to the back each round. */
+    for (int64_t end = n, start = n / 2; end > 1;) {
+        if (start > 0)
+            start--;
+        else {
+            end--;
+            const int32_t t = a[0];
+            a[0] = a[end], a[end] = t;
+        }
+        for (int64_t root = start, child; (child = 2 * root + 1) < end; root = child) {
+            if (child + 1 < end && a[child + 1] < a[child])
+                child++;
+            if (a[root] <= a[child])
+                break;
+            const int32_t t = a[root];
+            a[root] = a[child], a[child] = t;
+        }
+    }
+}
+
+/* The node of slot s among the record's sorted slots (chain[0..count),
+ * decreasing), or -1. */
+static int32_t node_of(const int32_t *chain, int64_t count, int32_t s)
+{
+    int64_t lo = 0, hi = count;
+    while (lo < hi) {
+        const int64_t mid = (lo + hi) / 2;
+        if (chain[mid] == s)
+            return (int32_t)mid;
+        if (chain[mid] > s)
+            lo = mid + 1;
+        else
+            hi = mid;
+    }
+    return -1;
+}
+
+/* The record of a resolved word (n slots, m unsure) at rec, if it fits in
+ * room int32; returns its size, or -1. Scratch: parent [n] int32, chain [n]
+ * int32, mark [n] bytes (zero on entry and on return). */
+static int64_t record_unsure(int64_t word, int64_t n, int64_t n_roots, const int32_t *ids, const int32_t *kid,
+                             const Lanes *visit, const Lanes *whole, const Lanes *yes, const Lanes *ran,
+                             const int32_t *kills, const int32_t *unsure_slots, const Lanes *unsure_lanes, int64_t m,
+                             int32_t *parent, int32_t *chain, uint8_t *mark, int32_t *rec, int64_t room)
+{
+    for (int64_t i = 0; i < n; i++)
+        for (int t = 0; t < 2; t++)
+            if (kid[2 * i + t] >= 0)
+                parent[kid[2 * i + t]] = (int32_t)i;
+    /* Each unsure slot and its ancestors, once (the roots are slots 0..n_roots). */
+    int64_t count = 0;
+    for (int64_t q = 0; q < m; q++)
+        for (int32_t s = unsure_slots[q]; !mark[s]; s = parent[s]) {
+            mark[s] = 1;
+            chain[count++] = s;
+            if (s < n_roots)
+                break;
+        }
+    for (int64_t j = 0; j < count; j++)
+        mark[chain[j]] = 0;
+    const int64_t size = 2 + count * NODE_N;
+    if (size > room)
+        return -1;
+    sort_descending(chain, count);
+    rec[0] = (int32_t)word, rec[1] = (int32_t)count;
+    for (int64_t j = 0; j < count; j++) {
+        const int32_t s = chain[j], k1 = kid[2 * s], k2 = kid[2 * s + 1];
+        int32_t *node = rec + 2 + j * NODE_N;
+        node[NODE_SLOT] = s;
+        node[NODE_K1] = k1 < 0 ? -1 : node_of(chain, count, k1);
+        node[NODE_K2] = k2 < 0 ? -1 : node_of(chain, count, k2);
+        node[NODE_RAN_K1] = k1 < 0 ? 0xFFFF : ran[k1];
+        node[NODE_RAN_K2] = k2 < 0 ? 0xFFFF : ran[k2];
+        node[NODE_VISIT] = visit[s], node[NODE_WHOLE] = whole[s], node[NODE_YES] = yes[s];
+        node[NODE_RAN] = ran[s], node[NODE_KILLS] = kills[ids[s]], node[NODE_POSITION] = ids[s];
+        node[NODE_UNSURE] = 0;
+    }
+    for (int64_t q = 0; q < m; q++)
+        rec[2 + node_of(chain, count, unsure_slots[q]) * NODE_N + NODE_UNSURE] = unsure_lanes[q];
+    return size;
+}
+
 /* Words of FRAMES frames each, counts only: views [n_words * FRAMES, 22],
  * fat [n_words, FAT_N] (or NULL). From word `first` on, each word is
  * traversed and resolved, its frames' counts written to not_run[w * FRAMES
- * ...] and kept[w * FRAMES ...] (as pmx_resolve_word). At a word with unsure
- * decisions the loop stops and returns its index, its traversal in the
- * scratch as pmx_refine_word leaves it (out[0] unsure slots, out[1] its
- * slots): decide them, resolve it, and call again from the next word. Returns
- * n_words when every word is counted. One call per block of words keeps the
- * interpreter out of the loop. */
+ * ...] and kept[w * FRAMES ...] (as pmx_resolve_word), its unsure pairs taken
+ * as "keep". A word with unsure pairs also gets a record (word_base + w, its
+ * chains) appended to records (capacity int32, *used of them used); where a
+ * record does not fit, the loop stops and returns that word's index (make
+ * room and call again from it). Returns n_words when every word is counted.
+ * Scratch as pmx_refine_word, and ran, parent, chain [P], mark [P] (zero).
+ * One call per block of words keeps the interpreter out of the loop. */
 int64_t pmx_count_words(const float *table, const int32_t *kills, const int32_t *order, const int32_t *roots,
                         int64_t n_roots, const float *views, const float *fat, int64_t first, int64_t n_words,
                         int flags, int32_t *ids, int32_t *kid, Lanes *visit, Lanes *whole, Lanes *yes, Lanes *ran,
-                        int32_t *unsure_slots, Lanes *unsure_lanes, int64_t *out, int64_t *not_run, int64_t *kept)
+                        int32_t *unsure_slots, Lanes *unsure_lanes, int64_t *out, int64_t *not_run, int64_t *kept,
+                        int32_t *parent, int32_t *chain, uint8_t *mark, int64_t word_base, int32_t *records,
+                        int64_t capacity, int64_t *used)
 {
     for (int64_t w = first; w < n_words; w++) {
         const int64_t n = pmx_refine_word(table, order, roots, n_roots, views + w * FRAMES * 22, FRAMES, flags,
                                           fat ? fat + w * FAT_N : NULL, ids, kid, visit, whole, yes, unsure_slots,
                                           unsure_lanes, out);
-        if (out[0] > 0) {
-            out[1] = n;
-            return w;
-        }
         resolve_word(kills, order, n, ids, kid, visit, whole, yes, ran, NULL, not_run + w * FRAMES,
                      kept + w * FRAMES);
+        if (out[0] > 0) {
+            const int64_t size = record_unsure(word_base + w, n, n_roots, ids, kid, visit, whole, yes, ran, kills,
+                                               unsure_slots, unsure_lanes, out[0], parent, chain, mark,
+                                               records + *used, capacity - *used);
+            if (size < 0)
+                return w;
+            *used += size;
+        }
     }
     return n_words;
+}
+
+/* The unsure pairs of records [used]: per unsure node, where its yes bits
+ * are in records (at[]), its word, position and unsure frames. Returns
+ * their number. */
+int64_t pmx_unsure_nodes(const int32_t *records, int64_t used, int64_t *at, int32_t *word, int32_t *position,
+                         int32_t *lanes)
+{
+    int64_t c = 0;
+    for (int64_t r = 0; r < used; r += 2 + records[r + 1] * NODE_N)
+        for (int64_t j = 0; j < records[r + 1]; j++) {
+            const int32_t *node = records + r + 2 + j * NODE_N;
+            if (node[NODE_UNSURE]) {
+                at[c] = r + 2 + j * NODE_N + NODE_YES;
+                word[c] = records[r], position[c] = node[NODE_POSITION], lanes[c++] = node[NODE_UNSURE];
+            }
+        }
+    return c;
+}
+
+/* The records' chains resolved again once their unsure pairs' yes bits are
+ * set, children first; each frame whose slot now runs has one pcol fewer
+ * that did not run, and its kills fewer kept (yes bits only grow, so ran bits
+ * only turn on). not_run, kept: per lane, word w at (w - first_word) *
+ * FRAMES. */
+void pmx_apply_unsure(int32_t *records, int64_t used, int64_t first_word, int64_t *not_run, int64_t *kept)
+{
+    for (int64_t r = 0; r < used; r += 2 + records[r + 1] * NODE_N) {
+        int32_t *nodes = records + r + 2;
+        const int64_t lane = (records[r] - first_word) * FRAMES;
+        int64_t *nr = not_run + lane, *kp = kept + lane;
+        for (int64_t j = 0; j < records[r + 1]; j++) {
+            int32_t *node = nodes + j * NODE_N;
+            const Lanes r1 = (Lanes)(node[NODE_K1] >= 0 ? nodes[node[NODE_K1] * NODE_N + NODE_RAN] : node[NODE_RAN_K1]);
+            const Lanes r2 = (Lanes)(node[NODE_K2] >= 0 ? nodes[node[NODE_K2] * NODE_N + NODE_RAN] : node[NODE_RAN_K2]);
+            const Lanes now = (Lanes)(~node[NODE_VISIT] | node[NODE_WHOLE] | (node[NODE_YES] & r1 & r2));
+            const Lanes turned = (Lanes)(now & ~node[NODE_RAN]);
+            node[NODE_RAN] = now;
+            for (int l = 0; l < FRAMES; l++)
+                if ((turned >> l) & 1)
+                    nr[l] -= 1, kp[l] -= node[NODE_KILLS];
+        }
+    }
 }
 
 /* Frame `lane` of a resolved word as one refinement's lists: the pcols it

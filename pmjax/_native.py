@@ -71,7 +71,12 @@ def _load():
     lib.pmx_refine_word.restype = _i64
     lib.pmx_refine_word.argtypes = [_p, _p, _p, _i64, _p, ctypes.c_int, ctypes.c_int] + [_p] * 9
     lib.pmx_count_words.restype = _i64
-    lib.pmx_count_words.argtypes = [_p, _p, _p, _p, _i64, _p, _p, _i64, _i64, ctypes.c_int] + [_p] * 11
+    lib.pmx_count_words.argtypes = [_p, _p, _p, _p, _i64, _p, _p, _i64, _i64, ctypes.c_int] + [_p] * 14 + [
+        _i64, _p, _i64, _p]
+    lib.pmx_unsure_nodes.restype = _i64
+    lib.pmx_unsure_nodes.argtypes = [_p, _i64, _p, _p, _p, _p]
+    lib.pmx_apply_unsure.restype = None
+    lib.pmx_apply_unsure.argtypes = [_p, _i64, _i64, _p, _p]
     lib.pmx_resolve_word.restype = None
     lib.pmx_resolve_word.argtypes = [_p, _p, _i64] + [_p] * 9
     lib.pmx_word_frame.restype = _i64
@@ -676,6 +681,10 @@ class _WordScratch(_Addresses):
         self.unsure_slots, self.unsure_lanes = np.empty(P, np.int32), np.empty(P, np.uint16)
         self.out = np.zeros(3, np.int64)  # unsure slots, slots, slots decided by the fat camera
         self.not_run, self.kept = np.zeros(FRAMES, np.int64), np.zeros(FRAMES, np.int64)
+        # Records of words with unsure pairs (pmx_count_words): each slot's
+        # parent, the chains' slots, a mark per slot (zero between calls).
+        self.parent, self.chain, self.mark = np.empty(P, np.int32), np.empty(P, np.int32), np.zeros(P, np.uint8)
+        self.used = np.zeros(1, np.int64)
 
 
 def _word_scratch(host) -> _WordScratch:
@@ -685,54 +694,61 @@ def _word_scratch(host) -> _WordScratch:
     return s
 
 
-def _decide_word_unsure(host, words, cameras, taus, tests):
-    """The unsure (frame, pcol) pairs that word traversals left, decided in
-    one call of the float32 predicate; their yes bits set.
+def _decide_lanes(host, positions, lanes, lane_frames, cameras, taus, tests) -> np.ndarray:
+    """The float32 predicate's decisions for the unsure frames of a few
+    slots, all in one call.
 
     Args:
-        words: per word ``(first frame, ids, unsure slots, unsure lanes,
-            yes)``: the frame of lane 0 in ``cameras``, the word's slot
-            positions and its unsure slots and frames (as pmx_refine_word
-            leaves them), and its yes masks (updated here).
-        cameras, taus: the frames the words index.
+        positions: ``[m]`` the slots' breadth-first positions.
+        lanes: ``[m]`` each slot's unsure frames (bit l: lane l).
+        lane_frames: ``int [m, FRAMES]`` the frame in ``cameras`` of each
+            slot's lanes.
+        cameras, taus: the frames.
+
+    Returns:
+        ``uint16 [m]``: the frames (bits) whose decision is yes.
     """
-    if not words:
-        return
-    # Every (frame, slot) pair, word by word.
-    sizes = [len(w[2]) for w in words]
-    slots, lanes = np.concatenate([w[2] for w in words]), np.concatenate([w[3] for w in words]).astype(np.int64)
-    positions = np.concatenate([w[1][w[2]] for w in words])
-    pair, lane_of = np.nonzero((lanes[:, None] >> np.arange(FRAMES)) & 1)
-    word_of, slot_of = np.repeat(np.arange(len(words)), sizes)[pair], slots[pair]
-    pairs = len(pair)
+    lanes = np.asarray(lanes, np.int64)
+    out = np.zeros(len(lanes), np.uint16)
+    # Every (slot, frame) pair.
+    slot_of, lane_of = np.nonzero((lanes[:, None] >> np.arange(FRAMES)) & 1)
+    pairs = len(slot_of)
+    if pairs == 0:
+        return out
     pad = np.zeros(_bucket(pairs), np.int64)
     pad[:pairs] = np.arange(pairs)
-    first = np.array([w[0] for w in words])
-    frame = (first[word_of] + lane_of)[pad]
+    frame = np.asarray(lane_frames)[slot_of, lane_of][pad]
     batch = jax.tree.map(lambda a: np.asarray(a)[frame], cameras)
-    yes = np.asarray(_decide_pairs(_rows(host, host.order[positions[pair][pad]]), batch,
+    yes = np.asarray(_decide_pairs(_rows(host, host.order[np.asarray(positions)[slot_of][pad]]), batch,
                                    np.asarray(taus, np.float32)[frame], tests, cameras.orthographic))[:pairs]
-    for k, w in enumerate(words):
-        mine = yes & (word_of == k)
-        np.bitwise_or.at(w[4], slot_of[mine], (1 << lane_of[mine]).astype(np.uint16))
+    np.bitwise_or.at(out, slot_of[yes], (1 << lane_of[yes]).astype(np.uint16))
+    return out
 
 
-def count_words(pm, cameras, taus, tests, values, fats=None):
+def count_words(pm, cameras, taus, tests, values, fats=None, first_word=0, records=None):
     """Whole words of FRAMES frames through the C word traversal, counts only.
 
-    Words with unsure decisions keep their traversal (a copy of the slots
-    they visited) until the end, where all their unsure pairs are decided in
-    one call of the float32 predicate and the words resolved.
+    A word with unsure decisions is counted as if each were "keep" and
+    leaves a record of the slots whose outcome they can change (their chains
+    to the roots); :func:`resolve_unsure` decides the pairs of many words in
+    one call of the float32 predicate (a call costs 0.3-1 ms after a
+    traversal, whatever its size) and corrects their counts.
 
     Args:
         cameras: a host camera batch of ``W * FRAMES`` frames, word by word.
         taus: ``float32 [W * FRAMES]``.
         values: the frames' :func:`host_views`.
-        fats: the words' :func:`fat_cameras`, or ``None``
-            (every frame decided alone).
+        fats: the words' :func:`fat_cameras`, or ``None`` (every frame
+            decided alone).
+        first_word: the number of the first word in the records (its lanes
+            start at ``first_word * FRAMES`` in the arrays
+            :func:`resolve_unsure` corrects).
+        records: a list that receives the records (an int32 array) for
+            :func:`resolve_unsure`; ``None`` resolves them here.
 
     Returns:
-        ``(faces, vertices, executed)``, int32 arrays over the frames.
+        ``(not_run, kept)`` int64 per lane: the pcols that did not run and the
+        faces they keep (:meth:`NativeMesh.counts` makes the counts).
     """
     host = native_mesh(pm)
     s = _word_scratch(host)
@@ -741,27 +757,59 @@ def count_words(pm, cameras, taus, tests, values, fats=None):
     fat = None if fats is None else np.ascontiguousarray(fats, np.float32)  # the C loops check it applies
     not_run, kept = np.zeros(words * FRAMES, np.int64), np.zeros(words * FRAMES, np.int64)
     flags = flags_of(tests, cameras.orthographic)
-    pending = []  # per word with unsure pairs: (word, copies of its slots' arrays)
+    found = np.empty(RECORD_ROOM, np.int32)
+    s.used[0] = 0
     w = 0
-    while w < words:
+    while True:
         w = _LIB.pmx_count_words(host.p_bfs_table, host.p_bfs_kills, host.p_order, host.p_roots, len(host.roots),
                                  _ptr(views), None if fat is None else _ptr(fat), w, words, flags, s.p_ids,
                                  s.p_kid, s.p_visit, s.p_whole, s.p_yes, s.p_ran, s.p_unsure_slots,
-                                 s.p_unsure_lanes, s.p_out, _ptr(not_run), _ptr(kept))
-        if w < words:  # a word with unsure decisions: kept for the end
-            n, m = int(s.out[1]), int(s.out[0])
-            pending.append((w, dict(ids=s.ids[:n].copy(), kid=s.kid[:2 * n].copy(), visit=s.visit[:n].copy(),
-                                    whole=s.whole[:n].copy(), yes=s.yes[:n].copy(),
-                                    slots=s.unsure_slots[:m].copy(), lanes=s.unsure_lanes[:m].copy())))
-            w += 1
-    _decide_word_unsure(host, [(w * FRAMES, t["ids"], t["slots"], t["lanes"], t["yes"]) for w, t in pending],
+                                 s.p_unsure_lanes, s.p_out, _ptr(not_run), _ptr(kept), s.p_parent, s.p_chain,
+                                 s.p_mark, first_word, _ptr(found), len(found), s.p_used)
+        if w == words:
+            break
+        # Word w's record did not fit: a larger buffer, and on from w.
+        larger = np.empty(2 * len(found) + FRAMES * int(s.out[1]), np.int32)
+        larger[:s.used[0]] = found[:s.used[0]]
+        found = larger
+    found = found[:s.used[0]].copy()
+    if records is None:
+        resolve_unsure(pm, found, np.arange(words * FRAMES), cameras, taus, tests, not_run, kept, first_word)
+    else:
+        records.append(found)
+    return not_run, kept
+
+
+def resolve_unsure(pm, records, lane_frames, cameras, taus, tests, not_run, kept, first_word=0):
+    """The unsure pairs of :func:`count_words`' records decided in one call
+    of the float32 predicate, and the counts of their words corrected.
+
+    Args:
+        records: int32, records concatenated.
+        lane_frames: ``int [L]`` the frame in ``cameras`` of each lane of
+            ``not_run``.
+        not_run, kept: ``int64 [L]``, lane ``l`` of word ``w`` at
+            ``(w - first_word) * FRAMES + l``; corrected in place.
+    """
+    host = native_mesh(pm)
+    records = np.ascontiguousarray(records, np.int32)
+    if len(records) == 0:
+        return
+    n = len(records) // NODE_VALUES + 1  # at least one node per record
+    at, word, positions, lanes = np.empty(n, np.int64), np.empty(n, np.int32), np.empty(n, np.int32), \
+        np.empty(n, np.int32)
+    m = _LIB.pmx_unsure_nodes(_ptr(records), len(records), _ptr(at), _ptr(word), _ptr(positions), _ptr(lanes))
+    first_lane = (word[:m].astype(np.int64) - first_word) * FRAMES
+    yes = _decide_lanes(host, positions[:m], lanes[:m], np.asarray(lane_frames)[first_lane[:, None] + np.arange(FRAMES)],
                         cameras, taus, tests)
-    for w, t in pending:
-        at = slice(w * FRAMES, (w + 1) * FRAMES)
-        _LIB.pmx_resolve_word(host.p_bfs_kills, host.p_order, len(t["ids"]), _ptr(t["ids"]), _ptr(t["kid"]),
-                              _ptr(t["visit"]), _ptr(t["whole"]), _ptr(t["yes"]), s.p_ran, None, _ptr(not_run[at]),
-                              _ptr(kept[at]))
-    return host.counts(not_run, kept)
+    records[at[:m]] |= yes.astype(np.int32)
+    _LIB.pmx_apply_unsure(_ptr(records), len(records), first_word, _ptr(not_run), _ptr(kept))
+
+
+# int32 per node of a record (NODE_N in _front_native.c), and the room for
+# records a count_words call starts with (it grows when a word needs more).
+NODE_VALUES = 12
+RECORD_ROOM = 1 << 14
 
 
 def refine_word(pm, cameras, taus, tests, frames: bool, values=None, fat=True):
@@ -799,8 +847,11 @@ def refine_word(pm, cameras, taus, tests, frames: bool, values=None, fat=True):
                              s.p_ids, s.p_kid, s.p_visit, s.p_whole, s.p_yes, s.p_unsure_slots, s.p_unsure_lanes,
                              s.p_out)
     m = int(s.out[0])
-    _decide_word_unsure(host, [(0, s.ids, s.unsure_slots[:m], s.unsure_lanes[:m], s.yes)] if m else [], cameras, taus,
-                        tests)
+    if m:
+        slots = s.unsure_slots[:m]
+        s.yes[slots] |= _decide_lanes(host, s.ids[slots], s.unsure_lanes[:m],
+                                      np.broadcast_to(np.minimum(np.arange(FRAMES), nf - 1), (m, FRAMES)), cameras,
+                                      taus, tests)
     # Each slot's pcol only for the frames' lists (a read at random per slot).
     _LIB.pmx_resolve_word(host.p_bfs_kills, host.p_order, n, s.p_ids, s.p_kid, s.p_visit, s.p_whole, s.p_yes,
                           s.p_ran, s.p_pcols if frames else None, s.p_not_run, s.p_kept)

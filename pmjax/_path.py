@@ -204,12 +204,16 @@ def _native_words(pm, host, taus, tests, path_length, frames: bool):
 # Words whose camera constants are computed in one host pass (the C loops),
 # and the most words counted by one C call.
 WORDS_AT_ONCE = 16
+# Records of unsure pairs (int32) held before they are decided together.
+RECORDS_HELD = 1 << 20
 
 
 def _native_path_counts(pm, host, taus, tests, path_length, cols, ms, bar):
     """:func:`path_counts` through the C word traversal: blocks of words
     (at least two per core, at most WORDS_AT_ONCE words) taken by the cores
-    as they come free, each counted by one C call."""
+    as they come free, each counted by one C call; the unsure pairs the
+    blocks leave are decided in one call at the end (or whenever
+    RECORDS_HELD of their records are held) and the counts corrected."""
     import queue
     import threading
 
@@ -221,6 +225,8 @@ def _native_path_counts(pm, host, taus, tests, path_length, cols, ms, bar):
     blocks = iter([(w0, min(words, w0 + size)) for w0 in range(0, words, size)])
     n_blocks = -(-words // size)
     take, done = threading.Lock(), queue.Queue()
+    # Per lane of the padded path: the pcols that did not run, the faces they keep.
+    not_run, kept = np.zeros(len(order), np.int64), np.zeros(len(order), np.int64)
 
     def run():
         try:
@@ -230,27 +236,39 @@ def _native_path_counts(pm, host, taus, tests, path_length, cols, ms, bar):
                 if span is None:
                     return
                 t = time.perf_counter()
-                frames, cams, word_taus, values, fats = _word_block(host, taus, order, real, *span)
-                counts = _native.count_words(pm, cams, word_taus, tests, values, fats)
-                done.put((frames, counts, time.perf_counter() - t))
+                _, cams, word_taus, values, fats = _word_block(host, taus, order, real, *span)
+                records = []
+                counted = _native.count_words(pm, cams, word_taus, tests, values, fats, span[0], records)
+                done.put((span, counted, records[0], time.perf_counter() - t))
         except BaseException as e:  # handed to the caller's thread
             done.put(e)
 
     workers = [threading.Thread(target=run, daemon=True) for _ in range(threads)]
     for w in workers:
         w.start()
+    held, n_held = [], 0
     for _ in bar(range(n_blocks), n_blocks, "block"):
         got = done.get()
         if isinstance(got, BaseException):
             raise got
-        frames, counts, seconds = got
-        keep = frames >= 0
-        for col, v in zip(cols, counts):
-            col[frames[keep]] = v[keep]
+        (w0, w1), (block_not_run, block_kept), records, seconds = got
+        lanes = slice(w0 * F, w1 * F)
+        not_run[lanes], kept[lanes] = block_not_run, block_kept
+        held.append(records)
+        n_held += len(records)
+        if n_held >= RECORDS_HELD:
+            _native.resolve_unsure(pm, np.concatenate(held), order, host, taus, tests, not_run, kept)
+            held, n_held = [], 0
         # A block's wall time over its frames, over the cores that ran side by side.
-        ms[frames[keep]] = 1e3 * seconds / max(1, int(keep.sum())) / threads
+        frames = order[lanes][real[lanes]]
+        ms[frames] = 1e3 * seconds / max(1, len(frames)) / threads
     for w in workers:
         w.join()
+    if held:
+        _native.resolve_unsure(pm, np.concatenate(held), order, host, taus, tests, not_run, kept)
+    counts = _native.native_mesh(pm).counts(not_run[real], kept[real])
+    for col, v in zip(cols, counts):
+        col[order[real]] = v
 
 
 def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, tests: Tests = ALL_TESTS,

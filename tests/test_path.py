@@ -199,6 +199,37 @@ def test_long_path_streams_word_by_word(built, monkeypatch):
     assert counts["faces"].tolist() == [int(r.n_faces) for r in pmjax.refine_path(pm, cams, 1.0)]
 
 
+@pytest.mark.skipif(not _native.available(), reason="the C loops are not built")
+def test_path_at_a_float_tie_decides_the_unsure_pairs_of_all_words_together(built, monkeypatch):
+    """A path that holds a pcol's critical tolerance (a float tie) in many
+    frames: each word with unsure pairs is counted as if they kept, the slots
+    they can change are recorded (in a buffer that has to grow), and the
+    pairs of every block are decided together (here in several rounds) and
+    the counts corrected: one float step below, at and above the tie, the
+    counts of dense per-frame refines."""
+    data, pm = model(built, "bunny.ply")
+    orbit = pmjax.standard_orbit(originals(data), 8)
+    cam = index_camera(orbit, 1)
+    t = np.asarray(pmjax.critical_tau(pm.attributes, cam))
+    p = np.flatnonzero(np.isfinite(t) & (t > 0.5) & (t < 4))[0]
+    cams = stack_cameras([cam] * 40 + [index_camera(orbit, i) for i in range(8)])
+    monkeypatch.setattr(_native, "RECORD_ROOM", 16)
+    monkeypatch.setattr(_path, "RECORDS_HELD", 1)
+    monkeypatch.setattr(_native, "_cores", lambda: 2)
+    decided = []
+    real = _native._decide_lanes
+    monkeypatch.setattr(_native, "_decide_lanes", lambda *a: decided.append(real(*a)) or decided[-1])
+    for tau in (np.nextafter(t[p], np.float32(0)), t[p], np.nextafter(t[p], np.float32(np.inf))):
+        got = pmjax.path_counts(pm, cams, tau)
+        alone = [pmjax.refine(pm, c, tau, method="dense") for c in [cam] + [index_camera(orbit, i) for i in range(8)]]
+        for i in range(48):
+            r = alone[0] if i < 40 else alone[i - 39]
+            assert (got["faces"][i], got["vertices"][i], got["executed_count"][i]) == (
+                int(r.n_faces), int(r.n_vertices), int(r.n_executed)), (tau, i)
+    # Several rounds of decisions (one per block), some pairs decided yes.
+    assert len(decided) >= 3 and any(np.any(y) for y in decided)
+
+
 def test_path_as_jax_kernels_is_exact_and_streams(built, monkeypatch):
     """The word traversal as JAX kernels (where the C loops are not built): 32
     frames per word, each as refine alone; the refinements are computed one
