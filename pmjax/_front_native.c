@@ -1232,21 +1232,6 @@ void pmx_apply_unsure(int32_t *records, int64_t used, int64_t first_word, int64_
     }
 }
 
-/* Frame `lane` of a resolved word as one refinement's lists: the pcols it
- * visited, whether each ran, their positions. Returns their number. */
-int64_t pmx_word_frame(int64_t n, const int32_t *ids, const int32_t *pcols, const Lanes *visit, const Lanes *ran,
-                       int lane, int32_t *out_pcols, uint8_t *out_ran, int32_t *out_positions)
-{
-    int64_t c = 0;
-    for (int64_t i = 0; i < n; i++)
-        if ((visit[i] >> lane) & 1) {
-            out_pcols[c] = pcols[i];
-            out_ran[c] = (ran[i] >> lane) & 1;
-            out_positions[c++] = ids[i];
-        }
-    return c;
-}
-
 /* Every pcol of the table, a block at a time: under the cameras fr (one in
  * every lane) or, with W, under the fat camera. */
 static void decide_every_block(const float *table, int64_t n_pcols, const Frames *fr, const Fat *W, uint8_t *out)

@@ -79,8 +79,6 @@ def _load():
     lib.pmx_apply_unsure.argtypes = [_p, _i64, _i64, _p, _p]
     lib.pmx_resolve_word.restype = None
     lib.pmx_resolve_word.argtypes = [_p, _p, _i64] + [_p] * 9
-    lib.pmx_word_frame.restype = _i64
-    lib.pmx_word_frame.argtypes = [_i64, _p, _p, _p, _p, ctypes.c_int, _p, _p, _p]
     lib.pmx_fat_cameras.restype = ctypes.c_int
     lib.pmx_fat_cameras.argtypes = [_p, _i64, ctypes.c_int, _p]
     lib.pmx_decide_fat_all.restype = None
@@ -829,7 +827,8 @@ def refine_word(pm, cameras, taus, tests, frames: bool, values=None, fat=True):
     Returns:
         ``(counts, lists, union, at_once)``: ``counts`` ``(faces, vertices,
         executed)`` int arrays over the frames; ``lists``, with ``frames``,
-        per frame ``(visited, executed, positions)`` (else ``None``);
+        per frame ``(visited, executed, positions)`` (else ``None``): the
+        word's slots for every frame, each frame's own ran bits;
         ``union`` the pcols the word visited, ``at_once`` those the fat
         camera decided for every frame.
     """
@@ -859,13 +858,12 @@ def refine_word(pm, cameras, taus, tests, frames: bool, values=None, fat=True):
     at_once = int(s.out[2])
     if not frames:
         return counts, None, n, at_once
-    lists = []
-    for lane in range(nf):
-        vis, ran, at = np.empty(n, np.int32), np.empty(n, np.uint8), np.empty(n, np.int32)
-        c = _LIB.pmx_word_frame(n, s.p_ids, s.p_pcols, s.p_visit, s.p_ran, lane, _ptr(vis), _ptr(ran),
-                                _ptr(at))
-        lists.append((vis[:c].copy(), ran[:c].view(bool).copy(), at[:c].copy()))
-    return counts, lists, n, at_once
+    # Every frame lists the word's slots: a slot a frame did not visit lies
+    # under a subtree decided for it, so it ran (its ran bit is set). One
+    # copy of the slots per word, each frame's ran bits a row of one array.
+    pcols, at = s.pcols[:n].copy(), s.ids[:n].copy()
+    bits = np.unpackbits(s.ran[:n].view(np.uint8).reshape(n, 2), axis=1, bitorder="little").T.copy().view(bool)
+    return counts, [(pcols, bits[lane], at) for lane in range(nf)], n, at_once
 
 
 def _cores() -> int:

@@ -17,8 +17,9 @@ float32 predicate's bit, certified or computed, or proved for every frame
 under the fat camera) and a sound subtree bound (its own or the fat camera's),
 and a pcol it does not visit lies under a subtree every pcol of which
 collapses for it. So its executed set, counts, faces and ``vref`` are those of
-``refine(pm, camera_c, tau_c)``, bit for bit (its list of visited pcols may be
-shorter). No state is carried
+``refine(pm, camera_c, tau_c)``, bit for bit. Its visited list is the word's:
+every frame of a word lists the word's slots, those it did not visit marked
+executed (they lie under a subtree decided for it). No state is carried
 from one word to the next: a cut or a teleport costs nothing special, a frame's
 result never depends on the frames before it (unlike SrMesh's adapted mesh),
 and a path of any length runs in the memory of one word (or chunk of words).
@@ -29,6 +30,8 @@ and the frames are then refined as a path at the tolerances found.
 
 from __future__ import annotations
 
+import collections
+import itertools
 import time
 from typing import Iterator
 
@@ -186,19 +189,50 @@ def _word_block(host, taus, order, real, w0: int, w1: int):
 
 
 def _native_words(pm, host, taus, tests, path_length, frames: bool):
-    """The C word traversal over the frames, a word at a time (the constants
-    of WORDS_AT_ONCE words computed together): yields ``(frame index per
-    lane, -1 for padding), counts, lists`` (:func:`pmjax._native.refine_word`)."""
+    """The C word traversal over the frames, in order: yields ``(frame index
+    per lane, -1 for padding), counts, lists`` per word
+    (:func:`pmjax._native.refine_word`). The words are traversed by the
+    cores, at most WORDS_AHEAD per core ahead of the consumer (memory: those
+    words' lists), the constants of WORDS_AT_ONCE words computed together."""
+    from concurrent.futures import ThreadPoolExecutor
+
     F = _native.FRAMES
     order, real = _word_order(len(taus), path_length)
     words = len(order) // F
-    for w0 in range(0, words, WORDS_AT_ONCE):  # memory: a few words at a time
-        lanes, cams, word_taus, values, fats = _word_block(host, taus, order, real, w0, min(words, w0 + WORDS_AT_ONCE))
-        for w in range(len(fats)):
-            at = slice(w * F, (w + 1) * F)
-            counts, lists, _, _ = _native.refine_word(pm, jax.tree.map(lambda a: a[at], cams), word_taus[at],
-                                                      tests, frames, values[at], fats[w])
-            yield lanes[at], counts, lists
+
+    def jobs():
+        for w0 in range(0, words, WORDS_AT_ONCE):
+            lanes, cams, word_taus, values, fats = _word_block(host, taus, order, real, w0,
+                                                               min(words, w0 + WORDS_AT_ONCE))
+            for w in range(len(fats)):
+                at = slice(w * F, (w + 1) * F)
+                yield lanes[at], (jax.tree.map(lambda a: a[at], cams), word_taus[at], values[at], fats[w])
+
+    def word(cams, word_taus, values, fat):
+        counts, lists, _, _ = _native.refine_word(pm, cams, word_taus, tests, frames, values, fat)
+        return counts, lists
+
+    threads = _native._cores()
+    pool = ThreadPoolExecutor(threads)
+    pending = collections.deque()
+    todo = jobs()
+    try:
+        for lanes, args in itertools.islice(todo, WORDS_AHEAD * threads):
+            pending.append((lanes, pool.submit(word, *args)))
+        while pending:
+            lanes, done = pending.popleft()
+            following = next(todo, None)
+            if following is not None:
+                pending.append((following[0], pool.submit(word, *following[1])))
+            yield (lanes,) + done.result()
+    finally:  # also when the consumer stops early
+        for _, future in pending:
+            future.cancel()
+        pool.shutdown(wait=False)
+
+
+# Words each core traverses ahead of the consumer of refine_path.
+WORDS_AHEAD = 2
 
 
 # Words whose camera constants are computed in one host pass (the C loops),
