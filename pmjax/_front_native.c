@@ -1308,6 +1308,20 @@ static double min_nan(double a, double b) { return a != a || a < b ? a : b; }
 
 static double norm3(const double *v) { return sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]); }
 
+/* The float32 centre of the box lo..hi of points p[0..n) (into centre), and
+ * the largest distance of a point from it. */
+static double ball_about_box(const double (*p)[3], int n, const double *lo, const double *hi, double *centre)
+{
+    double radius = 0;
+    for (int i = 0; i < 3; i++)
+        centre[i] = fat_f32(0.5 * (lo[i] + hi[i]));
+    for (int f = 0; f < n; f++) {
+        const double d[3] = {p[f][0] - centre[0], p[f][1] - centre[1], p[f][2] - centre[2]};
+        radius = max_nan(radius, norm3(d));
+    }
+    return radius;
+}
+
 /* The smallest eigenvalue of the symmetric 3 x 3 matrix a (trigonometric
  * closed form; NaN for a matrix that is not finite). */
 static double smallest_eigenvalue(const double a[3][3])
@@ -1381,13 +1395,8 @@ int pmx_fat_cameras(const float *views, int64_t n_words, int n_frames, float *ou
                 lo[i] = min_nan(lo[i], eyes[f][i]), hi[i] = max_nan(hi[i], eyes[f][i]);
             }
         /* The eye ball: about the box's centre. */
-        double eye[3], rho = 0;
-        for (int i = 0; i < 3; i++)
-            eye[i] = fat_f32(0.5 * (lo[i] + hi[i]));
-        for (int f = 0; f < F; f++) {
-            const double d[3] = {eyes[f][0] - eye[0], eyes[f][1] - eye[1], eyes[f][2] - eye[2]};
-            rho = max_nan(rho, norm3(d));
-        }
+        double eye[3];
+        const double rho = ball_about_box((const double (*)[3])eyes, F, lo, hi, eye);
         /* The rotations about the middle frame's: |D|_2^2 is the largest
          * eigenvalue of D^T D, at most its largest absolute row sum
          * (Gershgorin; exact for a turn about one axis). */
@@ -1421,13 +1430,8 @@ int pmx_fat_cameras(const float *views, int64_t n_words, int n_frames, float *ou
                 tlo[i] = min_nan(tlo[i], t[f][i]), thi[i] = max_nan(thi[i], t[f][i]);
             }
         }
-        double centre[3], tau = 0;
-        for (int i = 0; i < 3; i++)
-            centre[i] = fat_f32(0.5 * (tlo[i] + thi[i]));
-        for (int f = 0; f < F; f++) {
-            const double d[3] = {t[f][0] - centre[0], t[f][1] - centre[1], t[f][2] - centre[2]};
-            tau = max_nan(tau, norm3(d));
-        }
+        double centre[3];
+        const double tau = ball_about_box((const double (*)[3])t, F, tlo, thi, centre);
         /* The capsule about the chord: each eye's distance from its nearest
          * point of the (float32) segment the decisions use. */
         const double *start = eyes[0];
