@@ -768,8 +768,8 @@ def count_words(pm, cameras, taus, tests, values, fats=None, first_word=0, recor
                                  s.p_mark, first_word, _ptr(found), len(found), s.p_used)
         if w == words:
             break
-        # Word w's record did not fit: a larger buffer, and on from w.
-        larger = np.empty(2 * len(found) + FRAMES * int(s.out[1]), np.int32)
+        # Word w's record did not fit: twice the room, and on from w (traversed again).
+        larger = np.empty(2 * len(found), np.int32)
         larger[:s.used[0]] = found[:s.used[0]]
         found = larger
     found = found[:s.used[0]].copy()
