@@ -725,7 +725,7 @@ def _decide_lanes(host, positions, lanes, lane_frames, cameras, taus, tests) -> 
     return out
 
 
-def count_words(pm, cameras, taus, tests, values, fats=None, first_word=0, records=None):
+def count_words(pm, cameras, taus, tests, values, fats=None, first_word=0):
     """Whole words of FRAMES frames through the C word traversal, counts only.
 
     A word with unsure decisions is counted as if each were "keep" and
@@ -743,12 +743,12 @@ def count_words(pm, cameras, taus, tests, values, fats=None, first_word=0, recor
         first_word: the number of the first word in the records (its lanes
             start at ``first_word * FRAMES`` in the arrays
             :func:`resolve_unsure` corrects).
-        records: a list that receives the records (an int32 array) for
-            :func:`resolve_unsure`; ``None`` resolves them here.
 
     Returns:
-        ``(not_run, kept)`` int64 per lane: the pcols that did not run and the
-        faces they keep (:meth:`NativeMesh.counts` makes the counts).
+        ``(not_run, kept, records)``: int64 per lane, the pcols that did not
+        run and the faces they keep (:meth:`NativeMesh.counts` makes the
+        counts), unsure pairs taken as "keep"; and the words' records
+        (int32) for :func:`resolve_unsure`.
     """
     host = native_mesh(pm)
     s = _word_scratch(host)
@@ -772,12 +772,7 @@ def count_words(pm, cameras, taus, tests, values, fats=None, first_word=0, recor
         larger = np.empty(2 * len(found), np.int32)
         larger[:s.used[0]] = found[:s.used[0]]
         found = larger
-    found = found[:s.used[0]].copy()
-    if records is None:
-        resolve_unsure(pm, found, np.arange(words * FRAMES), cameras, taus, tests, not_run, kept, first_word)
-    else:
-        records.append(found)
-    return not_run, kept
+    return not_run, kept, found[:s.used[0]].copy()
 
 
 def resolve_unsure(pm, records, lane_frames, cameras, taus, tests, not_run, kept, first_word=0):

@@ -271,9 +271,8 @@ def _native_path_counts(pm, host, taus, tests, path_length, cols, ms, bar):
                     return
                 t = time.perf_counter()
                 _, cams, word_taus, values, fats = _word_block(host, taus, order, real, *span)
-                records = []
-                counted = _native.count_words(pm, cams, word_taus, tests, values, fats, span[0], records)
-                done.put((span, counted, records[0], time.perf_counter() - t))
+                counted = _native.count_words(pm, cams, word_taus, tests, values, fats, span[0])
+                done.put((span, counted, time.perf_counter() - t))
         except BaseException as e:  # handed to the caller's thread
             done.put(e)
 
@@ -285,7 +284,7 @@ def _native_path_counts(pm, host, taus, tests, path_length, cols, ms, bar):
         got = done.get()
         if isinstance(got, BaseException):
             raise got
-        (w0, w1), (block_not_run, block_kept), records, seconds = got
+        (w0, w1), (block_not_run, block_kept, records), seconds = got
         lanes = slice(w0 * F, w1 * F)
         not_run[lanes], kept[lanes] = block_not_run, block_kept
         held.append(records)
