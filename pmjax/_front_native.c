@@ -1344,15 +1344,16 @@ static double smallest_eigenvalue(const double a[3][3])
 
 /* The point closest to every view axis of the frames (least squares), or
  * fallback where the axes are too near parallel to meet (a camera moving
- * forward): sum over the frames of (I - n n^T) x = sum of (I - n n^T) e. */
-static void fat_pivot(const double (*eyes)[3], const double (*forward)[3], int n, const double *fallback,
+ * forward): sum over the frames of (I - n n^T) x = sum of (I - n n^T) e, n
+ * the forward row of each frame's rotation. */
+static void fat_pivot(const double (*eyes)[3], const double (*rot)[3][3], int n, const double *fallback,
                       double *pivot)
 {
     double a[3][3] = {{0}}, b[3] = {0};
     for (int f = 0; f < n; f++)
         for (int i = 0; i < 3; i++)
             for (int j = 0; j < 3; j++) {
-                const double across = (i == j) - forward[f][i] * forward[f][j];
+                const double across = (i == j) - rot[f][2][i] * rot[f][2][j];
                 a[i][j] += across;
                 b[i] += across * eyes[f][j];
             }
@@ -1380,8 +1381,7 @@ int pmx_fat_cameras(const float *views, int64_t n_words, int n_frames, float *ou
     if (n_frames < 1 || n_frames > FAT_MAX_FRAMES)
         return -1;
     const int F = n_frames;
-    double eyes[FAT_MAX_FRAMES][3], rot[FAT_MAX_FRAMES][3][3], forward[FAT_MAX_FRAMES][3];
-    double t[FAT_MAX_FRAMES][3];
+    double eyes[FAT_MAX_FRAMES][3], rot[FAT_MAX_FRAMES][3][3], t[FAT_MAX_FRAMES][3];
     for (int64_t w = 0; w < n_words; w++) {
         const float *v = views + w * n_frames * 22;
         float *o = out + w * FAT_N;
@@ -1391,7 +1391,6 @@ int pmx_fat_cameras(const float *views, int64_t n_words, int n_frames, float *ou
                 eyes[f][i] = v[22 * f + EYE + i];
                 for (int j = 0; j < 3; j++)
                     rot[f][i][j] = v[22 * f + RIGHT + 3 * i + j];
-                forward[f][i] = v[22 * f + FORWARD + i];
                 lo[i] = min_nan(lo[i], eyes[f][i]), hi[i] = max_nan(hi[i], eyes[f][i]);
             }
         /* The eye ball: about the box's centre. */
@@ -1418,7 +1417,7 @@ int pmx_fat_cameras(const float *views, int64_t n_words, int n_frames, float *ou
          * box's centre. The double products and sums of t round by at most
          * 2^-50 of |pivot - eye|_1. */
         double pivot[3];
-        fat_pivot((const double (*)[3])eyes, (const double (*)[3])forward, F, eye, pivot);
+        fat_pivot((const double (*)[3])eyes, (const double (*)[3][3])rot, F, eye, pivot);
         for (int i = 0; i < 3; i++)
             pivot[i] = fat_f32(pivot[i]);
         double tlo[3] = {INFINITY, INFINITY, INFINITY}, thi[3] = {-INFINITY, -INFINITY, -INFINITY}, spread1 = 0;
