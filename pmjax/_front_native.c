@@ -417,7 +417,7 @@ static inline __attribute__((always_inline)) void decide_lanes(const Frames *res
  * vector units the processor has; the usual views (fast_view) with their
  * uniform conditions as constants. */
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-#define VECTOR_CLONES __attribute__((target_clones("avx512f", "avx2", "default")))
+#define VECTOR_CLONES __attribute__((target_clones("avx512f", "arch=x86-64-v3", "avx2", "default")))
 #else
 #define VECTOR_CLONES
 #endif
@@ -779,15 +779,19 @@ static inline void gather_block(const float *table, const int32_t *ids, int64_t 
     gather(rows, col);
 }
 
-/* Top-down traversal from the roots, breadth first: slot i holds pcol ids[i]
- * with state[i]; kid[2i], kid[2i+1] are the slots of its children (-1: not
- * visited, which means original or decided, and so executed). Returns the
+/* Top-down traversal from the roots, breadth first, over a table whose
+ * bounds are those of the pcols strictly below each pcol (NativeMesh
+ * below_table): slot i holds pcol ids[i] with its own decision state[i];
+ * kid[2i], kid[2i+1] are the slots of its children (-1: not visited, which
+ * means original or below a slot whose bound decided, and so executed).
+ * Against bounds over whole subtrees, this leaves unvisited the children of
+ * the pcols that do not run themselves but whose children do (a third of
+ * the visits on the dragon). Returns the
  * number of slots; unsure[] receives the slots whose own decision is
  * UNSURE, *n_unsure their number. Capacity: P + 2 slots. Slots are decided a
  * block at a time; the children of a block are pushed behind the queue. */
 static int64_t traverse(const Mesh *pm, const Frames *w, const int32_t *roots, int64_t n_roots, int32_t *ids,
-                        int32_t *kid, uint8_t *state, int32_t *unsure, int64_t *n_unsure, const int32_t *known,
-                        const uint8_t *known_yes, int64_t n_known)
+                        int32_t *kid, uint8_t *state, int32_t *unsure, int64_t *n_unsure)
 {
     int64_t n = 0, m = 0;
     Columns col;
@@ -806,27 +810,24 @@ static int64_t traverse(const Mesh *pm, const Frames *w, const int32_t *roots, i
         for (int64_t j = i; j < i + nb; j++) {
             /* Without branches but for the rare unsure decisions: whether the
              * bound decided a slot is a coin toss to the branch predictor. */
-            const int32_t own = decided[j - i];
-            const int open = !(own & WHOLE);
-            state[j] = open ? (uint8_t)own : (WHOLE | YES);
-            if (open & (own == UNSURE)) {
-                /* Decided by the caller (the float32 predicate) on an earlier pass? */
-                int64_t q = 0;
-                while (q < n_known && known[q] != pm->order[ids[j]])
-                    q++;
-                if (q < n_known)
-                    state[j] = known_yes[q] ? YES : NO;
-                else
-                    unsure[m++] = (int32_t)j;
-            }
+            const int32_t own = decided[j - i] & (YES | UNSURE);
+            const int open = !(decided[j - i] & WHOLE);
+            state[j] = (uint8_t)own;
+            if (own == UNSURE) /* rare: decided by the caller (the float32 predicate) */
+                unsure[m++] = (int32_t)j;
             /* The children of an open slot are visited whatever it does (each
              * may run on its own); their rows are fetched ahead of their turn.
-             * Two are written and those that exist counted (2 spare slots). */
+             * Two are written and those that exist counted (2 spare slots).
+             * A slot is closed when everything below it collapses: its
+             * children ran, and it runs when it collapses itself. */
             int32_t kids;
             memcpy(&kids, &col[KIDS][j - i], sizeof kids);
-            const int32_t first = kids >> 2, count = open ? kids & 3 : 0;
-            kid[2 * j] = count > 0 ? (int32_t)n : -1;
-            kid[2 * j + 1] = count > 1 ? (int32_t)n + 1 : -1;
+            /* As masks (-1 or 0), which the compiler keeps as arithmetic
+             * where conditionals became branches. */
+            const int32_t first = kids >> 2, count = (kids & 3) & -open;
+            const int32_t one = -(count > 0), two = -(count > 1);
+            kid[2 * j] = ((int32_t)n & one) | ~one;
+            kid[2 * j + 1] = (((int32_t)n + 1) & two) | ~two;
             ids[n] = first;
             ids[n + 1] = first + 1;
             n += count;
@@ -837,8 +838,8 @@ static int64_t traverse(const Mesh *pm, const Frames *w, const int32_t *roots, i
     return n;
 }
 
-/* Bottom-up: a slot ran if its subtree was decided, or it collapses and both
- * children ran (children always sit in later slots). Writes ran[] (0/1), the
+/* Bottom-up: a slot ran if it collapses and both children ran (children
+ * always sit in later slots; one not visited ran). Writes ran[] (0/1), the
  * counts (pcols that did not run, the faces they keep) and pcols[], the pcol
  * of each slot (ids[] holds positions; optional). */
 static void resolve(const Mesh *pm, int64_t n, const int32_t *ids, const int32_t *kid, const uint8_t *state,
@@ -849,7 +850,7 @@ static void resolve(const Mesh *pm, int64_t n, const int32_t *ids, const int32_t
         /* Without branches: whether a slot ran is a coin toss too. */
         const int32_t k1 = kid[2 * i], k2 = kid[2 * i + 1];
         const int below = ((k1 < 0) | ran[k1 < 0 ? 0 : k1]) & ((k2 < 0) | ran[k2 < 0 ? 0 : k2]);
-        const int r = ((state[i] & WHOLE) != 0) | ((state[i] == YES) & below);
+        const int r = (state[i] == YES) & below;
         ran[i] = (uint8_t)r;
         not_run += !r;
         keep += (!r) * pm->kills[ids[i]];
@@ -874,7 +875,7 @@ int64_t pmx_refine(const float *table, const int32_t *kills, const int32_t *orde
     Frames w;
     load_frames(&w, view, 1, flags);
     int64_t m = 0;
-    int64_t n = traverse(&pm, &w, roots, n_roots, ids, kid, state, unsure, &m, NULL, NULL, 0);
+    int64_t n = traverse(&pm, &w, roots, n_roots, ids, kid, state, unsure, &m);
     out[0] = m;
     out[1] = out[2] = 0;
     if (m == 0)
@@ -889,48 +890,6 @@ void pmx_resolve(const int32_t *kills, const int32_t *order, int64_t n, const in
 {
     Mesh pm = {NULL, kills, order, 0};
     resolve(&pm, n, ids, kid, state, ran, pcols, &out[0], &out[1]);
-}
-
-/* Cameras k0..k1-1 of views [K, 22], each traversed and resolved with the
- * same scratch. counts[3k..3k+2] = visited slots, pcols not run, faces they
- * keep. A camera with unsure decisions gets status[k] = their number (its
- * counts are not written) and, if at most UNSURE_PER_CAMERA, their pcols in
- * unsure_pcols[k * UNSURE_PER_CAMERA...]: the caller decides them and calls
- * again with known (pcols, decisions per camera, known_count[k] of them at
- * known[k * UNSURE_PER_CAMERA...]). masks: optional [K, P] executed bytes. */
-#define UNSURE_PER_CAMERA 16
-void pmx_refine_many(const float *table, const int32_t *kills, const int32_t *order,
-                     int64_t n_pcols, const int32_t *roots, int64_t n_roots, const float *views, int flags, int64_t k0,
-                     int64_t k1, int32_t *ids, int32_t *kid, uint8_t *state, uint8_t *ran, int32_t *pcols,
-                     int32_t *unsure, int64_t *counts, int32_t *status, int32_t *unsure_pcols, const int32_t *known,
-                     const uint8_t *known_yes, const int32_t *known_count, uint8_t *masks)
-{
-    Mesh pm = {table, kills, order, n_pcols};
-    for (int64_t c = k0; c < k1; c++) {
-        Frames w;
-        load_frames(&w, views + 22 * c, 1, flags);
-        int64_t m = 0, nk = known_count ? known_count[c] : 0;
-        if (known_count && nk == 0)
-            continue; /* an again-call: this camera is done */
-        int64_t n = traverse(&pm, &w, roots, n_roots, ids, kid, state, unsure, &m,
-                             known ? known + c * UNSURE_PER_CAMERA : NULL,
-                             known ? known_yes + c * UNSURE_PER_CAMERA : NULL, nk);
-        status[c] = (int32_t)m;
-        if (m > 0) {
-            for (int64_t q = 0; q < m && q < UNSURE_PER_CAMERA; q++)
-                unsure_pcols[c * UNSURE_PER_CAMERA + q] = order[ids[unsure[q]]];
-            continue;
-        }
-        resolve(&pm, n, ids, kid, state, ran, masks ? pcols : NULL, &counts[3 * c + 1], &counts[3 * c + 2]);
-        counts[3 * c] = n;
-        if (masks) {
-            uint8_t *row = masks + c * n_pcols;
-            memset(row, 1, (size_t)n_pcols);
-            for (int64_t i = 0; i < n; i++)
-                if (!ran[i])
-                    row[pcols[i]] = 0;
-        }
-    }
 }
 
 /* ---- words: consecutive frames of a camera path together ---------------- */
@@ -1189,6 +1148,57 @@ int64_t pmx_count_words(const float *table, const int32_t *kills, const int32_t 
     return n_words;
 }
 
+/* Cameras k0..k1-1 of views [K, 22], each traversed and resolved with the
+ * same scratch. counts[3k..3k+2] = visited slots, pcols not run, faces they
+ * keep; masks: optional [K, P] executed bytes. A camera with unsure
+ * decisions is resolved as if each were "keep" and leaves a record (camera
+ * k, its chains; pmx_count_words's records with one frame, visit bits 1) in
+ * records (capacity int32, *used of them used): decide the pairs, set their
+ * yes bits and call pmx_apply_unsure with frames 1. Where a record does not
+ * fit, returns that camera (make room and call again from it); k1 when every
+ * camera is done. Scratch: the traversal's (pmx_refine) and, for the
+ * records, the word scratch of pmx_count_words (visit, whole, yes, lanes as
+ * Lanes [P], parent, chain [P] int32, mark [P] zero). */
+int64_t pmx_refine_many(const float *table, const int32_t *kills, const int32_t *order, int64_t n_pcols,
+                        const int32_t *roots, int64_t n_roots, const float *views, int flags, int64_t k0,
+                        int64_t k1, int32_t *ids, int32_t *kid, uint8_t *state, uint8_t *ran, int32_t *pcols,
+                        int32_t *unsure, int64_t *counts, uint8_t *masks, Lanes *visit, Lanes *whole, Lanes *yes,
+                        Lanes *lanes, Lanes *unsure_lanes, int32_t *parent, int32_t *chain, uint8_t *mark,
+                        int32_t *records, int64_t capacity, int64_t *used)
+{
+    Mesh pm = {table, kills, order, n_pcols};
+    for (int64_t c = k0; c < k1; c++) {
+        Frames w;
+        load_frames(&w, views + 22 * c, 1, flags);
+        int64_t m = 0;
+        const int64_t n = traverse(&pm, &w, roots, n_roots, ids, kid, state, unsure, &m);
+        /* An unsure slot's state is UNSURE, which resolve reads as "keep". */
+        resolve(&pm, n, ids, kid, state, ran, masks ? pcols : NULL, &counts[3 * c + 1], &counts[3 * c + 2]);
+        counts[3 * c] = n;
+        if (m > 0) {
+            /* The camera as a word of one frame. */
+            for (int64_t i = 0; i < n; i++)
+                visit[i] = 1, whole[i] = 0, yes[i] = state[i] == YES, lanes[i] = ran[i];
+            for (int64_t q = 0; q < m; q++)
+                unsure_lanes[q] = 1;
+            const int64_t size = record_unsure(c, n, n_roots, ids, kid, visit, whole, yes, lanes, kills, unsure,
+                                               unsure_lanes, m, parent, chain, mark, records + *used,
+                                               capacity - *used);
+            if (size < 0)
+                return c;
+            *used += size;
+        }
+        if (masks) {
+            uint8_t *row = masks + c * n_pcols;
+            memset(row, 1, (size_t)n_pcols);
+            for (int64_t i = 0; i < n; i++)
+                if (!ran[i])
+                    row[pcols[i]] = 0;
+        }
+    }
+    return k1;
+}
+
 /* The unsure pairs of records [used]: per unsure node, where its yes bits
  * are in records (at[]), its word, position and unsure frames. Returns
  * their number. */
@@ -1211,12 +1221,15 @@ int64_t pmx_unsure_nodes(const int32_t *records, int64_t used, int64_t *at, int3
  * set, children first; each frame whose slot now runs has one pcol fewer
  * that did not run, and its kills fewer kept (yes bits only grow, so ran bits
  * only turn on). not_run, kept: per lane, word w at (w - first_word) *
- * FRAMES. */
-void pmx_apply_unsure(int32_t *records, int64_t used, int64_t first_word, int64_t *not_run, int64_t *kept)
+ * frames (FRAMES, or 1 for the single cameras of pmx_refine_many); masks:
+ * NULL, or per lane the executed bytes of n_pcols pcols, set where a pcol now
+ * runs. */
+void pmx_apply_unsure(int32_t *records, int64_t used, int64_t first_word, int frames, int64_t *not_run,
+                      int64_t *kept, const int32_t *order, uint8_t *masks, int64_t n_pcols)
 {
     for (int64_t r = 0; r < used; r += 2 + records[r + 1] * NODE_N) {
         int32_t *nodes = records + r + 2;
-        const int64_t lane = (records[r] - first_word) * FRAMES;
+        const int64_t lane = (records[r] - first_word) * frames;
         int64_t *nr = not_run + lane, *kp = kept + lane;
         for (int64_t j = 0; j < records[r + 1]; j++) {
             int32_t *node = nodes + j * NODE_N;
@@ -1225,9 +1238,12 @@ void pmx_apply_unsure(int32_t *records, int64_t used, int64_t first_word, int64_
             const Lanes now = (Lanes)(~node[NODE_VISIT] | node[NODE_WHOLE] | (node[NODE_YES] & r1 & r2));
             const Lanes turned = (Lanes)(now & ~node[NODE_RAN]);
             node[NODE_RAN] = now;
-            for (int l = 0; l < FRAMES; l++)
-                if ((turned >> l) & 1)
+            for (int l = 0; l < frames; l++)
+                if ((turned >> l) & 1) {
                     nr[l] -= 1, kp[l] -= node[NODE_KILLS];
+                    if (masks)
+                        masks[(lane + l) * n_pcols + order[node[NODE_POSITION]]] = 1;
+                }
         }
     }
 }

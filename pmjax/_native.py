@@ -24,6 +24,7 @@ runs as JAX kernels.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import functools
 import importlib.util
@@ -66,8 +67,9 @@ def _load():
     lib.pmx_refine.argtypes = [_p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _p, _p, _p, _p, _p, _p, _p]
     lib.pmx_resolve.restype = None
     lib.pmx_resolve.argtypes = [_p, _p, _i64, _p, _p, _p, _p, _p, _p]
-    lib.pmx_refine_many.restype = None
-    lib.pmx_refine_many.argtypes = [_p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _i64, _i64] + [_p] * 13
+    lib.pmx_refine_many.restype = _i64
+    lib.pmx_refine_many.argtypes = [_p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _i64, _i64] + [_p] * 17 + [
+        _i64, _p]
     lib.pmx_refine_word.restype = _i64
     lib.pmx_refine_word.argtypes = [_p, _p, _p, _i64, _p, ctypes.c_int, ctypes.c_int] + [_p] * 9
     lib.pmx_count_words.restype = _i64
@@ -76,7 +78,7 @@ def _load():
     lib.pmx_unsure_nodes.restype = _i64
     lib.pmx_unsure_nodes.argtypes = [_p, _i64, _p, _p, _p, _p]
     lib.pmx_apply_unsure.restype = None
-    lib.pmx_apply_unsure.argtypes = [_p, _i64, _i64, _p, _p]
+    lib.pmx_apply_unsure.argtypes = [_p, _i64, _i64, ctypes.c_int, _p, _p, _p, _p, _i64]
     lib.pmx_resolve_word.restype = None
     lib.pmx_resolve_word.argtypes = [_p, _p, _i64] + [_p] * 9
     lib.pmx_fat_cameras.restype = ctypes.c_int
@@ -241,6 +243,11 @@ class _Scratch(_Addresses):
         self.drawn = np.empty(max(n_faces, 1), FACE_RECORD)
         self.front_index = np.empty(max(V0, 1), np.int32)
 
+    @functools.cached_property
+    def words(self) -> "_WordScratch":
+        """The buffers of words (and of the unsure records of a camera batch)."""
+        return _WordScratch(len(self.state))
+
 
 class NativeMesh:
     """Host arrays of one :class:`pmjax.ProgressiveMesh` for the C loops,
@@ -276,10 +283,33 @@ class NativeMesh:
         self.bfs_table = np.ascontiguousarray(self.table[order])
         self.bfs_table[:, -1] = ((first << 2) | count).astype(np.int32).view(np.float32)
         self.bfs_kills = np.ascontiguousarray(kills[order])
+        self._pm = pm
         self.roots = np.arange(len(np.asarray(pm.roots)), dtype=np.int32)  # positions
         self._local = threading.local()
+        self._pool, self._pool_lock = [], threading.Lock()
         self._mesh = None
         self._mesh_lock = threading.Lock()
+
+    @functools.cached_property
+    def below_table(self) -> np.ndarray:
+        """``bfs_table`` with the bounds over each pcol's subtree replaced by
+        the bounds over the pcols strictly below it
+        (:func:`pmjax._subtree.below_bounds`): the one-camera traversal decides
+        a pcol by its own test and leaves its children unvisited where those
+        say that everything below collapses."""
+        from ._front import TABLE_ATTRIBUTES, TABLE_BOUNDS
+        from ._subtree import below_bounds, front_bounds
+
+        pm = self._pm
+        center, axis = np.asarray(pm.attributes.center).T, np.asarray(pm.attributes.axis).T
+        subtree = {k: np.asarray(getattr(pm.subtree, k)) for k in ("reach", "spread", "cone", "error")}
+        rows = front_bounds(below_bounds(center, axis, subtree, np.asarray(pm.child1), np.asarray(pm.child2)), axis.T)
+        table = self.bfs_table.copy()
+        first = len(TABLE_ATTRIBUTES) + 4  # center and axis take three columns each
+        for i, k in enumerate(("reach", "spread", "facing", "error")):
+            assert TABLE_BOUNDS[i] == k
+            table[:, first + i] = rows[k][self.order]
+        return table
 
     def __getattr__(self, name):  # p_NAME: the address of array NAME, taken once
         if name.startswith("p_"):
@@ -293,6 +323,21 @@ class NativeMesh:
         if s is None:
             s = self._local.scratch = _Scratch(self.n_original, self.n_pcols, self.n_faces)
         return s
+
+    @contextlib.contextmanager
+    def borrowed(self):
+        """A scratch that no other thread uses meanwhile, kept for later
+        calls: the worker threads of a batch are new each call, and fresh
+        buffers would cost their page faults again."""
+        with self._pool_lock:
+            s = self._pool.pop() if self._pool else None
+        if s is None:
+            s = _Scratch(self.n_original, self.n_pcols, self.n_faces)
+        try:
+            yield s
+        finally:
+            with self._pool_lock:
+                self._pool.append(s)
 
     def counts(self, n_not_run, kept):
         """``(faces, vertices, executed)`` (int32) from the pcols that did not
@@ -468,7 +513,7 @@ def refine_one(pm, camera, tau, tests, lists: bool = True):
     s = host.scratch()
     values = host_view(camera, tau)
     flags = flags_of(tests, camera.orthographic)
-    n = _LIB.pmx_refine(host.p_bfs_table, host.p_bfs_kills, host.p_order, host.n_pcols, host.p_roots,
+    n = _LIB.pmx_refine(host.p_below_table, host.p_bfs_kills, host.p_order, host.n_pcols, host.p_roots,
                         len(host.roots), _ptr(values), flags, s.p_ids, s.p_kid, s.p_state, s.p_ran, s.p_pcols,
                         s.p_unsure, s.p_out)
     n_unsure = int(s.out[0])
@@ -484,11 +529,6 @@ def refine_one(pm, camera, tau, tests, lists: bool = True):
     if not lists:
         return counts
     return (s.pcols[:n].copy(), s.ran[:n].view(bool).copy(), s.ids[:n].copy()) + counts
-
-
-# Unsure pcols a camera of a batch may have for the batched answer (the C
-# UNSURE_PER_CAMERA); a camera with more is refined alone.
-UNSURE_PER_CAMERA = 16
 
 
 @functools.partial(jax.jit, static_argnames=("tests", "orthographic"))
@@ -586,81 +626,69 @@ def faces_for_budget(pm, camera, budget: int, tests):
     return value(hi_b), f_hi
 
 
+def _refine_part(host, s, values, flags, k, k1, counts, masks) -> np.ndarray:
+    """Cameras ``k..k1-1`` of a batch through pmx_refine_many with scratch
+    ``s``, its records growing as needed; returns their records."""
+    w = s.words
+    records = np.empty(RECORD_ROOM, np.int32)
+    w.used[0] = 0
+    while k < k1:
+        k = _LIB.pmx_refine_many(host.p_below_table, host.p_bfs_kills, host.p_order, host.n_pcols, host.p_roots,
+                                 len(host.roots), _ptr(values), flags, k, k1, s.p_ids, s.p_kid, s.p_state, s.p_ran,
+                                 s.p_pcols, s.p_unsure, _ptr(counts), None if masks is None else _ptr(masks),
+                                 w.p_visit, w.p_whole, w.p_yes, w.p_ran, w.p_unsure_lanes, w.p_parent, w.p_chain,
+                                 w.p_mark, _ptr(records), len(records), w.p_used)
+        if k < k1:  # camera k's record did not fit: twice the room, and on from k
+            larger = np.empty(2 * len(records), np.int32)
+            larger[:w.used[0]] = records[:w.used[0]]
+            records = larger
+    return records[:w.used[0]]
+
+
 def refine_many(pm, cameras, tau, tests, want_masks: bool, threads: int | None = None):
     """A camera batch through the C traversal, the cameras split over threads.
 
-    Cameras with unsure decisions are traversed again with the float32
-    predicate's answers for those pcols, asked for the whole batch in one call.
+    A camera with unsure decisions is resolved as if each were "keep" and
+    leaves a record of the slots they can change (as :func:`count_words`);
+    the pairs of the whole batch are decided in one call of the float32
+    predicate and the cameras' counts and masks corrected.
 
     Returns:
         ``(faces, vertices, executed_count)`` int32 ``[K]`` and, with
         ``want_masks``, ``executed bool[K, P]``.
     """
-    from ._camera import index_camera
-
     host = native_mesh(pm)
     values = host_views(cameras, tau)
     K = values.shape[0]
     flags = flags_of(tests, cameras.orthographic)
     counts = np.zeros((K, 3), np.int64)
-    status = np.zeros(K, np.int32)
-    unsure = np.zeros((K, UNSURE_PER_CAMERA), np.int32)
     masks = np.empty((K, host.n_pcols), np.uint8) if want_masks else None
     threads = max(1, min(threads or _cores(), K))
     bounds = np.linspace(0, K, threads + 1).astype(int)
+    found = [None] * threads
 
-    def run(k0, k1, known=None, known_yes=None, known_count=None):
-        s = host.scratch()
-        _LIB.pmx_refine_many(host.p_bfs_table, host.p_bfs_kills, host.p_order, host.n_pcols,
-                             host.p_roots, len(host.roots), _ptr(values), flags, k0, k1, s.p_ids, s.p_kid, s.p_state,
-                             s.p_ran, s.p_pcols, s.p_unsure, _ptr(counts), _ptr(status), _ptr(unsure),
-                             None if known is None else _ptr(known), None if known is None else _ptr(known_yes),
-                             None if known is None else _ptr(known_count), None if masks is None else _ptr(masks))
+    def run(part):
+        with host.borrowed() as s:
+            found[part] = _refine_part(host, s, values, flags, int(bounds[part]), int(bounds[part + 1]), counts,
+                                       masks)
 
-    def parallel(*args):
-        if threads == 1:
-            return run(0, K, *args)
+    if threads == 1:
+        run(0)
+    else:
         # ctypes releases the GIL for the call: the threads run in parallel.
-        workers = [threading.Thread(target=run, args=(int(a), int(b)) + args) for a, b in zip(bounds[:-1], bounds[1:])]
+        workers = [threading.Thread(target=run, args=(t,)) for t in range(threads)]
         for w in workers:
             w.start()
         for w in workers:
             w.join()
-
-    parallel()
-    again = np.flatnonzero((status > 0) & (status <= UNSURE_PER_CAMERA))
-    if len(again):
-        # One call answers every unsure (camera, pcol) pair of the batch.
-        cam_of = np.repeat(again, status[again])
-        pcol_of = np.concatenate([unsure[k, :status[k]] for k in again])
-        n = len(pcol_of)
-        pad = np.zeros(_bucket(n), np.int64)
-        pad[:n] = np.arange(n)
-        batch = jax.tree.map(lambda a: np.asarray(a)[cam_of[pad]] if np.ndim(a) else a, cameras)
-        taus = np.broadcast_to(np.asarray(tau, np.float32), (K,))[cam_of[pad]]
-        yes = np.asarray(_decide_pairs(_rows(host, pcol_of), batch, taus, tests,
-                                       cameras.orthographic))[:n]
-        known = np.zeros((K, UNSURE_PER_CAMERA), np.int32)
-        known_yes = np.zeros((K, UNSURE_PER_CAMERA), np.uint8)
-        known_count = np.zeros(K, np.int32)
-        starts = np.concatenate([[0], np.cumsum(status[again])[:-1]])
-        for k, a in zip(again, starts):
-            known[k, :status[k]] = pcol_of[a:a + status[k]]
-            known_yes[k, :status[k]] = yes[a:a + status[k]]
-            known_count[k] = status[k]
-        status[again] = 0
-        parallel(known, known_yes, known_count)
-    n_exec = host.n_pcols - counts[:, 1]
-    faces = host.n_faces - host.total_kills + counts[:, 2]
+    not_run, kept = counts[:, 1].copy(), counts[:, 2].copy()
+    records = np.concatenate(found)
+    if len(records):
+        _decide_records(host, records, np.arange(K), cameras, np.broadcast_to(np.asarray(tau, np.float32), (K,)),
+                        tests, 0, 1, not_run, kept, masks)
+    n_exec = host.n_pcols - not_run
+    faces = host.n_faces - host.total_kills + kept
     out = [faces.astype(np.int32), (host.n_original - n_exec).astype(np.int32), n_exec.astype(np.int32)]
-    # A camera still unsure (its answers uncovered new unsure pcols below, or
-    # it had too many) is refined alone.
-    for k in np.flatnonzero(status):
-        ids, ran, _, f, v, e = refine_one(pm, index_camera(cameras, int(k)), tau[k] if np.ndim(tau) else tau, tests)
-        out[0][k], out[1][k], out[2][k] = f, v, e
-        if masks is not None:
-            masks[k] = 1
-            masks[k, ids[~ran]] = 0
     if masks is not None:
         out.append(masks.view(bool))
     return tuple(out)
@@ -718,7 +746,7 @@ def _decide_lanes(host, positions, lanes, lane_frames, cameras, taus, tests) -> 
     pad = np.zeros(_bucket(pairs), np.int64)
     pad[:pairs] = np.arange(pairs)
     frame = np.asarray(lane_frames)[slot_of, lane_of][pad]
-    batch = jax.tree.map(lambda a: np.asarray(a)[frame], cameras)
+    batch = jax.tree.map(lambda a: np.asarray(a)[frame] if np.ndim(a) else a, cameras)
     yes = np.asarray(_decide_pairs(_rows(host, host.order[np.asarray(positions)[slot_of][pad]]), batch,
                                    np.asarray(taus, np.float32)[frame], tests, cameras.orthographic))[:pairs]
     np.bitwise_or.at(out, slot_of[yes], (1 << lane_of[yes]).astype(np.uint16))
@@ -786,19 +814,28 @@ def resolve_unsure(pm, records, lane_frames, cameras, taus, tests, not_run, kept
         not_run, kept: ``int64 [L]``, lane ``l`` of word ``w`` at
             ``(w - first_word) * FRAMES + l``; corrected in place.
     """
-    host = native_mesh(pm)
     records = np.ascontiguousarray(records, np.int32)
-    if len(records) == 0:
-        return
+    if len(records):
+        _decide_records(native_mesh(pm), records, lane_frames, cameras, taus, tests, first_word, FRAMES, not_run,
+                        kept, None)
+
+
+def _decide_records(host, records, lane_frames, cameras, taus, tests, first_word, frames, not_run, kept, masks):
+    """The unsure pairs of records (int32, concatenated; words of ``frames``
+    lanes, ``frames`` 1 for single cameras) decided in one call, their yes
+    bits set and the lanes' counts (and executed ``masks [L, P]``, if given)
+    corrected in place."""
     n = len(records) // NODE_VALUES + 1  # at least one node per record
     at, word, positions, lanes = np.empty(n, np.int64), np.empty(n, np.int32), np.empty(n, np.int32), \
         np.empty(n, np.int32)
     m = _LIB.pmx_unsure_nodes(_ptr(records), len(records), _ptr(at), _ptr(word), _ptr(positions), _ptr(lanes))
-    first_lane = (word[:m].astype(np.int64) - first_word) * FRAMES
-    yes = _decide_lanes(host, positions[:m], lanes[:m], np.asarray(lane_frames)[first_lane[:, None] + np.arange(FRAMES)],
+    first_lane = (word[:m].astype(np.int64) - first_word) * frames
+    lane_frames = np.concatenate([np.asarray(lane_frames), np.zeros(FRAMES, np.int64)])  # lanes past a word's
+    yes = _decide_lanes(host, positions[:m], lanes[:m], lane_frames[first_lane[:, None] + np.arange(FRAMES)],
                         cameras, taus, tests)
     records[at[:m]] |= yes.astype(np.int32)
-    _LIB.pmx_apply_unsure(_ptr(records), len(records), first_word, _ptr(not_run), _ptr(kept))
+    _LIB.pmx_apply_unsure(_ptr(records), len(records), first_word, frames, _ptr(not_run), _ptr(kept), host.p_order,
+                          None if masks is None else _ptr(masks), host.n_pcols)
 
 
 # int32 per node of a record (NODE_N in _front_native.c), and the room for

@@ -170,6 +170,48 @@ def subtree_bounds(center, axis, radius, sin_alpha, cos_alpha, delta, mu, child1
     return dict(reach=grow(reach), spread=grow(spread), cone=grow(np.minimum(cone, 4.0)), error=grow(error))
 
 
+
+def below_bounds(center, axis, bounds, child1, child2) -> dict:
+    """Bounds over the pcols strictly below each pcol (its subtree but itself),
+    about its own centre and axis, from its created children's
+    :func:`subtree_bounds`.
+
+    Where such a bound says "every pcol below collapses", both children ran
+    and the pcol runs exactly when it collapses itself: the traversal decides
+    the pcol and need not visit its children. A pcol whose children are both
+    original vertices has nothing below (zeros).
+
+    Args:
+        center, axis: ``[P, 3]`` as for :func:`subtree_bounds`.
+        bounds: :func:`subtree_bounds` (``reach, spread, cone, error``).
+        child1, child2: ``[P]`` pcol making each endpoint, ``-1`` for an original vertex.
+
+    Returns:
+        dict ``reach, spread, cone, error`` of float32 ``[P]`` upper bounds.
+    """
+    c = np.ascontiguousarray(np.asarray(center).T, np.float64)
+    n = np.ascontiguousarray(np.asarray(axis).T, np.float64)
+    norm = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    unit = n / np.where(norm > 0, norm, 1.0)
+    whole = {k: np.asarray(bounds[k], np.float64) for k in ("reach", "spread", "cone", "error")}
+    out = {k: np.zeros(len(norm)) for k in whole}
+    for child in (np.asarray(child1), np.asarray(child2)):
+        p = np.flatnonzero(child >= 0)
+        q = child[p].astype(np.intp)
+        d = [c[k][q] - c[k][p] for k in range(3)]
+        gap = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+        turn = np.arccos(np.clip(unit[0][p] * unit[0][q] + unit[1][p] * unit[1][q] + unit[2][p] * unit[2][q],
+                                 -1.0, 1.0))
+        out["reach"][p] = np.maximum(out["reach"][p], gap + whole["reach"][q])
+        out["spread"][p] = np.maximum(out["spread"][p], gap + whole["spread"][q])
+        out["cone"][p] = np.maximum(out["cone"][p], turn + whole["cone"][q])
+        out["error"][p] = np.maximum(out["error"][p], whole["error"][q])
+    # About an axis that is not unit the cones bound nothing (π, as in
+    # subtree_bounds); the float64 sums round up as there.
+    out["cone"] = np.where(np.abs(norm - 1.0) < 1e-3, np.minimum(out["cone"], 4.0), math.pi)
+    up = lambda x: np.nextafter(x.astype(np.float32), np.float32(np.inf))
+    return {k: up(v * (1 + 2.0 ** -40)) for k, v in out.items()}
+
 def _rows_dot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 

@@ -287,10 +287,16 @@ def test_host_view_constants_are_within_the_allowance(orthographic):
                 assert np.all(rel <= 2.0 ** -21), (tau, i, np.log2(rel.max()))
 
 
-def test_batch_at_a_float_tie_asks_the_predicate_once_per_batch(built):
+@pytest.mark.parametrize("room", [None, 4])
+def test_batch_at_a_float_tie_asks_the_predicate_once_per_batch(built, monkeypatch, room):
     """A batch refined at a pcol's critical tolerance has unsure decisions in
-    many cameras; they are answered for the whole batch and the cameras
-    traversed again: the same bits as the dense engine."""
+    many cameras; they are answered for the whole batch and the cameras'
+    counts and masks corrected from their records: the same bits as the
+    dense engine, also when the records outgrow their first room (4 int32,
+    less than one record: every such camera grows it and is traversed
+    again)."""
+    if room is not None:
+        monkeypatch.setattr(_native, "RECORD_ROOM", room)
     data = built("bunny.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
     orbit = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 4)
@@ -299,6 +305,7 @@ def test_batch_at_a_float_tie_asks_the_predicate_once_per_batch(built):
     p = np.flatnonzero(np.isfinite(t) & (t > 0.5) & (t < 4))[0]
     cams = stack_cameras([cam] * 40 + [index_camera(orbit, i) for i in range(4)])
     assert _native.decide_all(pm, cam, t[p], pmjax.ALL_TESTS)[p] & 3 == _native.UNSURE
+    assert p in np.asarray(pmjax.refine(pm, cam, t[p], method="front").visited)  # so 40 cameras have a record
     native = pmjax.refine_batch(pm, cams, t[p], chunk=64, return_masks=True, method="front")
     dense = pmjax.refine_batch(pm, cams, t[p], chunk=64, return_masks=True, method="dense")
     for key in dense:
