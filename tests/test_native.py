@@ -137,6 +137,19 @@ def test_native_mesh_equals_dense_mesh(built, name):
                 assert a.dtype == b.dtype and np.array_equal(a, b), (i, tau)
 
 
+def test_tables_start_on_cache_lines(built):
+    """Every row the C loops read is one 64-byte cache line, and the tables
+    hold the mesh's values (in breadth-first order)."""
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    host = _native.native_mesh(pm)
+    for name in ("table", "bfs_table", "below_table"):
+        t = getattr(host, name)
+        assert t.ctypes.data % 64 == 0 and t.shape[1] * t.itemsize == 64 and t.flags.c_contiguous, name
+    assert np.array_equal(host.table, np.asarray(pm.table, np.float32))
+    assert np.array_equal(host.bfs_table[:, :-1], host.table[host.order, :-1])
+
+
 def test_native_batch_equals_dense(built):
     data = built("bunny.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
