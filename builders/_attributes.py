@@ -24,6 +24,7 @@ import numpy as np
 
 from pmjax._distance import point_triangle_distance
 
+from . import _native as native
 from ._quadrics import face_cross
 from ._threads import split_rows
 from ._topology import unique_edges
@@ -183,14 +184,22 @@ class HierarchyAttributes:
             np.pi,
             np.maximum(_angle(n, normals[c1]) + alpha[c1], _angle(n, normals[c2]) + alpha[c2]),
         )
-        # Leaves that climb into this batch: their distance from the tangent plane.
-        up = self.parent[self.top]
-        moving = np.flatnonzero(up >= lo)
-        self.top[moving] = up[moving]
-        owner = self.top[moving]
-        height = np.abs(np.einsum("ij,ij->i", normals[owner], vertices[moving] - vertices[owner]))
-        d = np.zeros(hi - lo)
-        np.maximum.at(d, owner - lo, height)
+        # Leaves that climb into this batch: their distance from the tangent
+        # plane (one C pass, the same bits, where the C loops are built).
+        if native.available():
+            moving, owner, d = native.climb_leaves(self.top, self.parent, lo, hi, vertices, normals)
+        else:
+            up = self.parent[self.top]
+            moving = np.flatnonzero(up >= lo)
+            self.top[moving] = up[moving]
+            owner = self.top[moving]
+            # The dot product in the order einsum sums it (the first and
+            # third terms, then the second), spelled out so that the C pass
+            # can match it on any NumPy.
+            term = normals[owner] * (vertices[moving] - vertices[owner])
+            height = np.abs((term[:, 0] + term[:, 2]) + term[:, 1])
+            d = np.zeros(hi - lo)
+            np.maximum.at(d, owner - lo, height)
         delta[ids] = np.maximum(d, np.maximum(delta[c1], delta[c2]))
         spread = np.sin(np.minimum(alpha[ids], np.pi / 2))
         # Leaves the coarse surface no longer covers (a receding border, a part

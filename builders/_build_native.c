@@ -557,6 +557,32 @@ void pmx_new_vertex_normals(int64_t n_faces, const int32_t *faces, const double 
     }
 }
 
+/* builders/_attributes.py HierarchyAttributes.add_batch, the leaves' climb:
+ * each original vertex whose topmost vertex top[leaf] got a parent in this
+ * batch (parent >= lo) moves up to it; its distance from the parent's
+ * tangent plane, |n . (x_leaf - x_parent)| summed as the NumPy path does
+ * (first and third terms, then the second), raises height[parent - lo]
+ * (NaN wins, as np.maximum). moving and owner
+ * receive the leaves that moved and their new tops, in increasing order of
+ * leaf; returns their number. height: (hi - lo), zero on entry. */
+int64_t pmx_climb_leaves(int64_t n_leaves, int64_t *top, const int64_t *parent, int64_t lo, const double *pos,
+                         const double *normals, int64_t *moving, int64_t *owner, double *height) {
+    int64_t m = 0;
+    for (int64_t leaf = 0; leaf < n_leaves; leaf++) {
+        const int64_t up = parent[top[leaf]];
+        if (up < lo) continue;
+        top[leaf] = up;
+        moving[m] = leaf;
+        owner[m] = up;
+        m++;
+        const double *n = normals + 3 * up, *x = pos + 3 * up, *y = pos + 3 * leaf;
+        const double d[3] = {y[0] - x[0], y[1] - x[1], y[2] - x[2]};
+        double *h = height + (up - lo);
+        *h = np_maximum(*h, fabs((n[0] * d[0] + n[2] * d[2]) + n[1] * d[1]));
+    }
+    return m;
+}
+
 /* The batch applied to the faces. The corners of pair i (a[i], b[i]) become
  * first + i (rename: the caller's identity map over all ids, left as it
  * was); a face two of whose corners meet dies, and its killer is the pcol

@@ -56,6 +56,8 @@ def _load():
     lib.pmx_scatter_add.argtypes = [_i64, _p, _i64, _p, _i64, _i64, _p]
     lib.pmx_new_vertex_normals.restype = None
     lib.pmx_new_vertex_normals.argtypes = [_i64, _p, _p, _i64, _p]
+    lib.pmx_climb_leaves.restype = _i64
+    lib.pmx_climb_leaves.argtypes = [_i64, _p, _p, _i64] + [_p] * 5
     lib.pmx_apply_batch.restype = _i64
     lib.pmx_apply_batch.argtypes = [_i64, _p, _p, _i64, _p, _p, _i64, _p, _i64, _p, _p, _p, _p]
     lib.pmx_quadric_scale.restype = None
@@ -329,6 +331,27 @@ def new_vertex_normals(pos: np.ndarray, faces: np.ndarray, first: int, k: int) -
     out = np.zeros((k, 3))
     _LIB.pmx_new_vertex_normals(len(faces), faces.ctypes.data, pos.ctypes.data, first, out.ctypes.data)
     return out
+
+
+def climb_leaves(top: np.ndarray, parent: np.ndarray, lo: int, hi: int, pos: np.ndarray, normals: np.ndarray):
+    """The leaves' climb of :meth:`builders._attributes.HierarchyAttributes.add_batch`
+    in one pass, bit for bit: ``top`` (int64, updated in place) moves up where
+    ``parent[top] >= lo``.
+
+    Returns:
+        ``(moving, owner, height)``: the leaves that moved and their new tops
+        (int64, increasing leaf), and ``float64[hi - lo]`` the largest
+        distance of a moved leaf from its new top's tangent plane.
+    """
+    if not (top.dtype == np.int64 and parent.dtype == np.int64 and top.flags.c_contiguous
+            and parent.flags.c_contiguous and pos.dtype == np.float64 and normals.dtype == np.float64
+            and pos.flags.c_contiguous and normals.flags.c_contiguous and hi <= len(parent) <= len(pos)):
+        raise ValueError("climb_leaves: top, parent must be contiguous int64, pos, normals contiguous float64")
+    moving, owner = np.empty(len(top), np.int64), np.empty(len(top), np.int64)
+    height = np.zeros(hi - lo)
+    m = _LIB.pmx_climb_leaves(len(top), top.ctypes.data, parent.ctypes.data, lo, pos.ctypes.data,
+                              normals.ctypes.data, moving.ctypes.data, owner.ctypes.data, height.ctypes.data)
+    return moving[:m], owner[:m], height
 
 
 def apply_batch(scratch: Scratch, faces, fid, a, b, first: int, V0: int, killer, quadric):

@@ -276,6 +276,38 @@ def test_scatter_add_is_the_bincount_sums():
         native.scatter_add(values.T, np.array([0, 800]), 800, 1)
 
 
+def test_leaf_climb_is_the_numpy_climb():
+    """The leaves' climb of a batch gives NumPy's moved leaves, new tops and
+    largest tangent-plane distances bit for bit, NaN included (np.maximum
+    propagates it), over a random forest climbed batch by batch."""
+    from pmjax.builders._attributes import HierarchyAttributes
+
+    rng = np.random.default_rng(11)
+    V0, batches, k = 3000, 12, 200
+    n = V0 + batches * k
+    pos = rng.normal(size=(n, 3)) * 10.0 ** rng.integers(-6, 6, (n, 1))
+    normals = rng.normal(size=(n, 3))
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    pos[rng.integers(0, V0, 5)] = np.nan  # a few leaves off the scale
+    faces = np.stack([np.arange(0, V0 - 2), np.arange(1, V0 - 1), np.arange(2, V0)], 1)
+    # A random forest: each batch pairs up vertices that have no parent yet.
+    schedule, free = [], np.arange(V0)
+    for b in range(batches):
+        lo = V0 + b * k
+        pick = rng.permutation(free)[: 2 * k]
+        schedule.append((lo, pick[:k], pick[k:]))
+        free = np.concatenate([np.setdiff1d(free, pick), np.arange(lo, lo + k)])
+    states = []
+    for on in (True, False):
+        with native.use_native(on), np.errstate(invalid="ignore"):  # the NaN leaves
+            attrs = HierarchyAttributes(pos, normals, faces, V0)
+            for lo, c1, c2 in schedule:
+                attrs.add_batch(lo, c1, c2, np.zeros((0, 3), np.int64), np.zeros(k, bool))
+            states.append([a.tobytes() for a in (attrs.top, attrs.delta, attrs.mu, attrs.radius)])
+    assert states[0] == states[1]
+    assert np.isnan(attrs.delta).any()  # the NaN leaves reached the check
+
+
 def test_edges_are_the_numpy_edges(first_batch):
     """Keys made and counted in C around NumPy's sort: unique_edges' arrays,
     dtypes included, on a real mesh and on an open fan with repeated edges."""
