@@ -127,22 +127,15 @@ def subtree_bounds(center, axis, radius, sin_alpha, cos_alpha, delta, mu, child1
         dict ``reach, spread, cone, error`` of float32 ``[P]`` arrays, each
         an upper bound (computed in float64, rounded up).
     """
-    # Struct of arrays (one float64 row per coordinate): gathers of single
-    # rows are several times faster than gathers of [N, 3] rows.
-    c = np.ascontiguousarray(np.asarray(center).T, np.float64)
-    n = np.ascontiguousarray(np.asarray(axis).T, np.float64)
-    norm = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    c, norm, unit = _centres_and_axes(center, axis)
     # The cone angle the tests mean: they compare the stored sine squared and
     # need a positive cosine, so it is atan2(|sin|, cos) (at least π/2, never
     # facing away, when the cosine is not positive). An axis that is not unit
     # (a degenerate normal) bounds nothing: its cone is π.
     own_cone = np.arctan2(np.abs(np.asarray(sin_alpha, np.float64)), np.asarray(cos_alpha, np.float64))
     own_cone = np.where(np.abs(norm - 1.0) < 1e-3, own_cone, math.pi)
-    unit = n / np.where(norm > 0, norm, 1.0)
-    reach = np.asarray(radius, np.float64).copy()
-    spread = np.zeros(len(reach))
-    cone = own_cone.copy()
-    error = np.maximum(np.asarray(mu, np.float64), np.asarray(delta, np.float64))
+    acc = dict(reach=np.asarray(radius, np.float64).copy(), spread=np.zeros(len(norm)), cone=own_cone.copy(),
+               error=np.maximum(np.asarray(mu, np.float64), np.asarray(delta, np.float64)))
     child1 = np.asarray(child1).astype(np.intp)
     child2 = np.asarray(child2).astype(np.intp)
     # Children come from earlier batches, so their bounds are final when a
@@ -154,20 +147,46 @@ def subtree_bounds(center, axis, radius, sin_alpha, cos_alpha, delta, mu, child1
             if len(has) == 0:
                 continue
             p, q = lo + has, child[has]
-            d = [c[k][q] - c[k][p] for k in range(3)]
-            gap = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
-            dot = unit[0][p] * unit[0][q] + unit[1][p] * unit[1][q] + unit[2][p] * unit[2][q]
-            turn = np.arccos(np.clip(dot, -1.0, 1.0))
+            gap, turn = _gap_and_turn(c, unit, p, q)
             if nesting is not None:
                 nesting(p, q, gap, turn, which)
-            reach[p] = np.maximum(reach[p], gap + reach[q])
-            spread[p] = np.maximum(spread[p], gap + spread[q])
-            cone[p] = np.maximum(cone[p], turn + cone[q])
-            error[p] = np.maximum(error[p], error[q])
-    up = lambda x: np.nextafter(x.astype(np.float32), np.float32(np.inf))
-    # The float64 sums above round too: one relative step of 2^-40 covers them.
-    grow = lambda x: up(x * (1 + 2.0 ** -40))
-    return dict(reach=grow(reach), spread=grow(spread), cone=grow(np.minimum(cone, 4.0)), error=grow(error))
+            _take_child(acc, acc, p, q, gap, turn)
+    acc["cone"] = np.minimum(acc["cone"], 4.0)
+    return {k: _rounded_up(v) for k, v in acc.items()}
+
+
+def _centres_and_axes(center, axis):
+    """Centres and axes ``[P, 3]`` as struct of arrays (one float64 row per
+    coordinate: gathers of single rows are several times faster than gathers
+    of [N, 3] rows), with the axes' lengths and the unit axes."""
+    c = np.ascontiguousarray(np.asarray(center).T, np.float64)
+    n = np.ascontiguousarray(np.asarray(axis).T, np.float64)
+    norm = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    return c, norm, n / np.where(norm > 0, norm, 1.0)
+
+
+def _gap_and_turn(c, unit, p, q):
+    """Distance of the centres and angle of the unit axes of pcols ``p`` and ``q``."""
+    d = [c[k][q] - c[k][p] for k in range(3)]
+    gap = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    dot = unit[0][p] * unit[0][q] + unit[1][p] * unit[1][q] + unit[2][p] * unit[2][q]
+    return gap, np.arccos(np.clip(dot, -1.0, 1.0))
+
+
+def _take_child(acc, child, p, q, gap, turn):
+    """Grow the bounds ``acc`` of pcols ``p`` (float64, in place) to hold the
+    subtree bounds ``child`` of their children ``q``, seen from ``p``: farther
+    by ``gap``, turned by ``turn``."""
+    acc["reach"][p] = np.maximum(acc["reach"][p], gap + child["reach"][q])
+    acc["spread"][p] = np.maximum(acc["spread"][p], gap + child["spread"][q])
+    acc["cone"][p] = np.maximum(acc["cone"][p], turn + child["cone"][q])
+    acc["error"][p] = np.maximum(acc["error"][p], child["error"][q])
+
+
+def _rounded_up(x):
+    """float32 upper bounds of float64 ``x``, whose sums rounded too: one
+    relative step of 2^-40 covers them."""
+    return np.nextafter((x * (1 + 2.0 ** -40)).astype(np.float32), np.float32(np.inf))
 
 
 
@@ -189,28 +208,19 @@ def below_bounds(center, axis, bounds, child1, child2) -> dict:
     Returns:
         dict ``reach, spread, cone, error`` of float32 ``[P]`` upper bounds.
     """
-    c = np.ascontiguousarray(np.asarray(center).T, np.float64)
-    n = np.ascontiguousarray(np.asarray(axis).T, np.float64)
-    norm = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
-    unit = n / np.where(norm > 0, norm, 1.0)
+    c, norm, unit = _centres_and_axes(center, axis)
     whole = {k: np.asarray(bounds[k], np.float64) for k in ("reach", "spread", "cone", "error")}
     out = {k: np.zeros(len(norm)) for k in whole}
     for child in (np.asarray(child1), np.asarray(child2)):
         p = np.flatnonzero(child >= 0)
         q = child[p].astype(np.intp)
-        d = [c[k][q] - c[k][p] for k in range(3)]
-        gap = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
-        turn = np.arccos(np.clip(unit[0][p] * unit[0][q] + unit[1][p] * unit[1][q] + unit[2][p] * unit[2][q],
-                                 -1.0, 1.0))
-        out["reach"][p] = np.maximum(out["reach"][p], gap + whole["reach"][q])
-        out["spread"][p] = np.maximum(out["spread"][p], gap + whole["spread"][q])
-        out["cone"][p] = np.maximum(out["cone"][p], turn + whole["cone"][q])
-        out["error"][p] = np.maximum(out["error"][p], whole["error"][q])
+        gap, turn = _gap_and_turn(c, unit, p, q)
+        _take_child(out, whole, p, q, gap, turn)
     # About an axis that is not unit the cones bound nothing (π, as in
-    # subtree_bounds); the float64 sums round up as there.
+    # subtree_bounds).
     out["cone"] = np.where(np.abs(norm - 1.0) < 1e-3, np.minimum(out["cone"], 4.0), math.pi)
-    up = lambda x: np.nextafter(x.astype(np.float32), np.float32(np.inf))
-    return {k: up(v * (1 + 2.0 ** -40)) for k, v in out.items()}
+    return {k: _rounded_up(v) for k, v in out.items()}
+
 
 def _rows_dot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
