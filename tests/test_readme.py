@@ -5,7 +5,7 @@ run in order in a scratch folder laid out like a checkout (``../shared``
 linked beside it), each checked for exit status 0 and for the files it names
 with ``-o``/``--csv``/``--stats-json``. ``pmjax view`` needs a display and
 runs until closed: it is run under Xvfb with ``--close-after`` appended when
-Xvfb is installed, and skipped otherwise. Durations are printed (``-s``).
+Xvfb is installed, and skipped otherwise. Durations are printed (``-s -n 0``: in this process).
 """
 
 import os
