@@ -75,6 +75,9 @@ def uncovered_distance(vertices, normals, leaves, owner, ring, lo: int, hi: int,
     Returns:
         ``float64[M]`` distances, model units.
     """
+    if native.available():  # one C pass, the same bits
+        return native.uncovered_distance(vertices, normals, leaves, owner, ring, lo, hi, maybe_border,
+                                         leaf_on_border)
     out = np.zeros(len(leaves))
     if not len(leaves):
         return out

@@ -620,3 +620,147 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_build_native",
                                     "The builder's per-batch C loops (called through ctypes).", -1, NULL};
 
 PyMODINIT_FUNC PyInit__build_native(void) { return PyModule_Create(&module); }
+
+/* ---- how far leaves lie off the coarse surface, sideways ---------------- */
+
+/* builders/_attributes.py uncovered_distance, bit for bit: the same
+ * operations in NumPy's order (np.cross's products, einsum's dot order
+ * (t0 + t2) + t1, np.linalg.norm's (s0 + s1) + s2 as norm3). */
+static double dot3(const double *x, const double *y) { return (x[0] * y[0] + x[2] * y[2]) + x[1] * y[1]; }
+static void sub3(const double *x, const double *y, double *out)
+{
+    out[0] = x[0] - y[0], out[1] = x[1] - y[1], out[2] = x[2] - y[2];
+}
+static void cross3(const double *a, const double *b, double *out)
+{
+    out[0] = a[1] * b[2] - a[2] * b[1];
+    out[1] = a[2] * b[0] - a[0] * b[2];
+    out[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+/* pmjax/_distance.py _seg_dist. */
+static double segment_distance(const double *p, const double *a, const double *b)
+{
+    double ab[3], pa[3], q[3], d[3];
+    sub3(b, a, ab);
+    sub3(p, a, pa);
+    const double ll = dot3(ab, ab);
+    const double t = np_minimum(np_maximum(dot3(pa, ab) / (ll > 0 ? ll : 1.0), 0.0), 1.0);
+    for (int j = 0; j < 3; j++)
+        q[j] = a[j] + ab[j] * t;
+    sub3(p, q, d);
+    return norm3(d);
+}
+
+/* pmjax/_distance.py point_triangle_distance. */
+static double triangle_distance(const double *p, const double *a, const double *b, const double *c)
+{
+    double ab[3], ac[3], ap[3], n[3], u[3], v[3];
+    sub3(b, a, ab);
+    sub3(c, a, ac);
+    sub3(p, a, ap);
+    cross3(ab, ac, n);
+    const double nn = dot3(n, n), safe = nn > 0 ? nn : 1.0;
+    cross3(ap, ac, u);
+    cross3(ab, ap, v);
+    const double w_b = dot3(u, n) / safe, w_c = dot3(v, n) / safe;
+    const int inside = (nn > 0) & (w_b >= 0) & (w_c >= 0) & (w_b + w_c <= 1);
+    const double plane = fabs(dot3(ap, n)) / sqrt(safe);
+    const double border =
+        np_minimum(np_minimum(segment_distance(p, a, b), segment_distance(p, a, c)), segment_distance(p, b, c));
+    return inside ? plane : border;
+}
+
+/* A point relative to origin, its part along the unit normal n removed. */
+static void flatten(const double *x, const double *origin, const double *n, double *out)
+{
+    double rel[3];
+    sub3(x, origin, rel);
+    const double h = dot3(rel, n);
+    for (int j = 0; j < 3; j++)
+        out[j] = rel[j] - h * n[j];
+}
+
+static int compare_int32(const void *x, const void *y)
+{
+    const int32_t u = *(const int32_t *)x, v = *(const int32_t *)y;
+    return (u > v) - (u < v);
+}
+
+/* out[i] for leaf i (original vertex leaves[i], now under owner[i], lo <=
+ * owner < hi): an owner without faces in ring (n_ring faces after the
+ * batch touching the new vertices) is a point, the whole distance counts;
+ * an owner that maybe_border flags and that lies on an open border of
+ * ring (an edge to a neighbour in one of its faces only) gives its
+ * leaf_on_border leaves their distance to its faces, all flattened onto its
+ * tangent plane; else 0. Scratch: start[hi - lo + 1] (int64), slots[3
+ * n_ring], around[2 * 3 n_ring] (int32), border[hi - lo] (int8). */
+void pmx_uncovered_distance(int64_t n_leaves, const int64_t *leaves, const int64_t *owner,
+                            const uint8_t *leaf_on_border, const int32_t *ring, int64_t n_ring, int64_t lo,
+                            int64_t hi, const uint8_t *maybe_border, const double *pos, const double *normals,
+                            int64_t *start, int32_t *slots, int32_t *around, int8_t *border, double *out)
+{
+    const int64_t k = hi - lo;
+    /* The faces of each new vertex, in ring order (CSR over the corners). */
+    memset(start, 0, (size_t)(k + 1) * sizeof *start);
+    for (int64_t c = 0; c < 3 * n_ring; c++)
+        if (ring[c] >= lo)
+            start[ring[c] - lo + 1]++;
+    for (int64_t v = 0; v < k; v++)
+        start[v + 1] += start[v];
+    for (int64_t c = 0; c < 3 * n_ring; c++)
+        if (ring[c] >= lo)
+            slots[start[ring[c] - lo]++] = (int32_t)c;
+    for (int64_t v = k; v > 0; v--)
+        start[v] = start[v - 1];
+    start[0] = 0;
+    memset(border, -1, (size_t)k); /* not known yet */
+    for (int64_t i = 0; i < n_leaves; i++) {
+        const int64_t o = owner[i] - lo, n_faces = start[o + 1] - start[o];
+        const double *x = pos + 3 * owner[i], *y = pos + 3 * leaves[i];
+        out[i] = 0.0;
+        if (n_faces == 0) { /* a point: the leaf's whole distance to it */
+            double d[3];
+            sub3(y, x, d);
+            out[i] = norm3(d);
+            continue;
+        }
+        if (!maybe_border[o] || !leaf_on_border[i])
+            continue;
+        if (border[o] < 0) {
+            /* On a border: a neighbour that only one of the owner's faces
+             * has (every face holding an edge at the owner holds it). */
+            int32_t *nb = around;
+            for (int64_t s = start[o]; s < start[o + 1]; s++) {
+                const int64_t c = slots[s], f = c / 3, at = c % 3;
+                *nb++ = ring[3 * f + (at + 1) % 3];
+                *nb++ = ring[3 * f + (at + 2) % 3];
+            }
+            const int64_t m = nb - around;
+            qsort(around, (size_t)m, sizeof *around, compare_int32);
+            border[o] = 0;
+            for (int64_t s = 0; s < m;) {
+                int64_t e = s;
+                while (e < m && around[e] == around[s])
+                    e++;
+                if (e - s == 1)
+                    border[o] = 1;
+                s = e;
+            }
+        }
+        if (!border[o])
+            continue;
+        /* The leaf against each of the owner's faces on its tangent plane. */
+        const double *n = normals + 3 * owner[i];
+        double p[3], a[3], b[3], c[3], best = INFINITY;
+        flatten(y, x, n, p);
+        for (int64_t s = start[o]; s < start[o + 1]; s++) {
+            const int32_t *face = ring + 3 * (slots[s] / 3);
+            flatten(pos + 3 * (int64_t)face[0], x, n, a);
+            flatten(pos + 3 * (int64_t)face[1], x, n, b);
+            flatten(pos + 3 * (int64_t)face[2], x, n, c);
+            best = np_minimum(best, triangle_distance(p, a, b, c));
+        }
+        out[i] = best;
+    }
+}

@@ -58,6 +58,8 @@ def _load():
     lib.pmx_new_vertex_normals.argtypes = [_i64, _p, _p, _i64, _p]
     lib.pmx_climb_leaves.restype = _i64
     lib.pmx_climb_leaves.argtypes = [_i64, _p, _p, _i64] + [_p] * 5
+    lib.pmx_uncovered_distance.restype = None
+    lib.pmx_uncovered_distance.argtypes = [_i64, _p, _p, _p, _p, _i64, _i64, _i64] + [_p] * 8
     lib.pmx_apply_batch.restype = _i64
     lib.pmx_apply_batch.argtypes = [_i64, _p, _p, _i64, _p, _p, _i64, _p, _i64, _p, _p, _p, _p]
     lib.pmx_quadric_scale.restype = None
@@ -330,6 +332,31 @@ def new_vertex_normals(pos: np.ndarray, faces: np.ndarray, first: int, k: int) -
         raise ValueError("new_vertex_normals: a face vertex id is outside the positions")
     out = np.zeros((k, 3))
     _LIB.pmx_new_vertex_normals(len(faces), faces.ctypes.data, pos.ctypes.data, first, out.ctypes.data)
+    return out
+
+
+def uncovered_distance(pos, normals, leaves, owner, ring, lo: int, hi: int, maybe_border, leaf_on_border):
+    """:func:`builders._attributes.uncovered_distance` in one C pass, bit for
+    bit (the same arguments; ``float64[M]`` distances)."""
+    leaves, owner = np.ascontiguousarray(leaves, np.int64), np.ascontiguousarray(owner, np.int64)
+    ring = np.ascontiguousarray(ring, np.int32).reshape(-1, 3)
+    maybe_border = np.ascontiguousarray(maybe_border, np.uint8)
+    leaf_on_border = np.ascontiguousarray(leaf_on_border, np.uint8)
+    if not (pos.dtype == np.float64 and normals.dtype == np.float64 and pos.flags.c_contiguous
+            and normals.flags.c_contiguous and len(owner) == len(leaves) == len(leaf_on_border)
+            and len(maybe_border) == hi - lo):
+        raise ValueError("uncovered_distance: pos, normals must be contiguous float64, one owner and border flag "
+                         "per leaf, one maybe_border flag per new vertex")
+    out = np.empty(len(leaves))
+    if not len(leaves):
+        return out
+    k, corners = hi - lo, 3 * len(ring)
+    start, slots = np.empty(k + 1, np.int64), np.empty(max(corners, 1), np.int32)
+    around, border = np.empty(max(2 * corners, 1), np.int32), np.empty(max(k, 1), np.int8)
+    _LIB.pmx_uncovered_distance(len(leaves), leaves.ctypes.data, owner.ctypes.data, leaf_on_border.ctypes.data,
+                                ring.ctypes.data, len(ring), lo, hi, maybe_border.ctypes.data, pos.ctypes.data,
+                                normals.ctypes.data, start.ctypes.data, slots.ctypes.data, around.ctypes.data,
+                                border.ctypes.data, out.ctypes.data)
     return out
 
 

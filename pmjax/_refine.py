@@ -573,9 +573,10 @@ def refine_batch(
         from tqdm import tqdm
 
         starts = tqdm(starts, unit="chunk", desc="refine")
-    tau32 = jnp.float32(tau)
     front = _method(pm, method, predicate, batch=True) == "front"
     native = front and _native.available()
+    # The C loops read tau on the host (a device scalar costs a dispatch).
+    tau32 = np.float32(tau) if native else jnp.float32(tau)
     # The front engine takes nearby cameras together: as JAX kernels in words,
     # as C loops one after another (their fronts share cache lines; 4-6 %
     # faster on the dragon). Results go back to the caller's order.

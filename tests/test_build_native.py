@@ -308,6 +308,52 @@ def test_leaf_climb_is_the_numpy_climb():
     assert np.isnan(attrs.delta).any()  # the NaN leaves reached the check
 
 
+def test_uncovered_distance_is_the_numpy_distance():
+    """How far leaves lie off the coarse surface sideways: the C pass gives
+    NumPy's distances bit for bit on an open grid whose vertices were merged
+    into new vertices (borders, owners left without faces, faces seen edge-on
+    from tilted tangent planes, repeated positions)."""
+    from pmjax.builders._attributes import uncovered_distance
+
+    rng = np.random.default_rng(5)
+    side = 40
+    gx, gy = np.meshgrid(np.arange(side, dtype=float), np.arange(side, dtype=float))
+    V0 = side * side
+    grid = np.stack([gx.ravel(), gy.ravel(), 0.1 * rng.normal(size=V0)], 1)
+    grid[rng.integers(0, V0, 20)] = grid[rng.integers(0, V0, 20)]  # repeated positions
+    q = (np.arange(side - 1)[:, None] * side + np.arange(side - 1)[None, :]).ravel()
+    faces = np.concatenate([np.stack([q, q + 1, q + side], 1), np.stack([q + 1, q + side + 1, q + side], 1)])
+    # New vertices: each takes one or two neighbouring grid vertices' place.
+    k = 300
+    picked = rng.choice(V0 - side - 1, k, replace=False)
+    rename = np.arange(V0 + k)
+    rename[picked] = V0 + np.arange(k)
+    pair = rng.random(k) < 0.5
+    rename[picked[pair] + 1] = V0 + np.arange(k)[pair]
+    lo, hi = V0, V0 + k + 10  # ten new vertices own no face
+    pos = np.concatenate([grid, grid[picked], rng.normal(size=(10, 3)) * 5])
+    normals = np.concatenate([np.tile([0.0, 0.0, 1.0], (V0, 1)), rng.normal(size=(k + 10, 3))])
+    normals[V0:V0 + k // 3] = [0.0, 0.0, 1.0]
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    cur = rename[faces]
+    live = (cur[:, 0] != cur[:, 1]) & (cur[:, 1] != cur[:, 2]) & (cur[:, 0] != cur[:, 2])
+    cur = cur[live]
+    ring = cur[(cur >= lo).any(axis=1)].astype(np.int32)
+    leaves = rng.integers(0, V0, 4000)
+    owner = lo + rng.integers(0, hi - lo, len(leaves))
+    maybe_border = rng.random(hi - lo) < 0.8
+    on_border = rng.random(len(leaves)) < 0.7
+    args = (pos, normals, leaves, owner, ring, lo, hi, maybe_border, on_border)
+    got = uncovered_distance(*args)
+    with native.use_native(False):
+        ref = uncovered_distance(*args)
+    assert got.tobytes() == ref.tobytes()
+    alone = owner >= V0 + k
+    assert (ref[alone] > 0).all() and (ref[~alone] > 0).sum() > 50 and (ref[~alone] == 0).sum() > 50
+    empty = uncovered_distance(pos, normals, leaves[:0], owner[:0], ring, lo, hi, maybe_border, on_border[:0])
+    assert empty.shape == (0,)
+
+
 def test_edges_are_the_numpy_edges(first_batch):
     """Keys made and counted in C around NumPy's sort: unique_edges' arrays,
     dtypes included, on a real mesh and on an open fan with repeated edges."""
