@@ -150,6 +150,10 @@ static void cross(const double u[3], const double v[3], double out[3]) {
 
 static double dot(const double u[3], const double v[3]) { return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]; }
 
+/* np.einsum("ij,ij->i")'s dot product of rows of three: the first and third
+ * terms, then the second. */
+static double einsum_dot(const double u[3], const double v[3]) { return (u[0] * v[0] + u[2] * v[2]) + u[1] * v[1]; }
+
 static int has(const int32_t *t, int32_t v) { return t[0] == v || t[1] == v || t[2] == v; }
 
 /* builders/_validity.py collapse_is_valid for one candidate: no domain face
@@ -578,7 +582,7 @@ int64_t pmx_climb_leaves(int64_t n_leaves, int64_t *top, const int64_t *parent, 
         const double *n = normals + 3 * up, *x = pos + 3 * up, *y = pos + 3 * leaf;
         const double d[3] = {y[0] - x[0], y[1] - x[1], y[2] - x[2]};
         double *h = height + (up - lo);
-        *h = np_maximum(*h, fabs((n[0] * d[0] + n[2] * d[2]) + n[1] * d[1]));
+        *h = np_maximum(*h, fabs(einsum_dot(n, d)));
     }
     return m;
 }
@@ -616,26 +620,14 @@ int64_t pmx_apply_batch(int64_t n_faces, const int32_t *faces, const int64_t *fi
     return m;
 }
 
-static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_build_native",
-                                    "The builder's per-batch C loops (called through ctypes).", -1, NULL};
-
-PyMODINIT_FUNC PyInit__build_native(void) { return PyModule_Create(&module); }
-
 /* ---- how far leaves lie off the coarse surface, sideways ---------------- */
 
 /* builders/_attributes.py uncovered_distance, bit for bit: the same
- * operations in NumPy's order (np.cross's products, einsum's dot order
- * (t0 + t2) + t1, np.linalg.norm's (s0 + s1) + s2 as norm3). */
-static double dot3(const double *x, const double *y) { return (x[0] * y[0] + x[2] * y[2]) + x[1] * y[1]; }
+ * operations in NumPy's order (np.cross's products as cross, einsum's dot as
+ * einsum_dot, np.linalg.norm's (s0 + s1) + s2 as norm3). */
 static void sub3(const double *x, const double *y, double *out)
 {
     out[0] = x[0] - y[0], out[1] = x[1] - y[1], out[2] = x[2] - y[2];
-}
-static void cross3(const double *a, const double *b, double *out)
-{
-    out[0] = a[1] * b[2] - a[2] * b[1];
-    out[1] = a[2] * b[0] - a[0] * b[2];
-    out[2] = a[0] * b[1] - a[1] * b[0];
 }
 
 /* pmjax/_distance.py _seg_dist. */
@@ -644,8 +636,8 @@ static double segment_distance(const double *p, const double *a, const double *b
     double ab[3], pa[3], q[3], d[3];
     sub3(b, a, ab);
     sub3(p, a, pa);
-    const double ll = dot3(ab, ab);
-    const double t = np_minimum(np_maximum(dot3(pa, ab) / (ll > 0 ? ll : 1.0), 0.0), 1.0);
+    const double ll = einsum_dot(ab, ab);
+    const double t = np_minimum(np_maximum(einsum_dot(pa, ab) / (ll > 0 ? ll : 1.0), 0.0), 1.0);
     for (int j = 0; j < 3; j++)
         q[j] = a[j] + ab[j] * t;
     sub3(p, q, d);
@@ -659,13 +651,13 @@ static double triangle_distance(const double *p, const double *a, const double *
     sub3(b, a, ab);
     sub3(c, a, ac);
     sub3(p, a, ap);
-    cross3(ab, ac, n);
-    const double nn = dot3(n, n), safe = nn > 0 ? nn : 1.0;
-    cross3(ap, ac, u);
-    cross3(ab, ap, v);
-    const double w_b = dot3(u, n) / safe, w_c = dot3(v, n) / safe;
+    cross(ab, ac, n);
+    const double nn = einsum_dot(n, n), safe = nn > 0 ? nn : 1.0;
+    cross(ap, ac, u);
+    cross(ab, ap, v);
+    const double w_b = einsum_dot(u, n) / safe, w_c = einsum_dot(v, n) / safe;
     const int inside = (nn > 0) & (w_b >= 0) & (w_c >= 0) & (w_b + w_c <= 1);
-    const double plane = fabs(dot3(ap, n)) / sqrt(safe);
+    const double plane = fabs(einsum_dot(ap, n)) / sqrt(safe);
     const double border =
         np_minimum(np_minimum(segment_distance(p, a, b), segment_distance(p, a, c)), segment_distance(p, b, c));
     return inside ? plane : border;
@@ -676,7 +668,7 @@ static void flatten(const double *x, const double *origin, const double *n, doub
 {
     double rel[3];
     sub3(x, origin, rel);
-    const double h = dot3(rel, n);
+    const double h = einsum_dot(rel, n);
     for (int j = 0; j < 3; j++)
         out[j] = rel[j] - h * n[j];
 }
@@ -764,3 +756,9 @@ void pmx_uncovered_distance(int64_t n_leaves, const int64_t *leaves, const int64
         out[i] = best;
     }
 }
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_build_native",
+                                    "The builder's per-batch C loops (called through ctypes).", -1, NULL};
+
+PyMODINIT_FUNC PyInit__build_native(void) { return PyModule_Create(&module); }
+
