@@ -161,16 +161,15 @@ def _centres_and_axes(center, axis):
     of [N, 3] rows), with the axes' lengths and the unit axes."""
     c = np.ascontiguousarray(np.asarray(center).T, np.float64)
     n = np.ascontiguousarray(np.asarray(axis).T, np.float64)
-    norm = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    norm = np.sqrt(_rows_dot(n, n))
     return c, norm, n / np.where(norm > 0, norm, 1.0)
 
 
 def _gap_and_turn(c, unit, p, q):
     """Distance of the centres and angle of the unit axes of pcols ``p`` and ``q``."""
     d = [c[k][q] - c[k][p] for k in range(3)]
-    gap = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
-    dot = unit[0][p] * unit[0][q] + unit[1][p] * unit[1][q] + unit[2][p] * unit[2][q]
-    return gap, np.arccos(np.clip(dot, -1.0, 1.0))
+    dot = _rows_dot([u[p] for u in unit], [u[q] for u in unit])
+    return np.sqrt(_rows_dot(d, d)), np.arccos(np.clip(dot, -1.0, 1.0))
 
 
 def _take_child(acc, child, p, q, gap, turn):
