@@ -88,13 +88,20 @@ typedef struct {
     _Bool y, n;
 } Sure;
 
-static inline Sure less(float d, float m, float slack)
+/* exact_zero: also certify d = m = 0 (every term zero: a < b is false in any
+ * evaluation). The usual perspective views leave it out: there it takes a
+ * zero radius or cosine together with an eye vector orthogonal to the axis
+ * coordinate by coordinate, and such a pcol goes to the float32 predicate as
+ * unsure (it costs a tenth of the decision). */
+static inline Sure less_than(float d, float m, float slack, const int exact_zero)
 {
     float bound = REL * m + slack;
     _Bool ok = m < HIGH; /* false for an overflow, inf or NaN */
-    Sure s = {ok & (d < -bound), ok & ((d > bound) | ((m == 0.0f) & (d == 0.0f)))};
+    _Bool zero = exact_zero && ((m == 0.0f) & (d == 0.0f));
+    Sure s = {ok & (d < -bound), ok & ((d > bound) | zero)};
     return s;
 }
+static inline Sure less(float d, float m, float slack) { return less_than(d, m, slack, 1); }
 static inline Sure sure_or(Sure a, Sure b) { Sure s = {a.y | b.y, a.n & b.n}; return s; }
 static inline Sure sure_and(Sure a, Sure b) { Sure s = {a.y & b.y, a.n | b.n}; return s; }
 
@@ -243,6 +250,7 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
     const _Bool frustum = all_tests | L->frustum, orientation = all_tests | L->orientation;
     const _Bool screen = all_tests | L->screen;
     const _Bool kinf = !all_tests & (kappa2 == INFINITY);
+    const int exact_zero = (!all_tests) | ortho;
     {
         const float vx = q.cx - L->ex, vy = q.cy - L->ey, vz = q.cz - L->ez;
         const float nx = q.nx, ny = q.ny, nz = q.nz;
@@ -294,10 +302,10 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
         {
             /* (z + r < near) | (z - r > far) | (sx - |x| < -r lx) | (sy - |y| < -r ly) */
             const float msx = mz * fabsf(k0) + fabsf(k2), msy = mz * fabsf(k1) + fabsf(k3);
-            Sure f = less(z + r - k6, mz + ar + fabsf(k6), slack);
-            f = sure_or(f, less(k7 - (z - r), fabsf(k7) + mz + ar, slack));
-            f = sure_or(f, less(sx - fabsf(x) + r * k4, msx + mx + ar * fabsf(k4), slack));
-            f = sure_or(f, less(sy - fabsf(y) + r * k5, msy + my + ar * fabsf(k5), slack));
+            Sure f = less_than(z + r - k6, mz + ar + fabsf(k6), slack, exact_zero);
+            f = sure_or(f, less_than(k7 - (z - r), fabsf(k7) + mz + ar, slack, exact_zero));
+            f = sure_or(f, less_than(sx - fabsf(x) + r * k4, msx + mx + ar * fabsf(k4), slack, exact_zero));
+            f = sure_or(f, less_than(sy - fabsf(y) + r * k5, msy + my + ar * fabsf(k5), slack, exact_zero));
             out.y = frustum & f.y;
             out.n = (!frustum) | f.n;
         }
@@ -309,15 +317,15 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
             Sure away;
             if (ortho) {
                 /* (ca > 0) & (h > sa) */
-                away = sure_and(cos_positive, less(sa - h, fabsf(sa) + mh, slack));
+                away = sure_and(cos_positive, less_than(sa - h, fabsf(sa) + mh, slack, exact_zero));
             } else {
                 /* (t2 > 0) & (ca > 0) & (ca ca t2 > sr sr) & (g > 0) & (g g > sa sa t2) */
                 float t2 = d2 - r * r, mt2 = d2 + r * r;
                 float sr = sa * r, g = h - ca * r, mg = mh + fabsf(ca) * ar;
-                away = sure_and(cos_positive, less(-t2, mt2, slack));
-                away = sure_and(away, less(sr * sr - ca * ca * t2, sr * sr + ca * ca * mt2, slack));
-                away = sure_and(away, less(-g, mg, slack));
-                away = sure_and(away, less(sa * sa * t2 - g * g, sa * sa * mt2 + mg * mg, slack));
+                away = sure_and(cos_positive, less_than(-t2, mt2, slack, exact_zero));
+                away = sure_and(away, less_than(sr * sr - ca * ca * t2, sr * sr + ca * ca * mt2, slack, exact_zero));
+                away = sure_and(away, less_than(-g, mg, slack, exact_zero));
+                away = sure_and(away, less_than(sa * sa * t2 - g * g, sa * sa * mt2 + mg * mg, slack, exact_zero));
             }
             away.y &= orientation;
             away.n |= !orientation;
@@ -326,8 +334,8 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
         {
             /* (mu2 < kappa2 s) & (normal2 < kappa2 s s) */
             const float normal2 = delta * delta * (s - h * h), mnormal2 = delta * delta * (s + mh * mh);
-            Sure small = less(mu * mu - kappa2 * s, mu * mu + kappa2 * s, slack);
-            small = sure_and(small, less(normal2 - kappa2 * s * s, mnormal2 + kappa2 * s * s, slack));
+            Sure small = less_than(mu * mu - kappa2 * s, mu * mu + kappa2 * s, slack, exact_zero);
+            small = sure_and(small, less_than(normal2 - kappa2 * s * s, mnormal2 + kappa2 * s * s, slack, exact_zero));
             /* tau = inf: small exactly when s > 0 in float32 (inf * s is inf, inf
              * * 0 is NaN) and mu2, normal2 are finite. */
             const _Bool positive = ortho | (d2 > LOW), finite = (mu * mu + mnormal2) < HIGH;
@@ -779,6 +787,182 @@ static inline void gather_block(const float *table, const int32_t *ids, int64_t 
     gather(rows, col);
 }
 
+/* The slots of one decided block [i, i + nb) (decided[]: decide_block's
+ * codes, kids[]: their rows' KIDS column): each slot's own decision goes to
+ * state[], the unsure ones to unsure[*m...], and the children of the open
+ * slots (those whose bound did not decide everything below them) are pushed
+ * behind the queue at n, their slots written to kid[] (and, where parent is
+ * not NULL, the slot of each child's parent to parent[]). Returns the new
+ * end of the queue. The children of an open slot are visited whatever it does
+ * (each may run on its own); a slot is closed when everything below it
+ * collapses: its children ran, and it runs when it collapses itself. */
+static inline int64_t push_block_plain(int64_t i, int64_t nb, int64_t n, const int32_t *decided, const float *kids,
+                                       uint8_t *state, int32_t *kid, int32_t *ids, int32_t *parent, int32_t *unsure,
+                                       int64_t *m)
+{
+    for (int64_t j = i; j < i + nb; j++) {
+        /* Without branches but for the rare unsure decisions: whether the
+         * bound decided a slot is a coin toss to the branch predictor. */
+        const int32_t own = decided[j - i] & (YES | UNSURE);
+        const int open = !(decided[j - i] & WHOLE);
+        state[j] = (uint8_t)own;
+        if (own == UNSURE) /* rare: decided by the caller (the float32 predicate) */
+            unsure[(*m)++] = (int32_t)j;
+        /* Two children are written and those that exist counted (2 spare
+         * slots), as masks (-1 or 0), which the compiler keeps as arithmetic
+         * where conditionals became branches. */
+        int32_t k;
+        memcpy(&k, &kids[j - i], sizeof k);
+        const int32_t first = k >> 2, count = (k & 3) & -open;
+        const int32_t one = -(count > 0), two = -(count > 1);
+        kid[2 * j] = ((int32_t)n & one) | ~one;
+        kid[2 * j + 1] = (((int32_t)n + 1) & two) | ~two;
+        ids[n] = first;
+        ids[n + 1] = first + 1;
+        if (parent)
+            parent[n] = parent[n + 1] = (int32_t)j;
+        n += count;
+    }
+    return n;
+}
+
+/* Bottom-up over slots [lo, hi), from the end: a slot ran if it collapses
+ * and both children ran (a child not visited ran). Counts the slots that
+ * did not run and the faces they keep into *not_run, *keep. */
+static inline void resolve_plain(const Mesh *pm, int64_t lo, int64_t hi, const int32_t *ids, const int32_t *kid,
+                                 const uint8_t *state, uint8_t *ran, int32_t *pcols, int64_t *not_run, int64_t *keep)
+{
+    for (int64_t i = hi - 1; i >= lo; i--) {
+        /* Without branches: whether a slot ran is a coin toss too. */
+        const int32_t k1 = kid[2 * i], k2 = kid[2 * i + 1];
+        const int below = ((k1 < 0) | ran[k1 < 0 ? 0 : k1]) & ((k2 < 0) | ran[k2 < 0 ? 0 : k2]);
+        const int r = (state[i] == YES) & below;
+        ran[i] = (uint8_t)r;
+        *not_run += !r;
+        *keep += (!r) * pm->kills[ids[i]];
+        if (pcols) /* not for counts alone: order[] is read at random */
+            pcols[i] = pm->order[ids[i]];
+    }
+}
+
+#if defined(__x86_64__) && defined(__GNUC__)
+/* The same two steps with AVX-512 masks, sixteen slots at a time: the
+ * scalar versions spend a third of a camera's time on per-slot stores,
+ * shifts and counts. Same results, bit for bit. */
+#define SLOTS_TARGET __attribute__((target("avx512f,avx512bw,avx512vl,bmi2,popcnt")))
+
+SLOTS_TARGET static int64_t push_block_avx512(int64_t i, int64_t nb, int64_t n, const int32_t *decided,
+                                              const float *kids, uint8_t *state, int32_t *kid, int32_t *ids,
+                                              int32_t *parent, int32_t *unsure, int64_t *m)
+{
+    const __mmask16 valid = (__mmask16)((1u << nb) - 1);
+    const __m512i lane = _mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
+    const __m512i code = _mm512_loadu_si512(decided);
+    const __m512i own = _mm512_and_si512(code, _mm512_set1_epi32(YES | UNSURE));
+    _mm512_mask_cvtepi32_storeu_epi8(state + i, valid, own);
+    const __mmask16 unsure_lanes = _mm512_mask_cmpeq_epi32_mask(valid, own, _mm512_set1_epi32(UNSURE));
+    if (unsure_lanes) { /* rare: decided by the caller (the float32 predicate) */
+        const __m512i slots = _mm512_add_epi32(lane, _mm512_set1_epi32((int32_t)i));
+        _mm512_mask_compressstoreu_epi32(unsure + *m, unsure_lanes, slots);
+        *m += _mm_popcnt_u32(unsure_lanes);
+    }
+    /* Lanes with at least one / two children to visit, as one mask of the
+     * children in queue order (bit 2j: lane j's first, 2j + 1: its second). */
+    const __mmask16 open = _mm512_mask_testn_epi32_mask(valid, code, _mm512_set1_epi32(WHOLE));
+    const __m512i k = _mm512_loadu_si512(kids);
+    const __m512i count = _mm512_and_si512(k, _mm512_set1_epi32(3));
+    const __mmask16 one = _mm512_mask_cmpgt_epi32_mask(open, count, _mm512_setzero_si512());
+    const __mmask16 two = _mm512_mask_cmpgt_epi32_mask(open, count, _mm512_set1_epi32(1));
+    const uint32_t pushed = _pdep_u32(one, 0x55555555u) | _pdep_u32(two, 0xAAAAAAAAu);
+    const __mmask16 lo = (__mmask16)pushed, hi = (__mmask16)(pushed >> 16);
+    const int n_lo = _mm_popcnt_u32(lo), n_hi = _mm_popcnt_u32(hi);
+    /* Their slots (-1 where no child is visited): n, n + 1, ... expanded. */
+    const __m512i none = _mm512_set1_epi32(-1);
+    const __m512i slot_lo = _mm512_mask_expand_epi32(none, lo, _mm512_add_epi32(lane, _mm512_set1_epi32((int32_t)n)));
+    const __m512i slot_hi =
+        _mm512_mask_expand_epi32(none, hi, _mm512_add_epi32(lane, _mm512_set1_epi32((int32_t)n + n_lo)));
+    const uint32_t kid_valid = nb == BLOCK ? 0xFFFFFFFFu : (1u << (2 * nb)) - 1;
+    _mm512_mask_storeu_epi32(kid + 2 * i, (__mmask16)kid_valid, slot_lo);
+    _mm512_mask_storeu_epi32(kid + 2 * i + BLOCK, (__mmask16)(kid_valid >> 16), slot_hi);
+    /* Their positions: (first, first + 1) of each lane interleaved, compressed. */
+    const __m512i first = _mm512_srai_epi32(k, 2), second = _mm512_add_epi32(first, _mm512_set1_epi32(1));
+    const __m512i pick_lo = _mm512_set_epi32(23, 7, 22, 6, 21, 5, 20, 4, 19, 3, 18, 2, 17, 1, 16, 0);
+    const __m512i pick_hi = _mm512_add_epi32(pick_lo, _mm512_set1_epi32(8));
+    const __m512i at_lo = _mm512_maskz_compress_epi32(lo, _mm512_permutex2var_epi32(first, pick_lo, second));
+    const __m512i at_hi = _mm512_maskz_compress_epi32(hi, _mm512_permutex2var_epi32(first, pick_hi, second));
+    _mm512_mask_storeu_epi32(ids + n, (__mmask16)((1u << n_lo) - 1), at_lo);
+    _mm512_mask_storeu_epi32(ids + n + n_lo, (__mmask16)((1u << n_hi) - 1), at_hi);
+    if (parent) { /* each child's parent slot, the same way */
+        const __m512i slot = _mm512_add_epi32(lane, _mm512_set1_epi32((int32_t)i));
+        _mm512_mask_storeu_epi32(parent + n, (__mmask16)((1u << n_lo) - 1),
+                                 _mm512_maskz_compress_epi32(lo, _mm512_permutex2var_epi32(slot, pick_lo, slot)));
+        _mm512_mask_storeu_epi32(parent + n + n_lo, (__mmask16)((1u << n_hi) - 1),
+                                 _mm512_maskz_compress_epi32(hi, _mm512_permutex2var_epi32(slot, pick_hi, slot)));
+    }
+    return n + n_lo + n_hi;
+}
+
+/* resolve_plain over all n slots, sixteen at a time on the traversal's
+ * blocks (whose children all sit in later blocks; a block of the rare
+ * stretch where the queue ran short of sixteen may hold its own children
+ * and goes through resolve_plain). ran[] needs 3 bytes past n: the
+ * children's ran bits are gathered as int32. */
+SLOTS_TARGET static void resolve_avx512(const Mesh *pm, int64_t n, const int32_t *ids, const int32_t *kid,
+                                        const uint8_t *state, uint8_t *ran, int32_t *pcols, int64_t *n_not_run,
+                                        int64_t *kept)
+{
+    const __m512i none = _mm512_set1_epi32(-1), zero = _mm512_setzero_si512();
+    __m512i keep = zero; /* per lane: no sum exceeds the face count (int32) */
+    int64_t not_run = 0, keep_plain = 0;
+    for (int64_t s = (n - 1) & ~(int64_t)(BLOCK - 1); s >= 0; s -= BLOCK) {
+        const int64_t nb = n - s < BLOCK ? n - s : BLOCK;
+        const __mmask16 valid = (__mmask16)((1u << nb) - 1);
+        const uint32_t kid_valid = nb == BLOCK ? 0xFFFFFFFFu : (1u << (2 * nb)) - 1;
+        const __m512i k_lo = _mm512_mask_loadu_epi32(none, (__mmask16)kid_valid, kid + 2 * s);
+        const __m512i k_hi = _mm512_mask_loadu_epi32(none, (__mmask16)(kid_valid >> 16), kid + 2 * s + BLOCK);
+        const __mmask16 has_lo = _mm512_cmpge_epi32_mask(k_lo, zero), has_hi = _mm512_cmpge_epi32_mask(k_hi, zero);
+        const __m512i end = _mm512_set1_epi32((int32_t)(s + nb));
+        if (_mm512_mask_cmplt_epi32_mask(has_lo, k_lo, end) | _mm512_mask_cmplt_epi32_mask(has_hi, k_hi, end)) {
+            resolve_plain(pm, s, s + nb, ids, kid, state, ran, pcols, &not_run, &keep_plain);
+            continue;
+        }
+        /* The children's ran bits (1 where there is no child), both of a
+         * slot together: bits 2j and 2j + 1 of one mask. */
+        const __m512i one = _mm512_set1_epi32(1), byte = _mm512_set1_epi32(0xFF);
+        const __m512i r_lo = _mm512_mask_i32gather_epi32(one, has_lo, k_lo, ran, 1);
+        const __m512i r_hi = _mm512_mask_i32gather_epi32(one, has_hi, k_hi, ran, 1);
+        const uint32_t children = (uint32_t)_mm512_test_epi32_mask(r_lo, byte) |
+                                  ((uint32_t)_mm512_test_epi32_mask(r_hi, byte) << 16);
+        const __mmask16 below = (__mmask16)_pext_u32(children & (children >> 1), 0x55555555u);
+        const __mmask16 yes =
+            _mm_mask_cmpeq_epi8_mask(valid, _mm_maskz_loadu_epi8(valid, state + s), _mm_set1_epi8(YES));
+        const __mmask16 r = yes & below, failed = valid & (__mmask16)~r;
+        _mm_mask_storeu_epi8(ran + s, valid, _mm_maskz_mov_epi8(r, _mm_set1_epi8(1)));
+        not_run += _mm_popcnt_u32(failed);
+        const __m512i at = _mm512_maskz_loadu_epi32(valid, ids + s);
+        keep = _mm512_add_epi32(keep, _mm512_mask_i32gather_epi32(zero, failed, at, pm->kills, 4));
+        if (pcols) /* not for counts alone: order[] is read at random */
+            _mm512_mask_storeu_epi32(pcols + s, valid, _mm512_mask_i32gather_epi32(zero, valid, at, pm->order, 4));
+    }
+    *n_not_run = not_run;
+    *kept = keep_plain + _mm512_reduce_add_epi32(keep);
+}
+
+static int slots_avx512(void)
+{
+    static int has = -1; /* set once; racing threads write the same value */
+    if (has < 0) {
+        __builtin_cpu_init();
+        has = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw") &&
+              __builtin_cpu_supports("avx512vl") && __builtin_cpu_supports("bmi2") &&
+              __builtin_cpu_supports("popcnt");
+    }
+    return has;
+}
+#else
+static int slots_avx512(void) { return 0; }
+#endif
+
 /* Top-down traversal from the roots, breadth first, over a table whose
  * bounds are those of the pcols strictly below each pcol (NativeMesh
  * below_table): slot i holds pcol ids[i] with its own decision state[i];
@@ -788,14 +972,16 @@ static inline void gather_block(const float *table, const int32_t *ids, int64_t 
  * the pcols that do not run themselves but whose children do (a third of
  * the visits on the dragon). Returns the
  * number of slots; unsure[] receives the slots whose own decision is
- * UNSURE, *n_unsure their number. Capacity: P + 2 slots. Slots are decided a
+ * UNSURE, *n_unsure their number, and parent[] (optional) each slot's
+ * parent slot from slot n_roots on. Capacity: P + 2 slots. Slots are decided a
  * block at a time; the children of a block are pushed behind the queue. */
 static int64_t traverse(const Mesh *pm, const Frames *w, const int32_t *roots, int64_t n_roots, int32_t *ids,
-                        int32_t *kid, uint8_t *state, int32_t *unsure, int64_t *n_unsure)
+                        int32_t *kid, uint8_t *state, int32_t *parent, int32_t *unsure, int64_t *n_unsure)
 {
     int64_t n = 0, m = 0;
     Columns col;
     int32_t decided[BLOCK];
+    const int vector = slots_avx512();
     for (int64_t i = 0; i < n_roots; i++)
         ids[n++] = roots[i];
     for (int64_t i = 0; i < n;) {
@@ -807,31 +993,12 @@ static int64_t traverse(const Mesh *pm, const Frames *w, const int32_t *roots, i
         }
         gather_block(pm->table, ids + i, nb, col);
         decide_block(w, col, decided);
-        for (int64_t j = i; j < i + nb; j++) {
-            /* Without branches but for the rare unsure decisions: whether the
-             * bound decided a slot is a coin toss to the branch predictor. */
-            const int32_t own = decided[j - i] & (YES | UNSURE);
-            const int open = !(decided[j - i] & WHOLE);
-            state[j] = (uint8_t)own;
-            if (own == UNSURE) /* rare: decided by the caller (the float32 predicate) */
-                unsure[m++] = (int32_t)j;
-            /* The children of an open slot are visited whatever it does (each
-             * may run on its own); their rows are fetched ahead of their turn.
-             * Two are written and those that exist counted (2 spare slots).
-             * A slot is closed when everything below it collapses: its
-             * children ran, and it runs when it collapses itself. */
-            int32_t kids;
-            memcpy(&kids, &col[KIDS][j - i], sizeof kids);
-            /* As masks (-1 or 0), which the compiler keeps as arithmetic
-             * where conditionals became branches. */
-            const int32_t first = kids >> 2, count = (kids & 3) & -open;
-            const int32_t one = -(count > 0), two = -(count > 1);
-            kid[2 * j] = ((int32_t)n & one) | ~one;
-            kid[2 * j + 1] = (((int32_t)n + 1) & two) | ~two;
-            ids[n] = first;
-            ids[n + 1] = first + 1;
-            n += count;
-        }
+#if defined(__x86_64__) && defined(__GNUC__)
+        if (vector)
+            n = push_block_avx512(i, nb, n, decided, col[KIDS], state, kid, ids, parent, unsure, &m);
+        else
+#endif
+            n = push_block_plain(i, nb, n, decided, col[KIDS], state, kid, ids, parent, unsure, &m);
         i += nb;
     }
     *n_unsure = m;
@@ -839,26 +1006,21 @@ static int64_t traverse(const Mesh *pm, const Frames *w, const int32_t *roots, i
 }
 
 /* Bottom-up: a slot ran if it collapses and both children ran (children
- * always sit in later slots; one not visited ran). Writes ran[] (0/1), the
- * counts (pcols that did not run, the faces they keep) and pcols[], the pcol
- * of each slot (ids[] holds positions; optional). */
+ * always sit in later slots; one not visited ran). Writes ran[] (0/1; 3
+ * bytes past n may be read), the counts (pcols that did not run, the faces
+ * they keep) and pcols[], the pcol of each slot (ids[] holds positions;
+ * optional). */
 static void resolve(const Mesh *pm, int64_t n, const int32_t *ids, const int32_t *kid, const uint8_t *state,
                     uint8_t *ran, int32_t *pcols, int64_t *n_not_run, int64_t *kept)
 {
-    int64_t not_run = 0, keep = 0;
-    for (int64_t i = n - 1; i >= 0; i--) {
-        /* Without branches: whether a slot ran is a coin toss too. */
-        const int32_t k1 = kid[2 * i], k2 = kid[2 * i + 1];
-        const int below = ((k1 < 0) | ran[k1 < 0 ? 0 : k1]) & ((k2 < 0) | ran[k2 < 0 ? 0 : k2]);
-        const int r = (state[i] == YES) & below;
-        ran[i] = (uint8_t)r;
-        not_run += !r;
-        keep += (!r) * pm->kills[ids[i]];
-        if (pcols) /* not for counts alone: order[] is read at random */
-            pcols[i] = pm->order[ids[i]];
+#if defined(__x86_64__) && defined(__GNUC__)
+    if (slots_avx512()) {
+        resolve_avx512(pm, n, ids, kid, state, ran, pcols, n_not_run, kept);
+        return;
     }
-    *n_not_run = not_run;
-    *kept = keep;
+#endif
+    *n_not_run = *kept = 0;
+    resolve_plain(pm, 0, n, ids, kid, state, ran, pcols, n_not_run, kept);
 }
 
 /* ---- entry points (ctypes) ---------------------------------------------- */
@@ -875,7 +1037,7 @@ int64_t pmx_refine(const float *table, const int32_t *kills, const int32_t *orde
     Frames w;
     load_frames(&w, view, 1, flags);
     int64_t m = 0;
-    int64_t n = traverse(&pm, &w, roots, n_roots, ids, kid, state, unsure, &m);
+    int64_t n = traverse(&pm, &w, roots, n_roots, ids, kid, state, NULL, unsure, &m);
     out[0] = m;
     out[1] = out[2] = 0;
     if (m == 0)
@@ -1068,18 +1230,33 @@ static int32_t node_of(const int32_t *chain, int64_t count, int32_t s)
     return -1;
 }
 
-/* The record of a resolved word (n slots, m unsure) at rec, if it fits in
- * room int32; returns its size, or -1. Scratch: parent [n] int32, chain [n]
- * int32, mark [n] bytes (zero on entry and on return). */
+/* What a record reads of a resolved slot: a word's frame masks, or a single
+ * camera's bytes (visited: yes, whole: no, its own decision, whether it ran).
+ * unsure: the unsure frames of each unsure slot (NULL: one camera). */
+typedef struct {
+    const Lanes *visit, *whole, *yes, *ran, *unsure;
+    const uint8_t *state, *ran_byte;
+} SlotBits;
+static inline int32_t bits_visit(const SlotBits *b, int64_t s) { return b->visit ? b->visit[s] : 1; }
+static inline int32_t bits_whole(const SlotBits *b, int64_t s) { return b->whole ? b->whole[s] : 0; }
+static inline int32_t bits_yes(const SlotBits *b, int64_t s) { return b->yes ? b->yes[s] : b->state[s] == YES; }
+static inline int32_t bits_ran(const SlotBits *b, int64_t s) { return b->ran ? b->ran[s] : b->ran_byte[s]; }
+
+/* The record of a resolved word or camera (n slots, m unsure) at rec, if it
+ * fits in room int32; returns its size, or -1. parent [n] int32: each slot's
+ * parent slot from n_roots on, or scratch to build it in when
+ * parent_known is 0; chain [n] int32, mark [n] bytes (zero on entry and on
+ * return): scratch. */
 static int64_t record_unsure(int64_t word, int64_t n, int64_t n_roots, const int32_t *ids, const int32_t *kid,
-                             const Lanes *visit, const Lanes *whole, const Lanes *yes, const Lanes *ran,
-                             const int32_t *kills, const int32_t *unsure_slots, const Lanes *unsure_lanes, int64_t m,
-                             int32_t *parent, int32_t *chain, uint8_t *mark, int32_t *rec, int64_t room)
+                             const SlotBits *b, const int32_t *kills, const int32_t *unsure_slots, int64_t m,
+                             int32_t *parent, int parent_known, int32_t *chain, uint8_t *mark, int32_t *rec,
+                             int64_t room)
 {
-    for (int64_t i = 0; i < n; i++)
-        for (int t = 0; t < 2; t++)
-            if (kid[2 * i + t] >= 0)
-                parent[kid[2 * i + t]] = (int32_t)i;
+    if (!parent_known)
+        for (int64_t i = 0; i < n; i++)
+            for (int t = 0; t < 2; t++)
+                if (kid[2 * i + t] >= 0)
+                    parent[kid[2 * i + t]] = (int32_t)i;
     /* Each unsure slot and its ancestors, once (the roots are slots 0..n_roots). */
     int64_t count = 0;
     for (int64_t q = 0; q < m; q++)
@@ -1102,14 +1279,14 @@ static int64_t record_unsure(int64_t word, int64_t n, int64_t n_roots, const int
         node[NODE_SLOT] = s;
         node[NODE_K1] = k1 < 0 ? -1 : node_of(chain, count, k1);
         node[NODE_K2] = k2 < 0 ? -1 : node_of(chain, count, k2);
-        node[NODE_RAN_K1] = k1 < 0 ? 0xFFFF : ran[k1];
-        node[NODE_RAN_K2] = k2 < 0 ? 0xFFFF : ran[k2];
-        node[NODE_VISIT] = visit[s], node[NODE_WHOLE] = whole[s], node[NODE_YES] = yes[s];
-        node[NODE_RAN] = ran[s], node[NODE_KILLS] = kills[ids[s]], node[NODE_POSITION] = ids[s];
+        node[NODE_RAN_K1] = k1 < 0 ? 0xFFFF : bits_ran(b, k1);
+        node[NODE_RAN_K2] = k2 < 0 ? 0xFFFF : bits_ran(b, k2);
+        node[NODE_VISIT] = bits_visit(b, s), node[NODE_WHOLE] = bits_whole(b, s), node[NODE_YES] = bits_yes(b, s);
+        node[NODE_RAN] = bits_ran(b, s), node[NODE_KILLS] = kills[ids[s]], node[NODE_POSITION] = ids[s];
         node[NODE_UNSURE] = 0;
     }
     for (int64_t q = 0; q < m; q++)
-        rec[2 + node_of(chain, count, unsure_slots[q]) * NODE_N + NODE_UNSURE] = unsure_lanes[q];
+        rec[2 + node_of(chain, count, unsure_slots[q]) * NODE_N + NODE_UNSURE] = b->unsure ? b->unsure[q] : 1;
     return size;
 }
 
@@ -1137,9 +1314,9 @@ int64_t pmx_count_words(const float *table, const int32_t *kills, const int32_t 
         resolve_word(kills, order, n, ids, kid, visit, whole, yes, ran, NULL, not_run + w * FRAMES,
                      kept + w * FRAMES);
         if (out[0] > 0) {
-            const int64_t size = record_unsure(word_base + w, n, n_roots, ids, kid, visit, whole, yes, ran, kills,
-                                               unsure_slots, unsure_lanes, out[0], parent, chain, mark,
-                                               records + *used, capacity - *used);
+            const SlotBits b = {visit, whole, yes, ran, unsure_lanes, NULL, NULL};
+            const int64_t size = record_unsure(word_base + w, n, n_roots, ids, kid, &b, kills, unsure_slots, out[0],
+                                               parent, 0, chain, mark, records + *used, capacity - *used);
             if (size < 0)
                 return w;
             *used += size;
@@ -1157,33 +1334,26 @@ int64_t pmx_count_words(const float *table, const int32_t *kills, const int32_t 
  * yes bits and call pmx_apply_unsure with frames 1. Where a record does not
  * fit, returns that camera (make room and call again from it); k1 when every
  * camera is done. Scratch: the traversal's (pmx_refine) and, for the
- * records, the word scratch of pmx_count_words (visit, whole, yes, lanes as
- * Lanes [P], parent, chain [P] int32, mark [P] zero). */
+ * records, parent [P + 2], chain [P] int32 and mark [P] bytes (zero). */
 int64_t pmx_refine_many(const float *table, const int32_t *kills, const int32_t *order, int64_t n_pcols,
                         const int32_t *roots, int64_t n_roots, const float *views, int flags, int64_t k0,
                         int64_t k1, int32_t *ids, int32_t *kid, uint8_t *state, uint8_t *ran, int32_t *pcols,
-                        int32_t *unsure, int64_t *counts, uint8_t *masks, Lanes *visit, Lanes *whole, Lanes *yes,
-                        Lanes *lanes, Lanes *unsure_lanes, int32_t *parent, int32_t *chain, uint8_t *mark,
-                        int32_t *records, int64_t capacity, int64_t *used)
+                        int32_t *unsure, int64_t *counts, uint8_t *masks, int32_t *parent, int32_t *chain,
+                        uint8_t *mark, int32_t *records, int64_t capacity, int64_t *used)
 {
     Mesh pm = {table, kills, order, n_pcols};
     for (int64_t c = k0; c < k1; c++) {
         Frames w;
         load_frames(&w, views + 22 * c, 1, flags);
         int64_t m = 0;
-        const int64_t n = traverse(&pm, &w, roots, n_roots, ids, kid, state, unsure, &m);
+        const int64_t n = traverse(&pm, &w, roots, n_roots, ids, kid, state, parent, unsure, &m);
         /* An unsure slot's state is UNSURE, which resolve reads as "keep". */
         resolve(&pm, n, ids, kid, state, ran, masks ? pcols : NULL, &counts[3 * c + 1], &counts[3 * c + 2]);
         counts[3 * c] = n;
         if (m > 0) {
-            /* The camera as a word of one frame. */
-            for (int64_t i = 0; i < n; i++)
-                visit[i] = 1, whole[i] = 0, yes[i] = state[i] == YES, lanes[i] = ran[i];
-            for (int64_t q = 0; q < m; q++)
-                unsure_lanes[q] = 1;
-            const int64_t size = record_unsure(c, n, n_roots, ids, kid, visit, whole, yes, lanes, kills, unsure,
-                                               unsure_lanes, m, parent, chain, mark, records + *used,
-                                               capacity - *used);
+            const SlotBits b = {NULL, NULL, NULL, NULL, NULL, state, ran};
+            const int64_t size = record_unsure(c, n, n_roots, ids, kid, &b, kills, unsure, m, parent, 1, chain, mark,
+                                               records + *used, capacity - *used);
             if (size < 0)
                 return c;
             *used += size;

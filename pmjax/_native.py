@@ -68,7 +68,7 @@ def _load():
     lib.pmx_resolve.restype = None
     lib.pmx_resolve.argtypes = [_p, _p, _i64, _p, _p, _p, _p, _p, _p]
     lib.pmx_refine_many.restype = _i64
-    lib.pmx_refine_many.argtypes = [_p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _i64, _i64] + [_p] * 17 + [
+    lib.pmx_refine_many.argtypes = [_p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _i64, _i64] + [_p] * 12 + [
         _i64, _p]
     lib.pmx_refine_word.restype = _i64
     lib.pmx_refine_word.argtypes = [_p, _p, _p, _i64, _p, ctypes.c_int, ctypes.c_int] + [_p] * 9
@@ -222,9 +222,10 @@ class _Scratch(_Addresses):
         self.ids = np.empty(P + 2, np.int32)  # two spare slots (traverse in _front_native.c)
         self.kid = np.empty(2 * P, np.int32)
         self.state = np.empty(P, np.uint8)
-        self.ran = np.empty(P, np.uint8)
+        self.ran = np.empty(P + 4, np.uint8)  # resolve gathers 4 bytes a child (_front_native.c)
         self.pcols = np.empty(P, np.int32)
         self.unsure = np.empty(P, np.int32)
+        self.parent = np.empty(P + 2, np.int32)  # each slot's parent slot (camera batches' unsure records)
         self.out = np.zeros(3, np.int64)
         # Front mesh: the pcols that did not run (marked by breadth-first
         # position), bitmaps (zero between calls), their prefix counts, the
@@ -647,8 +648,7 @@ def _refine_part(host, s, values, flags, k, k1, counts, masks) -> np.ndarray:
         k = _LIB.pmx_refine_many(host.p_below_table, host.p_bfs_kills, host.p_order, host.n_pcols, host.p_roots,
                                  len(host.roots), _ptr(values), flags, k, k1, s.p_ids, s.p_kid, s.p_state, s.p_ran,
                                  s.p_pcols, s.p_unsure, _ptr(counts), None if masks is None else _ptr(masks),
-                                 w.p_visit, w.p_whole, w.p_yes, w.p_ran, w.p_unsure_lanes, w.p_parent, w.p_chain,
-                                 w.p_mark, _ptr(records), len(records), w.p_used)
+                                 s.p_parent, w.p_chain, w.p_mark, _ptr(records), len(records), w.p_used)
         if k < k1:  # camera k's record did not fit: twice the room, and on from k
             larger = np.empty(2 * len(records), np.int32)
             larger[:w.used[0]] = records[:w.used[0]]
