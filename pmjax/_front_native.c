@@ -107,15 +107,24 @@ static inline Sure sure_and(Sure a, Sure b) { Sure s = {a.y & b.y, a.n | b.n}; r
 
 /* The hierarchy in breadth-first order of its forest (pmjax/_native.py
  * NativeMesh): position q holds pcol order[q]; the created children of q sit
- * side by side at kids >> 2 (their number in the low two bits, kids the row's
- * KIDS column), so a pruned
- * breadth-first walk reads the table in increasing order. */
+ * side by side at kids_first(kids) (their number in the low two bits, kids
+ * the row's KIDS column), so a pruned breadth-first walk reads the table in
+ * increasing order. The sign bit of KIDS says that the pcol kills other than
+ * two faces (two: an inner edge of a manifold, nearly every pcol), so that the
+ * traversal knows what a slot keeps without reading kills[]. */
 typedef struct {
-    const float *table;   /* [P, ROW], by position; KIDS: first child's position << 2 | number of created children */
+    const float *table;   /* [P, ROW], by position; KIDS: kills != 2 << 31 | first child's position << 2 | number
+                             of created children */
     const int32_t *kills; /* [P] by position */
     const int32_t *order; /* [P] pcol at each position */
     int64_t n_pcols;
 } Mesh;
+
+/* The first child's position in a row's KIDS, and the faces a slot's pcol
+ * kills (pos: its position). */
+enum { KIDS_FIRST = 0x1FFFFFFF };
+static inline int32_t kids_first(int32_t kids) { return (int32_t)(((uint32_t)kids >> 2) & KIDS_FIRST); }
+static inline int32_t kids_kills(const Mesh *pm, int32_t kids, int32_t pos) { return kids < 0 ? pm->kills[pos] : 2; }
 
 /* One camera's constants (float32, host-computed, see VIEW). */
 typedef struct {
@@ -789,16 +798,17 @@ static inline void gather_block(const float *table, const int32_t *ids, int64_t 
 
 /* The slots of one decided block [i, i + nb) (decided[]: decide_block's
  * codes, kids[]: their rows' KIDS column): each slot's own decision goes to
- * state[], the unsure ones to unsure[*m...], and the children of the open
+ * state[], the faces its pcol kills to kill[], the unsure ones to
+ * unsure[*m...], and the children of the open
  * slots (those whose bound did not decide everything below them) are pushed
  * behind the queue at n, their slots written to kid[] (and, where parent is
  * not NULL, the slot of each child's parent to parent[]). Returns the new
  * end of the queue. The children of an open slot are visited whatever it does
  * (each may run on its own); a slot is closed when everything below it
  * collapses: its children ran, and it runs when it collapses itself. */
-static inline int64_t push_block_plain(int64_t i, int64_t nb, int64_t n, const int32_t *decided, const float *kids,
-                                       uint8_t *state, int32_t *kid, int32_t *ids, int32_t *parent, int32_t *unsure,
-                                       int64_t *m)
+static inline int64_t push_block_plain(const Mesh *pm, int64_t i, int64_t nb, int64_t n, const int32_t *decided,
+                                       const float *kids, uint8_t *state, int32_t *kill, int32_t *kid, int32_t *ids,
+                                       int32_t *parent, int32_t *unsure, int64_t *m)
 {
     for (int64_t j = i; j < i + nb; j++) {
         /* Without branches but for the rare unsure decisions: whether the
@@ -813,7 +823,8 @@ static inline int64_t push_block_plain(int64_t i, int64_t nb, int64_t n, const i
          * where conditionals became branches. */
         int32_t k;
         memcpy(&k, &kids[j - i], sizeof k);
-        const int32_t first = k >> 2, count = (k & 3) & -open;
+        kill[j] = kids_kills(pm, k, ids[j]);
+        const int32_t first = kids_first(k), count = (k & 3) & -open;
         const int32_t one = -(count > 0), two = -(count > 1);
         kid[2 * j] = ((int32_t)n & one) | ~one;
         kid[2 * j + 1] = (((int32_t)n + 1) & two) | ~two;
@@ -830,7 +841,8 @@ static inline int64_t push_block_plain(int64_t i, int64_t nb, int64_t n, const i
  * and both children ran (a child not visited ran). Counts the slots that
  * did not run and the faces they keep into *not_run, *keep. */
 static inline void resolve_plain(const Mesh *pm, int64_t lo, int64_t hi, const int32_t *ids, const int32_t *kid,
-                                 const uint8_t *state, uint8_t *ran, int32_t *pcols, int64_t *not_run, int64_t *keep)
+                                 const uint8_t *state, const int32_t *kill, uint8_t *ran, int32_t *pcols,
+                                 int64_t *not_run, int64_t *keep)
 {
     for (int64_t i = hi - 1; i >= lo; i--) {
         /* Without branches: whether a slot ran is a coin toss too. */
@@ -839,7 +851,7 @@ static inline void resolve_plain(const Mesh *pm, int64_t lo, int64_t hi, const i
         const int r = (state[i] == YES) & below;
         ran[i] = (uint8_t)r;
         *not_run += !r;
-        *keep += (!r) * pm->kills[ids[i]];
+        *keep += (!r) * kill[i];
         if (pcols) /* not for counts alone: order[] is read at random */
             pcols[i] = pm->order[ids[i]];
     }
@@ -851,9 +863,10 @@ static inline void resolve_plain(const Mesh *pm, int64_t lo, int64_t hi, const i
  * shifts and counts. Same results, bit for bit. */
 #define SLOTS_TARGET __attribute__((target("avx512f,avx512bw,avx512vl,bmi2,popcnt")))
 
-SLOTS_TARGET static int64_t push_block_avx512(int64_t i, int64_t nb, int64_t n, const int32_t *decided,
-                                              const float *kids, uint8_t *state, int32_t *kid, int32_t *ids,
-                                              int32_t *parent, int32_t *unsure, int64_t *m)
+SLOTS_TARGET static int64_t push_block_avx512(const Mesh *pm, int64_t i, int64_t nb, int64_t n,
+                                              const int32_t *decided, const float *kids, uint8_t *state,
+                                              int32_t *kill, int32_t *kid, int32_t *ids, int32_t *parent,
+                                              int32_t *unsure, int64_t *m)
 {
     const __mmask16 valid = (__mmask16)((1u << nb) - 1);
     const __m512i lane = _mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
@@ -868,8 +881,14 @@ SLOTS_TARGET static int64_t push_block_avx512(int64_t i, int64_t nb, int64_t n, 
     }
     /* Lanes with at least one / two children to visit, as one mask of the
      * children in queue order (bit 2j: lane j's first, 2j + 1: its second). */
-    const __mmask16 open = _mm512_mask_testn_epi32_mask(valid, code, _mm512_set1_epi32(WHOLE));
     const __m512i k = _mm512_loadu_si512(kids);
+    /* Two faces killed, but where the sign bit says otherwise (rare). */
+    const __mmask16 odd = _mm512_mask_cmplt_epi32_mask(valid, k, _mm512_setzero_si512());
+    __m512i kills = _mm512_set1_epi32(2);
+    if (odd)
+        kills = _mm512_mask_i32gather_epi32(kills, odd, _mm512_maskz_loadu_epi32(odd, ids + i), pm->kills, 4);
+    _mm512_mask_storeu_epi32(kill + i, valid, kills);
+    const __mmask16 open = _mm512_mask_testn_epi32_mask(valid, code, _mm512_set1_epi32(WHOLE));
     const __m512i count = _mm512_and_si512(k, _mm512_set1_epi32(3));
     const __mmask16 one = _mm512_mask_cmpgt_epi32_mask(open, count, _mm512_setzero_si512());
     const __mmask16 two = _mm512_mask_cmpgt_epi32_mask(open, count, _mm512_set1_epi32(1));
@@ -885,7 +904,8 @@ SLOTS_TARGET static int64_t push_block_avx512(int64_t i, int64_t nb, int64_t n, 
     _mm512_mask_storeu_epi32(kid + 2 * i, (__mmask16)kid_valid, slot_lo);
     _mm512_mask_storeu_epi32(kid + 2 * i + BLOCK, (__mmask16)(kid_valid >> 16), slot_hi);
     /* Their positions: (first, first + 1) of each lane interleaved, compressed. */
-    const __m512i first = _mm512_srai_epi32(k, 2), second = _mm512_add_epi32(first, _mm512_set1_epi32(1));
+    const __m512i first = _mm512_and_si512(_mm512_srli_epi32(k, 2), _mm512_set1_epi32(KIDS_FIRST));
+    const __m512i second = _mm512_add_epi32(first, _mm512_set1_epi32(1));
     const __m512i pick_lo = _mm512_set_epi32(23, 7, 22, 6, 21, 5, 20, 4, 19, 3, 18, 2, 17, 1, 16, 0);
     const __m512i pick_hi = _mm512_add_epi32(pick_lo, _mm512_set1_epi32(8));
     const __m512i at_lo = _mm512_maskz_compress_epi32(lo, _mm512_permutex2var_epi32(first, pick_lo, second));
@@ -908,8 +928,8 @@ SLOTS_TARGET static int64_t push_block_avx512(int64_t i, int64_t nb, int64_t n, 
  * and goes through resolve_plain). ran[] needs 3 bytes past n: the
  * children's ran bits are gathered as int32. */
 SLOTS_TARGET static void resolve_avx512(const Mesh *pm, int64_t n, const int32_t *ids, const int32_t *kid,
-                                        const uint8_t *state, uint8_t *ran, int32_t *pcols, int64_t *n_not_run,
-                                        int64_t *kept)
+                                        const uint8_t *state, const int32_t *kill, uint8_t *ran, int32_t *pcols,
+                                        int64_t *n_not_run, int64_t *kept)
 {
     const __m512i none = _mm512_set1_epi32(-1), zero = _mm512_setzero_si512();
     __m512i keep = zero; /* per lane: no sum exceeds the face count (int32) */
@@ -923,7 +943,7 @@ SLOTS_TARGET static void resolve_avx512(const Mesh *pm, int64_t n, const int32_t
         const __mmask16 has_lo = _mm512_cmpge_epi32_mask(k_lo, zero), has_hi = _mm512_cmpge_epi32_mask(k_hi, zero);
         const __m512i end = _mm512_set1_epi32((int32_t)(s + nb));
         if (_mm512_mask_cmplt_epi32_mask(has_lo, k_lo, end) | _mm512_mask_cmplt_epi32_mask(has_hi, k_hi, end)) {
-            resolve_plain(pm, s, s + nb, ids, kid, state, ran, pcols, &not_run, &keep_plain);
+            resolve_plain(pm, s, s + nb, ids, kid, state, kill, ran, pcols, &not_run, &keep_plain);
             continue;
         }
         /* The children's ran bits (1 where there is no child), both of a
@@ -939,10 +959,11 @@ SLOTS_TARGET static void resolve_avx512(const Mesh *pm, int64_t n, const int32_t
         const __mmask16 r = yes & below, failed = valid & (__mmask16)~r;
         _mm_mask_storeu_epi8(ran + s, valid, _mm_maskz_mov_epi8(r, _mm_set1_epi8(1)));
         not_run += _mm_popcnt_u32(failed);
-        const __m512i at = _mm512_maskz_loadu_epi32(valid, ids + s);
-        keep = _mm512_add_epi32(keep, _mm512_mask_i32gather_epi32(zero, failed, at, pm->kills, 4));
+        keep = _mm512_mask_add_epi32(keep, failed, keep, _mm512_maskz_loadu_epi32(failed, kill + s));
         if (pcols) /* not for counts alone: order[] is read at random */
-            _mm512_mask_storeu_epi32(pcols + s, valid, _mm512_mask_i32gather_epi32(zero, valid, at, pm->order, 4));
+            _mm512_mask_storeu_epi32(pcols + s, valid,
+                                     _mm512_mask_i32gather_epi32(zero, valid, _mm512_maskz_loadu_epi32(valid, ids + s),
+                                                                 pm->order, 4));
     }
     *n_not_run = not_run;
     *kept = keep_plain + _mm512_reduce_add_epi32(keep);
@@ -965,7 +986,8 @@ static int slots_avx512(void) { return 0; }
 
 /* Top-down traversal from the roots, breadth first, over a table whose
  * bounds are those of the pcols strictly below each pcol (NativeMesh
- * below_table): slot i holds pcol ids[i] with its own decision state[i];
+ * below_table): slot i holds pcol ids[i] with its own decision state[i]
+ * and the faces it kills kill[i];
  * kid[2i], kid[2i+1] are the slots of its children (-1: not visited, which
  * means original or below a slot whose bound decided, and so executed).
  * Against bounds over whole subtrees, this leaves unvisited the children of
@@ -976,7 +998,8 @@ static int slots_avx512(void) { return 0; }
  * parent slot from slot n_roots on. Capacity: P + 2 slots. Slots are decided a
  * block at a time; the children of a block are pushed behind the queue. */
 static int64_t traverse(const Mesh *pm, const Frames *w, const int32_t *roots, int64_t n_roots, int32_t *ids,
-                        int32_t *kid, uint8_t *state, int32_t *parent, int32_t *unsure, int64_t *n_unsure)
+                        int32_t *kid, uint8_t *state, int32_t *kill, int32_t *parent, int32_t *unsure,
+                        int64_t *n_unsure)
 {
     int64_t n = 0, m = 0;
     Columns col;
@@ -995,10 +1018,10 @@ static int64_t traverse(const Mesh *pm, const Frames *w, const int32_t *roots, i
         decide_block(w, col, decided);
 #if defined(__x86_64__) && defined(__GNUC__)
         if (vector)
-            n = push_block_avx512(i, nb, n, decided, col[KIDS], state, kid, ids, parent, unsure, &m);
+            n = push_block_avx512(pm, i, nb, n, decided, col[KIDS], state, kill, kid, ids, parent, unsure, &m);
         else
 #endif
-            n = push_block_plain(i, nb, n, decided, col[KIDS], state, kid, ids, parent, unsure, &m);
+            n = push_block_plain(pm, i, nb, n, decided, col[KIDS], state, kill, kid, ids, parent, unsure, &m);
         i += nb;
     }
     *n_unsure = m;
@@ -1011,16 +1034,16 @@ static int64_t traverse(const Mesh *pm, const Frames *w, const int32_t *roots, i
  * they keep) and pcols[], the pcol of each slot (ids[] holds positions;
  * optional). */
 static void resolve(const Mesh *pm, int64_t n, const int32_t *ids, const int32_t *kid, const uint8_t *state,
-                    uint8_t *ran, int32_t *pcols, int64_t *n_not_run, int64_t *kept)
+                    const int32_t *kill, uint8_t *ran, int32_t *pcols, int64_t *n_not_run, int64_t *kept)
 {
 #if defined(__x86_64__) && defined(__GNUC__)
     if (slots_avx512()) {
-        resolve_avx512(pm, n, ids, kid, state, ran, pcols, n_not_run, kept);
+        resolve_avx512(pm, n, ids, kid, state, kill, ran, pcols, n_not_run, kept);
         return;
     }
 #endif
     *n_not_run = *kept = 0;
-    resolve_plain(pm, 0, n, ids, kid, state, ran, pcols, n_not_run, kept);
+    resolve_plain(pm, 0, n, ids, kid, state, kill, ran, pcols, n_not_run, kept);
 }
 
 /* ---- entry points (ctypes) ---------------------------------------------- */
@@ -1031,27 +1054,28 @@ static void resolve(const Mesh *pm, int64_t n, const int32_t *ids, const int32_t
  * out[2] = faces they keep; pcols[]: the slots' pcols once resolved. */
 int64_t pmx_refine(const float *table, const int32_t *kills, const int32_t *order,
                    int64_t n_pcols, const int32_t *roots, int64_t n_roots, const float *view, int flags, int32_t *ids,
-                   int32_t *kid, uint8_t *state, uint8_t *ran, int32_t *pcols, int32_t *unsure, int64_t *out)
+                   int32_t *kid, uint8_t *state, int32_t *kill, uint8_t *ran, int32_t *pcols, int32_t *unsure,
+                   int64_t *out)
 {
     Mesh pm = {table, kills, order, n_pcols};
     Frames w;
     load_frames(&w, view, 1, flags);
     int64_t m = 0;
-    int64_t n = traverse(&pm, &w, roots, n_roots, ids, kid, state, NULL, unsure, &m);
+    int64_t n = traverse(&pm, &w, roots, n_roots, ids, kid, state, kill, NULL, unsure, &m);
     out[0] = m;
     out[1] = out[2] = 0;
     if (m == 0)
-        resolve(&pm, n, ids, kid, state, ran, pcols, &out[1], &out[2]);
+        resolve(&pm, n, ids, kid, state, kill, ran, pcols, &out[1], &out[2]);
     return n;
 }
 
 /* The bottom-up pass after the unsure decisions were written into state[]
  * (YES or NO). */
 void pmx_resolve(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids, const int32_t *kid,
-                 const uint8_t *state, uint8_t *ran, int32_t *pcols, int64_t *out)
+                 const uint8_t *state, const int32_t *kill, uint8_t *ran, int32_t *pcols, int64_t *out)
 {
     Mesh pm = {NULL, kills, order, 0};
-    resolve(&pm, n, ids, kid, state, ran, pcols, &out[0], &out[1]);
+    resolve(&pm, n, ids, kid, state, kill, ran, pcols, &out[0], &out[1]);
 }
 
 /* ---- words: consecutive frames of a camera path together ---------------- */
@@ -1120,7 +1144,7 @@ int64_t pmx_refine_word(const float *table, const int32_t *order, const int32_t 
             /* The children, for the frames that did not decide this subtree. */
             int32_t kids;
             memcpy(&kids, row + KIDS, sizeof kids);
-            const int32_t first = kids >> 2, count = kids & 3;
+            const int32_t first = kids_first(kids), count = kids & 3;
             for (int t = 0; t < count; t++) {
                 kid[2 * i + t] = (int32_t)n;
                 visit[n] = open;
@@ -1337,8 +1361,8 @@ int64_t pmx_count_words(const float *table, const int32_t *kills, const int32_t 
  * records, parent [P + 2], chain [P] int32 and mark [P] bytes (zero). */
 int64_t pmx_refine_many(const float *table, const int32_t *kills, const int32_t *order, int64_t n_pcols,
                         const int32_t *roots, int64_t n_roots, const float *views, int flags, int64_t k0,
-                        int64_t k1, int32_t *ids, int32_t *kid, uint8_t *state, uint8_t *ran, int32_t *pcols,
-                        int32_t *unsure, int64_t *counts, uint8_t *masks, int32_t *parent, int32_t *chain,
+                        int64_t k1, int32_t *ids, int32_t *kid, uint8_t *state, int32_t *kill, uint8_t *ran,
+                        int32_t *pcols, int32_t *unsure, int64_t *counts, uint8_t *masks, int32_t *parent, int32_t *chain,
                         uint8_t *mark, int32_t *records, int64_t capacity, int64_t *used)
 {
     Mesh pm = {table, kills, order, n_pcols};
@@ -1346,9 +1370,9 @@ int64_t pmx_refine_many(const float *table, const int32_t *kills, const int32_t 
         Frames w;
         load_frames(&w, views + 22 * c, 1, flags);
         int64_t m = 0;
-        const int64_t n = traverse(&pm, &w, roots, n_roots, ids, kid, state, parent, unsure, &m);
+        const int64_t n = traverse(&pm, &w, roots, n_roots, ids, kid, state, kill, parent, unsure, &m);
         /* An unsure slot's state is UNSURE, which resolve reads as "keep". */
-        resolve(&pm, n, ids, kid, state, ran, masks ? pcols : NULL, &counts[3 * c + 1], &counts[3 * c + 2]);
+        resolve(&pm, n, ids, kid, state, kill, ran, masks ? pcols : NULL, &counts[3 * c + 1], &counts[3 * c + 2]);
         counts[3 * c] = n;
         if (m > 0) {
             const SlotBits b = {NULL, NULL, NULL, NULL, NULL, state, ran};

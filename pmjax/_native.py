@@ -64,11 +64,11 @@ def _load():
     if lib is None:
         return None
     lib.pmx_refine.restype = _i64
-    lib.pmx_refine.argtypes = [_p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _p, _p, _p, _p, _p, _p, _p]
+    lib.pmx_refine.argtypes = [_p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _p, _p, _p, _p, _p, _p, _p, _p]
     lib.pmx_resolve.restype = None
-    lib.pmx_resolve.argtypes = [_p, _p, _i64, _p, _p, _p, _p, _p, _p]
+    lib.pmx_resolve.argtypes = [_p, _p, _i64, _p, _p, _p, _p, _p, _p, _p]
     lib.pmx_refine_many.restype = _i64
-    lib.pmx_refine_many.argtypes = [_p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _i64, _i64] + [_p] * 12 + [
+    lib.pmx_refine_many.argtypes = [_p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _i64, _i64] + [_p] * 13 + [
         _i64, _p]
     lib.pmx_refine_word.restype = _i64
     lib.pmx_refine_word.argtypes = [_p, _p, _p, _i64, _p, ctypes.c_int, ctypes.c_int] + [_p] * 9
@@ -222,6 +222,7 @@ class _Scratch(_Addresses):
         self.ids = np.empty(P + 2, np.int32)  # two spare slots (traverse in _front_native.c)
         self.kid = np.empty(2 * P, np.int32)
         self.state = np.empty(P, np.uint8)
+        self.kill = np.empty(P, np.int32)  # the faces each slot's pcol kills
         self.ran = np.empty(P + 4, np.uint8)  # resolve gathers 4 bytes a child (_front_native.c)
         self.pcols = np.empty(P, np.int32)
         self.unsure = np.empty(P, np.int32)
@@ -291,10 +292,15 @@ class NativeMesh:
             raise ValueError(f"the pcol forest reaches {len(order)} of {self.n_pcols} pcols from its roots")
         self.order = order.astype(np.int32)
         # Each row's last column (1 / |axis|, which the C loops do not read)
-        # holds its first child's position << 2 | its number of children.
-        self.bfs_table = _cache_aligned(self.table[order])
-        self.bfs_table[:, -1] = ((first << 2) | count).astype(np.int32).view(np.float32)
+        # holds its first child's position << 2 | its number of children, and
+        # in its sign bit whether the pcol kills other than two faces (KIDS in
+        # _front_native.c).
         self.bfs_kills = np.ascontiguousarray(kills[order])
+        if self.n_pcols >= 1 << 29:
+            raise ValueError(f"{self.n_pcols} pcols: the C loops hold positions below 2^29")
+        kids = (first << 2) | count | (self.bfs_kills != 2).astype(np.int64) << 31
+        self.bfs_table = _cache_aligned(self.table[order])
+        self.bfs_table[:, -1] = kids.astype(np.uint32).view(np.float32)
         self._pm = pm
         self.roots = np.arange(len(np.asarray(pm.roots)), dtype=np.int32)  # positions
         self._local = threading.local()
@@ -526,8 +532,8 @@ def refine_one(pm, camera, tau, tests, lists: bool = True):
     values = host_view(camera, tau)
     flags = flags_of(tests, camera.orthographic)
     n = _LIB.pmx_refine(host.p_below_table, host.p_bfs_kills, host.p_order, host.n_pcols, host.p_roots,
-                        len(host.roots), _ptr(values), flags, s.p_ids, s.p_kid, s.p_state, s.p_ran, s.p_pcols,
-                        s.p_unsure, s.p_out)
+                        len(host.roots), _ptr(values), flags, s.p_ids, s.p_kid, s.p_state, s.p_kill, s.p_ran,
+                        s.p_pcols, s.p_unsure, s.p_out)
     n_unsure = int(s.out[0])
     if n_unsure:
         slots = s.unsure[:n_unsure]
@@ -535,7 +541,7 @@ def refine_one(pm, camera, tau, tests, lists: bool = True):
         exact = view_values(camera, tau)
         pcols = host.order[s.ids[slots]]  # ids hold positions
         s.state[slots] = np.where(decide_unsure(pm, pcols, exact, tests, camera.orthographic), YES, NO)
-        _LIB.pmx_resolve(host.p_bfs_kills, host.p_order, n, s.p_ids, s.p_kid, s.p_state, s.p_ran, s.p_pcols,
+        _LIB.pmx_resolve(host.p_bfs_kills, host.p_order, n, s.p_ids, s.p_kid, s.p_state, s.p_kill, s.p_ran, s.p_pcols,
                          _ptr(s.out[1:]))
     counts = host.counts(int(s.out[1]), int(s.out[2]))
     if not lists:
@@ -646,7 +652,8 @@ def _refine_part(host, s, values, flags, k, k1, counts, masks) -> np.ndarray:
     w.used[0] = 0
     while k < k1:
         k = _LIB.pmx_refine_many(host.p_below_table, host.p_bfs_kills, host.p_order, host.n_pcols, host.p_roots,
-                                 len(host.roots), _ptr(values), flags, k, k1, s.p_ids, s.p_kid, s.p_state, s.p_ran,
+                                 len(host.roots), _ptr(values), flags, k, k1, s.p_ids, s.p_kid, s.p_state, s.p_kill,
+                                 s.p_ran,
                                  s.p_pcols, s.p_unsure, _ptr(counts), None if masks is None else _ptr(masks),
                                  s.p_parent, w.p_chain, w.p_mark, _ptr(records), len(records), w.p_used)
         if k < k1:  # camera k's record did not fit: twice the room, and on from k
