@@ -176,6 +176,9 @@ typedef struct {
     float kfac; /* 1 + |a_x| + |a_y| + l_x + l_y */
     float kpad; /* |b_x| + |b_y| + |near| + |far| */
     int frustum, orientation, screen;
+    /* Absolute values of the axes and constants (the certificates' magnitudes). */
+    float aR0, aR1, aR2, aU0, aU1, aU2, aF0, aF1, aF2;
+    float ak0, ak1, ak2, ak3, ak4, ak5, ak6, ak7;
 } Lane;
 
 static inline Lane lane_of(const View *w)
@@ -187,6 +190,11 @@ static inline Lane lane_of(const View *w)
     L.kpad = fabsf(w->k[2]) + fabsf(w->k[3]) + fabsf(w->k[6]) + fabsf(w->k[7]);
     L.frustum = (w->flags & TEST_FRUSTUM) != 0, L.orientation = (w->flags & TEST_ORIENTATION) != 0;
     L.screen = (w->flags & TEST_SCREEN) != 0;
+    L.aR0 = fabsf(L.R0), L.aR1 = fabsf(L.R1), L.aR2 = fabsf(L.R2);
+    L.aU0 = fabsf(L.U0), L.aU1 = fabsf(L.U1), L.aU2 = fabsf(L.U2);
+    L.aF0 = fabsf(L.F0), L.aF1 = fabsf(L.F1), L.aF2 = fabsf(L.F2);
+    L.ak0 = fabsf(k[0]), L.ak1 = fabsf(k[1]), L.ak2 = fabsf(k[2]), L.ak3 = fabsf(k[3]);
+    L.ak4 = fabsf(k[4]), L.ak5 = fabsf(k[5]), L.ak6 = fabsf(k[6]), L.ak7 = fabsf(k[7]);
     return L;
 }
 
@@ -272,9 +280,9 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
         const float x = vx * R0 + vy * R1 + vz * R2;
         const float y = vx * U0 + vy * U1 + vz * U2;
         const float z = vx * F0 + vy * F1 + vz * F2;
-        const float mx = avx * fabsf(R0) + avy * fabsf(R1) + avz * fabsf(R2);
-        const float my = avx * fabsf(U0) + avy * fabsf(U1) + avz * fabsf(U2);
-        const float mz = avx * fabsf(F0) + avy * fabsf(F1) + avz * fabsf(F2);
+        const float mx = avx * L->aR0 + avy * L->aR1 + avz * L->aR2;
+        const float my = avx * L->aU0 + avy * L->aU1 + avz * L->aU2;
+        const float mz = avx * L->aF0 + avy * L->aF1 + avz * L->aF2;
         const float sx = z * k0 + k2, sy = z * k1 + k3;
         const float hf = nx * F0 + ny * F1 + nz * F2; /* axis along the view (orthographic) */
         const float mhf = fabsf(nx * F0) + fabsf(ny * F1) + fabsf(nz * F2);
@@ -310,11 +318,11 @@ static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, c
         Sure out = {0, 1};
         {
             /* (z + r < near) | (z - r > far) | (sx - |x| < -r lx) | (sy - |y| < -r ly) */
-            const float msx = mz * fabsf(k0) + fabsf(k2), msy = mz * fabsf(k1) + fabsf(k3);
-            Sure f = less_than(z + r - k6, mz + ar + fabsf(k6), slack, exact_zero);
-            f = sure_or(f, less_than(k7 - (z - r), fabsf(k7) + mz + ar, slack, exact_zero));
-            f = sure_or(f, less_than(sx - fabsf(x) + r * k4, msx + mx + ar * fabsf(k4), slack, exact_zero));
-            f = sure_or(f, less_than(sy - fabsf(y) + r * k5, msy + my + ar * fabsf(k5), slack, exact_zero));
+            const float msx = mz * L->ak0 + L->ak2, msy = mz * L->ak1 + L->ak3;
+            Sure f = less_than(z + r - k6, mz + ar + L->ak6, slack, exact_zero);
+            f = sure_or(f, less_than(k7 - (z - r), L->ak7 + mz + ar, slack, exact_zero));
+            f = sure_or(f, less_than(sx - fabsf(x) + r * k4, msx + mx + ar * L->ak4, slack, exact_zero));
+            f = sure_or(f, less_than(sy - fabsf(y) + r * k5, msy + my + ar * L->ak5, slack, exact_zero));
             out.y = frustum & f.y;
             out.n = (!frustum) | f.n;
         }
@@ -376,6 +384,7 @@ static inline int fast_view(const View *w)
 typedef struct {
     float ex[BLOCK], ey[BLOCK], ez[BLOCK], R[3][BLOCK], U[3][BLOCK], F[3][BLOCK], k[8][BLOCK];
     float kappa2[BLOCK], kabs[BLOCK], kfac[BLOCK], kpad[BLOCK];
+    float aR[3][BLOCK], aU[3][BLOCK], aF[3][BLOCK], ak[8][BLOCK]; /* absolute values */
     int frustum, orientation, screen, ortho, fast;
 } Frames;
 
@@ -389,9 +398,13 @@ static void load_frames(Frames *fr, const float *views, int n_frames, int flags)
         fr->R[0][l] = L.R0, fr->R[1][l] = L.R1, fr->R[2][l] = L.R2;
         fr->U[0][l] = L.U0, fr->U[1][l] = L.U1, fr->U[2][l] = L.U2;
         fr->F[0][l] = L.F0, fr->F[1][l] = L.F1, fr->F[2][l] = L.F2;
+        fr->aR[0][l] = L.aR0, fr->aR[1][l] = L.aR1, fr->aR[2][l] = L.aR2;
+        fr->aU[0][l] = L.aU0, fr->aU[1][l] = L.aU1, fr->aU[2][l] = L.aU2;
+        fr->aF[0][l] = L.aF0, fr->aF[1][l] = L.aF1, fr->aF[2][l] = L.aF2;
         const float k[8] = {L.k0, L.k1, L.k2, L.k3, L.k4, L.k5, L.k6, L.k7};
+        const float ak[8] = {L.ak0, L.ak1, L.ak2, L.ak3, L.ak4, L.ak5, L.ak6, L.ak7};
         for (int i = 0; i < 8; i++)
-            fr->k[i][l] = k[i];
+            fr->k[i][l] = k[i], fr->ak[i][l] = ak[i];
         fr->kappa2[l] = L.kappa2, fr->kabs[l] = L.kabs, fr->kfac[l] = L.kfac, fr->kpad[l] = L.kpad;
         fr->frustum = L.frustum, fr->orientation = L.orientation, fr->screen = L.screen;
         fr->fast = (l == 0 || fr->fast) && fast_view(&w);
@@ -405,7 +418,10 @@ static inline Lane frame_at(const Frames *fr, int l)
               fr->U[0][l],  fr->U[1][l],  fr->U[2][l],  fr->F[0][l],   fr->F[1][l],   fr->F[2][l],
               fr->k[0][l],  fr->k[1][l],  fr->k[2][l],  fr->k[3][l],   fr->k[4][l],   fr->k[5][l],
               fr->k[6][l],  fr->k[7][l],  fr->kappa2[l], fr->kabs[l],  fr->kfac[l],   fr->kpad[l],
-              fr->frustum,  fr->orientation, fr->screen};
+              fr->frustum,  fr->orientation, fr->screen,
+              fr->aR[0][l], fr->aR[1][l], fr->aR[2][l], fr->aU[0][l], fr->aU[1][l], fr->aU[2][l],
+              fr->aF[0][l], fr->aF[1][l], fr->aF[2][l], fr->ak[0][l], fr->ak[1][l], fr->ak[2][l],
+              fr->ak[3][l], fr->ak[4][l], fr->ak[5][l], fr->ak[6][l], fr->ak[7][l]};
     return L;
 }
 
