@@ -985,7 +985,7 @@ SLOTS_TARGET static void resolve_avx512(const Mesh *pm, int64_t n, const int32_t
     *kept = keep_plain + _mm512_reduce_add_epi32(keep);
 }
 
-static int slots_avx512(void)
+static int avx512_here(void)
 {
     static int has = -1; /* set once; racing threads write the same value */
     if (has < 0) {
@@ -997,8 +997,28 @@ static int slots_avx512(void)
     return has;
 }
 #else
-static int slots_avx512(void) { return 0; }
+static int avx512_here(void) { return 0; }
 #endif
+
+/* Whether the slots' bookkeeping runs as AVX-512 masks: where the processor
+ * has them, unless pmx_vector_slots(0) said otherwise (tests run both). */
+static int vector_slots = -1;
+static int slots_avx512(void)
+{
+    if (vector_slots < 0)
+        vector_slots = avx512_here();
+    return vector_slots;
+}
+
+/* Turns the AVX-512 bookkeeping on (where the processor has it) or off,
+ * or leaves it (on < 0); returns whether it was on. */
+int pmx_vector_slots(int on)
+{
+    const int was = slots_avx512();
+    if (on >= 0)
+        vector_slots = on && avx512_here();
+    return was;
+}
 
 /* Top-down traversal from the roots, breadth first, over a table whose
  * bounds are those of the pcols strictly below each pcol (NativeMesh

@@ -85,6 +85,8 @@ def _load():
     lib.pmx_fat_cameras.argtypes = [_p, _i64, ctypes.c_int, _p]
     lib.pmx_decide_fat_all.restype = None
     lib.pmx_decide_fat_all.argtypes = [_p, _i64, _p, ctypes.c_int, ctypes.c_int, _p, _p]
+    lib.pmx_vector_slots.restype = ctypes.c_int
+    lib.pmx_vector_slots.argtypes = [ctypes.c_int]
     lib.pmx_decide_all.restype = None
     lib.pmx_decide_all.argtypes = [_p, _i64, _p, ctypes.c_int, _p]
     lib.pmx_front_mesh.restype = _i64
@@ -123,6 +125,14 @@ class use_native:
 
     def __exit__(self, *exc):
         self.switched._enabled = self.before
+
+
+def vector_slots(on: bool | None = None) -> bool:
+    """Whether the C loops keep their slots (queue, children, bottom-up pass)
+    with AVX-512 mask instructions, which they do where the processor has
+    them; ``on`` switches that (off: the plain loops, the same results) and
+    the previous setting is returned."""
+    return bool(_LIB.pmx_vector_slots(-1 if on is None else int(bool(on))))
 
 
 def decide_all(pm, camera, tau, tests) -> np.ndarray:

@@ -77,7 +77,7 @@ def test_certified_decisions_equal_the_float32_predicate(built, name):
 
 @pytest.mark.parametrize("name, pair_distance", [("cow.ply", 0.0), ("bunny.ply", 0.0), ("cessna.ply", 0.02),
                                                  ("terrain_gcanyon.ply", 0.0)])
-def test_native_refine_equals_dense(built, name, pair_distance):
+def test_native_refine_equals_dense(built, name, pair_distance, slots):
     data = built(name, pair_distance)
     pm = pmjax.ProgressiveMesh.from_data(data)
     cams = [index_camera(views_of(data, 6, seed=len(name)), i) for i in range(6)] + orthographic_views(data)
@@ -88,7 +88,7 @@ def test_native_refine_equals_dense(built, name, pair_distance):
             assert_refinements_equal(native, pmjax.refine(pm, cam, tau, method="dense"), (i, tau))
 
 
-def test_unsure_decisions_are_asked_of_the_float32_predicate(built):
+def test_unsure_decisions_are_asked_of_the_float32_predicate(built, slots):
     """At tau equal to pcols' critical tolerances the screen test is a float
     tie: the C code must leave those pcols unsure, and the answer is still the
     dense engine's, one float step below, at and above the tie."""
@@ -148,9 +148,34 @@ def test_tables_start_on_cache_lines(built):
         assert t.ctypes.data % 64 == 0 and t.shape[1] * t.itemsize == 64 and t.flags.c_contiguous, name
     assert np.array_equal(host.table, np.asarray(pm.table, np.float32))
     assert np.array_equal(host.bfs_table[:, :-1], host.table[host.order, :-1])
+    # The last column: the first child's position, the number of children and
+    # (sign bit) whether the pcol kills other than two faces.
+    kids = host.bfs_table[:, -1].view(np.uint32).astype(np.int64)
+    children = np.asarray(pm.children)[host.order]
+    count = (children >= 0).sum(1)
+    assert np.array_equal(kids & 3, count)
+    at = np.empty(pm.n_pcols, np.int64)
+    at[host.order] = np.arange(pm.n_pcols)
+    has = count > 0
+    first = np.where(children[:, 0] >= 0, children[:, 0], children[:, 1])  # the first created child
+    assert np.array_equal((kids[has] >> 2) & (2**29 - 1), at[first[has]])
+    assert np.array_equal(kids >> 31, np.asarray(pm.kills)[host.order] != 2)
 
 
-def test_native_batch_equals_dense(built):
+SLOTS = ["plain", pytest.param("vector", marks=pytest.mark.skipif(
+    not _native.vector_slots(), reason="the processor has no AVX-512: the C loops keep their slots plainly"))]
+
+
+@pytest.fixture(params=SLOTS)
+def slots(request):
+    """Each test that takes it runs twice: with the slots kept by AVX-512
+    masks (where the processor has them) and by the plain loops."""
+    was = _native.vector_slots(request.param == "vector")
+    yield request.param
+    _native.vector_slots(was)
+
+
+def test_native_batch_equals_dense(built, slots):
     data = built("bunny.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
     cams = stack_cameras([index_camera(views_of(data, 70, seed=2), i) for i in range(70)])
@@ -301,7 +326,7 @@ def test_host_view_constants_are_within_the_allowance(orthographic):
 
 
 @pytest.mark.parametrize("room", [None, 4])
-def test_batch_at_a_float_tie_asks_the_predicate_once_per_batch(built, monkeypatch, room):
+def test_batch_at_a_float_tie_asks_the_predicate_once_per_batch(built, monkeypatch, room, slots):
     """A batch refined at a pcol's critical tolerance has unsure decisions in
     many cameras; they are answered for the whole batch and the cameras'
     counts and masks corrected from their records: the same bits as the
