@@ -700,15 +700,14 @@ def refine_many(pm, cameras, tau, tests, want_masks: bool, threads: int | None =
             found[part] = _refine_part(host, s, values, flags, int(bounds[part]), int(bounds[part + 1]), counts,
                                        masks)
 
-    if threads == 1:
-        run(0)
-    else:
-        # ctypes releases the GIL for the call: the threads run in parallel.
-        workers = [threading.Thread(target=run, args=(t,)) for t in range(threads)]
-        for w in workers:
-            w.start()
-        for w in workers:
-            w.join()
+    # ctypes releases the GIL for the call: the threads run in parallel. The
+    # calling thread takes the first part (a thread takes 0.1-0.3 ms to start).
+    workers = [threading.Thread(target=run, args=(t,)) for t in range(1, threads)]
+    for w in workers:
+        w.start()
+    run(0)
+    for w in workers:
+        w.join()
     not_run, kept = counts[:, 1].copy(), counts[:, 2].copy()
     records = np.concatenate(found)
     if len(records):
