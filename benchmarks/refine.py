@@ -185,7 +185,7 @@ def front_vs_dense(name, frames, tau, K, chunk):
     batch = {m: [] for m in ("dense", "front")}
     for m in batch:
         pmjax.refine_batch(pm, rv, tau, chunk=chunk, method=m)  # compile (and grow buffers)
-    for rep in range(5):  # alternating, so that drift hits both alike
+    for rep in range(9):  # alternating, so that drift hits both alike
         for m in batch:
             t0 = time.perf_counter()
             pmjax.refine_batch(pm, rv, tau, chunk=chunk, method=m)
