@@ -92,7 +92,7 @@ typedef struct {
  * evaluation). The usual perspective views leave it out: there it takes a
  * zero radius or cosine together with an eye vector orthogonal to the axis
  * coordinate by coordinate, and such a pcol goes to the float32 predicate as
- * unsure (it costs a tenth of the decision). */
+ * unsure (there the certificate cost a tenth of the decision's instructions). */
 static inline Sure less_than(float d, float m, float slack, const int exact_zero)
 {
     float bound = REL * m + slack;
@@ -815,13 +815,13 @@ static inline void gather_block(const float *table, const int32_t *ids, int64_t 
 /* The slots of one decided block [i, i + nb) (decided[]: decide_block's
  * codes, kids[]: their rows' KIDS column): each slot's own decision goes to
  * state[], the faces its pcol kills to kill[], the unsure ones to
- * unsure[*m...], and the children of the open
- * slots (those whose bound did not decide everything below them) are pushed
- * behind the queue at n, their slots written to kid[] (and, where parent is
- * not NULL, the slot of each child's parent to parent[]). Returns the new
- * end of the queue. The children of an open slot are visited whatever it does
- * (each may run on its own); a slot is closed when everything below it
- * collapses: its children ran, and it runs when it collapses itself. */
+ * unsure[*m...], and the children of the open slots (those whose bound did
+ * not decide everything below them) are pushed behind the queue at n, their
+ * slots written to kid[] (and, where parent is not NULL, the slot of each
+ * child's parent to parent[]). Returns the new end of the queue. The children
+ * of an open slot are visited whatever it does (each may run on its own); a
+ * slot is closed when everything below it collapses: its children ran, and it
+ * runs when it collapses itself. */
 static inline int64_t push_block_plain(const Mesh *pm, int64_t i, int64_t nb, int64_t n, const int32_t *decided,
                                        const float *kids, uint8_t *state, int32_t *kill, int32_t *kid, int32_t *ids,
                                        int32_t *parent, int32_t *unsure, int64_t *m)
@@ -1398,8 +1398,8 @@ int64_t pmx_count_words(const float *table, const int32_t *kills, const int32_t 
 int64_t pmx_refine_many(const float *table, const int32_t *kills, const int32_t *order, int64_t n_pcols,
                         const int32_t *roots, int64_t n_roots, const float *views, int flags, int64_t k0,
                         int64_t k1, int32_t *ids, int32_t *kid, uint8_t *state, int32_t *kill, uint8_t *ran,
-                        int32_t *pcols, int32_t *unsure, int64_t *counts, uint8_t *masks, int32_t *parent, int32_t *chain,
-                        uint8_t *mark, int32_t *records, int64_t capacity, int64_t *used)
+                        int32_t *pcols, int32_t *unsure, int64_t *counts, uint8_t *masks, int32_t *parent,
+                        int32_t *chain, uint8_t *mark, int32_t *records, int64_t capacity, int64_t *used)
 {
     Mesh pm = {table, kills, order, n_pcols};
     for (int64_t c = k0; c < k1; c++) {

@@ -551,8 +551,8 @@ def refine_one(pm, camera, tau, tests, lists: bool = True):
         exact = view_values(camera, tau)
         pcols = host.order[s.ids[slots]]  # ids hold positions
         s.state[slots] = np.where(decide_unsure(pm, pcols, exact, tests, camera.orthographic), YES, NO)
-        _LIB.pmx_resolve(host.p_bfs_kills, host.p_order, n, s.p_ids, s.p_kid, s.p_state, s.p_kill, s.p_ran, s.p_pcols,
-                         _ptr(s.out[1:]))
+        _LIB.pmx_resolve(host.p_bfs_kills, host.p_order, n, s.p_ids, s.p_kid, s.p_state, s.p_kill, s.p_ran,
+                         s.p_pcols, _ptr(s.out[1:]))
     counts = host.counts(int(s.out[1]), int(s.out[2]))
     if not lists:
         return counts
@@ -663,8 +663,7 @@ def _refine_part(host, s, values, flags, k, k1, counts, masks) -> np.ndarray:
     while k < k1:
         k = _LIB.pmx_refine_many(host.p_below_table, host.p_bfs_kills, host.p_order, host.n_pcols, host.p_roots,
                                  len(host.roots), _ptr(values), flags, k, k1, s.p_ids, s.p_kid, s.p_state, s.p_kill,
-                                 s.p_ran,
-                                 s.p_pcols, s.p_unsure, _ptr(counts), None if masks is None else _ptr(masks),
+                                 s.p_ran, s.p_pcols, s.p_unsure, _ptr(counts), None if masks is None else _ptr(masks),
                                  s.p_parent, w.p_chain, w.p_mark, _ptr(records), len(records), w.p_used)
         if k < k1:  # camera k's record did not fit: twice the room, and on from k
             larger = np.empty(2 * len(records), np.int32)
@@ -705,9 +704,11 @@ def refine_many(pm, cameras, tau, tests, want_masks: bool, threads: int | None =
     workers = [threading.Thread(target=run, args=(t,)) for t in range(1, threads)]
     for w in workers:
         w.start()
-    run(0)
-    for w in workers:
-        w.join()
+    try:
+        run(0)
+    finally:
+        for w in workers:
+            w.join()
     not_run, kept = counts[:, 1].copy(), counts[:, 2].copy()
     records = np.concatenate(found)
     if len(records):
