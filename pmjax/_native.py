@@ -131,7 +131,10 @@ def vector_slots(on: bool | None = None) -> bool:
     """Whether the C loops keep their slots (queue, children, bottom-up pass)
     with AVX-512 mask instructions, which they do where the processor has
     them; ``on`` switches that (off: the plain loops, the same results) and
-    the previous setting is returned."""
+    the previous setting is returned (False where the C loops are not
+    built)."""
+    if _LIB is None:
+        return False
     return bool(_LIB.pmx_vector_slots(-1 if on is None else int(bool(on))))
 
 

@@ -163,7 +163,7 @@ def test_tables_start_on_cache_lines(built):
 
 
 SLOTS = ["plain", pytest.param("vector", marks=pytest.mark.skipif(
-    not _native.vector_slots(), reason="the processor has no AVX-512: the C loops keep their slots plainly"))]
+    not _native.vector_slots(), reason="no AVX-512 here (or no C loops): the slots are kept by the plain loops"))]
 
 
 @pytest.fixture(params=SLOTS)
