@@ -239,7 +239,10 @@ class _Scratch(_Addresses):
         self.ran = np.empty(P + 4, np.uint8)  # resolve gathers 4 bytes a child (_front_native.c)
         self.pcols = np.empty(P, np.int32)
         self.unsure = np.empty(P, np.int32)
-        self.parent = np.empty(P + 2, np.int32)  # each slot's parent slot (camera batches' unsure records)
+        # Camera batches' unsure records: each slot's parent slot, the chains'
+        # slots, a mark per slot (zero between calls), the int32 used.
+        self.parent, self.chain, self.mark = np.empty(P + 2, np.int32), np.empty(P, np.int32), np.zeros(P, np.uint8)
+        self.used = np.zeros(1, np.int64)
         self.out = np.zeros(3, np.int64)
         # Front mesh: the pcols that did not run (marked by breadth-first
         # position), bitmaps (zero between calls), their prefix counts, the
@@ -257,11 +260,6 @@ class _Scratch(_Addresses):
         self.sorted = np.empty(max(V0, 1), FRONT_VERTEX)
         self.drawn = np.empty(max(n_faces, 1), FACE_RECORD)
         self.front_index = np.empty(max(V0, 1), np.int32)
-
-    @functools.cached_property
-    def words(self) -> "_WordScratch":
-        """The buffers of words (and of the unsure records of a camera batch)."""
-        return _WordScratch(len(self.state))
 
 
 def _cache_aligned(a: np.ndarray) -> np.ndarray:
@@ -660,19 +658,18 @@ def faces_for_budget(pm, camera, budget: int, tests):
 def _refine_part(host, s, values, flags, k, k1, counts, masks) -> np.ndarray:
     """Cameras ``k..k1-1`` of a batch through pmx_refine_many with scratch
     ``s``, its records growing as needed; returns their records."""
-    w = s.words
     records = np.empty(RECORD_ROOM, np.int32)
-    w.used[0] = 0
+    s.used[0] = 0
     while k < k1:
         k = _LIB.pmx_refine_many(host.p_below_table, host.p_bfs_kills, host.p_order, host.n_pcols, host.p_roots,
                                  len(host.roots), _ptr(values), flags, k, k1, s.p_ids, s.p_kid, s.p_state, s.p_kill,
                                  s.p_ran, s.p_pcols, s.p_unsure, _ptr(counts), None if masks is None else _ptr(masks),
-                                 s.p_parent, w.p_chain, w.p_mark, _ptr(records), len(records), w.p_used)
+                                 s.p_parent, s.p_chain, s.p_mark, _ptr(records), len(records), s.p_used)
         if k < k1:  # camera k's record did not fit: twice the room, and on from k
             larger = np.empty(2 * len(records), np.int32)
-            larger[:w.used[0]] = records[:w.used[0]]
+            larger[:s.used[0]] = records[:s.used[0]]
             records = larger
-    return records[:w.used[0]]
+    return records[:s.used[0]]
 
 
 def refine_many(pm, cameras, tau, tests, want_masks: bool, threads: int | None = None):
