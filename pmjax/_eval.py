@@ -542,7 +542,10 @@ class _Runner:
                 continue
             for future in done:
                 out.append((self.parts.pop(future.key), future.result()))
-            self.pending = [f for f in self.pending if not f.done() or f.key in self.parts]
+            # Keep what was not collected. (Not "not done": a future whose
+            # result lived on a worker that died goes back to pending, and
+            # would be collected twice.)
+            self.pending = [f for f in self.pending if f.key in self.parts]
         return out
 
     def drain(self):
