@@ -1385,24 +1385,34 @@ int64_t pmx_count_words(const float *table, const int32_t *kills, const int32_t 
     return n_words;
 }
 
-/* Cameras k0..k1-1 of views [K, 22], each traversed and resolved with the
- * same scratch. counts[3k..3k+2] = visited slots, pcols not run, faces they
- * keep; masks: optional [K, P] executed bytes. A camera with unsure
- * decisions is resolved as if each were "keep" and leaves a record (camera
- * k, its chains; pmx_count_words's records with one frame, visit bits 1) in
+/* The camera after c: the next of a shared cursor (threads that take
+ * cameras one at a time finish together, whatever each camera costs), or
+ * c + 1 without one. */
+static inline int64_t next_camera(int64_t *cursor, int64_t c)
+{
+    return cursor ? __atomic_fetch_add(cursor, 1, __ATOMIC_RELAXED) : c + 1;
+}
+
+/* Cameras of views [K, 22] below k1, each traversed and resolved with the
+ * same scratch: k0 first (k0 < 0: none), then the next ones (next_camera).
+ * counts[3k..3k+2] = visited slots, pcols not run, faces they keep; masks:
+ * optional [K, P] executed bytes. A camera with unsure decisions is
+ * resolved as if each were "keep" and leaves a record (camera k, its
+ * chains; pmx_count_words's records with one frame, visit bits 1) in
  * records (capacity int32, *used of them used): decide the pairs, set their
  * yes bits and call pmx_apply_unsure with frames 1. Where a record does not
- * fit, returns that camera (make room and call again from it); k1 when every
- * camera is done. Scratch: the traversal's (pmx_refine) and, for the
- * records, parent [P + 2], chain [P] int32 and mark [P] bytes (zero). */
+ * fit, returns that camera (make room and call again with it as k0); k1
+ * when this caller has no camera left. Scratch: the traversal's
+ * (pmx_refine) and, for the records, parent [P + 2], chain [P] int32 and
+ * mark [P] bytes (zero). */
 int64_t pmx_refine_many(const float *table, const int32_t *kills, const int32_t *order, int64_t n_pcols,
                         const int32_t *roots, int64_t n_roots, const float *views, int flags, int64_t k0,
-                        int64_t k1, int32_t *ids, int32_t *kid, uint8_t *state, int32_t *kill, uint8_t *ran,
+                        int64_t k1, int64_t *cursor, int32_t *ids, int32_t *kid, uint8_t *state, int32_t *kill, uint8_t *ran,
                         int32_t *pcols, int32_t *unsure, int64_t *counts, uint8_t *masks, int32_t *parent,
                         int32_t *chain, uint8_t *mark, int32_t *records, int64_t capacity, int64_t *used)
 {
     Mesh pm = {table, kills, order, n_pcols};
-    for (int64_t c = k0; c < k1; c++) {
+    for (int64_t c = k0 >= 0 ? k0 : next_camera(cursor, k0); c < k1; c = next_camera(cursor, c)) {
         Frames w;
         load_frames(&w, views + 22 * c, 1, flags);
         int64_t m = 0;

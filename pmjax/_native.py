@@ -68,7 +68,7 @@ def _load():
     lib.pmx_resolve.restype = None
     lib.pmx_resolve.argtypes = [_p, _p, _i64, _p, _p, _p, _p, _p, _p, _p]
     lib.pmx_refine_many.restype = _i64
-    lib.pmx_refine_many.argtypes = [_p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _i64, _i64] + [_p] * 13 + [
+    lib.pmx_refine_many.argtypes = [_p, _p, _p, _i64, _p, _i64, _p, ctypes.c_int, _i64, _i64] + [_p] * 14 + [
         _i64, _p]
     lib.pmx_refine_word.restype = _i64
     lib.pmx_refine_word.argtypes = [_p, _p, _p, _i64, _p, ctypes.c_int, ctypes.c_int] + [_p] * 9
@@ -356,8 +356,8 @@ class NativeMesh:
     @contextlib.contextmanager
     def borrowed(self):
         """A scratch that no other thread uses meanwhile, kept for later
-        calls: the worker threads of a batch are new each call, and fresh
-        buffers would cost their page faults again."""
+        calls by any thread (fresh buffers would cost their page faults
+        again)."""
         with self._pool_lock:
             s = self._pool.pop() if self._pool else None
         if s is None:
@@ -655,30 +655,56 @@ def faces_for_budget(pm, camera, budget: int, tests):
     return value(hi_b), f_hi
 
 
-def _refine_part(host, s, values, flags, k, k1, counts, masks) -> np.ndarray:
-    """Cameras ``k..k1-1`` of a batch through pmx_refine_many with scratch
+def _refine_part(host, s, values, flags, K, cursor, counts, masks) -> np.ndarray:
+    """Cameras of a batch of ``K`` taken one at a time from ``cursor``
+    (int64[1], shared by the threads) through pmx_refine_many with scratch
     ``s``, its records growing as needed; returns their records."""
     records = np.empty(RECORD_ROOM, np.int32)
     s.used[0] = 0
-    while k < k1:
+    k = -1  # none to redo: the first from the cursor
+    while True:
         k = _LIB.pmx_refine_many(host.p_below_table, host.p_bfs_kills, host.p_order, host.n_pcols, host.p_roots,
-                                 len(host.roots), _ptr(values), flags, k, k1, s.p_ids, s.p_kid, s.p_state, s.p_kill,
-                                 s.p_ran, s.p_pcols, s.p_unsure, _ptr(counts), None if masks is None else _ptr(masks),
-                                 s.p_parent, s.p_chain, s.p_mark, _ptr(records), len(records), s.p_used)
-        if k < k1:  # camera k's record did not fit: twice the room, and on from k
-            larger = np.empty(2 * len(records), np.int32)
-            larger[:s.used[0]] = records[:s.used[0]]
-            records = larger
-    return records[:s.used[0]]
+                                 len(host.roots), _ptr(values), flags, k, K, _ptr(cursor), s.p_ids, s.p_kid,
+                                 s.p_state, s.p_kill, s.p_ran, s.p_pcols, s.p_unsure, _ptr(counts),
+                                 None if masks is None else _ptr(masks), s.p_parent, s.p_chain, s.p_mark,
+                                 _ptr(records), len(records), s.p_used)
+        if k >= K:
+            return records[:s.used[0]]
+        # camera k's record did not fit: twice the room, and on with k
+        larger = np.empty(2 * len(records), np.int32)
+        larger[:s.used[0]] = records[:s.used[0]]
+        records = larger
+
+
+_POOL = None
+_POOL_LOCK = threading.Lock()
+
+
+def _helpers(task, n: int) -> list:
+    """``task`` submitted ``n`` times to the batch's helper threads, started
+    once and kept (starting a thread held the calling thread 0.3-0.4 ms, 4 %
+    of a dragon batch); returns the futures."""
+    global _POOL
+    with _POOL_LOCK:  # submitted under the lock: a larger pool may replace this one
+        if _POOL is None or _POOL._max_workers < n:
+            import concurrent.futures
+
+            if _POOL is not None:  # its threads end once idle
+                _POOL.shutdown(wait=False)
+            _POOL = concurrent.futures.ThreadPoolExecutor(n, thread_name_prefix="pmjax-front")
+        return [_POOL.submit(task) for _ in range(n)]
 
 
 def refine_many(pm, cameras, tau, tests, want_masks: bool, threads: int | None = None):
-    """A camera batch through the C traversal, the cameras split over threads.
+    """A camera batch through the C traversal, the cameras shared by threads.
 
-    A camera with unsure decisions is resolved as if each were "keep" and
-    leaves a record of the slots they can change (as :func:`count_words`);
-    the pairs of the whole batch are decided in one call of the float32
-    predicate and the cameras' counts and masks corrected.
+    The calling thread and ``threads - 1`` helpers (default: one per core)
+    take the cameras one at a time from a shared cursor, so they finish
+    together however the cameras' costs differ. A camera with unsure
+    decisions is resolved as if each were "keep" and leaves a record of the
+    slots they can change (as :func:`count_words`); the pairs of the whole
+    batch are decided in one call of the float32 predicate and the cameras'
+    counts and masks corrected.
 
     Returns:
         ``(faces, vertices, executed_count)`` int32 ``[K]`` and, with
@@ -691,24 +717,21 @@ def refine_many(pm, cameras, tau, tests, want_masks: bool, threads: int | None =
     counts = np.zeros((K, 3), np.int64)
     masks = np.empty((K, host.n_pcols), np.uint8) if want_masks else None
     threads = max(1, min(threads or _cores(), K))
-    bounds = np.linspace(0, K, threads + 1).astype(int)
-    found = [None] * threads
+    cursor = np.zeros(1, np.int64)
 
-    def run(part):
+    def run():
         with host.borrowed() as s:
-            found[part] = _refine_part(host, s, values, flags, int(bounds[part]), int(bounds[part + 1]), counts,
-                                       masks)
+            return _refine_part(host, s, values, flags, K, cursor, counts, masks)
 
-    # ctypes releases the GIL for the call: the threads run in parallel. The
-    # calling thread takes the first part (a thread takes 0.1-0.3 ms to start).
-    workers = [threading.Thread(target=run, args=(t,)) for t in range(1, threads)]
-    for w in workers:
-        w.start()
+    # ctypes releases the GIL for the call: the threads run in parallel.
+    helpers = _helpers(run, threads - 1) if threads > 1 else []
+    found = []
     try:
-        run(0)
+        found.append(run())
     finally:
-        for w in workers:
-            w.join()
+        # A helper that has not started (the pool busy with another batch)
+        # is not waited for: the cameras are done.
+        found += [h.result() for h in helpers if not h.cancel()]
     not_run, kept = counts[:, 1].copy(), counts[:, 2].copy()
     records = np.concatenate(found)
     if len(records):

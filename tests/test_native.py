@@ -185,8 +185,27 @@ def test_native_batch_equals_dense(built, slots):
         for key in dense:
             assert np.array_equal(native[key], dense[key]), (tau, key)
     one = _native.refine_many(pm, cams, np.float32(1.0), pmjax.ALL_TESTS, False, threads=1)
-    two = _native.refine_many(pm, cams, np.float32(1.0), pmjax.ALL_TESTS, False, threads=2)
-    assert all(np.array_equal(a, b) for a, b in zip(one, two))
+    for threads in (2, 3):
+        many = _native.refine_many(pm, cams, np.float32(1.0), pmjax.ALL_TESTS, False, threads=threads)
+        assert all(np.array_equal(a, b) for a, b in zip(one, many)), threads
+
+
+def test_native_batches_from_several_threads_at_once(built):
+    """Batches started together from user threads share the helper threads
+    (a helper busy with another batch is not waited for) and each gets its
+    own cameras' results."""
+    import concurrent.futures
+
+    data = built("bunny.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    views = views_of(data, 48, seed=9)
+    batches = [stack_cameras([index_camera(views, i) for i in range(j, 48, 4)]) for j in range(4)]
+    alone = [_native.refine_many(pm, b, np.float32(1.0), pmjax.ALL_TESTS, True, threads=1) for b in batches]
+    with concurrent.futures.ThreadPoolExecutor(4) as users:
+        together = list(users.map(lambda b: _native.refine_many(pm, b, np.float32(1.0), pmjax.ALL_TESTS, True),
+                                  batches * 3))
+    for i, got in enumerate(together):
+        assert all(np.array_equal(a, b) for a, b in zip(alone[i % 4], got)), i
 
 
 def test_dragon_front_visits_a_small_share(built):
