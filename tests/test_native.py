@@ -190,6 +190,22 @@ def test_native_batch_equals_dense(built, slots):
         assert all(np.array_equal(a, b) for a, b in zip(one, many)), threads
 
 
+def test_subnormals_come_back_after_the_c_loops(built):
+    """The C loops read and write subnormal floats as zero while they run
+    (the thread's floating-point mode), and give the caller's mode back."""
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    views = views_of(data, 4, seed=4)
+    tiny = np.array([2.0 ** -126], np.float32)
+    calls = [lambda: pmjax.refine(pm, index_camera(views, 0), 1.0, method="front"),
+             lambda: _native.refine_many(pm, views, np.float32(1.0), pmjax.ALL_TESTS, False, threads=1),
+             lambda: _native.decide_all(pm, index_camera(views, 1), 1.0, pmjax.ALL_TESTS)]
+    for i, call in enumerate(calls):
+        call()
+        # Compared as bits: with subnormals as zero, 0 == 2^-128 holds too.
+        assert (tiny * np.float32(0.25)).view(np.int32)[0] == 1 << 21, i  # 2^-128
+
+
 def test_native_batches_from_several_threads_at_once(built):
     """Batches started together from user threads share the helper threads
     (a helper busy with another batch is not waited for) and each gets its
