@@ -1439,9 +1439,10 @@ static inline int64_t next_camera(int64_t *cursor, int64_t c)
  * mark [P] bytes (zero). */
 int64_t pmx_refine_many(const float *table, const int32_t *kills, const int32_t *order, int64_t n_pcols,
                         const int32_t *roots, int64_t n_roots, const float *views, int flags, int64_t k0,
-                        int64_t k1, int64_t *cursor, int32_t *ids, int32_t *kid, uint8_t *state, int32_t *kill, uint8_t *ran,
-                        int32_t *pcols, int32_t *unsure, int64_t *counts, uint8_t *masks, int32_t *parent,
-                        int32_t *chain, uint8_t *mark, int32_t *records, int64_t capacity, int64_t *used)
+                        int64_t k1, int64_t *cursor, int32_t *ids, int32_t *kid, uint8_t *state, int32_t *kill,
+                        uint8_t *ran, int32_t *pcols, int32_t *unsure, int64_t *counts, uint8_t *masks,
+                        int32_t *parent, int32_t *chain, uint8_t *mark, int32_t *records, int64_t capacity,
+                        int64_t *used)
 {
     Mesh pm = {table, kills, order, n_pcols};
     const unsigned mode = subnormals_off();
