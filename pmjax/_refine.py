@@ -289,15 +289,15 @@ METHODS = ("auto", "front", "dense")
 
 # "auto" picks the front engine (docs/front.md, same-run measurements on 2
 # cores): with the C loops, for one camera on every hierarchy (cow, 2,896
-# pcols: 2.0x faster than dense; dragon, 436,325: 17.9x) and for camera
-# batches from FRONT_BATCH_FROM_PCOLS on (St Helens, 148,883: 2.3x; dragon:
-# 3.0x; the two engines tie at about 35,000-40,000 pcols: bunny 1.05x,
-# Grand Canyon 0.96x; cow 0.35x). Without
+# pcols: 2.3-3.8x faster than dense; dragon, 436,325: 19x) and for camera
+# batches from FRONT_BATCH_FROM_PCOLS on (bunny, 34,819: 1.22-1.25x; Grand
+# Canyon, 39,998: 1.34-1.43x; St Helens, 148,883: 3.3x; dragon: 5.2x; cow
+# 0.61-0.70x). Without
 # them, the front engine as JAX kernels wins for one camera only from
 # FRONT_FROM_PCOLS on (bunny 0.63x, St Helens 1.44x, dragon 2.06x) and never
 # for batches.
 FRONT_FROM_PCOLS = 100_000
-FRONT_BATCH_FROM_PCOLS = 50_000
+FRONT_BATCH_FROM_PCOLS = 30_000
 
 
 def _method(pm: ProgressiveMesh, method: str, predicate, batch: bool = False) -> str:

@@ -199,7 +199,8 @@ def test_subnormals_come_back_after_the_c_loops(built):
     tiny = np.array([2.0 ** -126], np.float32)
     calls = [lambda: pmjax.refine(pm, index_camera(views, 0), 1.0, method="front"),
              lambda: _native.refine_many(pm, views, np.float32(1.0), pmjax.ALL_TESTS, False, threads=1),
-             lambda: _native.decide_all(pm, index_camera(views, 1), 1.0, pmjax.ALL_TESTS)]
+             lambda: _native.decide_all(pm, index_camera(views, 1), 1.0, pmjax.ALL_TESTS),
+             lambda: pmjax.path_counts(pm, views, 1.0)]
     for i, call in enumerate(calls):
         call()
         # Compared as bits: with subnormals as zero, 0 == 2^-128 holds too.
