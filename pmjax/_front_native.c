@@ -1087,12 +1087,13 @@ static void resolve(const Mesh *pm, int64_t n, const int32_t *ids, const int32_t
 /* Subnormal floats read and written as zero (MXCSR DAZ and FTZ) in the
  * calling thread while a decision loop runs; the caller's mode comes back on
  * return. On x86 a vector operation that meets a subnormal takes a microcode
- * assist of a hundred cycles or more, and the traversal meets them in the
- * tiny radii and errors of fine pcols (squared): 4-8 % of a camera batch on
- * the dragon, blocks of arbitrary pcols decided 3x slower. The bits are the
- * same: the certified own decisions allow any evaluation to flush (FLUSH),
- * and the subtree bounds, like pmjax/_subtree.py's for XLA (which flushes
- * too), decide nothing where a term they compare could leave [LOW, HIGH]. */
+ * assist of a hundred cycles or more, for the whole vector. The tables hold
+ * none (pmjax/_subtree.py keeps zero bounds zero), but products of tiny
+ * terms make them (fine pcols' squared deviations, models in tiny units).
+ * The bits are the same: the certified own decisions allow any evaluation
+ * to flush (FLUSH), and the subtree bounds, like pmjax/_subtree.py's for XLA
+ * (which flushes too), decide nothing where a term they compare could leave
+ * [LOW, HIGH]. */
 static inline unsigned subnormals_off(void)
 {
 #if defined(__x86_64__) && defined(__GNUC__)

@@ -137,6 +137,29 @@ def test_native_mesh_equals_dense_mesh(built, name):
                 assert a.dtype == b.dtype and np.array_equal(a, b), (i, tau)
 
 
+@pytest.mark.parametrize("name", ["cow.ply", "bunny.ply"])
+def test_tables_hold_no_subnormal_floats(built, name):
+    """The bounds of pcols with nothing below (or one centre) are exact zeros,
+    not zero rounded up to the smallest subnormal float (a microcode assist in
+    every vector operation that reads one); the other bounds are still
+    rounded up."""
+    data = built(name)
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    host = _native.native_mesh(pm)
+    for table in ("table", "bfs_table", "below_table"):
+        values = np.abs(getattr(host, table)[:, :-1].astype(np.float64))  # the last column holds integers
+        assert not np.any((values > 0) & (values < np.finfo(np.float32).tiny)), table
+    spread = np.asarray(pm.subtree.spread)
+    assert spread.dtype == np.float32 and np.any(spread == 0) and np.all(spread >= 0)
+    leaves = (np.asarray(pm.children) < 0).all(axis=1)
+    assert np.all(spread[leaves] == 0)
+    # A positive bound, however small, is still rounded up.
+    from pmjax._subtree import _rounded_up
+
+    up = _rounded_up(np.array([0.0, 1e-300, 1.0]))
+    assert up.dtype == np.float32 and up[0] == 0 and up[1] > 0 and up[2] > 1
+
+
 def test_tables_start_on_cache_lines(built):
     """Every row the C loops read is one 64-byte cache line, and the tables
     hold the mesh's values (in breadth-first order)."""
