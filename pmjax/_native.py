@@ -791,17 +791,27 @@ def _decide_lanes(host, positions, lanes, lane_frames, cameras, taus, tests) -> 
     out = np.zeros(len(lanes), np.uint16)
     # Every (slot, frame) pair.
     slot_of, lane_of = np.nonzero((lanes[:, None] >> np.arange(FRAMES)) & 1)
-    pairs = len(slot_of)
-    if pairs == 0:
+    if len(slot_of) == 0:
         return out
-    pad = np.zeros(_bucket(pairs), np.int64)
-    pad[:pairs] = np.arange(pairs)
-    frame = np.asarray(lane_frames)[slot_of, lane_of][pad]
-    batch = jax.tree.map(lambda a: np.asarray(a)[frame] if np.ndim(a) else a, cameras)
-    yes = np.asarray(_decide_pairs(_rows(host, host.order[np.asarray(positions)[slot_of][pad]]), batch,
-                                   np.asarray(taus, np.float32)[frame], tests, cameras.orthographic))[:pairs]
+    yes = _decide_pairs_at(host, np.asarray(positions)[slot_of], np.asarray(lane_frames)[slot_of, lane_of], cameras,
+                           taus, tests)
     np.bitwise_or.at(out, slot_of[yes], (1 << lane_of[yes]).astype(np.uint16))
     return out
+
+
+def _decide_pairs_at(host, positions, frames, cameras, taus, tests) -> np.ndarray:
+    """``bool [n]``: the float32 predicate's decision for the pcol at
+    breadth-first position ``positions[i]`` under frame ``frames[i]`` of
+    ``cameras`` (with ``taus``), all in one call padded to a :func:`_bucket`."""
+    n = len(positions)
+    if n == 0:
+        return np.zeros(0, bool)
+    pad = np.zeros(_bucket(n), np.int64)
+    pad[:n] = np.arange(n)
+    frame = np.asarray(frames)[pad]
+    batch = jax.tree.map(lambda a: np.asarray(a)[frame] if np.ndim(a) else a, cameras)
+    return np.asarray(_decide_pairs(_rows(host, host.order[np.asarray(positions)[pad]]), batch,
+                                    np.asarray(taus, np.float32)[frame], tests, cameras.orthographic))[:n]
 
 
 def count_words(pm, cameras, taus, tests, values, fats=None, first_word=0):
@@ -880,10 +890,14 @@ def _decide_records(host, records, lane_frames, cameras, taus, tests, first_word
     at, word, positions, lanes = np.empty(n, np.int64), np.empty(n, np.int32), np.empty(n, np.int32), \
         np.empty(n, np.int32)
     m = _LIB.pmx_unsure_nodes(_ptr(records), len(records), _ptr(at), _ptr(word), _ptr(positions), _ptr(lanes))
-    first_lane = (word[:m].astype(np.int64) - first_word) * frames
-    lane_frames = np.concatenate([np.asarray(lane_frames), np.zeros(FRAMES, np.int64)])  # lanes past a word's
-    yes = _decide_lanes(host, positions[:m], lanes[:m], lane_frames[first_lane[:, None] + np.arange(FRAMES)],
-                        cameras, taus, tests)
+    if frames == 1:  # single cameras: each unsure node is one pair, its yes bit 1
+        yes = _decide_pairs_at(host, positions[:m], np.asarray(lane_frames)[word[:m] - first_word], cameras, taus,
+                               tests)
+    else:
+        first_lane = (word[:m].astype(np.int64) - first_word) * frames
+        lane_frames = np.concatenate([np.asarray(lane_frames), np.zeros(FRAMES, np.int64)])  # lanes past a word's
+        yes = _decide_lanes(host, positions[:m], lanes[:m], lane_frames[first_lane[:, None] + np.arange(FRAMES)],
+                            cameras, taus, tests)
     records[at[:m]] |= yes.astype(np.int32)
     _LIB.pmx_apply_unsure(_ptr(records), len(records), first_word, frames, _ptr(not_run), _ptr(kept), host.p_order,
                           None if masks is None else _ptr(masks), host.n_pcols)
