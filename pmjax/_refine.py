@@ -289,10 +289,10 @@ METHODS = ("auto", "front", "dense")
 
 # "auto" picks the front engine (docs/front.md, same-run measurements on 2
 # cores): with the C loops, for one camera on every hierarchy (cow, 2,896
-# pcols: 2.3-3.8x faster than dense; dragon, 436,325: 19x) and for camera
-# batches from FRONT_BATCH_FROM_PCOLS on (bunny, 34,819: 1.22-1.25x; Grand
-# Canyon, 39,998: 1.34-1.43x; St Helens, 148,883: 3.3x; dragon: 5.2x; cow
-# 0.61-0.70x). Without
+# pcols: 3.7x faster than dense; dragon, 436,325: 18-20x) and for camera
+# batches from FRONT_BATCH_FROM_PCOLS on (bunny, 34,819: 1.3-1.6x; Grand
+# Canyon, 39,998: 1.5-1.6x; St Helens, 148,883: 3.5x; dragon: 5.3-5.6x; cow
+# 0.5-0.7x). Without
 # them, the front engine as JAX kernels wins for one camera only from
 # FRONT_FROM_PCOLS on (bunny 0.63x, St Helens 1.44x, dragon 2.06x) and never
 # for batches.
