@@ -985,6 +985,228 @@ SLOTS_TARGET static void resolve_avx512(const Mesh *pm, int64_t n, const int32_t
     *kept = keep_plain + _mm512_reduce_add_epi32(keep);
 }
 
+/* The same two steps with AVX2, eight slots at a time, for processors
+ * without AVX-512: compress and expand through small tables made once
+ * (racing threads write the same values), no BMI2 (slow on some AMD
+ * processors). Same results, bit for bit. */
+#define AVX2_TARGET __attribute__((target("avx2,popcnt")))
+
+static int32_t compress8[256][8]; /* mask x: the lanes of its set bits, in order */
+static uint8_t rank8[256][8];     /* mask x: set bits of x below each lane */
+static uint16_t spread8[256];     /* mask x: bit j moved to bit 2j */
+static int tables8 = 0;
+
+static void make_tables8(void)
+{
+    for (int x = 0; x < 256; x++) {
+        int c = 0;
+        spread8[x] = 0;
+        for (int j = 0; j < 8; j++) {
+            rank8[x][j] = (uint8_t)c;
+            if (x >> j & 1) {
+                compress8[x][c++] = j;
+                spread8[x] |= (uint16_t)(1u << (2 * j));
+            }
+        }
+        for (; c < 8; c++)
+            compress8[x][c] = 0;
+    }
+    __atomic_store_n(&tables8, 1, __ATOMIC_RELEASE);
+}
+
+/* Lanes below `count` as a mask vector. */
+AVX2_TARGET static inline __m256i first_lanes(int count)
+{
+    return _mm256_cmpgt_epi32(_mm256_set1_epi32(count), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7));
+}
+
+/* Bits of an 8-bit mask as a mask vector. */
+AVX2_TARGET static inline __m256i lanes_of(int bits)
+{
+    const __m256i bit = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
+    return _mm256_cmpeq_epi32(_mm256_and_si256(_mm256_set1_epi32(bits), bit), bit);
+}
+
+/* The set lanes (mask x) of v, in order, at out[0..popcount(x)); out[..8)
+ * is written (a masked store is slow on some AMD processors), so the
+ * queue's arrays have 8 spare slots past P + 2. */
+AVX2_TARGET static inline void compress_store8(int32_t *out, __m256i v, int x)
+{
+    _mm256_storeu_si256((__m256i *)out,
+                        _mm256_permutevar8x32_epi32(v, _mm256_loadu_si256((const __m256i *)compress8[x])));
+}
+
+AVX2_TARGET static int64_t push_block_avx2(const Mesh *pm, int64_t i, int64_t nb, int64_t n, const int32_t *decided,
+                                           const float *kids, uint8_t *state, int32_t *kill, int32_t *kid,
+                                           int32_t *ids, int32_t *parent, int32_t *unsure, int64_t *m)
+{
+    if (!__atomic_load_n(&tables8, __ATOMIC_ACQUIRE))
+        make_tables8();
+    const __m256i lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    for (int64_t h = 0; h < nb; h += 8) {
+        const int cnt = (int)(nb - h < 8 ? nb - h : 8);
+        const int valid = (1 << cnt) - 1;
+        const int64_t j0 = i + h;
+        const __m256i code = _mm256_loadu_si256((const __m256i *)(decided + h));
+        const __m256i k = _mm256_loadu_si256((const __m256i *)(kids + h));
+        const __m256i own = _mm256_and_si256(code, _mm256_set1_epi32(YES | UNSURE));
+        /* Own decisions as bytes (byte 0 of each lane, both 128-bit halves). */
+        const __m256i pick = _mm256_setr_epi8(0, 4, 8, 12, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, 0, 4, 8,
+                                              12, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1);
+        const __m256i bytes = _mm256_shuffle_epi8(own, pick);
+        const uint64_t packed = (uint64_t)(uint32_t)_mm_cvtsi128_si32(_mm256_castsi256_si128(bytes)) |
+                                (uint64_t)(uint32_t)_mm_cvtsi128_si32(_mm256_extracti128_si256(bytes, 1)) << 32;
+        if (cnt == 8)
+            memcpy(state + j0, &packed, 8);
+        else
+            memcpy(state + j0, &packed, (size_t)cnt);
+        int rare = _mm256_movemask_ps(_mm256_castsi256_ps(_mm256_cmpeq_epi32(own, _mm256_set1_epi32(UNSURE)))) & valid;
+        for (; rare; rare &= rare - 1) /* rare: decided by the caller (the float32 predicate) */
+            unsure[(*m)++] = (int32_t)(j0 + __builtin_ctz((unsigned)rare));
+        /* Two faces killed, but where the sign bit says otherwise (rare). */
+        if (cnt == 8)
+            _mm256_storeu_si256((__m256i *)(kill + j0), _mm256_set1_epi32(2));
+        else
+            _mm256_maskstore_epi32(kill + j0, first_lanes(cnt), _mm256_set1_epi32(2));
+        for (int odd = _mm256_movemask_ps(_mm256_castsi256_ps(k)) & valid; odd; odd &= odd - 1) {
+            const int64_t j = j0 + __builtin_ctz((unsigned)odd);
+            kill[j] = pm->kills[ids[j]];
+        }
+        /* Lanes with at least one / two children to visit, as one mask of
+         * the children in queue order (bit 2j: lane j's first, 2j + 1: its
+         * second). */
+        const __m256i open = _mm256_cmpeq_epi32(_mm256_and_si256(code, _mm256_set1_epi32(WHOLE)),
+                                                _mm256_setzero_si256());
+        const __m256i count = _mm256_and_si256(k, _mm256_set1_epi32(3));
+        const int one = _mm256_movemask_ps(_mm256_castsi256_ps(
+                            _mm256_and_si256(open, _mm256_cmpgt_epi32(count, _mm256_setzero_si256())))) & valid;
+        const int two = _mm256_movemask_ps(_mm256_castsi256_ps(
+                            _mm256_and_si256(open, _mm256_cmpgt_epi32(count, _mm256_set1_epi32(1))))) & valid;
+        const unsigned pushed = spread8[one] | (unsigned)spread8[two] << 1;
+        const int lo = (int)(pushed & 0xFF), hi = (int)(pushed >> 8);
+        const int n_lo = _mm_popcnt_u32((unsigned)lo), n_hi = _mm_popcnt_u32((unsigned)hi);
+        /* Their slots (-1 where no child is visited): n + the pushed bits below. */
+        const __m256i none = _mm256_set1_epi32(-1);
+        const __m256i rank_lo = _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)rank8[lo]));
+        const __m256i rank_hi = _mm256_cvtepu8_epi32(_mm_loadl_epi64((const __m128i *)rank8[hi]));
+        const __m256i slot_lo = _mm256_blendv_epi8(none, _mm256_add_epi32(rank_lo, _mm256_set1_epi32((int32_t)n)),
+                                                   lanes_of(lo));
+        const __m256i slot_hi = _mm256_blendv_epi8(
+            none, _mm256_add_epi32(rank_hi, _mm256_set1_epi32((int32_t)n + n_lo)), lanes_of(hi));
+        if (cnt == 8) {
+            _mm256_storeu_si256((__m256i *)(kid + 2 * j0), slot_lo);
+            _mm256_storeu_si256((__m256i *)(kid + 2 * j0 + 8), slot_hi);
+        } else {
+            _mm256_maskstore_epi32(kid + 2 * j0, first_lanes(2 * cnt), slot_lo);
+            _mm256_maskstore_epi32(kid + 2 * j0 + 8, first_lanes(2 * cnt - 8), slot_hi);
+        }
+        /* Their positions: (first, first + 1) of each lane interleaved, compressed. */
+        const __m256i first = _mm256_and_si256(_mm256_srli_epi32(k, 2), _mm256_set1_epi32(KIDS_FIRST));
+        const __m256i second = _mm256_add_epi32(first, _mm256_set1_epi32(1));
+        const __m256i a = _mm256_unpacklo_epi32(first, second), b = _mm256_unpackhi_epi32(first, second);
+        compress_store8(ids + n, _mm256_permute2x128_si256(a, b, 0x20), lo);
+        compress_store8(ids + n + n_lo, _mm256_permute2x128_si256(a, b, 0x31), hi);
+        if (parent) { /* each child's parent slot, the same way */
+            const __m256i slot = _mm256_add_epi32(lane, _mm256_set1_epi32((int32_t)j0));
+            const __m256i c = _mm256_unpacklo_epi32(slot, slot), d = _mm256_unpackhi_epi32(slot, slot);
+            compress_store8(parent + n, _mm256_permute2x128_si256(c, d, 0x20), lo);
+            compress_store8(parent + n + n_lo, _mm256_permute2x128_si256(c, d, 0x31), hi);
+        }
+        n += n_lo + n_hi;
+    }
+    return n;
+}
+
+/* resolve_plain over all n slots, sixteen at a time as resolve_avx512
+ * (a block that holds its own children goes through resolve_plain). */
+AVX2_TARGET static void resolve_avx2(const Mesh *pm, int64_t n, const int32_t *ids, const int32_t *kid,
+                                     const uint8_t *state, const int32_t *kill, uint8_t *ran, int32_t *pcols,
+                                     int64_t *n_not_run, int64_t *kept)
+{
+    const __m256i zero = _mm256_setzero_si256(), one = _mm256_set1_epi32(1), byte = _mm256_set1_epi32(0xFF);
+    __m256i keep = zero; /* per lane: no sum exceeds the face count (int32) */
+    int64_t not_run = 0, keep_plain = 0;
+    for (int64_t s = (n - 1) & ~(int64_t)(BLOCK - 1); s >= 0; s -= BLOCK) {
+        const int64_t nb = n - s < BLOCK ? n - s : BLOCK;
+        /* The children's slots, four vectors of four slots' two children. */
+        __m256i kv[4], has[4];
+        int inside = 0;
+        for (int q = 0; q < 4; q++) {
+            const int left = (int)(2 * nb - 8 * q); /* children of this block in vector q */
+            const __m256i live = first_lanes(left < 0 ? 0 : left);
+            kv[q] = _mm256_blendv_epi8(_mm256_set1_epi32(-1), _mm256_maskload_epi32(kid + 2 * s + 8 * q, live), live);
+            has[q] = _mm256_cmpgt_epi32(kv[q], _mm256_set1_epi32(-1));
+            inside |= _mm256_movemask_ps(_mm256_castsi256_ps(
+                _mm256_and_si256(has[q], _mm256_cmpgt_epi32(_mm256_set1_epi32((int32_t)(s + nb)), kv[q]))));
+        }
+        if (inside) {
+            resolve_plain(pm, s, s + nb, ids, kid, state, kill, ran, pcols, &not_run, &keep_plain);
+            continue;
+        }
+        /* Both children ran (1 where there is no child): bit j for slot s + j. */
+        int below = 0;
+        for (int q = 0; q < 4; q++) {
+            const __m256i r = _mm256_mask_i32gather_epi32(one, (const int *)ran, kv[q], has[q], 1);
+            const __m256i child = _mm256_cmpgt_epi32(_mm256_and_si256(r, byte), zero);
+            /* Each lane and its pair's lane: both children of a slot. */
+            const __m256i both = _mm256_and_si256(child, _mm256_shuffle_epi32(child, _MM_SHUFFLE(2, 3, 0, 1)));
+            const int bits = _mm256_movemask_ps(_mm256_castsi256_ps(both)); /* even bits: slots */
+            below |= ((bits & 1) | (bits >> 1 & 2) | (bits >> 2 & 4) | (bits >> 3 & 8)) << (4 * q);
+        }
+        /* The block's own decisions and ran bytes (whole blocks but the last). */
+        __m128i st;
+        if (nb == BLOCK) {
+            st = _mm_loadu_si128((const __m128i *)(state + s));
+        } else {
+            uint8_t part[BLOCK] = {0};
+            memcpy(part, state + s, (size_t)nb);
+            st = _mm_loadu_si128((const __m128i *)part);
+        }
+        const int yes = _mm_movemask_epi8(_mm_cmpeq_epi8(st, _mm_set1_epi8(YES)));
+        const int valid = (int)((1u << nb) - 1);
+        const int r = yes & below & valid, failed = valid & ~r;
+        const __m128i bit = _mm_setr_epi8(1, 2, 4, 8, 16, 32, 64, -128, 1, 2, 4, 8, 16, 32, 64, -128);
+        const __m128i spread = _mm_shuffle_epi8(_mm_cvtsi32_si128(r), _mm_setr_epi8(0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 1,
+                                                                                     1, 1, 1, 1, 1));
+        const __m128i out = _mm_and_si128(_mm_cmpeq_epi8(_mm_and_si128(spread, bit), bit), _mm_set1_epi8(1));
+        if (nb == BLOCK) {
+            _mm_storeu_si128((__m128i *)(ran + s), out);
+        } else {
+            uint8_t part[BLOCK];
+            _mm_storeu_si128((__m128i *)part, out);
+            memcpy(ran + s, part, (size_t)nb);
+        }
+        not_run += _mm_popcnt_u32((unsigned)failed);
+        for (int q = 0; q < 2; q++) {
+            const __m256i f = lanes_of(failed >> (8 * q) & 0xFF);
+            keep = _mm256_add_epi32(keep, _mm256_maskload_epi32(kill + s + 8 * q, f));
+            if (pcols) { /* not for counts alone: order[] is read at random */
+                const __m256i v = lanes_of(valid >> (8 * q) & 0xFF);
+                const __m256i at = _mm256_maskload_epi32(ids + s + 8 * q, v);
+                const __m256i got = _mm256_mask_i32gather_epi32(zero, pm->order, at, v, 4);
+                if (nb == BLOCK)
+                    _mm256_storeu_si256((__m256i *)(pcols + s + 8 * q), got);
+                else
+                    _mm256_maskstore_epi32(pcols + s + 8 * q, v, got);
+            }
+        }
+    }
+    const __m128i sum4 = _mm_add_epi32(_mm256_castsi256_si128(keep), _mm256_extracti128_si256(keep, 1));
+    const __m128i sum2 = _mm_add_epi32(sum4, _mm_shuffle_epi32(sum4, _MM_SHUFFLE(1, 0, 3, 2)));
+    *n_not_run = not_run;
+    *kept = keep_plain + _mm_cvtsi128_si32(_mm_add_epi32(sum2, _mm_shuffle_epi32(sum2, _MM_SHUFFLE(2, 3, 0, 1))));
+}
+
+static int avx2_here(void)
+{
+    static int has = -1; /* set once; racing threads write the same value */
+    if (has < 0) {
+        __builtin_cpu_init();
+        has = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("popcnt");
+    }
+    return has;
+}
+
 static int avx512_here(void)
 {
     static int has = -1; /* set once; racing threads write the same value */
@@ -998,25 +1220,33 @@ static int avx512_here(void)
 }
 #else
 static int avx512_here(void) { return 0; }
+static int avx2_here(void) { return 0; }
 #endif
 
-/* Whether the slots' bookkeeping runs as AVX-512 masks: where the processor
- * has them, unless pmx_vector_slots(0) said otherwise (tests run both). */
-static int vector_slots = -1;
-static int slots_avx512(void)
+/* How the slots' bookkeeping runs: SLOTS_AVX512 or SLOTS_AVX2 where the
+ * processor has them, else SLOTS_PLAIN, unless pmx_slot_loops said
+ * otherwise (the tests run each). */
+enum { SLOTS_PLAIN = 0, SLOTS_AVX2 = 1, SLOTS_AVX512 = 2 };
+static int slot_loops_here(void) { return avx512_here() ? SLOTS_AVX512 : avx2_here() ? SLOTS_AVX2 : SLOTS_PLAIN; }
+static int slot_loops = -1;
+static int slots_kind(void)
 {
-    if (vector_slots < 0)
-        vector_slots = avx512_here();
-    return vector_slots;
+    if (slot_loops < 0)
+        slot_loops = slot_loops_here();
+    return slot_loops;
 }
 
-/* Turns the AVX-512 bookkeeping on (where the processor has it) or off,
- * or leaves it (on < 0); returns whether it was on. */
-int pmx_vector_slots(int on)
+/* Sets the slots' bookkeeping to `kind` (or the best below it that the
+ * processor has), or leaves it (kind < 0); returns the previous kind. */
+int pmx_slot_loops(int kind)
 {
-    const int was = slots_avx512();
-    if (on >= 0)
-        vector_slots = on && avx512_here();
+    const int was = slots_kind();
+    if (kind >= 0) {
+        const int here = slot_loops_here();
+        slot_loops = kind < here ? kind : here;
+        if (slot_loops == SLOTS_AVX2 && !avx2_here())
+            slot_loops = SLOTS_PLAIN;
+    }
     return was;
 }
 
@@ -1031,8 +1261,10 @@ int pmx_vector_slots(int on)
  * the visits on the dragon). Returns the
  * number of slots; unsure[] receives the slots whose own decision is
  * UNSURE, *n_unsure their number, and parent[] (optional) each slot's
- * parent slot from slot n_roots on. Capacity: P + 2 slots. Slots are decided a
- * block at a time; the children of a block are pushed behind the queue. */
+ * parent slot from slot n_roots on. Capacity: P slots, and ids[] and
+ * parent[] P + 10 (the plain loop writes 2 spare slots, the AVX2 one 8).
+ * Slots are decided a block at a time; the children of a block are pushed
+ * behind the queue. */
 static int64_t traverse(const Mesh *pm, const Frames *w, const int32_t *roots, int64_t n_roots, int32_t *ids,
                         int32_t *kid, uint8_t *state, int32_t *kill, int32_t *parent, int32_t *unsure,
                         int64_t *n_unsure)
@@ -1040,7 +1272,7 @@ static int64_t traverse(const Mesh *pm, const Frames *w, const int32_t *roots, i
     int64_t n = 0, m = 0;
     Columns col;
     int32_t decided[BLOCK];
-    const int vector = slots_avx512();
+    const int kind = slots_kind();
     for (int64_t i = 0; i < n_roots; i++)
         ids[n++] = roots[i];
     for (int64_t i = 0; i < n;) {
@@ -1053,8 +1285,10 @@ static int64_t traverse(const Mesh *pm, const Frames *w, const int32_t *roots, i
         gather_block(pm->table, ids + i, nb, col);
         decide_block(w, col, decided);
 #if defined(__x86_64__) && defined(__GNUC__)
-        if (vector)
+        if (kind == SLOTS_AVX512)
             n = push_block_avx512(pm, i, nb, n, decided, col[KIDS], state, kill, kid, ids, parent, unsure, &m);
+        else if (kind == SLOTS_AVX2)
+            n = push_block_avx2(pm, i, nb, n, decided, col[KIDS], state, kill, kid, ids, parent, unsure, &m);
         else
 #endif
             n = push_block_plain(pm, i, nb, n, decided, col[KIDS], state, kill, kid, ids, parent, unsure, &m);
@@ -1073,8 +1307,12 @@ static void resolve(const Mesh *pm, int64_t n, const int32_t *ids, const int32_t
                     const int32_t *kill, uint8_t *ran, int32_t *pcols, int64_t *n_not_run, int64_t *kept)
 {
 #if defined(__x86_64__) && defined(__GNUC__)
-    if (slots_avx512()) {
+    if (slots_kind() == SLOTS_AVX512) {
         resolve_avx512(pm, n, ids, kid, state, kill, ran, pcols, n_not_run, kept);
+        return;
+    }
+    if (slots_kind() == SLOTS_AVX2) {
+        resolve_avx2(pm, n, ids, kid, state, kill, ran, pcols, n_not_run, kept);
         return;
     }
 #endif
@@ -1436,7 +1674,7 @@ static inline int64_t next_camera(int64_t *cursor, int64_t c)
  * yes bits and call pmx_apply_unsure with frames 1. Where a record does not
  * fit, returns that camera (make room and call again with it as k0); k1
  * when this caller has no camera left. Scratch: the traversal's
- * (pmx_refine) and, for the records, parent [P + 2], chain [P] int32 and
+ * (pmx_refine) and, for the records, parent [P + 10], chain [P] int32 and
  * mark [P] bytes (zero). */
 int64_t pmx_refine_many(const float *table, const int32_t *kills, const int32_t *order, int64_t n_pcols,
                         const int32_t *roots, int64_t n_roots, const float *views, int flags, int64_t k0,

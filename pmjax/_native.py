@@ -85,8 +85,8 @@ def _load():
     lib.pmx_fat_cameras.argtypes = [_p, _i64, ctypes.c_int, _p]
     lib.pmx_decide_fat_all.restype = None
     lib.pmx_decide_fat_all.argtypes = [_p, _i64, _p, ctypes.c_int, ctypes.c_int, _p, _p]
-    lib.pmx_vector_slots.restype = ctypes.c_int
-    lib.pmx_vector_slots.argtypes = [ctypes.c_int]
+    lib.pmx_slot_loops.restype = ctypes.c_int
+    lib.pmx_slot_loops.argtypes = [ctypes.c_int]
     lib.pmx_decide_all.restype = None
     lib.pmx_decide_all.argtypes = [_p, _i64, _p, ctypes.c_int, _p]
     lib.pmx_front_mesh.restype = _i64
@@ -127,15 +127,22 @@ class use_native:
         self.switched._enabled = self.before
 
 
-def vector_slots(on: bool | None = None) -> bool:
-    """Whether the C loops keep their slots (queue, children, bottom-up pass)
-    with AVX-512 mask instructions, which they do where the processor has
-    them; ``on`` switches that (off: the plain loops, the same results) and
-    the previous setting is returned (False where the C loops are not
-    built)."""
+# How the C loops keep their slots (pmx_slot_loops in _front_native.c).
+SLOT_LOOPS = ("plain", "avx2", "avx512")
+
+
+def slot_loops(kind: str | None = None) -> str:
+    """How the C loops keep their slots (queue, children, bottom-up pass):
+    ``"avx512"`` (mask instructions) or ``"avx2"`` where the processor has
+    them, else ``"plain"``. ``kind`` switches that (to the best the
+    processor has up to ``kind``; the results are the same bits) and the
+    previous kind is returned (``"plain"`` where the C loops are not built).
+    """
+    if kind is not None and kind not in SLOT_LOOPS:
+        raise ValueError(f"slot loops must be one of {SLOT_LOOPS}, got {kind!r}")
     if _LIB is None:
-        return False
-    return bool(_LIB.pmx_vector_slots(-1 if on is None else int(bool(on))))
+        return "plain"
+    return SLOT_LOOPS[_LIB.pmx_slot_loops(-1 if kind is None else SLOT_LOOPS.index(kind))]
 
 
 def decide_all(pm, camera, tau, tests) -> np.ndarray:
@@ -232,7 +239,7 @@ class _Scratch(_Addresses):
 
     def __init__(self, n_original, n_pcols, n_faces):
         P, V0 = n_pcols, n_original
-        self.ids = np.empty(P + 2, np.int32)  # two spare slots (traverse in _front_native.c)
+        self.ids = np.empty(P + 10, np.int32)  # spare slots (traverse and push_block_avx2 in _front_native.c)
         self.kid = np.empty(2 * P, np.int32)
         self.state = np.empty(P, np.uint8)
         self.kill = np.empty(P, np.int32)  # the faces each slot's pcol kills
@@ -241,7 +248,7 @@ class _Scratch(_Addresses):
         self.unsure = np.empty(P, np.int32)
         # Camera batches' unsure records: each slot's parent slot, the chains'
         # slots, a mark per slot (zero between calls), the int32 used.
-        self.parent, self.chain, self.mark = np.empty(P + 2, np.int32), np.empty(P, np.int32), np.zeros(P, np.uint8)
+        self.parent, self.chain, self.mark = np.empty(P + 10, np.int32), np.empty(P, np.int32), np.zeros(P, np.uint8)
         self.used = np.zeros(1, np.int64)
         self.out = np.zeros(3, np.int64)
         # Front mesh: the pcols that did not run (marked by breadth-first

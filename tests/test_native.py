@@ -185,17 +185,20 @@ def test_tables_start_on_cache_lines(built):
     assert np.array_equal(kids >> 31, np.asarray(pm.kills)[host.order] != 2)
 
 
-SLOTS = ["plain", pytest.param("vector", marks=pytest.mark.skipif(
-    not _native.vector_slots(), reason="no AVX-512 here (or no C loops): the slots are kept by the plain loops"))]
+_BEST = _native.slot_loops()
+SLOTS = ["plain"] + [pytest.param(kind, marks=pytest.mark.skipif(
+    _native.SLOT_LOOPS.index(_BEST) < _native.SLOT_LOOPS.index(kind),
+    reason=f"no {kind} here (or no C loops)")) for kind in ("avx2", "avx512")]
 
 
 @pytest.fixture(params=SLOTS)
 def slots(request):
-    """Each test that takes it runs twice: with the slots kept by AVX-512
-    masks (where the processor has them) and by the plain loops."""
-    was = _native.vector_slots(request.param == "vector")
+    """Each test that takes it runs with the slots kept by each kind of loop
+    the processor has (AVX-512 masks, AVX2, plain)."""
+    was = _native.slot_loops(request.param)
+    assert _native.slot_loops() == request.param
     yield request.param
-    _native.vector_slots(was)
+    _native.slot_loops(was)
 
 
 def test_native_batch_equals_dense(built, slots):
