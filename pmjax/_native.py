@@ -246,16 +246,18 @@ class _Scratch(_Addresses):
         self.ran = np.empty(P + 4, np.uint8)  # resolve gathers 4 bytes a child (_front_native.c)
         self.pcols = np.empty(P, np.int32)
         self.unsure = np.empty(P, np.int32)
+        # A mark per slot or position, zero between calls: the unsure records
+        # of camera batches and the front mesh both use it.
+        self.mark = np.zeros(P, np.uint8)
         # Camera batches' unsure records: each slot's parent slot, the chains'
-        # slots, a mark per slot (zero between calls), the int32 used.
-        self.parent, self.chain, self.mark = np.empty(P + 10, np.int32), np.empty(P, np.int32), np.zeros(P, np.uint8)
+        # slots, the int32 used.
+        self.parent, self.chain = np.empty(P + 10, np.int32), np.empty(P, np.int32)
         self.used = np.zeros(1, np.int64)
         self.out = np.zeros(3, np.int64)
         # Front mesh: the pcols that did not run (marked by breadth-first
         # position), bitmaps (zero between calls), their prefix counts, the
         # front vertices as found and in depth-first order, the drawn faces,
         # each front vertex's output index.
-        self.mark = np.zeros(P, np.uint8)
         self.not_run_at = np.empty(P, np.int32)
         self.start_bits = np.zeros(V0 // 64 + 1, np.uint64)
         self.face_bits = np.zeros(n_faces // 64 + 1, np.uint64)
