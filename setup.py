@@ -1,36 +1,92 @@
-"""Build of the compiled parts: the C loops of the output-sensitive engine and of the builder.
+"""Build of the compiled parts: the front engine's C core (as XLA FFI targets)
+and the builder's C loops.
 
-Everything else is in pyproject.toml. The extensions are optional: where they
-cannot be compiled (no C compiler), pmjax installs without them, its front
-engine runs as JAX kernels instead (``pmjax.native_available()``) and the
+Everything else is in pyproject.toml. Both extensions are optional: where they
+cannot be compiled (no C compiler), pmjax installs without them, refinement
+runs on the dense engine (and the front engine as JAX kernels), and the
 builder chooses its batches with NumPy (the same hierarchies, slower).
+``pmjax info --engines`` says which are active; CI sets PMJAX_REQUIRE_CORE=1,
+under which a missing core fails the tests.
+
+PMJAX_SANITIZE=address,undefined builds both with those sanitizers
+(docs/front.md: how to run the tests under them).
 """
 
-from setuptools import Extension, setup
+import glob
+import os
 
-setup(
-    ext_modules=[
-        Extension(
-            "pmjax._front_native",
-            sources=["pmjax/_front_native.c"],
-            # IEEE float32 arithmetic, no fast math. Multiply-adds may be
-            # fused: the certified decisions bound any evaluation of their
-            # formulas with at most 16 roundings on a path, fused or not, and
-            # the subtree bounds' margins dominate either rounding. No FP
-            # exceptions are enabled, so square roots and selects may be
-            # evaluated speculatively, and "omp simd" loops vectorize (no
-            # OpenMP runtime is used).
-            extra_compile_args=["-O3", "-std=c99", "-fno-math-errno", "-fno-trapping-math", "-ffp-contract=fast",
-                                "-fopenmp-simd"],
-            optional=True,
-        ),
-        # The builder's batch choice (builders/_build_native.c): the NumPy
-        # builder's arithmetic in its order, so no contraction either.
-        Extension(
-            "pmjax.builders._build_native",
-            sources=["builders/_build_native.c"],
-            extra_compile_args=["-O3", "-std=c99", "-ffp-contract=off"],
-            optional=True,
-        ),
-    ]
-)
+from setuptools import Extension, setup
+from setuptools.command.build_ext import build_ext
+
+CORE = "pmjax/engines/core"
+
+# The core's C: IEEE float32 arithmetic, no fast math. Multiply-adds may be
+# fused: the certified decisions bound any evaluation of their formulas with
+# at most 16 roundings on a path, fused or not, and the bounds' margins
+# dominate either rounding. No FP exceptions are enabled, so square roots
+# and selects may be evaluated speculatively, and "omp simd" loops vectorize
+# (no OpenMP runtime is used). Each SIMD level's loops carry their own target
+# (pmjax/engines/core/kernels.c); the rest is built for the baseline.
+CORE_CFLAGS = ["-O3", "-std=c99", "-fno-math-errno", "-fno-trapping-math", "-ffp-contract=fast", "-fopenmp-simd",
+               "-Wall", "-Wextra", "-fvisibility=hidden"]
+FFI_CXXFLAGS = ["-O2", "-std=c++17", "-Wall", "-Wextra", "-fvisibility=hidden"]
+SANITIZE = [s for s in os.environ.get("PMJAX_SANITIZE", "").split(",") if s]
+SANITIZE_FLAGS = [f"-fsanitize={','.join(SANITIZE)}", "-fno-omit-frame-pointer", "-g"] if SANITIZE else []
+
+
+def ffi_include() -> str:
+    """XLA's FFI headers, shipped with jaxlib (a build requirement)."""
+    import jax.ffi
+
+    return jax.ffi.include_dir()
+
+
+class BuildExt(build_ext):
+    """Compiles an extension's C sources (``c_sources``) with C flags and its
+    C++ sources with C++ flags, then links them (setuptools passes one set of
+    flags to every source of an extension)."""
+
+    def build_extension(self, ext):
+        c_sources = getattr(ext, "c_sources", [])
+        if c_sources:
+            objects = self.compiler.compile(c_sources, output_dir=self.build_temp, include_dirs=ext.include_dirs,
+                                            extra_postargs=CORE_CFLAGS + SANITIZE_FLAGS, depends=ext.depends)
+            ext.extra_objects = list(ext.extra_objects or []) + objects
+        if ext.name == "pmjax.engines._pmx":  # XLA's headers as system headers: their warnings are not ours
+            ext.extra_compile_args = list(ext.extra_compile_args) + ["-isystem", ffi_include()]
+        super().build_extension(ext)
+
+
+def main():
+    core = Extension(
+        "pmjax.engines._pmx",
+        sources=[f"{CORE}/ffi.cc"],
+        include_dirs=[CORE],
+        depends=sorted(glob.glob(f"{CORE}/*.h")),
+        language="c++",
+        extra_compile_args=FFI_CXXFLAGS + SANITIZE_FLAGS,
+        extra_link_args=SANITIZE_FLAGS,
+        optional=True,
+    )
+    core.c_sources = sorted(glob.glob(f"{CORE}/*.c"))
+
+    setup(
+        cmdclass={"build_ext": BuildExt},
+        ext_modules=[
+            core,
+            # The builder's batch choice (builders/_build_native.c): the NumPy
+            # builder's arithmetic in its order, so no contraction either.
+            Extension(
+                "pmjax.builders._build_native",
+                sources=["builders/_build_native.c"],
+                extra_compile_args=["-O3", "-std=c99", "-ffp-contract=off"] + SANITIZE_FLAGS,
+                extra_link_args=SANITIZE_FLAGS,
+                optional=True,
+            ),
+        ],
+    )
+
+
+# Imported for its flags by tests/test_build.py; run by pip's build backend as __main__.
+if __name__ == "__main__":
+    main()

@@ -34,6 +34,7 @@ from refine import pm_file  # noqa: E402
 import pmjax  # noqa: E402
 from pmjax._camera import index_camera, stack_cameras  # noqa: E402
 from pmjax._camera_table import fly_rows  # noqa: E402
+from pmjax import _path  # noqa: E402
 from pmjax._path import frames_per_word  # noqa: E402
 
 
@@ -79,10 +80,15 @@ def one_path(name, pm, label, cams, tau, repeats):
     path_ms = 1e3 * sec / T
     word = frames_per_word()
     at_once = [0]
-    if pmjax.native_available():  # the pcols each word of the C loops visited, and decided for all frames at once
-        words = [pmjax._native.refine_word(pm, index_camera(cams, slice(i, i + word)), np.full(word, tau, np.float32),
-                                           pmjax.ALL_TESTS, False)[2:] for i in range(0, T - word + 1, word)]
-        union, at_once = [u for u, _ in words], [a / u for u, a in words]
+    if pmjax.native_available():  # the pcols each word of the core visited, and decided for all frames at once
+        from pmjax.engines import _core, derived
+
+        d = derived(pm)
+        n = T - T % word
+        rows = _core.camera_rows(index_camera(cams, slice(0, n)), np.full(n, tau, np.float32))
+        counts_w, at_once_w = _path._core_words(d.core_words, d.core, rows, pmjax.ALL_TESTS, False, False)[:2]
+        union = np.asarray(counts_w)[::word, 0]
+        at_once = np.asarray(at_once_w) / union
     else:  # words as JAX kernels
         union = [r.n_visited for i, r in enumerate(pmjax.refine_path(pm, cams, tau)) if i % word == 0]
     own = [pmjax.refine(pm, index_camera(cams, i), tau, method="front").n_visited for i in range(0, T, word)]

@@ -15,12 +15,10 @@ optional extension ``pmjax.builders._build_native``; where it is missing, or
 from __future__ import annotations
 
 import ctypes
-import sys
+import importlib.util
+import os
 
 import numpy as np
-
-from pmjax import _native as _front_native
-from pmjax._native import open_library
 
 from ._threads import split_range
 
@@ -29,6 +27,17 @@ DEAD, TAKEN, INVALID, UNCHECKED = 0, 1, 2, 3
 
 _p = ctypes.c_void_p
 _i64 = ctypes.c_int64
+
+
+def open_library(module: str):
+    """The compiled extension ``module`` (a dotted name) as a ctypes library,
+    or ``None`` where it is not built or ``PMJAX_NATIVE=0`` is set."""
+    if os.environ.get("PMJAX_NATIVE", "1") == "0":
+        return None
+    spec = importlib.util.find_spec(module)
+    if spec is None or not spec.origin:
+        return None
+    return ctypes.CDLL(spec.origin)
 
 
 def _load():
@@ -79,11 +88,21 @@ def available() -> bool:
     return _LIB is not None and _enabled
 
 
-class use_native(_front_native.use_native):
+class use_native:
     """``with use_native(False): ...`` builds with NumPy alone; ``True``
     restores the C loops where they are built."""
 
-    switched = sys.modules[__name__]
+    def __init__(self, on: bool):
+        self.on = on
+
+    def __enter__(self):
+        global _enabled
+        self.before, _enabled = _enabled, self.on
+        return self
+
+    def __exit__(self, *exc):
+        global _enabled
+        _enabled = self.before
 
 
 class Scratch:

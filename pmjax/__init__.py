@@ -10,12 +10,15 @@ from ._structure import check_structure, structure_known
 from ._invariants import check_invariants, direct_killers
 from ._levels import dependency_levels
 from ._replay import active_faces, lod_mesh, mesh_for_executed, pcols_for_faces, prefix_executed, representatives
-from ._camera import Camera, camera_count, fly_through, index_camera, load_cameras, look_at, random_views, save_cameras, stack_cameras, standard_orbit
-from ._model import PcolAttributes, ProgressiveMesh, load
+from ._camera import Camera, camera_count, fly_through, index_camera, load_cameras, look_at, save_cameras, stack_cameras
+from ._camera_sets import random_views, standard_orbit
+from ._model import PcolAttributes, ProgressiveMesh
+from ._load import load
 from ._view import kappa
 from ._predicate import ALL_TESTS, Tests, collapse_mask, critical_tau, oriented_away, outside_frustum, small_on_screen
 from ._refine import Refinement, critical_tolerances, faces_for_budget, propagate, refine, refine_batch
-from ._native import available as native_available
+from .engines import core_enabled as native_available
+from .engines import info as engine_info
 from ._path import PathError, path_counts, refine_path
 from ._oracle import oracle_refine
 from ._soft import SoftRefinement, geomorph_blend, geomorph_positions, soft_refine, soft_tests, soft_weights
@@ -92,6 +95,7 @@ __all__ = [
     "propagate",
     "refine",
     "native_available",
+    "engine_info",
     "refine_batch",
     "refine_path",
     "path_counts",

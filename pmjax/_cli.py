@@ -128,9 +128,26 @@ def info_dict(pm, path: str) -> dict:
     )
 
 
-def cmd_info(args) -> int:
-    from pmjax import read_pm
+def engine_lines() -> list[str]:
+    """What refines here: each engine and where it runs (or why it does not)."""
+    from pmjax import engine_info
 
+    return [f"  {name:5s} {text}" for name, text in engine_info().items()]
+
+
+def cmd_info(args) -> int:
+    from pmjax import engine_info, read_pm
+
+    if args.engines:
+        if args.json:
+            print(json.dumps(engine_info(), indent=1))
+        else:
+            print("engines:")
+            print("\n".join(engine_lines()))
+        if args.pm is None:
+            return 0
+    if args.pm is None:
+        raise SystemExit("pmjax info: give a .pmz file (or --engines)")
     pm = read_pm(args.pm)
     info = info_dict(pm, args.pm)
     if args.json:
@@ -390,14 +407,23 @@ def cmd_demo(args) -> int:
     return 0
 
 
+class _Version(argparse.Action):
+    """``--version``: pmjax's version and its engines (computed when asked:
+    it loads JAX and the core)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from pmjax import __version__
+
+        print(f"pmjax {__version__}\nengines:\n" + "\n".join(engine_lines()))
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="pmjax",
         description="View-dependent refinement of progressive meshes (JAX).",
     )
-    from pmjax import __version__
-
-    parser.add_argument("--version", action="version", version=f"pmjax {__version__}")
+    parser.add_argument("--version", action=_Version, nargs=0, help="the version and the engines active here")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("build", help="build a progressive mesh (.pmz) from a mesh file",
@@ -420,8 +446,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_build)
 
-    p = sub.add_parser("info", help="describe a .pmz file", description="Counts, batches, sizes and build parameters.")
-    p.add_argument("pm", help=".pmz file")
+    p = sub.add_parser("info", help="describe a .pmz file, or the engines active here",
+                       description="Counts, batches, sizes and build parameters; with --engines, which refinement "
+                                   "engines are active (the front engine's C core, or why not).")
+    p.add_argument("pm", nargs="?", help=".pmz file")
+    p.add_argument("--engines", action="store_true", help="which refinement engines are active here")
     p.add_argument("--json", action="store_true", help="machine-readable output")
     p.set_defaults(func=cmd_info)
 

@@ -165,7 +165,7 @@ def _model(path: str, digest: str):
     executables, which otherwise pile up in a process that visits many models."""
     import jax
 
-    from ._model import load
+    from ._load import load
 
     key = (os.path.abspath(path), digest)
     with _LOADED_LOCK:

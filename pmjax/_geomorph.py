@@ -27,7 +27,7 @@ from jaxtyping import Array, Bool, Float
 from ._camera import Camera
 from ._model import ProgressiveMesh
 from ._predicate import ALL_TESTS, Tests
-from ._refine import critical_tolerances, representatives, up_the_batches
+from .engines._dense import critical_tolerances, representatives, up_the_batches
 from ._soft import geomorph_blend
 
 

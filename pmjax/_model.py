@@ -2,18 +2,13 @@
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from ._pmfile import PMData, read_arrays
-from ._structure import NestingCheck, check_normals, check_structure, remember_structure, structure_known
-from ._subtree import SubtreeBounds, front_bounds, subtree_bounds
+from ._pmfile import PMData
 
 
 class PcolAttributes(eqx.Module):
@@ -73,7 +68,11 @@ class ProgressiveMesh(eqx.Module):
     """A progressive mesh ready for refinement (see ``docs/format.md``).
 
     Array fields live on the JAX device; the batch offsets are static, so each
-    batch is a static slice under ``jit``.
+    batch is a static slice under ``jit``. It holds the mesh's own arrays
+    only: what an engine derives from them (subtree bounds, the front
+    engine's layout) is computed from the arrays and cached under their
+    contents (:mod:`pmjax.engines`), so an updated mesh (``eqx.tree_at``,
+    arithmetic on its arrays) is refined from its new values.
 
     Attributes:
         vertices: ``[V0 + P, 3]`` float32 positions.
@@ -91,16 +90,6 @@ class ProgressiveMesh(eqx.Module):
             bit planes these size).
         uncommon: ``[N]`` int32, the pcols whose kills differ from
             ``common_kills`` (the only ones the correction looks at).
-        subtree: :class:`pmjax._subtree.SubtreeBounds`, per pcol, bounds over
-            its subtree (the output-sensitive traversal's pruning test).
-        roots: ``[R]`` int32, the pcols no pcol consumes (the forest's roots).
-        table: ``[P, 16]`` float32, per pcol its attributes and subtree bounds
-            in one 64-byte row (columns ``pmjax._front.TABLE_ATTRIBUTES``, then
-            ``TABLE_BOUNDS``): the traversal gathers scattered pcols, one row
-            each instead of 16 separate arrays.
-        children: ``[P, 2]`` int32, ``child1`` and ``child2`` side by side.
-        plan: static :class:`pmjax._front.FrontPlan` (traversal capacities,
-            host arrays of the front mesh).
     """
 
     vertices: Float[Array, "V 3"]
@@ -112,11 +101,6 @@ class ProgressiveMesh(eqx.Module):
     kills: Int[Array, " P"]
     attributes: PcolAttributes
     uncommon: Int[Array, " N"]
-    subtree: SubtreeBounds
-    roots: Int[Array, " R"]
-    table: Float[Array, "P 16"]
-    children: Int[Array, "P 2"]
-    plan: object = eqx.field(static=True)
     batch_offsets: tuple = eqx.field(static=True)
     n_original_vertices: int = eqx.field(static=True)
     max_kills: int = eqx.field(static=True, default=0)
@@ -149,33 +133,14 @@ class ProgressiveMesh(eqx.Module):
         return eqx.tree_at(lambda m: (m.vertices, m.attributes), self, (self.vertices.astype(dtype), attrs))
 
     @staticmethod
-    def from_data(pm: PMData, *, nesting=None) -> "ProgressiveMesh":
-        """Device copy of host arrays (:class:`pmjax.PMData`).
-
-        Args:
-            pm: the host arrays.
-            nesting: optional :class:`pmjax._structure.NestingCheck`, run on
-                the subtree-bound pass (``pmjax.load`` uses it).
-        """
+    def from_data(pm: PMData) -> "ProgressiveMesh":
+        """Device copy of host arrays (:class:`pmjax.PMData`)."""
         V0, P = pm.n_original_vertices, pm.n_pcols
         parent = np.full(V0 + P, -1, np.int32)
         parent[pm.v1] = np.arange(P)
         parent[pm.v2] = np.arange(P)
-        from ._front import TABLE_ATTRIBUTES, TABLE_BOUNDS, FrontPlan, forest_generations
-
-        kills = pm.kills.astype(np.int32)
-        created = pm.vertices[V0:]
         child1 = np.where(pm.v1 >= V0, pm.v1 - V0, -1).astype(np.int32)
         child2 = np.where(pm.v2 >= V0, pm.v2 - V0, -1).astype(np.int32)
-        attributes = PcolAttributes.from_arrays(created, pm.normals[V0:], pm.radius, pm.alpha, pm.delta, pm.mu)
-        # Bounds from the float32 values the tests read.
-        host = {k: np.asarray(getattr(attributes, k)) for k in ("center", "axis", "sin_alpha", "cos_alpha")}
-        bounds = subtree_bounds(host["center"].T, host["axis"].T, pm.radius, host["sin_alpha"], host["cos_alpha"],
-                                pm.delta, pm.mu, child1, child2, pm.batch_offsets, nesting=nesting)
-        roots, depth = forest_generations(parent[V0:], pm.batch_offsets)
-        rows = front_bounds(bounds, host["axis"])
-        table = np.concatenate([np.atleast_2d(np.asarray(getattr(attributes, k))) for k in TABLE_ATTRIBUTES]
-                               + [rows[k].reshape(1, P) for k in TABLE_BOUNDS]).T
         return ProgressiveMesh(
             vertices=jnp.asarray(pm.vertices),
             faces=jnp.asarray(pm.faces),
@@ -183,15 +148,11 @@ class ProgressiveMesh(eqx.Module):
             child2=jnp.asarray(child2),
             parent=jnp.asarray(parent),
             killer=jnp.asarray(pm.killer),
-            attributes=attributes,
-            subtree=SubtreeBounds(**{k: jnp.asarray(v) for k, v in bounds.items()}),
-            roots=jnp.asarray(roots),
-            table=jnp.asarray(np.ascontiguousarray(table, np.float32)),
-            children=jnp.asarray(np.stack([child1, child2], axis=1)),
-            plan=FrontPlan(np.bincount(depth, minlength=1) if P else np.zeros(0, np.int64)),
+            attributes=PcolAttributes.from_arrays(pm.vertices[V0:], pm.normals[V0:], pm.radius, pm.alpha, pm.delta,
+                                                  pm.mu),
             batch_offsets=tuple(int(o) for o in pm.batch_offsets),
             n_original_vertices=V0,
-            **kill_summary(kills),
+            **kill_summary(pm.kills.astype(np.int32)),
         )
 
 
@@ -208,28 +169,3 @@ def kill_summary(kills: np.ndarray, common: int | None = None) -> dict:
         min_kills=int(kills.min()) if len(kills) else 0,
         common_kills=int(common),
     )
-
-
-def load(path: str | os.PathLike) -> ProgressiveMesh:
-    """Read, validate and move a ``.pmz`` file to the JAX device.
-
-    Raises:
-        PMFormatError: see :func:`pmjax.read_pm`.
-    """
-    data, fingerprint = read_arrays(path)
-    if structure_known(fingerprint):
-        return ProgressiveMesh.from_data(data)
-    source = os.fspath(path)
-    # The structure check runs beside the device copy (both mostly NumPy,
-    # which releases the GIL), and the attributes' nesting inside the copy's
-    # subtree-bound pass, which gathers the same parent-child pairs.
-    # validate_pm has already bounded every index, so the copy is safe on a
-    # forged file, and it is never returned.
-    check_normals(data, source)
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        check = pool.submit(check_structure, data, source=source, threads=1, nesting=False)
-        pm = ProgressiveMesh.from_data(data, nesting=NestingCheck(data, source))
-        check.result()
-    remember_structure(fingerprint)
-    return pm
-

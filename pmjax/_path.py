@@ -6,11 +6,11 @@ word visits it, and each frame's tests and subtree bounds are evaluated as one
 lane of the word. Run on consecutive frames, the union of their fronts is
 little larger than one frame's, so each pcol near the front is fetched once for
 the word and tested for all its frames in one vectorized pass: the coherence of
-the path is what makes the word cheap. A word is 16 frames in the C loops
-(:func:`pmjax._native.refine_word`) and 32 as JAX kernels (where the loops are
-not built; :mod:`pmjax._front`). In the C loops most pcols are decided for all
-of a word's frames at once, under a fat camera that covers them
-(:func:`pmjax._native.fat_cameras`).
+the path is what makes the word cheap. A word is 16 frames in the C core
+(:func:`pmjax.engines._core.refine_words`) and 32 as JAX kernels (where the
+core is not built; :mod:`pmjax.engines._front_jax`). In the core most pcols are
+decided for all of a word's frames at once, under a fat camera that covers them
+(``pmjax/engines/core/fat.c``).
 
 Exactness. Frame ``c`` of a word gets, for every pcol, its own decision (the
 float32 predicate's bit, certified or computed, or proved for every frame
@@ -30,20 +30,22 @@ and the frames are then refined as a path at the tolerances found.
 
 from __future__ import annotations
 
-import collections
-import itertools
+import functools
 import time
 from typing import Iterator
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
-from . import _native
 from ._bitsets import WORD
 from ._camera import Camera, check_camera_values
 from ._model import ProgressiveMesh
 from ._predicate import ALL_TESTS, Tests
-from ._refine import Refinement, _front_counts, check_budget, check_tau, faces_for_budget, refine
+from ._refine import Refinement, _checked_tau, _Counts, check_budget, check_tau, faces_for_budget, refine
+from .engines import _core, _front_jax
+from .engines._choose import is_traced, select
+from .engines._tables import derived
 
 # Frames per compiled call: eight words. Memory is bounded by one chunk.
 CHUNK = 8 * WORD
@@ -127,6 +129,12 @@ def _budget_taus(pm, host, budgets, tests):
     return np.array([faces_for_budget(pm, cam(i), int(b), tests)[0] for i, b in enumerate(budgets)], np.float32)
 
 
+def _budget_taus_traced(pm, cameras, budgets, tests):
+    """:func:`_budget_taus` under a trace: the budgets' searches for all the
+    frames at once (``vmap``)."""
+    return jax.vmap(lambda c, b: faces_for_budget(pm, c, b, tests)[0])(cameras, budgets)
+
+
 def _word_padded(n_frames: int, path_length: int, word: int = WORD) -> np.ndarray:
     """Frame indices with each path padded to whole words of ``word`` frames
     (repeating its last frame), so that no word straddles two paths."""
@@ -158,150 +166,151 @@ def _chunks(pm, host, taus, tests, path_length, want_front):
     for start, n in _chunk_spans(len(order)):
         idx = order[start:start + n]
         part = jax.tree.map(lambda a: a[idx], host)
-        out = _front_counts(pm, part, taus[idx], tests, False, want_front=want_front)
+        out = _front_jax.counts(pm, part, taus[idx], tests, False, want_front=want_front)
         yield np.where(real[start:start + n], idx, -1), out
 
 
+# -- the C core's words ------------------------------------------------------------------
+
+FRAMES = _core.FRAMES
+# Words per call of the core (a path's words are taken by the core's threads,
+# each its own word): whole blocks, then the rest in powers of two words, so
+# that few shapes are compiled and a short path is padded little.
+WORDS_PER_CALL = 64
+# Words per call when refine_path streams a path (each word's lists are held
+# until its frames are read; the next block runs meanwhile).
+WORDS_STREAMED = 4
+
+
 def frames_per_word() -> int:
-    """Consecutive frames traversed together: 16 in the C loops, 32 as JAX kernels."""
-    return _native.FRAMES if _native.available() else WORD
+    """Consecutive frames traversed together: 16 in the C core, 32 as JAX kernels."""
+    return FRAMES if _core.enabled() else WORD
 
 
-def _word_order(n_frames: int, path_length: int):
-    """Frame index per lane of the C loops' words (each path padded to whole
-    words) and whether each lane is a real frame (not padding)."""
-    order = _word_padded(n_frames, path_length, _native.FRAMES)
+def _word_spans(words: int, most: int) -> list[tuple[int, int]]:
+    """``(first word, words)`` per call: whole blocks of ``most``, then the
+    rest in powers of two."""
+    spans, start = [], 0
+    while start < words:
+        n = min(most, 1 << int(np.log2(words - start)))
+        spans.append((start, n))
+        start += n
+    return spans
+
+
+@functools.lru_cache(maxsize=None)
+def _path_words(tests, orthographic: bool, lists: bool, room=None):
+    """``f(tables, one_tables, cameras, taus)``: :func:`pmjax.engines._core.refine_words`
+    of frames padded to whole words; ``vmap`` over paths flattens them into
+    one call (each path's words are its own)."""
+
+    @jax.custom_batching.custom_vmap
+    def words(tables, one_tables, cameras):
+        return _core.refine_words(tables, one_tables, cameras, tests, orthographic, lists, room=room)
+
+    @words.def_vmap
+    def words_batched(axis_size, in_batched, tables, one_tables, cameras):
+        if any(jax.tree.leaves(in_batched[:2])):
+            raise ValueError("the front engine's tables cannot be batched: vmap over paths, not over meshes")
+        if not in_batched[2]:
+            cameras = jnp.broadcast_to(cameras, (axis_size,) + cameras.shape)
+        T = cameras.shape[1]
+        out = words(tables, one_tables, cameras.reshape(axis_size * T, -1))
+        counts, at_once, lists_, overflow = out
+        W = T // FRAMES
+        unflat = lambda x, n: x.reshape((axis_size, n) + x.shape[1:])
+        out = (unflat(counts, T), unflat(at_once, W), jax.tree.map(lambda x: unflat(x, W), lists_),
+               unflat(overflow, W))
+        return out, jax.tree.map(lambda _: True, out)
+
+    return words
+
+
+@functools.partial(jax.jit, static_argnames=("tests", "orthographic", "lists", "room"))
+def _core_words(tables, one_tables, camera_rows, tests, orthographic, lists, room=None):
+    return _path_words(tests, orthographic, lists, room)(tables, one_tables, camera_rows)
+
+
+# Int32 of unsure records a call holds (None: the core's default); tests set
+# it small, so that words with unsure decisions take the overflow path.
+RECORD_ROOM = None
+
+
+def _core_path_counts(pm, host, taus, tests, path_length, cols, ms, bar, timing):
+    """:func:`path_counts` through the C core's words, a block of words per call."""
+    d = derived(pm)
+    tables, one_tables = d.core_words, d.core
+    order = _word_padded(len(taus), path_length, FRAMES)
     real = np.ones(len(order), bool)
     real[1:] = order[1:] != order[:-1]
-    return order, real
+    spans = _word_spans(len(order) // FRAMES, WORDS_PER_CALL)
+    rows = _core.host_camera_rows(host, taus)
 
+    def call(w0, n):
+        return _core_words(tables, one_tables, rows[order[w0 * FRAMES:(w0 + n) * FRAMES]], tests, host.orthographic,
+                           False, RECORD_ROOM)
 
-def _word_block(host, taus, order, real, w0: int, w1: int):
-    """Words ``w0..w1`` of the padded frames: ``(frame index per lane, -1
-    for padding), cameras, taus, views, fat cameras``, the views and fat
-    cameras computed in one host pass."""
-    F = _native.FRAMES
-    idx = order[w0 * F:w1 * F]
-    cams, word_taus = jax.tree.map(lambda a: a[idx], host), taus[idx]
-    values = _native.host_views(cams, word_taus)
-    return (np.where(real[w0 * F:w1 * F], idx, -1), cams, word_taus, values,
-            _native.fat_cameras(values.reshape(w1 - w0, F, -1)))
-
-
-def _native_words(pm, host, taus, tests, path_length, frames: bool):
-    """The C word traversal over the frames, in order: yields ``(frame index
-    per lane, -1 for padding), counts, lists`` per word
-    (:func:`pmjax._native.refine_word`). The words are traversed by the
-    cores, at most WORDS_AHEAD per core ahead of the consumer (memory: those
-    words' lists), the constants of WORDS_AT_ONCE words computed together."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    F = _native.FRAMES
-    order, real = _word_order(len(taus), path_length)
-    words = len(order) // F
-
-    def jobs():
-        for w0 in range(0, words, WORDS_AT_ONCE):
-            lanes, cams, word_taus, values, fats = _word_block(host, taus, order, real, w0,
-                                                               min(words, w0 + WORDS_AT_ONCE))
-            for w in range(len(fats)):
-                at = slice(w * F, (w + 1) * F)
-                yield lanes[at], (jax.tree.map(lambda a: a[at], cams), word_taus[at], values[at], fats[w])
-
-    def word(cams, word_taus, values, fat):
-        counts, lists, _, _ = _native.refine_word(pm, cams, word_taus, tests, frames, values, fat)
-        return counts, lists
-
-    threads = _native._cores()
-    pool = ThreadPoolExecutor(threads)
-    pending = collections.deque()
-    todo = jobs()
-    try:
-        for lanes, args in itertools.islice(todo, WORDS_AHEAD * threads):
-            pending.append((lanes, pool.submit(word, *args)))
-        while pending:
-            lanes, done = pending.popleft()
-            following = next(todo, None)
-            if following is not None:
-                pending.append((following[0], pool.submit(word, *following[1])))
-            yield (lanes,) + done.result()
-    finally:  # also when the consumer stops early
-        for _, future in pending:
-            future.cancel()
-        pool.shutdown(wait=False)
-
-
-# Words each core traverses ahead of the consumer of refine_path.
-WORDS_AHEAD = 2
-
-
-# Words whose camera constants are computed in one host pass (the C loops),
-# and the most words counted by one C call.
-WORDS_AT_ONCE = 16
-# Records of unsure pairs (int32) held before they are decided together.
-RECORDS_HELD = 1 << 20
-
-
-def _native_path_counts(pm, host, taus, tests, path_length, cols, ms, bar):
-    """:func:`path_counts` through the C word traversal: blocks of words
-    (at least two per core, at most WORDS_AT_ONCE words) taken by the cores
-    as they come free, each counted by one C call; the unsure pairs the
-    blocks leave are decided in one call at the end (or whenever
-    RECORDS_HELD of their records are held) and the counts corrected."""
-    import queue
-    import threading
-
-    F = _native.FRAMES
-    order, real = _word_order(len(taus), path_length)
-    words = len(order) // F
-    threads = _native._cores()
-    size = max(1, min(WORDS_AT_ONCE, -(-words // (2 * threads))))
-    blocks = iter([(w0, min(words, w0 + size)) for w0 in range(0, words, size)])
-    n_blocks = -(-words // size)
-    take, done = threading.Lock(), queue.Queue()
-    # Per lane of the padded path: the pcols that did not run, the faces they keep.
-    not_run, kept = np.zeros(len(order), np.int64), np.zeros(len(order), np.int64)
-
-    def run():
-        try:
-            while True:
-                with take:
-                    span = next(blocks, None)
-                if span is None:
-                    return
-                t = time.perf_counter()
-                _, cams, word_taus, values, fats = _word_block(host, taus, order, real, *span)
-                counted = _native.count_words(pm, cams, word_taus, tests, values, fats, span[0])
-                done.put((span, counted, time.perf_counter() - t))
-        except BaseException as e:  # handed to the caller's thread
-            done.put(e)
-
-    workers = [threading.Thread(target=run, daemon=True) for _ in range(threads)]
-    for w in workers:
-        w.start()
-    held, n_held = [], 0
-    for _ in bar(range(n_blocks), n_blocks, "block"):
-        got = done.get()
-        if isinstance(got, BaseException):
-            raise got
-        (w0, w1), (block_not_run, block_kept, records), seconds = got
-        lanes = slice(w0 * F, w1 * F)
-        not_run[lanes], kept[lanes] = block_not_run, block_kept
-        held.append(records)
-        n_held += len(records)
-        if n_held >= RECORDS_HELD:
-            _native.resolve_unsure(pm, np.concatenate(held), order, host, taus, tests, not_run, kept)
-            held, n_held = [], 0
-        # A block's wall time over its frames, over the cores that ran side by side.
+    if timing:  # compiled for every block size before the clock starts
+        for size in sorted({n for _, n in spans}):
+            jax.block_until_ready(call(0, size))
+    counts_of = _Counts.of(pm)
+    t = time.perf_counter()
+    for w0, n in bar(spans, len(spans), "block"):
+        counts = np.asarray(call(w0, n)[0])
+        lanes = slice(w0 * FRAMES, (w0 + n) * FRAMES)
         frames = order[lanes][real[lanes]]
-        ms[frames] = 1e3 * seconds / max(1, len(frames)) / threads
-    for w in workers:
-        w.join()
-    if held:
-        _native.resolve_unsure(pm, np.concatenate(held), order, host, taus, tests, not_run, kept)
-    counts = _native.native_mesh(pm).counts(not_run[real], kept[real])
-    for col, v in zip(cols, counts):
-        col[order[real]] = v
+        for col, v in zip(cols, counts_of(counts[:, 1], counts[:, 2], np)):
+            col[frames] = v[real[lanes]]
+        now = time.perf_counter()
+        ms[frames] = 1e3 * (now - t) / max(1, len(frames))
+        t = now
+
+
+def _core_path_frames(pm, host, taus, tests, path_length) -> Iterator[Refinement]:
+    """The frames of a path through the C core's words with their lists, a
+    few words per call, the next call running while the frames of the last
+    are read; the frames of a word whose unsure records did not fit are
+    refined alone."""
+    d = derived(pm)
+    tables, one_tables = d.core_words, d.core
+    order = _word_padded(len(taus), path_length, FRAMES)
+    real = np.ones(len(order), bool)
+    real[1:] = order[1:] != order[:-1]
+    spans = _word_spans(len(order) // FRAMES, WORDS_STREAMED)
+    counts_of = _Counts.of(pm)
+
+    rows = _core.host_camera_rows(host, taus)
+
+    def call(span):
+        w0, n = span
+        return span, _core_words(tables, one_tables, rows[order[w0 * FRAMES:(w0 + n) * FRAMES]], tests,
+                                 host.orthographic, True, RECORD_ROOM)
+
+    running = call(spans[0]) if spans else None
+    for i in range(len(spans)):
+        (w0, n), (counts_device, _, (pcols, ran, positions), overflow) = running
+        # Dispatched before this block's frames are read: it runs meanwhile.
+        running = call(spans[i + 1]) if i + 1 < len(spans) else None
+        counts, overflow = np.asarray(counts_device), np.asarray(overflow)
+        pcols_host, ran_host = np.asarray(pcols), np.asarray(ran)
+        faces, vertices, executed = counts_of(counts[:, 1], counts[:, 2], np)
+        for w in range(n):
+            lanes = range((w0 + w) * FRAMES, (w0 + w + 1) * FRAMES)
+            if overflow[w]:
+                for lane in lanes:
+                    if real[lane]:
+                        yield refine(pm, jax.tree.map(lambda a: a[order[lane]], host), taus[order[lane]], tests)
+                continue
+            m = int(counts[w * FRAMES, 0])  # the word's slots (every frame lists them)
+            visited, bits = pcols_host[w, :m], ran_host[w, :m]
+            for j, lane in enumerate(lanes):
+                if not real[lane]:
+                    continue
+                k = w * FRAMES + j
+                yield Refinement(pm=pm, visited=visited, visited_executed=((bits >> j) & 1).astype(bool), dense=None,
+                                 n_faces=faces[k], n_vertices=vertices[k], n_executed=executed[k],
+                                 front_positions=positions, core_ran=ran, core_counts=counts_device,
+                                 core_item=np.int32(k), n_slots=np.int32(m))
 
 
 def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, tests: Tests = ALL_TESTS,
@@ -310,9 +319,10 @@ def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, t
 
     Each is exactly ``pmjax.refine(pm, camera_t, tau_t, tests)`` (executed
     set, faces, ``vref``, counts). With ``coherent`` (default) consecutive
-    frames are traversed together, 16 per word in the C loops (32 as JAX
-    kernels; module doc); memory stays that of one word (or chunk of words),
-    whatever the path's length.
+    frames are traversed together, 16 per word in the C core (32 as JAX
+    kernels; module doc); memory stays that of a few words (or a chunk of
+    words), whatever the path's length. Under ``jax.jit`` each frame is
+    refined as :func:`pmjax.refine` refines it there.
 
     Args:
         pm: :class:`ProgressiveMesh`.
@@ -332,21 +342,22 @@ def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, t
         PathError: an empty path, a non-finite camera, an image size that
             changes along the path, a bad ``tau`` or budget (naming the frame).
     """
+    if is_traced(cameras, tau, budget):
+        T = _traced_path_length(cameras)
+        taus = _traced_taus(pm, cameras, tau, budget, tests, (T,))
+        for i in range(T):
+            yield refine(pm, jax.tree.map(lambda a: a[i], cameras), taus[i], tests)
+        return
     host, taus, budgets, shape = check_path(cameras, tau, budget)
     if budgets is not None:
         taus = _budget_taus(pm, host, budgets, tests)
-    if not coherent or pm.n_pcols == 0:
+    engine = select(pm, "front", batch=True) if coherent else "dense"
+    if not coherent or engine == "dense":
         for i in range(len(taus)):
             yield refine(pm, jax.tree.map(lambda a: a[i], host), taus[i], tests)
         return
-    if _native.available():
-        for frames, counts, lists in _native_words(pm, host, taus, tests, shape[-1], True):
-            for lane, frame in enumerate(frames):
-                if frame >= 0:
-                    visited, ran, at = lists[lane]
-                    yield Refinement(pm=pm, visited=visited, visited_executed=ran, dense=None,
-                                     n_faces=np.int32(counts[0][lane]), n_vertices=np.int32(counts[1][lane]),
-                                     n_executed=np.int32(counts[2][lane]), front_positions=at)
+    if engine == "core":
+        yield from _core_path_frames(pm, host, taus, tests, shape[-1])
         return
     for frames, (faces, vertices, executed, visited, ran) in _chunks(pm, host, taus, tests, shape[-1], True):
         faces, vertices, executed = np.asarray(faces), np.asarray(vertices), np.asarray(executed)
@@ -361,6 +372,22 @@ def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, t
                     continue
                 yield Refinement(pm=pm, visited=ids, visited_executed=((bits >> lane) & 1).astype(bool), dense=None,
                                  n_faces=faces[k], n_vertices=vertices[k], n_executed=executed[k])
+
+
+def _traced_path_length(cameras) -> int:
+    eye = cameras.eye
+    if eye.ndim != 2:
+        raise PathError(f"a path needs cameras with a leading time axis [T], got eye of shape {eye.shape}")
+    return int(eye.shape[0])
+
+
+def _traced_taus(pm, cameras, tau, budget, tests, shape):
+    """Per-frame tolerances of a traced path (``shape`` its leading axes)."""
+    if budget is not None:
+        flat = jax.tree.map(lambda a: a.reshape((-1,) + a.shape[len(shape):]), cameras)
+        budgets = jnp.broadcast_to(jnp.asarray(budget, jnp.int32), shape).reshape(-1)
+        return _budget_taus_traced(pm, flat, budgets, tests).reshape(shape)
+    return jnp.broadcast_to(_checked_tau(tau), shape)
 
 
 def path_counts(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, tests: Tests = ALL_TESTS,
@@ -379,17 +406,21 @@ def path_counts(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, t
         paths: the cameras are K paths of T frames (``[K, T]``); words never
             mix two paths.
         timing: also return ``milliseconds`` per frame: with ``coherent``,
-            the wall time of the frame's chunk over its frames, after the
-            kernels of every chunk size were compiled on the path's first
+            the wall time of the frame's block over its frames, after the
+            calls of every block size were compiled on the path's first
             frames; else each frame's own ``refine`` (compiled beforehand).
-        progress: a progress bar over the chunks (or frames).
+        progress: a progress bar over the blocks (or frames).
 
     Returns:
-        dict of NumPy arrays shaped like the leading axes: ``faces``,
-        ``vertices``, ``executed_count`` (int32), ``tau`` (float32, the
-        tolerance each frame was refined at) and, with ``timing``,
-        ``milliseconds`` (float64).
+        dict of arrays shaped like the leading axes: ``faces``, ``vertices``,
+        ``executed_count`` (int32), ``tau`` (float32, the tolerance each
+        frame was refined at) and, with ``timing``, ``milliseconds``
+        (float64). NumPy arrays; JAX arrays under ``jit``/``vmap``, where
+        the path is counted in one call (``vmap`` over paths: one call for
+        all of them).
     """
+    if is_traced(cameras, tau, budget):
+        return _traced_path_counts(pm, cameras, tau, budget, tests, coherent, method, paths)
     host, taus, budgets, shape = check_path(cameras, tau, budget, paths=paths)
     if budgets is not None:
         taus = _budget_taus(pm, host, budgets, tests)
@@ -401,7 +432,8 @@ def path_counts(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, t
         from tqdm import tqdm
 
         bar = lambda it, total, unit: tqdm(it, total=total, unit=unit, desc="path")
-    if not coherent or pm.n_pcols == 0:
+    engine = select(pm, "front", batch=True) if coherent else "dense"
+    if engine == "dense":
         frame = lambda i: jax.tree.map(lambda a: a[i], host)
         if timing:  # compile outside the timings
             jax.block_until_ready(refine(pm, frame(0), taus[0], tests, method=method))
@@ -411,14 +443,14 @@ def path_counts(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, t
             ms[i] = 1e3 * (time.perf_counter() - t)
             for col, v in zip(cols, (r.n_faces, r.n_vertices, r.n_executed)):
                 col[i] = int(v)
-    elif _native.available():
-        _native_path_counts(pm, host, taus, tests, shape[-1], cols, ms, bar)
+    elif engine == "core":
+        _core_path_counts(pm, host, taus, tests, shape[-1], cols, ms, bar, timing)
     else:
         padded = len(_word_padded(n, shape[-1]))
         if timing:  # one call per chunk size on the first frames: compiled, and buffers fitted
             for size in sorted({size for _, size in _chunk_spans(padded)}):
                 idx = np.minimum(np.arange(size), n - 1)
-                _front_counts(pm, jax.tree.map(lambda a: a[idx], host), taus[idx], tests, False)
+                _front_jax.counts(pm, jax.tree.map(lambda a: a[idx], host), taus[idx], tests, False)
         chunks = _chunks(pm, host, taus, tests, shape[-1], False)
         t = time.perf_counter()
         for frames, out in bar(chunks, len(_chunk_spans(padded)), "chunk"):
@@ -435,6 +467,44 @@ def path_counts(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, t
     return out
 
 
+def _traced_path_counts(pm, cameras, tau, budget, tests, coherent, method, paths):
+    """:func:`path_counts` under a trace: the whole path (or paths) in one call."""
+    eye = cameras.eye
+    axes = 2 if paths else 1
+    if eye.ndim != axes + 1:
+        want = "[K, T]" if paths else "[T]"
+        raise PathError(f"a path needs cameras with leading axes {want} (time last), got eye of shape {eye.shape}")
+    shape = tuple(eye.shape[:-1])
+    taus = _traced_taus(pm, cameras, tau, budget, tests, shape)
+    flat = jax.tree.map(lambda a: a.reshape((-1,) + a.shape[axes:]), cameras)
+    engine = select(pm, "front" if coherent else method, batch=True, traced=True)
+    counts_of = _Counts.of(pm)
+    if engine == "core" and coherent:
+        d = derived(pm)
+        # Each path padded to whole words (repeating its last frame).
+        idx = _word_padded(int(np.prod(shape)), shape[-1], FRAMES)
+        rows = _core.camera_rows(flat, taus.reshape(-1))[idx]
+        counts = _core_words(d.core_words, d.core, rows, tests, cameras.orthographic, False)[0]
+        real = np.ones(len(idx), bool)
+        real[1:] = idx[1:] != idx[:-1]
+        counts = counts[np.flatnonzero(real)]
+        cols = counts_of(counts[:, 1], counts[:, 2])
+    else:
+        cols = _batch_counts_traced(pm, flat, taus.reshape(-1), tests, method)
+    out = dict(zip(("faces", "vertices", "executed_count"), (c.reshape(shape) for c in cols)))
+    out["tau"] = taus
+    return out
+
+
+def _batch_counts_traced(pm, cameras, taus, tests, method):
+    """Counts of traced cameras, each at its own tolerance (one refinement per camera, vmapped)."""
+    def one(camera, tau):
+        r = refine(pm, camera, tau, tests, method=method)
+        return r.n_faces, r.n_vertices, r.n_executed
+
+    return jax.vmap(one)(cameras, taus)
+
+
 def path_refinement_pairs(pm: ProgressiveMesh, cameras: Camera, tau, *, tests: Tests = ALL_TESTS,
                           coherent: bool = True) -> Iterator[tuple[Refinement, Refinement]]:
     """Per frame, ``(refinement at tau, refinement at tau 0)``: the executed
@@ -442,4 +512,3 @@ def path_refinement_pairs(pm: ProgressiveMesh, cameras: Camera, tau, *, tests: T
     tau 0, :func:`pmjax.hidden_pcols`), as a geomorphed path needs them."""
     return zip(refine_path(pm, cameras, tau, tests=tests, coherent=coherent),
                refine_path(pm, cameras, 0.0, tests=tests, coherent=coherent))
-

@@ -1,9 +1,11 @@
-"""View-dependent refinement: the Visualizer's inverse traversal, batch by batch.
+"""View-dependent refinement for one camera or many: the public calls in front of the engines.
 
-``executed(p) = collapse(p) and exists(v1) and exists(v2)`` (docs/design.md). Pcols
-of one batch only depend on earlier batches, so the sequential loop becomes
-one vectorized predicate over all pcols plus one gather per batch, each batch
-a static slice under ``jit``.
+``executed(p) = collapse(p) and exists(v1) and exists(v2)`` (docs/design.md).
+Each call asks :func:`pmjax.engines.select` which engine runs it (the dense
+JAX kernels, the front engine's C core as XLA FFI calls, or the front engine
+as JAX kernels); all give the same bits. Every call here is a JAX function:
+eager, under ``jax.jit`` and under ``jax.vmap`` (over cameras and
+tolerances), with the mesh closed over (front engine) or traced (dense).
 """
 
 from __future__ import annotations
@@ -16,137 +18,26 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float, Int, UInt32
+from jax import lax
+from jaxtyping import Array, Bool, Int
 
-from . import _native
-from ._bitsets import WORD, column_popcounts, pack_cameras, unpack_cameras, weight_bits_for
-from ._camera import Camera, camera_count, index_camera
-from ._front import gather, one_camera_decide, traverse
+from ._bitsets import WORD
+from ._camera import Camera, camera_count
 from ._model import ProgressiveMesh
-from ._predicate import ALL_TESTS, Tests, UserPredicate, collapse_mask, critical_tau, view_collapse_mask
-from ._subtree import subtree_collapses
-from ._view import View
+from ._predicate import ALL_TESTS, Tests, UserPredicate
+from .engines import _core, _dense, _front_jax
+from .engines._choose import FRONT_FROM_PCOLS, is_traced, select
+from .engines._dense import DenseRefinement, critical_tolerances, propagate, representatives
+from .engines._front_mesh import numpy_mesh
+from .engines._tables import derived
 
-
-def up_the_batches(pm: ProgressiveMesh, own, leaf, join):
-    """Fold a per-pcol value up the hierarchy, batch by batch (static slices).
-
-    ``out[p] = join(own[p], value(v1), value(v2))`` where ``value`` is ``leaf``
-    for an original vertex and ``out`` of the pcol that made a created one;
-    children always come from earlier batches, so one gather per batch.
-    ``own`` is ``[P, ...]``: trailing axes (cameras, words) ride along.
-    ``leaf`` must be an identity of ``join`` (``join(x, leaf, leaf) = x``): the
-    first batch, whose children are all original vertices, keeps ``own``, and
-    only the later batches are computed (in place).
-    """
-    # An explicit copy: where ``own`` is an argument of the jitted caller,
-    # without it XLA copied the whole array at every batch (dragon 0.44 -> 9.7 ms).
-    out = jnp.copy(own)
-    trailing = (1,) * (own.ndim - 1)
-    for lo, hi in zip(pm.batch_offsets[1:-1], pm.batch_offsets[2:]):
-        if lo == hi:
-            continue
-        c1 = pm.child1[lo:hi].reshape((-1,) + trailing)
-        c2 = pm.child2[lo:hi].reshape((-1,) + trailing)
-        e1 = jnp.where(c1 < 0, leaf, gather(out, jnp.maximum(pm.child1[lo:hi], 0)))
-        e2 = jnp.where(c2 < 0, leaf, gather(out, jnp.maximum(pm.child2[lo:hi], 0)))
-        out = out.at[lo:hi].set(join(own[lo:hi], e1, e2))
-    return out
-
-
-def propagate(pm: ProgressiveMesh, collapse):
-    """Executed set from the per-pcol collapse decisions.
-
-    A pcol runs if it may collapse and both its vertices exist: originals
-    always exist, a created vertex exists iff the pcol making it ran.
-
-    Args:
-        collapse: ``bool[P]`` (one camera) or ``uint32[P, W]`` camera bitsets
-            (:func:`pmjax._bitsets.pack_cameras`); the result has the same form.
-    """
-    everything = ~jnp.zeros((), collapse.dtype)  # True, or all 32 bits set
-    return up_the_batches(pm, collapse, everything, lambda own, a, b: own & a & b)
-
-
-def down_the_batches(pm: ProgressiveMesh, coarsest, climb):
-    """Resolve a per-vertex value coarse to fine, batch by batch (static slices).
-
-    A vertex's value depends on the pcol consuming it (its parent), always in
-    a later batch, so batches are resolved from the last to the first, then
-    the original vertices.
-
-    Args:
-        coarsest: ``coarsest(ids)``: values of the created vertices ``ids``
-            (all ``P`` of them, ``V0 + p`` for pcol ``p``) as if nothing
-            coarser mattered; final for the last batch, whose vertices no
-            pcol consumes, and overwritten for the others.
-        climb: ``climb(parent, ids, created, pcols)``: values of vertices
-            ``ids`` given ``created``, the ``[P, ...]`` values of the created
-            vertices (final for the parents' batches); ``parent`` is each
-            vertex's consuming pcol (negative: consumed by none); ``pcols``
-            is the static ``slice`` of pcols that made ``ids``, or ``None``
-            for the original vertices (the last call).
-
-    Returns:
-        ``(originals [V0, ...], created [P, ...])``: the values of all vertices.
-    """
-    V0, P = pm.n_original_vertices, pm.n_pcols
-    # Each batch is written in place into one [P] array: its reads (the
-    # parents, in later batches) are separate gathers, so XLA updates the
-    # slice without a copy. The previous way, a growing concatenation of the
-    # finished batches, copied every coarser batch again at each batch
-    # (dragon representatives 1.31 -> 1.22 ms, bunny 0.10 -> 0.08 ms).
-    created = coarsest(jnp.arange(V0, V0 + P, dtype=jnp.int32))
-    offsets = pm.batch_offsets
-    for lo, hi in reversed(list(zip(offsets[:-2], offsets[1:-1]))):
-        if lo == hi:
-            continue
-        ids = jnp.arange(V0 + lo, V0 + hi, dtype=jnp.int32)
-        created = created.at[lo:hi].set(climb(pm.parent[V0 + lo:V0 + hi], ids, created, slice(lo, hi)))
-    originals = climb(pm.parent[:V0], jnp.arange(V0, dtype=jnp.int32), created, None)
-    return originals, created
-
-
-def representatives(pm: ProgressiveMesh, executed: Bool[Array, " P"]) -> Int[Array, " V"]:
-    """``vref``: each vertex's current representative (two-phase referencing).
-
-    Resolved coarse to fine: a vertex takes its parent's representative
-    (already final, parents are in later batches) if the parent ran, else
-    itself. What is carried for the created vertices is their representative
-    if their pcol ran and -1 if not, so that each vertex reads one random
-    element (its parent's) instead of two (whether the parent ran, and its
-    representative): dragon 1.26 -> 1.03 ms.
-    """
-    V0, P = pm.n_original_vertices, pm.n_pcols
-    if P == 0:  # every vertex is its own representative
-        return jnp.arange(V0, dtype=jnp.int32)
-
-    def climb(parent, ids, created, pcols):
-        t = gather(created, jnp.maximum(parent, 0))
-        rep = jnp.where((parent >= 0) & (t >= 0), t, ids)
-        # The original vertices always exist; a created one only if its pcol ran.
-        return rep if pcols is None else jnp.where(executed[pcols], rep, -1)
-
-    originals, created = down_the_batches(pm, lambda ids: jnp.where(executed, ids, -1), climb)
-    created = jnp.where(created >= 0, created, jnp.arange(V0, V0 + P, dtype=jnp.int32))
-    return jnp.concatenate([originals, created])
-
-
-class DenseRefinement(eqx.Module):
-    """The full-hierarchy arrays the dense engine computes for one view.
-
-    Attributes:
-        executed: ``bool[P]``; active: ``bool[F]``; rep: ``int32[V0 + P]``.
-    """
-
-    executed: Bool[Array, " P"]
-    active: Bool[Array, " F"]
-    rep: Int[Array, " V"]
+__all__ = ["Refinement", "critical_tolerances", "faces_for_budget", "propagate", "refine", "refine_batch",
+           "representatives"]
 
 
 @functools.partial(jax.tree_util.register_dataclass,
                    data_fields=["pm", "visited", "visited_executed", "dense", "n_faces", "n_vertices", "n_executed",
-                                "front_positions"],
+                                "front_positions", "core_ran", "core_counts", "core_item", "n_slots"],
                    meta_fields=[])
 @dataclasses.dataclass(frozen=True)
 class Refinement:
@@ -156,23 +47,27 @@ class Refinement:
     and read on the host once per view, where an ``equinox.Module``'s
     construction checks and bound methods cost more than a small refine.
 
-    The output-sensitive engine (``method="front"``) keeps only the pcols its
-    traversal visited and whether each ran; every other pcol lies under a
-    decided subtree and ran. The full arrays (``executed``, ``active``,
-    ``rep``) are computed from that when asked; the dense engine
-    (``method="dense"``) computes them eagerly.
+    The front engines keep only the pcols their traversal visited and
+    whether each ran; every other pcol lies under a decided subtree and ran.
+    The full arrays (``executed``, ``active``, ``rep``) are computed from that
+    when asked; the dense engine computes them eagerly.
 
     Attributes:
         pm: the :class:`ProgressiveMesh` refined (shared, not copied).
         visited: ``int32[C]`` pcols the traversal visited, ``P`` in unused slots
-            (``None`` from the dense engine).
+            (``None`` from the dense engine). Eagerly, NumPy arrays of the
+            visited pcols; under ``jit``, capacity ``P + 16``.
         visited_executed: ``bool[C]`` whether each ran (``True`` in unused slots).
         dense: :class:`DenseRefinement` from the dense engine, else ``None``.
         n_faces, n_vertices, n_executed: counts (``n_vertices`` = V0 − executed,
             the vertex front).
-        front_positions: ``int32[C]`` the visited pcols' places in the C
-            loops' breadth-first layout, which their front mesh reads (``None``
-            from the other engines).
+        front_positions, core_ran, core_counts, core_item, n_slots: what
+            the C core's mesh reads (``None`` from the other engines): the
+            core's lists at full capacity, the visited pcols' places in its
+            breadth-first layout and whether each ran (``[L]`` uint8; or a
+            path's ``[W, L]`` frame bits), the core's counts (``[4]``, or a
+            path's ``[W * 16, 4]``, row ``core_item`` being this refinement's)
+            and the slots used.
     """
 
     pm: ProgressiveMesh
@@ -183,16 +78,20 @@ class Refinement:
     n_vertices: Int[Array, ""]
     n_executed: Int[Array, ""]
     front_positions: Optional[Int[Array, " C"]] = None
+    core_ran: Optional[Array] = None
+    core_counts: Optional[Int[Array, "*M 4"]] = None
+    core_item: Optional[Int[Array, ""]] = None
+    n_slots: Optional[Int[Array, ""]] = None
 
     @property
     def executed(self) -> Bool[Array, " P"]:
         """``bool[P]`` pcols executed."""
         if self.dense is not None:
             return self.dense.executed
-        if isinstance(self.visited, np.ndarray):  # host lists (C traversal, paths): no compile per length
+        if isinstance(self.visited, np.ndarray):  # host lists (C core, paths): no compile per length
             out = np.ones(self.pm.n_pcols, bool)
-            out[self.visited[self.visited < self.pm.n_pcols]] = np.asarray(self.visited_executed)[
-                self.visited < self.pm.n_pcols]
+            keep = self.visited < self.pm.n_pcols
+            out[self.visited[keep]] = np.asarray(self.visited_executed)[keep]
             return jnp.asarray(out)
         return _spread_executed(self.visited, self.visited_executed, self.pm.n_pcols)
 
@@ -211,10 +110,12 @@ class Refinement:
         return _representatives(self.pm, self.executed)
 
     @property
-    def n_visited(self) -> int:
+    def n_visited(self):
         """Pcols whose decision the engine looked at (``P`` for the dense engine)."""
         if self.visited is None:
             return self.pm.n_pcols
+        if self.n_slots is not None:
+            return self.n_slots if is_traced(self.n_slots) else int(self.n_slots)
         if isinstance(self.visited, np.ndarray):
             return int(np.count_nonzero(self.visited < self.pm.n_pcols))
         return int(jnp.sum(self.visited < self.pm.n_pcols))
@@ -229,24 +130,32 @@ class Refinement:
             ``(vertices float32[n, 3], faces int32[m, 3], vertex_ids int32[n])``:
             faces in increasing original face order, ``vertex_ids`` the sorted
             PM vertex ids used. From the front its cost follows the faces
-            drawn, plus one prefix sum over the V0 original vertices.
+            drawn. Under ``jit`` the arrays have fixed capacities
+            (``[V0, 3]``, ``[F, 3]``, ``[V0]``): rows past the ``n_faces``
+            faces hold -1, and past the vertices used, ids -1 and zero
+            positions.
         """
         if pm is not None and pm is not self.pm and (pm.n_pcols, pm.n_faces, pm.n_original_vertices) != (
                 self.pm.n_pcols, self.pm.n_faces, self.pm.n_original_vertices):
             raise ValueError("Refinement.mesh: pm is not the mesh this refinement was made for "
                              f"({pm.n_pcols} pcols, {pm.n_faces} faces; refined: {self.pm.n_pcols}, {self.pm.n_faces})")
-        if self.dense is None:
-            visited, ran = np.asarray(self.visited), np.asarray(self.visited_executed)
-            if self.front_positions is not None and _native.available():
-                return _native.front_mesh(self.pm, visited, ran, self.front_positions, int(self.n_faces),
-                                          int(self.n_vertices))
-            from ._front_mesh import front_mesh
-
-            return front_mesh(self.pm, visited, ran)
-        active = np.asarray(self.dense.active)
-        faces = np.asarray(self.dense.rep)[np.asarray(self.pm.faces)[active]]
-        ids, inverse = np.unique(faces, return_inverse=True)
-        return np.asarray(self.pm.vertices)[ids], inverse.reshape(-1, 3).astype(np.int32), ids
+        traced = is_traced(self.n_faces, self.visited, self.dense)
+        if self.dense is not None:
+            if traced:
+                return _padded(*_dense_mesh(self.pm, self.dense))
+            active = np.asarray(self.dense.active)
+            faces = np.asarray(self.dense.rep)[np.asarray(self.pm.faces)[active]]
+            ids, inverse = np.unique(faces, return_inverse=True)
+            return np.asarray(self.pm.vertices)[ids], inverse.reshape(-1, 3).astype(np.int32), ids.astype(np.int32)
+        if self.core_ran is not None:
+            faces, ids, vertices, n_ids = _core_mesh(derived(self.pm).core_mesh, self.core_ran, self.front_positions,
+                                                     self.core_counts, self.core_item)
+            if traced:
+                return _padded(vertices, faces, ids, self.n_faces, n_ids)
+            n, k = int(self.n_faces), int(n_ids)
+            return np.asarray(vertices)[:k], np.asarray(faces)[:n], np.asarray(ids)[:k]
+        return numpy_mesh(derived(self.pm).depth_first, self.pm.n_pcols, np.asarray(self.visited),
+                          np.asarray(self.visited_executed))
 
     def to_trimesh(self, pm: Optional[ProgressiveMesh] = None):
         """The refined mesh as a ``trimesh.Trimesh`` (not processed)."""
@@ -256,68 +165,38 @@ class Refinement:
         return trimesh.Trimesh(v, f, process=False)
 
 
+@jax.jit
+def _padded(vertices, faces, ids, n_faces, n_ids):
+    """A mesh in fixed-capacity arrays, the rows past the counts cleared."""
+    face_rows = jnp.arange(faces.shape[0])[:, None] < n_faces
+    vertex_rows = jnp.arange(ids.shape[0]) < n_ids
+    return (jnp.where(vertex_rows[:, None], vertices, 0), jnp.where(face_rows, faces, -1),
+            jnp.where(vertex_rows, ids, -1))
+
+
+_dense_mesh = jax.jit(_dense.mesh)
+
+
+@functools.partial(jax.jit, static_argnames=("n_original", "n_faces"))
+def _core_mesh_arrays(pcols, kill_data, base, tops, top_at, ran, positions, counts, item, n_original, n_faces):
+    mesh = _core.CoreMesh(pcols, kill_data, base, tops, top_at, n_original, n_faces)
+    return _core.front_mesh(mesh, ran, positions, counts, 0 if item is None else item)
+
+
+def _core_mesh(mesh, ran, positions, counts, item=None):
+    """The core's mesh of a refinement (jitted; the tables passed as arrays)."""
+    return _core_mesh_arrays(mesh.pcols, mesh.kill_data, mesh.base, mesh.tops, mesh.top_at, ran, positions, counts,
+                             item, mesh.n_original, mesh.n_faces)
+
+
 @functools.partial(jax.jit, static_argnums=2)
 def _spread_executed(visited, visited_executed, n_pcols):
     # Unused slots hold P: dropped.
     return jnp.ones(n_pcols, bool).at[visited].set(visited_executed, mode="drop")
 
 
-@jax.jit
-def _active_faces(pm, executed):
-    k = pm.killer
-    if pm.n_pcols == 0:  # nothing can kill a face
-        return jnp.ones(k.shape, bool)
-    return (k < 0) | ~gather(executed, jnp.maximum(k, 0))
-
-
-_representatives = jax.jit(lambda pm, executed: representatives(pm, executed))
-
-
-def _finish(pm: ProgressiveMesh, executed):
-    active = _active_faces(pm, executed)
-    n_exec = jnp.sum(executed, dtype=jnp.int32)
-    # Faces from the pcols, as executed_and_killed counts them for a batch:
-    # m per executed pcol, corrected on the few uncommon pcols (a sum over P,
-    # not over the F faces).
-    m = pm.common_kills
-    killed = m * n_exec + jnp.sum(jnp.where(gather(executed, pm.uncommon), pm.uncommon_extra_kills, 0))
-    dense = DenseRefinement(executed=executed, active=active, rep=representatives(pm, executed))
-    return dense, jnp.int32(pm.n_faces) - killed, jnp.int32(pm.n_original_vertices) - n_exec, n_exec
-
-
-METHODS = ("auto", "front", "dense")
-
-# "auto" picks the front engine (docs/front.md, same-run measurements on 2
-# cores): with the C loops, for one camera on every hierarchy (cow, 2,896
-# pcols: 3.7x faster than dense; dragon, 436,325: 18-20x) and for camera
-# batches from FRONT_BATCH_FROM_PCOLS on (bunny, 34,819: 1.3-1.6x; Grand
-# Canyon, 39,998: 1.5-1.6x; St Helens, 148,883: 3.5x; dragon: 5.3-5.6x; cow
-# 0.5-0.7x). Without
-# them, the front engine as JAX kernels wins for one camera only from
-# FRONT_FROM_PCOLS on (bunny 0.63x, St Helens 1.44x, dragon 2.06x) and never
-# for batches.
-FRONT_FROM_PCOLS = 100_000
-FRONT_BATCH_FROM_PCOLS = 30_000
-
-
-def _method(pm: ProgressiveMesh, method: str, predicate, batch: bool = False) -> str:
-    """The engine a call uses. ``"auto"``: the front engine where it is the
-    faster (above); the dense engine for a user predicate (it has no subtree
-    bound, so only the dense engine can apply it)."""
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    if method == "front" and predicate is not None:
-        raise ValueError("method='front' cannot apply a user predicate (it has no subtree bound); "
-                         "use method='dense' or 'auto'")
-    if pm.n_pcols == 0:
-        return "dense"
-    if method == "auto":
-        if predicate is not None:
-            return "dense"
-        if _native.available():
-            return "front" if not batch or pm.n_pcols >= FRONT_BATCH_FROM_PCOLS else "dense"
-        return "front" if not batch and pm.n_pcols >= FRONT_FROM_PCOLS else "dense"
-    return method
+_active_faces = _dense._active_faces
+_representatives = _dense._representatives
 
 
 def check_tau(tau) -> float:
@@ -345,6 +224,32 @@ def _host_tau(tau):
     return tau
 
 
+def _checked_tau(tau):
+    """``tau`` as float32 with a NaN or negative value refused inside the
+    compiled call (``eqx.error_if``)."""
+    tau = jnp.asarray(tau, jnp.float32)
+    return eqx.error_if(tau, ~(tau >= 0), "tau must be >= 0 (and not NaN)")
+
+
+class _Counts:
+    """The constants that turn the front engine's counts (pcols that did not
+    run, the faces they keep) into face, vertex and executed counts."""
+
+    def __init__(self, d):
+        self.P, self.F, self.V0 = d.n_pcols, d.n_faces, d.n_original
+        self.base_faces = self.F - d.total_kills
+
+    @staticmethod
+    def of(pm) -> "_Counts":
+        d = derived(pm)
+        return d.memo("counts", lambda: _Counts(d))
+
+    def __call__(self, not_run, kept, xp=jnp):
+        n_exec = self.P - not_run
+        return (xp.asarray(self.base_faces + kept, xp.int32), xp.asarray(self.V0 - n_exec, xp.int32),
+                xp.asarray(n_exec, xp.int32))
+
+
 def refine(
     pm: ProgressiveMesh,
     camera: Camera,
@@ -367,164 +272,108 @@ def refine(
         predicate, context, combine: optional user test, see
             :func:`pmjax.collapse_mask`.
         method: ``"front"``: output-sensitive traversal from the roots, pruned
-            by subtree bounds (cost ∝ the pcols near the front; C loops where
-            they are built, else JAX kernels); ``"dense"``: every pcol tested
-            and propagated (the reference); ``"auto"`` (default): ``"front"``
-            where it is faster (every hierarchy with the C loops; from
-            ``FRONT_FROM_PCOLS`` pcols without), ``"dense"`` with a user
-            predicate (which has no subtree bound). All give the same bits.
+            by subtree bounds (cost ∝ the pcols near the front; the C core
+            where it is built, else JAX kernels); ``"dense"``: every pcol
+            tested and propagated (the reference); ``"auto"`` (default): the
+            front engine where it is faster (docs/front.md), the dense engine
+            with a user predicate, on a GPU, and for a mesh being traced.
+            All give the same bits (:func:`pmjax.engines.select` decides).
 
     Returns:
-        :class:`Refinement` (device arrays; ``.mesh()`` gives NumPy arrays).
+        :class:`Refinement`. Under ``jax.jit`` and ``jax.vmap`` (over cameras
+        and tolerances) it holds traced arrays; ``vmap`` of the front engine
+        is one batched call into its core.
     """
     tau = _host_tau(tau)
-    if _method(pm, method, predicate) == "front":
-        return _refine_front(pm, camera, tau, tests)
+    traced = is_traced(camera, tau)
+    engine = select(pm, method, predicate=predicate, traced=traced)
+    if engine == "core":
+        return _refine_core(pm, camera, tau, tests, traced)
+    if engine == "jax":
+        visited, ran, n_faces, n_vertices, n_executed = _front_jax.refine(pm, camera, tau, tests)
+        return Refinement(pm=pm, visited=visited, visited_executed=ran, dense=None, n_faces=n_faces,
+                          n_vertices=n_vertices, n_executed=n_executed)
     # As under eqx.filter_jit, the context's arrays are traced and its other
     # leaves (Python numbers, strings) are static.
     if context is None or eqx.is_array(context):  # the common cases, without the partition's cost
-        arrays, others = context, _NOTHING_STATIC
+        arrays, others = context, _dense._NOTHING_STATIC
     else:
         arrays, others = eqx.partition(context, eqx.is_array)
-        others = _Static(others)
-    dense, n_faces, n_vertices, n_executed = _refine(pm, camera, tau, arrays, others, tests, predicate, combine)
+        others = _dense._Static(others)
+    dense, n_faces, n_vertices, n_executed = _dense.refine(pm, camera, tau, arrays, others, tests, predicate, combine)
     return Refinement(pm=pm, visited=None, visited_executed=None, dense=dense, n_faces=n_faces,
                       n_vertices=n_vertices, n_executed=n_executed)
 
 
-def _refine_front(pm: ProgressiveMesh, camera: Camera, tau, tests: Tests) -> Refinement:
-    if _native.available():
-        visited, ran, positions, n_faces, n_vertices, n_executed = _native.refine_one(pm, camera, tau, tests)
-        return Refinement(pm=pm, visited=visited, visited_executed=ran, dense=None, n_faces=n_faces,
-                          n_vertices=n_vertices, n_executed=n_executed, front_positions=positions)
-    # The one host synchronisation: did every generation fit its buffer?
-    out = pm.plan.run(("one", tests, camera.orthographic),
-                      lambda capacities: _front_refine(pm, camera, tau, tests, capacities))
-    visited, ran, n_faces, n_vertices, n_executed, _ = out
-    return Refinement(pm=pm, visited=visited, visited_executed=ran, dense=None, n_faces=n_faces,
-                      n_vertices=n_vertices, n_executed=n_executed)
+def _test_flags(tests: Tests) -> tuple:
+    """A :class:`Tests` as a tuple: a static argument hashed in C++ at each
+    call, where a module is hashed in Python."""
+    return bool(tests.frustum), bool(tests.orientation), bool(tests.screen)
 
 
-def front_counts(pm: ProgressiveMesh, visited, not_ran):
-    """``(n_faces, n_vertices, n_executed)`` from the pcols that did not run
-    (``not_ran``, lanes over ``visited``; ``visited`` holds ``P`` in unused
-    slots): every face is drawn but those killed by the pcols that ran."""
-    P = pm.n_pcols
-    if P == 0:  # every face drawn, no pcol
-        return jnp.int32(pm.n_faces), jnp.int32(pm.n_original_vertices), jnp.int32(0)
-    kills = jnp.where(visited < P, gather(pm.kills, jnp.minimum(visited, P - 1)), 0)
-    n_not_run = jnp.sum(not_ran, axis=-1, dtype=jnp.int32)
-    kept = jnp.sum(jnp.where(not_ran, kills, 0), axis=-1, dtype=jnp.int32)
-    n_exec = P - n_not_run
-    return pm.n_faces - pm.total_kills + kept, pm.n_original_vertices - n_exec, n_exec
+@functools.partial(jax.jit, static_argnames=("n_roots", "tests", "lists", "check"))
+def _core_one_arrays(rows, kills, order, camera, tau, n_roots, tests, lists, check):
+    tau = _checked_tau(tau) if check else tau
+    tables = _core.CoreTables(rows=rows, kills=kills, order=order, n_roots=n_roots)
+    return _core.one_camera(Tests(*tests), camera.orthographic, lists)(tables, _core.camera_rows(camera, tau))
 
 
-@functools.partial(jax.jit, static_argnames=("tests", "capacities"))
-def _front_refine(pm, camera, tau, tests, capacities):
-    tau = eqx.error_if(jnp.asarray(tau, jnp.float32), ~(tau >= 0), "tau must be >= 0 (and not NaN)")
-    view = View.of(camera, tau)
-    visited, ran, needed = traverse(pm, one_camera_decide(view, tests), capacities, bool)
-    counts = front_counts(pm, visited, (visited < pm.n_pcols) & ~ran)
-    return (visited, ran) + counts + (needed,)
+def _core_one(tables, camera, tau, tests, lists, check):
+    """One camera through the core (jitted; the tables passed as arrays)."""
+    return _core_one_arrays(tables.rows, tables.kills, tables.order, camera, tau, tables.n_roots, _test_flags(tests),
+                            lists, check)
 
 
-class _Static:
-    """A pytree of hashable leaves, usable as a static ``jax.jit`` argument."""
-
-    def __init__(self, tree):
-        self.leaves, self.treedef = jax.tree.flatten(tree)
-        self._hash = hash((self.treedef, tuple(self.leaves)))
-
-    def __hash__(self):
-        return self._hash
-
-    def __eq__(self, other):
-        return isinstance(other, _Static) and (self.treedef, self.leaves) == (other.treedef, other.leaves)
-
-    @property
-    def tree(self):
-        return jax.tree.unflatten(self.treedef, self.leaves)
+@functools.partial(jax.jit, static_argnames=("n_roots", "tests"))
+def _core_first_arrays(rows, kills, order, camera, tau, n_roots, tests):
+    tables = _core.CoreTables(rows=rows, kills=kills, order=order, n_roots=n_roots)
+    row = _core.camera_rows(camera, tau)
+    return row, _core.refine_one_first(tables, row, Tests(*tests), camera.orthographic, True)
 
 
-_NOTHING_STATIC = _Static(None)
+@functools.partial(jax.jit, static_argnames=("n_roots", "tests", "orthographic"))
+def _core_rest_arrays(rows, kills, order, row, first, n_roots, tests, orthographic):
+    tables = _core.CoreTables(rows=rows, kills=kills, order=order, n_roots=n_roots)
+    return _core.refine_one_answered(tables, row, Tests(*tests), orthographic, first)
 
 
-# jax.jit, not eqx.filter_jit: the call is a few hundred microseconds on small
-# meshes, and filter_jit's Python-side partition of the pytrees cost 60-90 us of
-# it (bunny 0.37 -> 0.28 ms per refine).
-@functools.partial(jax.jit, static_argnames=("context_static", "tests", "predicate", "combine"))
-def _refine(pm, camera, tau, context_arrays, context_static, tests, predicate, combine):
-    context = eqx.combine(context_arrays, context_static.tree)
-    tau = eqx.error_if(jnp.asarray(tau, jnp.float32), ~(tau >= 0), "tau must be >= 0 (and not NaN)")
-    collapse = collapse_mask(pm.attributes, camera, tau, tests, predicate, context, combine)
-    # Materialize the decisions once: fused into the per-batch slices of the
-    # propagation, the predicate ran 20 % slower overall (dragon 5.1 -> 4.1 ms
-    # per refine with the barrier, same bits).
-    collapse = jax.lax.optimization_barrier(collapse)
-    return _finish(pm, propagate(pm, collapse))
+def _core_one_eager(tables, camera, tau, tests):
+    """:func:`_core_one` with lists, eagerly: the first pass alone (a small
+    call), and the unsure decisions and second pass only where the first
+    left some (one camera in ten or so)."""
+    flags = _test_flags(tests)
+    row, first = _core_first_arrays(tables.rows, tables.kills, tables.order, camera, tau, tables.n_roots, flags)
+    counts = np.asarray(first[5])
+    if counts[3] == 0:
+        return first[0], first[1], first[2], first[5], counts
+    pcols, ran, positions, counts = _core_rest_arrays(tables.rows, tables.kills, tables.order, row, first,
+                                                      tables.n_roots, flags, camera.orthographic)
+    return pcols, ran, positions, counts, np.asarray(counts)
 
 
-@eqx.filter_jit
-def _counts_chunk(pm, cameras, tau, tests, predicate, context, combine, want_masks):
-    # Collapse decisions per camera, then 32 cameras per word through the hierarchy.
-    views = View.batch(cameras, tau)
-    collapse = views.map(lambda v: view_collapse_mask(pm.attributes, v, tests, predicate, context, combine, rows=False))
-    words = propagate(pm, pack_cameras(collapse))
-    n_exec, killed = executed_and_killed(pm, words)
-    out = (pm.n_faces - killed, pm.n_original_vertices - n_exec, n_exec)
-    return out + ((unpack_cameras(words),) if want_masks else ())
-
-
-def word_counts(pm: ProgressiveMesh, visited, ran):
-    """:func:`front_counts` for a word of 32 cameras, from the executed words
-    ``ran`` of the visited pcols: per camera, the pcols that did not run and
-    the faces they keep are column popcounts (one per bit plane of the kill
-    counts), not sums over 32 unpacked rows."""
-    P = pm.n_pcols
-    if P == 0:
-        return tuple(jnp.full(WORD, v, jnp.int32) for v in (pm.n_faces, pm.n_original_vertices, 0))
-    valid = visited < P
-    kills = jnp.where(valid, gather(pm.kills, jnp.minimum(visited, P - 1)), 0)
-    not_ran = jnp.where(valid, ~ran, jnp.uint32(0))[:, None]  # [C, 1]
-    n_not_run = column_popcounts(not_ran)
-    kept = jnp.zeros(WORD, jnp.int32)
-    for b in range(weight_bits_for(pm.max_kills)):
-        kept = kept + (column_popcounts(jnp.where((((kills >> b) & 1) == 1)[:, None], not_ran, jnp.uint32(0))) << b)
-    n_exec = P - n_not_run
-    return pm.n_faces - pm.total_kills + kept, pm.n_original_vertices - n_exec, n_exec
-
-
-def pack_word(mask: Bool[Array, "32 N"]) -> UInt32[Array, " N"]:
-    """One word of 32 cameras per column: bit ``c`` is ``mask[c]``. An
-    unrolled OR of shifted rows, one elementwise loop (the reduction over
-    the camera axis of :func:`pmjax._bitsets.pack_cameras` ran 3x slower on
-    the front's gathered columns)."""
-    word = mask[0].astype(jnp.uint32)
-    for c in range(1, WORD):
-        word = word | (mask[c].astype(jnp.uint32) << c)
-    return word
-
-
-def executed_and_killed(pm: ProgressiveMesh, words):
-    """Per camera, executed pcols and the faces they kill, from executed
-    camera bitsets ``uint32[P, W]`` (:func:`propagate`).
-
-    Most pcols kill the same number of faces ``m`` (2 for an edge collapse
-    inside a manifold), so ``killed = m·executed + sum((kills − m)·bit)``,
-    where the correction only reads the few other pcols (dragon: 0.7 %), one
-    bit plane of their weights at a time.
-    """
-    n_exec = column_popcounts(words)
-    m = pm.common_kills
-    killed = m * n_exec
-    rows = words[pm.uncommon]
-    delta = pm.uncommon_extra_kills
-    for sign, most in ((1, pm.max_kills - m), (-1, m - pm.min_kills)):
-        weight = jnp.maximum(sign * delta, 0)
-        for b in range(weight_bits_for(most) if most > 0 else 0):
-            plane = jnp.where((((weight >> b) & 1) == 1)[:, None], rows, jnp.uint32(0))
-            killed = killed + sign * (column_popcounts(plane) << b)
-    return n_exec, killed
+def _refine_core(pm, camera, tau, tests, traced: bool) -> Refinement:
+    d = derived(pm)
+    tables = d.core
+    counts_of = _Counts.of(pm)
+    P = counts_of.P
+    if not traced:  # tau was checked on the host
+        pcols, ran, positions, counts, host = _core_one_eager(tables, camera, tau, tests)
+        n, not_run, kept = host[:3].tolist()
+        n_exec = P - not_run
+        return Refinement(pm=pm, visited=np.asarray(pcols)[:n], visited_executed=np.asarray(ran)[:n].view(bool),
+                          dense=None, n_faces=np.int32(counts_of.base_faces + kept),
+                          n_vertices=np.int32(counts_of.V0 - n_exec), n_executed=np.int32(n_exec),
+                          front_positions=positions, core_ran=ran, core_counts=counts, n_slots=np.int32(n))
+    # Traced: the counts from a call without lists, the lists from one with
+    # them; XLA drops whichever the caller does not use.
+    counts = _core_one(tables, camera, tau, tests, False, True)[3]
+    pcols, ran, positions, listed = _core_one(tables, camera, tau, tests, True, True)
+    n = listed[..., 0]
+    valid = jnp.arange(pcols.shape[-1]) < n[..., None]
+    n_faces, n_vertices, n_executed = counts_of(counts[..., 1], counts[..., 2])
+    return Refinement(pm=pm, visited=jnp.where(valid, pcols, P), visited_executed=jnp.where(valid, ran != 0, True),
+                      dense=None, n_faces=n_faces, n_vertices=n_vertices, n_executed=n_executed,
+                      front_positions=positions, core_ran=ran, core_counts=listed, n_slots=n)
 
 
 def refine_batch(
@@ -541,31 +390,36 @@ def refine_batch(
     progress: bool = False,
     method: str = "auto",
 ) -> dict:
-    """Refine for K cameras at once (vmap), ``chunk`` cameras per kernel call so
-    memory stays bounded for any K.
+    """Refine for K cameras at once, ``chunk`` cameras per call so memory stays
+    bounded for any K.
 
     Args:
         pm: :class:`ProgressiveMesh`.
         cameras: a camera batch (leading axis K).
         tau: tolerance in pixels (shared by all cameras).
-        chunk: cameras per vmapped call, rounded up to a multiple of 32 (one
-            bitset word); the last chunk is padded.
+        chunk: cameras per call, rounded up to a multiple of 32 (one bitset
+            word); the last chunk is padded.
         return_masks: also return ``executed`` masks ``bool[K, P]``.
-        method: ``"dense"``, ``"front"`` (each camera traversed by the C
-            loops, the cameras split over the cores; as JAX kernels where the
-            loops are not built, per group of 32 cameras the union of their
-            fronts) or ``"auto"``: the front engine with the C loops from
-            ``FRONT_BATCH_FROM_PCOLS`` pcols on, else dense (docs/front.md).
-            Same results.
+        method: ``"dense"``, ``"front"`` (each camera traversed by the C core,
+            the cameras shared by its threads; as JAX kernels where the core
+            is not built, per group of 32 cameras the union of their fronts)
+            or ``"auto"``: the core from ``FRONT_BATCH_FROM_PCOLS`` pcols on,
+            else dense (docs/front.md). Same results.
 
     Returns:
-        dict of NumPy arrays: ``faces``, ``vertices``, ``executed_count``
-        (``int32[K]``) and, on request, ``executed`` (``bool[K, P]``).
+        dict ``faces``, ``vertices``, ``executed_count`` (``int32[K]``) and, on
+        request, ``executed`` (``bool[K, P]``): NumPy arrays, or JAX arrays
+        under ``jit`` (the whole batch in one call).
     """
     K = camera_count(cameras)
     if K == 0:
         raise ValueError("refine_batch needs a camera batch (leading axis); use refine for one camera")
-    tau = check_tau(tau)
+    traced = is_traced(cameras, tau)
+    if not traced:
+        tau = check_tau(tau)
+    engine = select(pm, method, predicate=predicate, batch=True, traced=traced)
+    if traced:
+        return _refine_batch_traced(pm, cameras, tau, tests, predicate, context, combine, return_masks, engine)
     chunk = -(-max(1, min(int(chunk), K)) // WORD) * WORD
     outs = []
     starts = range(0, K, chunk)
@@ -573,38 +427,71 @@ def refine_batch(
         from tqdm import tqdm
 
         starts = tqdm(starts, unit="chunk", desc="refine")
-    front = _method(pm, method, predicate, batch=True) == "front"
-    native = front and _native.available()
-    # The C loops read tau on the host (a device scalar costs a dispatch).
-    tau32 = np.float32(tau) if native else jnp.float32(tau)
-    # The front engine takes nearby cameras together: as JAX kernels in words,
-    # as C loops one after another (their fronts share cache lines; 4-6 %
-    # faster on the dragon). Results go back to the caller's order.
-    order = nearby_order(np.asarray(cameras.eye)) if front else np.arange(K)
+    # The front engines take nearby cameras together (their fronts share
+    # cache lines; 4-6 % faster on the dragon): chunks of cameras close in
+    # space. Results go back to the caller's order.
+    order = nearby_order(np.asarray(cameras.eye)) if engine != "dense" else np.arange(K)
     # Chunks are cut on the host (one transfer of the batch, then NumPy
-    # indexing: slicing device arrays costs a dispatch per field and chunk,
-    # measured at half the time of a bunny batch), and their results are read
-    # only after every chunk is dispatched, so cutting overlaps computing.
+    # indexing: slicing device arrays costs a dispatch per field and chunk),
+    # and their results are read only after every chunk is dispatched, so
+    # cutting overlaps computing.
     host = jax.tree.map(np.asarray, cameras)
+    counts_of = _Counts.of(pm) if engine == "core" else None
+    taus = np.full(chunk, tau, np.float32)
     for s in starts:
         idx = order[np.minimum(np.arange(s, s + chunk), K - 1)]  # pad by repeating the last
         part = jax.tree.map(lambda a: a[idx], host)
-        if native:
-            res = _native.refine_many(pm, part, tau32, tests, return_masks)
-        elif front:
-            res = _front_counts(pm, part, tau32, tests, return_masks)
+        if engine == "core":
+            res = _core_many(derived(pm).core, _core.host_camera_rows(part, taus), tests, cameras.orthographic,
+                             return_masks)
+        elif engine == "jax":
+            res = _front_jax.counts(pm, part, np.float32(tau), tests, return_masks)
         else:
-            res = _counts_chunk(pm, part, tau32, tests, predicate, context, combine, return_masks)
-        n = min(chunk, K - s)
-        # Masks are large: read each chunk's at once; counts at the end.
-        outs.append(([np.asarray(r)[:n] for r in res] if return_masks else res, n))
-    outs = [[np.asarray(r)[:n] for r in res] for res, n in outs]
-    cols = [np.empty_like(c) for c in (np.concatenate(c) for c in zip(*outs))]
-    for col, parts in zip(cols, zip(*outs)):
+            res = _dense.counts_chunk(pm, part, jnp.float32(tau), tests, predicate, context, combine, return_masks)
+        outs.append((res, min(chunk, K - s)))
+    columns = []
+    for res, n in outs:
+        if engine == "core":
+            counts = np.asarray(res[0])[:n]
+            cols = list(counts_of(counts[:, 1], counts[:, 2], np))
+            if return_masks:
+                cols.append(np.asarray(res[1])[:n].view(bool))
+        else:
+            cols = [np.asarray(r)[:n] for r in res]
+        columns.append(cols)
+    cols = [np.empty_like(c) for c in (np.concatenate(c) for c in zip(*columns))]
+    for col, parts in zip(cols, zip(*columns)):
         col[order] = np.concatenate(parts)
     out = dict(faces=cols[0], vertices=cols[1], executed_count=cols[2])
     if return_masks:
         out["executed"] = cols[3]
+    return out
+
+
+@functools.partial(jax.jit, static_argnames=("tests", "orthographic", "masks"))
+def _core_many(tables, camera_rows, tests, orthographic, masks):
+    counts, mask, _ = _core.many_cameras(tests, orthographic, masks, False)(tables, camera_rows)
+    return counts, mask
+
+
+def _refine_batch_traced(pm, cameras, tau, tests, predicate, context, combine, return_masks, engine):
+    """The whole batch in one call of the engine (under ``jit``)."""
+    K = camera_count(cameras)
+    tau = _checked_tau(tau)
+    if engine == "core":
+        rows = _core.camera_rows(cameras, jnp.broadcast_to(tau, (K,)))
+        counts, masks = _core_many(derived(pm).core, rows, tests, cameras.orthographic, return_masks)
+        out = dict(zip(("faces", "vertices", "executed_count"), _Counts.of(pm)(counts[:, 1], counts[:, 2])))
+        if return_masks:
+            out["executed"] = masks.astype(bool)
+        return out
+    # The dense engine packs 32 cameras per word: pad to whole words.
+    idx = jnp.minimum(jnp.arange(-(-K // WORD) * WORD), K - 1)
+    res = _dense.counts_chunk(pm, jax.tree.map(lambda a: a[idx], cameras), tau, tests, predicate, context, combine,
+                              return_masks)
+    out = dict(zip(("faces", "vertices", "executed_count"), (r[:K] for r in res[:3])))
+    if return_masks:
+        out["executed"] = res[3][:K]
     return out
 
 
@@ -621,66 +508,7 @@ def nearby_order(eyes: np.ndarray) -> np.ndarray:
     return np.argsort(code, kind="stable")
 
 
-def _front_counts(pm: ProgressiveMesh, cameras: Camera, tau, tests: Tests, want_masks: bool, want_front=False):
-    """Counts (and on request dense masks, or each word's front) of a chunk of
-    cameras, 32 per word, through :func:`_front_counts_chunk`; the buffers
-    are grown and the chunk redone when a word needed more."""
-    out = pm.plan.run(("word", tests, cameras.orthographic),
-                      lambda capacities: _front_counts_chunk(pm, cameras, tau, tests, capacities, want_masks,
-                                                             want_front))
-    return out[:-1]
-
-
-@functools.partial(jax.jit, static_argnames=("tests", "capacities", "want_masks", "want_front"))
-def _front_counts_chunk(pm, cameras, tau, tests, capacities, want_masks, want_front=False):
-    """Per camera ``(faces, vertices, executed)``, then ``executed`` masks
-    ``bool[K, P]`` if ``want_masks``, then, if ``want_front``, per word of 32
-    cameras the visited pcols ``int32[W, C]`` and their executed words
-    ``uint32[W, C]``, and last the buffers each word needed. ``tau``: a
-    scalar or one per camera."""
-    views = View.batch(cameras, tau)
-    words = views.values.reshape(views.values.shape[0], -1, WORD)  # [22, W, 32]
-
-    def one_word(values):
-        group = View(values, cameras.orthographic)
-
-        def decide(attrs, bounds):
-            collapse = group.map(lambda v: view_collapse_mask(attrs, v, tests, rows=False))
-            whole = group.map(lambda v: subtree_collapses(attrs.center, attrs.axis, bounds, v, tests))
-            return pack_word(collapse), pack_word(whole)
-
-        visited, ran, needed = traverse(pm, decide, capacities, jnp.uint32)
-        counts = word_counts(pm, visited, ran)
-        masks = ()
-        if want_masks:
-            dense = jnp.full(pm.n_pcols, ~jnp.uint32(0)).at[visited].set(ran, mode="drop")
-            masks = (unpack_cameras(dense[:, None]),)
-        front = (visited, ran) if want_front else ()
-        return counts + masks + front + (needed,)
-
-    # lax.map, not vmap: under vmap each generation's conditional becomes a
-    # select that runs every generation at full capacity.
-    out = jax.lax.map(one_word, jnp.moveaxis(words, 1, 0))
-    n_front = 2 if want_front else 0
-    # Words back to cameras: [W, 32, ...] -> [K, ...]; the fronts and ``needed`` stay per word.
-    per_camera = out[:len(out) - 1 - n_front]
-    return tuple(x.reshape((-1,) + x.shape[2:]) for x in per_camera) + tuple(out[len(per_camera):])
-
-
-# -- critical tolerances ----------------------------------------------------------
-
-
-@eqx.filter_jit
-def critical_tolerances(pm: ProgressiveMesh, camera: Camera, tests: Tests = ALL_TESTS) -> Float[Array, " P"]:
-    """``eps[P]`` such that, for this view, ``executed(p) ⇔ tau > eps(p)``.
-
-    ``eps(p) = max(t_p, eps(children))`` with ``t_p`` from
-    :func:`pmjax.critical_tau` (docs/design.md): the whole family of refinements of
-    one view in one array.
-    """
-    # Materialized once, as in refine (dragon 3.5 -> 2.9 ms).
-    t = jax.lax.optimization_barrier(critical_tau(pm.attributes, camera, tests))
-    return up_the_batches(pm, t, -jnp.inf, lambda own, a, b: jnp.maximum(own, jnp.maximum(a, b)))
+# -- face budgets -------------------------------------------------------------------
 
 
 def check_budget(budget) -> int:
@@ -702,56 +530,136 @@ def faces_for_budget(pm: ProgressiveMesh, camera: Camera, budget: int, tests: Te
     by the pcols with ``eps < tau``. Even ``tau = 0`` runs the pcols with
     ``eps < 0`` (culled: outside the frustum or facing away). Front: a
     search over the float32 bit patterns of ``tau`` (a bracket, then regula
-    falsi on ``log tau``) on exact counts of the output-sensitive engine
-    (about 24 refinements, each costing what the view's front costs); the same
-    answer (docs/design.md).
+    falsi on ``log tau``) on exact counts of the C core (about 24
+    refinements, each costing what the view's front costs, in one compiled
+    loop); the same answer (docs/design.md).
 
     Args:
         pm: :class:`ProgressiveMesh`.
         camera: one camera.
-        budget: faces, a whole number >= 0.
+        budget: faces, a whole number >= 0 (under ``jit``: an integer array).
         tests: :class:`Tests`.
-        method: ``"front"`` (the C loops), ``"dense"`` or ``"auto"`` (front
-            with the C loops from ``FRONT_FROM_PCOLS`` pcols on, else dense).
+        method: ``"front"`` (the C core's search), ``"dense"`` or ``"auto"``
+            (the search from ``FRONT_FROM_PCOLS`` pcols on, else the sort).
 
     Returns:
         ``(tau, faces)``: ``tau`` (pixels, float32) and the face count there,
         which :func:`pmjax.refine` reproduces. ``tau = 0`` when even the finest
         view fits; when no tolerance meets the budget, ``tau = inf`` and the
-        coarsest count, which is then above ``budget``.
+        coarsest count, which is then above ``budget``. Host numbers, or JAX
+        arrays under ``jit``/``vmap``.
 
     Raises:
         ValueError: a budget that is negative, fractional, NaN or not a number.
     """
-    budget = check_budget(budget)
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
-    if method == "front" and not _native.available():
-        raise ValueError("faces_for_budget(method='front') needs the C loops (pmjax.native_available()); "
-                         "use method='dense' or 'auto'")
+    traced = is_traced(camera, budget)
+    if not traced:
+        budget = check_budget(budget)
+    engine = select(pm, method, traced=traced)
     # The search pays about 24 refines: faster than the sort from about
     # FRONT_FROM_PCOLS pcols on (measured in docs/front.md).
-    front = method == "front" or (method == "auto" and pm.n_pcols >= FRONT_FROM_PCOLS)
-    if front and _native.available() and pm.n_pcols > 0:
-        return _native.faces_for_budget(pm, camera, budget, tests)
-    eps = np.asarray(critical_tolerances(pm, camera, tests), np.float32)
-    kills = np.asarray(pm.kills)
-    order = np.argsort(eps, kind="stable")
-    e = eps[order]
-    faces_after = pm.n_faces - np.cumsum(kills[order])
-    # All pcols with equal eps switch together: look at the end of each tie.
-    ends = np.searchsorted(e, e, side="right") - 1
-    faces_at = faces_after[ends]
+    if engine == "core" and (method == "front" or pm.n_pcols >= FRONT_FROM_PCOLS):
+        counts_of = _Counts.of(pm)
+        tau, faces = _core_budget(derived(pm).core, _core.camera_rows(camera, jnp.float32(1.0)),
+                                  jnp.asarray(budget, jnp.int32), tests, camera.orthographic, counts_of.base_faces)
+        return (tau, faces) if traced else (np.float32(tau), int(faces))
+    eps = critical_tolerances(pm, camera, tests)
+    if traced:
+        return _dense.budget_sort_traced(pm, eps, jnp.asarray(budget, jnp.int32))
+    return _dense.budget_sort(pm, eps, budget)
 
-    def faces_below(t):  # face count once every pcol with eps < t has run
-        n = int(np.searchsorted(e, t, side="left"))
-        return int(faces_after[n - 1]) if n else int(pm.n_faces)
 
-    finest = faces_below(np.float32(0.0))
-    if finest <= budget:
-        return np.float32(0.0), finest
-    ok = np.flatnonzero((faces_at <= budget) & np.isfinite(e))
-    if len(ok) == 0:
-        return np.float32(np.inf), faces_below(np.float32(np.inf))
-    k = ok[0]  # eps >= 0 here: the negative ones all run at tau = 0
-    return np.nextafter(e[k], np.float32(np.inf)), int(faces_at[k])
+@functools.partial(jax.jit, static_argnames=("tests", "orthographic", "base_faces"))
+def _core_budget(tables, camera_row, budget, tests, orthographic, base_faces):
+    one = _core.one_camera(tests, orthographic, False)
+
+    def faces_at(tau):
+        counts = one(tables, camera_row.at[-1].set(tau))[3]
+        return jnp.int32(base_faces) + counts[2]
+
+    return budget_search(faces_at, budget)
+
+
+def budget_search(faces_at, budget):
+    """The smallest float32 ``tau`` with ``faces_at(tau) <= budget`` (and its
+    count), for a count that does not increase with ``tau``.
+
+    Non-negative float32 values are ordered as their bit patterns, so the
+    answer is the upper end of a bracket of two adjacent patterns, one count
+    above the budget and one within it. The bracket is found by steps of 8x
+    from ``tau = 1`` (``tau = 0`` and ``inf`` only when the search reaches
+    them) and narrowed by regula falsi on ``log tau`` (the Illinois variant:
+    an end kept twice has its weight halved), every third step the midpoint
+    of the patterns, so that the bracket at least halves in bits. One
+    ``faces_at`` per step of a ``lax.while_loop``.
+
+    Returns:
+        ``(tau float32, faces int32)``: ``tau = 0`` when even ``tau = 0`` fits,
+        ``inf`` and its count when nothing does.
+    """
+    f32, i32 = jnp.float32, jnp.int32
+    bits = lambda t: lax.bitcast_convert_type(jnp.asarray(t, f32), i32)
+    value = lambda b: lax.bitcast_convert_type(jnp.asarray(b, i32), f32)
+    down, up, narrow, done = 0, 1, 2, 3
+    weight = lambda f: (f - budget).astype(f32) - 0.5
+    f1 = faces_at(f32(1.0))
+    fits = f1 <= budget
+    # (phase, lo, f_lo, hi, f_hi, w_lo, w_hi, kept (0 none, 1 lo, 2 hi), step, tau, faces)
+    state = (jnp.where(fits, down, up), f32(1.0), f1, f32(1.0), f1, f32(0.0), f32(0.0), i32(0), i32(0), f32(0.0),
+             f1)
+
+    def cond(s):
+        return s[0] != done
+
+    def body(s):
+        phase, lo, f_lo, hi, f_hi, w_lo, w_hi, kept, step, _, _ = s
+        lo_b, hi_b = bits(lo), bits(hi)
+        # The tolerance this step tries.
+        t_down = hi / 8
+        t_down = jnp.where(t_down < f32(1e-30), f32(0.0), t_down)
+        t_up = lo * 8
+        t_up = jnp.where(t_up > f32(1e30), f32(jnp.inf), t_up)
+        step1 = step + 1
+        mid = lo_b + (hi_b - lo_b) // 2
+        x_lo, x_hi = jnp.log(jnp.maximum(lo, f32(1e-38))), jnp.log(jnp.where(jnp.isfinite(hi), hi, f32(1.0)))
+        guess = bits(jnp.exp(x_lo + (x_hi - x_lo) * w_lo / (w_lo - w_hi)))
+        guess = jnp.clip(guess, lo_b + 1, hi_b - 1)
+        use_falsi = (step1 % 3 != 0) & (lo > 0) & jnp.isfinite(hi)
+        t_narrow = value(jnp.where(use_falsi, guess, mid))
+        t = jnp.where(phase == down, t_down, jnp.where(phase == up, t_up, t_narrow))
+        f = faces_at(t)
+        within = f <= budget
+        # Bracketing down: hi moves down until a count above the budget (lo);
+        # at tau = 0 that fits, the answer is 0.
+        d_done = (phase == down) & (t == 0) & within
+        d_lo = (phase == down) & ~within
+        # Bracketing up: lo moves up until a count within it (hi); at inf above
+        # it, the answer is inf.
+        u_done = (phase == up) & jnp.isinf(t) & ~within
+        u_hi = (phase == up) & within
+        n_hi, n_lo = (phase == narrow) & within, (phase == narrow) & ~within
+        new_lo = jnp.where(d_lo | (phase == up) & ~within | n_lo, t, lo)
+        new_f_lo = jnp.where(d_lo | (phase == up) & ~within | n_lo, f, f_lo)
+        new_hi = jnp.where((phase == down) & within | u_hi | n_hi, t, hi)
+        new_f_hi = jnp.where((phase == down) & within | u_hi | n_hi, f, f_hi)
+        # Weights: set on entering the narrowing, updated (Illinois) within it.
+        entering = d_lo | u_hi
+        new_w_lo = jnp.where(entering, weight(new_f_lo), jnp.where(n_lo, weight(f), jnp.where(
+            n_hi & (kept == 1), w_lo / 2, w_lo)))
+        new_w_hi = jnp.where(entering, weight(new_f_hi), jnp.where(n_hi, weight(f), jnp.where(
+            n_lo & (kept == 2), w_hi / 2, w_hi)))
+        new_kept = jnp.where(n_hi, 1, jnp.where(n_lo, 2, kept))
+        new_phase = jnp.where(entering, narrow, phase)
+        new_step = jnp.where(phase == narrow, step1, step)
+        tau = jnp.where(d_done, f32(0.0), jnp.where(u_done, f32(jnp.inf), f32(0.0)))
+        faces = f
+        finished = d_done | u_done
+        # Narrowed to adjacent patterns: the answer is the upper end.
+        adjacent = (new_phase == narrow) & (bits(new_hi) - bits(new_lo) <= 1)
+        tau = jnp.where(adjacent, new_hi, tau)
+        faces = jnp.where(adjacent, new_f_hi, faces)
+        new_phase = jnp.where(finished | adjacent, done, new_phase)
+        return (new_phase, new_lo, new_f_lo, new_hi, new_f_hi, new_w_lo, new_w_hi, new_kept, new_step, tau, faces)
+
+    out = lax.while_loop(cond, body, state)
+    return out[9], out[10]

@@ -23,7 +23,7 @@ from ._camera import Camera
 from ._model import PcolAttributes, ProgressiveMesh
 from ._predicate import ALL_TESTS, Tests, _eye_offset, _in_rows, frustum_margins, safe_sqrt, screen_tolerance
 from ._view import View
-from ._refine import down_the_batches, up_the_batches
+from .engines._dense import down_the_batches, up_the_batches
 
 
 class SoftRefinement(eqx.Module):

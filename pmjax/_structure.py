@@ -33,7 +33,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from ._pmfile import PMData, PMFormatError
+from ._pmdata import PMData, PMFormatError
 
 # Bumped whenever check_structure checks more: older records of passed files
 # then no longer count.

@@ -131,9 +131,12 @@ def subtree_bounds(center, axis, radius, sin_alpha, cos_alpha, delta, mu, child1
     # The cone angle the tests mean: they compare the stored sine squared and
     # need a positive cosine, so it is atan2(|sin|, cos) (at least π/2, never
     # facing away, when the cosine is not positive). An axis that is not unit
-    # (a degenerate normal) bounds nothing: its cone is π.
-    own_cone = np.arctan2(np.abs(np.asarray(sin_alpha, np.float64)), np.asarray(cos_alpha, np.float64))
-    own_cone = np.where(np.abs(norm - 1.0) < 1e-3, own_cone, math.pi)
+    # (a degenerate normal), or a sine and cosine that are not those of one
+    # angle (an attribute updated alone), bounds nothing: its cone is π.
+    sin64, cos64 = np.asarray(sin_alpha, np.float64), np.asarray(cos_alpha, np.float64)
+    own_cone = np.arctan2(np.abs(sin64), cos64)
+    one_angle = np.abs(np.sqrt(sin64 * sin64 + cos64 * cos64) - 1.0) < 1e-3
+    own_cone = np.where((np.abs(norm - 1.0) < 1e-3) & one_angle, own_cone, math.pi)
     acc = dict(reach=np.asarray(radius, np.float64).copy(), spread=np.zeros(len(norm)), cone=own_cone.copy(),
                error=np.maximum(np.asarray(mu, np.float64), np.asarray(delta, np.float64)))
     child1 = np.asarray(child1).astype(np.intp)

@@ -38,6 +38,60 @@ def built():
     return get
 
 
+def _simd_levels():
+    from pmjax import engines
+
+    if not engines.core_built():
+        return ["plain"]
+    best = engines.simd_best()
+    levels = ("plain", "avx2", "avx512")
+    return [pytest.param(level, marks=pytest.mark.skipif(levels.index(level) > levels.index(best),
+                                                         reason=f"no {level} on this processor"))
+            for level in levels]
+
+
+@pytest.fixture(params=_simd_levels())
+def simd(request):
+    """Each test that takes it runs with every SIMD level of the front
+    engine's core the processor has (the same bits from each)."""
+    from pmjax import engines
+
+    was = engines.simd(request.param)
+    assert engines.simd() == request.param
+    yield request.param
+    engines.simd(was)
+
+
+def _missing_compiled_parts() -> list[str]:
+    """The compiled parts that are not built here, and why."""
+    from pmjax import engines
+    from pmjax.builders import _native as builder
+    from pmjax.engines import _core
+
+    missing = []
+    if not engines.core_built():
+        missing.append(f"the front engine's C core ({_core.LOAD_ERROR})")
+    if builder._LIB is None:
+        missing.append("the builder's C loops (pmjax.builders._build_native)")
+    return missing
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests of the compiled parts (marker ``core``: the front engine's C
+    core, the builder's C loops) skip where they are not built, but under
+    PMJAX_REQUIRE_CORE=1 (CI sets it) a part that does not compile or load is
+    an error: CI cannot go green without them."""
+    missing = _missing_compiled_parts()
+    if not missing:
+        return
+    why = "not built: " + "; ".join(missing)
+    if os.environ.get("PMJAX_REQUIRE_CORE") == "1":
+        raise pytest.UsageError(f"PMJAX_REQUIRE_CORE=1 but {why}")
+    for item in items:
+        if "core" in item.keywords:
+            item.add_marker(pytest.mark.skip(reason=why))
+
+
 @pytest.fixture(scope="session")
 def data_path():
     """``data_path(name)``: path of a model in ../shared/data (skips if absent)."""

@@ -12,7 +12,7 @@ import pmjax
 from pmjax.builders import BuildOptions, build_pm
 from pmjax.builders import _native as native
 
-pytestmark = pytest.mark.skipif(native._LIB is None, reason="the builder's C loops are not built (no C compiler)")
+pytestmark = pytest.mark.core
 
 
 def assert_same_bits(one, other):

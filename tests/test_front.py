@@ -1,7 +1,7 @@
-"""The output-sensitive engine as JAX kernels (the front traversal of
-pmjax/_front.py, used where the C loops are not built) against the dense
-engine and the oracle. The C loops, which ``method="front"`` runs where they
-are built, have the wider matrix of tests/test_native.py."""
+"""The front engine as JAX kernels (pmjax/engines/_front_jax.py, used where
+the C core is not built) against the dense engine and the oracle. The C core,
+which ``method="front"`` runs where it is built, has the wider matrix of
+tests/test_core.py."""
 
 import jax
 import jax.numpy as jnp
@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 import pmjax
-from pmjax import _native, _refine
+from pmjax import engines
+from pmjax.engines import _front_jax
+from pmjax.engines._tables import derived
 from pmjax._camera import index_camera, stack_cameras
 from pmjax._oracle import oracle_refine
 
@@ -23,7 +25,7 @@ def jax_traversal():
     this module, so that the executables compiled by one long test process
     stay within the memory maps the system allows (XLA otherwise fails with
     "Cannot allocate memory" in later modules)."""
-    with _native.use_native(False):
+    with engines.without_core():
         yield
     jax.clear_caches()
 
@@ -102,18 +104,20 @@ def test_capacity_overflow_still_exact(built):
     pm = pmjax.ProgressiveMesh.from_data(data)
     cam = index_camera(pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 4), 0)
     kind = ("one", pmjax.ALL_TESTS, False)
-    assert pm.plan.capacities(kind) == pm.plan.full  # before any call: the whole forest
-    small = tuple(min(g, 16) for g in pm.plan.full)
-    pm.plan._capacities[kind] = small
+    plan = _front_jax.plan_of(derived(pm))
+    assert plan.capacities(kind) == plan.full  # before any call: the whole forest
+    small = tuple(min(g, 16) for g in plan.full)
+    plan._capacities[kind] = small
     front = pmjax.refine(pm, cam, 1.0, method="front")
     assert_same(front, pmjax.refine(pm, cam, 1.0, method="dense"), "overflow")
-    grown = pm.plan.capacities(kind)
+    grown = plan.capacities(kind)
     assert sum(grown) > sum(small) and all(g >= s for g, s in zip(grown, small))
-    assert sum(grown) < sum(pm.plan.full)
+    assert sum(grown) < sum(plan.full)
     # The grown buffers hold this view: the next call needs no redo.
     assert front.n_visited <= sum(grown)
     calls = []
-    pm.plan.run(kind, lambda caps: calls.append(caps) or _refine._front_refine(pm, cam, 1.0, pmjax.ALL_TESTS, caps))
+    jt = derived(pm).jax
+    plan.run(kind, lambda caps: calls.append(caps) or _front_jax.refine_chunk(pm, jt, cam, 1.0, pmjax.ALL_TESTS, caps))
     assert calls == [grown]
 
 
@@ -167,8 +171,8 @@ def test_subtree_bounds_hold_over_every_subtree(built):
     c, n = np.asarray(a.center, np.float64).T, np.asarray(a.axis, np.float64).T
     r, alpha = np.asarray(a.radius, np.float64), np.asarray(a.alpha, np.float64)
     err = np.maximum(np.asarray(a.mu, np.float64), np.asarray(a.delta, np.float64))
-    b = {k: np.asarray(getattr(pm.subtree, k), np.float64) for k in ("reach", "spread", "cone", "error")}
-    kids = np.asarray(pm.children)
+    b = {k: np.asarray(derived(pm).bounds[k], np.float64) for k in ("reach", "spread", "cone", "error")}
+    kids = derived(pm).children
     for p in range(data.n_pcols):
         below, stack = [], [p]
         while stack:

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 import pmjax
-from pmjax import _native, _path
+from pmjax import _path, engines
+from pmjax.engines import _front_jax
 from pmjax._camera import index_camera, stack_cameras
 
 
@@ -179,47 +180,56 @@ def streams(monkeypatch, owner, name, pm, cams, size, ahead=0):
     return sizes
 
 
-@pytest.mark.skipif(not _native.available(), reason="the C loops are not built")
+needs_core = pytest.mark.core
+
+
+@needs_core
 def test_long_path_streams_word_by_word(built, monkeypatch):
-    """With the C loops, the refinements are computed one word of 16 frames at
-    a time by the cores, a few words ahead of the consumer; counts never hold
-    more than a block of words per core."""
+    """With the C core, refine_path's frames are computed a few words of 16
+    frames at a time, one block ahead of the consumer; path_counts takes
+    blocks of words, whole ones and then the rest in powers of two."""
     data, pm = model(built, "cow.ply")
     cams = pmjax.standard_orbit(originals(data), 200)
-    monkeypatch.setattr(_native, "_cores", lambda: 2)
-    streams(monkeypatch, _native, "refine_word", pm, cams, 16, ahead=2 * _path.WORDS_AHEAD)
-    monkeypatch.setattr(_path, "WORDS_AT_ONCE", 4)
     sizes = []
-    real = _native.count_words
-    monkeypatch.setattr(_native, "count_words", lambda pm, part, *a, **k: sizes.append(
-        pmjax.camera_count(part)) or real(pm, part, *a, **k))
-    monkeypatch.setattr(_native, "_cores", lambda: 2)
+    real = _path._core_words
+    monkeypatch.setattr(_path, "_core_words", lambda tables, one, rows, *a: sizes.append(len(rows)) or
+                        real(tables, one, rows, *a))
+    frames = pmjax.refine_path(pm, cams, 1.0)
+    first = next(frames)
+    block = 16 * _path.WORDS_STREAMED
+    assert int(first.n_faces) > 0 and sizes == [block, block]  # this block and the next, not the path
+    for _ in range(block):
+        next(frames)
+    assert sizes == [block] * 3
+    sizes.clear()
+    monkeypatch.setattr(_path, "WORDS_PER_CALL", 4)
     counts = pmjax.path_counts(pm, cams, 1.0)
-    # 200 frames padded to 208: thirteen words in blocks of at most 4.
-    assert len(counts["faces"]) == 200 and sorted(sizes) == [16, 64, 64, 64]
+    # 200 frames padded to 208: thirteen words in blocks of 4, 4, 4 and 1.
+    assert len(counts["faces"]) == 200 and sizes == [64, 64, 64, 16]
     assert counts["faces"].tolist() == [int(r.n_faces) for r in pmjax.refine_path(pm, cams, 1.0)]
 
 
-@pytest.mark.skipif(not _native.available(), reason="the C loops are not built")
-def test_path_at_a_float_tie_decides_the_unsure_pairs_of_all_words_together(built, monkeypatch):
+@needs_core
+@pytest.mark.parametrize("room", [None, 16])
+def test_path_at_a_float_tie_decides_the_unsure_pairs(built, monkeypatch, room):
     """A path that holds a pcol's critical tolerance (a float tie) in many
-    frames: each word with unsure pairs is counted as if they kept, the slots
-    they can change are recorded (in a buffer that has to grow), and the
-    pairs of every block are decided together (here in several rounds) and
-    the counts corrected: one float step below, at and above the tie, the
-    counts of dense per-frame refines, and refine_path's frames are theirs."""
+    frames: each word with unsure pairs is counted as if they kept and leaves
+    a record of the slots they can change; the pairs are decided by the
+    float32 predicate and the counts corrected. With room for 16 int32 of
+    records (less than one), every such word overflows and its frames are
+    refined alone. Either way, one float step below, at and above the tie:
+    the counts of dense per-frame refines, and refine_path's frames are theirs."""
     data, pm = model(built, "bunny.ply")
     orbit = pmjax.standard_orbit(originals(data), 8)
     cam = index_camera(orbit, 1)
     t = np.asarray(pmjax.critical_tau(pm.attributes, cam))
     p = np.flatnonzero(np.isfinite(t) & (t > 0.5) & (t < 4))[0]
     cams = stack_cameras([cam] * 40 + [index_camera(orbit, i) for i in range(8)])
-    monkeypatch.setattr(_native, "RECORD_ROOM", 16)
-    monkeypatch.setattr(_path, "RECORDS_HELD", 1)
-    monkeypatch.setattr(_native, "_cores", lambda: 2)
-    decided = []
-    real = _native._decide_lanes
-    monkeypatch.setattr(_native, "_decide_lanes", lambda *a: decided.append(real(*a)) or decided[-1])
+    monkeypatch.setattr(_path, "RECORD_ROOM", room)
+    d = engines.derived(pm)
+    rows = engines._core.camera_rows(cams, np.full(48, t[p], np.float32))
+    overflow = np.asarray(_path._core_words(d.core_words, d.core, rows, pmjax.ALL_TESTS, False, False, room)[3])
+    assert overflow.any() == (room is not None)
     for tau in (np.nextafter(t[p], np.float32(0)), t[p], np.nextafter(t[p], np.float32(np.inf))):
         got = pmjax.path_counts(pm, cams, tau)
         alone = [pmjax.refine(pm, c, tau, method="dense") for c in [cam] + [index_camera(orbit, i) for i in range(8)]]
@@ -229,25 +239,24 @@ def test_path_at_a_float_tie_decides_the_unsure_pairs_of_all_words_together(buil
                 int(r.n_faces), int(r.n_vertices), int(r.n_executed)), (tau, i)
             if i % 8 == 0:
                 assert_frame_equal(frame, cam if i < 40 else index_camera(orbit, i - 40), tau, pm, i, full=i == 40)
-    # Several rounds of decisions (one per block), some pairs decided yes.
-    assert len(decided) >= 3 and any(np.any(y) for y in decided)
+                assert all(np.array_equal(a, b) for a, b in zip(frame.mesh(), r.mesh())), i
 
 
 def test_path_as_jax_kernels_is_exact_and_streams(built, monkeypatch):
-    """The word traversal as JAX kernels (where the C loops are not built): 32
+    """The word traversal as JAX kernels (where the C core is not built): 32
     frames per word, each as refine alone; the refinements are computed one
     chunk of frames at a time, as they are consumed, and counts of a long path
     never hold more than one chunk."""
     data, pm = model(built, "cow.ply")
-    monkeypatch.setattr(_native, "_enabled", False)
     monkeypatch.setattr(_path, "CHUNK", 64)  # small chunks: few compiled shapes
     walked = walk(data, 64, seed=5, cuts=(10, 11, 40))  # one chunk: the streaming's compiled shape
-    got = list(pmjax.refine_path(pm, walked, 1.0))
-    assert got[0].front_positions is None  # not the C loops
-    for i, res in enumerate(got):
-        assert_frame_equal(res, index_camera(walked, i), 1.0, pm, i, full=i % 9 == 0)
-    assert pmjax.path_counts(pm, walked, 1.0)["faces"].tolist() == [int(x.n_faces) for x in got]
-    streams(monkeypatch, _path, "_front_counts", pm, pmjax.standard_orbit(originals(data), 200), 64)
+    with engines.without_core():
+        got = list(pmjax.refine_path(pm, walked, 1.0))
+        assert got[0].front_positions is None  # not the C core
+        for i, res in enumerate(got):
+            assert_frame_equal(res, index_camera(walked, i), 1.0, pm, i, full=i % 9 == 0)
+        assert pmjax.path_counts(pm, walked, 1.0)["faces"].tolist() == [int(x.n_faces) for x in got]
+        streams(monkeypatch, _front_jax, "counts", pm, pmjax.standard_orbit(originals(data), 200), 64)
 
 
 def test_bad_paths_name_the_frame(built):

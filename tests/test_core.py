@@ -1,7 +1,8 @@
-"""The front engine's C loops: certified decisions, exact refinements and meshes.
+"""The front engine's C core (XLA FFI calls): certified decisions, exact refinements, batches and meshes.
 
 Every test compares with the float32 predicate, the dense engine or the
-JAX traversal; none checks the C code against itself.
+JAX traversal; none checks the core against itself. Tests that take the
+``simd`` fixture run with each SIMD level the processor has.
 """
 
 import dataclasses
@@ -12,12 +13,18 @@ import numpy as np
 import pytest
 
 import pmjax
-from pmjax import _native
+from pmjax import engines
 from pmjax._camera import index_camera, stack_cameras
+from pmjax._view import View
+from pmjax.engines import _core
+from pmjax.engines._tables import derived
 
-pytestmark = pytest.mark.skipif(not _native.available(), reason="the C loops are not built (no C compiler)")
+pytestmark = pytest.mark.core
 
 TAUS = (0.0, 1e-3, 1.0, 4.0, 1e6)
+# An FFI target's error: a ValueError where the call ran alone, a
+# JaxRuntimeError from inside a compiled program.
+CORE_ERRORS = (jax.errors.JaxRuntimeError, ValueError)
 
 
 def views_of(data, n, seed):
@@ -39,27 +46,40 @@ def assert_refinements_equal(a, b, where):
         assert int(getattr(a, field)) == int(getattr(b, field)), (where, field)
 
 
+def xla_view(cam, tau):
+    """The view constants the dense engine computes."""
+    return np.asarray(jax.jit(lambda c, t: View.of(c, t).values)(cam, jnp.float32(tau)))
+
+
+def decide_every_pcol(pm, cam, tau, tests):
+    """``uint8 [P]`` by pcol: the core's certified decision of every pcol
+    (``NO``, ``YES``, ``UNSURE``) | ``WHOLE`` where the bound over its subtree
+    decides everything below."""
+    return np.asarray(_core.decide_all(derived(pm).jax.table, xla_view(cam, tau), _core.flags_of(tests,
+                                                                                                   cam.orthographic)))
+
+
 TESTS = (pmjax.ALL_TESTS, pmjax.Tests(frustum=False), pmjax.Tests(orientation=False), pmjax.Tests(screen=False))
 
 
 @pytest.mark.parametrize("name", ["cow.ply", "bunny.ply", "terrain_gcanyon.ply"])
-def test_certified_decisions_equal_the_float32_predicate(built, name):
-    """Over every pcol: a decision the C code is sure of is the float32
-    predicate's bit, and a subtree bound that says "whole" holds for every
-    pcol below (each of them collapses). Unsure decisions are rare."""
+def test_certified_decisions_equal_the_float32_predicate(built, name, simd):
+    """Over every pcol: a decision the core is sure of is the float32
+    predicate's bit, and a bound that says "whole" holds for every pcol
+    below (each of them collapses). Unsure decisions are rare."""
     data = built(name)
     pm = pmjax.ProgressiveMesh.from_data(data)
-    kids = np.asarray(pm.children)
+    kids = derived(pm).children
     cams = [index_camera(views_of(data, 6, seed=3), i) for i in range(6)] + orthographic_views(data)
     checked = unsure = 0
     for cam in cams:
         for tests in TESTS:
             for tau in (0.0, 1.0, 4.0):
-                got = _native.decide_all(pm, cam, tau, tests)
+                got = decide_every_pcol(pm, cam, tau, tests)
                 want = np.asarray(pmjax.collapse_mask(pm.attributes, cam, jnp.float32(tau), tests))
                 own = got & 3
-                sure = own != _native.UNSURE
-                assert np.array_equal(own[sure] == _native.YES, want[sure]), (cam.orthographic, tests, tau)
+                sure = own != _core.UNSURE
+                assert np.array_equal(own[sure] == _core.YES, want[sure]), (cam.orthographic, tests, tau)
                 checked += int(sure.sum())
                 unsure += int((~sure).sum())
                 # "whole" at p: every pcol of p's subtree collapses (children
@@ -70,27 +90,27 @@ def test_certified_decisions_equal_the_float32_predicate(built, name):
                     for k in kids[p]:
                         if k >= 0:
                             all_below[p] &= all_below[k]
-                whole = (got & 4) != 0
+                whole = (got & _core.WHOLE) != 0
                 assert np.all(all_below[whole]), (cam.orthographic, tests, tau)
     assert checked > 0 and unsure <= 1e-4 * checked
 
 
 @pytest.mark.parametrize("name, pair_distance", [("cow.ply", 0.0), ("bunny.ply", 0.0), ("cessna.ply", 0.02),
                                                  ("terrain_gcanyon.ply", 0.0)])
-def test_native_refine_equals_dense(built, name, pair_distance, slots):
+def test_core_refine_equals_dense(built, name, pair_distance, simd):
     data = built(name, pair_distance)
     pm = pmjax.ProgressiveMesh.from_data(data)
     cams = [index_camera(views_of(data, 6, seed=len(name)), i) for i in range(6)] + orthographic_views(data)
     for i, cam in enumerate(cams):
         for tau in TAUS:
-            native = pmjax.refine(pm, cam, tau, method="front")
-            assert isinstance(native.visited, np.ndarray)  # the C loops ran
-            assert_refinements_equal(native, pmjax.refine(pm, cam, tau, method="dense"), (i, tau))
+            core = pmjax.refine(pm, cam, tau, method="front")
+            assert core.core_ran is not None  # the core ran
+            assert_refinements_equal(core, pmjax.refine(pm, cam, tau, method="dense"), (i, tau))
 
 
-def test_unsure_decisions_are_asked_of_the_float32_predicate(built, slots):
+def test_unsure_decisions_are_asked_of_the_float32_predicate(built, simd):
     """At tau equal to pcols' critical tolerances the screen test is a float
-    tie: the C code must leave those pcols unsure, and the answer is still the
+    tie: the core must leave those pcols unsure, and the answer is still the
     dense engine's, one float step below, at and above the tie."""
     data = built("bunny.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
@@ -100,7 +120,7 @@ def test_unsure_decisions_are_asked_of_the_float32_predicate(built, slots):
     unsure = 0
     for p in picks:
         for tau in (np.nextafter(t[p], np.float32(0)), t[p], np.nextafter(t[p], np.float32(np.inf))):
-            unsure += int(_native.decide_all(pm, cam, tau, pmjax.ALL_TESTS)[p] & 3 == _native.UNSURE)
+            unsure += int(decide_every_pcol(pm, cam, tau, pmjax.ALL_TESTS)[p] & 3 == _core.UNSURE)
             assert_refinements_equal(pmjax.refine(pm, cam, tau, method="front"),
                                      pmjax.refine(pm, cam, tau, method="dense"), tau)
     assert unsure >= len(picks)  # at least the tie itself is never guessed
@@ -108,7 +128,8 @@ def test_unsure_decisions_are_asked_of_the_float32_predicate(built, slots):
 
 def test_extreme_scales_fall_back_to_the_float32_predicate(built):
     """A model scaled to 1e-18 or 1e15 units (float32 products near the
-    smallest normal, or huge): the certification stays exact."""
+    smallest normal, or huge): many decisions are unsure, and the
+    refinement is still exact (eagerly and under jit)."""
     data = built("cow.ply")
     for scale in (1e-18, 1e15):
         scaled = dataclasses.replace(data, vertices=(data.vertices * scale).astype(np.float32),
@@ -117,15 +138,17 @@ def test_extreme_scales_fall_back_to_the_float32_predicate(built):
                                      mu=(data.mu * scale).astype(np.float32))
         pm = pmjax.ProgressiveMesh.from_data(scaled)
         v0 = scaled.vertices[: scaled.n_original_vertices].astype(np.float64)
+        compiled = jax.jit(lambda c, t: pmjax.refine(pm, c, t, method="front").n_faces)
         for i in range(3):
             cam = index_camera(pmjax.random_views(v0, 3, seed=i, min_scale=0.5, max_scale=3.0), i)
             for tau in (0.0, 1.0, 8.0):
-                assert_refinements_equal(pmjax.refine(pm, cam, tau, method="front"),
-                                         pmjax.refine(pm, cam, tau, method="dense"), (scale, tau))
+                want = pmjax.refine(pm, cam, tau, method="dense")
+                assert_refinements_equal(pmjax.refine(pm, cam, tau, method="front"), want, (scale, tau))
+                assert int(compiled(cam, jnp.float32(tau))) == int(want.n_faces), (scale, tau)
 
 
 @pytest.mark.parametrize("name", ["cow.ply", "bunny.ply", "cessna.ply", "terrain_gcanyon.ply"])
-def test_native_mesh_equals_dense_mesh(built, name):
+def test_core_mesh_equals_dense_mesh(built, name):
     data = built(name, 0.02 if name == "cessna.ply" else 0.0)
     pm = pmjax.ProgressiveMesh.from_data(data)
     cams = [index_camera(views_of(data, 5, seed=9), i) for i in range(5)] + orthographic_views(data)
@@ -145,13 +168,13 @@ def test_tables_hold_no_subnormal_floats(built, name):
     rounded up."""
     data = built(name)
     pm = pmjax.ProgressiveMesh.from_data(data)
-    host = _native.native_mesh(pm)
-    for table in ("table", "bfs_table", "below_table"):
-        values = np.abs(getattr(host, table)[:, :-1].astype(np.float64))  # the last column holds integers
-        assert not np.any((values > 0) & (values < np.finfo(np.float32).tiny)), table
-    spread = np.asarray(pm.subtree.spread)
+    d = derived(pm)
+    for table in (d.jax.table, d.core.rows, d.core_words.rows):
+        values = np.abs(np.asarray(table)[:, :-1].astype(np.float64))  # the core's last column holds integers
+        assert not np.any((values > 0) & (values < np.finfo(np.float32).tiny))
+    spread = d.bounds["spread"]
     assert spread.dtype == np.float32 and np.any(spread == 0) and np.all(spread >= 0)
-    leaves = (np.asarray(pm.children) < 0).all(axis=1)
+    leaves = (d.children < 0).all(axis=1)
     assert np.all(spread[leaves] == 0)
     # A positive bound, however small, is still rounded up.
     from pmjax._subtree import _rounded_up
@@ -160,72 +183,62 @@ def test_tables_hold_no_subnormal_floats(built, name):
     assert up.dtype == np.float32 and up[0] == 0 and up[1] > 0 and up[2] > 1
 
 
-def test_tables_start_on_cache_lines(built):
-    """Every row the C loops read is one 64-byte cache line, and the tables
-    hold the mesh's values (in breadth-first order)."""
+def test_tables_start_on_cache_lines_and_link_the_forest(built):
+    """Every row the core reads is one 64-byte cache line, the rows hold the
+    mesh's values in breadth-first order, and their last column links each
+    row to its children (the core checks the links: a forest laid out
+    breadth first)."""
     data = built("cow.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
-    host = _native.native_mesh(pm)
-    for name in ("table", "bfs_table", "below_table"):
-        t = getattr(host, name)
-        assert t.ctypes.data % 64 == 0 and t.shape[1] * t.itemsize == 64 and t.flags.c_contiguous, name
-    assert np.array_equal(host.table, np.asarray(pm.table, np.float32))
-    assert np.array_equal(host.bfs_table[:, :-1], host.table[host.order, :-1])
+    d = derived(pm)
+    table, core = np.asarray(d.jax.table), d.core
+    rows, order = np.asarray(core.rows), np.asarray(core.order)
+    assert core.rows.unsafe_buffer_pointer() % 64 == 0 and rows.shape[1] * rows.itemsize == 64
+    assert np.array_equal(np.asarray(d.core_words.rows)[:, :-1], table[order, :-1])
+    assert np.array_equal(rows[:, :11], table[order, :11])  # the attributes; the bounds are those below
     # The last column: the first child's position, the number of children and
     # (sign bit) whether the pcol kills other than two faces.
-    kids = host.bfs_table[:, -1].view(np.uint32).astype(np.int64)
-    children = np.asarray(pm.children)[host.order]
+    kids = rows[:, -1].view(np.uint32).astype(np.int64)
+    children = d.children[order]
     count = (children >= 0).sum(1)
     assert np.array_equal(kids & 3, count)
     at = np.empty(pm.n_pcols, np.int64)
-    at[host.order] = np.arange(pm.n_pcols)
+    at[order] = np.arange(pm.n_pcols)
     has = count > 0
     first = np.where(children[:, 0] >= 0, children[:, 0], children[:, 1])  # the first created child
     assert np.array_equal((kids[has] >> 2) & (2**29 - 1), at[first[has]])
-    assert np.array_equal(kids >> 31, np.asarray(pm.kills)[host.order] != 2)
+    assert np.array_equal(kids >> 31, np.asarray(pm.kills)[order] != 2)
+    _core.check_hierarchy(core)
+    bad = dataclasses.replace(core, rows=core.rows.at[0, -1].set(jnp.float32(np.uint32(5 << 2 | 2).view(np.float32))))
+    with pytest.raises(CORE_ERRORS, match="not a forest"):
+        _core.check_hierarchy(bad)
 
 
-_BEST = _native.slot_loops()
-SLOTS = ["plain"] + [pytest.param(kind, marks=pytest.mark.skipif(
-    _native.SLOT_LOOPS.index(_BEST) < _native.SLOT_LOOPS.index(kind),
-    reason=f"no {kind} here (or no C loops)")) for kind in ("avx2", "avx512")]
-
-
-@pytest.fixture(params=SLOTS)
-def slots(request):
-    """Each test that takes it runs with the slots kept by each kind of loop
-    the processor has (AVX-512 masks, AVX2, plain)."""
-    was = _native.slot_loops(request.param)
-    assert _native.slot_loops() == request.param
-    yield request.param
-    _native.slot_loops(was)
-
-
-def test_native_batch_equals_dense(built, slots):
+def test_core_batch_equals_dense(built, simd):
     data = built("bunny.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
     cams = stack_cameras([index_camera(views_of(data, 70, seed=2), i) for i in range(70)])
     for tau in (0.0, 1.0, 4.0):
-        native = pmjax.refine_batch(pm, cams, tau, chunk=64, return_masks=True, method="front")
+        core = pmjax.refine_batch(pm, cams, tau, chunk=64, return_masks=True, method="front")
         dense = pmjax.refine_batch(pm, cams, tau, chunk=64, return_masks=True, method="dense")
         for key in dense:
-            assert np.array_equal(native[key], dense[key]), (tau, key)
-    one = _native.refine_many(pm, cams, np.float32(1.0), pmjax.ALL_TESTS, False, threads=1)
-    for threads in (2, 3):
-        many = _native.refine_many(pm, cams, np.float32(1.0), pmjax.ALL_TESTS, False, threads=threads)
-        assert all(np.array_equal(a, b) for a, b in zip(one, many)), threads
+            assert np.array_equal(core[key], dense[key]), (tau, key)
+    rows = _core.camera_rows(cams, jnp.ones(70, jnp.float32))
+    counts = [np.asarray(_core.many_cameras(pmjax.ALL_TESTS, False, True, True, threads)(derived(pm).core, rows)[0])
+              for threads in (1, 2, 3)]
+    assert all(np.array_equal(counts[0], c) for c in counts[1:])
 
 
-def test_subnormals_come_back_after_the_c_loops(built):
-    """The C loops read and write subnormal floats as zero while they run
-    (the thread's floating-point mode), and give the caller's mode back."""
+def test_subnormals_come_back_after_the_core(built):
+    """The core reads and writes subnormal floats as zero while it decides
+    (the thread's floating-point mode), and gives the caller's mode back."""
     data = built("cow.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
     views = views_of(data, 4, seed=4)
     tiny = np.array([2.0 ** -126], np.float32)
     calls = [lambda: pmjax.refine(pm, index_camera(views, 0), 1.0, method="front"),
-             lambda: _native.refine_many(pm, views, np.float32(1.0), pmjax.ALL_TESTS, False, threads=1),
-             lambda: _native.decide_all(pm, index_camera(views, 1), 1.0, pmjax.ALL_TESTS),
+             lambda: pmjax.refine_batch(pm, views, 1.0, method="front"),
+             lambda: decide_every_pcol(pm, index_camera(views, 1), 1.0, pmjax.ALL_TESTS),
              lambda: pmjax.path_counts(pm, views, 1.0)]
     for i, call in enumerate(calls):
         call()
@@ -233,22 +246,22 @@ def test_subnormals_come_back_after_the_c_loops(built):
         assert (tiny * np.float32(0.25)).view(np.int32)[0] == 1 << 21, i  # 2^-128
 
 
-def test_native_batches_from_several_threads_at_once(built):
-    """Batches started together from user threads share the helper threads
-    (a helper busy with another batch is not waited for) and each gets its
-    own cameras' results."""
+def test_core_batches_from_several_threads_at_once(built):
+    """Batches started together from user threads share XLA's thread pool (a
+    helper that starts after its batch is done does nothing) and each gets
+    its own cameras' results."""
     import concurrent.futures
 
     data = built("bunny.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
     views = views_of(data, 48, seed=9)
     batches = [stack_cameras([index_camera(views, i) for i in range(j, 48, 4)]) for j in range(4)]
-    alone = [_native.refine_many(pm, b, np.float32(1.0), pmjax.ALL_TESTS, True, threads=1) for b in batches]
+    alone = [pmjax.refine_batch(pm, b, 1.0, return_masks=True, method="front") for b in batches]
     with concurrent.futures.ThreadPoolExecutor(4) as users:
-        together = list(users.map(lambda b: _native.refine_many(pm, b, np.float32(1.0), pmjax.ALL_TESTS, True),
+        together = list(users.map(lambda b: pmjax.refine_batch(pm, b, 1.0, return_masks=True, method="front"),
                                   batches * 3))
     for i, got in enumerate(together):
-        assert all(np.array_equal(a, b) for a, b in zip(alone[i % 4], got)), i
+        assert all(np.array_equal(alone[i % 4][k], got[k]) for k in got), i
 
 
 def test_dragon_front_visits_a_small_share(built):
@@ -289,27 +302,34 @@ def fat_words(data):
     return words
 
 
+def core_views(word, taus):
+    """The view constants the core computes for a word's frames."""
+    return _core.views(_core.camera_rows(word, taus), word.orthographic)
+
+
 @pytest.mark.parametrize("name", ["cow.ply", "bunny.ply", "terrain_gcanyon.ply"])
 def test_fat_camera_decisions_hold_for_every_frame(built, name):
     """Over every pcol, for words of frames: where the fat camera says
     "whole", every frame's subtree collapses under the float32 predicate;
     where it says "no", no frame's predicate collapses the pcol. Along an
     orbit it decides most pcols; with a tolerance of 0 (not a usual view) it
-    decides none."""
+    decides none, nor does a fat camera that is not finite."""
     data = built(name)
     pm = pmjax.ProgressiveMesh.from_data(data)
-    kids = np.asarray(pm.children)
+    kids, table = derived(pm).children, derived(pm).jax.table
     for label, word in fat_words(data).items():
         for tau in (1e-3, 1.0, 4.0, 0.0):
             taus = np.full(16, tau, np.float32)
-            got = _native.decide_fat_all(pm, word, taus, pmjax.ALL_TESTS)
+            views = core_views(word, taus)
+            fat = _core.fat_cameras(views[None])[0]
+            got = np.asarray(_core.decide_fat_all(table, views, fat, _core.flags_of(pmjax.ALL_TESTS, False)))
             if tau == 0.0:
                 assert not np.any(got), label
                 continue
             for f in range(16):
                 cam = index_camera(word, f)
                 want = np.asarray(pmjax.collapse_mask(pm.attributes, cam, jnp.float32(tau), pmjax.ALL_TESTS))
-                assert not np.any(want[got == 2]), (label, tau, f)
+                assert not np.any(want[got == _core.FAT_NO]), (label, tau, f)
                 # Every pcol of the subtree collapses: batch by batch (children
                 # come from earlier batches).
                 all_below = want.copy()
@@ -317,9 +337,12 @@ def test_fat_camera_decisions_hold_for_every_frame(built, name):
                     for k in kids[lo:hi].T:
                         has = k >= 0
                         all_below[lo:hi][has] &= all_below[k[has]]
-                assert np.all(all_below[got == 1]), (label, tau, f)
+                assert np.all(all_below[got == _core.FAT_WHOLE]), (label, tau, f)
             if label.startswith("orbit") and tau == 1.0:
                 assert np.mean(got == 1) > 0.3 and np.any(got == 2), (label, np.bincount(got, minlength=3))
+                nan = jnp.full(_core.FAT, jnp.nan, jnp.float32)
+                unused = _core.decide_fat_all(table, views, nan, _core.flags_of(pmjax.ALL_TESTS, False))
+                assert not np.any(np.asarray(unused)), label
 
 
 def test_fat_camera_bounds_hold(built):
@@ -329,8 +352,8 @@ def test_fat_camera_bounds_hold(built):
     tau."""
     data = built("cow.ply")
     for label, word in fat_words(data).items():
-        views = _native.host_views(jax.tree.map(np.asarray, word), np.ones(16, np.float32))
-        fat = _native.fat_cameras(views[None])[0].astype(np.float64)
+        views = np.asarray(core_views(word, np.ones(16, np.float32)))
+        fat = np.asarray(_core.fat_cameras(views[None])[0]).astype(np.float64)
         eyes, rot = views[:, 0:3].astype(np.float64), views[:, 3:12].astype(np.float64).reshape(-1, 3, 3)
         eye, rho, pivot, ref, t, eps, tau = fat[0:3], fat[3], fat[4:7], fat[7:16].reshape(3, 3), fat[16:19], \
             fat[19], fat[20]
@@ -343,60 +366,31 @@ def test_fat_camera_bounds_hold(built):
         assert rho < 10 * max(np.linalg.norm(eyes - eye, axis=1).max(), 1e-30), label  # bounds, not infinities
 
 
-def test_a_fat_camera_that_is_not_finite_is_not_used(built):
-    """A fat camera with a non-finite bound decides nothing at once: the
-    word's frames are decided one by one, with the same counts and lists as
-    without a fat camera (and as with a finite one)."""
-    data = built("bunny.ply")
-    pm = pmjax.ProgressiveMesh.from_data(data)
-    word = fat_words(data)["orbit 0"]
-    taus = np.ones(16, np.float32)
-    bad = np.full(_native.FAT_VALUES, np.nan, np.float32)
-    alone = _native.refine_word(pm, word, taus, pmjax.ALL_TESTS, True, fat=False)
-    unused = _native.refine_word(pm, word, taus, pmjax.ALL_TESTS, True, fat=bad)
-    used = _native.refine_word(pm, word, taus, pmjax.ALL_TESTS, True, fat=True)
-    assert unused[3] == 0 and used[3] > 0
-    for got in (unused, used):
-        for a, b in zip(got[0], alone[0]):
-            assert np.array_equal(a, b)
-        for (v1, r1, _), (v2, r2, _) in zip(got[1], alone[1]):
-            assert np.array_equal(np.sort(v1[~r1]), np.sort(v2[~r2]))
-    for x, y in zip(unused[1], alone[1]):  # frame by frame: the very same lists
-        assert all(np.array_equal(a, b) for a, b in zip(x, y))
-
-
 @pytest.mark.parametrize("orthographic", [False, True])
-def test_host_view_constants_are_within_the_allowance(orthographic):
-    """The C loops read view constants computed on the host; the
-    certification allows them 2^-20 relative from XLA's (VIEW in
-    _front_native.c). They must stay well inside it, for one camera and for
-    batches."""
+def test_core_view_constants_are_within_the_allowance(orthographic):
+    """The core computes each view's constants from the camera (in double,
+    rounded once); the certification allows them 2^-20 relative from XLA's
+    (VIEW in certify.h). They must stay well inside it."""
     v0 = np.random.default_rng(0).normal(size=(100, 3)).astype(np.float32)
     cams = pmjax.random_views(v0, 400, seed=1, min_scale=0.05, max_scale=6.0)
     if orthographic:
         cams = pmjax.Camera(cams.eye, cams.rotation, cams.fov_y, cams.near, cams.far, cams.ortho_height, cams.width,
                             cams.height, orthographic=True)
     for tau in (0.0, 1e-3, 1.0, 4.0, 1e6):
-        batch = _native.host_views(cams, tau).astype(np.float64)
-        for i in range(0, 400, 8):
-            cam = index_camera(cams, i)
-            xla = _native.view_values(cam, tau).astype(np.float64)
-            one = _native.host_view(cam, tau).astype(np.float64)
-            for host in (batch[i], one):
-                rel = np.abs(host - xla) / np.maximum(np.abs(xla), np.finfo(np.float32).tiny)
-                assert np.all(rel <= 2.0 ** -21), (tau, i, np.log2(rel.max()))
+        core = np.asarray(_core.views(_core.camera_rows(cams, jnp.full(400, tau, jnp.float32)), orthographic))
+        xla = np.asarray(View.batch(cams, jnp.float32(tau)).values).T
+        rel = np.abs(core.astype(np.float64) - xla) / np.maximum(np.abs(xla.astype(np.float64)),
+                                                                 np.finfo(np.float32).tiny)
+        assert np.all(rel <= 2.0 ** -21), (tau, np.log2(rel.max()))
 
 
 @pytest.mark.parametrize("room", [None, 4])
-def test_batch_at_a_float_tie_asks_the_predicate_once_per_batch(built, monkeypatch, room, slots):
+def test_batch_at_a_float_tie_asks_the_predicate_once_per_batch(built, room, simd):
     """A batch refined at a pcol's critical tolerance has unsure decisions in
     many cameras; they are answered for the whole batch and the cameras'
     counts and masks corrected from their records: the same bits as the
-    dense engine, also when the records outgrow their first room (4 int32,
-    less than one record: every such camera grows it and is traversed
-    again)."""
-    if room is not None:
-        monkeypatch.setattr(_native, "RECORD_ROOM", room)
+    dense engine; also with room for 4 int32 of records (less than one),
+    when each such camera is refined alone."""
     data = built("bunny.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
     orbit = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 4)
@@ -404,12 +398,25 @@ def test_batch_at_a_float_tie_asks_the_predicate_once_per_batch(built, monkeypat
     t = np.asarray(pmjax.critical_tau(pm.attributes, cam))
     p = np.flatnonzero(np.isfinite(t) & (t > 0.5) & (t < 4))[0]
     cams = stack_cameras([cam] * 40 + [index_camera(orbit, i) for i in range(4)])
-    assert _native.decide_all(pm, cam, t[p], pmjax.ALL_TESTS)[p] & 3 == _native.UNSURE
+    assert decide_every_pcol(pm, cam, t[p], pmjax.ALL_TESTS)[p] & 3 == _core.UNSURE
     assert p in np.asarray(pmjax.refine(pm, cam, t[p], method="front").visited)  # so 40 cameras have a record
-    native = pmjax.refine_batch(pm, cams, t[p], chunk=64, return_masks=True, method="front")
     dense = pmjax.refine_batch(pm, cams, t[p], chunk=64, return_masks=True, method="dense")
-    for key in dense:
-        assert np.array_equal(native[key], dense[key]), key
+    rows = _core.camera_rows(cams, jnp.full(44, t[p], jnp.float32))
+    counts, masks, (pcols, ran, positions) = _core.many_cameras(pmjax.ALL_TESTS, False, True, True, 0, room)(
+        derived(pm).core, rows)
+    counts = np.asarray(counts)
+    assert np.array_equal(np.asarray(masks).view(bool), dense["executed"])
+    P = pm.n_pcols
+    assert np.array_equal(P - counts[:, 1], dense["executed_count"])
+    for k in (0, 41):  # each camera's lists: the dense engine's executed set
+        n = counts[k, 0]
+        executed = np.ones(P, bool)
+        executed[np.asarray(pcols)[k, :n]] = np.asarray(ran)[k, :n].astype(bool)
+        assert np.array_equal(executed, dense["executed"][k]), k
+    if room is None:
+        got = pmjax.refine_batch(pm, cams, t[p], chunk=64, return_masks=True, method="front")
+        for key in dense:
+            assert np.array_equal(got[key], dense[key]), key
 
 
 def test_refinement_is_a_pytree_of_its_arrays(built):
@@ -426,9 +433,9 @@ def test_refinement_is_a_pytree_of_its_arrays(built):
 
 @pytest.mark.parametrize("name", ["cow.ply", "bunny.ply"])
 def test_budget_by_search_equals_the_sort(built, name):
-    """faces_for_budget from output-sensitive counts (a search over the
-    float32 patterns of tau) gives the dense sort's tau and face count, bit
-    for bit, at budgets across the whole range and at its ends."""
+    """faces_for_budget from the core's counts (a search over the float32
+    patterns of tau, one compiled loop) gives the dense sort's tau and face
+    count, bit for bit, at budgets across the whole range and at its ends."""
     data = built(name)
     pm = pmjax.ProgressiveMesh.from_data(data)
     cams = [index_camera(views_of(data, 3, seed=11), i) for i in range(3)] + orthographic_views(data)[:1]
@@ -442,3 +449,41 @@ def test_budget_by_search_equals_the_sort(built, name):
             got = pmjax.faces_for_budget(pm, cam, budget, method="front")
             assert got[1] == want[1] and np.float32(got[0]).tobytes() == np.float32(want[0]).tobytes(), budget
             assert int(pmjax.refine(pm, cam, got[0], method="dense").n_faces) == got[1]
+
+
+def test_bad_buffers_are_errors_that_name_the_argument(built):
+    """The core's FFI targets check every buffer against the hierarchy it
+    claims to come from: a wrong shape, dtype or capacity, or tables of two
+    meshes, is an exception naming the argument, not a write past a buffer."""
+    cow = pmjax.ProgressiveMesh.from_data(built("cow.ply"))
+    bunny = pmjax.ProgressiveMesh.from_data(built("bunny.ply"))
+    tables = derived(cow).core
+    cam = index_camera(views_of(built("cow.ply"), 2, seed=1), 0)
+    row = _core.camera_rows(cam, jnp.float32(1.0))
+    P = tables.n_pcols
+    S = jax.ShapeDtypeStruct
+    one = lambda rows, kills, order, camera, results=None: _core._call(
+        "pmx_refine_one", results or (S((0,), jnp.int32), S((0,), jnp.uint8), S((0,), jnp.int32),
+                                      S((P + 16,), jnp.int32), S((P + 16,), jnp.int32), S((5,), jnp.int32)),
+        rows, kills, order, camera, flags=np.int32(7), n_roots=np.int64(tables.n_roots))
+    cases = {
+        "kills": lambda: one(tables.rows, derived(bunny).core.kills, tables.order, row),  # another mesh's
+        "rows": lambda: one(tables.rows[:, :8], tables.kills, tables.order, row),
+        "camera": lambda: one(tables.rows, tables.kills, tables.order, row[:10]),
+        "unsure": lambda: one(tables.rows, tables.kills, tables.order, row,
+                              (S((0,), jnp.int32), S((0,), jnp.uint8), S((0,), jnp.int32), S((16,), jnp.int32),
+                               S((P + 16,), jnp.int32), S((5,), jnp.int32))),
+        "pcols": lambda: one(tables.rows, tables.kills, tables.order, row,
+                             (S((P,), jnp.int32), S((0,), jnp.uint8), S((0,), jnp.int32), S((P + 16,), jnp.int32),
+                              S((P + 16,), jnp.int32), S((5,), jnp.int32))),
+    }
+    for name, call in cases.items():
+        with pytest.raises(CORE_ERRORS, match=name):
+            jax.block_until_ready(call())
+    with pytest.raises(Exception, match="F32|float32|dtype|type"):  # a typed buffer
+        jax.block_until_ready(one(tables.rows.astype(jnp.float16), tables.kills, tables.order, row))
+    # A refinement's mesh asked of another mesh's tables.
+    r = pmjax.refine(cow, cam, 1.0, method="front")
+    with pytest.raises(CORE_ERRORS):
+        jax.block_until_ready(_core.front_mesh(derived(bunny).core_mesh, r.core_ran, r.front_positions,
+                                               r.core_counts.at[2].set(10 ** 6)))

@@ -1,7 +1,9 @@
-"""Output-sensitive refinement: a top-down traversal that stops where a subtree is decided.
+"""The front engine as JAX kernels: a top-down traversal that stops where a subtree is decided.
 
-The dense engine tests every pcol. Here the forest of pcols is walked from its
-roots, one generation (depth below a root) at a time. At each visited pcol two
+Where the C core is not built, this engine refines a camera or a camera
+batch eagerly (its buffer capacities adapt between calls, which needs the
+host). The dense engine tests every pcol. Here the forest of pcols is walked
+from its roots, one generation (depth below a root) at a time. At each visited pcol two
 things are evaluated:
 
 - its own decision, ``collapse(p)``, by the very predicate the dense engine
@@ -36,27 +38,26 @@ from __future__ import annotations
 
 import functools
 import threading
+import weakref
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._model import PcolAttributes
-from ._predicate import view_collapse_mask
-from ._subtree import FrontBounds, subtree_collapses
-
-
-def gather(values, indices):
-    """``values[indices]`` for indices known to be in range: no wrapping of
-    negative indices nor clamping (2x faster gathers on the CPU)."""
-    return values.at[indices].get(mode="promise_in_bounds")
+from .._bitsets import WORD, column_popcounts, unpack_cameras, weight_bits_for
+from .._predicate import view_collapse_mask
+from .._subtree import subtree_collapses
+from .._view import View
+from ._dense import gather
+from ._tables import derived, table_columns
 
 
 class FrontPlan:
-    """Host-side, mutable companions of one :class:`ProgressiveMesh`: the
-    traversal's buffer capacities (grown when a view needs more) and the host
-    arrays the front mesh reads. Hashed by the forest's shape, so it can ride
-    as a static field.
+    """The traversal's buffer capacities for one mesh content (grown when a
+    view needs more; kept with its derived tables,
+    :class:`pmjax.engines._tables.Derived`). A capacity only changes the
+    cost: a call that overflowed a buffer is redone with full ones.
 
     Attributes:
         generation_sizes: pcols at each depth below a root, over the whole forest
@@ -72,7 +73,6 @@ class FrontPlan:
         self.generation_sizes = tuple(int(g) for g in generation_sizes)
         self._capacities: dict = {}
         self._lock = threading.Lock()
-        self.host: dict = {}
 
     def capacities(self, kind) -> tuple:
         """Current capacities for a traversal kind (one camera or words of 32,
@@ -114,52 +114,18 @@ class FrontPlan:
     def full(self) -> tuple:
         return self.generation_sizes
 
-    # Equal plans (same forest shape) share compiled kernels: the capacities a
-    # kernel is compiled for are its own static argument.
-    def __hash__(self):
-        return hash(self.generation_sizes)
 
-    def __eq__(self, other):
-        return isinstance(other, FrontPlan) and self.generation_sizes == other.generation_sizes
+_plans: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_plans_lock = threading.Lock()
 
 
-def forest_generations(parent: np.ndarray, batch_offsets) -> tuple[np.ndarray, np.ndarray]:
-    """Roots of the pcol forest and each pcol's depth below its root.
-
-    Args:
-        parent: ``[P]`` the pcol consuming each pcol's vertex, ``-1`` for none
-            (``ProgressiveMesh.parent`` of the created vertices).
-
-    Returns:
-        ``(roots int32[R], depth int32[P])``; roots in increasing order.
-    """
-    depth = np.zeros(len(parent), np.int32)
-    # Parents are in later batches: resolve from the last batch down.
-    for lo, hi in reversed(list(zip(batch_offsets[:-1], batch_offsets[1:]))):
-        up = parent[lo:hi]
-        depth[lo:hi] = np.where(up >= 0, depth[np.maximum(up, 0)] + 1, 0)
-    return np.flatnonzero(parent < 0).astype(np.int32), depth
-
-
-# Columns of ProgressiveMesh.table: these attributes (center and axis three
-# columns each), then these subtree bounds.
-TABLE_ATTRIBUTES = ("center", "axis", "radius", "sin_alpha", "cos_alpha", "delta", "mu")
-TABLE_BOUNDS = ("reach", "spread", "facing", "error", "axis_scale")
-
-
-def _gathered(pm, ids):
-    """The attributes and subtree bounds of pcols ``ids``, from one row each."""
-    return table_columns(gather(pm.table, ids).T)
-
-
-def table_columns(rows):
-    """``(PcolAttributes, FrontBounds)`` of table rows as columns ``[16, C]``."""
-    # Columns 0-2 centre, 3-5 axis, then one column per remaining attribute
-    # (not alpha: the tests read its sine and cosine), then the bounds.
-    scalars = {k: rows[4 + i] for i, k in enumerate(TABLE_ATTRIBUTES) if i >= 2}
-    attrs = PcolAttributes(center=rows[0:3], axis=rows[3:6], alpha=None, **scalars)
-    bounds = FrontBounds(**{k: rows[11 + i] for i, k in enumerate(TABLE_BOUNDS)})
-    return attrs, bounds
+def plan_of(d) -> FrontPlan:
+    """The capacities kept for one mesh content (``Derived``)."""
+    with _plans_lock:
+        plan = _plans.get(d)
+        if plan is None:
+            plan = _plans[d] = FrontPlan(d.generation_sizes)
+        return plan
 
 
 BLOCK = 64
@@ -183,11 +149,11 @@ def prefix_count(flags):
     return (within + before[:, None]).reshape(-1)[:n].astype(jnp.int32)
 
 
-def traverse(pm, decide, capacities, lanes_dtype):
+def traverse(jt, decide, capacities, lanes_dtype):
     """The top-down traversal and the bottom-up resolution (see module doc).
 
     Args:
-        pm: :class:`ProgressiveMesh`.
+        jt: :class:`pmjax.engines._tables.JaxTables`.
         decide: ``decide(attrs, bounds) -> (collapse, whole)`` for gathered
             pcols, each a ``lanes_dtype`` array ``[C]``: bool for one camera,
             ``uint32`` words for 32 cameras (bit ``c`` for camera ``c``).
@@ -200,7 +166,7 @@ def traverse(pm, decide, capacities, lanes_dtype):
         unused slots and for cameras that did not visit a pcol: both are
         executed), ``needed int32[G]`` the pcols each generation had to hold.
     """
-    P = pm.n_pcols
+    P = jt.table.shape[0]
     none = jnp.zeros((), lanes_dtype)
     every = ~none
     # One camera: a pushed child is visited by it, so visits are the valid slots.
@@ -212,9 +178,9 @@ def traverse(pm, decide, capacities, lanes_dtype):
         cap = capacities[g]
         valid = jnp.arange(cap) < count
         visits = valid if single else jnp.where(valid, visits, none)
-        collapse, whole = decide(*_gathered(pm, ids))
+        collapse, whole = decide(*table_columns(gather(jt.table, ids).T))
         open_ = visits & ~whole
-        kids = gather(pm.children, ids)
+        kids = gather(jt.children, ids)
         c1, c2 = kids[:, 0], kids[:, 1]
         push = jnp.concatenate([(open_ != none) & (c1 >= 0), (open_ != none) & (c2 >= 0)])
         slot = prefix_count(push) - 1
@@ -226,7 +192,7 @@ def traverse(pm, decide, capacities, lanes_dtype):
         # The last prefix count is the total (a sum here was a reduce-window).
         return (visits, collapse, whole, push, slot), (next_ids, next_visits, slot[-1] + 1)
 
-    ids = pm.roots
+    ids = jt.roots
     visits = None if single else jnp.full(ids.shape, every)
     count = jnp.int32(ids.shape[0])
     levels, needed = [], [count]
@@ -266,8 +232,120 @@ def traverse(pm, decide, capacities, lanes_dtype):
 def one_camera_decide(view, tests):
     """``decide`` for :func:`traverse` with one camera's :class:`View`."""
 
-    def decide(attrs: PcolAttributes, bounds: FrontBounds):
+    def decide(attrs, bounds):
         collapse = view_collapse_mask(attrs, view, tests, rows=False)
         return collapse, subtree_collapses(attrs.center, attrs.axis, bounds, view, tests)
 
     return decide
+
+
+def front_counts(pm, visited, not_ran):
+    """``(n_faces, n_vertices, n_executed)`` from the pcols that did not run
+    (``not_ran``, lanes over ``visited``; ``visited`` holds ``P`` in unused
+    slots): every face is drawn but those killed by the pcols that ran."""
+    P = pm.n_pcols
+    if P == 0:  # every face drawn, no pcol
+        return jnp.int32(pm.n_faces), jnp.int32(pm.n_original_vertices), jnp.int32(0)
+    kills = jnp.where(visited < P, gather(pm.kills, jnp.minimum(visited, P - 1)), 0)
+    n_not_run = jnp.sum(not_ran, axis=-1, dtype=jnp.int32)
+    kept = jnp.sum(jnp.where(not_ran, kills, 0), axis=-1, dtype=jnp.int32)
+    n_exec = P - n_not_run
+    return pm.n_faces - pm.total_kills + kept, pm.n_original_vertices - n_exec, n_exec
+
+
+@functools.partial(jax.jit, static_argnames=("tests", "capacities"))
+def refine_chunk(pm, jt, camera, tau, tests, capacities):
+    tau = eqx.error_if(jnp.asarray(tau, jnp.float32), ~(tau >= 0), "tau must be >= 0 (and not NaN)")
+    view = View.of(camera, tau)
+    visited, ran, needed = traverse(jt, one_camera_decide(view, tests), capacities, bool)
+    counts = front_counts(pm, visited, (visited < pm.n_pcols) & ~ran)
+    return (visited, ran) + counts + (needed,)
+
+
+def word_counts(pm, visited, ran):
+    """:func:`front_counts` for a word of 32 cameras, from the executed words
+    ``ran`` of the visited pcols: per camera, the pcols that did not run and
+    the faces they keep are column popcounts (one per bit plane of the kill
+    counts), not sums over 32 unpacked rows."""
+    P = pm.n_pcols
+    if P == 0:
+        return tuple(jnp.full(WORD, v, jnp.int32) for v in (pm.n_faces, pm.n_original_vertices, 0))
+    valid = visited < P
+    kills = jnp.where(valid, gather(pm.kills, jnp.minimum(visited, P - 1)), 0)
+    not_ran = jnp.where(valid, ~ran, jnp.uint32(0))[:, None]  # [C, 1]
+    n_not_run = column_popcounts(not_ran)
+    kept = jnp.zeros(WORD, jnp.int32)
+    for b in range(weight_bits_for(pm.max_kills)):
+        kept = kept + (column_popcounts(jnp.where((((kills >> b) & 1) == 1)[:, None], not_ran, jnp.uint32(0))) << b)
+    n_exec = P - n_not_run
+    return pm.n_faces - pm.total_kills + kept, pm.n_original_vertices - n_exec, n_exec
+
+
+def pack_word(mask):
+    """One word of 32 cameras per column: bit ``c`` is ``mask[c]``. An
+    unrolled OR of shifted rows, one elementwise loop (the reduction over
+    the camera axis of :func:`pmjax._bitsets.pack_cameras` ran 3x slower on
+    the front's gathered columns)."""
+    word = mask[0].astype(jnp.uint32)
+    for c in range(1, WORD):
+        word = word | (mask[c].astype(jnp.uint32) << c)
+    return word
+
+
+def counts(pm, cameras, tau, tests, want_masks: bool, want_front=False):
+    """Counts (and on request dense masks, or each word's front) of a chunk of
+    cameras, 32 per word, through :func:`counts_chunk`; the buffers are grown
+    and the chunk redone when a word needed more."""
+    d = derived(pm)
+    jt = d.jax
+    out = plan_of(d).run(("word", tests, cameras.orthographic),
+                     lambda capacities: counts_chunk(pm, jt, cameras, tau, tests, capacities, want_masks, want_front))
+    return out[:-1]
+
+
+def refine(pm, camera, tau, tests):
+    """One camera: ``(visited, ran, n_faces, n_vertices, n_executed)``, the
+    buffers grown and the call redone when a generation needed more."""
+    d = derived(pm)
+    jt = d.jax
+    out = plan_of(d).run(("one", tests, camera.orthographic),
+                     lambda capacities: refine_chunk(pm, jt, camera, tau, tests, capacities))
+    return out[:-1]
+
+
+@functools.partial(jax.jit, static_argnames=("tests", "capacities", "want_masks", "want_front"))
+def counts_chunk(pm, jt, cameras, tau, tests, capacities, want_masks, want_front=False):
+    """Per camera ``(faces, vertices, executed)``, then ``executed`` masks
+    ``bool[K, P]`` if ``want_masks``, then, if ``want_front``, per word of 32
+    cameras the visited pcols ``int32[W, C]`` and their executed words
+    ``uint32[W, C]``, and last the buffers each word needed. ``tau``: a
+    scalar or one per camera."""
+    views = View.batch(cameras, tau)
+    words = views.values.reshape(views.values.shape[0], -1, WORD)  # [22, W, 32]
+
+    def one_word(values):
+        group = View(values, cameras.orthographic)
+
+        def decide(attrs, bounds):
+            collapse = group.map(lambda v: view_collapse_mask(attrs, v, tests, rows=False))
+            whole = group.map(lambda v: subtree_collapses(attrs.center, attrs.axis, bounds, v, tests))
+            return pack_word(collapse), pack_word(whole)
+
+        visited, ran, needed = traverse(jt, decide, capacities, jnp.uint32)
+        counts = word_counts(pm, visited, ran)
+        masks = ()
+        if want_masks:
+            dense = jnp.full(pm.n_pcols, ~jnp.uint32(0)).at[visited].set(ran, mode="drop")
+            masks = (unpack_cameras(dense[:, None]),)
+        front = (visited, ran) if want_front else ()
+        return counts + masks + front + (needed,)
+
+    # lax.map, not vmap: under vmap each generation's conditional becomes a
+    # select that runs every generation at full capacity.
+    out = jax.lax.map(one_word, jnp.moveaxis(words, 1, 0))
+    n_front = 2 if want_front else 0
+    # Words back to cameras: [W, 32, ...] -> [K, ...]; the fronts and ``needed`` stay per word.
+    per_camera = out[:len(out) - 1 - n_front]
+    return tuple(x.reshape((-1,) + x.shape[2:]) for x in per_camera) + tuple(out[len(per_camera):])
+
+

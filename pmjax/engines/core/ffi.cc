@@ -1,0 +1,725 @@
+// The core as XLA FFI targets for the CPU (jax.ffi), and the Python module
+// that hands them to JAX (pmjax/engines/_core.py registers them).
+//
+// Every target checks its buffers against the hierarchy they claim to come
+// from (shapes, capacities) and returns an error naming the argument, so a
+// mismatch is a Python exception, never a write past a buffer. Operands and
+// results, in order, are listed above each binding; pmjax/engines/_core.py
+// calls them in that order.
+
+#include <Python.h>
+
+#include <algorithm>
+#include <cstdint>
+#include <cstring>
+#include <string>
+#include <vector>
+
+#include "pmx.h"
+#include "xla/ffi/api/ffi.h"
+
+namespace ffi = xla::ffi;
+
+namespace {
+
+// The sizes of an array, for messages: "[436325, 16]".
+std::string Shape(ffi::Span<const int64_t> dims) {
+  std::string s = "[";
+  for (size_t i = 0; i < dims.size(); ++i) s += (i ? ", " : "") + std::to_string(dims[i]);
+  return s + "]";
+}
+
+// An error unless `dims` equals `want`.
+ffi::Error Expect(const char* name, ffi::Span<const int64_t> dims, std::initializer_list<int64_t> want) {
+  bool same = dims.size() == want.size() && std::equal(want.begin(), want.end(), dims.begin());
+  if (same) return ffi::Error::Success();
+  std::string w = "[";
+  size_t i = 0;
+  for (int64_t d : want) w += (i++ ? ", " : "") + std::to_string(d);
+  return ffi::Error::InvalidArgument(std::string(name) + " must have shape " + w + "], got " + Shape(dims));
+}
+
+#define PMX_CHECK(expr)                          \
+  do {                                           \
+    ffi::Error pmx_error = (expr);               \
+    if (pmx_error.failure()) return pmx_error;   \
+  } while (0)
+
+// The hierarchy's tables: rows [P, PMX_ROW], kills [P], order [P].
+ffi::Error Hierarchy(ffi::Buffer<ffi::F32> rows, ffi::Buffer<ffi::S32> kills, ffi::Buffer<ffi::S32> order,
+                     int64_t n_roots, PmxHierarchy* h) {
+  auto dims = rows.dimensions();
+  if (dims.size() != 2 || dims[1] != PMX_ROW)
+    return ffi::Error::InvalidArgument("rows must have shape [P, " + std::to_string(PMX_ROW) + "], got " +
+                                       Shape(dims));
+  const int64_t P = dims[0];
+  PMX_CHECK(Expect("kills", kills.dimensions(), {P}));
+  PMX_CHECK(Expect("order", order.dimensions(), {P}));
+  if (P > PMX_MAX_PCOLS || n_roots < 0 || n_roots > P || (P > 0 && n_roots == 0))
+    return ffi::Error::InvalidArgument("n_roots " + std::to_string(n_roots) + " does not fit " + std::to_string(P) +
+                                       " pcols");
+  if (reinterpret_cast<uintptr_t>(rows.typed_data()) % 4 != 0)
+    return ffi::Error::InvalidArgument("rows are not aligned");
+  *h = PmxHierarchy{rows.typed_data(), kills.typed_data(), order.typed_data(), P, n_roots};
+  return ffi::Error::Success();
+}
+
+ffi::Error Status(PmxStatus status, const char* what) {
+  if (status == PMX_OK) return ffi::Error::Success();
+  return ffi::Error(status == PMX_NO_MEMORY ? ffi::ErrorCode::kResourceExhausted : ffi::ErrorCode::kInvalidArgument,
+                    std::string(what) + ": " + pmx_status_text(status));
+}
+
+// A list result: [n] or [batch, n] with n = P + PMX_SPARE, or empty (not wanted).
+ffi::ErrorOr<bool> ListWanted(const char* name, ffi::Span<const int64_t> dims, int64_t batch, int64_t P) {
+  int64_t count = 1;
+  for (int64_t d : dims) count *= d;
+  if (count == 0) return false;
+  bool ok = batch < 0 ? dims.size() == 1 && dims[0] == P + PMX_SPARE
+                      : dims.size() == 2 && dims[0] == batch && dims[1] == P + PMX_SPARE;
+  if (!ok)
+    return ffi::Unexpected(ffi::Error::InvalidArgument(std::string(name) + " must be empty or have " +
+                                                       std::to_string(P + PMX_SPARE) + " slots per item, got " +
+                                                       Shape(dims)));
+  return true;
+}
+
+// XLA's CPU thread pool as the core's runner.
+void Schedule(void* ctx, void (*task)(void*), void* arg) {
+  static_cast<ffi::ThreadPool*>(ctx)->Schedule([task, arg] { task(arg); });
+}
+
+PmxRunner Runner(ffi::ThreadPool& pool, int64_t threads) {
+  int64_t have = std::max<int64_t>(1, pool.num_threads());
+  return PmxRunner{Schedule, &pool, threads > 0 ? std::min(threads, have) : have};
+}
+
+// One scratch from the pool for the length of a call.
+struct Scratch {
+  PmxScratch* s;
+  explicit Scratch(int64_t n_pcols) : s(pmx_scratch_take(n_pcols)) {}
+  ~Scratch() {
+    if (s) pmx_scratch_give(s);
+  }
+};
+
+// ---- one camera ------------------------------------------------------------
+// The lists of one camera: pcols s32[L], ran u8[L], positions s32[L] (L = P + PMX_SPARE, or 0: counts only).
+ffi::ErrorOr<PmxLists> OneLists(int64_t P, ffi::Result<ffi::Buffer<ffi::S32>>& pcols,
+                                ffi::Result<ffi::Buffer<ffi::U8>>& ran, ffi::Result<ffi::Buffer<ffi::S32>>& positions) {
+  for (auto [name, dims] : {std::pair{"pcols", pcols->dimensions()}, std::pair{"ran", ran->dimensions()},
+                            std::pair{"positions", positions->dimensions()}}) {
+    auto wanted = ListWanted(name, dims, -1, P);
+    if (wanted.has_error()) return ffi::Unexpected(wanted.error());
+  }
+  PmxLists lists{};
+  if (pcols->element_count()) lists.pcols = pcols->typed_data();
+  if (ran->element_count()) lists.ran = ran->typed_data();
+  if (positions->element_count()) lists.positions = positions->typed_data();
+  return lists;
+}
+
+void PutCounts(const PmxCounts& c, int level, int32_t* out) {
+  out[0] = c.visited, out[1] = c.not_run, out[2] = c.kept, out[3] = c.unsure, out[4] = level;
+}
+
+// The first pass: unsure decisions taken as "keep" and listed.
+// operands: rows f32[P,16], kills s32[P], order s32[P], camera f32[PMX_CAMERA] (with tau)
+// results: pcols s32[L], ran u8[L], positions s32[L], unsure s32[P + PMX_SPARE] (positions, increasing),
+//          yes s32[P + PMX_SPARE] (not written: room for the caller's answers),
+//          counts s32[5] (visited, not run, kept, unsure, SIMD level)
+ffi::Error RefineOne(ffi::Buffer<ffi::F32> rows, ffi::Buffer<ffi::S32> kills, ffi::Buffer<ffi::S32> order,
+                     ffi::Buffer<ffi::F32> camera, ffi::ResultBuffer<ffi::S32> pcols, ffi::ResultBuffer<ffi::U8> ran,
+                     ffi::ResultBuffer<ffi::S32> positions, ffi::ResultBuffer<ffi::S32> unsure,
+                     ffi::ResultBuffer<ffi::S32> yes, ffi::ResultBuffer<ffi::S32> counts, int32_t flags,
+                     int64_t n_roots) {
+  PmxHierarchy h;
+  PMX_CHECK(Hierarchy(rows, kills, order, n_roots, &h));
+  const int64_t P = h.n_pcols;
+  PMX_CHECK(Expect("camera", camera.dimensions(), {PMX_CAMERA}));
+  PMX_CHECK(Expect("unsure", unsure->dimensions(), {P + PMX_SPARE}));
+  PMX_CHECK(Expect("yes", yes->dimensions(), {P + PMX_SPARE}));
+  PMX_CHECK(Expect("counts", counts->dimensions(), {5}));
+  auto lists = OneLists(P, pcols, ran, positions);
+  if (lists.has_error()) return lists.error();
+  Scratch s(P);
+  if (!s.s) return Status(PMX_NO_MEMORY, "refine");
+  float view[PMX_VIEW];
+  pmx_view_of(camera.typed_data(), (flags & PMX_ORTHOGRAPHIC) != 0, view);
+  PmxCounts c{};
+  int level = 0;
+  PMX_CHECK(Status(pmx_refine_one(&h, view, flags, -1, nullptr, nullptr, 0, lists.value(),
+                                  unsure->typed_data(), &c, &level, s.s),
+                   "refine"));
+  PutCounts(c, level, counts->typed_data());
+  return ffi::Error::Success();
+}
+
+// The second pass, where the first left unsure decisions: the same traversal
+// at the same SIMD level, each unsure decision answered (yes[i] for the
+// position unsure[i]); nothing to do where there were none.
+// operands: rows, kills, order, camera, pcols, ran, positions (the first pass's lists), unsure, yes,
+//           counts s32[5] (the first pass's)
+// results: pcols, ran, positions (aliasing the operands), counts s32[5]
+ffi::Error RefineAnswered(ffi::Buffer<ffi::F32> rows, ffi::Buffer<ffi::S32> kills, ffi::Buffer<ffi::S32> order,
+                          ffi::Buffer<ffi::F32> camera, ffi::Buffer<ffi::S32> pcols_in, ffi::Buffer<ffi::U8> ran_in,
+                          ffi::Buffer<ffi::S32> positions_in, ffi::Buffer<ffi::S32> unsure, ffi::Buffer<ffi::S32> yes,
+                          ffi::Buffer<ffi::S32> counts_in, ffi::ResultBuffer<ffi::S32> pcols,
+                          ffi::ResultBuffer<ffi::U8> ran, ffi::ResultBuffer<ffi::S32> positions,
+                          ffi::ResultBuffer<ffi::S32> counts, int32_t flags, int64_t n_roots) {
+  PmxHierarchy h;
+  PMX_CHECK(Hierarchy(rows, kills, order, n_roots, &h));
+  const int64_t P = h.n_pcols;
+  PMX_CHECK(Expect("camera", camera.dimensions(), {PMX_CAMERA}));
+  PMX_CHECK(Expect("unsure", unsure.dimensions(), {P + PMX_SPARE}));
+  PMX_CHECK(Expect("yes", yes.dimensions(), {P + PMX_SPARE}));
+  PMX_CHECK(Expect("counts", counts_in.dimensions(), {5}));
+  PMX_CHECK(Expect("counts", counts->dimensions(), {5}));
+  auto lists = OneLists(P, pcols, ran, positions);
+  if (lists.has_error()) return lists.error();
+  if (pcols_in.element_count() != pcols->element_count() || ran_in.element_count() != ran->element_count() ||
+      positions_in.element_count() != positions->element_count())
+    return ffi::Error::InvalidArgument("the lists must be the first pass's");
+  const int32_t* first = counts_in.typed_data();
+  const int64_t m = first[3];
+  if (m < 0 || m > P) return ffi::Error::InvalidArgument("counts: the unsure decisions do not fit the hierarchy");
+  if (m == 0) {  // the first pass was exact: its results stand
+    if (pcols->typed_data() != pcols_in.typed_data())
+      std::memcpy(pcols->typed_data(), pcols_in.typed_data(), pcols_in.size_bytes());
+    if (ran->typed_data() != ran_in.typed_data())
+      std::memcpy(ran->typed_data(), ran_in.typed_data(), ran_in.size_bytes());
+    if (positions->typed_data() != positions_in.typed_data())
+      std::memcpy(positions->typed_data(), positions_in.typed_data(), positions_in.size_bytes());
+    std::memcpy(counts->typed_data(), first, 5 * sizeof(int32_t));
+    return ffi::Error::Success();
+  }
+  Scratch s(P);
+  if (!s.s) return Status(PMX_NO_MEMORY, "refine");
+  float view[PMX_VIEW];
+  pmx_view_of(camera.typed_data(), (flags & PMX_ORTHOGRAPHIC) != 0, view);
+  PmxCounts c{};
+  int level = 0;
+  PMX_CHECK(Status(pmx_refine_one(&h, view, flags, static_cast<int>(first[4]), unsure.typed_data(),
+                                  yes.typed_data(), m, lists.value(), nullptr, &c, &level, s.s),
+                   "refine"));
+  if (c.unsure != 0) return ffi::Error::Internal("refine: unsure decisions left after they were answered");
+  PutCounts(c, level, counts->typed_data());
+  return ffi::Error::Success();
+}
+
+// The records and pairs results of a batch: records s32[R], pairs s32[N, 4]
+// (at, item, position, frames), sizes s32[2] (records used, pairs).
+ffi::Error CheckRecords(ffi::Span<const int64_t> records, ffi::Span<const int64_t> pairs,
+                        ffi::Span<const int64_t> sizes) {
+  if (records.size() != 1 || records[0] < 2 || records[0] >= (int64_t(1) << 31))
+    return ffi::Error::InvalidArgument("records must have shape [R], 2 <= R < 2^31, got " + Shape(records));
+  PMX_CHECK(Expect("pairs", pairs, {records[0] / PMX_NODE + 1, 4}));
+  PMX_CHECK(Expect("sizes", sizes, {2}));
+  return ffi::Error::Success();
+}
+
+// The unsure pairs of the records used, into pairs [N, 4] (N = R / PMX_NODE + 1
+// holds them all: a pair is a node of PMX_NODE int32); sizes = (used, pairs).
+void Pairs(const int32_t* records, int64_t used, int32_t* pairs, int32_t* sizes) {
+  std::vector<int64_t> at(used / PMX_NODE + 1);
+  std::vector<int32_t> item(at.size()), position(at.size()), frames(at.size());
+  const int64_t n = pmx_unsure_pairs(records, used, at.data(), item.data(), position.data(), frames.data());
+  for (int64_t i = 0; i < n; ++i) {
+    pairs[4 * i] = static_cast<int32_t>(at[i]);
+    pairs[4 * i + 1] = item[i], pairs[4 * i + 2] = position[i], pairs[4 * i + 3] = frames[i];
+  }
+  sizes[0] = static_cast<int32_t>(used), sizes[1] = static_cast<int32_t>(n);
+}
+
+// ---- camera batches ----------------------------------------------------------
+// operands: rows, kills, order, cameras f32[K, PMX_CAMERA]
+// results: counts s32[K, 4], masks u8[K, P] or [0], pcols s32[K, L], ran u8[K, L], positions s32[K, L]
+//          (L = P + PMX_SPARE, or shape [0]), records s32[R], pairs s32[N, 4], yes s32[N] (not written: room
+//          for the caller's answers), sizes s32[2], overflow u8[K]
+ffi::Error RefineMany(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> rows, ffi::Buffer<ffi::S32> kills,
+                      ffi::Buffer<ffi::S32> order, ffi::Buffer<ffi::F32> cameras, ffi::ResultBuffer<ffi::S32> counts,
+                      ffi::ResultBuffer<ffi::U8> masks, ffi::ResultBuffer<ffi::S32> pcols,
+                      ffi::ResultBuffer<ffi::U8> ran, ffi::ResultBuffer<ffi::S32> positions,
+                      ffi::ResultBuffer<ffi::S32> records, ffi::ResultBuffer<ffi::S32> pairs,
+                      ffi::ResultBuffer<ffi::S32> yes, ffi::ResultBuffer<ffi::S32> sizes,
+                      ffi::ResultBuffer<ffi::U8> overflow, int32_t flags, int64_t n_roots, int64_t threads) {
+  PmxHierarchy h;
+  PMX_CHECK(Hierarchy(rows, kills, order, n_roots, &h));
+  const int64_t P = h.n_pcols;
+  auto vd = cameras.dimensions();
+  if (vd.size() != 2 || vd[1] != PMX_CAMERA)
+    return ffi::Error::InvalidArgument("cameras must have shape [K, " + std::to_string(PMX_CAMERA) + "], got " +
+                                       Shape(vd));
+  const int64_t K = vd[0];
+  std::vector<float> views(K * PMX_VIEW);
+  pmx_views_of(cameras.typed_data(), K, (flags & PMX_ORTHOGRAPHIC) != 0, views.data());
+  PMX_CHECK(Expect("counts", counts->dimensions(), {K, 4}));
+  PMX_CHECK(Expect("overflow", overflow->dimensions(), {K}));
+  const bool want_masks = masks->element_count() > 0;
+  if (want_masks) PMX_CHECK(Expect("masks", masks->dimensions(), {K, P}));
+  PmxLists lists{};
+  for (auto [name, dims] : {std::pair{"pcols", pcols->dimensions()}, std::pair{"ran", ran->dimensions()},
+                            std::pair{"positions", positions->dimensions()}}) {
+    auto wanted = ListWanted(name, dims, K, P);
+    if (wanted.has_error()) return wanted.error();
+  }
+  if (pcols->element_count()) lists.pcols = pcols->typed_data();
+  if (ran->element_count()) lists.ran = ran->typed_data();
+  if (positions->element_count()) lists.positions = positions->typed_data();
+  PMX_CHECK(CheckRecords(records->dimensions(), pairs->dimensions(), sizes->dimensions()));
+  PMX_CHECK(Expect("yes", yes->dimensions(), {pairs->dimensions()[0]}));
+  PmxRecords rec{records->typed_data(), records->dimensions()[0], 0};
+  static_assert(sizeof(PmxCounts) == 4 * sizeof(int32_t), "PmxCounts is four int32");
+  PmxRunner runner = Runner(pool, threads);
+  PMX_CHECK(Status(pmx_refine_many(&h, views.data(), K, flags, reinterpret_cast<PmxCounts*>(counts->typed_data()),
+                                   want_masks ? masks->typed_data() : nullptr, lists, &rec, overflow->typed_data(),
+                                   &runner),
+                   "refine_batch"));
+  Pairs(rec.records, rec.used, pairs->typed_data(), sizes->typed_data());
+  return ffi::Error::Success();
+}
+
+// ---- words of a path ---------------------------------------------------------
+// operands: rows, kills, order, cameras f32[W * 16, PMX_CAMERA]
+// results: counts s32[W * 16, 4], at_once s32[W], pcols s32[W, L], ran u16[W, L], positions s32[W, L],
+//          records s32[R], pairs s32[N, 4], yes s32[N] (room for the answers), sizes s32[2], overflow u8[W]
+ffi::Error RefineWords(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> rows, ffi::Buffer<ffi::S32> kills,
+                       ffi::Buffer<ffi::S32> order, ffi::Buffer<ffi::F32> cameras, ffi::ResultBuffer<ffi::S32> counts,
+                       ffi::ResultBuffer<ffi::S32> at_once, ffi::ResultBuffer<ffi::S32> pcols,
+                       ffi::ResultBuffer<ffi::U16> ran, ffi::ResultBuffer<ffi::S32> positions,
+                       ffi::ResultBuffer<ffi::S32> records, ffi::ResultBuffer<ffi::S32> pairs,
+                       ffi::ResultBuffer<ffi::S32> yes, ffi::ResultBuffer<ffi::S32> sizes,
+                       ffi::ResultBuffer<ffi::U8> overflow, int32_t flags, int64_t n_roots, int64_t threads) {
+  PmxHierarchy h;
+  PMX_CHECK(Hierarchy(rows, kills, order, n_roots, &h));
+  const int64_t P = h.n_pcols;
+  auto vd = cameras.dimensions();
+  if (vd.size() != 2 || vd[1] != PMX_CAMERA || vd[0] % PMX_FRAMES != 0)
+    return ffi::Error::InvalidArgument("cameras must have shape [W * 16, " + std::to_string(PMX_CAMERA) + "], got " +
+                                       Shape(vd));
+  const int64_t W = vd[0] / PMX_FRAMES;
+  std::vector<float> views(vd[0] * PMX_VIEW);
+  pmx_views_of(cameras.typed_data(), vd[0], (flags & PMX_ORTHOGRAPHIC) != 0, views.data());
+  PMX_CHECK(Expect("counts", counts->dimensions(), {W * PMX_FRAMES, 4}));
+  PMX_CHECK(Expect("at_once", at_once->dimensions(), {W}));
+  PMX_CHECK(Expect("overflow", overflow->dimensions(), {W}));
+  PmxLists lists{};
+  for (auto [name, dims] : {std::pair{"pcols", pcols->dimensions()}, std::pair{"ran", ran->dimensions()},
+                            std::pair{"positions", positions->dimensions()}}) {
+    auto wanted = ListWanted(name, dims, W, P);
+    if (wanted.has_error()) return wanted.error();
+  }
+  if (pcols->element_count()) lists.pcols = pcols->typed_data();
+  if (ran->element_count()) lists.ran_frames = ran->typed_data();
+  if (positions->element_count()) lists.positions = positions->typed_data();
+  PMX_CHECK(CheckRecords(records->dimensions(), pairs->dimensions(), sizes->dimensions()));
+  PMX_CHECK(Expect("yes", yes->dimensions(), {pairs->dimensions()[0]}));
+  PmxRecords rec{records->typed_data(), records->dimensions()[0], 0};
+  PmxRunner runner = Runner(pool, threads);
+  PMX_CHECK(Status(pmx_refine_words(&h, views.data(), W, flags,
+                                    reinterpret_cast<PmxCounts*>(counts->typed_data()), lists,
+                                    at_once->typed_data(), &rec, overflow->typed_data(), &runner),
+                   "path"));
+  Pairs(rec.records, rec.used, pairs->typed_data(), sizes->typed_data());
+  return ffi::Error::Success();
+}
+
+// ---- unsure pairs decided: counts, masks and lists corrected -----------------
+// operands: records s32[R], sizes s32[2], pairs s32[N, 4], yes s32[N], counts s32[M, 4],
+//           masks u8[K, P] or [0], ran (u8[K, L] for cameras, u16[W, L] for words, or [0]), order s32[P]
+// results: records, counts, masks, ran (each aliasing its operand)
+ffi::Error ApplyUnsure(ffi::Buffer<ffi::S32> records_in, ffi::Buffer<ffi::S32> sizes, ffi::Buffer<ffi::S32> pairs,
+                       ffi::Buffer<ffi::S32> yes, ffi::Buffer<ffi::S32> counts_in, ffi::Buffer<ffi::U8> masks_in,
+                       ffi::AnyBuffer ran_in, ffi::Buffer<ffi::S32> order, ffi::ResultBuffer<ffi::S32> records,
+                       ffi::ResultBuffer<ffi::S32> counts, ffi::ResultBuffer<ffi::U8> masks,
+                       ffi::Result<ffi::AnyBuffer> ran, int32_t frames) {
+  PMX_CHECK(CheckRecords(records_in.dimensions(), pairs.dimensions(), sizes.dimensions()));
+  const int64_t R = records_in.dimensions()[0], N = pairs.dimensions()[0];
+  PMX_CHECK(Expect("yes", yes.dimensions(), {N}));
+  if (frames != 1 && frames != PMX_FRAMES) return ffi::Error::InvalidArgument("frames must be 1 or 16");
+  const int64_t P = order.element_count();
+  auto cd = counts_in.dimensions();
+  if (cd.size() != 2 || cd[1] != 4 || cd[0] % frames != 0)
+    return ffi::Error::InvalidArgument("counts must have shape [M, 4], got " + Shape(cd));
+  const int64_t items = cd[0] / frames;
+  if (masks_in.element_count()) PMX_CHECK(Expect("masks", masks_in.dimensions(), {items, P}));
+  if (frames == PMX_FRAMES && masks_in.element_count())
+    return ffi::Error::InvalidArgument("words have no masks");
+  PmxLists lists{};
+  if (ran_in.element_count()) {
+    PMX_CHECK(Expect("ran", ran_in.dimensions(), {items, P + PMX_SPARE}));
+    const bool words = frames == PMX_FRAMES;
+    if (ran_in.element_type() != (words ? ffi::DataType::U16 : ffi::DataType::U8))
+      return ffi::Error::InvalidArgument(words ? "ran must be uint16 for words" : "ran must be uint8 for cameras");
+    if (words)
+      lists.ran_frames = reinterpret_cast<uint16_t*>(ran->untyped_data());
+    else
+      lists.ran = reinterpret_cast<uint8_t*>(ran->untyped_data());
+  }
+  // Results alias their operands; copy where XLA gave a separate buffer.
+  if (records->typed_data() != records_in.typed_data())
+    std::memcpy(records->typed_data(), records_in.typed_data(), sizeof(int32_t) * R);
+  if (counts->typed_data() != counts_in.typed_data())
+    std::memcpy(counts->typed_data(), counts_in.typed_data(), counts_in.size_bytes());
+  if (masks_in.element_count() && masks->typed_data() != masks_in.typed_data())
+    std::memcpy(masks->typed_data(), masks_in.typed_data(), masks_in.size_bytes());
+  if (ran_in.element_count() && ran->untyped_data() != ran_in.untyped_data())
+    std::memcpy(ran->untyped_data(), ran_in.untyped_data(), ran_in.size_bytes());
+  const int64_t used = sizes.typed_data()[0], n = sizes.typed_data()[1];
+  if (used < 0 || used > R || n < 0 || n > N) return ffi::Error::InvalidArgument("sizes do not fit the records");
+  const int32_t* p = pairs.typed_data();
+  std::vector<int64_t> at(n);
+  for (int64_t i = 0; i < n; ++i) {
+    at[i] = p[4 * i];
+    if (at[i] < 0 || at[i] >= used) return ffi::Error::InvalidArgument("pairs do not fit the records");
+  }
+  pmx_apply_unsure(records->typed_data(), used, at.data(), yes.typed_data(), n, frames,
+                   reinterpret_cast<PmxCounts*>(counts->typed_data()), order.typed_data(), P,
+                   masks_in.element_count() ? masks->typed_data() : nullptr, lists);
+  return ffi::Error::Success();
+}
+
+// ---- the mesh --------------------------------------------------------------------
+// operands: pcol_records s32[P, 14], kill_data s32[KD, 4], base s32[B, 4], tops s32[T, 5], top_at s32[T],
+//           ran (u8 [L] or [R, L]; or a path's u16 frame bits [R, L]) and positions s32 of the same shape,
+//           counts s32[C] or [M, C] (slots visited, not run, kept, ...: a refinement's counts), item s32[]:
+//           the refinement's row of counts; its lists are row item / 16 of words' (u16), item of cameras'
+//           (u8 [R, L]), and the frame bit item % 16.
+// results: faces s32[F, 3], ids s32[V0], vertex_positions f32[V0, 3], n_ids s32[]
+ffi::Error FrontMesh(ffi::Buffer<ffi::S32> pcol_records, ffi::Buffer<ffi::S32> kill_data,
+                     ffi::Buffer<ffi::S32> base, ffi::Buffer<ffi::S32> tops, ffi::Buffer<ffi::S32> top_at,
+                     ffi::AnyBuffer ran, ffi::Buffer<ffi::S32> positions, ffi::Buffer<ffi::S32> counts,
+                     ffi::Buffer<ffi::S32> item_of, ffi::ResultBuffer<ffi::S32> faces, ffi::ResultBuffer<ffi::S32> ids,
+                     ffi::ResultBuffer<ffi::F32> vertex_positions, ffi::ResultBuffer<ffi::S32> n_ids,
+                     int64_t n_original, int64_t n_faces_total) {
+  static_assert(sizeof(PmxPcolRecord) == 14 * 4 && sizeof(PmxFaceRecord) == 16 && sizeof(PmxFrontVertex) == 20,
+                "records of 4-byte fields");
+  auto pd = pcol_records.dimensions();
+  if (pd.size() != 2 || pd[1] != 14)
+    return ffi::Error::InvalidArgument("pcol_records must have shape [P, 14], got " + Shape(pd));
+  const int64_t P = pd[0], V0 = n_original, F = n_faces_total;
+  auto kd = kill_data.dimensions(), bd = base.dimensions(), td = tops.dimensions();
+  if (kd.size() != 2 || kd[1] != 4) return ffi::Error::InvalidArgument("kill_data must have shape [n, 4]");
+  if (bd.size() != 2 || bd[1] != 4) return ffi::Error::InvalidArgument("base must have shape [n, 4]");
+  if (td.size() != 2 || td[1] != 5) return ffi::Error::InvalidArgument("tops must have shape [n, 5]");
+  PMX_CHECK(Expect("top_at", top_at.dimensions(), {td[0]}));
+  if (V0 < 0 || F < 0 || kd[0] + bd[0] > F)
+    return ffi::Error::InvalidArgument("the mesh's records do not fit its faces");
+  PMX_CHECK(Expect("faces", faces->dimensions(), {F, 3}));
+  PMX_CHECK(Expect("ids", ids->dimensions(), {V0}));
+  PMX_CHECK(Expect("vertex_positions", vertex_positions->dimensions(), {V0, 3}));
+  auto rd = ran.dimensions(), qd = positions.dimensions(), cd = counts.dimensions();
+  if (rd.size() != qd.size() || !std::equal(rd.begin(), rd.end(), qd.begin()) || rd.size() < 1 || rd.size() > 2)
+    return ffi::Error::InvalidArgument("ran and positions must have the same shape, [L] or [R, L]; got " +
+                                       Shape(rd) + " and " + Shape(qd));
+  if (cd.size() < 1 || cd.size() > 2 || cd.back() < 4)
+    return ffi::Error::InvalidArgument("counts must be [C] or [M, C] with C >= 4, got " + Shape(cd));
+  const bool words = ran.element_type() == ffi::DataType::U16;
+  if (!words && ran.element_type() != ffi::DataType::U8 && ran.element_type() != ffi::DataType::PRED)
+    return ffi::Error::InvalidArgument("ran must be uint8 (cameras) or uint16 (words' frames)");
+  const int64_t item = item_of.typed_data()[0], items = cd.size() == 2 ? cd[0] : 1;
+  const int64_t rows = rd.size() == 2 ? rd[0] : 1, L = rd.back();
+  const int64_t row = words ? item / PMX_FRAMES : item;
+  if (item < 0 || item >= items || row >= rows) return ffi::Error::InvalidArgument("item outside the counts or lists");
+  const int32_t* c = counts.typed_data() + cd.back() * item;
+  const int64_t n = c[0], nf = bd[0] + c[2];
+  if (n < 0 || n > L || n > P) return ffi::Error::InvalidArgument("counts: the slots do not fit the lists");
+  if (nf < 0 || nf > F) return ffi::Error::InvalidArgument("counts: the faces do not fit the mesh");
+  const uint8_t* ran8 = words ? nullptr : reinterpret_cast<const uint8_t*>(ran.untyped_data()) + row * L;
+  const uint16_t* ran16 = words ? reinterpret_cast<const uint16_t*>(ran.untyped_data()) + row * L : nullptr;
+  const int frame = words ? static_cast<int>(item % PMX_FRAMES) : -1;
+  const int32_t* at = positions.typed_data() + row * L;
+  for (int64_t i = 0; i < n; ++i)
+    if (at[i] < 0 || at[i] >= P) return ffi::Error::InvalidArgument("positions outside the hierarchy");
+  PmxMeshTables m{reinterpret_cast<const PmxPcolRecord*>(pcol_records.typed_data()),
+                  reinterpret_cast<const PmxFaceRecord*>(kill_data.typed_data()),
+                  reinterpret_cast<const PmxFaceRecord*>(base.typed_data()),
+                  reinterpret_cast<const PmxFrontVertex*>(tops.typed_data()),
+                  top_at.typed_data(),
+                  kd[0],
+                  bd[0],
+                  td[0],
+                  V0,
+                  P,
+                  F};
+  Scratch s(P);
+  if (!s.s) return Status(PMX_NO_MEMORY, "mesh");
+  int64_t count = 0;
+  PMX_CHECK(Status(pmx_front_mesh(&m, ran8, ran16, frame, at, n, nf, faces->typed_data(), ids->typed_data(),
+                                  vertex_positions->typed_data(), &count, s.s),
+                   "mesh"));
+  n_ids->typed_data()[0] = static_cast<int32_t>(count);
+  return ffi::Error::Success();
+}
+
+// ---- checks and the tests' whole-table passes ----------------------------------
+// operands: rows, kills, order; results: status s32[] (0)
+ffi::Error CheckHierarchy(ffi::Buffer<ffi::F32> rows, ffi::Buffer<ffi::S32> kills, ffi::Buffer<ffi::S32> order,
+                          ffi::ResultBuffer<ffi::S32> status, int64_t n_roots) {
+  PmxHierarchy h;
+  PMX_CHECK(Hierarchy(rows, kills, order, n_roots, &h));
+  PMX_CHECK(Status(pmx_check_hierarchy(&h), "hierarchy"));
+  status->typed_data()[0] = 0;
+  return ffi::Error::Success();
+}
+
+// operands: cameras f32[K, PMX_CAMERA]; results: views f32[K, 22]
+ffi::Error Views(ffi::Buffer<ffi::F32> cameras, ffi::ResultBuffer<ffi::F32> views, int32_t orthographic) {
+  auto dims = cameras.dimensions();
+  if (dims.size() != 2 || dims[1] != PMX_CAMERA)
+    return ffi::Error::InvalidArgument("cameras must have shape [K, " + std::to_string(PMX_CAMERA) + "], got " +
+                                       Shape(dims));
+  PMX_CHECK(Expect("views", views->dimensions(), {dims[0], PMX_VIEW}));
+  pmx_views_of(cameras.typed_data(), dims[0], orthographic != 0, views->typed_data());
+  return ffi::Error::Success();
+}
+
+// operands: rows f32[P, 16], view f32[22]; results: out u8[P]
+ffi::Error DecideAll(ffi::Buffer<ffi::F32> rows, ffi::Buffer<ffi::F32> view, ffi::ResultBuffer<ffi::U8> out,
+                     int32_t flags) {
+  auto dims = rows.dimensions();
+  if (dims.size() != 2 || dims[1] != PMX_ROW) return ffi::Error::InvalidArgument("rows must have shape [P, 16]");
+  PMX_CHECK(Expect("view", view.dimensions(), {PMX_VIEW}));
+  PMX_CHECK(Expect("out", out->dimensions(), {dims[0]}));
+  pmx_decide_all(rows.typed_data(), dims[0], view.typed_data(), flags, out->typed_data());
+  return ffi::Error::Success();
+}
+
+// operands: views f32[W, F, 22]; results: out f32[W, 29]
+ffi::Error FatCameras(ffi::Buffer<ffi::F32> views, ffi::ResultBuffer<ffi::F32> out) {
+  auto dims = views.dimensions();
+  if (dims.size() != 3 || dims[2] != PMX_VIEW || dims[1] < 1 || dims[1] > 64)
+    return ffi::Error::InvalidArgument("views must have shape [W, F, 22] with 1 <= F <= 64, got " + Shape(dims));
+  PMX_CHECK(Expect("out", out->dimensions(), {dims[0], PMX_FAT}));
+  return Status(pmx_fat_cameras(views.typed_data(), dims[0], static_cast<int>(dims[1]), out->typed_data()),
+                "fat cameras");
+}
+
+// operands: rows f32[P, 16], views f32[F, 22], fat f32[29]; results: out u8[P]
+ffi::Error DecideFatAll(ffi::Buffer<ffi::F32> rows, ffi::Buffer<ffi::F32> views, ffi::Buffer<ffi::F32> fat,
+                        ffi::ResultBuffer<ffi::U8> out, int32_t flags) {
+  auto dims = rows.dimensions(), vd = views.dimensions();
+  if (dims.size() != 2 || dims[1] != PMX_ROW) return ffi::Error::InvalidArgument("rows must have shape [P, 16]");
+  if (vd.size() != 2 || vd[1] != PMX_VIEW || vd[0] < 1 || vd[0] > PMX_FRAMES)
+    return ffi::Error::InvalidArgument("views must have shape [F, 22] with 1 <= F <= 16, got " + Shape(vd));
+  PMX_CHECK(Expect("fat", fat.dimensions(), {PMX_FAT}));
+  PMX_CHECK(Expect("out", out->dimensions(), {dims[0]}));
+  pmx_decide_fat_all(rows.typed_data(), dims[0], views.typed_data(), static_cast<int>(vd[0]), flags,
+                     fat.typed_data(), out->typed_data());
+  return ffi::Error::Success();
+}
+
+}  // namespace
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxRefineOne, RefineOne,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::U8>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Attr<int32_t>("flags")
+                                  .Attr<int64_t>("n_roots"));
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxRefineAnswered, RefineAnswered,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::U8>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::U8>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Attr<int32_t>("flags")
+                                  .Attr<int64_t>("n_roots"));
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxRefineMany, RefineMany,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::U8>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::U8>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::U8>>()
+                                  .Attr<int32_t>("flags")
+                                  .Attr<int64_t>("n_roots")
+                                  .Attr<int64_t>("threads"));
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxRefineWords, RefineWords,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::U16>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::U8>>()
+                                  .Attr<int32_t>("flags")
+                                  .Attr<int64_t>("n_roots")
+                                  .Attr<int64_t>("threads"));
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxApplyUnsure, ApplyUnsure,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::U8>>()
+                                  .Arg<ffi::AnyBuffer>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::U8>>()
+                                  .Ret<ffi::AnyBuffer>()
+                                  .Attr<int32_t>("frames"));
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxFrontMesh, FrontMesh,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::AnyBuffer>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::F32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Attr<int64_t>("n_original")
+                                  .Attr<int64_t>("n_faces_total"));
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxCheckHierarchy, CheckHierarchy,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Attr<int64_t>("n_roots"));
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxViews, Views,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Ret<ffi::Buffer<ffi::F32>>()
+                                  .Attr<int32_t>("orthographic"));
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxDecideAll, DecideAll,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Ret<ffi::Buffer<ffi::U8>>()
+                                  .Attr<int32_t>("flags"));
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxFatCameras, FatCameras,
+                              ffi::Ffi::Bind().Arg<ffi::Buffer<ffi::F32>>().Ret<ffi::Buffer<ffi::F32>>());
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxDecideFatAll, DecideFatAll,
+                              ffi::Ffi::Bind()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Ret<ffi::Buffer<ffi::U8>>()
+                                  .Attr<int32_t>("flags"));
+
+// ---- the Python module ------------------------------------------------------------
+
+namespace {
+
+PyObject* Targets(PyObject*, PyObject*) {
+  struct {
+    const char* name;
+    void* fn;
+  } targets[] = {{"pmx_refine_one", reinterpret_cast<void*>(PmxRefineOne)},
+                 {"pmx_refine_answered", reinterpret_cast<void*>(PmxRefineAnswered)},
+                 {"pmx_refine_many", reinterpret_cast<void*>(PmxRefineMany)},
+                 {"pmx_refine_words", reinterpret_cast<void*>(PmxRefineWords)},
+                 {"pmx_apply_unsure", reinterpret_cast<void*>(PmxApplyUnsure)},
+                 {"pmx_front_mesh", reinterpret_cast<void*>(PmxFrontMesh)},
+                 {"pmx_check_hierarchy", reinterpret_cast<void*>(PmxCheckHierarchy)},
+                 {"pmx_views", reinterpret_cast<void*>(PmxViews)},
+                 {"pmx_decide_all", reinterpret_cast<void*>(PmxDecideAll)},
+                 {"pmx_fat_cameras", reinterpret_cast<void*>(PmxFatCameras)},
+                 {"pmx_decide_fat_all", reinterpret_cast<void*>(PmxDecideFatAll)}};
+  PyObject* out = PyDict_New();
+  if (!out) return nullptr;
+  for (auto& t : targets) {
+    PyObject* capsule = PyCapsule_New(t.fn, nullptr, nullptr);
+    if (!capsule || PyDict_SetItemString(out, t.name, capsule) < 0) {
+      Py_XDECREF(capsule);
+      Py_DECREF(out);
+      return nullptr;
+    }
+    Py_DECREF(capsule);
+  }
+  return out;
+}
+
+PyObject* Simd(PyObject*, PyObject* args) {
+  int level = -1;
+  if (!PyArg_ParseTuple(args, "|i", &level)) return nullptr;
+  return PyLong_FromLong(pmx_simd(level));
+}
+
+PyObject* SimdBest(PyObject*, PyObject*) { return PyLong_FromLong(pmx_simd_best()); }
+
+PyObject* Layout(PyObject*, PyObject*) {
+  return Py_BuildValue("{s:i,s:i,s:i,s:i,s:i,s:i,s:i,s:i,s:i,s:i,s:i}", "row", PMX_ROW, "view", PMX_VIEW, "camera",
+                       PMX_CAMERA, "frames",
+                       PMX_FRAMES, "fat", PMX_FAT, "node", PMX_NODE, "spare", PMX_SPARE, "max_pcols", PMX_MAX_PCOLS,
+                       "pcol_record", int(sizeof(PmxPcolRecord) / 4), "face_record", int(sizeof(PmxFaceRecord) / 4),
+                       "front_vertex", int(sizeof(PmxFrontVertex) / 4));
+}
+
+PyObject* Drain(PyObject*, PyObject*) {
+  pmx_scratch_drain();
+  Py_RETURN_NONE;
+}
+
+PyMethodDef methods[] = {
+    {"targets", Targets, METH_NOARGS, "The XLA FFI targets of the core: {name: PyCapsule of the handler}."},
+    {"simd", Simd, METH_VARARGS,
+     "simd(level=-1): the SIMD kernels in use before; level >= 0 switches to the best up to it (0 plain, 1 AVX2, "
+     "2 AVX-512)."},
+    {"simd_best", SimdBest, METH_NOARGS, "The best SIMD kernels this processor has (0 plain, 1 AVX2, 2 AVX-512)."},
+    {"layout", Layout, METH_NOARGS, "The core's layout constants (pmx.h)."},
+    {"drain", Drain, METH_NOARGS, "Frees the scratch the core keeps between calls."},
+    {nullptr, nullptr, 0, nullptr}};
+
+PyModuleDef module = {PyModuleDef_HEAD_INIT, "_pmx", "The front engine's C core as XLA FFI targets (pmx.h).", -1,
+                      methods, nullptr, nullptr, nullptr, nullptr};
+
+}  // namespace
+
+PyMODINIT_FUNC PyInit__pmx(void) { return PyModule_Create(&module); }

@@ -1,0 +1,194 @@
+/* The refined mesh read off the front: cost proportional to the faces drawn.
+ *
+ * A face is drawn when its killer did not run: a base face (no killer) or
+ * one that a visited pcol that did not run would kill. The front, the
+ * vertices drawn, is read off the same pcols: a child vertex of a pcol that
+ * did not run is on the front if it is original or its own pcol ran; so is
+ * the vertex of a root that ran, and an original vertex nothing consumes.
+ * With the original vertices numbered in depth-first order of the forest,
+ * the ones below any vertex form an interval, and the front's intervals tile
+ * [0, V0): a corner's representative is the front vertex whose interval
+ * holds the corner's position. */
+#include "internal.h"
+
+PMX_INLINE void set_bit(uint64_t *bits, int64_t i) { bits[i >> 6] |= (uint64_t)1 << (i & 63); }
+
+/* Rank of bit i among the set bits (bit i set): set bits before word i/64
+ * (prefix[]) plus those below it in its word. */
+PMX_INLINE int64_t rank_of(const uint64_t *bits, const int32_t *prefix, int64_t i)
+{
+    uint64_t below = bits[i >> 6] & ((((uint64_t)2) << (i & 63)) - 1);
+    return prefix[i >> 6] + __builtin_popcountll(below) - 1;
+}
+
+PMX_INLINE void prefix_counts(const uint64_t *bits, int64_t words, int32_t *prefix)
+{
+    int32_t total = 0;
+    for (int64_t w = 0; w < words; w++) {
+        prefix[w] = total;
+        total += __builtin_popcountll(bits[w]);
+    }
+}
+
+/* The refined mesh from the pcols that did not run:
+ * drawn faces are the base faces and those pcols' kill lists; each corner's
+ * representative is the front vertex whose depth-first interval holds the
+ * corner's position. Every order and index comes from a rank in a bitmap
+ * (faces, front starts, vertex ids), so that besides those small bitmaps a
+ * pcol that did not run costs one record and its kill data, and nothing reads
+ * an array over all faces or vertices at random.
+ *
+ * ran (or bit `frame` of ran_frames), positions: whether each of a
+ * refinement's n visited slots ran, and their positions, the index of the
+ * pcol records (breadth-first, so that the records are read in nearly
+ * increasing order). Writes faces [n_faces_drawn, 3] (indices into ids and
+ * vertex_positions, faces in increasing order), ids and vertex_positions
+ * (the vertices used, by increasing id; *n_ids of them). PMX_FACES_DIFFER
+ * (and no mesh) if the faces found are not n_faces_drawn.
+ *
+ * Scratch (scratch_mesh): mark [P] bytes (by breadth-first position),
+ * start_bits [V0/64+1], face_bits [F/64+1], vertex_bits [(V0+P)/64+1] words
+ * (zero on entry and on return); start_prefix, face_prefix, vertex_prefix
+ * int32 as their bitmaps; front [V0 + 1] (the vertices not kept are written
+ * one slot past the front), sorted [V0]; drawn [F]; front_index [V0]. */
+PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran, const uint16_t *ran_frames,
+                                     int frame, const int32_t *positions, int64_t n, int64_t n_faces_drawn,
+                                     int32_t *faces, int32_t *ids, float *vertex_positions, int64_t *n_ids,
+                                     PmxScratch *s)
+{
+    const int64_t V0 = m->n_original, n_pcols = m->n_pcols, n_faces_total = m->n_faces;
+    const int64_t start_words = V0 / 64 + 1, face_words = n_faces_total / 64 + 1;
+    const int64_t vertex_words = (V0 + n_pcols) / 64 + 1;
+    /* The records and kill lists of the pcols that did not run are sparse in
+     * arrays far larger than the cache, so each is a miss: requested
+     * MESH_AHEAD pcols early, the misses overlap. */
+    const int64_t MESH_AHEAD = 16;
+    /* Without branches: whether a visited pcol ran is a coin toss to the
+     * branch predictor. Every slot is written, the count advances on those
+     * that did not run (mark is zero on entry, so a pcol that ran keeps 0). */
+    int64_t n_not_run = 0;
+    for (int64_t i = 0; i < n; i++) {
+        const int32_t at = positions[i];
+        const uint8_t not_ran = ran ? !ran[i] : !((ran_frames[i] >> frame) & 1);
+        s->not_run_at[n_not_run] = at;
+        n_not_run += not_ran;
+        s->mark[at] = not_ran;
+    }
+    /* The front and the drawn faces. Below each pcol that did not run: its
+     * vertices that are original or whose own pcol ran, and its kill list. */
+    int64_t n_front = 0, n_drawn = 0;
+    for (int64_t i = 0; i < n_not_run; i++) {
+        if (i + MESH_AHEAD < n_not_run)
+            __builtin_prefetch(m->pcols + s->not_run_at[i + MESH_AHEAD]);
+        if (i + MESH_AHEAD / 2 < n_not_run) /* its record was requested MESH_AHEAD / 2 steps ago */
+            __builtin_prefetch(m->kill_data + m->pcols[s->not_run_at[i + MESH_AHEAD / 2]].kill_first);
+        const PmxPcolRecord *r = m->pcols + s->not_run_at[i];
+        for (int j = 0; j < 2; j++) {
+            /* Without branches too: the vertex is written, and kept when it is
+             * original or its own pcol ran. */
+            const int32_t made = r->made_at[j];
+            const int kept = (made < 0) | !s->mark[made < 0 ? 0 : made];
+            PmxFrontVertex *f = s->front + n_front;
+            f->start = r->start[j];
+            f->vertex = r->vertex[j];
+            memcpy(f->position, r->position[j], sizeof f->position);
+            n_front += kept;
+            s->start_bits[r->start[j] >> 6] |= (uint64_t)kept << (r->start[j] & 63);
+        }
+        for (int32_t j = 0; j < r->kill_count; j++) {
+            s->drawn[n_drawn] = m->kill_data[r->kill_first + j];
+            set_bit(s->face_bits, s->drawn[n_drawn].face);
+            n_drawn++;
+        }
+    }
+    /* The tops: the roots that ran (top_at >= 0) and the lone originals. */
+    for (int64_t i = 0; i < m->n_tops; i++)
+        if (m->top_at[i] < 0 || !s->mark[m->top_at[i]]) {
+            s->front[n_front++] = m->tops[i];
+            set_bit(s->start_bits, m->tops[i].start);
+        }
+    for (int64_t i = 0; i < m->n_base; i++)
+        set_bit(s->face_bits, m->base[i].face);
+    const int64_t total = n_drawn + m->n_base;
+    /* The front in depth-first order: each vertex goes to the rank of its start. */
+    prefix_counts(s->start_bits, start_words, s->start_prefix);
+    for (int64_t i = 0; i < n_front; i++)
+        s->sorted[rank_of(s->start_bits, s->start_prefix, s->front[i].start)] = s->front[i];
+    /* Each drawn face at its rank; each corner first the rank of the front
+     * vertex holding it (s->front_index: -1 unused, 0 used). */
+    int64_t n_id_count = 0;
+    if (total == n_faces_drawn) {
+        memset(s->front_index, 0xff, sizeof(int32_t) * (size_t)n_front);
+        prefix_counts(s->face_bits, face_words, s->face_prefix);
+        for (int64_t i = 0; i < total; i++) {
+            const PmxFaceRecord *f = i < n_drawn ? s->drawn + i : m->base + (i - n_drawn);
+            int32_t *row = faces + 3 * rank_of(s->face_bits, s->face_prefix, f->face);
+            for (int c = 0; c < 3; c++) {
+                int32_t k = (int32_t)rank_of(s->start_bits, s->start_prefix, f->start[c]);
+                row[c] = k;
+                s->front_index[k] = 0;
+            }
+        }
+        /* The vertices used in increasing id order (the ids' bitmap), each
+         * front vertex's output index, then the corners through it. */
+        for (int64_t k = 0; k < n_front; k++)
+            if (s->front_index[k] == 0)
+                set_bit(s->vertex_bits, s->sorted[k].vertex);
+        prefix_counts(s->vertex_bits, vertex_words, s->vertex_prefix);
+        for (int64_t k = 0; k < n_front; k++)
+            if (s->front_index[k] == 0) {
+                int64_t out = rank_of(s->vertex_bits, s->vertex_prefix, s->sorted[k].vertex);
+                s->front_index[k] = (int32_t)out;
+                ids[out] = s->sorted[k].vertex;
+                memcpy(vertex_positions + 3 * out, s->sorted[k].position, 3 * sizeof(float));
+                n_id_count++;
+            }
+        for (int64_t i = 0; i < 3 * n_faces_drawn; i++)
+            faces[i] = s->front_index[faces[i]];
+    }
+    /* Leave the scratch as found. */
+    for (int64_t i = 0; i < n_not_run; i++)
+        s->mark[s->not_run_at[i]] = 0;
+    memset(s->start_bits, 0, sizeof(uint64_t) * (size_t)start_words);
+    memset(s->face_bits, 0, sizeof(uint64_t) * (size_t)face_words);
+    memset(s->vertex_bits, 0, sizeof(uint64_t) * (size_t)vertex_words);
+    *n_ids = n_id_count;
+    return total == n_faces_drawn ? PMX_OK : PMX_FACES_DIFFER;
+}
+
+/* The level wrappers: popcount in one instruction where the processor has it. */
+PmxStatus front_mesh_plain(const PmxMeshTables *m, const uint8_t *ran, const uint16_t *ran_frames, int frame,
+                           const int32_t *positions, int64_t n, int64_t n_faces_drawn, int32_t *faces, int32_t *ids,
+                           float *vertex_positions, int64_t *n_ids, PmxScratch *s)
+{
+    return front_mesh_body(m, ran, ran_frames, frame, positions, n, n_faces_drawn, faces, ids, vertex_positions, n_ids,
+                           s);
+}
+#if PMX_X86
+PMX_TARGET_AVX2 PmxStatus front_mesh_avx2(const PmxMeshTables *m, const uint8_t *ran, const uint16_t *ran_frames,
+                                          int frame, const int32_t *positions, int64_t n, int64_t n_faces_drawn,
+                                          int32_t *faces, int32_t *ids, float *vertex_positions, int64_t *n_ids,
+                                          PmxScratch *s)
+{
+    return front_mesh_body(m, ran, ran_frames, frame, positions, n, n_faces_drawn, faces, ids, vertex_positions, n_ids,
+                           s);
+}
+PMX_TARGET_AVX512 PmxStatus front_mesh_avx512(const PmxMeshTables *m, const uint8_t *ran, const uint16_t *ran_frames,
+                                              int frame, const int32_t *positions, int64_t n, int64_t n_faces_drawn,
+                                              int32_t *faces, int32_t *ids, float *vertex_positions, int64_t *n_ids,
+                                              PmxScratch *s)
+{
+    return front_mesh_body(m, ran, ran_frames, frame, positions, n, n_faces_drawn, faces, ids, vertex_positions, n_ids,
+                           s);
+}
+#endif
+
+PmxStatus pmx_front_mesh(const PmxMeshTables *m, const uint8_t *ran, const uint16_t *ran_frames, int frame,
+                         const int32_t *positions, int64_t n, int64_t n_faces_drawn, int32_t *faces, int32_t *ids,
+                         float *vertex_positions, int64_t *n_ids, PmxScratch *s)
+{
+    if (!scratch_slots(s) || !scratch_mesh(s, m->n_original, m->n_faces))
+        return PMX_NO_MEMORY;
+    return pmx_kernels()->front_mesh(m, ran, ran_frames, frame, positions, n, n_faces_drawn, faces, ids,
+                                     vertex_positions, n_ids, s);
+}

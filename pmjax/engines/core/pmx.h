@@ -1,0 +1,225 @@
+/* pmx: the front engine's core, the output-sensitive refinement of a
+ * progressive mesh as plain C loops (docs/front.md).
+ *
+ * The core reads a hierarchy laid out for it (PmxHierarchy: one 64-byte row
+ * per pcol in the breadth-first order of the pcol forest), decides pcols for
+ * one camera or many, and writes counts, lists, masks and meshes into
+ * buffers the caller owns, each with its capacity. Its decisions are the
+ * float32 predicate's bits: a decision the core cannot certify is left
+ * "unsure" and the caller asks the float32 predicate (answers, records).
+ *
+ * Every function is reentrant: working memory comes from pmx_scratch_take
+ * (a pool, one scratch per concurrent call) and the only globals are the
+ * SIMD kernels chosen once (pmx_simd). No function calls back into Python.
+ *
+ * Errors: the functions that can meet bad input return a PmxStatus; the
+ * message of a status is pmx_status_text.
+ */
+#ifndef PMX_H
+#define PMX_H
+
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* Layout constants shared with pmjax/engines (the Python side asserts them
+ * through pmx_layout). */
+enum {
+    PMX_ROW = 16,       /* float32 per table row */
+    PMX_VIEW = 22,      /* float32 per view (pmjax/_view.py View.values) */
+    PMX_CAMERA = 19,    /* float32 per camera: eye 3, rotation 9 (row-major), fov_y, near, far, ortho_height,
+                           width, height, tau */
+    PMX_FRAMES = 16,    /* frames of a word (one bit each) */
+    PMX_FAT = 29,       /* float32 per fat camera */
+    PMX_NODE = 12,      /* int32 per node of an unsure record */
+    PMX_SPARE = 16,     /* room past n_pcols in every list (the loops store whole vectors) */
+    PMX_MAX_PCOLS = 1 << 29
+};
+
+/* Tests of a call. */
+enum { PMX_FRUSTUM = 1, PMX_ORIENTATION = 2, PMX_SCREEN = 4, PMX_ORTHOGRAPHIC = 8 };
+
+/* SIMD kernels (pmx_simd). */
+enum { PMX_SIMD_PLAIN = 0, PMX_SIMD_AVX2 = 1, PMX_SIMD_AVX512 = 2 };
+
+typedef enum {
+    PMX_OK = 0,
+    PMX_BAD_SIZE,      /* a size or capacity that does not fit the hierarchy */
+    PMX_BAD_TABLE,     /* a row's children outside the table */
+    PMX_NO_MEMORY,     /* scratch could not be allocated */
+    PMX_FACES_DIFFER   /* a mesh whose faces are not the refinement's count */
+} PmxStatus;
+
+const char *pmx_status_text(PmxStatus status);
+
+/* The hierarchy in breadth-first order of its forest: position q holds pcol
+ * order[q]; the roots are positions 0 .. n_roots - 1 and the created children
+ * of a position sit side by side at a later position. rows[q] holds the
+ * pcol's attributes and the bounds over the pcols below it (columns: centre 3,
+ * axis 3, radius, sin, cos, delta, mu, reach, spread, facing, error) and, as
+ * int32 bits in the last column, KIDS: kills != 2 << 31 | first child's
+ * position << 2 | number of created children. */
+typedef struct {
+    const float *rows;     /* [n_pcols, PMX_ROW], 64-byte aligned rows */
+    const int32_t *kills;  /* [n_pcols] faces each position's pcol kills */
+    const int32_t *order;  /* [n_pcols] pcol at each position */
+    int64_t n_pcols, n_roots;
+} PmxHierarchy;
+
+/* O(n_pcols) check of a hierarchy's links (every child inside the table,
+ * after its parent, every position reached once). */
+PmxStatus pmx_check_hierarchy(const PmxHierarchy *h);
+
+/* Working memory for calls on hierarchies of up to n_pcols pcols, taken
+ * from a pool and given back (the pool keeps it for the next call of any
+ * thread; its parts are allocated when a call first needs them). NULL when
+ * out of memory. */
+typedef struct PmxScratch PmxScratch;
+PmxScratch *pmx_scratch_take(int64_t n_pcols);
+void pmx_scratch_give(PmxScratch *s);
+void pmx_scratch_drain(void); /* frees the pool's idle scratch */
+
+/* How a call runs helpers: schedule(ctx, task, arg) runs task(arg) some time
+ * later on another thread (or at once on this one); threads: how many
+ * threads may work on the call, this one included (1: no helper). */
+typedef struct {
+    void (*schedule)(void *ctx, void (*task)(void *), void *arg);
+    void *ctx;
+    int64_t threads;
+} PmxRunner;
+
+/* One camera's visited slots, each list with room for n_pcols + PMX_SPARE
+ * entries (any pointer may be NULL): the pcol of each slot, whether it ran
+ * (0/1; for a word, ran_frames: one bit per frame) and its position. In a
+ * batch, item k's lists start at k * (n_pcols + PMX_SPARE). */
+typedef struct {
+    int32_t *pcols;
+    uint8_t *ran;
+    uint16_t *ran_frames;
+    int32_t *positions;
+} PmxLists;
+
+/* Counts of one camera (or frame): slots visited, pcols that did not run,
+ * the faces those keep, unsure decisions taken as "keep". */
+typedef struct {
+    int32_t visited, not_run, kept, unsure;
+} PmxCounts;
+
+/* One camera (view: PMX_VIEW floats) with the SIMD kernels of `level` (-1:
+ * those in use; *level_used: the level run). An unsure decision at position q
+ * takes answers[i] (non-zero: collapse) where answered[i] == q (answered:
+ * n_answered positions, increasing); one not answered is taken as "keep",
+ * listed by position in unsure (room for n_pcols; may be NULL; increasing)
+ * and counted in counts->unsure. The traversal visits the same slots whatever
+ * the own decisions, so a second call at the same level with the first's
+ * unsure positions answered is exact. */
+PmxStatus pmx_refine_one(const PmxHierarchy *h, const float *view, int flags, int level, const int32_t *answered,
+                         const int32_t *answers, int64_t n_answered, PmxLists lists, int32_t *unsure,
+                         PmxCounts *counts, int *level_used, PmxScratch *s);
+
+/* Records of unsure decisions: a camera (or word) whose decisions include
+ * unsure ones is counted as if each were "keep" and leaves a record: [item,
+ * nodes], then PMX_NODE int32 per node (the unsure slots and their ancestors,
+ * children first), so that once the unsure pairs are decided the counts can
+ * be corrected without another traversal (pmx_apply_unsure). Records go to
+ * records[0 .. capacity); *used of them are used; an item whose record does
+ * not fit is flagged in overflow[] (refine it alone with pmx_refine_one). */
+typedef struct {
+    int32_t *records;
+    int64_t capacity;
+    int64_t used;
+} PmxRecords;
+
+/* K cameras (views [K, PMX_VIEW]); counts[k]; masks [K, n_pcols] executed
+ * bytes and lists optional (NULL). The runner's threads take the cameras in
+ * Morton order of their eyes (nearby cameras share cache lines). */
+PmxStatus pmx_refine_many(const PmxHierarchy *h, const float *views, int64_t K, int flags, PmxCounts *counts,
+                          uint8_t *masks, PmxLists lists, PmxRecords *records, uint8_t *overflow,
+                          const PmxRunner *run);
+
+/* Words of PMX_FRAMES consecutive frames of a path (views [W * PMX_FRAMES,
+ * PMX_VIEW]; a word's spare frames repeat one of its own): each word
+ * traversed once for its frames, most pcols decided for all of them at once
+ * under a fat camera. counts[w * PMX_FRAMES + l] for frame l of word w;
+ * lists (ran_frames the frames' bits) optional; at_once[w] (optional):
+ * the slots the fat camera decided. */
+PmxStatus pmx_refine_words(const PmxHierarchy *h, const float *views, int64_t W, int flags, PmxCounts *counts,
+                           PmxLists lists, int32_t *at_once, PmxRecords *records, uint8_t *overflow,
+                           const PmxRunner *run);
+
+/* The unsure pairs of records: per unsure node its place in records (at),
+ * item, position and unsure frames (bit l: frame l; 1 for a camera).
+ * Returns their number (at most used / PMX_NODE). */
+int64_t pmx_unsure_pairs(const int32_t *records, int64_t used, int64_t *at, int32_t *item, int32_t *position,
+                         int32_t *frames);
+
+/* Sets yes[i] (bits of the frames whose decision is collapse) at records[at[i]]
+ * for the n pairs, resolves the records' chains again and corrects the
+ * counts of their items (frames: PMX_FRAMES for words, 1 for cameras;
+ * counts of item k's frame l at k * frames + l), masks and lists as the
+ * pcols turn executed. */
+void pmx_apply_unsure(int32_t *records, int64_t used, const int64_t *at, const int32_t *yes, int64_t n,
+                      int frames, PmxCounts *counts, const int32_t *order, int64_t n_pcols, uint8_t *masks,
+                      PmxLists lists);
+
+/* Every pcol of rows [n_pcols, PMX_ROW] under one view: its own decision
+ * (0 keep, 1 collapse, 2 unsure) | 4 where its bound decides everything below. */
+void pmx_decide_all(const float *rows, int64_t n_pcols, const float *view, int flags, uint8_t *out);
+
+/* The fat cameras of n_words words of n_frames frames (views [W, F,
+ * PMX_VIEW]) into out [W, PMX_FAT]; NaN where not finite. */
+PmxStatus pmx_fat_cameras(const float *views, int64_t n_words, int n_frames, float *out);
+
+/* Every pcol under the fat camera of n_frames frames: 0 open, 1 every
+ * frame's subtree collapses, 2 no frame collapses it; all 0 where the fat
+ * camera does not apply. */
+void pmx_decide_fat_all(const float *rows, int64_t n_pcols, const float *views, int n_frames, int flags,
+                        const float *fat, uint8_t *out);
+
+/* The mesh's records for pmx_front_mesh (one per pcol by position, per killed
+ * face in kill order, per base face, per top). All fields 4 bytes. */
+typedef struct {
+    int32_t kill_first, kill_count, vertex[2], start[2], made_at[2];
+    float position[2][3];
+} PmxPcolRecord;
+typedef struct {
+    int32_t face, start[3];
+} PmxFaceRecord;
+typedef struct {
+    int32_t start, vertex;
+    float position[3];
+} PmxFrontVertex;
+
+typedef struct {
+    const PmxPcolRecord *pcols; /* [n_pcols] by position */
+    const PmxFaceRecord *kill_data;
+    const PmxFaceRecord *base;
+    const PmxFrontVertex *tops;
+    const int32_t *top_at;      /* [n_tops] the top's position, -1 for a lone original */
+    int64_t n_kill_data, n_base, n_tops, n_original, n_pcols, n_faces;
+} PmxMeshTables;
+
+/* The refined mesh of a refinement's visited slots (ran, positions: n of
+ * them): faces [n_faces_drawn, 3] as indices into ids/positions (the
+ * vertices used, increasing id). *n_ids: their number. */
+PmxStatus pmx_front_mesh(const PmxMeshTables *m, const uint8_t *ran, const uint16_t *ran_frames, int frame,
+                         const int32_t *positions, int64_t n, int64_t n_faces_drawn, int32_t *faces,
+                         int32_t *ids, float *vertex_positions, int64_t *n_ids, PmxScratch *s);
+
+/* The view constants (PMX_VIEW floats) of a camera (PMX_CAMERA floats), and
+ * of n cameras. */
+void pmx_view_of(const float *camera, int orthographic, float *view);
+void pmx_views_of(const float *cameras, int64_t n, int orthographic, float *views);
+
+/* SIMD kernels: the best the processor has up to `level` (level < 0: leave
+ * them); returns the kernels in use before. pmx_simd_best: the processor's. */
+int pmx_simd(int level);
+int pmx_simd_best(void);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif

@@ -1,0 +1,218 @@
+/* Words: consecutive frames of a camera path traversed together.
+ *
+ * A word holds PMX_FRAMES consecutive frames of a path, one bit each. A pcol
+ * is visited once for the frames whose traversal reaches it, its row read
+ * once, and each frame's own decision and bound evaluated in one vectorized
+ * pass over the frames; most pcols are decided for all the frames at once
+ * under the word's fat camera (fat.c). Consecutive frames share most of their
+ * front, so the word visits little more than one frame alone (docs/path.md).
+ * Every frame gets the bits of its own refinement. */
+#include <stdlib.h>
+
+#include "internal.h"
+
+/* One word (views [n_frames, PMX_VIEW]; fat: its fat camera or NULL). Slot i
+ * holds position ids[i], visited by the frames visit[i]; whole[i], yes[i]
+ * are the frames whose bound decided it (its own or the fat camera's) and
+ * whose own decision is yes. Returns the number of slots (-1: links that
+ * are not a forest); the slots with unsure frames go to unsure_slots[] with
+ * the frames in unsure_lanes[] (*n_unsure of them), *at_once counts the
+ * slots the fat camera decided. */
+static int64_t traverse_word(const Kernels *kern, const PmxHierarchy *h, const float *views, int n_frames, int flags,
+                             const float *fat, int32_t *ids, int32_t *kid, Lanes *visit, Lanes *whole, Lanes *yes,
+                             int32_t *unsure_slots, Lanes *unsure_lanes, int64_t *n_unsure, int64_t *at_once)
+{
+    Frames fr;
+    load_frames(&fr, views, n_frames, flags);
+    Fat W;
+    const int use_fat = fat_applies(&fr, fat, n_frames);
+    if (use_fat)
+        load_fat(&W, fat, &fr, n_frames);
+    void (*decide_row)(const Frames *, const float *, Lanes *) =
+        fr.ortho ? kern->decide_row_orthographic : kern->decide_row_perspective;
+    const Lanes active = (Lanes)((1u << n_frames) - 1);
+    const float *table = h->rows;
+    int32_t fat_code[BLOCK];
+    Columns col;
+    int64_t n = 0, m = 0, decided_at_once = 0;
+    for (int64_t i = 0; i < h->n_roots; i++) {
+        ids[n] = (int32_t)i;
+        visit[n++] = active;
+    }
+    for (int64_t i0 = 0; i0 < n;) {
+        /* A block of slots under the fat camera first (children land behind
+         * the queue, after the block). */
+        const int64_t nb = n - i0 < BLOCK ? n - i0 : BLOCK;
+        if (use_fat) {
+            gather_block(kern, table, ids + i0, nb, col);
+            kern->decide_fat(&W, col, fat_code);
+        }
+        for (int64_t i = i0; i < i0 + nb; i++) {
+            if (i + AHEAD < n)
+                __builtin_prefetch(table + (int64_t)ids[i + AHEAD] * ROW);
+            const float *row = table + (int64_t)ids[i] * ROW;
+            const int32_t fc = use_fat ? fat_code[i - i0] : FAT_OPEN;
+            decided_at_once += fc != FAT_OPEN;
+            Lanes masks[3] = {fc == FAT_WHOLE ? (Lanes)0xFFFF : 0, 0, 0};
+            if (fc == FAT_OPEN) /* the pcol under every frame of the word, one by one */
+                decide_row(&fr, row, masks);
+            const Lanes wh = masks[0], y = masks[1], u = masks[2];
+            const Lanes v = visit[i], open = v & (Lanes)~wh;
+            whole[i] = v & wh;
+            yes[i] = open & y;
+            if (open & u) {
+                unsure_slots[m] = (int32_t)i;
+                unsure_lanes[m++] = open & u;
+            }
+            kid[2 * i] = kid[2 * i + 1] = -1;
+            if (!open)
+                continue;
+            /* The children, for the frames that did not decide this subtree. */
+            int32_t kids;
+            memcpy(&kids, row + KIDS, sizeof kids);
+            const int32_t first = kids_first(kids), count = kids & 3;
+            if (n + count > h->n_pcols)
+                return -1;
+            for (int t = 0; t < count; t++) {
+                kid[2 * i + t] = (int32_t)n;
+                visit[n] = open;
+                ids[n++] = first + t;
+            }
+        }
+        i0 += nb;
+    }
+    *n_unsure = m;
+    *at_once = decided_at_once;
+    return n;
+}
+
+/* Bottom-up for a word: per frame, a slot ran if the frame did not visit it
+ * (decided above), its bound decided it, or it collapses and both children
+ * ran. Writes ran[], pcols[] (each slot's pcol; optional) and per frame the
+ * pcols that did not run and the faces they keep (counts[FRAMES]). */
+PMX_INLINE void resolve_word_body(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids,
+                                  const int32_t *kid, const Lanes *visit, const Lanes *whole, const Lanes *yes,
+                                  Lanes *ran, int32_t *pcols, PmxCounts *counts)
+{
+    /* Per-frame counts as int32 lanes (one vector add per slot that failed
+     * somewhere; no count exceeds P or F). */
+    int32_t failures[FRAMES] = {0}, keeps[FRAMES] = {0};
+    for (int64_t i = n - 1; i >= 0; i--) {
+        const int32_t k1 = kid[2 * i], k2 = kid[2 * i + 1];
+        const Lanes below = (Lanes)((k1 < 0 ? 0xFFFF : ran[k1]) & (k2 < 0 ? 0xFFFF : ran[k2]));
+        const Lanes r = (Lanes)(~visit[i] | whole[i] | (yes[i] & below));
+        ran[i] = r;
+        if (pcols) /* not for counts alone: order[] is read at random */
+            pcols[i] = order[ids[i]];
+        const uint32_t failed = (Lanes)~r;
+        if (failed) {
+            const int32_t k = kills[ids[i]];
+#pragma omp simd
+            for (int l = 0; l < FRAMES; l++) {
+                const int32_t bit = (int32_t)((failed >> l) & 1);
+                failures[l] += bit;
+                keeps[l] += bit * k;
+            }
+        }
+    }
+    for (int l = 0; l < FRAMES; l++)
+        counts[l].not_run = failures[l], counts[l].kept = keeps[l];
+}
+
+void resolve_word_plain(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids, const int32_t *kid,
+                        const Lanes *visit, const Lanes *whole, const Lanes *yes, Lanes *ran, int32_t *pcols,
+                        PmxCounts *counts)
+{
+    resolve_word_body(kills, order, n, ids, kid, visit, whole, yes, ran, pcols, counts);
+}
+#if PMX_X86
+PMX_TARGET_AVX2 void resolve_word_avx2(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids,
+                                       const int32_t *kid, const Lanes *visit, const Lanes *whole, const Lanes *yes,
+                                       Lanes *ran, int32_t *pcols, PmxCounts *counts)
+{
+    resolve_word_body(kills, order, n, ids, kid, visit, whole, yes, ran, pcols, counts);
+}
+PMX_TARGET_AVX512 void resolve_word_avx512(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids,
+                                           const int32_t *kid, const Lanes *visit, const Lanes *whole,
+                                           const Lanes *yes, Lanes *ran, int32_t *pcols, PmxCounts *counts)
+{
+    resolve_word_body(kills, order, n, ids, kid, visit, whole, yes, ran, pcols, counts);
+}
+#endif
+
+/* Words shared by a call's threads, taken one at a time from a cursor. */
+typedef struct {
+    const PmxHierarchy *h;
+    const float *views;
+    int flags;
+    int64_t W, cursor;
+    PmxCounts *counts;
+    int32_t *at_once;
+    PmxLists lists;
+    PmxRecords *records;
+    uint8_t *overflow;
+    PmxStatus status;
+} Words;
+
+static void words_work(void *arg)
+{
+    Words *b = arg;
+    const PmxHierarchy *h = b->h;
+    const int64_t stride = h->n_pcols + PMX_SPARE;
+    PmxScratch *s = pmx_scratch_take(h->n_pcols);
+    if (!s || !scratch_slots(s) || !scratch_words(s)) {
+        __atomic_store_n(&b->status, PMX_NO_MEMORY, __ATOMIC_RELAXED);
+        if (s)
+            pmx_scratch_give(s);
+        return;
+    }
+    const unsigned mode = subnormals_off();
+    const Kernels *kern = pmx_kernels();
+    for (int64_t w; (w = __atomic_fetch_add(&b->cursor, 1, __ATOMIC_RELAXED)) < b->W;) {
+        const float *views = b->views + w * FRAMES * PMX_VIEW;
+        float fat[PMX_FAT];
+        const int have_fat = pmx_fat_cameras(views, 1, FRAMES, fat) == PMX_OK;
+        int32_t *ids = b->lists.positions ? b->lists.positions + w * stride : s->ids;
+        Lanes *ran = b->lists.ran_frames ? b->lists.ran_frames + w * stride : s->ran_frames;
+        int32_t *pcols = b->lists.pcols ? b->lists.pcols + w * stride : NULL;
+        int64_t m = 0, at_once = 0;
+        const int64_t n = traverse_word(kern, h, views, FRAMES, b->flags, have_fat ? fat : NULL, ids, s->kid,
+                                        s->visit, s->whole, s->yes, s->unsure, s->unsure_lanes, &m, &at_once);
+        if (n < 0) {
+            __atomic_store_n(&b->status, PMX_BAD_TABLE, __ATOMIC_RELAXED);
+            break;
+        }
+        PmxCounts *counts = b->counts + w * FRAMES;
+        /* Unsure pairs are taken as "keep" (their yes bits clear). */
+        kern->resolve_word(h->kills, h->order, n, ids, s->kid, s->visit, s->whole, s->yes, ran, pcols, counts);
+        for (int l = 0; l < FRAMES; l++)
+            counts[l].visited = (int32_t)n, counts[l].unsure = 0;
+        for (int64_t q = 0; q < m; q++)
+            for (int l = 0; l < FRAMES; l++)
+                counts[l].unsure += (s->unsure_lanes[q] >> l) & 1;
+        if (b->at_once)
+            b->at_once[w] = (int32_t)at_once;
+        b->overflow[w] = 0;
+        if (m > 0) {
+            const int64_t count = record_chain(n, h->n_roots, s->kid, s->unsure, m, s->parent, 0, s->chain, s->mark);
+            const int64_t at = records_reserve(b->records, 2 + count * PMX_NODE);
+            if (at < 0) {
+                b->overflow[w] = 1;
+            } else {
+                const SlotBits bits = {s->visit, s->whole, s->yes, ran, s->unsure_lanes, NULL, NULL};
+                record_write(b->records->records + at, w, count, s->chain, ids, s->kid, &bits, h->kills, s->unsure, m);
+            }
+        }
+    }
+    subnormals_back(mode);
+    pmx_scratch_give(s);
+}
+
+PmxStatus pmx_refine_words(const PmxHierarchy *h, const float *views, int64_t W, int flags, PmxCounts *counts,
+                           PmxLists lists, int32_t *at_once, PmxRecords *records, uint8_t *overflow,
+                           const PmxRunner *run)
+{
+    Words b = {h, views, flags, W, 0, counts, at_once, lists, records, overflow, PMX_OK};
+    run_shared(run, words_work, &b);
+    return b.status;
+}
