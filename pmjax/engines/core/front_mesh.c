@@ -57,6 +57,21 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
                                      PmxScratch *s)
 {
     const int64_t V0 = m->n_original, n_pcols = m->n_pcols, n_faces_total = m->n_faces;
+    /* The tables and the scratch as local pointers: the loops store bytes,
+     * which may alias any field of the structs, so fields read in a loop
+     * would be read again after every store. */
+    const PmxPcolRecord *const records = m->pcols;
+    const PmxFaceRecord *const kill_data = m->kill_data, *const base = m->base;
+    const PmxFrontVertex *const tops = m->tops;
+    const int32_t *const top_at = m->top_at;
+    const int64_t n_tops = m->n_tops, n_base = m->n_base;
+    int32_t *const not_run_at = s->not_run_at, *const start_prefix = s->start_prefix;
+    int32_t *const face_prefix = s->face_prefix, *const vertex_prefix = s->vertex_prefix;
+    int32_t *const front_index = s->front_index;
+    uint8_t *const mark = s->mark;
+    uint64_t *const start_bits = s->start_bits, *const face_bits = s->face_bits, *const vertex_bits = s->vertex_bits;
+    PmxFrontVertex *const front = s->front, *const sorted = s->sorted;
+    PmxFaceRecord *const drawn = s->drawn;
     const int64_t start_words = V0 / 64 + 1, face_words = n_faces_total / 64 + 1;
     const int64_t vertex_words = (V0 + n_pcols) / 64 + 1;
     /* The records and kill lists of the pcols that did not run are sparse in
@@ -70,88 +85,88 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
     for (int64_t i = 0; i < n; i++) {
         const int32_t at = positions[i];
         const uint8_t not_ran = ran ? !ran[i] : !((ran_frames[i] >> frame) & 1);
-        s->not_run_at[n_not_run] = at;
+        not_run_at[n_not_run] = at;
         n_not_run += not_ran;
-        s->mark[at] = not_ran;
+        mark[at] = not_ran;
     }
     /* The front and the drawn faces. Below each pcol that did not run: its
      * vertices that are original or whose own pcol ran, and its kill list. */
     int64_t n_front = 0, n_drawn = 0;
     for (int64_t i = 0; i < n_not_run; i++) {
         if (i + MESH_AHEAD < n_not_run)
-            __builtin_prefetch(m->pcols + s->not_run_at[i + MESH_AHEAD]);
+            __builtin_prefetch(records + not_run_at[i + MESH_AHEAD]);
         if (i + MESH_AHEAD / 2 < n_not_run) /* its record was requested MESH_AHEAD / 2 steps ago */
-            __builtin_prefetch(m->kill_data + m->pcols[s->not_run_at[i + MESH_AHEAD / 2]].kill_first);
-        const PmxPcolRecord *r = m->pcols + s->not_run_at[i];
+            __builtin_prefetch(kill_data + records[not_run_at[i + MESH_AHEAD / 2]].kill_first);
+        const PmxPcolRecord *r = records + not_run_at[i];
         for (int j = 0; j < 2; j++) {
             /* Without branches too: the vertex is written, and kept when it is
              * original or its own pcol ran. */
             const int32_t made = r->made_at[j];
-            const int kept = (made < 0) | !s->mark[made < 0 ? 0 : made];
-            PmxFrontVertex *f = s->front + n_front;
+            const int kept = (made < 0) | !mark[made < 0 ? 0 : made];
+            PmxFrontVertex *f = front + n_front;
             f->start = r->start[j];
             f->vertex = r->vertex[j];
             memcpy(f->position, r->position[j], sizeof f->position);
             n_front += kept;
-            s->start_bits[r->start[j] >> 6] |= (uint64_t)kept << (r->start[j] & 63);
+            start_bits[r->start[j] >> 6] |= (uint64_t)kept << (r->start[j] & 63);
         }
         for (int32_t j = 0; j < r->kill_count; j++) {
-            s->drawn[n_drawn] = m->kill_data[r->kill_first + j];
-            set_bit(s->face_bits, s->drawn[n_drawn].face);
+            drawn[n_drawn] = kill_data[r->kill_first + j];
+            set_bit(face_bits, drawn[n_drawn].face);
             n_drawn++;
         }
     }
     /* The tops: the roots that ran (top_at >= 0) and the lone originals. */
-    for (int64_t i = 0; i < m->n_tops; i++)
-        if (m->top_at[i] < 0 || !s->mark[m->top_at[i]]) {
-            s->front[n_front++] = m->tops[i];
-            set_bit(s->start_bits, m->tops[i].start);
+    for (int64_t i = 0; i < n_tops; i++)
+        if (top_at[i] < 0 || !mark[top_at[i]]) {
+            front[n_front++] = tops[i];
+            set_bit(start_bits, tops[i].start);
         }
-    for (int64_t i = 0; i < m->n_base; i++)
-        set_bit(s->face_bits, m->base[i].face);
-    const int64_t total = n_drawn + m->n_base;
+    for (int64_t i = 0; i < n_base; i++)
+        set_bit(face_bits, base[i].face);
+    const int64_t total = n_drawn + n_base;
     /* The front in depth-first order: each vertex goes to the rank of its start. */
-    prefix_counts(s->start_bits, start_words, s->start_prefix);
+    prefix_counts(start_bits, start_words, start_prefix);
     for (int64_t i = 0; i < n_front; i++)
-        s->sorted[rank_of(s->start_bits, s->start_prefix, s->front[i].start)] = s->front[i];
+        sorted[rank_of(start_bits, start_prefix, front[i].start)] = front[i];
     /* Each drawn face at its rank; each corner first the rank of the front
-     * vertex holding it (s->front_index: -1 unused, 0 used). */
+     * vertex holding it (front_index: -1 unused, 0 used). */
     int64_t n_id_count = 0;
     if (total == n_faces_drawn) {
-        memset(s->front_index, 0xff, sizeof(int32_t) * (size_t)n_front);
-        prefix_counts(s->face_bits, face_words, s->face_prefix);
+        memset(front_index, 0xff, sizeof(int32_t) * (size_t)n_front);
+        prefix_counts(face_bits, face_words, face_prefix);
         for (int64_t i = 0; i < total; i++) {
-            const PmxFaceRecord *f = i < n_drawn ? s->drawn + i : m->base + (i - n_drawn);
-            int32_t *row = faces + 3 * rank_of(s->face_bits, s->face_prefix, f->face);
+            const PmxFaceRecord *f = i < n_drawn ? drawn + i : base + (i - n_drawn);
+            int32_t *row = faces + 3 * rank_of(face_bits, face_prefix, f->face);
             for (int c = 0; c < 3; c++) {
-                int32_t k = (int32_t)rank_of(s->start_bits, s->start_prefix, f->start[c]);
+                int32_t k = (int32_t)rank_of(start_bits, start_prefix, f->start[c]);
                 row[c] = k;
-                s->front_index[k] = 0;
+                front_index[k] = 0;
             }
         }
         /* The vertices used in increasing id order (the ids' bitmap), each
          * front vertex's output index, then the corners through it. */
         for (int64_t k = 0; k < n_front; k++)
-            if (s->front_index[k] == 0)
-                set_bit(s->vertex_bits, s->sorted[k].vertex);
-        prefix_counts(s->vertex_bits, vertex_words, s->vertex_prefix);
+            if (front_index[k] == 0)
+                set_bit(vertex_bits, sorted[k].vertex);
+        prefix_counts(vertex_bits, vertex_words, vertex_prefix);
         for (int64_t k = 0; k < n_front; k++)
-            if (s->front_index[k] == 0) {
-                int64_t out = rank_of(s->vertex_bits, s->vertex_prefix, s->sorted[k].vertex);
-                s->front_index[k] = (int32_t)out;
-                ids[out] = s->sorted[k].vertex;
-                memcpy(vertex_positions + 3 * out, s->sorted[k].position, 3 * sizeof(float));
+            if (front_index[k] == 0) {
+                int64_t out = rank_of(vertex_bits, vertex_prefix, sorted[k].vertex);
+                front_index[k] = (int32_t)out;
+                ids[out] = sorted[k].vertex;
+                memcpy(vertex_positions + 3 * out, sorted[k].position, 3 * sizeof(float));
                 n_id_count++;
             }
         for (int64_t i = 0; i < 3 * n_faces_drawn; i++)
-            faces[i] = s->front_index[faces[i]];
+            faces[i] = front_index[faces[i]];
     }
     /* Leave the scratch as found. */
     for (int64_t i = 0; i < n_not_run; i++)
-        s->mark[s->not_run_at[i]] = 0;
-    memset(s->start_bits, 0, sizeof(uint64_t) * (size_t)start_words);
-    memset(s->face_bits, 0, sizeof(uint64_t) * (size_t)face_words);
-    memset(s->vertex_bits, 0, sizeof(uint64_t) * (size_t)vertex_words);
+        mark[not_run_at[i]] = 0;
+    memset(start_bits, 0, sizeof(uint64_t) * (size_t)start_words);
+    memset(face_bits, 0, sizeof(uint64_t) * (size_t)face_words);
+    memset(vertex_bits, 0, sizeof(uint64_t) * (size_t)vertex_words);
     *n_ids = n_id_count;
     return total == n_faces_drawn ? PMX_OK : PMX_FACES_DIFFER;
 }
