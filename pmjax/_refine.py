@@ -148,12 +148,12 @@ class Refinement:
             ids, inverse = np.unique(faces, return_inverse=True)
             return np.asarray(self.pm.vertices)[ids], inverse.reshape(-1, 3).astype(np.int32), ids.astype(np.int32)
         if self.core_ran is not None:
-            faces, ids, vertices, n_ids = _core_mesh(derived(self.pm).core_mesh, self.core_ran, self.front_positions,
-                                                     self.core_counts, self.core_item)
             if traced:
+                faces, ids, vertices, n_ids = _core_mesh(derived(self.pm).core_mesh, self.core_ran,
+                                                         self.front_positions, self.core_counts, self.core_item)
                 return _padded(vertices, faces, ids, self.n_faces, n_ids)
-            n, k = int(self.n_faces), int(n_ids)
-            return np.asarray(vertices)[:k], np.asarray(faces)[:n], np.asarray(ids)[:k]
+            return _core_mesh_eager(self.pm, self.core_ran, self.front_positions, self.core_counts,
+                                    self.core_item, int(self.n_faces), int(self.n_vertices))
         return numpy_mesh(derived(self.pm).depth_first, self.pm.n_pcols, np.asarray(self.visited),
                           np.asarray(self.visited_executed))
 
@@ -177,16 +177,34 @@ def _padded(vertices, faces, ids, n_faces, n_ids):
 _dense_mesh = jax.jit(_dense.mesh)
 
 
-@functools.partial(jax.jit, static_argnames=("n_original", "n_faces"))
-def _core_mesh_arrays(pcols, kill_data, base, tops, top_at, ran, positions, counts, item, n_original, n_faces):
+@functools.partial(jax.jit, static_argnums=(9, 10, 11, 12))
+def _core_mesh_arrays(pcols, kill_data, base, tops, top_at, ran, positions, counts, item, n_original, n_faces,
+                      face_rows, id_rows):
     mesh = _core.CoreMesh(pcols, kill_data, base, tops, top_at, n_original, n_faces)
-    return _core.front_mesh(mesh, ran, positions, counts, 0 if item is None else item)
+    return _core.front_mesh(mesh, ran, positions, counts, 0 if item is None else item, face_rows, id_rows)
 
 
-def _core_mesh(mesh, ran, positions, counts, item=None):
-    """The core's mesh of a refinement (jitted; the tables passed as arrays)."""
+def _core_mesh_eager(pm, ran, positions, counts, item, n_faces: int, n_vertices: int):
+    """The core's mesh of an eager refinement as NumPy arrays: buffers that
+    fit the refinement (the vertices it uses are at most its vertex count),
+    read as views of their first rows."""
+    d = derived(pm)
+    *arrays, V0, F = d.memo("core_mesh_operands", lambda: _mesh_operands(d.core_mesh))
+    faces, ids, vertices, n_ids = _core_mesh_arrays(*arrays, ran, positions, counts, item, V0, F,
+                                                    _core.rows_for(n_faces, F), _core.rows_for(n_vertices, V0))
+    k = int(n_ids)
+    return np.asarray(vertices)[:k], np.asarray(faces)[:n_faces], np.asarray(ids)[:k]
+
+
+def _mesh_operands(mesh) -> tuple:
+    return mesh.pcols, mesh.kill_data, mesh.base, mesh.tops, mesh.top_at, mesh.n_original, mesh.n_faces
+
+
+def _core_mesh(mesh, ran, positions, counts, item=None, face_rows=None, id_rows=None):
+    """The core's mesh of a refinement (jitted; the tables passed as arrays;
+    buffers of ``face_rows``/``id_rows`` rows, default the whole mesh's)."""
     return _core_mesh_arrays(mesh.pcols, mesh.kill_data, mesh.base, mesh.tops, mesh.top_at, ran, positions, counts,
-                             item, mesh.n_original, mesh.n_faces)
+                             item, mesh.n_original, mesh.n_faces, face_rows, id_rows)
 
 
 @functools.partial(jax.jit, static_argnums=2)

@@ -487,3 +487,26 @@ def test_bad_buffers_are_errors_that_name_the_argument(built):
     with pytest.raises(CORE_ERRORS):
         jax.block_until_ready(_core.front_mesh(derived(bunny).core_mesh, r.core_ran, r.front_positions,
                                                r.core_counts.at[2].set(10 ** 6)))
+    # Mesh buffers too small for the refinement's faces, or for the vertices it uses.
+    n_faces, n_vertices = int(r.n_faces), int(r.n_vertices)
+    mesh_tables = derived(cow).core_mesh
+    with pytest.raises(CORE_ERRORS, match="faces do not fit"):
+        jax.block_until_ready(_core.front_mesh(mesh_tables, r.core_ran, r.front_positions, r.core_counts, 0,
+                                               n_faces - 1, n_vertices))
+    with pytest.raises(CORE_ERRORS, match="size|capacity"):
+        jax.block_until_ready(_core.front_mesh(mesh_tables, r.core_ran, r.front_positions, r.core_counts, 0,
+                                               n_faces, 3))
+    # Buffers that fit exactly hold the whole-capacity call's mesh.
+    exact = _core.front_mesh(mesh_tables, r.core_ran, r.front_positions, r.core_counts, 0, n_faces, n_vertices)
+    whole = _core.front_mesh(mesh_tables, r.core_ran, r.front_positions, r.core_counts)
+    k = int(whole[3])
+    assert int(exact[3]) == k and np.array_equal(exact[0], whole[0][:n_faces])
+    assert np.array_equal(exact[1][:k], whole[1][:k]) and np.array_equal(exact[2][:k], whole[2][:k])
+
+
+def test_eager_mesh_buffers_are_a_few_shapes():
+    """An eager mesh's buffers round its counts up to powers of two (so a path
+    reuses a few compiled shapes), never past the whole mesh."""
+    assert _core.rows_for(0, 10 ** 6) == 256 and _core.rows_for(256, 10 ** 6) == 256
+    assert _core.rows_for(257, 10 ** 6) == 512 and _core.rows_for(70_000, 10 ** 6) == 131_072
+    assert _core.rows_for(70_000, 100_000) == 100_000 and _core.rows_for(5, 100) == 100

@@ -461,7 +461,7 @@ def many_cameras(tests, orthographic: bool, masks: bool, lists: bool, threads: i
 # -- the mesh ----------------------------------------------------------------------------
 
 
-def front_mesh(mesh: CoreMesh, ran, positions, counts, item=0):
+def front_mesh(mesh: CoreMesh, ran, positions, counts, item=0, face_rows=None, id_rows=None):
     """The refined mesh of a refinement's visited slots, in fixed-capacity buffers.
 
     Args:
@@ -471,18 +471,30 @@ def front_mesh(mesh: CoreMesh, ran, positions, counts, item=0):
             (row ``item // 16``, bit ``item % 16``).
         counts: the refinements' counts ``int32 [4]`` or ``[M, 4]`` (slots
             visited, pcols not run, faces they keep, 0); row ``item`` is this one's.
+        face_rows, id_rows: the buffers' rows (static; default the whole
+            mesh's ``F`` and ``V0``). The call fails when the refinement's
+            faces or the vertices it uses do not fit.
 
     Returns:
-        ``faces int32 [F, 3]`` (the refinement's faces in the first rows),
-        ``ids int32 [V0]`` and ``vertices float32 [V0, 3]`` (the first
-        ``n_ids``), ``n_ids``.
+        ``faces int32 [face_rows, 3]`` (the refinement's faces in the first
+        rows), ``ids int32 [id_rows]`` and ``vertices float32 [id_rows, 3]``
+        (the first ``n_ids``), ``n_ids``.
     """
     V0, F = mesh.n_original, mesh.n_faces
-    return _call("pmx_front_mesh", (_sds((F, 3), jnp.int32), _sds((V0,), jnp.int32), _sds((V0, 3), jnp.float32),
-                                    _sds((), jnp.int32)),
+    face_rows = F if face_rows is None else face_rows
+    id_rows = V0 if id_rows is None else id_rows
+    return _call("pmx_front_mesh", (_sds((face_rows, 3), jnp.int32), _sds((id_rows,), jnp.int32),
+                                    _sds((id_rows, 3), jnp.float32), _sds((), jnp.int32)),
                  mesh.pcols, mesh.kill_data, mesh.base, mesh.tops, mesh.top_at, ran, positions, counts,
                  jnp.asarray(item, jnp.int32), vmap_method="sequential", n_original=np.int64(V0),
                  n_faces_total=np.int64(F))
+
+
+def rows_for(count: int, total: int) -> int:
+    """Rows of an eager mesh buffer for ``count`` items of at most ``total``:
+    the next power of two (at least 256), so that a path's meshes reuse a few
+    compiled shapes and a buffer is at most twice what it holds."""
+    return min(int(total), max(256, 1 << max(int(count) - 1, 0).bit_length()))
 
 
 # -- whole-table passes (tests) -------------------------------------------------------------

@@ -385,7 +385,7 @@ ffi::Error ApplyUnsure(ffi::Buffer<ffi::S32> records_in, ffi::Buffer<ffi::S32> s
 //           counts s32[C] or [M, C] (slots visited, not run, kept, ...: a refinement's counts), item s32[]:
 //           the refinement's row of counts; its lists are row item / 16 of words' (u16), item of cameras'
 //           (u8 [R, L]), and the frame bit item % 16.
-// results: faces s32[F, 3], ids s32[V0], vertex_positions f32[V0, 3], n_ids s32[]
+// results: faces s32[rows <= F, 3], ids s32[n <= V0], vertex_positions f32[n, 3], n_ids s32[]
 ffi::Error FrontMesh(ffi::Buffer<ffi::S32> pcol_records, ffi::Buffer<ffi::S32> kill_data,
                      ffi::Buffer<ffi::S32> base, ffi::Buffer<ffi::S32> tops, ffi::Buffer<ffi::S32> top_at,
                      ffi::AnyBuffer ran, ffi::Buffer<ffi::S32> positions, ffi::Buffer<ffi::S32> counts,
@@ -405,9 +405,15 @@ ffi::Error FrontMesh(ffi::Buffer<ffi::S32> pcol_records, ffi::Buffer<ffi::S32> k
   PMX_CHECK(Expect("top_at", top_at.dimensions(), {td[0]}));
   if (V0 < 0 || F < 0 || kd[0] + bd[0] > F)
     return ffi::Error::InvalidArgument("the mesh's records do not fit its faces");
-  PMX_CHECK(Expect("faces", faces->dimensions(), {F, 3}));
-  PMX_CHECK(Expect("ids", ids->dimensions(), {V0}));
-  PMX_CHECK(Expect("vertex_positions", vertex_positions->dimensions(), {V0, 3}));
+  // The outputs' rows: room for the refinement's faces (checked below) and
+  // for the vertices it uses (the core checks), at most the whole mesh.
+  auto fd = faces->dimensions(), id = ids->dimensions();
+  if (fd.size() != 2 || fd[1] != 3 || fd[0] > F)
+    return ffi::Error::InvalidArgument("faces must have shape [rows <= " + std::to_string(F) + ", 3], got " +
+                                       Shape(fd));
+  if (id.size() != 1 || id[0] > V0)
+    return ffi::Error::InvalidArgument("ids must have shape [rows <= " + std::to_string(V0) + "], got " + Shape(id));
+  PMX_CHECK(Expect("vertex_positions", vertex_positions->dimensions(), {id[0], 3}));
   auto rd = ran.dimensions(), qd = positions.dimensions(), cd = counts.dimensions();
   if (rd.size() != qd.size() || !std::equal(rd.begin(), rd.end(), qd.begin()) || rd.size() < 1 || rd.size() > 2)
     return ffi::Error::InvalidArgument("ran and positions must have the same shape, [L] or [R, L]; got " +
@@ -424,7 +430,9 @@ ffi::Error FrontMesh(ffi::Buffer<ffi::S32> pcol_records, ffi::Buffer<ffi::S32> k
   const int32_t* c = counts.typed_data() + cd.back() * item;
   const int64_t n = c[0], nf = bd[0] + c[2];
   if (n < 0 || n > L || n > P) return ffi::Error::InvalidArgument("counts: the slots do not fit the lists");
-  if (nf < 0 || nf > F) return ffi::Error::InvalidArgument("counts: the faces do not fit the mesh");
+  if (nf < 0 || nf > fd[0])
+    return ffi::Error::InvalidArgument("counts: the refinement's " + std::to_string(nf) + " faces do not fit " +
+                                       std::to_string(fd[0]) + " rows");
   const uint8_t* ran8 = words ? nullptr : reinterpret_cast<const uint8_t*>(ran.untyped_data()) + row * L;
   const uint16_t* ran16 = words ? reinterpret_cast<const uint16_t*>(ran.untyped_data()) + row * L : nullptr;
   const int frame = words ? static_cast<int>(item % PMX_FRAMES) : -1;
@@ -446,7 +454,7 @@ ffi::Error FrontMesh(ffi::Buffer<ffi::S32> pcol_records, ffi::Buffer<ffi::S32> k
   if (!s.s) return Status(PMX_NO_MEMORY, "mesh");
   int64_t count = 0;
   PMX_CHECK(Status(pmx_front_mesh(&m, ran8, ran16, frame, at, n, nf, faces->typed_data(), ids->typed_data(),
-                                  vertex_positions->typed_data(), &count, s.s),
+                                  vertex_positions->typed_data(), id[0], &count, s.s),
                    "mesh"));
   n_ids->typed_data()[0] = static_cast<int32_t>(count);
   return ffi::Error::Success();

@@ -43,8 +43,10 @@ PMX_INLINE void prefix_counts(const uint64_t *bits, int64_t words, int32_t *pref
  * pcol records (breadth-first, so that the records are read in nearly
  * increasing order). Writes faces [n_faces_drawn, 3] (indices into ids and
  * vertex_positions, faces in increasing order), ids and vertex_positions
- * (the vertices used, by increasing id; *n_ids of them). PMX_FACES_DIFFER
- * (and no mesh) if the faces found are not n_faces_drawn.
+ * (the vertices used, by increasing id; *n_ids of them, room for
+ * id_capacity). PMX_FACES_DIFFER (and no mesh) if the faces found are not
+ * n_faces_drawn; PMX_BAD_SIZE (ids and vertex_positions not written) if
+ * more vertices are used than id_capacity.
  *
  * Scratch (scratch_mesh): mark [P] bytes (by breadth-first position),
  * start_bits [V0/64+1], face_bits [F/64+1], vertex_bits [(V0+P)/64+1] words
@@ -53,8 +55,8 @@ PMX_INLINE void prefix_counts(const uint64_t *bits, int64_t words, int32_t *pref
  * one slot past the front), sorted [V0]; drawn [F]; front_index [V0]. */
 PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran, const uint16_t *ran_frames,
                                      int frame, const int32_t *positions, int64_t n, int64_t n_faces_drawn,
-                                     int32_t *faces, int32_t *ids, float *vertex_positions, int64_t *n_ids,
-                                     PmxScratch *s)
+                                     int32_t *faces, int32_t *ids, float *vertex_positions, int64_t id_capacity,
+                                     int64_t *n_ids, PmxScratch *s)
 {
     const int64_t V0 = m->n_original, n_pcols = m->n_pcols, n_faces_total = m->n_faces;
     /* The tables and the scratch as local pointers: the loops store bytes,
@@ -132,7 +134,8 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
     /* Each drawn face at its rank; each corner first the rank of the front
      * vertex holding it (front_index: -1 unused, 0 used). */
     int64_t n_id_count = 0;
-    if (total == n_faces_drawn) {
+    PmxStatus status = total == n_faces_drawn ? PMX_OK : PMX_FACES_DIFFER;
+    if (status == PMX_OK) {
         memset(front_index, 0xff, sizeof(int32_t) * (size_t)n_front);
         prefix_counts(face_bits, face_words, face_prefix);
         for (int64_t i = 0; i < total; i++) {
@@ -146,11 +149,15 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
         }
         /* The vertices used in increasing id order (the ids' bitmap), each
          * front vertex's output index, then the corners through it. */
+        int64_t n_used = 0;
         for (int64_t k = 0; k < n_front; k++)
-            if (front_index[k] == 0)
+            if (front_index[k] == 0) {
                 set_bit(vertex_bits, sorted[k].vertex);
+                n_used++;
+            }
         prefix_counts(vertex_bits, vertex_words, vertex_prefix);
-        for (int64_t k = 0; k < n_front; k++)
+        /* The outputs' room is checked before anything is written there. */
+        for (int64_t k = 0; k < n_front && n_used <= id_capacity; k++)
             if (front_index[k] == 0) {
                 int64_t out = rank_of(vertex_bits, vertex_prefix, sorted[k].vertex);
                 front_index[k] = (int32_t)out;
@@ -158,8 +165,11 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
                 memcpy(vertex_positions + 3 * out, sorted[k].position, 3 * sizeof(float));
                 n_id_count++;
             }
-        for (int64_t i = 0; i < 3 * n_faces_drawn; i++)
-            faces[i] = front_index[faces[i]];
+        if (n_used <= id_capacity)
+            for (int64_t i = 0; i < 3 * n_faces_drawn; i++)
+                faces[i] = front_index[faces[i]];
+        else
+            status = PMX_BAD_SIZE;
     }
     /* Leave the scratch as found. */
     for (int64_t i = 0; i < n_not_run; i++)
@@ -168,42 +178,42 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
     memset(face_bits, 0, sizeof(uint64_t) * (size_t)face_words);
     memset(vertex_bits, 0, sizeof(uint64_t) * (size_t)vertex_words);
     *n_ids = n_id_count;
-    return total == n_faces_drawn ? PMX_OK : PMX_FACES_DIFFER;
+    return status;
 }
 
 /* The level wrappers: popcount in one instruction where the processor has it. */
 PmxStatus front_mesh_plain(const PmxMeshTables *m, const uint8_t *ran, const uint16_t *ran_frames, int frame,
                            const int32_t *positions, int64_t n, int64_t n_faces_drawn, int32_t *faces, int32_t *ids,
-                           float *vertex_positions, int64_t *n_ids, PmxScratch *s)
+                           float *vertex_positions, int64_t id_capacity, int64_t *n_ids, PmxScratch *s)
 {
-    return front_mesh_body(m, ran, ran_frames, frame, positions, n, n_faces_drawn, faces, ids, vertex_positions, n_ids,
-                           s);
+    return front_mesh_body(m, ran, ran_frames, frame, positions, n, n_faces_drawn, faces, ids, vertex_positions,
+                           id_capacity, n_ids, s);
 }
 #if PMX_X86
 PMX_TARGET_AVX2 PmxStatus front_mesh_avx2(const PmxMeshTables *m, const uint8_t *ran, const uint16_t *ran_frames,
                                           int frame, const int32_t *positions, int64_t n, int64_t n_faces_drawn,
-                                          int32_t *faces, int32_t *ids, float *vertex_positions, int64_t *n_ids,
-                                          PmxScratch *s)
+                                          int32_t *faces, int32_t *ids, float *vertex_positions, int64_t id_capacity,
+                                          int64_t *n_ids, PmxScratch *s)
 {
-    return front_mesh_body(m, ran, ran_frames, frame, positions, n, n_faces_drawn, faces, ids, vertex_positions, n_ids,
-                           s);
+    return front_mesh_body(m, ran, ran_frames, frame, positions, n, n_faces_drawn, faces, ids, vertex_positions,
+                           id_capacity, n_ids, s);
 }
 PMX_TARGET_AVX512 PmxStatus front_mesh_avx512(const PmxMeshTables *m, const uint8_t *ran, const uint16_t *ran_frames,
                                               int frame, const int32_t *positions, int64_t n, int64_t n_faces_drawn,
-                                              int32_t *faces, int32_t *ids, float *vertex_positions, int64_t *n_ids,
-                                              PmxScratch *s)
+                                              int32_t *faces, int32_t *ids, float *vertex_positions,
+                                              int64_t id_capacity, int64_t *n_ids, PmxScratch *s)
 {
-    return front_mesh_body(m, ran, ran_frames, frame, positions, n, n_faces_drawn, faces, ids, vertex_positions, n_ids,
-                           s);
+    return front_mesh_body(m, ran, ran_frames, frame, positions, n, n_faces_drawn, faces, ids, vertex_positions,
+                           id_capacity, n_ids, s);
 }
 #endif
 
 PmxStatus pmx_front_mesh(const PmxMeshTables *m, const uint8_t *ran, const uint16_t *ran_frames, int frame,
                          const int32_t *positions, int64_t n, int64_t n_faces_drawn, int32_t *faces, int32_t *ids,
-                         float *vertex_positions, int64_t *n_ids, PmxScratch *s)
+                         float *vertex_positions, int64_t id_capacity, int64_t *n_ids, PmxScratch *s)
 {
     if (!scratch_slots(s) || !scratch_mesh(s, m->n_original, m->n_faces))
         return PMX_NO_MEMORY;
     return pmx_kernels()->front_mesh(m, ran, ran_frames, frame, positions, n, n_faces_drawn, faces, ids,
-                                     vertex_positions, n_ids, s);
+                                     vertex_positions, id_capacity, n_ids, s);
 }

@@ -132,7 +132,8 @@ typedef struct {
                          int32_t *pcols, PmxCounts *counts);
     PmxStatus (*front_mesh)(const PmxMeshTables *m, const uint8_t *ran, const uint16_t *ran_frames, int frame,
                             const int32_t *positions, int64_t n, int64_t n_faces_drawn, int32_t *faces,
-                            int32_t *ids, float *vertex_positions, int64_t *n_ids, PmxScratch *s);
+                            int32_t *ids, float *vertex_positions, int64_t id_capacity, int64_t *n_ids,
+                            PmxScratch *s);
 } Kernels;
 
 const Kernels *pmx_kernels(void);
@@ -152,8 +153,8 @@ const Kernels *pmx_kernels_at(int level, int *used);
                                Lanes *ran, int32_t *pcols, PmxCounts *counts);                               \
     PmxStatus front_mesh_##suffix(const PmxMeshTables *m, const uint8_t *ran, const uint16_t *ran_frames,    \
                                   int frame, const int32_t *positions, int64_t n, int64_t n_faces_drawn,     \
-                                  int32_t *faces, int32_t *ids, float *vertex_positions, int64_t *n_ids,     \
-                                  PmxScratch *s);
+                                  int32_t *faces, int32_t *ids, float *vertex_positions,                     \
+                                  int64_t id_capacity, int64_t *n_ids, PmxScratch *s);
 PMX_LEVEL_DECLS(plain)
 #if PMX_X86
 PMX_LEVEL_DECLS(avx2)

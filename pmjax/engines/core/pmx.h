@@ -203,10 +203,12 @@ typedef struct {
 
 /* The refined mesh of a refinement's visited slots (ran, positions: n of
  * them): faces [n_faces_drawn, 3] as indices into ids/positions (the
- * vertices used, increasing id). *n_ids: their number. */
+ * vertices used, increasing id; room for id_capacity). *n_ids: their number.
+ * PMX_BAD_SIZE (nothing written to ids/positions) when more are used. */
 PmxStatus pmx_front_mesh(const PmxMeshTables *m, const uint8_t *ran, const uint16_t *ran_frames, int frame,
                          const int32_t *positions, int64_t n, int64_t n_faces_drawn, int32_t *faces,
-                         int32_t *ids, float *vertex_positions, int64_t *n_ids, PmxScratch *s);
+                         int32_t *ids, float *vertex_positions, int64_t id_capacity, int64_t *n_ids,
+                         PmxScratch *s);
 
 /* The view constants (PMX_VIEW floats) of a camera (PMX_CAMERA floats), and
  * of n cameras. */
