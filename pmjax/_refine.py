@@ -326,7 +326,12 @@ def refine(
 def _test_flags(tests: Tests) -> tuple:
     """A :class:`Tests` as a tuple: a static argument hashed in C++ at each
     call, where a module is hashed in Python."""
+    if tests is ALL_TESTS:
+        return _ALL_FLAGS
     return bool(tests.frustum), bool(tests.orientation), bool(tests.screen)
+
+
+_ALL_FLAGS = (True, True, True)
 
 
 @functools.partial(jax.jit, static_argnames=("n_roots", "tests", "lists", "check"))
@@ -345,37 +350,37 @@ def _core_one(tables, camera, tau, tests, lists, check):
 @functools.partial(jax.jit, static_argnames=("n_roots", "tests"))
 def _core_first_arrays(rows, kills, order, camera, tau, n_roots, tests):
     tables = _core.CoreTables(rows=rows, kills=kills, order=order, n_roots=n_roots)
-    row = _core.camera_rows(camera, tau)
-    return row, _core.refine_one_first(tables, row, Tests(*tests), camera.orthographic, True)
+    return _core.refine_one_first(tables, _core.camera_rows(camera, tau), Tests(*tests), camera.orthographic, True)
 
 
-@functools.partial(jax.jit, static_argnames=("n_roots", "tests", "orthographic"))
-def _core_rest_arrays(rows, kills, order, row, first, n_roots, tests, orthographic):
+@functools.partial(jax.jit, static_argnames=("n_roots", "tests"))
+def _core_rest_arrays(rows, kills, order, camera, tau, first, n_roots, tests):
     tables = _core.CoreTables(rows=rows, kills=kills, order=order, n_roots=n_roots)
-    return _core.refine_one_answered(tables, row, Tests(*tests), orthographic, first)
+    return _core.refine_one_answered(tables, _core.camera_rows(camera, tau), Tests(*tests), camera.orthographic,
+                                     first)
 
 
-def _core_one_eager(tables, camera, tau, tests):
+def _core_one_eager(d, camera, tau, tests):
     """:func:`_core_one` with lists, eagerly: the first pass alone (a small
     call), and the unsure decisions and second pass only where the first
     left some (one camera in ten or so)."""
     flags = _test_flags(tests)
-    row, first = _core_first_arrays(tables.rows, tables.kills, tables.order, camera, tau, tables.n_roots, flags)
+    rows, kills, order, n_roots = d.memo("core_operands", lambda: (d.core.rows, d.core.kills, d.core.order,
+                                                                   d.core.n_roots))
+    first = _core_first_arrays(rows, kills, order, camera, tau, n_roots, flags)
     counts = np.asarray(first[5])
     if counts[3] == 0:
         return first[0], first[1], first[2], first[5], counts
-    pcols, ran, positions, counts = _core_rest_arrays(tables.rows, tables.kills, tables.order, row, first,
-                                                      tables.n_roots, flags, camera.orthographic)
+    pcols, ran, positions, counts = _core_rest_arrays(rows, kills, order, camera, tau, first, n_roots, flags)
     return pcols, ran, positions, counts, np.asarray(counts)
 
 
 def _refine_core(pm, camera, tau, tests, traced: bool) -> Refinement:
     d = derived(pm)
-    tables = d.core
     counts_of = _Counts.of(pm)
     P = counts_of.P
     if not traced:  # tau was checked on the host
-        pcols, ran, positions, counts, host = _core_one_eager(tables, camera, tau, tests)
+        pcols, ran, positions, counts, host = _core_one_eager(d, camera, tau, tests)
         n, not_run, kept = host[:3].tolist()
         n_exec = P - not_run
         return Refinement(pm=pm, visited=np.asarray(pcols)[:n], visited_executed=np.asarray(ran)[:n].view(bool),
@@ -384,6 +389,7 @@ def _refine_core(pm, camera, tau, tests, traced: bool) -> Refinement:
                           front_positions=positions, core_ran=ran, core_counts=counts, n_slots=np.int32(n))
     # Traced: the counts from a call without lists, the lists from one with
     # them; XLA drops whichever the caller does not use.
+    tables = d.core
     counts = _core_one(tables, camera, tau, tests, False, True)[3]
     pcols, ran, positions, listed = _core_one(tables, camera, tau, tests, True, True)
     n = listed[..., 0]
