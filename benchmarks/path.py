@@ -9,9 +9,9 @@ the same run: each frame refined alone by the dense engine and by the
 output-sensitive one (medians over frames, after compilation), and the whole
 path through ``pmjax.path_counts`` (counts) and ``pmjax.refine_path`` (a
 ``Refinement`` per frame), amortized per frame, medians over repeats. The
-visited share is, per word of consecutive frames (16 with the C loops, 32 as JAX
+visited share is, per word of consecutive frames (16 in the C core, 32 as JAX
 kernels), the pcols the word's traversal looked at over P, and over what one
-frame alone visits, and the share of those the C loops decided for all the
+frame alone visits, and the share of those the C core decided for all the
 word's frames at once (the fat camera). Many paths: ``--paths`` orbits
 of different radii and elevations advanced together, against ``refine_batch``
 on the same cameras (dense and front), cameras per second.

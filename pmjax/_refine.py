@@ -63,11 +63,13 @@ class Refinement:
             the vertex front).
         front_positions, core_ran, core_counts, core_item, n_slots: what
             the C core's mesh reads (``None`` from the other engines): the
-            core's lists at full capacity, the visited pcols' places in its
-            breadth-first layout and whether each ran (``[L]`` uint8; or a
-            path's ``[W, L]`` frame bits), the core's counts (``[4]``, or a
-            path's ``[W * 16, 4]``, row ``core_item`` being this refinement's)
-            and the slots used.
+            visited pcols' places in its breadth-first layout and whether
+            each ran (``[L]`` uint8: eagerly NumPy arrays of a power of two
+            of rows at least the slots used, under ``jit`` the core's
+            capacity ``P + 16``; or a path's ``[W, L]`` frame bits, shared by
+            its frames), the core's counts (``[4]``, or a path's
+            ``[W * 16, 4]``, row ``core_item`` being this refinement's) and
+            the slots used.
     """
 
     pm: ProgressiveMesh
@@ -383,10 +385,15 @@ def _refine_core(pm, camera, tau, tests, traced: bool) -> Refinement:
         pcols, ran, positions, counts, host = _core_one_eager(d, camera, tau, tests)
         n, not_run, kept = host[:3].tolist()
         n_exec = P - not_run
-        return Refinement(pm=pm, visited=np.asarray(pcols)[:n], visited_executed=np.asarray(ran)[:n].view(bool),
+        # The lists in arrays of their own (a power of two of rows), not views
+        # of the call's P + 16 buffers: a refinement kept holds what it visited.
+        rows = _core.rows_for(n, pcols.shape[0])
+        ran_rows = np.asarray(ran)[:rows].copy()
+        return Refinement(pm=pm, visited=np.asarray(pcols)[:n].copy(), visited_executed=ran_rows[:n].view(bool),
                           dense=None, n_faces=np.int32(counts_of.base_faces + kept),
                           n_vertices=np.int32(counts_of.V0 - n_exec), n_executed=np.int32(n_exec),
-                          front_positions=positions, core_ran=ran, core_counts=counts, n_slots=np.int32(n))
+                          front_positions=np.asarray(positions)[:rows].copy(), core_ran=ran_rows,
+                          core_counts=counts, n_slots=np.int32(n))
     # Traced: the counts from a call without lists, the lists from one with
     # them; XLA drops whichever the caller does not use.
     tables = d.core

@@ -431,6 +431,23 @@ def test_refinement_is_a_pytree_of_its_arrays(built):
         r.n_faces = 0
 
 
+def test_an_eager_refinement_holds_what_it_visited(built):
+    """An eager refinement's lists are arrays of their own sized to the slots
+    it used (not views of the call's P + 16 buffers), and its mesh is read
+    from them."""
+    data = built("bunny.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cam = index_camera(views_of(data, 2, seed=5), 0)
+    r = pmjax.refine(pm, cam, 1.0, method="front")
+    n = int(r.n_slots)
+    assert 0 < n < pm.n_pcols // 2 and r.visited.shape == (n,) and r.visited.base is None
+    for held in (r.front_positions, r.core_ran):
+        assert isinstance(held, np.ndarray) and n <= held.shape[0] <= max(2 * n, 256) and held.base is None
+    want = pmjax.refine(pm, cam, 1.0, method="dense").mesh(pm)
+    for a, b in zip(r.mesh(), want):
+        assert np.array_equal(a, b)
+
+
 @pytest.mark.parametrize("name", ["cow.ply", "bunny.ply"])
 def test_budget_by_search_equals_the_sort(built, name):
     """faces_for_budget from the core's counts (a search over the float32
