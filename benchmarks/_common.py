@@ -33,7 +33,12 @@ def machine() -> str:
         cores += f" (pinned to {usable})"
     import pmjax
 
-    loops = "front engine as C loops" if pmjax.native_available() else "front engine as JAX kernels"
+    if not pmjax.native_available():
+        loops = "front engine as JAX kernels"
+    elif hasattr(pmjax, "engines"):  # the core behind XLA FFI calls, at the SIMD level in use
+        loops = f"front engine as the C core (XLA FFI, {pmjax.engines.simd()})"
+    else:  # an older checkout measured for comparison
+        loops = "front engine as C loops"
     return (f"{cpu}, {cores}, Python {platform.python_version()}, numpy {numpy.__version__}, "
             f"jax {jax.__version__} ({backend}), {loops}")
 

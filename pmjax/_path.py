@@ -236,15 +236,22 @@ def _core_words(tables, one_tables, camera_rows, tests, orthographic, lists, roo
 RECORD_ROOM = None
 
 
-def _core_path_counts(pm, host, taus, tests, path_length, cols, ms, bar, timing):
-    """:func:`path_counts` through the C core's words, a block of words per call."""
+def _core_word_plan(pm, host, taus, path_length, words_per_call):
+    """The core's tables for words and for single frames, the frames in word
+    order (each path padded to whole words by repeating its last frame),
+    which of them are real (not a repeat), the calls' spans of words and the
+    frames' camera rows."""
     d = derived(pm)
-    tables, one_tables = d.core_words, d.core
     order = _word_padded(len(taus), path_length, FRAMES)
     real = np.ones(len(order), bool)
     real[1:] = order[1:] != order[:-1]
-    spans = _word_spans(len(order) // FRAMES, WORDS_PER_CALL)
-    rows = _core.host_camera_rows(host, taus)
+    spans = _word_spans(len(order) // FRAMES, words_per_call)
+    return d.core_words, d.core, order, real, spans, _core.host_camera_rows(host, taus)
+
+
+def _core_path_counts(pm, host, taus, tests, path_length, cols, ms, bar, timing):
+    """:func:`path_counts` through the C core's words, a block of words per call."""
+    tables, one_tables, order, real, spans, rows = _core_word_plan(pm, host, taus, path_length, WORDS_PER_CALL)
 
     def call(w0, n):
         return _core_words(tables, one_tables, rows[order[w0 * FRAMES:(w0 + n) * FRAMES]], tests, host.orthographic,
@@ -271,15 +278,8 @@ def _core_path_frames(pm, host, taus, tests, path_length) -> Iterator[Refinement
     few words per call, the next call running while the frames of the last
     are read; the frames of a word whose unsure records did not fit are
     refined alone."""
-    d = derived(pm)
-    tables, one_tables = d.core_words, d.core
-    order = _word_padded(len(taus), path_length, FRAMES)
-    real = np.ones(len(order), bool)
-    real[1:] = order[1:] != order[:-1]
-    spans = _word_spans(len(order) // FRAMES, WORDS_STREAMED)
+    tables, one_tables, order, real, spans, rows = _core_word_plan(pm, host, taus, path_length, WORDS_STREAMED)
     counts_of = _Counts.of(pm)
-
-    rows = _core.host_camera_rows(host, taus)
 
     def call(span):
         w0, n = span

@@ -107,27 +107,23 @@ def flags_of(tests, orthographic: bool) -> int:
             | ORTHOGRAPHIC * bool(orthographic))
 
 
-def camera_rows(cameras: Camera, taus):
+def camera_rows(cameras: Camera, taus, xp=jnp):
     """Cameras and their tolerances as the core reads them: ``float32 [...,
     CAMERA]`` rows (eye, rotation row-major, fov_y, near, far, ortho_height,
     width, height, tau), one per camera of the batch's leading axes. The
-    core computes each view's constants from them."""
-    f = lambda x: jnp.asarray(x, jnp.float32)
+    core computes each view's constants from them. ``xp``: ``jax.numpy``
+    (traceable) or ``numpy`` (eager calls, on the host)."""
+    f = lambda x: xp.asarray(x, xp.float32)
     eye = f(cameras.eye)
     lead = eye.shape[:-1]
     scalars = [cameras.fov_y, cameras.near, cameras.far, cameras.ortho_height, cameras.width, cameras.height, taus]
-    scalars = jnp.stack([jnp.broadcast_to(f(x), lead) for x in scalars], axis=-1)
-    return jnp.concatenate([eye, f(cameras.rotation).reshape(lead + (9,)), scalars], axis=-1)
+    scalars = xp.stack([xp.broadcast_to(f(x), lead) for x in scalars], axis=-1)
+    return xp.concatenate([eye, f(cameras.rotation).reshape(lead + (9,)), scalars], axis=-1)
 
 
 def host_camera_rows(cameras: Camera, taus) -> np.ndarray:
     """:func:`camera_rows` on the host (NumPy), for eager calls."""
-    f = lambda x: np.asarray(x, np.float32)
-    eye = f(cameras.eye)
-    lead = eye.shape[:-1]
-    scalars = [cameras.fov_y, cameras.near, cameras.far, cameras.ortho_height, cameras.width, cameras.height, taus]
-    scalars = np.stack([np.broadcast_to(f(x), lead) for x in scalars], axis=-1)
-    return np.concatenate([eye, f(cameras.rotation).reshape(lead + (9,)), scalars], axis=-1)
+    return camera_rows(cameras, taus, np)
 
 
 def _view_of_rows(rows, orthographic: bool, step=None):
