@@ -53,4 +53,7 @@ def test_lod_batch_out_of_range(tmp_path, capsys):
 def test_version(capsys):
     with pytest.raises(SystemExit) as info:
         main(["--version"])
-    assert info.value.code == 0 and capsys.readouterr().out.strip() == f"pmjax {pmjax.__version__}"
+    lines = capsys.readouterr().out.splitlines()
+    # The version first, then one line per engine from engine_info (what refines here).
+    assert info.value.code == 0 and lines[0] == f"pmjax {pmjax.__version__}" and lines[1] == "engines:"
+    assert [line.split()[0] for line in lines[2:]] == list(pmjax.engine_info())
