@@ -179,27 +179,32 @@ def _padded(vertices, faces, ids, n_faces, n_ids):
 _dense_mesh = jax.jit(_dense.mesh)
 
 
+def _core_mesh_eager(pm, ran, positions, counts, item, n_faces: int, n_vertices: int):
+    """The core's mesh of an eager refinement as NumPy arrays, from the core
+    called directly (``_pmx.front_mesh``): faces of exactly the refinement's
+    rows, vertices and ids shrunk in place to those it uses."""
+    d = derived(pm)
+    tables, V0, F = d.memo("core_mesh_host", lambda: _mesh_host(d.core_mesh))
+    faces = np.empty((n_faces, 3), np.int32)
+    ids, vertices = np.empty(n_vertices, np.int32), np.empty((n_vertices, 3), np.float32)
+    k = _core.front_mesh_eager(tables, ran, positions, counts, 0 if item is None else item, V0, F, faces, ids,
+                               vertices)
+    ids.resize((k,), refcheck=False)  # the arrays are this call's own
+    vertices.resize((k, 3), refcheck=False)
+    return vertices, faces, ids
+
+
+def _mesh_host(mesh) -> tuple:
+    """The front mesh's records as NumPy arrays, and the mesh's sizes."""
+    records = (mesh.pcols, mesh.kill_data, mesh.base, mesh.tops, mesh.top_at)
+    return tuple(np.asarray(a) for a in records), mesh.n_original, mesh.n_faces
+
+
 @functools.partial(jax.jit, static_argnums=(9, 10, 11, 12))
 def _core_mesh_arrays(pcols, kill_data, base, tops, top_at, ran, positions, counts, item, n_original, n_faces,
                       face_rows, id_rows):
     mesh = _core.CoreMesh(pcols, kill_data, base, tops, top_at, n_original, n_faces)
     return _core.front_mesh(mesh, ran, positions, counts, 0 if item is None else item, face_rows, id_rows)
-
-
-def _core_mesh_eager(pm, ran, positions, counts, item, n_faces: int, n_vertices: int):
-    """The core's mesh of an eager refinement as NumPy arrays: buffers that
-    fit the refinement (the vertices it uses are at most its vertex count),
-    read as views of their first rows."""
-    d = derived(pm)
-    *arrays, V0, F = d.memo("core_mesh_operands", lambda: _mesh_operands(d.core_mesh))
-    faces, ids, vertices, n_ids = _core_mesh_arrays(*arrays, ran, positions, counts, item, V0, F,
-                                                    _core.rows_for(n_faces, F), _core.rows_for(n_vertices, V0))
-    k = int(n_ids)
-    return np.asarray(vertices)[:k], np.asarray(faces)[:n_faces], np.asarray(ids)[:k]
-
-
-def _mesh_operands(mesh) -> tuple:
-    return mesh.pcols, mesh.kill_data, mesh.base, mesh.tops, mesh.top_at, mesh.n_original, mesh.n_faces
 
 
 def _core_mesh(mesh, ran, positions, counts, item=None, face_rows=None, id_rows=None):
@@ -349,32 +354,11 @@ def _core_one(tables, camera, tau, tests, lists, check):
                             lists, check)
 
 
-@functools.partial(jax.jit, static_argnames=("n_roots", "tests"))
-def _core_first_arrays(rows, kills, order, camera, tau, n_roots, tests):
-    tables = _core.CoreTables(rows=rows, kills=kills, order=order, n_roots=n_roots)
-    return _core.refine_one_first(tables, _core.camera_rows(camera, tau), Tests(*tests), camera.orthographic, True)
-
-
-@functools.partial(jax.jit, static_argnames=("n_roots", "tests"))
-def _core_rest_arrays(rows, kills, order, camera, tau, first, n_roots, tests):
-    tables = _core.CoreTables(rows=rows, kills=kills, order=order, n_roots=n_roots)
-    return _core.refine_one_answered(tables, _core.camera_rows(camera, tau), Tests(*tests), camera.orthographic,
-                                     first)
-
-
 def _core_one_eager(d, camera, tau, tests):
-    """:func:`_core_one` with lists, eagerly: the first pass alone (a small
-    call), and the unsure decisions and second pass only where the first
-    left some (one camera in ten or so)."""
-    flags = _test_flags(tests)
-    rows, kills, order, n_roots = d.memo("core_operands", lambda: (d.core.rows, d.core.kills, d.core.order,
-                                                                   d.core.n_roots))
-    first = _core_first_arrays(rows, kills, order, camera, tau, n_roots, flags)
-    counts = np.asarray(first[5])
-    if counts[3] == 0:
-        return first[0], first[1], first[2], first[5], counts
-    pcols, ran, positions, counts = _core_rest_arrays(rows, kills, order, camera, tau, first, n_roots, flags)
-    return pcols, ran, positions, counts, np.asarray(counts)
+    """:func:`_core_one` with lists, eagerly (``_core.refine_one_eager``):
+    NumPy lists ``[P + 16]`` and counts."""
+    host = d.memo("core_host", lambda: tuple(np.asarray(a) for a in (d.core.rows, d.core.kills, d.core.order)))
+    return _core.refine_one_eager(d.core, host, _core.eager_camera_row(camera, tau), tests, camera.orthographic)
 
 
 def _refine_core(pm, camera, tau, tests, traced: bool) -> Refinement:
@@ -382,18 +366,17 @@ def _refine_core(pm, camera, tau, tests, traced: bool) -> Refinement:
     counts_of = _Counts.of(pm)
     P = counts_of.P
     if not traced:  # tau was checked on the host
-        pcols, ran, positions, counts, host = _core_one_eager(d, camera, tau, tests)
-        n, not_run, kept = host[:3].tolist()
+        pcols, ran, positions, counts = _core_one_eager(d, camera, tau, tests)
+        n, not_run, kept = counts[:3].tolist()
         n_exec = P - not_run
-        # The lists in arrays of their own (a power of two of rows), not views
-        # of the call's P + 16 buffers: a refinement kept holds what it visited.
-        rows = _core.rows_for(n, pcols.shape[0])
-        ran_rows = np.asarray(ran)[:rows].copy()
-        return Refinement(pm=pm, visited=np.asarray(pcols)[:n].copy(), visited_executed=ran_rows[:n].view(bool),
+        # The call's P + 16 buffers shrunk in place to the slots visited: a
+        # refinement kept holds what it visited, and nothing is copied.
+        for lst in (pcols, ran, positions):
+            lst.resize((n,), refcheck=False)  # the arrays are this call's own
+        return Refinement(pm=pm, visited=pcols, visited_executed=ran.view(bool),
                           dense=None, n_faces=np.int32(counts_of.base_faces + kept),
                           n_vertices=np.int32(counts_of.V0 - n_exec), n_executed=np.int32(n_exec),
-                          front_positions=np.asarray(positions)[:rows].copy(), core_ran=ran_rows,
-                          core_counts=counts, n_slots=np.int32(n))
+                          front_positions=positions, core_ran=ran, core_counts=counts, n_slots=np.int32(n))
     # Traced: the counts from a call without lists, the lists from one with
     # them; XLA drops whichever the caller does not use.
     tables = d.core

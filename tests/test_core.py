@@ -503,7 +503,7 @@ def test_bad_buffers_are_errors_that_name_the_argument(built):
     r = pmjax.refine(cow, cam, 1.0, method="front")
     with pytest.raises(CORE_ERRORS):
         jax.block_until_ready(_core.front_mesh(derived(bunny).core_mesh, r.core_ran, r.front_positions,
-                                               r.core_counts.at[2].set(10 ** 6)))
+                                               jnp.asarray(r.core_counts).at[2].set(10 ** 6)))
     # Mesh buffers too small for the refinement's faces, or for the vertices it uses.
     n_faces, n_vertices = int(r.n_faces), int(r.n_vertices)
     mesh_tables = derived(cow).core_mesh
@@ -521,9 +521,89 @@ def test_bad_buffers_are_errors_that_name_the_argument(built):
     assert np.array_equal(exact[1][:k], whole[1][:k]) and np.array_equal(exact[2][:k], whole[2][:k])
 
 
-def test_eager_mesh_buffers_are_a_few_shapes():
-    """An eager mesh's buffers round its counts up to powers of two (so a path
-    reuses a few compiled shapes), never past the whole mesh."""
-    assert _core.rows_for(0, 10 ** 6) == 256 and _core.rows_for(256, 10 ** 6) == 256
-    assert _core.rows_for(257, 10 ** 6) == 512 and _core.rows_for(70_000, 10 ** 6) == 131_072
-    assert _core.rows_for(70_000, 100_000) == 100_000 and _core.rows_for(5, 100) == 100
+def test_the_eager_entry_checks_every_array(built):
+    """The eager entry (``_pmx.refine_one``) reads NumPy arrays with the FFI
+    targets' checks: a wrong dtype, shape, layout or capacity, a read-only
+    output, another mesh's tables or answers out of order is a ValueError
+    naming the argument; a good call gives the FFI target's lists and counts."""
+    cow = pmjax.ProgressiveMesh.from_data(built("cow.ply"))
+    bunny = pmjax.ProgressiveMesh.from_data(built("bunny.ply"))
+    tables = derived(cow).core
+    host = tuple(np.asarray(a) for a in (tables.rows, tables.kills, tables.order))
+    cam = index_camera(views_of(built("cow.ply"), 2, seed=1), 0)
+    row = _core.eager_camera_row(cam, 1.0)
+    L = tables.n_pcols + 16
+
+    def outputs():
+        return dict(pcols=np.empty(L, np.int32), ran=np.empty(L, np.uint8), positions=np.empty(L, np.int32),
+                    counts=np.empty(5, np.int32), unsure=np.empty(L, np.int32))
+
+    def call(rows=host[0], kills=host[1], order=host[2], camera=row, **changed):
+        out = outputs() | changed
+        _core._pmx.refine_one(rows, kills, order, camera, 7, tables.n_roots, **out)
+        return out
+
+    read_only = np.empty(L, np.int32)
+    read_only.flags.writeable = False
+    cases = {
+        "rows": dict(rows=host[0].astype(np.float64)),
+        "rows ": dict(rows=np.asfortranarray(host[0])),
+        "rows  ": dict(rows=host[0][:, :8].copy()),
+        "kills": dict(kills=np.asarray(derived(bunny).core.kills)),
+        "camera": dict(camera=row[:10].copy()),
+        "pcols": dict(pcols=np.empty(L - 1, np.int32)),
+        "pcols ": dict(pcols=read_only),
+        "ran": dict(ran=np.empty(L, np.int32)),
+        "counts": dict(counts=np.empty(4, np.int32)),
+        "unsure": dict(unsure=np.empty(16, np.int32)),
+        "answered and answers": dict(answered=np.arange(3, dtype=np.int32)),
+        "answered": dict(answered=np.array([2, 1], np.int32), answers=np.zeros(2, np.int32)),
+        "answered ": dict(answered=np.array([L], np.int32), answers=np.zeros(1, np.int32)),
+        "answers": dict(answered=np.array([1, 2], np.int32), answers=np.zeros(3, np.int32)),
+        "level": dict(level=7),
+    }
+    for name, change in cases.items():
+        with pytest.raises(ValueError, match=name.strip()):
+            call(**change)
+    # A good call: the FFI target's lists and counts, bit for bit.
+    got = call()
+    first = _core.refine_one_first(tables, jnp.asarray(row), pmjax.Tests(), False, True)
+    n = int(got["counts"][0])
+    assert np.array_equal(got["counts"], np.asarray(first[5])) and n > 0
+    for k, name in enumerate(("pcols", "ran", "positions")):
+        assert np.array_equal(got[name][:n], np.asarray(first[k])[:n]), name
+
+
+def test_the_eager_mesh_entry_checks_its_arrays(built):
+    """The eager mesh entry (``_pmx.front_mesh``) has the FFI target's checks
+    (outputs too small for the refinement, lists of another shape, wrong
+    dtypes are ValueErrors naming what is wrong, nothing written past a
+    buffer) and gives the FFI target's mesh; an eager refinement holds lists
+    of exactly the slots it visited."""
+    cow = pmjax.ProgressiveMesh.from_data(built("cow.ply"))
+    cam = index_camera(views_of(built("cow.ply"), 2, seed=1), 0)
+    r = pmjax.refine(cow, cam, 1.0, method="front")
+    n = int(r.n_slots)
+    assert r.visited.shape == r.core_ran.shape == r.front_positions.shape == (n,)
+    mesh = derived(cow).core_mesh
+    tables = tuple(np.asarray(a) for a in (mesh.pcols, mesh.kill_data, mesh.base, mesh.tops, mesh.top_at))
+    n_faces, n_vertices = int(r.n_faces), int(r.n_vertices)
+
+    def call(faces=n_faces, ids=n_vertices, ran=r.core_ran, positions=r.front_positions, counts=r.core_counts,
+             vertex_dtype=np.float32):
+        return _core.front_mesh_eager(tables, ran, positions, counts, 0, mesh.n_original, mesh.n_faces,
+                                      np.empty((faces, 3), np.int32), np.empty(ids, np.int32),
+                                      np.empty((ids, 3), vertex_dtype))
+
+    cases = {"faces do not fit": dict(faces=n_faces - 1), "size|capacity": dict(ids=3),
+             "same shape": dict(positions=r.front_positions[:-1]), "ran": dict(ran=r.core_ran.astype(np.int32)),
+             "vertex_positions": dict(vertex_dtype=np.float64), "counts": dict(counts=r.core_counts[:3])}
+    for match, change in cases.items():
+        with pytest.raises(ValueError, match=match):
+            call(**change)
+    vertices, faces, ids = r.mesh()
+    whole = _core.front_mesh(mesh, r.core_ran, r.front_positions, r.core_counts)
+    k = int(whole[3])
+    assert faces.shape == (n_faces, 3) and len(ids) == k == len(vertices)
+    assert np.array_equal(faces, whole[0][:n_faces]) and np.array_equal(ids, whole[1][:k])
+    assert np.array_equal(vertices, whole[2][:k])

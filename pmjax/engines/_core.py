@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import functools
 import os
+import types
 
 import jax
 import jax.numpy as jnp
@@ -122,8 +123,25 @@ def camera_rows(cameras: Camera, taus, xp=jnp):
 
 
 def host_camera_rows(cameras: Camera, taus) -> np.ndarray:
-    """:func:`camera_rows` on the host (NumPy), for eager calls."""
+    """:func:`camera_rows` on the host (NumPy)."""
     return camera_rows(cameras, taus, np)
+
+
+@jax.jit
+def _camera_row_of_fields(eye, rotation, fov_y, near, far, ortho_height, width, height, tau):
+    fields = types.SimpleNamespace(eye=eye, rotation=rotation, fov_y=fov_y, near=near, far=far,
+                                   ortho_height=ortho_height, width=width, height=height)
+    return camera_rows(fields, tau)
+
+
+def eager_camera_row(camera: Camera, tau) -> np.ndarray:
+    """``float32 [CAMERA]``: :func:`camera_rows` of one camera for an eager
+    call, as a NumPy array. One compiled call on the camera's fields, passed
+    one by one (a JAX array's fields reach NumPy faster that way than one at
+    a time, and faster than a flattened pytree)."""
+    c = camera
+    return np.asarray(_camera_row_of_fields(c.eye, c.rotation, c.fov_y, c.near, c.far, c.ortho_height, c.width,
+                                            c.height, tau))
 
 
 def _view_of_rows(rows, orthographic: bool, step=None):
@@ -269,6 +287,48 @@ def refine_one_answered(tables: CoreTables, camera, tests, orthographic: bool, f
         *_hierarchy_args(tables), camera, pcols, ran, positions, unsure, yes, counts,
         aliases={4: 0, 5: 1, 6: 2}, flags=np.int32(flags_of(tests, orthographic)), n_roots=np.int64(tables.n_roots))
     return pcols, ran, positions, counts[:4].at[3].set(0)
+
+
+def refine_one_eager(tables: CoreTables, host, camera_row: np.ndarray, tests, orthographic: bool):
+    """:func:`refine_one` with lists, eagerly: the core called from Python
+    directly (``_pmx.refine_one``, with the XLA targets' checks; no XLA
+    program around it), the unsure decisions asked of the float32 predicate
+    in XLA and a second pass only where the first left some.
+
+    Args:
+        tables: :class:`CoreTables`.
+        host: ``(rows, kills, order)`` of ``tables`` as NumPy arrays.
+        camera_row: ``float32 [CAMERA]`` (:func:`eager_camera_row`).
+
+    Returns:
+        NumPy ``pcols int32 [L]``, ``ran uint8 [L]``, ``positions int32 [L]``
+        (``L = P + SPARE``, the first ``counts[0]`` used) and ``counts int32
+        [5]``: slots visited, pcols not run, faces they keep, 0, the SIMD level.
+    """
+    L = tables.n_pcols + SPARE
+    flags = flags_of(tests, orthographic)
+    pcols, ran, positions = np.empty(L, np.int32), np.empty(L, np.uint8), np.empty(L, np.int32)
+    unsure, counts = np.empty(L, np.int32), np.empty(5, np.int32)
+    _pmx.refine_one(*host, camera_row, flags, tables.n_roots, pcols, ran, positions, counts, unsure)
+    m = int(counts[3])
+    if m:
+        answered = unsure[:m].copy()
+        # Padded to a power of two: a few compiled shapes serve every count.
+        room = max(64, 1 << (m - 1).bit_length())
+        padded = np.zeros(room, np.int32)
+        padded[:m] = answered
+        yes = np.asarray(_answers(tables, padded, m, camera_row, tests, orthographic))[:m]
+        _pmx.refine_one(*host, camera_row, flags, tables.n_roots, pcols, ran, positions, counts, None, answered,
+                        np.ascontiguousarray(yes, np.int32), int(counts[4]))
+        if counts[3]:
+            raise RuntimeError("refine: unsure decisions left after they were answered")
+    return pcols, ran, positions, counts
+
+
+@functools.partial(jax.jit, static_argnames=("tests", "orthographic"))
+def _answers(tables, positions, count, camera_row, tests, orthographic):
+    return _answer_positions(tables, positions, count, jnp.zeros(positions.shape, jnp.int32), camera_row, tests,
+                             orthographic)
 
 
 # -- camera batches ----------------------------------------------------------------
@@ -486,11 +546,25 @@ def front_mesh(mesh: CoreMesh, ran, positions, counts, item=0, face_rows=None, i
                  n_faces_total=np.int64(F))
 
 
-def rows_for(count: int, total: int) -> int:
-    """Rows of an eager mesh buffer for ``count`` items of at most ``total``:
-    the next power of two (at least 256), so that a path's meshes reuse a few
-    compiled shapes and a buffer is at most twice what it holds."""
-    return min(int(total), max(256, 1 << max(int(count) - 1, 0).bit_length()))
+def front_mesh_eager(tables, ran, positions, counts, item: int, n_original: int, n_faces: int, faces, ids,
+                     vertices) -> int:
+    """:func:`front_mesh` eagerly, the core called from Python directly
+    (``_pmx.front_mesh``, with the XLA target's checks).
+
+    Args:
+        tables: the mesh's records ``(pcols, kill_data, base, tops, top_at)``
+            as NumPy arrays.
+        ran, positions, counts, item: as for :func:`front_mesh` (NumPy or
+            JAX arrays on the CPU).
+        faces, ids, vertices: NumPy outputs ``int32 [rows, 3]`` (room for the
+            refinement's faces), ``int32 [rows]`` and ``float32 [rows, 3]``
+            (room for the vertices it uses), written.
+
+    Returns:
+        The vertices used (the first rows of ``ids`` and ``vertices``).
+    """
+    return _pmx.front_mesh(*tables, np.asarray(ran), np.asarray(positions), np.asarray(counts), int(item),
+                           int(n_original), int(n_faces), faces, ids, vertices)
 
 
 # -- whole-table passes (tests) -------------------------------------------------------------

@@ -45,23 +45,29 @@ ffi::Error Expect(const char* name, ffi::Span<const int64_t> dims, std::initiali
     if (pmx_error.failure()) return pmx_error;   \
   } while (0)
 
-// The hierarchy's tables: rows [P, PMX_ROW], kills [P], order [P].
-ffi::Error Hierarchy(ffi::Buffer<ffi::F32> rows, ffi::Buffer<ffi::S32> kills, ffi::Buffer<ffi::S32> order,
-                     int64_t n_roots, PmxHierarchy* h) {
-  auto dims = rows.dimensions();
-  if (dims.size() != 2 || dims[1] != PMX_ROW)
+// The hierarchy's tables: rows [P, PMX_ROW], kills [P], order [P] (the
+// checks of the XLA targets and of the eager entry alike).
+ffi::Error HierarchyOf(const float* rows, ffi::Span<const int64_t> rows_dims, const int32_t* kills,
+                       ffi::Span<const int64_t> kills_dims, const int32_t* order,
+                       ffi::Span<const int64_t> order_dims, int64_t n_roots, PmxHierarchy* h) {
+  if (rows_dims.size() != 2 || rows_dims[1] != PMX_ROW)
     return ffi::Error::InvalidArgument("rows must have shape [P, " + std::to_string(PMX_ROW) + "], got " +
-                                       Shape(dims));
-  const int64_t P = dims[0];
-  PMX_CHECK(Expect("kills", kills.dimensions(), {P}));
-  PMX_CHECK(Expect("order", order.dimensions(), {P}));
+                                       Shape(rows_dims));
+  const int64_t P = rows_dims[0];
+  PMX_CHECK(Expect("kills", kills_dims, {P}));
+  PMX_CHECK(Expect("order", order_dims, {P}));
   if (P > PMX_MAX_PCOLS || n_roots < 0 || n_roots > P || (P > 0 && n_roots == 0))
     return ffi::Error::InvalidArgument("n_roots " + std::to_string(n_roots) + " does not fit " + std::to_string(P) +
                                        " pcols");
-  if (reinterpret_cast<uintptr_t>(rows.typed_data()) % 4 != 0)
-    return ffi::Error::InvalidArgument("rows are not aligned");
-  *h = PmxHierarchy{rows.typed_data(), kills.typed_data(), order.typed_data(), P, n_roots};
+  if (reinterpret_cast<uintptr_t>(rows) % 4 != 0) return ffi::Error::InvalidArgument("rows are not aligned");
+  *h = PmxHierarchy{rows, kills, order, P, n_roots};
   return ffi::Error::Success();
+}
+
+ffi::Error Hierarchy(ffi::Buffer<ffi::F32> rows, ffi::Buffer<ffi::S32> kills, ffi::Buffer<ffi::S32> order,
+                     int64_t n_roots, PmxHierarchy* h) {
+  return HierarchyOf(rows.typed_data(), rows.dimensions(), kills.typed_data(), kills.dimensions(),
+                     order.typed_data(), order.dimensions(), n_roots, h);
 }
 
 ffi::Error Status(PmxStatus status, const char* what) {
@@ -380,6 +386,101 @@ ffi::Error ApplyUnsure(ffi::Buffer<ffi::S32> records_in, ffi::Buffer<ffi::S32> s
 }
 
 // ---- the mesh --------------------------------------------------------------------
+// The front mesh's operands as plain arrays (the XLA target's buffers, or
+// the eager entry's NumPy arrays): data and shape of each.
+template <typename T>
+struct Raw {
+  T* data;
+  ffi::Span<const int64_t> dims;
+};
+
+struct MeshOperands {
+  Raw<const int32_t> pcol_records, kill_data, base, tops, top_at;
+  Raw<const void> ran;
+  bool words;  // ran: uint16 frame bits of words (else uint8 per camera)
+  Raw<const int32_t> positions, counts;
+  int64_t item;
+  Raw<int32_t> faces, ids;
+  Raw<float> vertex_positions;
+  int64_t n_original, n_faces_total;
+};
+
+// Checks the operands against each other and reads the mesh off the front:
+// faces, ids and vertex_positions written, *n_ids their vertices.
+ffi::Error FrontMeshOf(const MeshOperands& a, int64_t* n_ids) {
+  static_assert(sizeof(PmxPcolRecord) == 14 * 4 && sizeof(PmxFaceRecord) == 16 && sizeof(PmxFrontVertex) == 20,
+                "records of 4-byte fields");
+  auto pd = a.pcol_records.dims;
+  if (pd.size() != 2 || pd[1] != 14)
+    return ffi::Error::InvalidArgument("pcol_records must have shape [P, 14], got " + Shape(pd));
+  const int64_t P = pd[0], V0 = a.n_original, F = a.n_faces_total;
+  auto kd = a.kill_data.dims, bd = a.base.dims, td = a.tops.dims;
+  if (kd.size() != 2 || kd[1] != 4) return ffi::Error::InvalidArgument("kill_data must have shape [n, 4]");
+  if (bd.size() != 2 || bd[1] != 4) return ffi::Error::InvalidArgument("base must have shape [n, 4]");
+  if (td.size() != 2 || td[1] != 5) return ffi::Error::InvalidArgument("tops must have shape [n, 5]");
+  PMX_CHECK(Expect("top_at", a.top_at.dims, {td[0]}));
+  if (V0 < 0 || F < 0 || kd[0] + bd[0] > F)
+    return ffi::Error::InvalidArgument("the mesh's records do not fit its faces");
+  // The outputs' rows: room for the refinement's faces (checked below) and
+  // for the vertices it uses (the core checks), at most the whole mesh.
+  auto fd = a.faces.dims, id = a.ids.dims;
+  if (fd.size() != 2 || fd[1] != 3 || fd[0] > F)
+    return ffi::Error::InvalidArgument("faces must have shape [rows <= " + std::to_string(F) + ", 3], got " +
+                                       Shape(fd));
+  if (id.size() != 1 || id[0] > V0)
+    return ffi::Error::InvalidArgument("ids must have shape [rows <= " + std::to_string(V0) + "], got " + Shape(id));
+  PMX_CHECK(Expect("vertex_positions", a.vertex_positions.dims, {id[0], 3}));
+  auto rd = a.ran.dims, qd = a.positions.dims, cd = a.counts.dims;
+  if (rd.size() != qd.size() || !std::equal(rd.begin(), rd.end(), qd.begin()) || rd.size() < 1 || rd.size() > 2)
+    return ffi::Error::InvalidArgument("ran and positions must have the same shape, [L] or [R, L]; got " +
+                                       Shape(rd) + " and " + Shape(qd));
+  if (cd.size() < 1 || cd.size() > 2 || cd.back() < 4)
+    return ffi::Error::InvalidArgument("counts must be [C] or [M, C] with C >= 4, got " + Shape(cd));
+  const int64_t item = a.item, items = cd.size() == 2 ? cd[0] : 1;
+  const int64_t rows = rd.size() == 2 ? rd[0] : 1, L = rd.back();
+  const int64_t row = a.words ? item / PMX_FRAMES : item;
+  if (item < 0 || item >= items || row >= rows) return ffi::Error::InvalidArgument("item outside the counts or lists");
+  const int32_t* c = a.counts.data + cd.back() * item;
+  const int64_t n = c[0], nf = bd[0] + c[2];
+  if (n < 0 || n > L || n > P) return ffi::Error::InvalidArgument("counts: the slots do not fit the lists");
+  if (nf < 0 || nf > fd[0])
+    return ffi::Error::InvalidArgument("counts: the refinement's " + std::to_string(nf) + " faces do not fit " +
+                                       std::to_string(fd[0]) + " rows");
+  const uint8_t* ran8 = a.words ? nullptr : static_cast<const uint8_t*>(a.ran.data) + row * L;
+  const uint16_t* ran16 = a.words ? static_cast<const uint16_t*>(a.ran.data) + row * L : nullptr;
+  const int frame = a.words ? static_cast<int>(item % PMX_FRAMES) : -1;
+  const int32_t* at = a.positions.data + row * L;
+  for (int64_t i = 0; i < n; ++i)
+    if (at[i] < 0 || at[i] >= P) return ffi::Error::InvalidArgument("positions outside the hierarchy");
+  PmxMeshTables m{reinterpret_cast<const PmxPcolRecord*>(a.pcol_records.data),
+                  reinterpret_cast<const PmxFaceRecord*>(a.kill_data.data),
+                  reinterpret_cast<const PmxFaceRecord*>(a.base.data),
+                  reinterpret_cast<const PmxFrontVertex*>(a.tops.data),
+                  a.top_at.data,
+                  kd[0],
+                  bd[0],
+                  td[0],
+                  V0,
+                  P,
+                  F};
+  Scratch s(P);
+  if (!s.s) return Status(PMX_NO_MEMORY, "mesh");
+  return Status(pmx_front_mesh(&m, ran8, ran16, frame, at, n, nf, a.faces.data, a.ids.data,
+                               a.vertex_positions.data, id[0], n_ids, s.s),
+                "mesh");
+}
+
+template <ffi::DataType T>
+auto In(const ffi::Buffer<T>& b) {
+  return Raw<const ffi::NativeType<T>>{b.typed_data(), b.dimensions()};
+}
+
+template <ffi::DataType T>
+auto Out(ffi::Result<ffi::Buffer<T>>& b) {
+  return Raw<ffi::NativeType<T>>{b->typed_data(), b->dimensions()};
+}
+
+// The refined mesh read off the front (FrontMeshOf).
 // operands: pcol_records s32[P, 14], kill_data s32[KD, 4], base s32[B, 4], tops s32[T, 5], top_at s32[T],
 //           ran (u8 [L] or [R, L]; or a path's u16 frame bits [R, L]) and positions s32 of the same shape,
 //           counts s32[C] or [M, C] (slots visited, not run, kept, ...: a refinement's counts), item s32[]:
@@ -392,70 +493,14 @@ ffi::Error FrontMesh(ffi::Buffer<ffi::S32> pcol_records, ffi::Buffer<ffi::S32> k
                      ffi::Buffer<ffi::S32> item_of, ffi::ResultBuffer<ffi::S32> faces, ffi::ResultBuffer<ffi::S32> ids,
                      ffi::ResultBuffer<ffi::F32> vertex_positions, ffi::ResultBuffer<ffi::S32> n_ids,
                      int64_t n_original, int64_t n_faces_total) {
-  static_assert(sizeof(PmxPcolRecord) == 14 * 4 && sizeof(PmxFaceRecord) == 16 && sizeof(PmxFrontVertex) == 20,
-                "records of 4-byte fields");
-  auto pd = pcol_records.dimensions();
-  if (pd.size() != 2 || pd[1] != 14)
-    return ffi::Error::InvalidArgument("pcol_records must have shape [P, 14], got " + Shape(pd));
-  const int64_t P = pd[0], V0 = n_original, F = n_faces_total;
-  auto kd = kill_data.dimensions(), bd = base.dimensions(), td = tops.dimensions();
-  if (kd.size() != 2 || kd[1] != 4) return ffi::Error::InvalidArgument("kill_data must have shape [n, 4]");
-  if (bd.size() != 2 || bd[1] != 4) return ffi::Error::InvalidArgument("base must have shape [n, 4]");
-  if (td.size() != 2 || td[1] != 5) return ffi::Error::InvalidArgument("tops must have shape [n, 5]");
-  PMX_CHECK(Expect("top_at", top_at.dimensions(), {td[0]}));
-  if (V0 < 0 || F < 0 || kd[0] + bd[0] > F)
-    return ffi::Error::InvalidArgument("the mesh's records do not fit its faces");
-  // The outputs' rows: room for the refinement's faces (checked below) and
-  // for the vertices it uses (the core checks), at most the whole mesh.
-  auto fd = faces->dimensions(), id = ids->dimensions();
-  if (fd.size() != 2 || fd[1] != 3 || fd[0] > F)
-    return ffi::Error::InvalidArgument("faces must have shape [rows <= " + std::to_string(F) + ", 3], got " +
-                                       Shape(fd));
-  if (id.size() != 1 || id[0] > V0)
-    return ffi::Error::InvalidArgument("ids must have shape [rows <= " + std::to_string(V0) + "], got " + Shape(id));
-  PMX_CHECK(Expect("vertex_positions", vertex_positions->dimensions(), {id[0], 3}));
-  auto rd = ran.dimensions(), qd = positions.dimensions(), cd = counts.dimensions();
-  if (rd.size() != qd.size() || !std::equal(rd.begin(), rd.end(), qd.begin()) || rd.size() < 1 || rd.size() > 2)
-    return ffi::Error::InvalidArgument("ran and positions must have the same shape, [L] or [R, L]; got " +
-                                       Shape(rd) + " and " + Shape(qd));
-  if (cd.size() < 1 || cd.size() > 2 || cd.back() < 4)
-    return ffi::Error::InvalidArgument("counts must be [C] or [M, C] with C >= 4, got " + Shape(cd));
   const bool words = ran.element_type() == ffi::DataType::U16;
   if (!words && ran.element_type() != ffi::DataType::U8 && ran.element_type() != ffi::DataType::PRED)
     return ffi::Error::InvalidArgument("ran must be uint8 (cameras) or uint16 (words' frames)");
-  const int64_t item = item_of.typed_data()[0], items = cd.size() == 2 ? cd[0] : 1;
-  const int64_t rows = rd.size() == 2 ? rd[0] : 1, L = rd.back();
-  const int64_t row = words ? item / PMX_FRAMES : item;
-  if (item < 0 || item >= items || row >= rows) return ffi::Error::InvalidArgument("item outside the counts or lists");
-  const int32_t* c = counts.typed_data() + cd.back() * item;
-  const int64_t n = c[0], nf = bd[0] + c[2];
-  if (n < 0 || n > L || n > P) return ffi::Error::InvalidArgument("counts: the slots do not fit the lists");
-  if (nf < 0 || nf > fd[0])
-    return ffi::Error::InvalidArgument("counts: the refinement's " + std::to_string(nf) + " faces do not fit " +
-                                       std::to_string(fd[0]) + " rows");
-  const uint8_t* ran8 = words ? nullptr : reinterpret_cast<const uint8_t*>(ran.untyped_data()) + row * L;
-  const uint16_t* ran16 = words ? reinterpret_cast<const uint16_t*>(ran.untyped_data()) + row * L : nullptr;
-  const int frame = words ? static_cast<int>(item % PMX_FRAMES) : -1;
-  const int32_t* at = positions.typed_data() + row * L;
-  for (int64_t i = 0; i < n; ++i)
-    if (at[i] < 0 || at[i] >= P) return ffi::Error::InvalidArgument("positions outside the hierarchy");
-  PmxMeshTables m{reinterpret_cast<const PmxPcolRecord*>(pcol_records.typed_data()),
-                  reinterpret_cast<const PmxFaceRecord*>(kill_data.typed_data()),
-                  reinterpret_cast<const PmxFaceRecord*>(base.typed_data()),
-                  reinterpret_cast<const PmxFrontVertex*>(tops.typed_data()),
-                  top_at.typed_data(),
-                  kd[0],
-                  bd[0],
-                  td[0],
-                  V0,
-                  P,
-                  F};
-  Scratch s(P);
-  if (!s.s) return Status(PMX_NO_MEMORY, "mesh");
+  MeshOperands a{In(pcol_records), In(kill_data), In(base), In(tops), In(top_at),
+                 Raw<const void>{ran.untyped_data(), ran.dimensions()}, words, In(positions), In(counts),
+                 item_of.typed_data()[0], Out(faces), Out(ids), Out(vertex_positions), n_original, n_faces_total};
   int64_t count = 0;
-  PMX_CHECK(Status(pmx_front_mesh(&m, ran8, ran16, frame, at, n, nf, faces->typed_data(), ids->typed_data(),
-                                  vertex_positions->typed_data(), id[0], &count, s.s),
-                   "mesh"));
+  PMX_CHECK(FrontMeshOf(a, &count));
   n_ids->typed_data()[0] = static_cast<int32_t>(count);
   return ffi::Error::Success();
 }
@@ -715,6 +760,213 @@ PyObject* Drain(PyObject*, PyObject*) {
   Py_RETURN_NONE;
 }
 
+// ---- eager single cameras ---------------------------------------------------
+// An eager call of one camera reaches the core from Python directly (no XLA
+// program around it), with the checks of the XLA targets: every array is
+// read through the buffer protocol, C-contiguous, of the element type and
+// shape the core expects; a mismatch is a ValueError naming the argument.
+
+// An array (a NumPy array or any object with the buffer protocol) as an
+// argument of the eager entry; None where the argument may be left out.
+struct HostArray {
+  Py_buffer view{};
+  bool held = false;
+  std::vector<int64_t> dims;
+  HostArray() = default;
+  HostArray(const HostArray&) = delete;
+  HostArray& operator=(const HostArray&) = delete;
+  ~HostArray() {
+    if (held) PyBuffer_Release(&view);
+  }
+  template <typename T>
+  T* data() const {
+    return held ? static_cast<T*>(view.buf) : nullptr;
+  }
+  ffi::Span<const int64_t> shape() const { return ffi::Span<const int64_t>(dims.data(), dims.size()); }
+};
+
+// The element kind of a buffer-protocol format: 'f' float, 'i' signed, 'u'
+// unsigned, 0 for anything else (byte orders other than the native one too).
+char FormatKind(const char* format) {
+  if (!format) return 'u';  // plain bytes
+  if (*format == '@' || *format == '=' || *format == '<') ++format;
+  if (!*format || format[1]) return 0;
+  switch (*format) {
+    case 'e': case 'f': case 'd': return 'f';
+    case 'b': case 'h': case 'i': case 'l': case 'q': return 'i';
+    case '?': case 'B': case 'H': case 'I': case 'L': case 'Q': return 'u';
+    default: return 0;
+  }
+}
+
+const char* KindName(char kind, Py_ssize_t size) {
+  if (kind == 'u' && size == 0) return "uint8 or uint16";
+  if (kind == 'f' && size == 4) return "float32";
+  if (kind == 'i' && size == 4) return "int32";
+  if (kind == 'u' && size == 1) return "uint8";
+  return "an array";
+}
+
+// Takes `obj` as `a`: false, with a ValueError naming `name`, unless it is a
+// C-contiguous array of `kind` and `size`-byte elements (size 0: unsigned of
+// 1 or 2 bytes; writable for an output). None is taken as absent where `optional`.
+bool Take(PyObject* obj, const char* name, char kind, Py_ssize_t size, bool writable, bool optional,
+          HostArray* a) {
+  if (obj == Py_None && optional) return true;
+  int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+  if (obj == Py_None || PyObject_GetBuffer(obj, &a->view, flags) < 0) {
+    PyErr_Clear();
+    PyErr_Format(PyExc_ValueError, "%s must be a C-contiguous%s %s array", name, writable ? ", writable" : "",
+                 KindName(kind, size));
+    return false;
+  }
+  a->held = true;
+  bool sized = size ? a->view.itemsize == size : a->view.itemsize == 1 || a->view.itemsize == 2;
+  if (FormatKind(a->view.format) != kind || !sized) {
+    PyErr_Format(PyExc_ValueError, "%s must be %s, got elements of format '%s' and %zd bytes", name,
+                 KindName(kind, size), a->view.format ? a->view.format : "B", a->view.itemsize);
+    return false;
+  }
+  a->dims.assign(a->view.shape, a->view.shape + a->view.ndim);
+  return true;
+}
+
+// An ffi::Error as a ValueError (false), or true.
+bool Raise(const ffi::Error& error) {
+  if (error.success()) return true;
+  PyErr_SetString(PyExc_ValueError, error.message().c_str());
+  return false;
+}
+
+// refine_one(rows, kills, order, camera, flags, n_roots, pcols, ran, positions, counts,
+//            unsure=None, answered=None, answers=None, level=-1)
+// One camera eagerly, as the XLA targets pmx_refine_one (answered None) and
+// pmx_refine_answered (answered: the first pass's unsure positions, answers:
+// the float32 predicate's decisions, level: the first pass's) compute it.
+// Lists: pcols s32[L], ran u8[L], positions s32[L] (L = P + PMX_SPARE) or
+// None (counts only); unsure s32[P + PMX_SPARE] or None; counts s32[5]
+// (visited, not run, kept, unsure, SIMD level) written.
+PyObject* RefineOneEager(PyObject*, PyObject* args, PyObject* kwargs) {
+  static const char* names[] = {"rows", "kills", "order", "camera", "flags", "n_roots", "pcols", "ran",
+                                "positions", "counts", "unsure", "answered", "answers", "level", nullptr};
+  PyObject *rows_o, *kills_o, *order_o, *camera_o, *pcols_o, *ran_o, *positions_o, *counts_o;
+  PyObject *unsure_o = Py_None, *answered_o = Py_None, *answers_o = Py_None;
+  int flags = 0, level = -1;
+  long long n_roots = 0;
+  if (!PyArg_ParseTupleAndKeywords(args, kwargs, "OOOOiLOOOO|OOOi", const_cast<char**>(names), &rows_o, &kills_o,
+                                   &order_o, &camera_o, &flags, &n_roots, &pcols_o, &ran_o, &positions_o, &counts_o,
+                                   &unsure_o, &answered_o, &answers_o, &level))
+    return nullptr;
+  HostArray rows, kills, order, camera, pcols, ran, positions, counts, unsure, answered, answers;
+  if (!Take(rows_o, "rows", 'f', 4, false, false, &rows) || !Take(kills_o, "kills", 'i', 4, false, false, &kills) ||
+      !Take(order_o, "order", 'i', 4, false, false, &order) ||
+      !Take(camera_o, "camera", 'f', 4, false, false, &camera) ||
+      !Take(pcols_o, "pcols", 'i', 4, true, true, &pcols) || !Take(ran_o, "ran", 'u', 1, true, true, &ran) ||
+      !Take(positions_o, "positions", 'i', 4, true, true, &positions) ||
+      !Take(counts_o, "counts", 'i', 4, true, false, &counts) ||
+      !Take(unsure_o, "unsure", 'i', 4, true, true, &unsure) ||
+      !Take(answered_o, "answered", 'i', 4, false, true, &answered) ||
+      !Take(answers_o, "answers", 'i', 4, false, true, &answers))
+    return nullptr;
+  PmxHierarchy h;
+  if (!Raise(HierarchyOf(rows.data<float>(), rows.shape(), kills.data<int32_t>(), kills.shape(),
+                         order.data<int32_t>(), order.shape(), n_roots, &h)))
+    return nullptr;
+  const int64_t P = h.n_pcols;
+  if (!Raise(Expect("camera", camera.shape(), {PMX_CAMERA})) || !Raise(Expect("counts", counts.shape(), {5})))
+    return nullptr;
+  for (const HostArray* list : {&pcols, &ran, &positions, &unsure}) {
+    const char* name = list == &pcols ? "pcols" : list == &ran ? "ran" : list == &positions ? "positions" : "unsure";
+    if (list->held && !Raise(Expect(name, list->shape(), {P + PMX_SPARE}))) return nullptr;
+  }
+  if (level < -1 || level > PMX_SIMD_AVX512) {
+    PyErr_Format(PyExc_ValueError, "level must be -1 or a SIMD level 0..%d, got %d", PMX_SIMD_AVX512, level);
+    return nullptr;
+  }
+  // The answers: both or neither, one per unsure position, the positions
+  // increasing inside the hierarchy (the traversal merges them in order).
+  if (answered.held != answers.held) {
+    PyErr_SetString(PyExc_ValueError, "answered and answers go together");
+    return nullptr;
+  }
+  int64_t m = 0;
+  if (answered.held) {
+    if (answered.dims.size() != 1 || answered.dims[0] > P + PMX_SPARE) {
+      PyErr_Format(PyExc_ValueError, "answered must have shape [m], m <= %lld, got %s", (long long)(P + PMX_SPARE),
+                   Shape(answered.shape()).c_str());
+      return nullptr;
+    }
+    m = answered.dims[0];
+    if (!Raise(Expect("answers", answers.shape(), {m}))) return nullptr;
+    const int32_t* at = answered.data<int32_t>();
+    for (int64_t i = 0; i < m; ++i)
+      if (at[i] < 0 || at[i] >= P || (i > 0 && at[i] <= at[i - 1])) {
+        PyErr_Format(PyExc_ValueError, "answered[%lld] = %d: the positions must increase inside [0, %lld)",
+                     (long long)i, at[i], (long long)P);
+        return nullptr;
+      }
+  }
+  PmxLists lists{pcols.data<int32_t>(), ran.data<uint8_t>(), nullptr, positions.data<int32_t>()};
+  float view[PMX_VIEW];
+  pmx_view_of(camera.data<float>(), (flags & PMX_ORTHOGRAPHIC) != 0, view);
+  PmxCounts c{};
+  int level_used = 0;
+  PmxStatus status = PMX_NO_MEMORY;
+  Py_BEGIN_ALLOW_THREADS;
+  if (PmxScratch* s = pmx_scratch_take(P)) {
+    status = pmx_refine_one(&h, view, flags, level, answered.data<int32_t>(), answers.data<int32_t>(), m, lists,
+                            unsure.data<int32_t>(), &c, &level_used, s);
+    pmx_scratch_give(s);
+  }
+  Py_END_ALLOW_THREADS;
+  if (status != PMX_OK) {
+    PyErr_Format(status == PMX_NO_MEMORY ? PyExc_MemoryError : PyExc_ValueError, "refine: %s",
+                 pmx_status_text(status));
+    return nullptr;
+  }
+  PutCounts(c, level_used, counts.data<int32_t>());
+  Py_RETURN_NONE;
+}
+
+template <typename T>
+Raw<T> RawOf(const HostArray& a) {
+  return Raw<T>{a.data<T>(), a.shape()};
+}
+
+// front_mesh(pcol_records, kill_data, base, tops, top_at, ran, positions, counts, item, n_original,
+//            n_faces_total, faces, ids, vertex_positions) -> n_ids
+// The mesh of one refinement eagerly, as the target pmx_front_mesh reads it
+// (ran: uint8 per camera or uint16 frame bits of words); the outputs written.
+PyObject* FrontMeshEager(PyObject*, PyObject* args) {
+  PyObject *records_o, *kill_o, *base_o, *tops_o, *top_at_o, *ran_o, *positions_o, *counts_o, *faces_o, *ids_o,
+      *vertices_o;
+  long long item = 0, n_original = 0, n_faces_total = 0;
+  if (!PyArg_ParseTuple(args, "OOOOOOOOLLLOOO", &records_o, &kill_o, &base_o, &tops_o, &top_at_o, &ran_o,
+                        &positions_o, &counts_o, &item, &n_original, &n_faces_total, &faces_o, &ids_o, &vertices_o))
+    return nullptr;
+  HostArray records, kill_data, base, tops, top_at, ran, positions, counts, faces, ids, vertices;
+  if (!Take(records_o, "pcol_records", 'i', 4, false, false, &records) ||
+      !Take(kill_o, "kill_data", 'i', 4, false, false, &kill_data) ||
+      !Take(base_o, "base", 'i', 4, false, false, &base) || !Take(tops_o, "tops", 'i', 4, false, false, &tops) ||
+      !Take(top_at_o, "top_at", 'i', 4, false, false, &top_at) || !Take(ran_o, "ran", 'u', 0, false, false, &ran) ||
+      !Take(positions_o, "positions", 'i', 4, false, false, &positions) ||
+      !Take(counts_o, "counts", 'i', 4, false, false, &counts) ||
+      !Take(faces_o, "faces", 'i', 4, true, false, &faces) || !Take(ids_o, "ids", 'i', 4, true, false, &ids) ||
+      !Take(vertices_o, "vertex_positions", 'f', 4, true, false, &vertices))
+    return nullptr;
+  MeshOperands a{RawOf<const int32_t>(records), RawOf<const int32_t>(kill_data), RawOf<const int32_t>(base),
+                 RawOf<const int32_t>(tops), RawOf<const int32_t>(top_at), RawOf<const void>(ran),
+                 ran.view.itemsize == 2, RawOf<const int32_t>(positions), RawOf<const int32_t>(counts), item,
+                 RawOf<int32_t>(faces), RawOf<int32_t>(ids), RawOf<float>(vertices), n_original, n_faces_total};
+  int64_t n_ids = 0;
+  ffi::Error error = ffi::Error::Success();
+  Py_BEGIN_ALLOW_THREADS;
+  error = FrontMeshOf(a, &n_ids);
+  Py_END_ALLOW_THREADS;
+  if (!Raise(error)) return nullptr;
+  return PyLong_FromLongLong(n_ids);
+}
+
 PyMethodDef methods[] = {
     {"targets", Targets, METH_NOARGS, "The XLA FFI targets of the core: {name: PyCapsule of the handler}."},
     {"simd", Simd, METH_VARARGS,
@@ -723,6 +975,15 @@ PyMethodDef methods[] = {
     {"simd_best", SimdBest, METH_NOARGS, "The best SIMD kernels this processor has (0 plain, 1 AVX2, 2 AVX-512)."},
     {"layout", Layout, METH_NOARGS, "The core's layout constants (pmx.h)."},
     {"drain", Drain, METH_NOARGS, "Frees the scratch the core keeps between calls."},
+    {"refine_one", reinterpret_cast<PyCFunction>(reinterpret_cast<void (*)(void)>(RefineOneEager)),
+     METH_VARARGS | METH_KEYWORDS,
+     "refine_one(rows, kills, order, camera, flags, n_roots, pcols, ran, positions, counts, unsure=None, "
+     "answered=None, answers=None, level=-1): one camera eagerly, as the targets pmx_refine_one and "
+     "pmx_refine_answered compute it (NumPy arrays in and out; ValueError naming a bad argument)."},
+    {"front_mesh", FrontMeshEager, METH_VARARGS,
+     "front_mesh(pcol_records, kill_data, base, tops, top_at, ran, positions, counts, item, n_original, "
+     "n_faces_total, faces, ids, vertex_positions) -> n_ids: one refinement's mesh eagerly, as the target "
+     "pmx_front_mesh reads it (NumPy arrays in and out; ValueError naming a bad argument)."},
     {nullptr, nullptr, 0, nullptr}};
 
 PyModuleDef module = {PyModuleDef_HEAD_INIT, "_pmx", "The front engine's C core as XLA FFI targets (pmx.h).", -1,
