@@ -357,8 +357,10 @@ def _core_one(tables, camera, tau, tests, lists, check):
 def _core_one_eager(d, camera, tau, tests):
     """:func:`_core_one` with lists, eagerly (``_core.refine_one_eager``):
     NumPy lists ``[P + 16]`` and counts."""
-    host = d.memo("core_host", lambda: tuple(np.asarray(a) for a in (d.core.rows, d.core.kills, d.core.order)))
-    return _core.refine_one_eager(d.core, host, _core.eager_camera_row(camera, tau), tests, camera.orthographic)
+    host, n_roots = d.memo("core_host", lambda: (tuple(np.asarray(a) for a in (d.core.rows, d.core.kills,
+                                                                                d.core.order)), d.core.n_roots))
+    return _core.refine_one_eager(d.core, host, n_roots, _core.eager_camera_row(camera, tau), tests,
+                                  vars(camera)["orthographic"])
 
 
 def _refine_core(pm, camera, tau, tests, traced: bool) -> Refinement:

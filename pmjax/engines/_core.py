@@ -38,7 +38,7 @@ import numpy as np
 from jax import lax
 
 from .._camera import Camera
-from .._predicate import view_collapse_mask
+from .._predicate import ALL_TESTS, view_collapse_mask
 from .._view import View
 from ._switch import core_allowed
 from ._front_mesh import CoreMesh
@@ -104,8 +104,11 @@ def simd_best() -> str:
 
 def flags_of(tests, orthographic: bool) -> int:
     """The core's flags for a set of tests and a projection."""
-    return (FRUSTUM * bool(tests.frustum) | ORIENTATION * bool(tests.orientation) | SCREEN * bool(tests.screen)
-            | ORTHOGRAPHIC * bool(orthographic))
+    if tests is ALL_TESTS:  # the default, without three module attribute reads per call
+        chosen = FRUSTUM | ORIENTATION | SCREEN
+    else:
+        chosen = FRUSTUM * bool(tests.frustum) | ORIENTATION * bool(tests.orientation) | SCREEN * bool(tests.screen)
+    return chosen | ORTHOGRAPHIC * bool(orthographic)
 
 
 def camera_rows(cameras: Camera, taus, xp=jnp):
@@ -136,12 +139,12 @@ def _camera_row_of_fields(eye, rotation, fov_y, near, far, ortho_height, width, 
 
 def eager_camera_row(camera: Camera, tau) -> np.ndarray:
     """``float32 [CAMERA]``: :func:`camera_rows` of one camera for an eager
-    call, as a NumPy array. One compiled call on the camera's fields, passed
-    one by one (a JAX array's fields reach NumPy faster that way than one at
-    a time, and faster than a flattened pytree)."""
-    c = camera
-    return np.asarray(_camera_row_of_fields(c.eye, c.rotation, c.fov_y, c.near, c.far, c.ortho_height, c.width,
-                                            c.height, tau))
+    call, as a NumPy array: one compiled call on the camera's fields, read
+    from the instance's dictionary (an equinox module's attribute access
+    runs Python code, a per-call cost here) and passed one by one."""
+    f = vars(camera)
+    return np.asarray(_camera_row_of_fields(f["eye"], f["rotation"], f["fov_y"], f["near"], f["far"],
+                                            f["ortho_height"], f["width"], f["height"], tau))
 
 
 def _view_of_rows(rows, orthographic: bool, step=None):
@@ -289,7 +292,7 @@ def refine_one_answered(tables: CoreTables, camera, tests, orthographic: bool, f
     return pcols, ran, positions, counts[:4].at[3].set(0)
 
 
-def refine_one_eager(tables: CoreTables, host, camera_row: np.ndarray, tests, orthographic: bool):
+def refine_one_eager(tables: CoreTables, host, n_roots: int, camera_row: np.ndarray, tests, orthographic: bool):
     """:func:`refine_one` with lists, eagerly: the core called from Python
     directly (``_pmx.refine_one``, with the XLA targets' checks; no XLA
     program around it), the unsure decisions asked of the float32 predicate
@@ -297,7 +300,8 @@ def refine_one_eager(tables: CoreTables, host, camera_row: np.ndarray, tests, or
 
     Args:
         tables: :class:`CoreTables`.
-        host: ``(rows, kills, order)`` of ``tables`` as NumPy arrays.
+        host: ``(rows, kills, order)`` of ``tables`` as NumPy arrays, and
+            ``n_roots`` their roots (read once per mesh by the caller).
         camera_row: ``float32 [CAMERA]`` (:func:`eager_camera_row`).
 
     Returns:
@@ -305,11 +309,11 @@ def refine_one_eager(tables: CoreTables, host, camera_row: np.ndarray, tests, or
         (``L = P + SPARE``, the first ``counts[0]`` used) and ``counts int32
         [5]``: slots visited, pcols not run, faces they keep, 0, the SIMD level.
     """
-    L = tables.n_pcols + SPARE
+    L = len(host[1]) + SPARE
     flags = flags_of(tests, orthographic)
     pcols, ran, positions = np.empty(L, np.int32), np.empty(L, np.uint8), np.empty(L, np.int32)
     unsure, counts = np.empty(L, np.int32), np.empty(5, np.int32)
-    _pmx.refine_one(*host, camera_row, flags, tables.n_roots, pcols, ran, positions, counts, unsure)
+    _pmx.refine_one(*host, camera_row, flags, n_roots, pcols, ran, positions, counts, unsure)
     m = int(counts[3])
     if m:
         answered = unsure[:m].copy()
@@ -318,7 +322,7 @@ def refine_one_eager(tables: CoreTables, host, camera_row: np.ndarray, tests, or
         padded = np.zeros(room, np.int32)
         padded[:m] = answered
         yes = np.asarray(_answers(tables, padded, m, camera_row, tests, orthographic))[:m]
-        _pmx.refine_one(*host, camera_row, flags, tables.n_roots, pcols, ran, positions, counts, None, answered,
+        _pmx.refine_one(*host, camera_row, flags, n_roots, pcols, ran, positions, counts, None, answered,
                         np.ascontiguousarray(yes, np.int32), int(counts[4]))
         if counts[3]:
             raise RuntimeError("refine: unsure decisions left after they were answered")
