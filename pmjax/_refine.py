@@ -64,12 +64,11 @@ class Refinement:
         front_positions, core_ran, core_counts, core_item, n_slots: what
             the C core's mesh reads (``None`` from the other engines): the
             visited pcols' places in its breadth-first layout and whether
-            each ran (``[L]`` uint8: eagerly NumPy arrays of a power of two
-            of rows at least the slots used, under ``jit`` the core's
-            capacity ``P + 16``; or a path's ``[W, L]`` frame bits, shared by
-            its frames), the core's counts (``[4]``, or a path's
-            ``[W * 16, 4]``, row ``core_item`` being this refinement's) and
-            the slots used.
+            each ran (``[L]`` uint8: eagerly NumPy arrays of exactly the
+            slots used, under ``jit`` the core's capacity ``P + 16``; or a
+            path's ``[W, L]`` frame bits, shared by its frames), the core's
+            counts (``[4]``, or a path's ``[W * 16, 4]``, row ``core_item``
+            being this refinement's) and the slots used.
     """
 
     pm: ProgressiveMesh
@@ -200,18 +199,17 @@ def _mesh_host(mesh) -> tuple:
     return tuple(np.asarray(a) for a in records), mesh.n_original, mesh.n_faces
 
 
-@functools.partial(jax.jit, static_argnums=(9, 10, 11, 12))
-def _core_mesh_arrays(pcols, kill_data, base, tops, top_at, ran, positions, counts, item, n_original, n_faces,
-                      face_rows, id_rows):
+@functools.partial(jax.jit, static_argnames=("n_original", "n_faces"))
+def _core_mesh_arrays(pcols, kill_data, base, tops, top_at, ran, positions, counts, item, n_original, n_faces):
     mesh = _core.CoreMesh(pcols, kill_data, base, tops, top_at, n_original, n_faces)
-    return _core.front_mesh(mesh, ran, positions, counts, 0 if item is None else item, face_rows, id_rows)
+    return _core.front_mesh(mesh, ran, positions, counts, 0 if item is None else item)
 
 
-def _core_mesh(mesh, ran, positions, counts, item=None, face_rows=None, id_rows=None):
-    """The core's mesh of a refinement (jitted; the tables passed as arrays;
-    buffers of ``face_rows``/``id_rows`` rows, default the whole mesh's)."""
+def _core_mesh(mesh, ran, positions, counts, item=None):
+    """The core's mesh of a traced refinement (jitted; the tables passed as
+    arrays; whole-mesh buffers)."""
     return _core_mesh_arrays(mesh.pcols, mesh.kill_data, mesh.base, mesh.tops, mesh.top_at, ran, positions, counts,
-                             item, mesh.n_original, mesh.n_faces, face_rows, id_rows)
+                             item, mesh.n_original, mesh.n_faces)
 
 
 @functools.partial(jax.jit, static_argnums=2)
@@ -378,7 +376,7 @@ def _refine_core(pm, camera, tau, tests, traced: bool) -> Refinement:
         return Refinement(pm=pm, visited=pcols, visited_executed=ran.view(bool),
                           dense=None, n_faces=np.int32(counts_of.base_faces + kept),
                           n_vertices=np.int32(counts_of.V0 - n_exec), n_executed=np.int32(n_exec),
-                          front_positions=positions, core_ran=ran, core_counts=counts, n_slots=np.int32(n))
+                          front_positions=positions, core_ran=ran, core_counts=counts[:4], n_slots=np.int32(n))
     # Traced: the counts from a call without lists, the lists from one with
     # them; XLA drops whichever the caller does not use.
     tables = d.core

@@ -316,11 +316,10 @@ def refine_one_eager(tables: CoreTables, host, n_roots: int, camera_row: np.ndar
     _pmx.refine_one(*host, camera_row, flags, n_roots, pcols, ran, positions, counts, unsure)
     m = int(counts[3])
     if m:
-        answered = unsure[:m].copy()
         # Padded to a power of two: a few compiled shapes serve every count.
-        room = max(64, 1 << (m - 1).bit_length())
-        padded = np.zeros(room, np.int32)
-        padded[:m] = answered
+        padded = np.zeros(max(64, 1 << (m - 1).bit_length()), np.int32)
+        padded[:m] = unsure[:m]
+        answered = padded[:m]
         yes = np.asarray(_answers(tables, padded, m, camera_row, tests, orthographic))[:m]
         _pmx.refine_one(*host, camera_row, flags, n_roots, pcols, ran, positions, counts, None, answered,
                         np.ascontiguousarray(yes, np.int32), int(counts[4]))

@@ -875,10 +875,9 @@ PyObject* RefineOneEager(PyObject*, PyObject* args, PyObject* kwargs) {
   const int64_t P = h.n_pcols;
   if (!Raise(Expect("camera", camera.shape(), {PMX_CAMERA})) || !Raise(Expect("counts", counts.shape(), {5})))
     return nullptr;
-  for (const HostArray* list : {&pcols, &ran, &positions, &unsure}) {
-    const char* name = list == &pcols ? "pcols" : list == &ran ? "ran" : list == &positions ? "positions" : "unsure";
+  for (auto [name, list] : {std::pair{"pcols", &pcols}, std::pair{"ran", &ran}, std::pair{"positions", &positions},
+                            std::pair{"unsure", &unsure}})
     if (list->held && !Raise(Expect(name, list->shape(), {P + PMX_SPARE}))) return nullptr;
-  }
   if (level < -1 || level > PMX_SIMD_AVX512) {
     PyErr_Format(PyExc_ValueError, "level must be -1 or a SIMD level 0..%d, got %d", PMX_SIMD_AVX512, level);
     return nullptr;
