@@ -2,7 +2,8 @@
 
 The exact answer for the hard engine is :func:`pmjax.faces_for_budget` (one
 sort of the critical tolerances). This is its differentiable counterpart: a
-root find with optimistix on the soft face count, vmapped over cameras.
+root find on the soft face count, solved for many cameras at once by one
+compiled program (a safeguarded Newton iteration, every camera a lane).
 """
 
 from __future__ import annotations
@@ -10,13 +11,12 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import optimistix as optx
 from jaxtyping import Array, Float, Int
 
 from ._camera import Camera, camera_count, index_camera
 from ._model import ProgressiveMesh
-from ._predicate import ALL_TESTS, Tests
-from ._soft import soft_refine_unchecked
+from ._predicate import ALL_TESTS, Tests, _in_rows
+from ._soft import soft_tests, soft_weights
 
 
 class BudgetSolution(eqx.Module):
@@ -35,26 +35,31 @@ class BudgetSolution(eqx.Module):
     converged: Array
 
 
-def _soft_faces(log_tau, pm, camera, temperature, tests):
-    tau = jnp.exp(log_tau)
-    return soft_refine_unchecked(pm, camera, tau, temperature * tau, None, tests).faces
+def soft_faces_batch(pm: ProgressiveMesh, cameras: Camera, log_tau: Float[Array, " K"], temperature,
+                     tests: Tests = ALL_TESTS) -> Float[Array, " K"]:
+    """Soft face count of each camera at its own ``tau = exp(log_tau)``.
 
+    The same count as ``soft_refine(pm, camera, tau, temperature · tau).faces``
+    (to float32 rounding: the sums run in another order), for K cameras at
+    once with the cameras on the trailing axis, so the hierarchy is walked
+    once for all of them and each gather reads K neighbouring values.
 
-def _logit_excess(log_tau, args):
-    """Budget residual in coordinates where Newton behaves.
+    Args:
+        cameras: a camera batch (leading axis K).
+        log_tau: ``[K]`` natural log of each camera's tolerance (pixels).
+        temperature: softness relative to the tolerance.
 
-    The soft face count falls from ``hi`` (finest, at the lower end of the
-    range) to ``lo`` (coarsest) in an S-shaped curve of ``log tau``, flat at
-    both ends; its logit ``log((f − lo)/(hi − f))`` is close to a line, so a
-    Newton step from anywhere in the range lands near the root.
+    Returns:
+        ``[K]`` soft face counts.
     """
-    pm, camera, temperature, tests, lo, hi, target, active, y0 = args
-    f = _soft_faces(log_tau, pm, camera, temperature, tests)
-    tiny = 1e-6 * (hi - lo)
-    residual = jnp.log(jnp.maximum(f - lo, tiny)) - jnp.log(jnp.maximum(hi - f, tiny)) - target
-    # A camera whose answer is already known (budget outside the range)
-    # solves a trivial equation, so it cannot stall its batch's solve.
-    return jnp.where(active, residual, log_tau - y0)
+    tau = jnp.exp(log_tau)
+
+    def collapse(camera, t):
+        return _in_rows(lambda a: soft_tests(a, camera, t, temperature * t, None, tests)[0], pm.attributes)
+
+    weight = soft_weights(pm, jax.vmap(collapse, out_axes=1)(cameras, tau))  # [P, K]
+    # Sum the survivors, not F minus the collapsed: no cancellation in float32.
+    return (pm.n_faces - jnp.sum(pm.kills)) + jnp.sum(pm.kills[:, None] * (1.0 - weight), axis=0)
 
 
 def soft_tau_for_budget(
@@ -67,9 +72,15 @@ def soft_tau_for_budget(
     max_steps: int = 20,
     rtol: float = 1e-4,
     tests: Tests = ALL_TESTS,
-    chunk: int = 16,
+    chunk: int | None = None,
 ) -> BudgetSolution:
-    """Solve ``soft_faces(tau) = budget`` per camera (Newton, optimistix).
+    """Solve ``soft_faces(tau) = budget`` per camera.
+
+    All cameras of a chunk are solved together by one compiled program: a
+    log-spaced grid of tolerances brackets each camera's root, then a Newton
+    iteration on the logit of the soft count in ``log tau`` (close to a
+    line), kept inside the bracket by bisection, runs every camera as a lane
+    until each has converged.
 
     Args:
         pm: :class:`ProgressiveMesh`.
@@ -84,10 +95,11 @@ def soft_tau_for_budget(
             already met at the lowest gives the lowest (``converged``); one not
             met at the highest gives the highest (not ``converged``).
         max_steps: Newton iteration cap.
-        rtol: tolerance on ``log tau`` steps (relative change of ``tau``) and
-            on ``log faces`` (relative face-count error).
+        rtol: relative face-count error at which a camera has converged.
         tests: :class:`Tests`.
-        chunk: cameras solved per vmapped call (memory grows with it).
+        chunk: cameras solved together (memory grows with it as ``P·chunk``);
+            default: as many as keep one ``[P, chunk]`` float32 array near
+            4 MB, at most 256.
 
     Returns:
         :class:`BudgetSolution` (device arrays, shape ``[K]``).
@@ -95,10 +107,13 @@ def soft_tau_for_budget(
     K = camera_count(cameras)
     if K == 0:
         raise ValueError("soft_tau_for_budget needs a camera batch (leading axis)")
+    if cameras.orthographic:
+        raise ValueError("soft_tau_for_budget supports perspective cameras only")
     dtype = pm.attributes.radius.dtype
     budget = jnp.broadcast_to(jnp.asarray(budget, dtype), (K,))
-    # Chunks of cameras keep memory bounded (each camera holds ~GRID soft
-    # refinements at once); the last chunk is padded so one compile serves all.
+    if chunk is None:
+        chunk = max(1, min(256, (1 << 20) // max(pm.n_pcols, 1)))
+    # The last chunk is padded (its last camera repeated) so one compile serves all.
     chunk = max(1, min(int(chunk), K))
     parts = []
     for start in range(0, K, chunk):
@@ -109,38 +124,63 @@ def soft_tau_for_budget(
     return jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts)
 
 
-# Log-spaced tolerances evaluated first to bracket the root (cells of ~2.9x).
-GRID = 16
+# Log-spaced tolerances evaluated first to bracket the root (cells of ~3.7
+# octaves over the default range): each costs one batched evaluation, each
+# regula falsi step one more.
+GRID = 8
 
 
 @eqx.filter_jit
 def _solve(pm, cameras, budget, temperature, tau_range, max_steps, rtol, tests):
-    solver = optx.Newton(rtol=rtol, atol=rtol)
+    K = budget.shape[0]
+    faces = lambda log_tau: soft_faces_batch(pm, cameras, log_tau, temperature, tests)
     grid = jnp.linspace(jnp.log(tau_range[0]), jnp.log(tau_range[1]), GRID)
+    lanes = jnp.arange(K)
 
-    def one(camera, b):
-        # Bracket: the soft count falls along the grid; find the cell where it
-        # crosses the budget. Its ends clip the Newton steps, so the flat
-        # stretches of the curve outside the cell cannot trap the solve.
-        counts = jax.vmap(lambda s: _soft_faces(s, pm, camera, temperature, tests))(grid)
-        hi, lo = counts[0], counts[-1]
-        fits = b >= hi  # met at the finest tolerance of the range
-        reachable = b > lo  # else not met even at the coarsest
-        cell = jnp.clip(jnp.sum(counts > b) - 1, 0, GRID - 2)
-        c_hi, c_lo = counts[cell], counts[cell + 1]
-        lower, upper = grid[cell], grid[cell + 1]
-        inner = jnp.clip(b, c_lo + 1e-3 * (c_hi - c_lo), c_hi - 1e-3 * (c_hi - c_lo))
-        target = jnp.log(inner - lo) - jnp.log(hi - inner)
-        # Start where the count, linear in log tau across the cell, meets the budget.
-        y0 = lower + (upper - lower) * (c_hi - inner) / jnp.maximum(c_hi - c_lo, 1e-30)
-        args = (pm, camera, temperature, tests, lo, hi, target, ~fits & reachable, y0)
-        sol = optx.root_find(_logit_excess, solver, y0, args, options=dict(lower=lower, upper=upper),
-                             max_steps=max_steps, throw=False)
-        log_tau = jnp.where(fits, grid[0], jnp.where(reachable, sol.value, grid[-1]))
-        faces = _soft_faces(log_tau, pm, camera, temperature, tests)
-        steps = jnp.where(fits | ~reachable, 0, sol.stats["num_steps"])
-        ok = fits | (reachable & (sol.result == optx.RESULTS.successful))
-        return jnp.exp(log_tau), faces, steps, ok
+    # Bracket: the soft count falls along the grid; find each camera's cell
+    # where it crosses the budget. One batched evaluation per grid point.
+    counts = jax.lax.map(lambda s: faces(jnp.full(K, s)), grid)  # [GRID, K]
+    hi, lo = counts[0], counts[-1]
+    fits = budget >= hi  # met at the finest tolerance of the range
+    reachable = budget > lo  # else not met even at the coarsest
+    cell = jnp.clip(jnp.sum(counts > budget, axis=0) - 1, 0, GRID - 2)
+    c_hi, c_lo = counts[cell, lanes], counts[cell + 1, lanes]
+    inner = jnp.clip(budget, c_lo + 1e-3 * (c_hi - c_lo), c_hi - 1e-3 * (c_hi - c_lo))
+    target = jnp.log(inner - lo) - jnp.log(hi - inner)
+    tiny = 1e-6 * (hi - lo)
+    def residual(f):
+        # The logit of the soft count: close to a line in log tau, so secants
+        # through the bracket land near the root.
+        return jnp.log(jnp.maximum(f - lo, tiny)) - jnp.log(jnp.maximum(hi - f, tiny)) - target
 
-    tau, faces, steps, ok = jax.vmap(one)(cameras, budget)
-    return BudgetSolution(tau=tau, soft_faces=faces, steps=steps, converged=ok)
+    # Regula falsi with the Illinois rule (one batched evaluation per step,
+    # no derivative), from the cell: the residual falls with log tau, so it
+    # is positive at the cell's lower end and negative at its upper end.
+    a, b = grid[cell], grid[cell + 1]
+    ra, rb = residual(c_hi), residual(c_lo)
+    active = ~fits & reachable
+
+    def cond(state):
+        return jnp.any(~state[-1]) & (jnp.max(state[-2]) < max_steps)
+
+    def step(state):
+        a, ra, b, rb, side, y_done, f_done, steps, done = state
+        y = jnp.clip((a * rb - b * ra) / (rb - ra), a, b)
+        y = jnp.where(jnp.isfinite(y), y, 0.5 * (a + b))
+        f = faces(y)
+        r = residual(f)
+        ok = jnp.abs(f - inner) <= rtol * inner
+        # Keep the root bracketed; halve the residual kept twice in a row so
+        # that the bracket shrinks from both ends.
+        above = r > 0  # the root lies above y
+        ra, rb = jnp.where(above, r, jnp.where(side < 0, 0.5 * ra, ra)), jnp.where(above, jnp.where(side > 0, 0.5 * rb, rb), r)
+        a, b = jnp.where(above, y, a), jnp.where(above, b, y)
+        side = jnp.where(above, 1, -1)
+        live = ~done
+        return (a, ra, b, rb, side, jnp.where(live, y, y_done), jnp.where(live, f, f_done), steps + live, done | ok)
+
+    start = (a, ra, b, rb, jnp.zeros(K, jnp.int32), a, c_hi, jnp.zeros(K, jnp.int32), ~active)
+    *_, y, f, steps, done = jax.lax.while_loop(cond, step, start)
+    log_tau = jnp.where(fits, grid[0], jnp.where(reachable, y, grid[-1]))
+    soft = jnp.where(fits, hi, jnp.where(reachable, f, lo))
+    return BudgetSolution(tau=jnp.exp(log_tau), soft_faces=soft, steps=steps, converged=fits | (reachable & done))

@@ -137,14 +137,14 @@ def geomorph_blend(pm: ProgressiveMesh, weight: Float[Array, " P"], values: Floa
     if pm.n_pcols == 0:  # nothing to blend toward
         return values
 
-    # offset(u) = w(p)·(value(p) − value(u)) + offset(p) for p = the pcol consuming u.
-    def climb(parent, ids, created, pcols):
-        up = jnp.maximum(parent, 0)
-        step = weight[up][:, None] * (values[V0 + up] - values[ids]) + created[up]
-        return jnp.where((parent >= 0)[:, None], step, 0.0)
-
-    coarsest = lambda ids: jnp.zeros((ids.shape[0],) + values.shape[1:], values.dtype)
-    return values + jnp.concatenate(down_the_batches(pm, coarsest, climb))
+    # offset(u) = w(p)·(value(p) − value(u)) + offset(p) for p = the pcol
+    # consuming u: the step to the parent for all vertices at once, then its
+    # sum down the hierarchy.
+    parent = pm.parent
+    up = jnp.maximum(parent, 0)
+    step = weight[up][:, None] * (values[V0 + up] - values)
+    offset = down_the_batches(pm, step, lambda own, t, has_parent: jnp.where(has_parent, own + t, 0.0))
+    return values + offset
 
 
 def geomorph_positions(pm: ProgressiveMesh, weight: Float[Array, " P"]) -> Float[Array, "V0 3"]:

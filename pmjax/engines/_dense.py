@@ -3,9 +3,9 @@
 ``executed(p) = collapse(p) and exists(v1) and exists(v2)`` (docs/design.md).
 Pcols of one batch only depend on earlier batches, so the sequential loop
 becomes one vectorized predicate over all pcols plus one gather per batch,
-each batch a static slice under ``jit``. The reference every other engine is
-tested against, and the engine of GPUs, of user predicates and of meshes
-being traced.
+the batches visited by a few loops over windows under ``jit``. The reference
+every other engine is tested against, and the engine of GPUs, of user
+predicates and of meshes being traced.
 """
 
 from __future__ import annotations
@@ -34,29 +34,104 @@ def gather(values, indices):
     return values.at[indices].get(mode="promise_in_bounds")
 
 
+# Loops per fold: the batches are visited by at most this many loops, one per
+# window width, so a fold compiles a fixed handful of bodies whatever the
+# number of batches. One window per batch: a loop step costs little, but
+# each step's operations may be handed between threads.
+MAX_WIDTHS = 6
+
+
+@functools.lru_cache(maxsize=256)
+def window_plan(sizes: tuple) -> tuple:
+    """Window widths for a fold visiting batches of these sizes, one window each.
+
+    A batch's window is at least as wide as the largest batch from it to the
+    end of ``sizes``, so widths never grow along ``sizes`` and runs of equal
+    width are consecutive. The at most :data:`MAX_WIDTHS` widths minimise
+    the total window size (a small dynamic programme over the sizes).
+    Empty batches get no window.
+
+    Returns:
+        ``((width, index), ...)`` in the order of ``sizes``: ``index`` an
+        ``int`` array of positions in ``sizes`` whose windows have ``width``.
+    """
+    sizes = np.asarray(sizes, np.int64)
+    index = np.nonzero(sizes)[0]
+    if index.size == 0:
+        return ()
+    need = np.maximum.accumulate(sizes[index][::-1])[::-1]
+    levels = np.unique(need)  # ascending
+    # below[j]: windows whose need is at most levels[j - 1]. cost[k, j]: the
+    # least total width of those with k + 1 widths, the largest levels[j].
+    below = np.searchsorted(np.sort(need), levels, side="right")
+    below = np.concatenate([[0], below])
+    n, k_max = len(levels), min(MAX_WIDTHS, len(levels))
+    cost = np.full((k_max, n), np.inf)
+    choice = np.zeros((k_max, n), np.int64)
+    cost[0] = levels * below[1:]
+    for k in range(1, k_max):
+        for j in range(k, n):
+            # The next smaller width is levels[i]; it serves needs up to itself.
+            c = cost[k - 1, :j] + levels[j] * (below[j + 1] - below[1:j + 1])
+            choice[k, j] = int(np.argmin(c))
+            cost[k, j] = c[choice[k, j]]
+    k, j = int(np.argmin(cost[:, n - 1])), n - 1
+    widths = [int(levels[j])]
+    while k > 0:
+        j, k = int(choice[k, j]), k - 1
+        widths.append(int(levels[j]))
+    widths = np.asarray(sorted(widths))
+    width_of = widths[np.searchsorted(widths, need)]
+    return tuple((int(w), index[width_of == w]) for w in sorted(set(width_of.tolist()), reverse=True))
+
+
+def _windows_of(values, starts, width: int):
+    """``values[s:s + width]`` for every start, stacked ``[n, width, ...]``:
+    one gather before a loop, so reverse mode moves only the windows (a
+    full-size array closed over by the loop would be accumulated whole at
+    every step)."""
+    index = starts[:, None] + jnp.arange(width, dtype=jnp.int32)
+    return gather(values, index)
+
+
 def up_the_batches(pm: ProgressiveMesh, own, leaf, join):
-    """Fold a per-pcol value up the hierarchy, batch by batch (static slices).
+    """Fold a per-pcol value up the hierarchy, fine to coarse.
 
     ``out[p] = join(own[p], value(v1), value(v2))`` where ``value`` is ``leaf``
-    for an original vertex and ``out`` of the pcol that made a created one;
-    children always come from earlier batches, so one gather per batch.
-    ``own`` is ``[P, ...]``: trailing axes (cameras, words) ride along.
+    for an original vertex and ``out`` of the pcol that made a created one.
+    Children always come from earlier batches, so a batch is one vectorized
+    step; the batches are visited by a few ``lax.scan`` loops, one window per
+    batch (:func:`window_plan`), so the program does not grow with the
+    number of batches, and reverse mode keeps one window per step, not the
+    array. A window longer than its batch covers other batches too, which is
+    harmless: it writes later batches with values that are not final, but
+    each is written again, whole, by its own window before anything reads
+    it; and where it is moved back to fit inside the array, it writes
+    earlier batches with their final values again (their children are final). ``own`` is ``[P, ...]``: trailing axes (cameras, words) ride along.
     ``leaf`` must be an identity of ``join`` (``join(x, leaf, leaf) = x``): the
-    first batch, whose children are all original vertices, keeps ``own``, and
-    only the later batches are computed (in place).
+    first batch, whose children are all original vertices, keeps ``own``.
     """
-    # An explicit copy: where ``own`` is an argument of the jitted caller,
-    # without it XLA copied the whole array at every batch (dragon 0.44 -> 9.7 ms).
-    out = jnp.copy(own)
+    offsets = np.asarray(pm.batch_offsets, np.int64)
+    runs = window_plan(tuple(np.diff(offsets)[1:].tolist()))
+    if not runs:
+        return own
+    P = own.shape[0]
     trailing = (1,) * (own.ndim - 1)
-    for lo, hi in zip(pm.batch_offsets[1:-1], pm.batch_offsets[2:]):
-        if lo == hi:
-            continue
-        c1 = pm.child1[lo:hi].reshape((-1,) + trailing)
-        c2 = pm.child2[lo:hi].reshape((-1,) + trailing)
-        e1 = jnp.where(c1 < 0, leaf, gather(out, jnp.maximum(pm.child1[lo:hi], 0)))
-        e2 = jnp.where(c2 < 0, leaf, gather(out, jnp.maximum(pm.child2[lo:hi], 0)))
-        out = out.at[lo:hi].set(join(own[lo:hi], e1, e2))
+    child1, child2 = pm.child1, pm.child2
+    out = own
+    for width, index in runs:
+        # Windows start at their batch (1..), moved back to fit before P.
+        starts = jnp.asarray(np.minimum(offsets[index + 1], P - width).astype(np.int32))
+
+        def step(out, window, width=width):
+            start, own_window = window
+            c1 = jax.lax.dynamic_slice_in_dim(child1, start, width)
+            c2 = jax.lax.dynamic_slice_in_dim(child2, start, width)
+            e1 = jnp.where(c1.reshape((-1,) + trailing) < 0, leaf, gather(out, jnp.maximum(c1, 0)))
+            e2 = jnp.where(c2.reshape((-1,) + trailing) < 0, leaf, gather(out, jnp.maximum(c2, 0)))
+            return jax.lax.dynamic_update_slice_in_dim(out, join(own_window, e1, e2), start, 0), None
+
+        out, _ = jax.lax.scan(step, out, (starts, _windows_of(own, starts, width)))
     return out
 
 
@@ -74,43 +149,50 @@ def propagate(pm: ProgressiveMesh, collapse):
     return up_the_batches(pm, collapse, everything, lambda own, a, b: own & a & b)
 
 
-def down_the_batches(pm: ProgressiveMesh, coarsest, climb):
-    """Resolve a per-vertex value coarse to fine, batch by batch (static slices).
+def down_the_batches(pm: ProgressiveMesh, own, combine):
+    """Resolve a per-vertex value coarse to fine.
 
-    A vertex's value depends on the pcol consuming it (its parent), always in
-    a later batch, so batches are resolved from the last to the first, then
-    the original vertices.
+    ``out[v] = combine(own[v], out[parent(v)], has_parent)`` for every vertex
+    ``v`` (``V0 + P`` of them; the parent is the created vertex of the pcol
+    consuming ``v``, always of a later batch; ``has_parent`` is false for a
+    vertex no pcol consumes, and the parent's value is then arbitrary).
+    The created vertices are resolved batch by batch from the last, by a few
+    ``lax.scan`` loops, one window per batch (:func:`window_plan`), then the original vertices
+    in one step. ``combine`` sees ``[n, ...]`` slices and ``[n, 1...]``
+    flags, and must be elementwise in the vertex.
 
     Args:
-        coarsest: ``coarsest(ids)``: values of the created vertices ``ids``
-            (all ``P`` of them, ``V0 + p`` for pcol ``p``) as if nothing
-            coarser mattered; final for the last batch, whose vertices no
-            pcol consumes, and overwritten for the others.
-        climb: ``climb(parent, ids, created, pcols)``: values of vertices
-            ``ids`` given ``created``, the ``[P, ...]`` values of the created
-            vertices (final for the parents' batches); ``parent`` is each
-            vertex's consuming pcol (negative: consumed by none); ``pcols``
-            is the static ``slice`` of pcols that made ``ids``, or ``None``
-            for the original vertices (the last call).
+        own: ``[V0 + P, ...]`` per-vertex inputs.
+        combine: ``combine(own, parent_out, has_parent) -> out``.
 
     Returns:
-        ``(originals [V0, ...], created [P, ...])``: the values of all vertices.
+        ``[V0 + P, ...]``: the values of all vertices.
     """
-    V0, P = pm.n_original_vertices, pm.n_pcols
-    # Each batch is written in place into one [P] array: its reads (the
-    # parents, in later batches) are separate gathers, so XLA updates the
-    # slice without a copy. The previous way, a growing concatenation of the
-    # finished batches, copied every coarser batch again at each batch
-    # (dragon representatives 1.31 -> 1.22 ms, bunny 0.10 -> 0.08 ms).
-    created = coarsest(jnp.arange(V0, V0 + P, dtype=jnp.int32))
-    offsets = pm.batch_offsets
-    for lo, hi in reversed(list(zip(offsets[:-2], offsets[1:-1]))):
-        if lo == hi:
-            continue
-        ids = jnp.arange(V0 + lo, V0 + hi, dtype=jnp.int32)
-        created = created.at[lo:hi].set(climb(pm.parent[V0 + lo:V0 + hi], ids, created, slice(lo, hi)))
-    originals = climb(pm.parent[:V0], jnp.arange(V0, dtype=jnp.int32), created, None)
-    return originals, created
+    V0 = pm.n_original_vertices
+    flags = lambda parent: (parent >= 0).reshape(parent.shape + (1,) * (own.ndim - 1))
+    own_created = own[V0:]
+    # The vertices no pcol consumes are final now; every other batch is
+    # overwritten below once its parents are.
+    created = combine(own_created, own_created, jnp.zeros((own_created.shape[0],) + (1,) * (own.ndim - 1), bool))
+    # Batches B-2 … 0 (the last batch's vertices have no parents), each window
+    # ending at its batch's end, so it writes ahead into earlier batches,
+    # which are rewritten before being read; a window moved forward to fit
+    # after 0 writes later batches with their final values again.
+    offsets = np.asarray(pm.batch_offsets, np.int64)
+    parent = pm.parent[V0:]
+    for width, index in reversed(window_plan(tuple(np.diff(offsets)[:-1].tolist()))):
+        starts = jnp.asarray(np.maximum(offsets[index[::-1] + 1] - width, 0).astype(np.int32))
+
+        def step(created, window, width=width):
+            start, own_window = window
+            up = jax.lax.dynamic_slice_in_dim(parent, start, width)
+            value = combine(own_window, gather(created, jnp.maximum(up, 0)), flags(up))
+            return jax.lax.dynamic_update_slice_in_dim(created, value, start, 0), None
+
+        created, _ = jax.lax.scan(step, created, (starts, _windows_of(own_created, starts, width)))
+    up = pm.parent[:V0]
+    originals = combine(own[:V0], gather(created, jnp.maximum(up, 0)), flags(up))
+    return jnp.concatenate([originals, created])
 
 
 def representatives(pm: ProgressiveMesh, executed: Bool[Array, " P"]) -> Int[Array, " V"]:
@@ -118,24 +200,22 @@ def representatives(pm: ProgressiveMesh, executed: Bool[Array, " P"]) -> Int[Arr
 
     Resolved coarse to fine: a vertex takes its parent's representative
     (already final, parents are in later batches) if the parent ran, else
-    itself. What is carried for the created vertices is their representative
-    if their pcol ran and -1 if not, so that each vertex reads one random
-    element (its parent's) instead of two (whether the parent ran, and its
-    representative): dragon 1.26 -> 1.03 ms.
+    itself. What is carried for a vertex is its representative if it exists
+    (an original one, or a created one whose pcol ran) and -1 if not, so that
+    each vertex reads one element (its parent's) instead of two.
     """
     V0, P = pm.n_original_vertices, pm.n_pcols
     if P == 0:  # every vertex is its own representative
         return jnp.arange(V0, dtype=jnp.int32)
+    ids = jnp.arange(V0 + P, dtype=jnp.int32)
+    exists = jnp.concatenate([jnp.ones(V0, bool), executed])
 
-    def climb(parent, ids, created, pcols):
-        t = gather(created, jnp.maximum(parent, 0))
-        rep = jnp.where((parent >= 0) & (t >= 0), t, ids)
-        # The original vertices always exist; a created one only if its pcol ran.
-        return rep if pcols is None else jnp.where(executed[pcols], rep, -1)
+    def combine(own, t, has_parent):
+        return jnp.where(own < 0, -1, jnp.where(has_parent & (t >= 0), t, own))
 
-    originals, created = down_the_batches(pm, lambda ids: jnp.where(executed, ids, -1), climb)
-    created = jnp.where(created >= 0, created, jnp.arange(V0, V0 + P, dtype=jnp.int32))
-    return jnp.concatenate([originals, created])
+    rep = down_the_batches(pm, jnp.where(exists, ids, -1), combine)
+    # A created vertex that does not exist is its own representative.
+    return jnp.where(rep >= 0, rep, ids)
 
 
 class DenseRefinement(eqx.Module):
@@ -202,10 +282,6 @@ def refine(pm, camera, tau, context_arrays, context_static, tests, predicate, co
     context = eqx.combine(context_arrays, context_static.tree)
     tau = eqx.error_if(jnp.asarray(tau, jnp.float32), ~(tau >= 0), "tau must be >= 0 (and not NaN)")
     collapse = collapse_mask(pm.attributes, camera, tau, tests, predicate, context, combine)
-    # Materialize the decisions once: fused into the per-batch slices of the
-    # propagation, the predicate ran 20 % slower overall (dragon 5.1 -> 4.1 ms
-    # per refine with the barrier, same bits).
-    collapse = jax.lax.optimization_barrier(collapse)
     return finish(pm, propagate(pm, collapse))
 
 
@@ -250,8 +326,7 @@ def critical_tolerances(pm: ProgressiveMesh, camera: Camera, tests: Tests = ALL_
     :func:`pmjax.critical_tau` (docs/design.md): the whole family of refinements of
     one view in one array.
     """
-    # Materialized once, as in refine (dragon 3.5 -> 2.9 ms).
-    t = jax.lax.optimization_barrier(critical_tau(pm.attributes, camera, tests))
+    t = critical_tau(pm.attributes, camera, tests)
     return up_the_batches(pm, t, -jnp.inf, lambda own, a, b: jnp.maximum(own, jnp.maximum(a, b)))
 
 
