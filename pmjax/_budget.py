@@ -124,10 +124,10 @@ def soft_tau_for_budget(
     return jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts)
 
 
-# Log-spaced tolerances evaluated first to bracket the root (cells of ~3.7
-# octaves over the default range): each costs one batched evaluation, each
-# regula falsi step one more.
-GRID = 8
+# Log-spaced tolerances evaluated first to bracket the root (cells of 25x over
+# the default range): each costs one batched evaluation, as does each regula
+# falsi step; the logit of the count is close to a line across a cell.
+GRID = 6
 
 
 @eqx.filter_jit
@@ -153,8 +153,8 @@ def _solve(pm, cameras, budget, temperature, tau_range, max_steps, rtol, tests):
         # through the bracket land near the root.
         return jnp.log(jnp.maximum(f - lo, tiny)) - jnp.log(jnp.maximum(hi - f, tiny)) - target
 
-    # Regula falsi with the Illinois rule (one batched evaluation per step,
-    # no derivative), from the cell: the residual falls with log tau, so it
+    # Regula falsi with the Anderson-Björck rule (one batched evaluation per
+    # step, no derivative), from the cell: the residual falls with log tau, so it
     # is positive at the cell's lower end and negative at its upper end.
     a, b = grid[cell], grid[cell + 1]
     ra, rb = residual(c_hi), residual(c_lo)
@@ -170,10 +170,14 @@ def _solve(pm, cameras, budget, temperature, tau_range, max_steps, rtol, tests):
         f = faces(y)
         r = residual(f)
         ok = jnp.abs(f - inner) <= rtol * inner
-        # Keep the root bracketed; halve the residual kept twice in a row so
+        # Keep the root bracketed. An end kept twice in a row has its residual
+        # scaled down (Anderson-Björck: by 1 - r/r_replaced, or a half), so
         # that the bracket shrinks from both ends.
         above = r > 0  # the root lies above y
-        ra, rb = jnp.where(above, r, jnp.where(side < 0, 0.5 * ra, ra)), jnp.where(above, jnp.where(side > 0, 0.5 * rb, rb), r)
+        scale_b = jnp.where(above & (side > 0), 1.0 - r / ra, 1.0)
+        scale_a = jnp.where(~above & (side < 0), 1.0 - r / rb, 1.0)
+        scale_a, scale_b = (jnp.where(s > 0, s, 0.5) for s in (scale_a, scale_b))
+        ra, rb = jnp.where(above, r, scale_a * ra), jnp.where(above, scale_b * rb, r)
         a, b = jnp.where(above, y, a), jnp.where(above, b, y)
         side = jnp.where(above, 1, -1)
         live = ~done

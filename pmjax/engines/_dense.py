@@ -85,13 +85,39 @@ def window_plan(sizes: tuple) -> tuple:
     return tuple((int(w), index[width_of == w]) for w in sorted(set(width_of.tolist()), reverse=True))
 
 
-def _windows_of(values, starts, width: int):
-    """``values[s:s + width]`` for every start, stacked ``[n, width, ...]``:
-    one gather before a loop, so reverse mode moves only the windows (a
-    full-size array closed over by the loop would be accumulated whole at
-    every step)."""
-    index = starts[:, None] + jnp.arange(width, dtype=jnp.int32)
-    return gather(values, index)
+def _fold(pm: ProgressiveMesh, carry, sizes_from: int, reverse: bool, update):
+    """Rewrite each batch of ``carry`` (``[n, ...]``, rows = pcols) in turn.
+
+    Batches ``sizes_from …`` of the mesh are visited in order (``reverse``:
+    from the last), one window each (:func:`window_plan`), by a few
+    ``lax.scan`` loops. ``update(carry, current, start, width)`` gives the
+    new values of the window ``carry[start:start + width]`` (``current``);
+    only the window's own batch is written, so a window may start before its
+    batch (moved back to fit in the array) or run past it. The carry holds
+    each batch's input until its window rewrites it: loops read their inputs
+    from it, so reverse mode keeps one window per step, and nothing outside
+    the loops is read per window (a value computed outside and read by the
+    windows would be computed again inside their reads).
+    """
+    offsets = np.asarray(pm.batch_offsets, np.int64)
+    n = carry.shape[0]
+    trailing = (1,) * (carry.ndim - 1)
+    runs = window_plan(tuple(np.diff(offsets)[sizes_from:].tolist()))
+    for width, index in reversed(runs) if reverse else runs:
+        batch = (index[::-1] if reverse else index) + sizes_from
+        lo, hi = offsets[batch], offsets[batch + 1]
+        windows = tuple(jnp.asarray(a.astype(np.int32)) for a in (np.minimum(lo, n - width), lo, hi))
+
+        def step(carry, window, width=width):
+            start, lo, hi = window
+            row = start + jnp.arange(width, dtype=jnp.int32)
+            mine = ((row >= lo) & (row < hi)).reshape((-1,) + trailing)
+            current = jax.lax.dynamic_slice_in_dim(carry, start, width)
+            new = jnp.where(mine, update(carry, current, start, width), current)
+            return jax.lax.dynamic_update_slice_in_dim(carry, new, start, 0), None
+
+        carry, _ = jax.lax.scan(step, carry, windows)
+    return carry
 
 
 def up_the_batches(pm: ProgressiveMesh, own, leaf, join):
@@ -100,39 +126,22 @@ def up_the_batches(pm: ProgressiveMesh, own, leaf, join):
     ``out[p] = join(own[p], value(v1), value(v2))`` where ``value`` is ``leaf``
     for an original vertex and ``out`` of the pcol that made a created one.
     Children always come from earlier batches, so a batch is one vectorized
-    step; the batches are visited by a few ``lax.scan`` loops, one window per
-    batch (:func:`window_plan`), so the program does not grow with the
-    number of batches, and reverse mode keeps one window per step, not the
-    array. A window longer than its batch covers other batches too, which is
-    harmless: it writes later batches with values that are not final, but
-    each is written again, whole, by its own window before anything reads
-    it; and where it is moved back to fit inside the array, it writes
-    earlier batches with their final values again (their children are final). ``own`` is ``[P, ...]``: trailing axes (cameras, words) ride along.
-    ``leaf`` must be an identity of ``join`` (``join(x, leaf, leaf) = x``): the
-    first batch, whose children are all original vertices, keeps ``own``.
+    step, and the batches are visited by a few loops (:func:`_fold`): the
+    program does not grow with the number of batches. ``own`` is
+    ``[P, ...]``: trailing axes (cameras, words) ride along. ``leaf`` must be
+    an identity of ``join`` (``join(x, leaf, leaf) = x``): the first batch,
+    whose children are all original vertices, keeps ``own``.
     """
-    offsets = np.asarray(pm.batch_offsets, np.int64)
-    runs = window_plan(tuple(np.diff(offsets)[1:].tolist()))
-    if not runs:
-        return own
-    P = own.shape[0]
     trailing = (1,) * (own.ndim - 1)
-    child1, child2 = pm.child1, pm.child2
-    out = own
-    for width, index in runs:
-        # Windows start at their batch (1..), moved back to fit before P.
-        starts = jnp.asarray(np.minimum(offsets[index + 1], P - width).astype(np.int32))
 
-        def step(out, window, width=width):
-            start, own_window = window
-            c1 = jax.lax.dynamic_slice_in_dim(child1, start, width)
-            c2 = jax.lax.dynamic_slice_in_dim(child2, start, width)
-            e1 = jnp.where(c1.reshape((-1,) + trailing) < 0, leaf, gather(out, jnp.maximum(c1, 0)))
-            e2 = jnp.where(c2.reshape((-1,) + trailing) < 0, leaf, gather(out, jnp.maximum(c2, 0)))
-            return jax.lax.dynamic_update_slice_in_dim(out, join(own_window, e1, e2), start, 0), None
+    def update(out, own_window, start, width):
+        c1 = jax.lax.dynamic_slice_in_dim(pm.child1, start, width)
+        c2 = jax.lax.dynamic_slice_in_dim(pm.child2, start, width)
+        e1 = jnp.where(c1.reshape((-1,) + trailing) < 0, leaf, gather(out, jnp.maximum(c1, 0)))
+        e2 = jnp.where(c2.reshape((-1,) + trailing) < 0, leaf, gather(out, jnp.maximum(c2, 0)))
+        return join(own_window, e1, e2)
 
-        out, _ = jax.lax.scan(step, out, (starts, _windows_of(own, starts, width)))
-    return out
+    return _fold(pm, own, 1, False, update)
 
 
 def propagate(pm: ProgressiveMesh, collapse):
@@ -157,8 +166,7 @@ def down_the_batches(pm: ProgressiveMesh, own, combine):
     consuming ``v``, always of a later batch; ``has_parent`` is false for a
     vertex no pcol consumes, and the parent's value is then arbitrary).
     The created vertices are resolved batch by batch from the last, by a few
-    ``lax.scan`` loops, one window per batch (:func:`window_plan`), then the original vertices
-    in one step. ``combine`` sees ``[n, ...]`` slices and ``[n, 1...]``
+    loops (:func:`_fold`), then the original vertices in one step. ``combine`` sees ``[n, ...]`` slices and ``[n, 1...]``
     flags, and must be elementwise in the vertex.
 
     Args:
@@ -170,26 +178,13 @@ def down_the_batches(pm: ProgressiveMesh, own, combine):
     """
     V0 = pm.n_original_vertices
     flags = lambda parent: (parent >= 0).reshape(parent.shape + (1,) * (own.ndim - 1))
-    own_created = own[V0:]
-    # The vertices no pcol consumes are final now; every other batch is
-    # overwritten below once its parents are.
-    created = combine(own_created, own_created, jnp.zeros((own_created.shape[0],) + (1,) * (own.ndim - 1), bool))
-    # Batches B-2 … 0 (the last batch's vertices have no parents), each window
-    # ending at its batch's end, so it writes ahead into earlier batches,
-    # which are rewritten before being read; a window moved forward to fit
-    # after 0 writes later batches with their final values again.
-    offsets = np.asarray(pm.batch_offsets, np.int64)
     parent = pm.parent[V0:]
-    for width, index in reversed(window_plan(tuple(np.diff(offsets)[:-1].tolist()))):
-        starts = jnp.asarray(np.maximum(offsets[index[::-1] + 1] - width, 0).astype(np.int32))
 
-        def step(created, window, width=width):
-            start, own_window = window
-            up = jax.lax.dynamic_slice_in_dim(parent, start, width)
-            value = combine(own_window, gather(created, jnp.maximum(up, 0)), flags(up))
-            return jax.lax.dynamic_update_slice_in_dim(created, value, start, 0), None
+    def update(created, own_window, start, width):
+        up = jax.lax.dynamic_slice_in_dim(parent, start, width)
+        return combine(own_window, gather(created, jnp.maximum(up, 0)), flags(up))
 
-        created, _ = jax.lax.scan(step, created, (starts, _windows_of(own_created, starts, width)))
+    created = _fold(pm, own[V0:], 0, True, update)
     up = pm.parent[:V0]
     originals = combine(own[:V0], gather(created, jnp.maximum(up, 0)), flags(up))
     return jnp.concatenate([originals, created])
