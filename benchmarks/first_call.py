@@ -6,6 +6,7 @@ Each line runs in a fresh process (the persistent compilation cache off, as on a
 first run), after the lines it needs (load the model, make the cameras). The
 first call includes tracing and compilation; the warm call is the median of
 ``--repeats`` further calls. Peak memory is the process's maximum resident set.
+To measure another checkout, run with ``PYTHONPATH=path/to/checkout``.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 
 from _common import machine
 from refine import pm_file
@@ -67,7 +69,10 @@ print(json.dumps(dict(first_s=first, warm_s=statistics.median(warm),
 def measure(model: str, before: str, call: str, repeats: int) -> dict:
     code = DRIVER.format(setup=SETUP, before=before, call=call)
     env = dict(os.environ, JAX_ENABLE_COMPILATION_CACHE="false")
-    out = subprocess.run([sys.executable, "-c", code, model, str(repeats)], capture_output=True, text=True, env=env)
+    # Run outside the repository, so that ``import pmjax`` is the installed
+    # package or the checkout named by PYTHONPATH, not the current folder.
+    out = subprocess.run([sys.executable, "-c", code, os.path.abspath(model), str(repeats)], capture_output=True,
+                         text=True, env=env, cwd=tempfile.gettempdir())
     if out.returncode != 0:
         raise RuntimeError(f"{call}: {out.stderr.strip().splitlines()[-1] if out.stderr else out.returncode}")
     return json.loads(out.stdout.strip().splitlines()[-1])

@@ -309,13 +309,34 @@ def _in_rows(per_pcol, attrs: PcolAttributes):
     The ``P % ROW`` remainder is evaluated as a short 1-D tail. ``per_pcol``
     may return a pytree of per-pcol arrays.
     """
+    return join_row_parts(in_row_parts(per_pcol, attrs))
+
+
+def in_row_parts(per_pcol, attrs: PcolAttributes):
+    """:func:`_in_rows` before its outputs are joined: ``(rows, tail)``, the
+    ``[P // ROW, ROW]`` body and the ``[P % ROW]`` tail (either may be None).
+
+    Joining is a 1-D concatenation, and XLA fuses the per-pcol computation
+    into it (1-D, not vectorized) unless the join happens in another program:
+    an eager caller returns the parts from one jitted call and joins them in
+    the next (:func:`join_row_parts`).
+    """
     P = attrs.radius.shape[0]
     body = (P // ROW) * ROW
     if body == 0:
-        return per_pcol(attrs)
+        return None, per_pcol(attrs)
     rows = jax.tree.map(lambda x: x[..., :body].reshape(x.shape[:-1] + (body // ROW, ROW)), attrs)
-    out = jax.tree.map(lambda y: y.reshape(body), per_pcol(rows))
-    if body == P:
-        return out
-    tail = per_pcol(jax.tree.map(lambda x: x[..., body:], attrs))
-    return jax.tree.map(lambda a, b: jnp.concatenate([a, b]), out, tail)
+    out = per_pcol(rows)
+    tail = None if body == P else per_pcol(jax.tree.map(lambda x: x[..., body:], attrs))
+    return out, tail
+
+
+def join_row_parts(parts):
+    """The ``[P]`` arrays of :func:`in_row_parts`'s ``(rows, tail)``."""
+    rows, tail = parts
+    if rows is None:
+        return tail
+    flat = jax.tree.map(lambda y: y.reshape(y.shape[:-2] + (-1,)), rows)
+    if tail is None:
+        return flat
+    return jax.tree.map(lambda a, b: jnp.concatenate([a, b], axis=-1), flat, tail)

@@ -21,7 +21,8 @@ from jaxtyping import Array, Float
 
 from ._camera import Camera
 from ._model import PcolAttributes, ProgressiveMesh
-from ._predicate import ALL_TESTS, Tests, _eye_offset, _in_rows, frustum_margins, safe_sqrt, screen_tolerance
+from ._predicate import (ALL_TESTS, Tests, _eye_offset, frustum_margins, in_row_parts, join_row_parts, safe_sqrt,
+                         screen_tolerance)
 from ._view import View
 from .engines._dense import down_the_batches, up_the_batches
 
@@ -187,24 +188,43 @@ def soft_refine(
     return _soft_refine_checked(pm, camera, tau, temperature, scale, tests)
 
 
-@eqx.filter_jit
 def _soft_refine_checked(pm, camera, tau, temperature, scale, tests):
+    # Two programs: the tests' row-shaped outputs are joined in the second, so
+    # XLA cannot fuse the tests into the joins (1-D, not vectorized). Under a
+    # caller's jit both are inlined; what the caller keeps decides then.
+    parts = _soft_test_parts(pm, camera, tau, temperature, scale, tests)
+    return _soft_refine_from_parts(pm, parts)
+
+
+@eqx.filter_jit
+def _soft_test_parts(pm, camera, tau, temperature, scale, tests):
     temperature = eqx.error_if(temperature, ~(temperature > 0), "temperature must be > 0")
-    return soft_refine_unchecked(pm, camera, tau, temperature, scale, tests)
+    return _test_parts(pm, camera, tau, temperature, scale, tests)
+
+
+@eqx.filter_jit
+def _soft_refine_from_parts(pm, parts):
+    return _from_tests(pm, *join_row_parts(parts))
+
+
+def _test_parts(pm, camera, tau, temperature, scale, tests):
+    dtype = pm.attributes.radius.dtype
+    tau = jnp.asarray(tau, dtype)
+    temperature = jnp.asarray(temperature, dtype)
+    if scale is None:
+        return in_row_parts(lambda a: soft_tests(a, camera, tau, temperature, None, tests), pm.attributes)
+    return None, soft_tests(pm.attributes, camera, tau, temperature, jnp.asarray(scale, dtype), tests)
 
 
 def soft_refine_unchecked(pm, camera, tau, temperature, scale=None, tests: Tests = ALL_TESTS) -> SoftRefinement:
     """:func:`soft_refine` without the argument checks (for solvers, whose
     trial points may be anything; a bad one gives NaN in its own lane instead
     of an error for the whole batch)."""
-    dtype = pm.attributes.radius.dtype
-    tau = jnp.asarray(tau, dtype)
-    temperature = jnp.asarray(temperature, dtype)
-    attrs = pm.attributes
-    if scale is None:
-        collapse, visible, t = _in_rows(lambda a: soft_tests(a, camera, tau, temperature, None, tests), attrs)
-    else:
-        collapse, visible, t = soft_tests(attrs, camera, tau, temperature, jnp.asarray(scale, dtype), tests)
+    return _from_tests(pm, *join_row_parts(_test_parts(pm, camera, tau, temperature, scale, tests)))
+
+
+def _from_tests(pm, collapse, visible, t) -> SoftRefinement:
+    """The soft refinement from the per-pcol soft tests."""
     weight = soft_weights(pm, collapse)
     killer = pm.killer
     if pm.n_pcols == 0:  # every face drawn, fully
