@@ -12,7 +12,7 @@ Cost (standard orbit, tau = 1 px, temperature 0.1 px, float32; medians over
 - batched, K cameras: hard ``refine_batch``; soft forward and gradient
   vectorized over cameras, 16 at a time (``lax.map`` with ``batch_size``).
 Budgets (K cameras of the orbit): exact ``faces_for_budget`` (one sort per
-camera) vs ``soft_tau_for_budget`` (Newton, vmapped); iterations, convergence,
+camera) vs ``soft_tau_for_budget`` (every camera a lane of one solve); steps, convergence,
 the hard face count at the soft tau and the two tolerances' ratio.
 Popping (first model, ``--popping-frames`` frames, 0 to skip): per-frame popping
 share and mean squared change, hard vs geomorphed over ``--geomorph`` frames.
@@ -145,7 +145,7 @@ def main():
             b = dict(model=name, **budgets(pm, cams, budget, min(args.batch, 64)))
             report["budgets"].append(b)
             print(f"{name}: budget {budget}: exact {b['exact_ms_per_camera']:.2f} ms/camera, soft "
-                  f"{b['soft_ms_per_camera']:.2f} ms/camera; Newton steps median {b['steps_median']:.0f} max "
+                  f"{b['soft_ms_per_camera']:.2f} ms/camera; steps after the bracket median {b['steps_median']:.0f} max "
                   f"{b['steps_max']}, converged {b['converged']:.0%}; hard faces at soft tau median "
                   f"{b['hard_faces_at_soft_tau_median']:.0f} (error {b['hard_faces_error_median']:.1%}), exact "
                   f"{b['exact_faces_median']:.0f}; tau soft/exact {b['tau_ratio_median']:.3f}", flush=True)

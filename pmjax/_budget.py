@@ -124,10 +124,11 @@ def soft_tau_for_budget(
     return jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts)
 
 
-# Log-spaced tolerances evaluated first to bracket the root (cells of 25x over
+# Log-spaced tolerances evaluated first to bracket the root (cells of 215x over
 # the default range): each costs one batched evaluation, as does each regula
-# falsi step; the logit of the count is close to a line across a cell.
-GRID = 6
+# falsi step; the logit of the count is close enough to a line across a cell
+# that three steps usually follow.
+GRID = 4
 
 
 @eqx.filter_jit
