@@ -4,13 +4,17 @@ A write to ``dir/name.ext`` goes through ``dir/.name.ext.pmjax-tmp-<pid>-<random
 and is renamed over the target only when complete, so the target is never
 half-written. A process killed mid-write (``kill -9``) leaves its temporary
 file; the next write to the same target removes every such file whose
-process is gone (:func:`remove_stale_temporaries`).
+process is gone (:func:`remove_stale_temporaries`). A target that exists and
+is not a regular file (a device such as ``/dev/null``, a named pipe) is
+written in place: a rename would replace the node itself. A symbolic link is
+followed: the file it names is replaced, the link stays.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import stat
 import tempfile
 
 TEMP_MARK = ".pmjax-tmp-"
@@ -46,6 +50,55 @@ def check_output_path(path, *, folder: bool = False) -> str:
     return path
 
 
+def same_file(a, b) -> bool:
+    """Whether two paths name one file: the same resolved path, or (both
+    existing) the same device and inode (hard links, bind mounts)."""
+    a, b = os.fspath(a), os.fspath(b)
+    if os.path.realpath(a) == os.path.realpath(b):
+        return True
+    try:
+        sa, sb = os.stat(a), os.stat(b)
+    except OSError:
+        return False
+    return (sa.st_dev, sa.st_ino) == (sb.st_dev, sb.st_ino)
+
+
+def is_special(path) -> bool:
+    """An existing path that is neither a regular file nor a folder (a
+    device, a named pipe, a socket): written in place, never renamed over."""
+    try:
+        mode = os.stat(os.fspath(path)).st_mode
+    except OSError:
+        return False
+    return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
+
+
+def check_distinct(inputs, outputs) -> None:
+    """Refuse, before any work, an output that is one of the inputs or
+    another output (compared by resolved path and inode).
+
+    Args:
+        inputs, outputs: ``(what, path)`` pairs; ``what`` names the argument
+            in the message (``"input mesh"``, ``"--csv"``).
+
+    Raises:
+        ValueError: naming both arguments and the remedy.
+    """
+    outputs = [(what, os.fspath(path)) for what, path in outputs if path is not None]
+    inputs = [(what, os.fspath(path)) for what, path in inputs if path is not None]
+    for i, (what, path) in enumerate(outputs):
+        for other, source in inputs:
+            if same_file(path, source):
+                raise ValueError(f"{path}: the output ({what}) is the {other} {source}; writing it would destroy "
+                                 f"the input: choose another output name")
+        if is_special(path):  # /dev/null twice is fine
+            continue
+        for other, earlier in outputs[:i]:
+            if same_file(path, earlier):
+                raise ValueError(f"{path}: the outputs {other} and {what} are the same file; one would overwrite "
+                                 f"the other: give them different names")
+
+
 def remove_stale_temporaries(path) -> list[str]:
     """Remove the temporary files of earlier writes to ``path`` whose writing
     process no longer runs; return their paths."""
@@ -78,13 +131,20 @@ def _running(pid: int) -> bool:
 @contextlib.contextmanager
 def atomic_path(path, suffix: str = ""):
     """Yield a temporary path beside ``path``; on success it replaces ``path``,
-    on any error it is removed, so ``path`` is never left half-written.
+    on any error it is removed, so ``path`` is never left half-written. A
+    device or a pipe is yielded itself (written in place).
 
     Raises:
         FileNotFoundError: the folder of ``path`` does not exist (checked
             before anything is written).
     """
     path = check_output_path(path)
+    if is_special(path):
+        # A device or a pipe (``-o /dev/null``): write into it.
+        yield path
+        return
+    if os.path.islink(path):  # replace the file the link names, keep the link
+        path = os.path.realpath(path)
     remove_stale_temporaries(path)
     fd, tmp = tempfile.mkstemp(prefix=f"{temporary_prefix(path)}{os.getpid()}-", suffix=suffix,
                                dir=os.path.dirname(os.path.abspath(path)))

@@ -10,7 +10,7 @@ import sys
 
 import numpy as np
 
-from pmjax._atomic import atomic_path, check_output_path
+from pmjax._atomic import atomic_path, check_distinct, check_output_path
 
 
 def _whole(low: int, high: int | None = None):
@@ -653,9 +653,38 @@ OUTPUTS = {
 }
 
 
+# Each command's input files: (argument, what the message calls it). An
+# output that is one of them, or another output, is refused before any work.
+INPUTS = {
+    "build": [("mesh", "input mesh")],
+    "lod": [("pm", "input")],
+    "refine": [("pm", "input"), ("camera", "--camera file")],
+    "camera": [("model", "input")],
+    "view": [("pm", "input")],
+    "path": [("pm", "input"), ("path", "--path file")],
+    "eval": [("models", "input"), ("cameras", "--cameras file")],
+    "render": [("pm", "input"), ("path", "--path file")],
+    "figures": [("pm", "input")],
+}
+
+# How messages name each output argument.
+FLAGS = {"output": "-o", "stats_json": "--stats-json", "csv": "--csv", "camera_file": "--camera-file", "out": "--out"}
+
+
+def _given(args, name):
+    value = getattr(args, name, None)
+    return [] if value is None else value if isinstance(value, list) else [value]
+
+
 def check_outputs(args) -> None:
     """Refuse unusable output paths before any work (one rule for every
-    command: see :func:`pmjax._atomic.check_output_path`)."""
+    command: see :func:`pmjax._atomic.check_output_path`), and outputs that
+    would overwrite an input or each other (:func:`pmjax._atomic.check_distinct`)."""
+    inputs = [(what, path) for name, what in INPUTS.get(args.command, []) for path in _given(args, name)]
+    outputs = [(FLAGS[name], path) for name, _ in OUTPUTS.get(args.command, []) for path in _given(args, name)]
+    if args.command == "render":
+        outputs.append(("-o", args.output))
+    check_distinct(inputs, outputs)
     if args.command == "render":
         from pmjax.render import check_frames_output
 
