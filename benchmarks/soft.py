@@ -46,12 +46,12 @@ def cost(pm, cams, K, repeats):
     def soft_faces(c, tau):
         return pmjax.soft_refine(pm, c, tau, T).faces
 
-    grad_one = jax.jit(jax.grad(lambda c, tau: soft_faces(c, tau), argnums=(0, 1)))
+    grad_one = jax.jit(jax.grad(lambda c, tau: soft_faces(c, tau), argnums=(0, 1), allow_int=True))
     # Vectorized over cameras in chunks (lax.map batch_size): a reverse pass
     # keeps every camera's [P] intermediates alive (the dragon at K = 256 would
     # need 46 GB at once).
     soft_many = jax.jit(lambda cams, tau: jax.lax.map(lambda c: soft_faces(c, tau), cams, batch_size=CHUNK))
-    grad = jax.grad(soft_faces, argnums=(0, 1))
+    grad = jax.grad(soft_faces, argnums=(0, 1), allow_int=True)
     grad_many = jax.jit(lambda cams, tau: jax.lax.map(lambda c: grad(c, tau), cams, batch_size=CHUNK))
     tau = jnp.float32(1.0)
     runs = {

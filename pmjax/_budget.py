@@ -3,7 +3,7 @@
 The exact answer for the hard engine is :func:`pmjax.faces_for_budget` (one
 sort of the critical tolerances). This is its differentiable counterpart: a
 root find on the soft face count, solved for many cameras at once by one
-compiled program (a safeguarded Newton iteration, every camera a lane).
+compiled program (a bracketed regula falsi, every camera a lane).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ class BudgetSolution(eqx.Module):
     Attributes:
         tau: ``[K]`` tolerance in pixels.
         soft_faces: ``[K]`` soft face count at ``tau``.
-        steps: ``[K]`` Newton iterations taken.
+        steps: ``[K]`` evaluations after the bracketing grid.
         converged: ``[K]`` whether the solve met its tolerance within ``max_steps``.
     """
 
@@ -77,10 +77,10 @@ def soft_tau_for_budget(
     """Solve ``soft_faces(tau) = budget`` per camera.
 
     All cameras of a chunk are solved together by one compiled program: a
-    log-spaced grid of tolerances brackets each camera's root, then a Newton
-    iteration on the logit of the soft count in ``log tau`` (close to a
-    line), kept inside the bracket by bisection, runs every camera as a lane
-    until each has converged.
+    log-spaced grid of tolerances brackets each camera's root, then regula
+    falsi (Anderson-Björck) on the logit of the soft count in ``log tau``
+    (close to a line) shrinks each bracket, every camera a lane, until each
+    has converged. Every evaluation is one batched soft count of the chunk.
 
     Args:
         pm: :class:`ProgressiveMesh`.
@@ -94,7 +94,7 @@ def soft_tau_for_budget(
         tau_range: ``(lowest, highest)`` tolerance searched, pixels. A budget
             already met at the lowest gives the lowest (``converged``); one not
             met at the highest gives the highest (not ``converged``).
-        max_steps: Newton iteration cap.
+        max_steps: cap on the evaluations after the grid.
         rtol: relative face-count error at which a camera has converged.
         tests: :class:`Tests`.
         chunk: cameras solved together (memory grows with it as ``P·chunk``);
