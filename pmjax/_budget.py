@@ -76,11 +76,12 @@ def soft_tau_for_budget(
 ) -> BudgetSolution:
     """Solve ``soft_faces(tau) = budget`` per camera.
 
-    All cameras of a chunk are solved together by one compiled program: a
-    log-spaced grid of tolerances brackets each camera's root, then regula
-    falsi (Anderson-Björck) on the logit of the soft count in ``log tau``
-    (close to a line) shrinks each bracket, every camera a lane, until each
-    has converged. Every evaluation is one batched soft count of the chunk.
+    One compiled program solves every camera: chunk by chunk, the cameras
+    of a chunk as lanes of one loop. A log-spaced grid of tolerances
+    brackets each camera's root, then regula falsi (Anderson-Björck) on the
+    logit of the soft count in ``log tau`` (close to a line) shrinks each
+    bracket until each camera has converged. Every pass of the loop is one
+    batched soft count of the chunk (:func:`soft_faces_batch`).
 
     Args:
         pm: :class:`ProgressiveMesh`.
@@ -113,15 +114,21 @@ def soft_tau_for_budget(
     budget = jnp.broadcast_to(jnp.asarray(budget, dtype), (K,))
     if chunk is None:
         chunk = max(1, min(256, (1 << 20) // max(pm.n_pcols, 1)))
-    # The last chunk is padded (its last camera repeated) so one compile serves all.
     chunk = max(1, min(int(chunk), K))
-    parts = []
-    for start in range(0, K, chunk):
-        idx = jnp.minimum(jnp.arange(start, start + chunk), K - 1)
-        part = _solve(pm, index_camera(cameras, idx), budget[idx], jnp.asarray(temperature, dtype),
-                      jnp.asarray(tau_range, dtype), max_steps, rtol, tests)
-        parts.append(jax.tree.map(lambda x: x[: min(chunk, K - start)], part))
-    return jax.tree.map(lambda *xs: jnp.concatenate(xs), *parts)
+    return _solve_chunks(pm, cameras, budget, jnp.asarray(temperature, dtype), jnp.asarray(tau_range, dtype),
+                         max_steps, rtol, tests, chunk)
+
+
+@eqx.filter_jit
+def _solve_chunks(pm, cameras, budget, temperature, tau_range, max_steps, rtol, tests, chunk):
+    # One program for all chunks, solved one after the other (lax.map): the
+    # last chunk is padded with its last camera, and the padding dropped.
+    K = budget.shape[0]
+    n = -(-K // chunk)
+    index = jnp.minimum(jnp.arange(n * chunk), K - 1).reshape(n, chunk)
+    parts = jax.lax.map(lambda i: _solve(pm, index_camera(cameras, i), budget[i], temperature, tau_range,
+                                         max_steps, rtol, tests), index)
+    return jax.tree.map(lambda x: x.reshape((n * chunk,) + x.shape[2:])[:K], parts)
 
 
 # Log-spaced tolerances evaluated first to bracket the root (cells of 215x over
@@ -131,61 +138,79 @@ def soft_tau_for_budget(
 GRID = 4
 
 
-@eqx.filter_jit
 def _solve(pm, cameras, budget, temperature, tau_range, max_steps, rtol, tests):
     K = budget.shape[0]
-    faces = lambda log_tau: soft_faces_batch(pm, cameras, log_tau, temperature, tests)
     grid = jnp.linspace(jnp.log(tau_range[0]), jnp.log(tau_range[1]), GRID)
     lanes = jnp.arange(K)
 
-    # Bracket: the soft count falls along the grid; find each camera's cell
-    # where it crosses the budget. One batched evaluation per grid point.
-    counts = jax.lax.map(lambda s: faces(jnp.full(K, s)), grid)  # [GRID, K]
-    hi, lo = counts[0], counts[-1]
-    fits = budget >= hi  # met at the finest tolerance of the range
-    reachable = budget > lo  # else not met even at the coarsest
-    cell = jnp.clip(jnp.sum(counts > budget, axis=0) - 1, 0, GRID - 2)
-    c_hi, c_lo = counts[cell, lanes], counts[cell + 1, lanes]
-    inner = jnp.clip(budget, c_lo + 1e-3 * (c_hi - c_lo), c_hi - 1e-3 * (c_hi - c_lo))
-    target = jnp.log(inner - lo) - jnp.log(hi - inner)
-    tiny = 1e-6 * (hi - lo)
-    def residual(f):
+    def residual(ends, f):
         # The logit of the soft count: close to a line in log tau, so secants
         # through the bracket land near the root.
+        hi, lo, inner, target = ends
+        tiny = 1e-6 * (hi - lo)
         return jnp.log(jnp.maximum(f - lo, tiny)) - jnp.log(jnp.maximum(hi - f, tiny)) - target
 
-    # Regula falsi with the Anderson-Björck rule (one batched evaluation per
-    # step, no derivative), from the cell: the residual falls with log tau, so it
-    # is positive at the cell's lower end and negative at its upper end.
-    a, b = grid[cell], grid[cell + 1]
-    ra, rb = residual(c_hi), residual(c_lo)
-    active = ~fits & reachable
+    def bracket(counts):
+        """The cell of the grid where each camera's count crosses its budget,
+        as the regula falsi's start, from the grid's counts ``[GRID, K]``."""
+        hi, lo = counts[0], counts[-1]
+        fits = budget >= hi  # met at the finest tolerance of the range
+        reachable = budget > lo  # else not met even at the coarsest
+        cell = jnp.clip(jnp.sum(counts > budget, axis=0) - 1, 0, GRID - 2)
+        c_hi, c_lo = counts[cell, lanes], counts[cell + 1, lanes]
+        inner = jnp.clip(budget, c_lo + 1e-3 * (c_hi - c_lo), c_hi - 1e-3 * (c_hi - c_lo))
+        ends = (hi, lo, inner, jnp.log(inner - lo) - jnp.log(hi - inner))
+        # The residual falls with log tau: positive at the cell's lower end.
+        a, b = grid[cell], grid[cell + 1]
+        return ends, (a, residual(ends, c_hi), b, residual(ends, c_lo)), fits, reachable, c_hi
 
+    # One loop, one evaluation of the soft count per pass (one copy of it in
+    # the program): the grid's points first, then regula falsi with the
+    # Anderson-Björck rule from each camera's cell, until every camera is done.
     def cond(state):
-        return jnp.any(~state[-1]) & (jnp.max(state[-2]) < max_steps)
+        i, steps, done = state[0], state[-2], state[-1]
+        return (i < GRID) | (jnp.any(~done) & (jnp.max(steps) < max_steps))
 
     def step(state):
-        a, ra, b, rb, side, y_done, f_done, steps, done = state
-        y = jnp.clip((a * rb - b * ra) / (rb - ra), a, b)
-        y = jnp.where(jnp.isfinite(y), y, 0.5 * (a + b))
-        f = faces(y)
-        r = residual(f)
-        ok = jnp.abs(f - inner) <= rtol * inner
-        # Keep the root bracketed. An end kept twice in a row has its residual
-        # scaled down (Anderson-Björck: by 1 - r/r_replaced, or a half), so
-        # that the bracket shrinks from both ends.
+        i, counts, ends, (a, ra, b, rb), side, fits, reachable, y_done, f_done, steps, done = state
+        secant = jnp.clip((a * rb - b * ra) / (rb - ra), a, b)
+        secant = jnp.where(jnp.isfinite(secant), secant, 0.5 * (a + b))
+        in_grid = i < GRID
+        y = jnp.where(in_grid, grid[jnp.minimum(i, GRID - 1)], secant)
+        f = soft_faces_batch(pm, cameras, y, temperature, tests)
+
+        # The grid: record the count; after its last point, bracket.
+        counts = jnp.where(in_grid, jax.lax.dynamic_update_index_in_dim(counts, f, jnp.minimum(i, GRID - 1), 0),
+                           counts)
+        g_ends, g_ab, g_fits, g_reachable, c_hi = bracket(counts)
+
+        # A regula falsi step: keep the root bracketed; an end kept twice in
+        # a row has its residual scaled down (by 1 - r/r_replaced, or a half),
+        # so that the bracket shrinks from both ends.
+        r = residual(ends, f)
+        ok = jnp.abs(f - ends[2]) <= rtol * ends[2]
         above = r > 0  # the root lies above y
         scale_b = jnp.where(above & (side > 0), 1.0 - r / ra, 1.0)
         scale_a = jnp.where(~above & (side < 0), 1.0 - r / rb, 1.0)
         scale_a, scale_b = (jnp.where(s > 0, s, 0.5) for s in (scale_a, scale_b))
-        ra, rb = jnp.where(above, r, scale_a * ra), jnp.where(above, scale_b * rb, r)
-        a, b = jnp.where(above, y, a), jnp.where(above, b, y)
-        side = jnp.where(above, 1, -1)
+        s_ab = (jnp.where(above, y, a), jnp.where(above, r, scale_a * ra),
+                jnp.where(above, b, y), jnp.where(above, scale_b * rb, r))
         live = ~done
-        return (a, ra, b, rb, side, jnp.where(live, y, y_done), jnp.where(live, f, f_done), steps + live, done | ok)
+        stepped = (ends, s_ab, jnp.where(above, 1, -1), fits, reachable, jnp.where(live, y, y_done),
+                   jnp.where(live, f, f_done), steps + live, done | ok)
 
-    start = (a, ra, b, rb, jnp.zeros(K, jnp.int32), a, c_hi, jnp.zeros(K, jnp.int32), ~active)
-    *_, y, f, steps, done = jax.lax.while_loop(cond, step, start)
+        last = i == GRID - 1
+        bracketed = (g_ends, g_ab, jnp.zeros(K, jnp.int32), g_fits, g_reachable, g_ab[0], c_hi,
+                     jnp.zeros(K, jnp.int32), g_fits | ~g_reachable)
+        waiting = (ends, (a, ra, b, rb), side, fits, reachable, y_done, f_done, steps, done)
+        pick = lambda x, y, z: jnp.where(last, x, jnp.where(in_grid, y, z))
+        return (i + 1, counts) + jax.tree.map(pick, bracketed, waiting, stepped)
+
+    zero, no = jnp.zeros(K, grid.dtype), jnp.zeros(K, bool)
+    start = (jnp.int32(0), jnp.zeros((GRID, K), grid.dtype), (zero, zero, zero, zero), (zero, zero, zero, zero),
+             jnp.zeros(K, jnp.int32), no, no, zero, zero, jnp.zeros(K, jnp.int32), no)
+    _, counts, _, _, _, fits, reachable, y, f, steps, done = jax.lax.while_loop(cond, step, start)
+    hi, lo = counts[0], counts[-1]
     log_tau = jnp.where(fits, grid[0], jnp.where(reachable, y, grid[-1]))
     soft = jnp.where(fits, hi, jnp.where(reachable, f, lo))
     return BudgetSolution(tau=jnp.exp(log_tau), soft_faces=soft, steps=steps, converged=fits | (reachable & done))

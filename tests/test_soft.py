@@ -138,6 +138,23 @@ def test_bad_temperature_is_refused(built):
 # -- budgets ---------------------------------------------------------------------------
 
 
+def test_soft_budget_lanes_converge_alone_and_together(built):
+    """Every camera is a lane of one solve: budgets from 0.5 % to 70 % of the
+    faces converge to the budget, and a camera's answer does not depend on
+    the other cameras of its chunk."""
+    data, pm = _pm(built, "cow.ply")
+    cams = pmjax.random_views(data.vertices[: data.n_original_vertices], 12, seed=3)
+    budgets = np.linspace(0.005, 0.7, 12) * pm.n_faces
+    sol = pmjax.soft_tau_for_budget(pm, cams, budgets, chunk=5)  # chunks of 5, the last padded
+    steps, ok, faces = np.asarray(sol.steps), np.asarray(sol.converged), np.asarray(sol.soft_faces)
+    assert ok.all() and steps.max() <= 12
+    solved = steps > 0  # the others were met at the finest tolerance
+    assert solved.sum() >= 6
+    assert np.all(np.abs(faces[solved] / budgets[solved] - 1) <= 1e-4)
+    alone = pmjax.soft_tau_for_budget(pm, index_camera(cams, slice(7, 8)), budgets[7:8])
+    assert float(alone.tau[0]) == pytest.approx(float(sol.tau[7]), rel=1e-5)
+
+
 @pytest.mark.parametrize("budget", [500, 2000, 6000])
 def test_soft_budget_matches_the_exact_budget(built, budget):
     data, pm = _pm(built, "bunny.ply")
