@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import stat
 import tempfile
 
@@ -110,9 +111,13 @@ def remove_stale_temporaries(path) -> list[str]:
             continue
         pid = name[len(prefix):].split("-", 1)[0]
         if pid.isdigit() and not _running(int(pid)):
+            stale = os.path.join(folder, name)
             with contextlib.suppress(FileNotFoundError):
-                os.unlink(os.path.join(folder, name))
-                removed.append(os.path.join(folder, name))
+                if os.path.isdir(stale) and not os.path.islink(stale):  # an atomic_folder's
+                    shutil.rmtree(stale)
+                else:
+                    os.unlink(stale)
+                removed.append(stale)
     return removed
 
 
@@ -159,3 +164,23 @@ def atomic_path(path, suffix: str = ""):
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+@contextlib.contextmanager
+def atomic_folder(folder):
+    """Yield a temporary folder beside ``folder``; on success its files are
+    moved into ``folder`` (created if missing, other files kept), on any
+    error (or SIGTERM, see :func:`pmjax._cli.main`) it is removed, so
+    ``folder`` never holds part of a set of files (a killed render's frames).
+    """
+    folder = check_output_path(folder, folder=True)
+    remove_stale_temporaries(folder)
+    tmp = tempfile.mkdtemp(prefix=f"{temporary_prefix(folder)}{os.getpid()}-",
+                           dir=os.path.dirname(os.path.abspath(folder)))
+    try:
+        yield tmp
+        os.makedirs(folder, exist_ok=True)
+        for name in sorted(os.listdir(tmp)):
+            os.replace(os.path.join(tmp, name), os.path.join(folder, name))
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
+import signal
 import sys
+import threading
 
 import numpy as np
 
@@ -193,6 +196,22 @@ def _tests(args):
     return Tests(frustum="frustum" not in off, orientation="orientation" not in off, screen="screen" not in off)
 
 
+def _check_look_at(args) -> None:
+    """Refuse --eye/--target/--up that make no camera, naming the flags."""
+    eye, target, up = (np.asarray(getattr(args, k), float) for k in ("eye", "target", "up"))
+    if np.array_equal(eye, target):
+        raise ValueError("--eye and --target are the same point: the camera needs a direction to look in")
+    if not np.any(up):
+        raise ValueError("--up is zero: give the image's up direction (default 0 1 0)")
+
+
+def _look_at(args, **kw):
+    import pmjax
+
+    _check_look_at(args)
+    return pmjax.look_at(args.eye, args.target, args.up, **kw)
+
+
 def cmd_refine(args) -> int:
     import time
 
@@ -202,12 +221,13 @@ def cmd_refine(args) -> int:
 
     if args.camera is None and args.target is None:
         raise ValueError("--eye needs --target")
+    if args.camera is None:
+        _check_look_at(args)  # before loading anything
     pm = pmjax.load(args.pm)
     if args.camera:
         cam = pmjax._camera.index_camera(pmjax.load_cameras(args.camera), 0)
     else:
-        cam = pmjax.look_at(args.eye, args.target, args.up, width=args.size[0], height=args.size[1],
-                            fov_y_deg=args.fov)
+        cam = _look_at(args, width=args.size[0], height=args.size[1], fov_y_deg=args.fov)
     r = pmjax.refine(pm, cam, args.tau, tests=_tests(args), method=args.method)
     jax.block_until_ready(r)
     t = time.perf_counter()
@@ -306,7 +326,7 @@ def cmd_camera(args) -> int:
     image = dict(width=args.size[0], height=args.size[1], fov_y_deg=args.fov)
     if args.kind == "look-at":
         near_far = {k: getattr(args, k) for k in ("near", "far") if getattr(args, k) is not None}
-        table = table_from_cameras(pmjax.look_at(args.eye, args.target, args.up, **image, **near_far, host=True))
+        table = table_from_cameras(_look_at(args, **image, **near_far, host=True))
     else:
         v = _model_vertices(args.model)
         if args.kind == "orbit":
@@ -721,13 +741,32 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = _parse(parser, argv)
     try:
-        check_outputs(args)
-        return args.func(args)
+        with _sigterm_exits():
+            check_outputs(args)
+            return args.func(args)
     except (MeshError, PMFormatError, CameraError, ValueError, OSError, RenderError) as exc:
         if isinstance(exc, BrokenPipeError):
             return _closed_pipe()
         print(f"pmjax {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # Ctrl-C: temporaries are gone (the writers' finally), no traceback
+        print(f"pmjax {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+@contextlib.contextmanager
+def _sigterm_exits():
+    """While a command runs, SIGTERM ends it as an exception would, so the
+    writers remove their temporary files and folders on the way out (status
+    143); the previous handler is restored after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _closed_pipe() -> int:

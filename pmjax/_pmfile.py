@@ -97,6 +97,25 @@ def read_pm(path: str | os.PathLike) -> PMData:
     return pm
 
 
+# Mesh formats recognised by their extension or first bytes, to say what a
+# file given as a .pmz is.
+_MESH_EXTENSIONS = {".ply": "PLY", ".obj": "OBJ", ".off": "OFF", ".stl": "STL", ".glb": "glTF", ".gltf": "glTF"}
+_MESH_MAGIC = ((b"ply", "PLY"), (b"OFF", "OFF"), (b"solid", "STL"), (b"glTF", "glTF"))
+
+
+def _mesh_kind(path: str) -> str:
+    """``"PLY"``, ``"OBJ"``, ... for a file that looks like a mesh, else ``""``."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(64).lstrip()
+    except OSError:
+        return ""
+    for magic, kind in _MESH_MAGIC:
+        if head.startswith(magic):
+            return kind
+    return _MESH_EXTENSIONS.get(os.path.splitext(path)[1].lower(), "")
+
+
 def read_arrays(path: str | os.PathLike) -> tuple[PMData, str]:
     """Read a ``.pmz`` file with every check but the structure check.
 
@@ -110,7 +129,13 @@ def read_arrays(path: str | os.PathLike) -> tuple[PMData, str]:
     try:
         zf = zipfile.ZipFile(path, "r")
     except Exception as exc:  # zipfile raises several types for a damaged archive
-        raise PMFormatError(f"{path}: not a pmjax file (not a zip archive: {exc})") from exc
+        kind = _mesh_kind(path)
+        if kind:  # a mesh given where a progressive mesh is needed
+            article = "an" if kind[0] in "AEFHILMNORSX" else "a"  # as the letters are spoken
+            raise PMFormatError(f"{path}: is {article} {kind} mesh, not a .pmz progressive mesh; make one with "
+                                f"`pmjax build {path} -o model.pmz`") from exc
+        raise PMFormatError(f"{path}: not a .pmz progressive mesh (not a zip archive: {exc}); "
+                            f"`pmjax build MESH -o model.pmz` makes one") from exc
     with zf:
         names = set(zf.namelist())
         if "header.json" not in names:

@@ -10,7 +10,7 @@ import numpy as np
 from pmjax import ALL_TESTS, Camera, ProgressiveMesh, Refinement, Tests, camera_count, index_camera
 from pmjax import geomorph_mesh, geomorph_start, geomorph_step, hierarchy_normals, refine_path
 from pmjax._path import path_refinement_pairs
-from pmjax._atomic import atomic_path, check_output_path
+from pmjax._atomic import atomic_folder, atomic_path, check_output_path
 
 
 from ._gl import RenderError, pyrender_module
@@ -176,7 +176,7 @@ def check_frames_output(path: str, fps: int = 30) -> str:
 def write_frames(frames, path: str, fps: int = 30) -> None:
     """Write RGB frames as a video (``.mp4``: H.264 through ffmpeg, started
     without forking; ``.gif``: looping, at ``fps``) or, for a directory path or
-    ``.png`` pattern, as numbered PNGs; atomically per file."""
+    ``.png`` pattern, as numbered PNGs, all moved into the folder at the end."""
     path = os.fspath(path)
     ext = check_frames_output(path, fps)
     if ext == ".mp4":
@@ -195,10 +195,12 @@ def write_frames(frames, path: str, fps: int = 30) -> None:
             images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], loop=0,
                            duration=10 * max(1, round(100 / fps)))
         return
-    folder = path if ext == "" else os.path.dirname(path) or "."
-    os.makedirs(folder, exist_ok=True)
-    for i, frame in enumerate(frames):
-        write_png(os.path.join(folder, f"frame_{i:05d}.png"), frame)
+    import imageio.v2 as imageio
+
+    # The frames appear in the folder together, when all are written.
+    with atomic_folder(path if ext == "" else os.path.dirname(path) or ".") as tmp:
+        for i, frame in enumerate(frames):
+            imageio.imwrite(os.path.join(tmp, f"frame_{i:05d}.png"), np.asarray(frame), format="PNG")
 
 
 def write_png(path: str, image) -> None:

@@ -57,3 +57,20 @@ def test_version(capsys):
     # The version first, then one line per engine from engine_info (what refines here).
     assert info.value.code == 0 and lines[0] == f"pmjax {pmjax.__version__}" and lines[1] == "engines:"
     assert [line.split()[0] for line in lines[2:]] == list(pmjax.engine_info())
+
+
+def test_messages_name_the_flags_and_the_remedy(tmp_path, capsys):
+    out = str(tmp_path / "c.json")
+    assert main(["camera", "look-at", "--eye", "1", "2", "3", "--target", "1", "2", "3", "-o", out]) == 2
+    assert "--eye and --target are the same point" in capsys.readouterr().err
+    assert main(["camera", "look-at", "--eye", "1", "2", "3", "--target", "0", "0", "0", "--up", "0", "0", "0",
+                 "-o", out]) == 2
+    assert "--up is zero" in capsys.readouterr().err
+    # A mesh where a .pmz is needed.
+    mesh = tmp_path / "spot.ply"
+    mesh.write_bytes(open(pmjax.default_model_path(), "rb").read())
+    assert main(["refine", str(mesh), "--eye", "0", "0", "3", "--target", "0", "0", "0",
+                 "-o", str(tmp_path / "v.ply")]) == 2
+    err = capsys.readouterr().err
+    assert "is a PLY mesh, not a .pmz" in err and f"pmjax build {mesh} -o model.pmz" in err
+    assert not (tmp_path / "v.ply").exists()

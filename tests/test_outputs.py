@@ -4,13 +4,17 @@ work; devices and pipes are written in place, never replaced."""
 
 import os
 import shutil
+import signal
 import stat
+import subprocess
+import sys
 import threading
+import time
 
 import pytest
 
 import pmjax
-from pmjax._atomic import atomic_path
+from pmjax._atomic import TEMP_MARK, atomic_path
 from pmjax._cli import main
 
 
@@ -86,3 +90,41 @@ def test_writing_to_dev_null_keeps_the_device(workspace):
         pytest.skip("no /dev/null device here")
     assert main(["camera", "orbit", str(workspace / "spot.pmz"), "-n", "4", "-o", "/dev/null"]) in (0, 2)
     assert stat.S_ISCHR(os.stat("/dev/null").st_mode)
+
+
+def _until(predicate, seconds):
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def test_sigterm_during_a_frames_render_leaves_nothing(workspace, tmp_path):
+    """A PNG-frames render is written into a temporary folder and moved in at
+    the end; SIGTERM mid-render removes the temporary and leaves no frames."""
+    out = tmp_path / "frames"
+    proc = subprocess.Popen([sys.executable, "-m", "pmjax", "render", str(workspace / "spot.pmz"), "--orbit", "400",
+                             "-o", str(out), "-q"], stderr=subprocess.PIPE, text=True)
+    try:
+        # The temporary folder exists as soon as frames are being written.
+        started = _until(lambda: any(TEMP_MARK in p.name for p in tmp_path.iterdir()), 120)
+        if not started:
+            pytest.skip(f"the render did not start writing: {proc.stderr.read()[-500:] if proc.poll() is not None else ''}")
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=60) == 143
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert list(tmp_path.iterdir()) == []  # no frames folder, no temporary
+
+
+def test_frames_are_moved_into_an_existing_folder_beside_other_files(workspace, tmp_path):
+    out = tmp_path / "frames"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    assert main(["render", str(workspace / "spot.pmz"), "--orbit", "3", "-o", str(out), "-q"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["frame_00000.png", "frame_00001.png", "frame_00002.png",
+                                                     "notes.txt"]
+    assert [p.name for p in tmp_path.iterdir()] == ["frames"]

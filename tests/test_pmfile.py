@@ -125,6 +125,15 @@ def test_not_a_pm_file(tmp_path):
         read_pm(p)
     with pytest.raises(PMFormatError, match="no such file"):
         read_pm(tmp_path / "none.pmz")
+    # A mesh where a .pmz is needed: say so, and how to make one.
+    mesh = tmp_path / "mesh.ply"
+    mesh.write_bytes(b"ply\nformat ascii 1.0\nend_header\n")
+    with pytest.raises(PMFormatError, match=r"is a PLY mesh, not a \.pmz progressive mesh; make one with `pmjax build"):
+        read_pm(mesh)
+    named = tmp_path / "model.pmz"
+    named.write_bytes(b"solid cube\nendsolid\n")  # an ASCII STL, whatever its name
+    with pytest.raises(PMFormatError, match="is an STL mesh"):
+        read_pm(named)
 
 
 def test_failed_write_leaves_the_old_file(saved):
