@@ -741,7 +741,9 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = _parse(parser, argv)
     try:
-        with _sigterm_exits():
+        # Not the viewer: its window thread would keep the process alive past
+        # an exit raised at the wrong moment; SIGTERM stays a plain kill there.
+        with _sigterm_exits() if args.command != "view" else contextlib.nullcontext():
             check_outputs(args)
             return args.func(args)
     except (MeshError, PMFormatError, CameraError, ValueError, OSError, RenderError) as exc:

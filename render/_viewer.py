@@ -159,9 +159,6 @@ def run_viewer(path: str, *, tau: float = 1.0, size=(800, 600), close_after: flo
             time.sleep(0.03)
     except KeyboardInterrupt:  # Ctrl-C: close the window, or its thread keeps the process alive
         viewer.close_external()
-    except SystemExit:  # SIGTERM (the command line turns it into an exit): the same, then exit
-        viewer.close_external()
-        raise
     if viewer.run_in_thread and viewer.is_active and not viewer._thread.is_alive():
         raise RenderError("the viewer window closed unexpectedly (see the messages above)")
 

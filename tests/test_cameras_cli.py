@@ -178,7 +178,7 @@ def test_camera_command_writes_every_kind(tmp_path, built, data_path, capsys):
     capsys.readouterr()
     # errors: a degenerate view, a missing --target, a non-finite coordinate
     assert main(["camera", "look-at", "--eye", "0", "0", "0", "--target", "0", "0", "0", "-o", str(cam)]) == 2
-    assert "eye and target coincide" in capsys.readouterr().err
+    assert "--eye and --target are the same point" in capsys.readouterr().err
     assert main(["refine", str(pm_path), "--eye", "0", "0", "5", "-o", str(a)]) == 2
     assert "--eye needs --target" in capsys.readouterr().err
     with pytest.raises(SystemExit):
