@@ -16,7 +16,7 @@ from jaxtyping import Array, Float, Int
 from ._camera import Camera, camera_count, index_camera
 from ._model import ProgressiveMesh
 from ._predicate import ALL_TESTS, Tests, _in_rows
-from ._soft import soft_tests, soft_weights
+from ._soft import soft_face_count, soft_tests, soft_weights
 
 
 class BudgetSolution(eqx.Module):
@@ -57,9 +57,7 @@ def soft_faces_batch(pm: ProgressiveMesh, cameras: Camera, log_tau: Float[Array,
     def collapse(camera, t):
         return _in_rows(lambda a: soft_tests(a, camera, t, temperature * t, None, tests)[0], pm.attributes)
 
-    weight = soft_weights(pm, jax.vmap(collapse, out_axes=1)(cameras, tau))  # [P, K]
-    # Sum the survivors, not F minus the collapsed: no cancellation in float32.
-    return (pm.n_faces - jnp.sum(pm.kills)) + jnp.sum(pm.kills[:, None] * (1.0 - weight), axis=0)
+    return soft_face_count(pm, soft_weights(pm, jax.vmap(collapse, out_axes=1)(cameras, tau)))  # weights [P, K]
 
 
 def soft_tau_for_budget(

@@ -196,19 +196,16 @@ def _tests(args):
     return Tests(frustum="frustum" not in off, orientation="orientation" not in off, screen="screen" not in off)
 
 
-def _check_look_at(args) -> None:
-    """Refuse --eye/--target/--up that make no camera, naming the flags."""
+def _look_at(args, **kw):
+    """The camera of --eye/--target/--up; flags that make no camera are
+    refused naming them."""
+    import pmjax
+
     eye, target, up = (np.asarray(getattr(args, k), float) for k in ("eye", "target", "up"))
     if np.array_equal(eye, target):
         raise ValueError("--eye and --target are the same point: the camera needs a direction to look in")
     if not np.any(up):
         raise ValueError("--up is zero: give the image's up direction (default 0 1 0)")
-
-
-def _look_at(args, **kw):
-    import pmjax
-
-    _check_look_at(args)
     return pmjax.look_at(args.eye, args.target, args.up, **kw)
 
 
@@ -221,13 +218,12 @@ def cmd_refine(args) -> int:
 
     if args.camera is None and args.target is None:
         raise ValueError("--eye needs --target")
-    if args.camera is None:
-        _check_look_at(args)  # before loading anything
-    pm = pmjax.load(args.pm)
+    # The camera first: a bad one is refused before the model is loaded.
     if args.camera:
         cam = pmjax._camera.index_camera(pmjax.load_cameras(args.camera), 0)
     else:
         cam = _look_at(args, width=args.size[0], height=args.size[1], fov_y_deg=args.fov)
+    pm = pmjax.load(args.pm)
     r = pmjax.refine(pm, cam, args.tau, tests=_tests(args), method=args.method)
     jax.block_until_ready(r)
     t = time.perf_counter()

@@ -68,8 +68,8 @@ class ProgressiveMesh(eqx.Module):
     """A progressive mesh ready for refinement (see ``docs/format.md``).
 
     Array fields live on the JAX device; the batch offsets are static (the
-    folds' windows are planned from them when tracing). It holds the mesh's own arrays
-    only: what an engine derives from them (subtree bounds, the front
+    folds' windows are planned from them when tracing). It holds the mesh's
+    own arrays only: what an engine derives from them (subtree bounds, the front
     engine's layout) is computed from the arrays and cached under their
     contents (:mod:`pmjax.engines`), so an updated mesh (``eqx.tree_at``,
     arithmetic on its arrays) is refined from its new values.

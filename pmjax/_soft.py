@@ -119,6 +119,15 @@ def soft_weights(pm: ProgressiveMesh, collapse: Float[Array, " P"]) -> Float[Arr
     return up_the_batches(pm, collapse, 1.0, lambda own, a, b: own * a * b)
 
 
+def soft_face_count(pm: ProgressiveMesh, weight: Float[Array, "P *K"]) -> Float[Array, "*K"]:
+    """Soft face count from soft executed weights ``[P]`` (or ``[P, K]``, K
+    cameras on the trailing axis): the faces no pcol kills plus each pcol's
+    kills times ``1 − weight``."""
+    # Sum the survivors, not F minus the collapsed: no cancellation in float32.
+    kills = pm.kills.reshape(pm.kills.shape + (1,) * (weight.ndim - 1))
+    return (pm.n_faces - jnp.sum(pm.kills)) + jnp.sum(kills * (1.0 - weight), axis=0)
+
+
 def geomorph_blend(pm: ProgressiveMesh, weight: Float[Array, " P"], values: Float[Array, "V k"]):
     """Blend a per-vertex attribute along every vertex's ancestor chain.
 
@@ -237,7 +246,6 @@ def _from_tests(pm, collapse, visible, t) -> SoftRefinement:
         weight=weight,
         positions=geomorph_positions(pm, weight),
         face_weight=face_weight,
-        # Sum the survivors, not F minus the collapsed: no cancellation in float32.
-        faces=(pm.n_faces - jnp.sum(pm.kills)) + jnp.sum(pm.kills * (1.0 - weight)),
+        faces=soft_face_count(pm, weight),
         error=jnp.sum(weight * visible * t),
     )

@@ -166,8 +166,9 @@ def down_the_batches(pm: ProgressiveMesh, own, combine):
     consuming ``v``, always of a later batch; ``has_parent`` is false for a
     vertex no pcol consumes, and the parent's value is then arbitrary).
     The created vertices are resolved batch by batch from the last, by a few
-    loops (:func:`_fold`), then the original vertices in one step. ``combine`` sees ``[n, ...]`` slices and ``[n, 1...]``
-    flags, and must be elementwise in the vertex.
+    loops (:func:`_fold`), then the original vertices in one step.
+    ``combine`` sees ``[n, ...]`` slices and ``[n, 1...]`` flags, and must be
+    elementwise in the vertex.
 
     Args:
         own: ``[V0 + P, ...]`` per-vertex inputs.
