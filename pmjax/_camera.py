@@ -11,6 +11,7 @@ import csv
 import json
 import math
 import os
+import re
 
 import equinox as eqx
 import jax
@@ -19,6 +20,9 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ._atomic import atomic_path
+
+# A JAX tracer: a value inside jit, vmap or grad, unknown until run.
+_Tracer = jax.core.Tracer
 
 
 class Camera(eqx.Module):
@@ -33,6 +37,14 @@ class Camera(eqx.Module):
         width, height: ``[...]`` image size in pixels (``int32``; traced, so
             one compiled kernel serves every image size).
         orthographic: static flag.
+
+    The constructor refuses only what it cannot keep: an image size that is
+    not a whole number within ``int32`` (the cast would change it) and a
+    flag that is not a boolean (or 0 or 1). :func:`check_camera` checks the
+    rest of the values (finite, in range, an orthonormal rotation).
+
+    Raises:
+        CameraError: a size or flag as above (``Camera: width ...``).
     """
 
     eye: Float[Array, "*K 3"]
@@ -52,9 +64,9 @@ class Camera(eqx.Module):
         # host arrays stay on the host, like the other fields.
         xp = np if isinstance(fov_y, np.ndarray) else jnp
         shape = np.shape(fov_y)
-        self.width = xp.broadcast_to(xp.asarray(width, np.int32), shape)
-        self.height = xp.broadcast_to(xp.asarray(height, np.int32), shape)
-        self.orthographic = bool(orthographic)
+        self.width = xp.broadcast_to(xp.asarray(_pixel_counts(width, "width"), np.int32), shape)
+        self.height = xp.broadcast_to(xp.asarray(_pixel_counts(height, "height"), np.int32), shape)
+        self.orthographic = _flag(orthographic, "Camera: orthographic")
 
     def aspect(self):
         """Width over height, in the dtype of the camera's angles."""
@@ -151,49 +163,187 @@ class CameraError(ValueError):
 MAX_IMAGE_SIZE = 1 << 16
 
 
+def _show(value):
+    """A value for a message: Python numbers and lists rather than NumPy reprs."""
+    if isinstance(value, (list, tuple)):
+        return [_show(x) for x in value]
+    if isinstance(value, (np.ndarray, np.generic)) and value.dtype.kind in "biuf":
+        return value.tolist()
+    return value
+
+
+# Rules are written once, as "ok" expressions (True where the rule holds)
+# that hold for Python numbers (one camera: cheap, no NumPy call per rule)
+# and for NumPy arrays over rows (a batch: vectorized) alike.
+
+
+def _first_fault(rules, scalar: bool):
+    """``(row, message)`` of the first row breaking a rule (its first rule
+    broken, in order), or ``None``.
+
+    Args:
+        rules: ``[(ok, message)]``: ``ok`` a bool (``scalar``) or bool arrays
+            over the rows (broadcast); ``message(pick)`` the text for a row,
+            ``pick`` taking a value to the row's.
+    """
+    if scalar:
+        for ok, message in rules:
+            if not ok:
+                return 0, message(lambda x: x)
+        return None
+    oks = np.broadcast_arrays(*[ok for ok, _ in rules])
+    bad = np.flatnonzero(~np.logical_and.reduce(oks))
+    if not len(bad):
+        return None
+    i = int(bad[0])
+    message = next(text for ok, (_, text) in zip(oks, rules) if not ok[i])
+    return i, message(lambda x: x[i] if np.ndim(x) else x)
+
+
+def _value_rules(v: dict, finite, name, top: float, unit: str) -> list:
+    """The range rules of :func:`check_camera_values` over values ``v``
+    (``eye`` as its three coordinates)."""
+    e = v["eye"]
+    rules = [(finite(e[0]) & finite(e[1]) & finite(e[2]),
+              lambda p: f"{name('eye')} must be finite, got {_show([p(x) for x in e])}")]
+    for key in ("fov_y_deg", "near", "far", "ortho_height"):
+        rules.append((finite(v[key]), lambda p, key=key: f"{name(key)} must be finite, got {_show(p(v[key]))}"))
+    for key in ("width", "height"):
+        rules.append(((v[key] >= 1) & (v[key] <= MAX_IMAGE_SIZE), lambda p, key=key:
+                      f"{name(key)} must be an integer in [1, {MAX_IMAGE_SIZE}], got {_show(p(v[key]))}"))
+    fov, near, far = v["fov_y_deg"], v["near"], v["far"]
+    return rules + [
+        (v["orthographic"] | ((fov > 0) & (fov < top)),
+         lambda p: f"{name('fov_y_deg')} must lie in {unit}, got {_show(p(fov))}"),
+        (v["ortho_height"] > 0, lambda p: f"{name('ortho_height')} must be > 0, got {_show(p(v['ortho_height']))}"),
+        (near > 0, lambda p: f"{name('near')} must be > 0, got {_show(p(near))}"),
+        (far > near, lambda p: f"{name('far')} must be greater than {name('near')}, "
+                               f"got {_show(p(far))} <= {_show(p(near))}"),
+    ]
+
+
 def check_camera_values(eye, fov_y_deg, near, far, ortho_height, width, height, orthographic, *,
-                        name=lambda key: key, where: str = "", row: str = "") -> None:
+                        name=lambda key: key, where: str = "", row: str = "", label=None,
+                        radians: bool = False) -> None:
     """Range checks shared by every way of making cameras, vectorized over N
     rows (1-D arrays, ``eye [N, 3]``).
 
+    Args:
+        eye: ``[N, 3]`` positions; the other values ``[N]`` (or broadcast to it).
+        fov_y_deg: vertical field of view, degrees (radians with ``radians``);
+            checked for perspective rows only.
+        width, height: integers.
+        orthographic: a flag, or one per row.
+        name: the name of a value in messages, from its key (``"eye"``,
+            ``"fov_y_deg"``, ``"near"``, ...).
+        where: prefix of every message (a file name and ``": "``).
+        row: the word before a row's index (``"row"``, ``"frame"``); empty:
+            no index in messages.
+        label: a function of a row's index giving its name (``"cameras[3]"``),
+            instead of ``row``.
+        radians: ``fov_y_deg`` holds radians, checked in (0, pi).
+
     Raises:
-        CameraError: ``{where}{row} i: {name(key)} ...`` for the first bad
-            value (no row part when ``row`` is empty).
+        CameraError: ``{where}{row} i: {name(key)} ...`` for the first bad row
+            (its first bad value: eye finite, the other values finite, sizes in
+            [1, 65536], the field of view, ``ortho_height > 0``, ``near > 0``,
+            ``far > near``), with the value found.
     """
     width, height = np.asarray(width), np.asarray(height)
-
-    def fail(bad, what):
-        rows = np.flatnonzero(np.broadcast_to(bad, np.shape(fov_y_deg)))
-        if len(rows):
-            at = f"{row} {rows[0]}: " if row else ""
-            raise CameraError(f"{where}{at}{what}")
-
-    fail(~np.all(np.isfinite(eye), axis=-1), f"{name('eye')} must be finite")
-    for key, values in (("fov_y_deg", fov_y_deg), ("near", near), ("far", far), ("ortho_height", ortho_height)):
-        fail(~np.isfinite(values), f"{name(key)} must be finite")
     for key, values in (("width", width), ("height", height)):
         if values.dtype.kind not in "iu":
             raise CameraError(f"{where}{name(key)} must be an integer, got {values.dtype} values")
-        fail((values < 1) | (values > MAX_IMAGE_SIZE), f"{name(key)} must be an integer in [1, {MAX_IMAGE_SIZE}]")
-    fail(~np.asarray(orthographic, bool) & ~((fov_y_deg > 0) & (fov_y_deg < 180)),
-         f"{name('fov_y_deg')} must lie in (0, 180) degrees")
-    fail(~(ortho_height > 0), f"{name('ortho_height')} must be > 0")
-    fail(~(near > 0), f"{name('near')} must be > 0")
-    fail(~(far > near), f"{name('far')} must be greater than {name('near')}")
+    eye = np.asarray(eye)
+    values = dict(fov_y_deg=fov_y_deg, near=near, far=far, ortho_height=ortho_height, width=width, height=height,
+                  orthographic=orthographic)
+    scalar = eye.size == 3 and all(np.size(a) == 1 for a in values.values())
+    if scalar:  # one row: Python numbers
+        values = {k: np.asarray(a).reshape(-1)[0].item() for k, a in values.items()}
+        values["eye"] = eye.reshape(3).tolist()
+        finite = math.isfinite
+    else:
+        values = {k: np.asarray(a) for k, a in values.items()}
+        values["eye"] = (eye[..., 0], eye[..., 1], eye[..., 2])
+        finite = np.isfinite
+    values["orthographic"] = bool(values["orthographic"]) if scalar else np.asarray(values["orthographic"], bool)
+    top, unit = (math.pi, "(0, pi) radians") if radians else (180, "(0, 180) degrees")
+    fault = _first_fault(_value_rules(values, finite, name, top, unit), scalar)
+    if fault is not None:
+        i, message = fault
+        at = f"{label(i)}: " if label else f"{row} {i}: " if row else ""
+        raise CameraError(f"{where}{at}{message}")
+
+
+# Accepted spellings of a flag in a CSV file.
+_FLAG_WORDS = {"true": True, "false": False, "1": True, "0": False}
+
+
+def _flag(value, key, words: bool = False) -> bool:
+    """A flag: a boolean or the integer 0 or 1; with ``words`` (a CSV field)
+    the text true, false, 1 or 0 (any case, blanks around it ignored)."""
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)) and value in (0, 1):
+        return bool(value)
+    if words and isinstance(value, str) and value.strip().lower() in _FLAG_WORDS:
+        return _FLAG_WORDS[value.strip().lower()]
+    spelled = "write true, false, 1 or 0" if words else "a bool, or the integer 0 or 1"
+    raise CameraError(f"{key} must be true or false, got {value!r} ({spelled})")
+
+
+def _pixel_counts(value, key):
+    """``value`` (an image size, one or per camera) unchanged, after refusing
+    what the cast to ``int32`` would silently change: booleans, fractions,
+    non-finite values and values beyond ``int32``. Tracers and JAX integer
+    arrays pass unchecked (no copy from the device)."""
+    dtype = getattr(value, "dtype", None)
+    if dtype is not None and np.dtype(dtype) == np.bool_:
+        raise CameraError(f"Camera: {key} must be integers (pixels), got booleans")
+    if isinstance(value, _Tracer) or (isinstance(value, jax.Array) and np.dtype(dtype).kind in "iu"
+                                              and np.dtype(dtype).itemsize <= 4 and dtype != np.uint32):
+        return value
+    if isinstance(value, (bool, np.bool_)):
+        raise CameraError(f"Camera: {key} must be an integer (pixels), got {value!r}")
+    host = np.asarray(value)
+    if host.dtype.kind not in "iuf":
+        raise CameraError(f"Camera: {key} must be integers (pixels), got {host.dtype} values")
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(host) | (host != np.round(host)) if host.dtype.kind == "f" else np.zeros(host.shape, bool)
+        bad |= (host < np.iinfo(np.int32).min) | (host > np.iinfo(np.int32).max)
+    if bad.any():
+        at = np.unravel_index(int(np.flatnonzero(bad)[0]), host.shape)
+        index = f"[{', '.join(map(str, at))}]" if host.ndim else ""
+        raise CameraError(f"Camera: {key}{index} must be an integer in [1, {MAX_IMAGE_SIZE}] (pixels), "
+                          f"got {_show(host[at])}")
+    return value
+
+
+def _numbers(value, key, shape, text):
+    """``value`` as a float64 array of ``shape``: numbers only (no booleans,
+    strings or None, also inside lists, where NumPy would convert them)."""
+    def has_non_number(v):
+        if isinstance(v, (list, tuple)):
+            return any(has_non_number(x) for x in v)
+        return v is None or isinstance(v, (bool, np.bool_, str, bytes))
+
+    a = None if has_non_number(value) else np.asarray(value)
+    if a is None or a.dtype.kind not in "iuf":
+        raise CameraError(f"look_at: {key} must be {text}, got {value!r}")
+    if a.shape != shape:
+        raise CameraError(f"look_at: {key} must be {text}, got shape {a.shape}")
+    a = a.astype(np.float64)
+    if not np.all(np.isfinite(a)):
+        raise CameraError(f"look_at: {key} must be finite, got {a.tolist()}")
+    return a
 
 
 def _vector(value, key):
-    v = np.asarray(value, np.float64)
-    if v.shape != (3,):
-        raise CameraError(f"look_at: {key} must be 3 numbers, got shape {v.shape}")
-    if not np.all(np.isfinite(v)):
-        raise CameraError(f"look_at: {key} must be finite, got {v.tolist()}")
-    return v
+    return _numbers(value, key, (3,), "3 numbers")
 
 
 def _number(value, key) -> float:
     try:
-        if isinstance(value, (bool, np.bool_, str)):
+        if isinstance(value, (bool, np.bool_, str, bytes)):
             raise TypeError
         return float(value)
     except (TypeError, ValueError):
@@ -205,6 +355,133 @@ def _size(value, key) -> int:
     if not (math.isfinite(number) and number == int(number)):
         raise CameraError(f"look_at: {key} must be an integer, got {value!r}")
     return int(number)
+
+
+# How far a rotation's columns may be from orthonormal (largest entry of
+# RᵀR − I): float32 look-at rotations are within 1e-6; narrower dtypes are
+# allowed a few units in their last place.
+ROTATION_TOLERANCE = 1e-4
+
+_ARRAY_FIELDS = ("eye", "rotation", "fov_y", "near", "far", "ortho_height", "width", "height")
+
+
+def _rotation_rules(r, finite, largest, tolerance: float) -> list:
+    """The rules of a rotation ``r`` (``r[i][j]`` a number, or an array over
+    rows): finite, orthonormal within ``tolerance`` (largest entry of
+    ``RᵀR − I``), not a reflection; for :func:`_first_fault`."""
+    entries = [x for row in r for x in row]
+    ok = finite(entries[0])
+    for x in entries[1:]:
+        ok = ok & finite(x)
+    col = [[r[0][j], r[1][j], r[2][j]] for j in range(3)]
+
+    def dot(a, b):
+        return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+    error = largest([abs(dot(col[i], col[j]) - (i == j)) for i in range(3) for j in range(i, 3)])
+    a, b, c = col
+    det = dot(a, [b[1] * c[2] - b[2] * c[1], b[2] * c[0] - b[0] * c[2], b[0] * c[1] - b[1] * c[0]])
+    return [
+        (ok, lambda p: f"rotation must be finite, got {_show([[p(x) for x in row] for row in r])}"),
+        (error <= tolerance, lambda p: "rotation is not orthonormal (its columns right, up and back must be unit "
+         f"vectors at right angles; largest entry of RᵀR − I: {p(error):.3g}, allowed {tolerance:.3g}): make "
+         "it with look_at or look_at_rotations"),
+        (det > 0, lambda p: "rotation is a reflection (determinant -1)"),
+    ]
+
+
+def check_camera(camera, *, what: str = "camera") -> None:
+    """Check a camera (or a batch) made by hand, as :func:`look_at` and the
+    camera files check theirs.
+
+    Checked: the fields' shapes (``eye [*K, 3]``, ``rotation [*K, 3, 3]``,
+    the others ``[*K]``) and kinds (numbers, not booleans; integers for the
+    image size); the rotation finite, orthonormal (``|RᵀR − I| <= 1e-4``, or
+    a few units in the last place of a narrower dtype) and not a
+    reflection; then :func:`check_camera_values`: eye and values finite,
+    ``fov_y`` in (0, pi) radians (perspective), ``width`` and ``height`` in
+    [1, 65536], ``0 < near < far``, ``ortho_height > 0``. The fields are
+    copied to the host once; a batch is checked with vectorized NumPy, one
+    camera with Python numbers.
+
+    Under tracing (``jit``, ``vmap``, ``grad``: any field a JAX tracer)
+    nothing is checked: the values are unknown, and the caller's are
+    trusted.
+
+    Args:
+        camera: a :class:`Camera`, one or a batch with leading axes ``*K``.
+        what: the camera's name in messages (the argument it came from).
+
+    Raises:
+        CameraError: ``{what}: {field} ...`` for one camera; for a batch
+            ``{what}[i]: {field} ...`` (``[i, j]`` with two leading axes),
+            ``i`` the first bad camera; the message names the rule and the
+            value found.
+    """
+    if not isinstance(camera, Camera):
+        raise CameraError(f"{what} must be a pmjax.Camera, got {type(camera).__name__}")
+    fields = vars(camera)  # plain reads: an equinox module's attribute access runs Python code
+    values = [fields[k] for k in _ARRAY_FIELDS]
+    for v in values:
+        if isinstance(v, _Tracer):
+            return
+    host = {}
+    for key, value in zip(_ARRAY_FIELDS, values):
+        a = np.asarray(value)
+        # (kind "V": bfloat16 and the other ml_dtypes floats JAX uses)
+        if not (a.dtype.kind in "iuf" or (a.dtype.kind == "V" and jnp.issubdtype(a.dtype, jnp.floating))):
+            got = f"{a.dtype} values" if a.dtype != object else type(value).__name__
+            raise CameraError(f"{what}: {key} must be numbers, got {got}")
+        host[key] = a
+    eye = host["eye"]
+    if eye.ndim < 1 or eye.shape[-1] != 3:
+        raise CameraError(f"{what}: eye must have shape [..., 3] (one position per camera), got shape {eye.shape}")
+    lead = eye.shape[:-1]
+    for key in _ARRAY_FIELDS[1:]:
+        want = lead + (3, 3) if key == "rotation" else lead
+        if host[key].shape != want:
+            raise CameraError(f"{what}: {key} has shape {host[key].shape}, expected {want} "
+                              f"(eye has shape {eye.shape})")
+    n = int(np.prod(lead, dtype=np.int64))
+    flat = {k: a.reshape((n,) + a.shape[len(lead):]) for k, a in host.items()}
+    if not lead:
+        where, label = f"{what}: ", None
+    elif len(lead) == 1:
+        where, label = "", lambda i: f"{what}[{i}]"
+    else:
+        where, label = "", lambda i: f"{what}[{', '.join(str(int(j)) for j in np.unravel_index(i, lead))}]"
+    rotation = flat["rotation"]
+    eps = float(jnp.finfo(rotation.dtype).eps) if rotation.dtype.kind in "fV" else 0.0
+    tolerance = max(ROTATION_TOLERANCE, 16 * eps)
+    scalar = n == 1
+    if scalar:
+        rules = _rotation_rules(rotation[0].astype(np.float64).tolist(), math.isfinite, max, tolerance)
+    else:
+        r = rotation.astype(np.float64)
+        with np.errstate(invalid="ignore", over="ignore"):
+            rules = _rotation_rules([[r[:, i, j] for j in range(3)] for i in range(3)], np.isfinite,
+                                    np.maximum.reduce, tolerance)
+    # Image sizes stored as floats (a camera rebuilt with eqx.tree_at, not
+    # the constructor): whole numbers in range only.
+    for key in ("width", "height"):
+        a = flat[key]
+        if a.dtype.kind not in "iu":
+            with np.errstate(invalid="ignore"):
+                ok = (a == np.round(a)) & (a >= 1) & (a <= MAX_IMAGE_SIZE)
+            got = a[0].item() if scalar else a
+            rules.append((bool(ok[0]) if scalar else ok, lambda p, key=key, got=got:
+                          f"{key} must be an integer in [1, {MAX_IMAGE_SIZE}], got {_show(p(got))}"))
+            flat[key] = np.where(ok, a, 1).astype(np.int64)
+    fault = _first_fault(rules, scalar)
+    end = n if fault is None else fault[0]
+    # The values of the cameras before the first fault found so far, so that
+    # the error names the first bad camera.
+    check_camera_values(flat["eye"][:end], flat["fov_y"][:end], flat["near"][:end], flat["far"][:end],
+                        flat["ortho_height"][:end], flat["width"][:end], flat["height"][:end], camera.orthographic,
+                        name=lambda key: "fov_y" if key == "fov_y_deg" else key, where=where, label=label,
+                        radians=True)
+    if fault is not None:
+        raise CameraError(f"{where}{label(end) + ': ' if label else ''}{fault[1]}")
 
 
 def look_at_rotations(eye, target, up) -> np.ndarray:
@@ -236,11 +513,11 @@ def look_at(eye, target, up=(0.0, 1.0, 0.0), *, fov_y_deg=45.0, width=800, heigh
         CameraError: a value out of range: eye, target or up not 3 finite
             numbers, eye on target, up zero, fov not in (0°, 180°) (perspective),
             a size not an integer in [1, 65536], ``near <= 0``, ``far <= near``,
-            ``ortho_height <= 0``, ``orthographic`` not a boolean.
+            ``ortho_height <= 0``, ``orthographic`` not a boolean (or 0 or 1);
+            a boolean or a string where a number belongs.
     """
     eye, target, up = _vector(eye, "eye"), _vector(target, "target"), _vector(up, "up")
-    if not isinstance(orthographic, (bool, np.bool_)):
-        raise CameraError(f"look_at: orthographic must be true or false, got {orthographic!r}")
+    orthographic = _flag(orthographic, "look_at: orthographic")
     width, height = _size(width, "width"), _size(height, "height")
     dist = np.linalg.norm(eye - target)
     if not dist > 0:
@@ -343,6 +620,20 @@ def save_cameras(camera: Camera, path) -> None:
 FILE_KEYS = ("width", "height", "orthographic", "cameras")
 CAMERA_KEYS = ("eye", "target", "up", "rotation", "fov_y_deg", "near", "far", "ortho_height", "width", "height")
 
+# A file's defaults (a CSV row gives every value).
+_FILE_DEFAULTS = dict(width=800, height=600, orthographic=False)
+
+# Columns of a CSV camera file, in the order save_cameras writes them.
+CSV_COLUMNS = (("ex", "ey", "ez") + tuple(f"r{i}{j}" for i in range(3) for j in range(3))
+               + ("fov_y_deg", "near", "far", "ortho_height", "width", "height", "orthographic"))
+
+# A JSON camera file is parsed whole; load_first_camera refuses larger ones.
+MAX_JSON_BYTES = 64 << 20
+# A CSV line longer than this is not a camera row (one is about 400 bytes).
+MAX_CSV_LINE = 1 << 20
+
+_NUMBER = re.compile(r"[+-]?(?:(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?|nan|inf|infinity)", re.IGNORECASE)
+
 
 def _known_keys(doc, known):
     unknown = sorted(set(doc) - set(known))
@@ -350,69 +641,223 @@ def _known_keys(doc, known):
         raise CameraError(f"unknown key {unknown[0]!r}; known keys: {', '.join(known)}")
 
 
+def _csv_lines(fh, path):
+    """The lines of a CSV file opened in binary, decoded one by one (UTF-8,
+    a byte-order mark allowed), refusing a line longer than
+    ``MAX_CSV_LINE`` bytes before it is read whole."""
+    line_no = 0
+    while True:
+        line = fh.readline(MAX_CSV_LINE + 1)
+        if not line:
+            return
+        line_no += 1
+        if len(line) > MAX_CSV_LINE:
+            raise CameraError(f"{path}: line {line_no} is longer than {MAX_CSV_LINE} bytes: not a camera CSV row")
+        try:
+            yield line.decode("utf-8-sig" if line_no == 1 else "utf-8")
+        except UnicodeDecodeError:
+            raise CameraError(f"{path}: line {line_no} is not UTF-8 text: not a camera CSV file") from None
+
+
+def _csv_number(text: str, key: str) -> float:
+    if not _NUMBER.fullmatch(text.strip()):
+        raise CameraError(f"{key} must be a number, got {text!r}")
+    return float(text)
+
+
+def _csv_cameras(path: str, limit=None) -> list:
+    """``[(label, item)]`` of the first ``limit`` rows (every row with
+    ``None``) of a CSV camera file: every field typed per row
+    (``orthographic`` too); the rest of the file is not read."""
+    items = []
+    with open(path, "rb") as fh:
+        reader = csv.reader(_csv_lines(fh, path))
+        header = next(reader, None)
+        if header is None:
+            raise CameraError(f"{path}: empty file; a camera CSV starts with the header "
+                              f"{','.join(CSV_COLUMNS)}")
+        header = [name.strip() for name in header]
+        for name in header:
+            if name not in CSV_COLUMNS:
+                raise CameraError(f"{path}: unknown column {name!r}; the columns are {', '.join(CSV_COLUMNS)}")
+            if header.count(name) > 1:
+                raise CameraError(f"{path}: column {name!r} appears twice")
+        missing = [name for name in CSV_COLUMNS if name not in header]
+        if missing:
+            raise CameraError(f"{path}: column {missing[0]!r} is missing; the columns are {', '.join(CSV_COLUMNS)}")
+        for fields in reader:
+            if not fields:  # a blank line
+                continue
+            label = f"camera {len(items)} (line {reader.line_num})"
+            try:
+                if len(fields) != len(header):
+                    raise CameraError(f"{len(fields)} fields, expected {len(header)} ({', '.join(header)})")
+                row = dict(zip(header, fields))
+                number = {key: _csv_number(row[key], key) for key in CSV_COLUMNS[:-1]}
+                items.append((label, dict(
+                    eye=[number[k] for k in ("ex", "ey", "ez")],
+                    rotation=[[number[f"r{i}{j}"] for j in range(3)] for i in range(3)],
+                    **{k: number[k] for k in ("fov_y_deg", "near", "far", "ortho_height", "width", "height")},
+                    orthographic=_flag(row["orthographic"], "orthographic", words=True))))
+            except CameraError as exc:
+                raise CameraError(f"{path}: {label}: {exc}") from None
+            if len(items) == limit:  # no further line is read
+                break
+    if not items:
+        raise CameraError(f"{path}: no cameras (the header has no rows after it)")
+    return items
+
+
+def _json_cameras(path: str, max_bytes=None) -> tuple[list, dict]:
+    """``([(label, item)], file defaults)`` of a JSON camera file, the file
+    checked as a whole (object, keys, flag); a file over ``max_bytes`` is
+    refused unread."""
+    with open(path) as fh:
+        size = os.fstat(fh.fileno()).st_size
+        if max_bytes is not None and size > max_bytes:
+            raise CameraError(f"{path}: a JSON camera file is read whole, and this one has {size} bytes "
+                              f"(the limit is {max_bytes} bytes, {max_bytes / 2**20:g} MiB): write the cameras "
+                              "as a .csv file or a .parquet table (read only as far as needed), or split the file")
+        doc = json.load(fh)
+    if not isinstance(doc, dict):
+        raise CameraError(f"{path}: expected a JSON object (one camera, or cameras: [...]), "
+                          f"got {type(doc).__name__}")
+    try:
+        _known_keys(doc, FILE_KEYS if "cameras" in doc else FILE_KEYS + CAMERA_KEYS)
+        meta = dict(_FILE_DEFAULTS, **{k: doc[k] for k in ("width", "height") if k in doc},
+                    orthographic=_flag(doc.get("orthographic", False), "orthographic"))
+    except CameraError as exc:
+        raise CameraError(f"{path}: {exc}") from None
+    if "cameras" not in doc:  # one camera, checked with the file's keys
+        return [("camera 0", {k: v for k, v in doc.items() if k != "orthographic"})], meta
+    items = doc["cameras"]
+    if not isinstance(items, list):
+        raise CameraError(f"{path}: 'cameras' must be a list, got {type(items).__name__}")
+    if not items:
+        raise CameraError(f"{path}: no cameras ('cameras' is empty)")
+    labelled = []
+    for i, it in enumerate(items):
+        if not isinstance(it, dict):
+            raise CameraError(f"{path}: camera {i}: expected a JSON object, got {type(it).__name__}")
+        try:
+            _known_keys(it, CAMERA_KEYS)
+        except CameraError as exc:
+            raise CameraError(f"{path}: camera {i}: {exc}") from None
+        labelled.append((f"camera {i}", it))
+    return labelled, meta
+
+
+def _camera_of(path: str, label: str, it: dict, meta: dict) -> Camera:
+    """One camera of a file (``it``: a JSON camera or a typed CSV row; a
+    missing value from ``meta``, the file's, or the defaults), checked by
+    :func:`look_at`."""
+    try:
+        if "eye" not in it:
+            raise CameraError("'eye' is missing")
+        if ("target" in it) == ("rotation" in it):
+            raise CameraError("give either 'target' (and optionally 'up') or 'rotation', "
+                              + ("not both" if "target" in it else "neither"))
+        eye = _vector(it["eye"], "eye")
+        common = dict(fov_y_deg=it.get("fov_y_deg", 45.0), width=it.get("width", meta["width"]),
+                      height=it.get("height", meta["height"]), near=it.get("near"), far=it.get("far"),
+                      ortho_height=it.get("ortho_height", 1.0),
+                      orthographic=it.get("orthographic", meta["orthographic"]))
+        if "rotation" in it:
+            rot = _numbers(it["rotation"], "rotation", (3, 3), "a 3×3 rotation matrix (3 rows of 3 numbers)")
+            if not np.allclose(rot.T @ rot, np.eye(3), atol=ROTATION_TOLERANCE):
+                raise CameraError("rotation is not a 3×3 rotation matrix (orthonormal columns)")
+            if np.linalg.det(rot) < 0:
+                raise CameraError("rotation is a reflection (determinant -1)")
+            return look_at(eye, eye - rot[:, 2], rot[:, 1], **common)
+        return look_at(eye, it["target"], it.get("up", (0, 1, 0)), **common)
+    except (KeyError, ValueError, TypeError) as exc:
+        raise CameraError(f"{path}: {label}: {str(exc).removeprefix('look_at: ')}") from exc
+
+
+def _read_error(path: str, exc: Exception) -> CameraError:
+    return CameraError(f"{path}: cannot read cameras ({type(exc).__name__}: {exc})")
+
+
+def _table_camera(path: str, limit=None) -> Camera:
+    """The rows of a camera table (``.npz``, ``.parquet``) as one batch of
+    float32 JAX fields, as the JSON and CSV files give."""
+    from ._camera_table import read_camera_table
+
+    table = read_camera_table(path, limit=limit)
+    if len(table) == 0:
+        raise CameraError(f"{path}: no cameras (the table has no rows)")
+    mixed = np.flatnonzero(table.orthographic != table.orthographic[0])
+    if len(mixed):
+        flag = lambda i: str(bool(table.orthographic[i])).lower()  # noqa: E731
+        raise CameraError(f"{path}: row {mixed[0]}: orthographic is {flag(mixed[0])} but row 0's is {flag(0)}; "
+                          "the cameras of one batch share the projection: put perspective and orthographic "
+                          "cameras in separate files (pmjax eval reads mixed tables)")
+    return jax.tree_util.tree_map(jnp.asarray, table.camera())
+
+
 def load_cameras(path) -> Camera:
-    """Read cameras written by :func:`save_cameras` (or by hand: JSON with
-    ``cameras: [{eye, target | rotation, fov_y_deg, ...}]``, a camera's own
-    ``width``/``height`` overriding the file's). Always a batch."""
+    """Read every camera of a file, as one batch (always a batch).
+
+    Files: JSON as written by :func:`save_cameras` (or by hand: ``cameras:
+    [{eye, target | rotation, fov_y_deg, ...}]``, a camera's own
+    ``width``/``height`` overriding the file's), CSV (the columns of
+    ``CSV_COLUMNS``, every row typed on its own), or a ``.npz``/``.parquet``
+    table (:func:`pmjax.read_camera_table`). The cameras of one file share
+    the projection (``orthographic``).
+
+    Raises:
+        CameraError: naming the file, the camera (CSV: and its line; tables:
+            the row) and the value.
+    """
     path = os.fspath(path)
-    single = None
+    if path.endswith((".npz", ".parquet")):
+        return _table_camera(path)
     try:
         if path.endswith(".csv"):
-            with open(path, newline="") as fh:
-                rows = list(csv.DictReader(fh))
-            meta = dict(width=int(rows[0]["width"]), height=int(rows[0]["height"]),
-                        orthographic=bool(int(rows[0]["orthographic"])))
-            items = [dict(eye=[float(r[k]) for k in ("ex", "ey", "ez")],
-                          rotation=np.array([float(r[f"r{i}{j}"]) for i in range(3) for j in range(3)]).reshape(3, 3),
-                          fov_y_deg=float(r["fov_y_deg"]), near=float(r["near"]), far=float(r["far"]),
-                          ortho_height=float(r["ortho_height"]), width=int(r["width"]), height=int(r["height"]))
-                     for r in rows]
+            items, meta = _csv_cameras(path), _FILE_DEFAULTS
         else:
-            with open(path) as fh:
-                doc = json.load(fh)
-            if not isinstance(doc, dict):
-                raise CameraError(f"{path}: expected a JSON object (one camera, or cameras: [...]), "
-                                  f"got {type(doc).__name__}")
-            try:
-                _known_keys(doc, FILE_KEYS if "cameras" in doc else FILE_KEYS + CAMERA_KEYS)
-            except CameraError as exc:
-                raise CameraError(f"{path}: {exc}") from None
-            meta = dict(width=doc.get("width", 800), height=doc.get("height", 600),
-                        orthographic=doc.get("orthographic", False))
-            items = doc["cameras"] if "cameras" in doc else [doc]
-            single = None if "cameras" in doc else doc
-            if not isinstance(items, list):
-                raise CameraError(f"{path}: 'cameras' must be a list, got {type(items).__name__}")
+            items, meta = _json_cameras(path)
     except CameraError:
         raise
-    except (OSError, ValueError, KeyError, IndexError, TypeError) as exc:
-        raise CameraError(f"{path}: cannot read cameras ({type(exc).__name__}: {exc})") from exc
-    cams = []
-    for i, it in enumerate(items):
-        try:
-            if not isinstance(it, dict):
-                raise CameraError(f"expected a JSON object, got {type(it).__name__}")
-            if it is not single:  # a single-camera file was checked with the file's keys
-                _known_keys(it, CAMERA_KEYS)
-            if "eye" not in it:
-                raise CameraError("'eye' is missing")
-            if ("target" in it) == ("rotation" in it):
-                raise CameraError("give either 'target' (and optionally 'up') or 'rotation', "
-                                  + ("not both" if "target" in it else "neither"))
-            eye = np.asarray(it["eye"], float)
-            size = dict(meta, width=it.get("width", meta["width"]), height=it.get("height", meta["height"]))
-            if "rotation" in it:
-                rot = np.asarray(it["rotation"], float)
-                if rot.shape != (3, 3) or not np.allclose(rot.T @ rot, np.eye(3), atol=1e-4):
-                    raise CameraError("rotation is not a 3×3 rotation matrix (orthonormal columns)")
-                if np.linalg.det(rot) < 0:
-                    raise CameraError("rotation is a reflection (determinant -1)")
-                cam = look_at(eye, eye - rot[:, 2], rot[:, 1], fov_y_deg=it.get("fov_y_deg", 45.0), **size,
-                              near=it.get("near"), far=it.get("far"), ortho_height=it.get("ortho_height", 1.0))
-            else:
-                cam = look_at(eye, it["target"], it.get("up", (0, 1, 0)), fov_y_deg=it.get("fov_y_deg", 45.0),
-                              **size, near=it.get("near"), far=it.get("far"), ortho_height=it.get("ortho_height", 1.0))
-        except (KeyError, ValueError, TypeError) as exc:
-            raise CameraError(f"{path}: camera {i}: {str(exc).removeprefix('look_at: ')}") from exc
-        cams.append(cam)
+    except (OSError, ValueError, RecursionError, csv.Error) as exc:
+        raise _read_error(path, exc) from exc
+    cams = [_camera_of(path, label, it, meta) for label, it in items]
+    first = cams[0].orthographic
+    for (label, _), cam in zip(items, cams):
+        if cam.orthographic != first:
+            raise CameraError(f"{path}: {label}: orthographic is {str(cam.orthographic).lower()} but camera 0's "
+                              f"is {str(first).lower()}; the cameras of one file share the projection: put "
+                              "perspective and orthographic cameras in separate files")
     return stack_cameras(cams)
+
+
+def load_first_camera(path) -> Camera:
+    """The first camera of a camera file (any of :func:`load_cameras`'s
+    kinds), reading no more of the file than it needs: a CSV file up to its
+    first row, a Parquet table its first rows (one batch of its first row
+    group), a ``.npz`` table the headers of its columns and their first
+    values. A JSON file is parsed whole, so one over ``MAX_JSON_BYTES``
+    (64 MiB) is refused. Only the first camera is read and checked; the
+    file's header, keys or columns are checked as :func:`load_cameras`
+    checks them.
+
+    Returns:
+        One :class:`Camera` (no batch axis), equal to camera 0 of
+        :func:`load_cameras`.
+
+    Raises:
+        CameraError: as :func:`load_cameras`; a JSON file over 64 MiB.
+    """
+    path = os.fspath(path)
+    if path.endswith((".npz", ".parquet")):
+        return index_camera(_table_camera(path, limit=1), 0)
+    try:
+        if path.endswith(".csv"):
+            items, meta = _csv_cameras(path, limit=1), _FILE_DEFAULTS
+        else:
+            items, meta = _json_cameras(path, max_bytes=MAX_JSON_BYTES)
+    except CameraError:
+        raise
+    except (OSError, ValueError, RecursionError, csv.Error) as exc:
+        raise _read_error(path, exc) from exc
+    return _camera_of(path, *items[0], meta)

@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import zipfile
 from typing import Iterator, Optional
 
 import numpy as np
@@ -225,23 +226,75 @@ def write_camera_table(table: CameraTable, path) -> None:
         raise CameraError(f"{path}: camera tables are .npz or .parquet files")
 
 
-def _read_columns(path: str) -> dict:
+def _parquet_columns(path: str, limit) -> dict:
+    """The columns of a Parquet table (its first ``limit`` rows, or all),
+    refusing nulls."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    if limit is None:
+        table = pq.read_table(path)
+    else:
+        with pq.ParquetFile(path) as pf:
+            # One batch: the row groups past the first ``limit`` rows stay unread.
+            first = next(pf.iter_batches(batch_size=max(1, limit)), None)
+            table = (pa.Table.from_batches([first]) if first is not None
+                     else pf.schema_arrow.empty_table()).slice(0, limit)
+    out = {}
+    for name in table.column_names:
+        col = table.column(name)
+        if col.null_count:
+            row = int(np.flatnonzero(np.asarray(col.is_null()))[0])
+            raise CameraError(f"{path}: row {row}: column {name!r} is null")
+        out[name] = col.to_numpy()
+    return out
+
+
+def _npz_columns(path: str, limit: int) -> dict:
+    """The first ``limit`` values of each column of a ``.npz`` table, read
+    from the head of each member (its ``.npy`` header, then the values): the
+    rest of the file stays unread. The columns' shapes are checked from
+    their headers."""
+    out, shapes = {}, {}
+    with zipfile.ZipFile(path) as zf:
+        for member in zf.namelist():
+            name = member.removesuffix(".npy")
+            with zf.open(member) as fh:
+                version = np.lib.format.read_magic(fh)
+                if version == (1, 0):
+                    shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+                elif version == (2, 0):
+                    shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+                else:
+                    raise CameraError(f"{path}: column {name!r} is a .npy array of format version {version}; "
+                                      "write the table with numpy.savez")
+                if dtype.hasobject:
+                    raise CameraError(f"{path}: column {name!r} has dtype object, expected numbers")
+                shapes[name] = shape
+                count = min(limit, shape[0]) if len(shape) == 1 else 0
+                data = fh.read(count * dtype.itemsize)
+                if len(data) != count * dtype.itemsize:
+                    raise CameraError(f"{path}: column {name!r} is cut short")
+                out[name] = np.frombuffer(data, dtype, count).copy()
+    eye = shapes.get("eye_x")
+    if eye is not None:
+        if len(eye) == 0:
+            raise CameraError(f"{path}: column 'eye_x' is not a column")
+        for name, shape in shapes.items():
+            if name in COLUMNS and shape != (eye[0],):
+                raise CameraError(f"{path}: column {name!r} has shape {shape}, expected ({eye[0]},)")
+    return out
+
+
+def _read_columns(path: str, limit=None) -> dict:
     try:
         if path.endswith(".npz"):
+            if limit is not None:
+                return _npz_columns(path, limit)
             with np.load(path, allow_pickle=False) as z:
                 return {k: z[k] for k in z.files}
         if path.endswith(".parquet"):
-            import pyarrow.parquet as pq
-
-            table = pq.read_table(path)
-            out = {}
-            for name in table.column_names:
-                col = table.column(name)
-                if col.null_count:
-                    row = int(np.flatnonzero(np.asarray(col.is_null()))[0])
-                    raise CameraError(f"{path}: row {row}: column {name!r} is null")
-                out[name] = col.to_numpy()
-            return out
+            return _parquet_columns(path, limit)
     except CameraError:
         raise
     except Exception as exc:  # noqa: BLE001 - any reader failure is a bad file
@@ -257,7 +310,10 @@ def _numeric(path, cols, name, n, default=None, integer=False):
     a = np.asarray(cols[name])
     if a.shape != (n,):
         raise CameraError(f"{path}: column {name!r} has shape {a.shape}, expected ({n},)")
-    if a.dtype.kind not in "biuf":
+    if a.dtype == np.bool_:
+        raise CameraError(f"{path}: column {name!r} holds booleans, expected "
+                          f"{'integers' if integer else 'numbers'}")
+    if a.dtype.kind not in "iuf":
         raise CameraError(f"{path}: column {name!r} has dtype {a.dtype}, expected numbers")
     if integer:
         bad = np.flatnonzero(a != np.round(a)) if a.dtype.kind == "f" else np.array([], int)
@@ -271,22 +327,53 @@ def _numeric(path, cols, name, n, default=None, integer=False):
     return a
 
 
+def _flags(path, cols, name, n) -> np.ndarray:
+    """A flag column: booleans, or integers 0 and 1 (not floats: a flag is
+    not a measurement)."""
+    if name not in cols:
+        return np.zeros(n, bool)
+    a = np.asarray(cols[name])
+    if a.shape != (n,):
+        raise CameraError(f"{path}: column {name!r} has shape {a.shape}, expected ({n},)")
+    if a.dtype == np.bool_:
+        return a.copy()
+    if a.dtype.kind not in "iu":
+        raise CameraError(f"{path}: column {name!r} has dtype {a.dtype}, expected booleans (or integers 0 and 1)")
+    _first(path, (a != 0) & (a != 1), f"column {name!r} must be 0 or 1 (or a boolean)")
+    return a.astype(bool)
+
+
 def _first(path, bad, what):
     rows = np.flatnonzero(bad)
     if len(rows):
         raise CameraError(f"{path}: row {rows[0]}: {what}")
 
 
-def read_camera_table(path) -> CameraTable:
+def read_camera_table(path, *, limit: Optional[int] = None) -> CameraTable:
     """Read and validate a camera table (``.npz`` or ``.parquet``).
 
-    Every value is checked: finite, image sizes positive integers, a field of
-    view in (0°, 180°), a positive orthographic height, ``0 < near < far``, a
-    rotation that is orthonormal and right-handed, an eye off its target;
-    unknown columns are refused. Errors name the file, the row and the column.
+    Every value is checked, per row: numbers (not booleans) where numbers
+    belong, finite, image sizes integers in [1, 65536], a field of view in
+    (0°, 180°), a positive orthographic height, ``0 < near < far``, a
+    rotation that is orthonormal and right-handed, an eye off its target,
+    ``orthographic`` a boolean (or an integer 0 or 1); unknown columns are
+    refused. Errors name the file, the row and the column.
+
+    Args:
+        path: ``.npz`` or ``.parquet`` file.
+        limit: read only the first ``limit`` rows (``>= 1``): of a Parquet
+            file one batch of ``limit`` rows (from the row groups that hold
+            them), of a ``.npz`` file the head of each column (the shapes
+            checked from their headers); the other rows are neither read nor
+            checked.
+
+    Raises:
+        CameraError: a bad file or value.
     """
     path = os.fspath(path)
-    cols = _read_columns(path)
+    if limit is not None and (isinstance(limit, bool) or not isinstance(limit, (int, np.integer)) or limit < 1):
+        raise ValueError(f"read_camera_table: limit must be an integer >= 1 or None, got {limit!r}")
+    cols = _read_columns(path, limit)
     unknown = sorted(set(cols) - set(COLUMNS))
     if unknown:
         raise CameraError(f"{path}: unknown column {unknown[0]!r}; known columns: {', '.join(COLUMNS)}")
@@ -315,9 +402,7 @@ def read_camera_table(path) -> CameraTable:
         _first(path, np.linalg.det(rotation) < 0, "r00..r22 is a reflection (determinant -1)")
         dist = np.ones(n)
     fov = num("fov_y_deg", 45.0)
-    ortho = num("orthographic", 0, integer=True)
-    _first(path, (ortho != 0) & (ortho != 1), "column 'orthographic' must be 0 or 1 (or a boolean)")
-    ortho = ortho.astype(bool)
+    ortho = _flags(path, cols, "orthographic", n)
     ortho_height = num("ortho_height", 1.0)
     width, height = num("width", 800, integer=True), num("height", 600, integer=True)
     near = num("near") if "near" in cols else 1e-3 * dist

@@ -184,3 +184,18 @@ def test_camera_command_writes_every_kind(tmp_path, built, data_path, capsys):
     with pytest.raises(SystemExit):
         main(["camera", "look-at", "--eye", "0", "0", "inf", "--target", "0", "0", "0", "-o", str(cam)])
     assert "argument --eye: inf is not a finite number" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("ext", ["npz", "parquet"])
+def test_load_cameras_reads_camera_tables(tmp_path, ext):
+    cams = pmjax.random_views(np.random.default_rng(0).normal(size=(50, 3)), 5, seed=1, width=320, height=200)
+    path = tmp_path / f"cams.{ext}"
+    pmjax.write_camera_table(pmjax.table_from_cameras(cams), path)
+    back = pmjax.load_cameras(path)
+    assert camera_count(back) == 5 and back.orthographic is False
+    for name in ("eye", "rotation", "near", "far", "width", "height"):
+        got, want = np.asarray(getattr(back, name)), np.asarray(getattr(cams, name))
+        assert got.dtype == want.dtype and np.array_equal(got, want), name
+    assert np.allclose(np.asarray(back.fov_y), np.asarray(cams.fov_y), rtol=1e-7, atol=0)
+    first = pmjax._camera.load_first_camera(path)
+    assert np.array_equal(np.asarray(first.eye), np.asarray(cams.eye[0])) and int(first.width) == 320
