@@ -5,10 +5,18 @@ A job is cut into parts: one chunk of cameras of one camera set, for one model
 and one tolerance (or budget). A part is refined with :func:`pmjax.refine_batch`
 (budgets: one camera at a time, see :func:`evaluate`) and written as one
 Parquet file, atomically (a temporary file, then a rename), so a part file
-that exists is complete. The dataset folder holds the part files, named so
-that their lexical order is the row order, and ``_job.json``, the job's
-description. Re-running a job skips the parts already there; a different job
-refuses to write into the folder.
+that exists was written whole; its metadata records the job, the model's
+SHA-256, the part's name, its row count, and a SHA-256 over that record and
+the rows (:func:`_table_sha256`). The dataset folder holds the part files,
+named so that their lexical order is the row order, and ``_job.json``, the
+job's description. Re-running a job reads every part file there back in full
+and skips those that verify; one that does not (a truncated file, a damaged
+page, the wrong rows) is moved into ``_damaged/`` with a line on stderr and
+computed again. A different job refuses to write into the folder.
+
+Parts are planned lazily, one at a time as the work reaches them, so a job's
+size (10^12 random views) costs neither memory nor time before the first part
+runs: memory follows the parts in flight and the part files in the folder.
 
 Rows depend only on the job description, never on where or when a part ran:
 a camera's row comes from that camera alone (generated sets give a row's
@@ -25,6 +33,8 @@ import dataclasses
 import hashlib
 import json
 import os
+import re
+import sys
 import threading
 import time
 from typing import Optional, Sequence
@@ -39,6 +49,12 @@ from ._predicate import ALL_TESTS, Tests
 
 FORMAT = "pmjax-eval/1"
 JOB_FILE = "_job.json"
+# Sub-folder of the dataset that part files failing verification are moved
+# into: pyarrow, pandas and DuckDB's 'folder/*.parquet' all skip it.
+DAMAGED_DIR = "_damaged"
+# Chunk numbers in part names have at least this many digits (more when a
+# camera set has more chunks, so that lexical order stays row order).
+CHUNK_DIGITS = 7
 DEFAULT_CHUNK = 2048
 # Default folder of JAX's persistent compilation cache for evaluations.
 DEFAULT_COMPILE_CACHE = os.path.join(os.path.expanduser("~"), ".cache", "pmjax", "xla")
@@ -146,10 +162,12 @@ class _Part:
     chunk: int
     lo: int
     hi: int
+    digits: int = CHUNK_DIGITS  # of the chunk number in the file name
 
     @property
     def file(self) -> str:
-        return f"part-m{self.model:04d}-c{self.cameras:04d}-v{self.value:04d}-{self.chunk:07d}.parquet"
+        return (f"part-m{self.model:04d}-c{self.cameras:04d}-v{self.value:04d}-"
+                f"{self.chunk:0{self.digits}d}.parquet")
 
 
 # ---------------------------------------------------------------- one part
@@ -198,8 +216,8 @@ def run_part(task: dict):
     """Refine one part and return its rows as a ``pyarrow.Table``.
 
     ``task`` holds the model path and digest, the camera rows, the value (tau
-    or budget) and the job's settings; it is plain data, so a Dask worker can
-    run it. Public for Dask; users call :func:`evaluate`.
+    or budget), the part's file name and the job's settings; it is plain
+    data, so a Dask worker can run it. Public for Dask; users call :func:`evaluate`.
     """
     import pyarrow as pa
 
@@ -246,8 +264,32 @@ def run_part(task: dict):
         "executed": pa.array(executed),
         "refine_ms": pa.array(ms),
     }
-    return pa.table(columns, schema=_schema()).replace_schema_metadata(
-        {"pmjax": json.dumps(dict(job=task["job_sha256"], model_sha256=task["model_sha256"]))})
+    out = pa.table(columns, schema=_schema())
+    # Checked when the folder is reopened (_verify_part): the part read back
+    # must have these rows, and this checksum over them and this record.
+    info = dict(job=task["job_sha256"], model_sha256=task["model_sha256"], part=task["part"], rows=n)
+    return out.replace_schema_metadata({"pmjax": json.dumps(dict(info, sha256=_table_sha256(out, info)))})
+
+
+def _table_sha256(table, info: dict) -> str:
+    """SHA-256, hex, of a part's record ``info`` (job, model checksum, part
+    file name, rows) and of its table's content: per column its name, type, validity and values
+    (dictionary columns decoded), so it names the rows whatever the chunking or
+    encoding of the file they were read from."""
+    import pyarrow as pa
+
+    h = hashlib.sha256(json.dumps(info, sort_keys=True).encode() + b"\0%d\0" % table.num_rows)
+    for field, column in zip(table.schema, table.columns):
+        if pa.types.is_dictionary(field.type):
+            column = column.cast(field.type.value_type)
+        h.update(f"{field.name}\0{column.type}\0".encode())
+        h.update(np.packbits(column.is_valid().to_numpy(zero_copy_only=False)))
+        if pa.types.is_integer(column.type) or pa.types.is_floating(column.type):
+            values = column.fill_null(0).to_numpy()
+            h.update(np.ascontiguousarray(values, values.dtype.newbyteorder("<")).view(np.uint8))
+        else:
+            h.update(json.dumps(column.to_pylist()).encode())
+    return h.hexdigest()
 
 
 def _schema():
@@ -277,8 +319,8 @@ class EvalSummary:
 
     Attributes:
         folder: the dataset folder.
-        rows: rows in the dataset.
-        parts_written, parts_skipped: parts computed now / found done.
+        rows: rows in the dataset (the whole job's once it is complete).
+        parts_written, parts_skipped: parts computed now / found done and verified.
         cameras: camera refinements computed now (rows written now).
         seconds: wall time of this run.
     """
@@ -310,6 +352,7 @@ def evaluate(
     scheduler: Optional[str] = None,
     workers: int = 0,
     progress: bool = True,
+    max_parts: Optional[int] = None,
 ) -> EvalSummary:
     """Evaluate models × camera sets × tolerances (or face budgets) into a
     Parquet dataset folder, one row per (model, camera set, value, camera).
@@ -334,6 +377,8 @@ def evaluate(
         workers: start a local Dask cluster of this many single-threaded
             worker processes (0: run in this process).
         progress: a progress bar (cameras/s and ETA).
+        max_parts: compute at most this many parts in this run, then stop
+            (``None``: every part); a later run of the same job resumes.
 
     Returns:
         :class:`EvalSummary`. Read the rows with ``pyarrow.dataset.dataset(folder)``,
@@ -341,8 +386,9 @@ def evaluate(
 
     Raises:
         EvalError: a bad setting, a camera set that cannot be read, a model
-            that fails validation (parts finished before it are kept), or a
-            folder holding another job.
+            that fails validation (parts finished before it are kept), a
+            folder holding another job, or a part computed from a model file
+            whose content has changed since.
     """
     from ._pmfile import PMFormatError, read_pm
     from ._refine import check_budget, check_tau
@@ -360,6 +406,9 @@ def evaluate(
         raise EvalError("chunk and batch_chunk must be >= 1")
     if method not in ("auto", "front", "dense"):
         raise EvalError(f"method must be auto, front or dense, not {method!r}")
+    if max_parts is not None and (isinstance(max_parts, bool) or not isinstance(max_parts, (int, np.integer))
+                                  or max_parts < 1):
+        raise EvalError(f"max_parts must be a whole number >= 1 or None, not {max_parts!r}")
     sets = [s if isinstance(s, CameraSet) else camera_set(s) for s in camera_sets]
     if not sets:
         raise EvalError("no camera sets")
@@ -379,15 +428,15 @@ def evaluate(
                taus=[float(t) for t in taus], budgets=[int(b) for b in budgets], tests=_tests_dict(tests),
                method=method, chunk=int(chunk), batch_chunk=int(batch_chunk))
     job_sha = hashlib.sha256(json.dumps(job, sort_keys=True).encode()).hexdigest()
+    counts = [len(t) if t is not None else s.count for s, t in zip(sets, tables)]
+    total = len(models) * len(values) * sum(counts)
     with contextlib.ExitStack() as stack:
         stack.enter_context(_lock_folder(folder))
-        done = _open_folder(folder, job)
-        counts = [len(t) if t is not None else s.count for s, t in zip(sets, tables)]
-        total = len(models) * len(values) * sum(counts)
-        n_done = sum(p.hi - p.lo for m in range(len(models)) for p in _model_parts(m, counts, len(values), chunk)
-                     if p.file in done)
+        # The parts found done and verified: file name -> SHA-256 of the model they came from.
+        done = _verify_folder(folder, _open_folder(folder, job), job_sha, counts, len(models), len(values), chunk)
+        n_done = sum(_rows_of(name, counts, chunk) for name in done)
         bar = stack.enter_context(_progress(progress, total, n_done))
-        written = skipped = rows_now = 0
+        written = submitted = rows_now = 0
         runner = _Runner(scheduler, workers)
         stack.callback(runner.close)
 
@@ -400,6 +449,8 @@ def evaluate(
                 bar.update(table.num_rows)
 
         for mi, model_path in enumerate(models):
+            if max_parts is not None and submitted >= max_parts:
+                break
             # The model is validated before its parts start; a bad one stops
             # the job with the parts before it kept.
             try:
@@ -409,30 +460,68 @@ def evaluate(
                 raise EvalError(f"model {model_path}: {exc}") from exc
             digest = file_sha256(model_path)
             vertices = data.vertices[: data.n_original_vertices]
+            # Parts come one at a time from a generator: nothing is planned
+            # ahead of the work, whatever the job's size.
             for part in _model_parts(mi, counts, len(values), chunk):
                 if part.file in done:
-                    _check_part(folder, part, job_sha, digest, model_path)
-                    skipped += 1
+                    if done[part.file] != digest:
+                        raise EvalError(f"{os.path.join(folder, part.file)} was computed from another version of "
+                                        f"{model_path} (its content changed); use another folder, or delete this "
+                                        "one to start over")
                     continue
+                if max_parts is not None and submitted >= max_parts:
+                    break
                 s, value = sets[part.cameras], values[part.value]
                 task = dict(model_path=model_path, model_sha256=digest, model_name=_model_name(model_path),
                             set_name=s.name, rows=s.rows(vertices, part.lo, part.hi, tables[part.cameras]),
                             lo=part.lo, hi=part.hi, tau=None if budgets else value,
                             budget=value if budgets else None, tests=_tests_dict(tests), method=method,
-                            batch_chunk=int(batch_chunk), compile_cache=compile_cache, job_sha256=job_sha)
+                            batch_chunk=int(batch_chunk), compile_cache=compile_cache, job_sha256=job_sha,
+                            part=part.file)
+                submitted += 1
                 store(runner.submit(part, task))
             del data, vertices
         store(runner.drain())
-    return EvalSummary(folder=os.fspath(folder), rows=total, parts_written=written, parts_skipped=skipped,
-                       cameras=rows_now, seconds=time.perf_counter() - start)
+    return EvalSummary(folder=os.fspath(folder), rows=n_done + rows_now, parts_written=written,
+                       parts_skipped=len(done), cameras=rows_now, seconds=time.perf_counter() - start)
 
 
 def _model_parts(m, counts, n_values, chunk):
-    """The parts of model ``m``, in row order."""
-    for c, n in enumerate(counts):
+    """The parts of model ``m``, in row order, made as they are asked for."""
+    for c in range(len(counts)):
         for v in range(n_values):
-            for k, lo in enumerate(range(0, n, chunk)):
-                yield _Part(m, c, v, k, lo, min(lo + chunk, n))
+            for k in range(-(-counts[c] // chunk)):
+                yield _part(m, c, v, k, counts, chunk)
+
+
+def _part(m, c, v, k, counts, chunk) -> _Part:
+    """Part ``k`` (its chunk of cameras) of camera set ``c`` for model ``m`` and value ``v``."""
+    n = counts[c]
+    # Enough digits for the set's last chunk number, so names sort as rows do.
+    digits = max(CHUNK_DIGITS, len(str(max(0, -(-n // chunk) - 1))))
+    return _Part(m, c, v, k, k * chunk, min((k + 1) * chunk, n), digits)
+
+
+_PART_NAME = re.compile(r"part-m(\d+)-c(\d+)-v(\d+)-(\d+)\.parquet")
+
+
+def _part_named(name, counts, n_models, n_values, chunk) -> Optional[_Part]:
+    """The part of the job whose file is ``name``, or ``None`` when no part
+    of the job has that name."""
+    match = _PART_NAME.fullmatch(name)
+    if not match:
+        return None
+    m, c, v, k = (int(g) for g in match.groups())
+    if not (m < n_models and c < len(counts) and v < n_values and k * chunk < counts[c]):
+        return None
+    part = _part(m, c, v, k, counts, chunk)
+    return part if part.file == name else None
+
+
+def _rows_of(name, counts, chunk) -> int:
+    """Rows of the part file ``name`` (a name of the job's)."""
+    m, c, v, k = (int(g) for g in _PART_NAME.fullmatch(name).groups())
+    return min((k + 1) * chunk, counts[c]) - k * chunk
 
 
 def _lock_folder(folder):
@@ -452,7 +541,8 @@ def _lock_folder(folder):
 
 
 def _open_folder(folder, job) -> set:
-    """Reopen (or start) the locked dataset folder for ``job``: the part files done."""
+    """Reopen (or start) the locked dataset folder for ``job``: the names of
+    the part files there (not yet verified, see :func:`_verify_folder`)."""
     path = os.path.join(folder, JOB_FILE)
     if os.path.exists(path):
         try:
@@ -474,14 +564,125 @@ def _open_folder(folder, job) -> set:
     return {name for name in os.listdir(folder) if name.startswith("part-") and name.endswith(".parquet")}
 
 
-def _check_part(folder, part, job_sha, digest, model_path) -> None:
+def _verify_folder(folder, names, job_sha, counts, n_models, n_values, chunk) -> dict:
+    """Verify the part files ``names`` of the dataset folder; those that fail
+    are moved into ``folder/_damaged/`` (a line on stderr says which and why)
+    so that the job computes them again.
+
+    Returns:
+        ``{file name: SHA-256 of the model the part was computed from}`` for
+        the parts that verify.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    parts = {name: _part_named(name, counts, n_models, n_values, chunk) for name in sorted(names)}
+
+    def check(name):
+        part = parts[name]
+        if part is None:
+            return ("is not a part of this job (its name is outside the job's models, camera sets, values or "
+                    "chunks)"), None
+        return _verify_part(os.path.join(folder, name), part, job_sha)
+
+    done = {}
+    # Parquet decoding and hashing release the GIL: verify parts in parallel.
+    with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
+        for name, (problem, model_sha) in zip(parts, pool.map(check, parts)):
+            if problem is None:
+                done[name] = model_sha
+                continue
+            path, aside = os.path.join(folder, name), os.path.join(folder, DAMAGED_DIR, name)
+            os.makedirs(os.path.dirname(aside), exist_ok=True)
+            os.replace(path, aside)
+            print(f"pmjax eval: {path}: {problem}; moved to {aside}, the part is computed again",
+                  file=sys.stderr, flush=True)
+    return done
+
+
+def _verify_part(path, part, job_sha):
+    """Read a part file in full and check it against its part of the job.
+
+    Returns:
+        ``(problem, model_sha256)``: ``problem`` is ``None`` for a part that
+        verifies, else says what is wrong: unreadable (a truncated file, a
+        damaged page), footer statistics that disagree with the rows, a
+        checksum that does not match (damaged data that still decodes),
+        written by another job or for another part, other columns, the wrong
+        row count or (parts written without a checksum) camera rows.
+    """
     import pyarrow.parquet as pq
 
-    meta = pq.read_schema(os.path.join(folder, part.file)).metadata or {}
-    info = json.loads(meta.get(b"pmjax", b"{}"))
-    if info.get("job") != job_sha or info.get("model_sha256") != digest:
-        raise EvalError(f"{os.path.join(folder, part.file)} was computed from another version of {model_path} "
-                        "(its content changed); use another folder, or delete this one to start over")
+    try:
+        with pq.ParquetFile(path) as pf:
+            table = pf.read()
+            # Damaged pages can decode into invalid arrays (a dictionary index out of range).
+            table.validate(full=True)
+            info = json.loads((table.schema.metadata or {}).get(b"pmjax", b"{}"))
+            # Readers skip files by the footer's statistics: damaged ones would drop rows from a filtered read.
+            wrong = _wrong_statistics(pf.metadata, table)
+            signed = isinstance(info, dict) and "sha256" in info
+            digest = _table_sha256(table, {k: v for k, v in info.items() if k != "sha256"}) if signed else None
+    except Exception as exc:  # pyarrow raises several types for a damaged file
+        return f"unreadable ({type(exc).__name__}: {exc})", None
+    if wrong:
+        return wrong, None
+    if not isinstance(info, dict) or not isinstance(info.get("model_sha256"), str):
+        return "has no pmjax metadata (job and model checksums)", None
+    # The checksum first: once it holds, the record (job, part, rows) is the one written.
+    if signed and info["sha256"] != digest:
+        return "its content does not match its checksum (damaged data)", None
+    if info.get("job") != job_sha:
+        return "was written by another job", None
+    name = os.path.basename(path)
+    if info.get("part", name) != name:
+        return f"holds the rows of {info['part']}, another part", None
+    if not table.schema.remove_metadata().equals(_schema()):
+        return f"has columns {table.schema.remove_metadata().to_string()!r}, not this job's", None
+    want = part.hi - part.lo
+    if table.num_rows != want or info.get("rows", want) != want:
+        return f"has {table.num_rows} rows (its metadata says {info.get('rows')!r}), expected {want}", None
+    # Parts written without a checksum: the camera rows at least must be the part's.
+    if not signed and not np.array_equal(table.column("camera").to_numpy(zero_copy_only=False),
+                                         np.arange(part.lo, part.hi)):
+        return f"its camera column is not {part.lo}..{part.hi - 1}", None
+    return None, info["model_sha256"]
+
+
+def _wrong_statistics(metadata, table) -> Optional[str]:
+    """What in a Parquet file's column statistics (null count, min, max per
+    row group) disagrees with its ``table`` as read, or ``None``."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    start = 0
+    for r in range(metadata.num_row_groups):
+        group = metadata.row_group(r)
+        rows = table.slice(start, group.num_rows)
+        start += group.num_rows
+        for i in range(group.num_columns):
+            chunk = group.column(i)
+            # pyarrow aborts the process when asked for the statistics of a
+            # column whose type in the footer was damaged: check it first.
+            kind = metadata.schema.column(i).physical_type
+            if chunk.physical_type != kind:
+                return (f"the footer gives column {chunk.path_in_schema!r} type {chunk.physical_type}, "
+                        f"its schema {kind}")
+            stats = chunk.statistics
+            if stats is None:
+                continue
+            column = rows.column(chunk.path_in_schema)
+            if pa.types.is_dictionary(column.type):
+                column = column.cast(column.type.value_type)
+            if stats.has_null_count and stats.null_count != column.null_count:
+                return (f"the statistics of column {chunk.path_in_schema!r} count {stats.null_count} nulls, "
+                        f"the column holds {column.null_count}")
+            if stats.has_min_max:
+                got = pc.min_max(column)
+                lo, hi = got["min"].as_py(), got["max"].as_py()
+                if (stats.min, stats.max) != (lo, hi):
+                    return (f"the statistics of column {chunk.path_in_schema!r} give {stats.min!r}..{stats.max!r}, "
+                            f"the column holds {lo!r}..{hi!r}")
+    return None
 
 
 def _write_part(folder, part, table) -> None:

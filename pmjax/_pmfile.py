@@ -13,6 +13,7 @@ import dataclasses
 import hashlib
 import io
 import json
+import math
 import os
 import zipfile
 from concurrent.futures import ThreadPoolExecutor
@@ -26,6 +27,11 @@ from ._structure import check_structure, remember_structure, structure_known
 
 MAGIC = "pmjax.progressive-mesh"
 VERSION = 1
+# Largest header.json read, bytes: it holds counts, build parameters and
+# checksums (a few KiB), so a larger one is damaged or forged.
+HEADER_LIMIT = 1 << 20
+# Largest .npy header read, bytes (numpy writes 128, and refuses over 10000).
+NPY_HEADER_LIMIT = 10000
 
 def _sha256(a: np.ndarray) -> str:
     # Hash the array's memory directly (no tobytes() copy).
@@ -119,6 +125,12 @@ def _mesh_kind(path: str) -> str:
 def read_arrays(path: str | os.PathLike) -> tuple[PMData, str]:
     """Read a ``.pmz`` file with every check but the structure check.
 
+    Nothing is read beyond what the header's counts allow: every array's
+    ``.npy`` header (dtype, shape) is read first and checked against the
+    counts, and each zip entry's declared size against its ``.npy`` header,
+    before any array data is read; data is then read with that bound, so an
+    entry that expands past its declared size (a zip bomb) is not expanded.
+
     Returns:
         ``(pm, fingerprint)``: the fingerprint is a SHA-256 over the arrays'
         checksums, verified against the bytes read, so it names the content.
@@ -140,10 +152,7 @@ def read_arrays(path: str | os.PathLike) -> tuple[PMData, str]:
         names = set(zf.namelist())
         if "header.json" not in names:
             raise PMFormatError(f"{path}: not a pmjax file (no header.json)")
-        try:
-            header = json.loads(zf.read("header.json"))
-        except Exception as exc:  # bad JSON, a damaged entry, an unknown compression method
-            raise PMFormatError(f"{path}: header.json is unreadable ({type(exc).__name__}: {exc})") from exc
+        header = _read_header(zf, path)
         if not isinstance(header, dict) or header.get("magic") != MAGIC:
             raise PMFormatError(f"{path}: bad magic (expected {MAGIC!r})")
         if header.get("version") != VERSION:
@@ -154,16 +163,16 @@ def read_arrays(path: str | os.PathLike) -> tuple[PMData, str]:
         sums = header.get("array_sha256")
         if not isinstance(sums, dict):
             raise PMFormatError(f"{path}: header has no array checksums")
-        arrays: dict[str, Any] = {}
         for name in ARRAY_SPECS:
             if name + ".npy" not in names:
                 raise PMFormatError(f"{path}: array {name!r} is missing")
-            try:
-                raw = zf.read(name + ".npy")
-                a = np.load(io.BytesIO(raw), allow_pickle=False)
-            except Exception as exc:
-                raise PMFormatError(f"{path}: array {name!r} is unreadable ({type(exc).__name__}: {exc})") from exc
-            arrays[name] = a
+        # Every array's shape and dtype, and its entry's size, checked before
+        # any data is read.
+        shapes, counts = _expected_shapes(path, header.get("counts"))
+        layout = {name: _npy_layout(zf, path, name, shapes[name], counts) for name in ARRAY_SPECS}
+        arrays: dict[str, Any] = {}
+        for name, (offset, shape, fortran, dtype) in layout.items():
+            arrays[name] = _read_npy(zf, path, name, offset, shape, fortran, dtype)
     # hashlib releases the GIL on large buffers: hash the arrays in parallel.
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
         digests = dict(zip(arrays, pool.map(_sha256, arrays.values())))
@@ -172,15 +181,101 @@ def read_arrays(path: str | os.PathLike) -> tuple[PMData, str]:
             raise PMFormatError(f"{path}: checksum mismatch in array {name!r}")
     meta = {k: v for k, v in header.items() if k not in ("array_sha256",)}
     pm = PMData(**arrays, header=meta)
+    # The shapes were checked against the header's counts before reading.
     validate_pm(pm, source=path)
-    counts = header.get("counts", {})
-    expected = dict(V0=pm.n_original_vertices, F=len(pm.faces), P=pm.n_pcols, B=pm.n_batches)
-    for key, value in expected.items():
-        if counts.get(key) != value:
-            raise PMFormatError(
-                f"{path}: header count {key}={counts.get(key)!r} but arrays give {value}"
-            )
     return pm, content_fingerprint(digests)
+
+
+def _read_header(zf: zipfile.ZipFile, path: str) -> Any:
+    """``header.json`` parsed, read with a bound of :data:`HEADER_LIMIT` bytes."""
+    info = zf.getinfo("header.json")
+    if info.file_size > HEADER_LIMIT:
+        raise PMFormatError(f"{path}: header.json declares {info.file_size} bytes, more than the {HEADER_LIMIT} "
+                            "a header can need; the file is damaged or forged")
+    try:
+        with zf.open(info) as fh:
+            return json.loads(fh.read(HEADER_LIMIT))
+    except Exception as exc:  # bad JSON, a damaged entry, an unknown compression method
+        raise PMFormatError(f"{path}: header.json is unreadable ({type(exc).__name__}: {exc})") from exc
+
+
+def _expected_shapes(path: str, counts: Any) -> tuple[dict[str, tuple[int, ...]], str]:
+    """Each array's shape from the header's counts ``V0``, ``F``, ``P``, ``B``,
+    and the counts as text for messages."""
+    if not isinstance(counts, dict):
+        raise PMFormatError(f"{path}: header has no counts (V0, F, P, B)")
+    for key in ("V0", "F", "P", "B"):
+        value = counts.get(key)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise PMFormatError(f"{path}: header count {key}={value!r} is not a whole number >= 0")
+    sizes = dict(V=counts["V0"] + counts["P"], F=counts["F"], P=counts["P"], B1=counts["B"] + 1, **{"3": 3})
+    text = ", ".join(f"{key}={counts[key]}" for key in ("V0", "F", "P", "B"))
+    return {name: tuple(sizes[s] for s in shape) for name, (_, shape) in ARRAY_SPECS.items()}, text
+
+
+def _npy_layout(zf: zipfile.ZipFile, path: str, name: str, want: tuple[int, ...], counts: str):
+    """Read only the ``.npy`` header of array ``name`` and check it: the dtype
+    of :data:`ARRAY_SPECS`, the shape ``want`` (from the header's ``counts``),
+    and the zip entry's declared size equal to header plus data.
+
+    Returns:
+        ``(data offset, shape, fortran_order, dtype)``.
+    """
+    info = zf.getinfo(name + ".npy")
+    try:
+        with zf.open(info) as fh:
+            # Magic string (6 bytes) and version (2), then the header length:
+            # 2 bytes (version 1.0) or 4 (version 2.0), checked before the
+            # header is read.
+            start = fh.read(8)
+            if len(start) < 8 or start[:6] != b"\x93NUMPY":
+                raise ValueError("not a .npy array (bad magic string)")
+            if start[6:8] not in (b"\x01\x00", b"\x02\x00"):
+                raise ValueError(f".npy version {start[6]}.{start[7]} (this pmjax reads 1.0 and 2.0)")
+            width = 2 if start[6] == 1 else 4
+            size = fh.read(width)
+            length = int.from_bytes(size, "little")
+            if len(size) < width or length > NPY_HEADER_LIMIT:
+                raise ValueError(f".npy header of {length} bytes (at most {NPY_HEADER_LIMIT})")
+            text = fh.read(length)
+        buf = io.BytesIO(start + size + text)
+        version = np.lib.format.read_magic(buf)
+        read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+        shape, fortran, dtype = read(buf)
+    except Exception as exc:  # a damaged entry, a bad .npy header
+        raise PMFormatError(f"{path}: array {name!r} is unreadable ({type(exc).__name__}: {exc})") from exc
+    spec = np.dtype(ARRAY_SPECS[name][0])
+    entry = f"{path}: array {name!r} (entry {info.filename})"
+    if dtype != spec:
+        raise PMFormatError(f"{entry} has dtype {dtype}, expected {spec}")
+    if shape != want:
+        raise PMFormatError(f"{entry} has shape {shape}, but the header counts {counts} give {want}; "
+                            "the file is damaged or forged")
+    offset = len(start) + len(size) + len(text)
+    need = offset + math.prod(shape) * dtype.itemsize
+    if info.file_size != need:
+        raise PMFormatError(f"{entry} declares {info.file_size} bytes uncompressed, but its .npy header (shape "
+                            f"{shape}, {dtype}) needs {need}; the file is damaged or forged")
+    return offset, shape, fortran, dtype
+
+
+def _read_npy(zf: zipfile.ZipFile, path: str, name: str, offset: int, shape, fortran: bool, dtype) -> np.ndarray:
+    """The data of array ``name``, reading exactly the bytes its checked
+    ``.npy`` header needs (the zip entry's CRC is checked at its end)."""
+    count = math.prod(shape)
+    nbytes = count * dtype.itemsize
+    try:
+        with zf.open(name + ".npy") as fh:
+            # One read of the whole entry (header and data): no copy of the
+            # data between reads.
+            raw = fh.read(offset + nbytes)
+    except Exception as exc:  # a damaged entry: a bad CRC, a truncated stream
+        raise PMFormatError(f"{path}: array {name!r} is unreadable ({type(exc).__name__}: {exc})") from exc
+    if len(raw) != offset + nbytes:
+        raise PMFormatError(f"{path}: array {name!r} is unreadable (its zip entry ends after {len(raw)} "
+                            f"of {offset + nbytes} bytes)")
+    a = np.frombuffer(raw, dtype=dtype, count=count, offset=offset).copy()
+    return a.reshape(shape[::-1]).transpose() if fortran else a.reshape(shape)
 
 
 def content_fingerprint(sums: dict) -> str:

@@ -214,3 +214,155 @@ def test_a_passed_structure_is_remembered_by_content(cow, tmp_path, monkeypatch)
     assert pmjax.structure_known(pmjax.read_arrays(tmp_path / "again.pmz")[1])
     monkeypatch.setenv("PMJAX_KNOWN_STRUCTURES", "")
     assert not pmjax.structure_known(fingerprint)
+
+
+# -- zip bombs: nothing is expanded beyond what the header's counts allow ------
+
+
+def _bomb(src, dst, name, head, zeros, *, declare=None):
+    """Copy a .pmz replacing entry ``name`` by ``head`` followed by ``zeros``
+    zero bytes, deflated (a small entry that expands to ``len(head) + zeros``),
+    streamed so the test itself never holds the expanded bytes. ``declare``:
+    the uncompressed size to write into the zip's headers instead of the true one."""
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
+        for entry in zin.namelist():
+            if entry != name:
+                zout.writestr(entry, zin.read(entry))
+                continue
+            info = zipfile.ZipInfo(name)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            with zout.open(info, "w") as fh:
+                fh.write(head)
+                block = bytes(1 << 20)
+                for lo in range(0, zeros, len(block)):
+                    fh.write(block[: min(len(block), zeros - lo)])
+    if declare is not None:
+        import struct
+
+        data = bytearray(open(dst, "rb").read())
+        with zipfile.ZipFile(dst) as zf:
+            local = zf.getinfo(name).header_offset
+        struct.pack_into("<I", data, local + 22, declare)  # the local header's uncompressed size
+        at = 0
+        while (at := data.find(b"PK\x01\x02", at + 1)) >= 0:  # the central directory's
+            length = struct.unpack_from("<H", data, at + 28)[0]
+            if data[at + 46: at + 46 + length] == name.encode():
+                struct.pack_into("<I", data, at + 24, declare)
+        open(dst, "wb").write(bytes(data))
+    with zipfile.ZipFile(dst) as zf:
+        info = zf.getinfo(name)
+        assert info.compress_size < 1 << 20 and info.file_size == (declare or len(head) + zeros)
+    return dst
+
+
+def _npy(a):
+    buf = io.BytesIO()
+    np.save(buf, a)
+    return buf.getvalue()
+
+
+def _npy_head(shape, dtype):
+    """A .npy header (magic string included) for an array of ``shape`` and ``dtype`` (no data)."""
+    buf = io.BytesIO()
+    np.lib.format.write_array_header_1_0(buf, dict(descr=np.lib.format.dtype_to_descr(np.dtype(dtype)),
+                                                   fortran_order=False, shape=shape))
+    return buf.getvalue()
+
+
+def _peak_bytes(fn):
+    """(the exception ``fn`` raised, the peak of Python allocations during it)."""
+    import tracemalloc
+
+    tracemalloc.start()
+    try:
+        fn()
+    except Exception as exc:  # returned for the caller to check
+        raised = exc
+    else:
+        raised = None
+    finally:
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    return raised, peak
+
+
+BOMB = 200 << 20  # bytes an entry expands to
+
+
+def test_an_entry_declaring_more_than_its_npy_header_needs_is_refused_unread(cow, tmp_path):
+    pm, path = cow
+    # The true vertices, then 200 MB of zeros; the declared size is the true one.
+    head = _npy(pm.vertices)
+    bad = _bomb(path, tmp_path / "bomb.pmz", "vertices.npy", head, BOMB)
+    raised, peak = _peak_bytes(lambda: read_pm(bad))
+    assert isinstance(raised, PMFormatError)
+    assert str(raised) == (f"{bad}: array 'vertices' (entry vertices.npy) declares {len(head) + BOMB} bytes "
+                           f"uncompressed, but its .npy header (shape {pm.vertices.shape}, float32) needs "
+                           f"{len(head)}; the file is damaged or forged")
+    assert peak < 32 << 20, peak
+
+
+def test_an_entry_expanding_past_its_declared_size_is_read_only_to_it(cow, tmp_path):
+    pm, path = cow
+    head = _npy(pm.normals)
+    # Declares the size the .npy header needs; holds 200 MB more.
+    bad = _bomb(path, tmp_path / "liar.pmz", "normals.npy", head, BOMB, declare=len(head))
+    raised, peak = _peak_bytes(lambda: read_pm(bad))
+    assert isinstance(raised, PMFormatError)
+    # Read to the declared size, where the entry's CRC (of all its bytes) fails.
+    assert str(raised).startswith(f"{bad}: array 'normals' is unreadable (BadZipFile: Bad CRC-32 for file "
+                                  "'normals.npy'"), str(raised)
+    assert peak < 32 << 20, peak
+
+
+def test_an_honest_but_absurd_array_size_is_refused_by_the_header_counts(cow, tmp_path):
+    pm, path = cow
+    rows = BOMB // 12  # float32 rows of 3
+    head = _npy_head((rows, 3), np.float32)
+    bad = _bomb(path, tmp_path / "absurd.pmz", "normals.npy", head, rows * 12)
+    raised, peak = _peak_bytes(lambda: read_pm(bad))
+    assert isinstance(raised, PMFormatError)
+    counts = f"V0={pm.n_original_vertices}, F={len(pm.faces)}, P={pm.n_pcols}, B={pm.n_batches}"
+    assert str(raised) == (f"{bad}: array 'normals' (entry normals.npy) has shape ({rows}, 3), but the header "
+                           f"counts {counts} give {pm.normals.shape}; the file is damaged or forged")
+    assert peak < 32 << 20, peak
+    # Header counts forged to match: then the honest arrays disagree with them.
+    with zipfile.ZipFile(path) as zin:
+        header = json.loads(zin.read("header.json"))
+        header["counts"]["V0"] = rows - pm.n_pcols
+        counted = tmp_path / "counted.pmz"
+        with zipfile.ZipFile(counted, "w") as zout:
+            for entry in zin.namelist():
+                zout.writestr(entry, json.dumps(header) if entry == "header.json" else zin.read(entry))
+    forged = _bomb(counted, tmp_path / "counts.pmz", "normals.npy", head, rows * 12)
+    raised, peak = _peak_bytes(lambda: read_pm(forged))
+    assert isinstance(raised, PMFormatError)
+    counts = f"V0={rows - pm.n_pcols}, F={len(pm.faces)}, P={pm.n_pcols}, B={pm.n_batches}"
+    assert str(raised) == (f"{forged}: array 'vertices' (entry vertices.npy) has shape {pm.vertices.shape}, but "
+                           f"the header counts {counts} give ({rows}, 3); the file is damaged or forged")
+    assert peak < 32 << 20, peak
+
+
+def test_a_header_json_bomb_and_a_huge_npy_header_are_refused(cow, tmp_path):
+    _, path = cow
+    with zipfile.ZipFile(path) as zf:
+        text = zf.read("header.json")
+    bad = _bomb(path, tmp_path / "header.pmz", "header.json", text, 8 << 20)
+    with pytest.raises(PMFormatError) as info:
+        read_pm(bad)
+    assert str(info.value) == (f"{bad}: header.json declares {len(text) + (8 << 20)} bytes, more than the "
+                               f"{1 << 20} a header can need; the file is damaged or forged")
+    # A .npy header length field of 4 GB (version 2.0) is refused before reading it.
+    bad = _bomb(path, tmp_path / "npyhead.pmz", "killer.npy", b"\x93NUMPY\x02\x00\xff\xff\xff\xff", 1 << 20)
+    with pytest.raises(PMFormatError, match=r"npyhead.pmz: array 'killer' is unreadable \(ValueError: \.npy header "
+                                            r"of 4294967295 bytes \(at most 10000\)\)"):
+        read_pm(bad)
+
+
+def test_fortran_order_arrays_still_load(cow, tmp_path):
+    pm, path = cow
+    good = forge(path, tmp_path / "fortran.pmz", vertices=np.asfortranarray(pm.vertices),
+                 faces=np.asfortranarray(pm.faces))
+    back = read_pm(good)
+    assert np.array_equal(back.vertices, pm.vertices) and np.array_equal(back.faces, pm.faces)
+    assert back.vertices.flags.writeable
