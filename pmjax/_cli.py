@@ -61,12 +61,12 @@ SIZE = _whole(1, 65536)
 
 
 def _write_mesh(path: str, vertices, faces) -> None:
-    """Write a mesh with trimesh, atomically (temporary file, then rename)."""
-    import trimesh
+    """Write a mesh atomically in the format of its extension (.ply, .obj,
+    .off, .stl, .glb; see :func:`pmjax._meshio.write_mesh`), or refuse the
+    extension with the formats written."""
+    from pmjax._meshio import write_mesh
 
-    ext = os.path.splitext(path)[1].lower().lstrip(".") or "ply"
-    with atomic_path(path, "." + ext) as tmp:
-        trimesh.Trimesh(np.asarray(vertices), np.asarray(faces), process=False).export(tmp, file_type=ext)
+    write_mesh(path, vertices, faces)
 
 
 def _write_text(path, text):

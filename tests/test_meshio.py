@@ -61,12 +61,17 @@ def test_unusable_meshes_are_refused_with_a_specific_error(vertices, faces, mess
 
 
 def test_read_errors_name_the_file(tmp_path):
-    with pytest.raises(MeshError, match="no such file"):
+    with pytest.raises(MeshError) as err:
         pmjax.read_mesh(tmp_path / "missing.ply")
+    assert str(err.value) == f"{tmp_path}/missing.ply: no such file"
     junk = tmp_path / "junk.ply"
     junk.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99\n")
-    with pytest.raises(MeshError, match="junk.ply"):
+    with pytest.raises(MeshError) as err:
         pmjax.load_clean_mesh(junk)
+    assert str(err.value) == f"{junk}: PLY header has no end_header line"
+    with pytest.raises(MeshError) as err:
+        pmjax.read_mesh(tmp_path)
+    assert str(err.value) == f"{tmp_path}: is a folder; give a mesh file"
 
 
 def test_default_model_ships_in_the_package():
