@@ -1,7 +1,7 @@
 """Evaluation-job benchmark: streaming, Dask, the compilation cache, many models.
 
-Usage: python benchmarks/eval.py [--parts stream,dask,cache,models] [--cameras 1000000]
-       [--dask-cameras 20000] [--json out.json]
+Usage: python benchmarks/eval.py [--parts stream,dask,cache,models,paths] [--cameras 1000000]
+       [--dask-cameras 20000] [--path-frames 7680] [--json out.json]
 
 - stream: random views of the bunny streamed to Parquet by ``pmjax eval`` (a
   child process per run, for its peak RSS): the full set against 10,000
@@ -13,6 +13,9 @@ Usage: python benchmarks/eval.py [--parts stream,dask,cache,models] [--cameras 1
   cache: time until the first part is written, first run against second.
 - models: one process evaluates 30 hierarchies in turn, each at 3 image sizes:
   XLA compilations per model and the RSS after each model.
+- paths: the standard orbit of the dragon (7,680 frames) as an evaluation job,
+  in-process with the model loaded and the kernels compiled, against
+  ``path_counts`` on the same cameras: medians of 3 alternating runs.
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ from refine import pm_file  # noqa: E402
 
 import pmjax  # noqa: E402
 
-PARTS = ("stream", "dask", "cache", "models")
+PARTS = ("stream", "dask", "cache", "models", "paths")
 
 
 def _child(code: str) -> dict:
@@ -205,11 +208,39 @@ def models(work: str, count: int = 30) -> dict:
     return row
 
 
+def paths(frames: int, work: str, model: str = "dragon", repeats: int = 3) -> dict:
+    from pmjax._camera_table import orbit_rows
+
+    path = pm_file(model)
+    pm, data = pmjax.load(path), pmjax.read_pm(path)
+    cams = orbit_rows(data.vertices[: data.n_original_vertices], frames, 0, frames).camera()
+    job = dict(taus=[1.0], compile_cache=None, progress=False)
+    pmjax.evaluate([path], [f"orbit:{frames}"], os.path.join(work, "paths-warm"), **job)  # load and compile
+    pmjax.path_counts(pm, cams, 1.0)
+    times = {"eval": [], "path_counts": []}
+    for k in range(repeats):
+        folder = os.path.join(work, f"paths-{k}")
+        t = time.perf_counter()
+        pmjax.evaluate([path], [f"orbit:{frames}"], folder, **job)
+        times["eval"].append(time.perf_counter() - t)
+        shutil.rmtree(folder)
+        t = time.perf_counter()
+        pmjax.path_counts(pm, cams, 1.0)
+        times["path_counts"].append(time.perf_counter() - t)
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    row = dict(model=model, frames=frames, seconds=times, eval_ms_per_frame=1e3 * med["eval"] / frames,
+               path_counts_ms_per_frame=1e3 * med["path_counts"] / frames, ratio=med["eval"] / med["path_counts"])
+    print(f"paths {model}, orbit of {frames} frames: eval {row['eval_ms_per_frame']:.4f} ms/frame, path_counts "
+          f"{row['path_counts_ms_per_frame']:.4f} ms/frame, ratio {row['ratio']:.2f}x", flush=True)
+    return row
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--parts", default=",".join(PARTS))
     ap.add_argument("--cameras", type=int, default=1_000_000)
     ap.add_argument("--dask-cameras", type=int, default=20_000)
+    ap.add_argument("--path-frames", type=int, default=7680)
     ap.add_argument("--json")
     args = ap.parse_args()
     parts = args.parts.split(",")
@@ -224,6 +255,8 @@ def main():
             report["cache"] = cache(work)
         if "models" in parts:
             report["models"] = models(work)
+        if "paths" in parts:
+            report["paths"] = paths(args.path_frames, work)
     print(f"peak RSS of this process {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
     if args.json:
         write_json(args.json, report)

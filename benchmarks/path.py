@@ -85,7 +85,7 @@ def one_path(name, pm, label, cams, tau, repeats):
 
         d = derived(pm)
         n = T - T % word
-        rows = _core.camera_rows(index_camera(cams, slice(0, n)), np.full(n, tau, np.float32))
+        rows = _core.camera_rows(index_camera(cams, slice(0, n)), np.full(n, tau, np.float32), d.exponent)
         counts_w, at_once_w = _path._core_words(d.core_words, d.core, rows, pmjax.ALL_TESTS, False, False)[:2]
         union = np.asarray(counts_w)[::word, 0]
         at_once = np.asarray(at_once_w) / union

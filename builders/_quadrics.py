@@ -30,8 +30,8 @@ def plane_quadrics(normals: np.ndarray, offsets: np.ndarray, weights: np.ndarray
         ``float64[N, 10]``, column-major (each coefficient contiguous, as
         :func:`scatter_add` reads them).
     """
-    # Column by column: fancy-indexing p[:, _I] * p[:, _J] built two (N, 10)
-    # temporaries (0.3 s on the dragon's faces). The columns are independent,
+    # Column by column: fancy-indexing p[:, _I] * p[:, _J] would build two
+    # (N, 10) temporaries. The columns are independent,
     # so two threads fill half of them each.
     p = [normals[:, 0], normals[:, 1], normals[:, 2], offsets]
     out = np.empty((len(_I), len(offsets)))
@@ -113,7 +113,7 @@ def scatter_add(values: np.ndarray, index: np.ndarray, n: int, repeat: int = 1) 
 
     bincount per column is much faster than np.add.at for wide arrays;
     columns are made contiguous and repeated one at a time (a 2-D repeat and
-    strided column reads cost 2-5x more on the dragon), same sums bit for bit.
+    strided column reads cost several times more), same sums bit for bit.
     """
     columns = np.ascontiguousarray(values.T)
     if native.available() and columns.dtype == np.float64:
@@ -188,7 +188,7 @@ def optimal_placement(q: np.ndarray, a: np.ndarray, b: np.ndarray):
         ``(position (N, 3), cost (N,))`` with cost ``>= 0``.
     """
     # Coefficient columns made contiguous first: every line below reads them,
-    # and strided reads of a row-major (N, 10) made this 3x slower.
+    # and strided reads of a row-major (N, 10) would be several times slower.
     q = np.asfortranarray(q)
     a00, a01, a02, b0, a11, a12, b1, a22, b2 = (q[:, k] for k in (0, 1, 2, 3, 4, 5, 6, 7, 8))
     c00 = a11 * a22 - a12 * a12

@@ -13,12 +13,15 @@ followed: the file it names is replaced, the link stays.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import shutil
 import stat
 import tempfile
 
 TEMP_MARK = ".pmjax-tmp-"
+# Errors only a write can cause: whatever file they came from, it was the output.
+_WRITE_ERRORS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 
 
 def temporary_prefix(path) -> str:
@@ -40,6 +43,8 @@ def check_output_path(path, *, folder: bool = False) -> str:
             expected, or the reverse.
     """
     path = os.fspath(path)
+    if not path:
+        raise ValueError("the output path is empty: give a file name")
     parent = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(parent):
         raise FileNotFoundError(f"{path}: folder {parent} does not exist (create it first)")
@@ -151,8 +156,11 @@ def atomic_path(path, suffix: str = ""):
     if os.path.islink(path):  # replace the file the link names, keep the link
         path = os.path.realpath(path)
     remove_stale_temporaries(path)
-    fd, tmp = tempfile.mkstemp(prefix=f"{temporary_prefix(path)}{os.getpid()}-", suffix=suffix,
-                               dir=os.path.dirname(os.path.abspath(path)))
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f"{temporary_prefix(path)}{os.getpid()}-", suffix=suffix,
+                                   dir=os.path.dirname(os.path.abspath(path)))
+    except OSError as exc:  # a read-only or full file system, no permission
+        raise _naming(exc, path) from None
     os.close(fd)
     # mkstemp creates 0600; give the result the permissions a plain open() would.
     umask = os.umask(0)
@@ -161,9 +169,21 @@ def atomic_path(path, suffix: str = ""):
     try:
         yield tmp
         os.replace(tmp, path)
+    except OSError as exc:
+        # Errors of the temporary file, and a full disk, name the user's path.
+        if tmp in (exc.filename, exc.filename2) or tmp in str(exc) or exc.errno in _WRITE_ERRORS:
+            raise _naming(exc, path) from exc
+        raise
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def _naming(exc: OSError, path: str) -> OSError:
+    """``exc`` as an error of writing ``path`` (not of its temporary file)."""
+    reason = exc.strerror or str(exc)
+    return type(exc)(exc.errno, f"cannot write {path}: {reason}") if exc.errno else OSError(
+        f"cannot write {path}: {reason}")
 
 
 @contextlib.contextmanager
@@ -175,12 +195,19 @@ def atomic_folder(folder):
     """
     folder = check_output_path(folder, folder=True)
     remove_stale_temporaries(folder)
-    tmp = tempfile.mkdtemp(prefix=f"{temporary_prefix(folder)}{os.getpid()}-",
-                           dir=os.path.dirname(os.path.abspath(folder)))
+    try:
+        tmp = tempfile.mkdtemp(prefix=f"{temporary_prefix(folder)}{os.getpid()}-",
+                               dir=os.path.dirname(os.path.abspath(folder)))
+    except OSError as exc:
+        raise _naming(exc, folder) from None
     try:
         yield tmp
         os.makedirs(folder, exist_ok=True)
         for name in sorted(os.listdir(tmp)):
             os.replace(os.path.join(tmp, name), os.path.join(folder, name))
+    except OSError as exc:
+        if tmp in (exc.filename, exc.filename2) or tmp in str(exc) or exc.errno in _WRITE_ERRORS:
+            raise _naming(exc, folder) from exc
+        raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

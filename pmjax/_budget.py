@@ -13,10 +13,12 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from ._camera import Camera, camera_count, index_camera
+from ._arguments import check_camera, check_mesh
+from ._camera import Camera, index_camera
 from ._model import ProgressiveMesh
 from ._predicate import ALL_TESTS, Tests, _in_rows
-from ._soft import soft_face_count, soft_tests, soft_weights
+from ._soft import soft_face_count, soft_tests_in_model_units, soft_weights
+from ._units import attributes_in_model_units, camera_in_model_units
 
 
 class BudgetSolution(eqx.Module):
@@ -53,9 +55,11 @@ def soft_faces_batch(pm: ProgressiveMesh, cameras: Camera, log_tau: Float[Array,
         ``[K]`` soft face counts.
     """
     tau = jnp.exp(log_tau)
+    attrs, exponent = attributes_in_model_units(pm.attributes)
 
     def collapse(camera, t):
-        return _in_rows(lambda a: soft_tests(a, camera, t, temperature * t, None, tests)[0], pm.attributes)
+        camera = camera_in_model_units(camera, exponent)
+        return _in_rows(lambda a: soft_tests_in_model_units(a, camera, t, temperature * t, None, tests)[0], attrs)
 
     return soft_face_count(pm, soft_weights(pm, jax.vmap(collapse, out_axes=1)(cameras, tau)))  # weights [P, K]
 
@@ -103,9 +107,8 @@ def soft_tau_for_budget(
     Returns:
         :class:`BudgetSolution` (device arrays, shape ``[K]``).
     """
-    K = camera_count(cameras)
-    if K == 0:
-        raise ValueError("soft_tau_for_budget needs a camera batch (leading axis)")
+    check_mesh(pm, "soft_tau_for_budget")
+    K = check_camera(cameras, "soft_tau_for_budget", batch=True)
     if cameras.orthographic:
         raise ValueError("soft_tau_for_budget supports perspective cameras only")
     dtype = pm.attributes.radius.dtype

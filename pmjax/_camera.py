@@ -67,6 +67,9 @@ class Camera(eqx.Module):
         self.width = xp.broadcast_to(xp.asarray(_pixel_counts(width, "width"), np.int32), shape)
         self.height = xp.broadcast_to(xp.asarray(_pixel_counts(height, "height"), np.int32), shape)
         self.orthographic = _flag(orthographic, "Camera: orthographic")
+        # A camera made by hand is checked once, here (not at every refine);
+        # under tracing its values are unknown and trusted (check_camera).
+        check_camera(self, what="Camera")
 
     def aspect(self):
         """Width over height, in the dtype of the camera's angles."""

@@ -16,8 +16,9 @@ import numpy as np
 from pmjax._atomic import atomic_path, check_distinct, check_output_path
 
 
-def _whole(low: int, high: int | None = None):
-    """argparse type: a whole number in ``[low, high]``."""
+def _whole(low: int, high: int | None = None, hint: str = ""):
+    """argparse type: a whole number in ``[low, high]`` (``hint`` follows a
+    value out of range)."""
     def parse(text: str) -> int:
         try:
             value = int(text)
@@ -25,7 +26,7 @@ def _whole(low: int, high: int | None = None):
             raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
         if value < low or (high is not None and value > high):
             raise argparse.ArgumentTypeError(
-                f"{value} is out of range (must be >= {low}{'' if high is None else f' and <= {high}'})")
+                f"{value} is out of range (must be >= {low}{'' if high is None else f' and <= {high:,}'}){hint}")
         return value
 
     return parse
@@ -57,6 +58,10 @@ def _real(low: float = 0.0, high: float = math.inf, *, open_low=False, open_high
 TAU = _real(0.0, infinite=True)
 FINITE = _real(-math.inf)  # pixels; inf collapses everything collapsible
 COUNT = _whole(1)
+# Cameras a command holds at once (about 100 bytes each); evaluation streams
+# any number in parts.
+MAX_FRAMES = 1_000_000
+FRAMES = _whole(1, MAX_FRAMES, "; pmjax eval streams larger camera sets in parts (--orbit N, --random N)")
 SIZE = _whole(1, 65536)
 
 
@@ -220,7 +225,7 @@ def cmd_refine(args) -> int:
         raise ValueError("--eye needs --target")
     # The camera first: a bad one is refused before the model is loaded.
     if args.camera:
-        cam = pmjax._camera.index_camera(pmjax.load_cameras(args.camera), 0)
+        cam = pmjax._camera.load_first_camera(args.camera)
     else:
         cam = _look_at(args, width=args.size[0], height=args.size[1], fov_y_deg=args.fov)
     pm = pmjax.load(args.pm)
@@ -444,7 +449,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("build", help="build a progressive mesh (.pmz) from a mesh file",
                        description="Batched pair-contraction simplification into a .pmz progressive mesh.")
-    p.add_argument("mesh", help="input mesh (any format trimesh reads)")
+    p.add_argument("mesh", help="input mesh (.ply, .obj, .off, .stl, .glb, or another format trimesh reads)")
     p.add_argument("-o", "--output", required=True, help="output .pmz path")
     p.add_argument("--metric", default="quadric",
                    help="metric or schedule, e.g. 'quadric' or 'edge:2,quadric' "
@@ -474,15 +479,15 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Replay pcols of batches 0..k and write the mesh.")
     p.add_argument("pm", help=".pmz file")
     p.add_argument("--batch", type=_whole(-1), default=None, help="last batch to execute (-1: original; default: all)")
-    p.add_argument("-o", "--output", required=True, help="output mesh (.ply, .obj, .stl, ...)")
+    p.add_argument("-o", "--output", required=True, help="output mesh (.ply, .obj, .off, .stl or .glb)")
     p.set_defaults(func=cmd_lod)
 
     def add_path_args(p):
         # read by _path_cameras
         g = p.add_mutually_exclusive_group(required=True)
-        g.add_argument("--orbit", type=COUNT, help="the standard orbit with N frames (round the bounding-box centre "
+        g.add_argument("--orbit", type=FRAMES, help="the standard orbit with N frames (round the bounding-box centre "
                        "at r / sin 22.5°, r the half diagonal, 20° elevation)")
-        g.add_argument("--path", help="camera file (.json or .csv)")
+        g.add_argument("--path", help="camera file (.json, .csv, .npz or .parquet)")
 
     def add_per_frame_arg(p):
         p.add_argument("--per-frame", action="store_true",
@@ -522,14 +527,14 @@ def build_parser() -> argparse.ArgumentParser:
                                    "or --eye/--target.")
     p.add_argument("pm", help=".pmz file")
     g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--camera", help="camera file (.json or .csv, see docs/cameras.md; `pmjax camera` writes one)")
+    g.add_argument("--camera", help="camera file (.json, .csv, .npz or .parquet, see docs/cameras.md; the first camera is used; `pmjax camera` writes one)")
     g.add_argument("--eye", type=FINITE, nargs=3, metavar=("X", "Y", "Z"),
                    help="camera position, with --target (model units)")
     p.add_argument("--target", type=FINITE, nargs=3, metavar=("X", "Y", "Z"), help="the point looked at, with --eye")
     p.add_argument("--up", type=FINITE, nargs=3, metavar=("X", "Y", "Z"), default=(0.0, 1.0, 0.0),
                    help="up direction with --eye (default 0 1 0)")
     add_image_args(p, note=" with --eye")
-    p.add_argument("-o", "--output", required=True, help="output mesh")
+    p.add_argument("-o", "--output", required=True, help="output mesh (.ply, .obj, .off, .stl or .glb)")
     p.add_argument("--stats-json", help="write counts and timing as JSON")
     add_view_args(p)
     add_method_arg(p)
@@ -551,7 +556,7 @@ def build_parser() -> argparse.ArgumentParser:
                        ("random", "random views round the model (directions uniform, distances log-uniform)")):
         k = kinds.add_parser(name, help=text, description=text)
         k.add_argument("model", help="mesh file or .pmz the cameras are placed round")
-        k.add_argument("-n", type=COUNT, default=240, help="number of cameras (default 240)")
+        k.add_argument("-n", type=FRAMES, default=240, help="number of cameras (default 240)")
         if name == "orbit":
             k.add_argument("--elevation", type=_real(-90.0, 90.0), default=20.0, help="degrees (default 20)")
         if name == "random":
@@ -709,6 +714,10 @@ def check_outputs(args) -> None:
         path = getattr(args, name, None)
         if path is not None:
             check_output_path(path, folder=folder)
+    if args.command in ("lod", "refine"):  # a mesh format pmjax writes, before any work
+        from pmjax._meshio import check_mesh_output
+
+        check_mesh_output(args.output)
 
 
 def _parse(parser: argparse.ArgumentParser, argv):
@@ -731,11 +740,19 @@ def _parse(parser: argparse.ArgumentParser, argv):
 
 
 def main(argv=None) -> int:
+    # File names need not be valid text: one that is not (bytes undecodable
+    # in the locale's encoding) is printed escaped rather than ending the
+    # command with an encoding error.
+    for stream in (sys.stdout, sys.stderr):
+        if getattr(stream, "errors", None) == "strict" and hasattr(stream, "reconfigure"):
+            stream.reconfigure(errors="backslashreplace")
+    # Help and argument errors come from the parser alone, before JAX or the
+    # engines are imported (the errors below import them).
+    parser = build_parser()
+    args = _parse(parser, argv)
     from pmjax import CameraError, MeshError, PMFormatError
     from pmjax.render import RenderError
 
-    parser = build_parser()
-    args = _parse(parser, argv)
     try:
         # Not the viewer: its window thread would keep the process alive past
         # an exit raised at the wrong moment; SIGTERM stays a plain kill there.

@@ -212,6 +212,30 @@ def _compile_cache(folder: Optional[str]) -> None:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 
+# Paths shorter than this go with the other cameras through refine_batch: the
+# coherent engine shares work between consecutive frames, 16 or 32 at a time.
+MIN_PATH_FRAMES = 32
+
+
+def path_runs(table: CameraTable, idx: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+    """The cameras ``idx`` of ``table`` (one projection, increasing rows) as
+    paths for :func:`pmjax.path_counts`: per path id and image size, positions
+    into ``idx`` in frame order; and the positions of the cameras that are not
+    on a path of at least :data:`MIN_PATH_FRAMES` frames."""
+    if table.path_id is None:
+        return [], np.arange(len(idx))
+    path, frame = table.path_id[idx], table.frame[idx]
+    width, height = table.width[idx], table.height[idx]
+    order = np.lexsort((frame, height, width, path))
+    key = np.stack([path, width, height], 1)[order]
+    cuts = np.flatnonzero(np.any(key[1:] != key[:-1], axis=1)) + 1
+    runs, rest = [], []
+    for run in np.split(order, cuts):
+        (runs if len(run) >= MIN_PATH_FRAMES else rest).append(run)
+    rest = np.sort(np.concatenate(rest)) if rest else np.zeros(0, np.int64)
+    return runs, rest
+
+
 def run_part(task: dict):
     """Refine one part and return its rows as a ``pyarrow.Table``.
 
@@ -221,6 +245,7 @@ def run_part(task: dict):
     """
     import pyarrow as pa
 
+    from ._path import path_counts
     from ._refine import faces_for_budget, refine, refine_batch
 
     _compile_cache(task["compile_cache"])
@@ -233,12 +258,21 @@ def run_part(task: dict):
     budget = task["budget"]
     for idx, cams in table.batches():
         if budget is None:
-            # One batched call per projection: its wall time shared by its cameras.
-            t = time.perf_counter()
-            out = refine_batch(pm, cams, task["tau"], tests=tests, chunk=task["batch_chunk"], method=task["method"])
-            ms[idx] = 1e3 * (time.perf_counter() - t) / len(idx)
-            faces[idx], vertices[idx], executed[idx] = out["faces"], out["vertices"], out["executed_count"]
-            tau[idx] = task["tau"]
+            # Paths through the coherent engine, frames in order; the other
+            # cameras in one batched call. Each call's wall time is shared by
+            # its cameras.
+            runs, rest = path_runs(table, idx) if task["method"] != "dense" else ([], np.arange(len(idx)))
+            calls = [(run, lambda c: path_counts(pm, c, task["tau"], tests=tests)) for run in runs]
+            if len(rest):
+                calls.append((rest, lambda c: refine_batch(pm, c, task["tau"], tests=tests, chunk=task["batch_chunk"],
+                                                          method=task["method"])))
+            for at, call in calls:
+                rows = idx[at]
+                t = time.perf_counter()
+                out = call(index_camera(cams, at))
+                ms[rows] = 1e3 * (time.perf_counter() - t) / len(rows)
+                faces[rows], vertices[rows], executed[rows] = out["faces"], out["vertices"], out["executed_count"]
+                tau[rows] = task["tau"]
             continue
         for j, row in enumerate(idx):
             # A budget needs its own tolerance per camera: the exact one from

@@ -10,8 +10,7 @@ time instead of temperature.
 Only visible changes are blended. A pcol that the frustum or orientation
 test culls, in this frame or the previous one, jumps to its target: its
 geometry is out of sight, and blending it would keep coarse geometry around
-while a region turns into view (on an orbit that lag was most of what still
-popped; docs/soft.md).
+while a region turns into view (that lag would pop; docs/soft.md).
 
 A pcol's weight never exceeds its children's (the blend assumes it): after
 each step the weights are clamped by their children's, up the batches.

@@ -4,8 +4,8 @@ The engine resolves the executed set and ``vref`` one batch at a time, because
 a pcol's vertices come from earlier batches. The builder's batches are finer
 than that dependency needs (GeMS batches also keep collapse domains apart): a
 pcol's level, one more than its children's, is what truly orders it, and the
-hierarchy's height is the length of the longest chain. Bunny and dragon: 57
-batches, height 19 (docs/bench-refine.md).
+hierarchy's height is the length of the longest chain, shorter than the list
+of batches (`pmjax info` reports both).
 """
 
 from __future__ import annotations

@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._arguments import check_mesh
 from ._bitsets import WORD
 from ._camera import Camera, check_camera_values
 from ._model import ProgressiveMesh
@@ -53,6 +54,12 @@ CHUNK = 8 * WORD
 
 class PathError(ValueError):
     """A path that cannot be refined: empty, a bad camera or tolerance (the message names the frame)."""
+
+
+def _check_path_cameras(cameras, call: str) -> None:
+    if not isinstance(cameras, Camera):
+        raise TypeError(f"{call}: cameras must be a pmjax.Camera batch (pmjax.standard_orbit, pmjax.load_cameras, "
+                        f"...), got {type(cameras).__name__}")
 
 
 def check_path(cameras: Camera, tau=1.0, budget=None, *, paths: bool = False):
@@ -246,7 +253,7 @@ def _core_word_plan(pm, host, taus, path_length, words_per_call):
     real = np.ones(len(order), bool)
     real[1:] = order[1:] != order[:-1]
     spans = _word_spans(len(order) // FRAMES, words_per_call)
-    return d.core_words, d.core, order, real, spans, _core.host_camera_rows(host, taus)
+    return d.core_words, d.core, order, real, spans, _core.host_camera_rows(host, taus, d.exponent)
 
 
 def _core_path_counts(pm, host, taus, tests, path_length, cols, ms, bar, timing):
@@ -342,6 +349,8 @@ def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, t
         PathError: an empty path, a non-finite camera, an image size that
             changes along the path, a bad ``tau`` or budget (naming the frame).
     """
+    check_mesh(pm, "refine_path")
+    _check_path_cameras(cameras, "refine_path")
     if is_traced(cameras, tau, budget):
         T = _traced_path_length(cameras)
         taus = _traced_taus(pm, cameras, tau, budget, tests, (T,))
@@ -419,6 +428,8 @@ def path_counts(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, t
         the path is counted in one call (``vmap`` over paths: one call for
         all of them).
     """
+    check_mesh(pm, "path_counts")
+    _check_path_cameras(cameras, "path_counts")
     if is_traced(cameras, tau, budget):
         return _traced_path_counts(pm, cameras, tau, budget, tests, coherent, method, paths)
     host, taus, budgets, shape = check_path(cameras, tau, budget, paths=paths)
@@ -483,7 +494,7 @@ def _traced_path_counts(pm, cameras, tau, budget, tests, coherent, method, paths
         d = derived(pm)
         # Each path padded to whole words (repeating its last frame).
         idx = _word_padded(int(np.prod(shape)), shape[-1], FRAMES)
-        rows = _core.camera_rows(flat, taus.reshape(-1))[idx]
+        rows = _core.camera_rows(flat, taus.reshape(-1), d.exponent)[idx]
         counts = _core_words(d.core_words, d.core, rows, tests, cameras.orthographic, False)[0]
         real = np.ones(len(idx), bool)
         real[1:] = idx[1:] != idx[:-1]

@@ -3,7 +3,9 @@
 ``collapse_mask`` (``view_collapse_mask`` for a :class:`View`) is THE
 definition of "this pcol may be collapsed for this view": the engine and the
 sequential oracle both call it, so they cannot disagree on float ties.
-Everything is float32 (the speed path).
+Everything is float32 (the speed path). The tests see lengths in model units
+(:mod:`pmjax._units`): every function here that takes attributes and a camera
+brings both to them, so results do not depend on the model's scale.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from jaxtyping import Array, Bool, Float
 
 from ._camera import Camera
 from ._model import PcolAttributes
+from ._units import in_model_units
 from ._view import View, kappa_squared
 
 
@@ -87,8 +90,9 @@ def outside_frustum(attrs: PcolAttributes, camera: Camera) -> Bool[Array, " P"]:
 
     Tested in camera coordinates (:meth:`Camera.frustum_frame`): a third fewer
     operations per pcol than six general plane tests (the batched predicate
-    is bound by this test; 0.32 -> 0.26 ms per camera on the dragon).
+    is bound by this test).
     """
+    attrs, camera = in_model_units(attrs, camera)
     return _outside_frustum(attrs, View.of(camera, 0.0))
 
 
@@ -114,10 +118,10 @@ def oriented_away(attrs: PcolAttributes, camera: Camera) -> Bool[Array, " P"]:
     ``alpha + beta < π/2 ⇔ cos α·t > sin α·r`` and then
     ``cos θ > sin(α + β) ⇔ h − cos α·r > sin α·t``. Both sides of each are
     compared squared, with their signs, so no root is taken either: the
-    square root was the costliest operation of the batched predicate
-    (dragon, 256 cameras: 4,260 -> 4,810 cameras/s without it).
+    square root would be the costliest operation of the batched predicate.
     Orthographic views are the limit ``d = 1, r = 0`` along the view direction.
     """
+    attrs, camera = in_model_units(attrs, camera)
     return _oriented_away(attrs, View.of(camera, 0.0))
 
 
@@ -144,7 +148,7 @@ def _screen_terms(attrs: PcolAttributes, view: View):
 
 def _small(mu2, normal2, s, kappa2):
     """The screen-space comparison, with no division or root (the batched
-    predicate's costliest operations; 0.089 -> 0.053 ms per camera on the dragon)."""
+    predicate's costliest operations)."""
     limit = kappa2 * s
     return (mu2 < limit) & (normal2 < limit * s)
 
@@ -155,14 +159,22 @@ def screen_tolerance(attrs: PcolAttributes, camera: Camera, sqrt=jnp.sqrt) -> Fl
     ``tau > t_p`` up to float rounding (:func:`critical_tau` gives the exact
     threshold). ``sqrt``: :func:`safe_sqrt` where gradients are needed.
     """
-    view = View.of(camera, 0.0)
+    attrs, camera = in_model_units(attrs, camera)
+    return view_screen_tolerance(attrs, View.of(camera, 0.0), sqrt)
+
+
+def view_screen_tolerance(attrs: PcolAttributes, view: View, sqrt=jnp.sqrt) -> Float[Array, " P"]:
+    """:func:`screen_tolerance` for a :class:`View`, ``attrs`` and ``view`` in
+    the same units."""
     mu2, normal2, s = _screen_terms(attrs, view)
+    # 1e-30 model units²: an eye on the pcol's centre.
     s = jnp.maximum(s, 1e-30)
     return sqrt(jnp.maximum(mu2 / s, normal2 / (s * s))) / view.one_pixel
 
 
 def small_on_screen(attrs: PcolAttributes, camera: Camera, tau) -> Bool[Array, " P"]:
     """Screen-space deviation below ``tau`` pixels (Hoppe 1997's test, docs/design.md)."""
+    attrs, camera = in_model_units(attrs, camera)
     view = View.of(camera, tau)
     return _small(*_screen_terms(attrs, view), view.kappa2)
 
@@ -198,7 +210,8 @@ def collapse_mask(
 # does not, and the decisions must be the same bits wherever they are made.
 @eqx.filter_jit
 def _collapse_mask(attrs, camera, tau, tests, predicate, context, combine):
-    return view_collapse_mask(attrs, View.of(camera, tau), tests, predicate, context, combine)
+    model, camera = in_model_units(attrs, camera)
+    return view_collapse_mask(model, View.of(camera, tau), tests, predicate, context, combine, world=attrs)
 
 
 def view_collapse_mask(
@@ -209,13 +222,17 @@ def view_collapse_mask(
     context=None,
     combine: str = "or",
     rows: bool = True,
+    world: Optional[PcolAttributes] = None,
 ) -> Bool[Array, " P"]:
-    """:func:`collapse_mask` for a :class:`View` (the camera's constants for one ``tau``).
+    """:func:`collapse_mask` for a :class:`View` (the camera's constants for one
+    ``tau``), ``attrs`` and ``view`` in the same units (:mod:`pmjax._units`).
 
     Args:
         rows: evaluate the tests on ``[P/1024, 1024]`` views (faster for one
             camera on CPU); mapped over cameras (:meth:`View.map`) the flat
             layout is faster. Both give the same bits.
+        world: the attributes a user predicate sees, in world units
+            (default ``attrs``).
     """
     out = jnp.zeros(attrs.radius.shape, bool)
     if predicate is None or combine == "or":
@@ -230,7 +247,7 @@ def view_collapse_mask(
     if predicate is not None:
         if combine not in ("or", "replace"):
             raise ValueError(f"combine must be 'or' or 'replace', got {combine!r}")
-        out = out | jnp.asarray(predicate(attrs, context), bool)
+        out = out | jnp.asarray(predicate(attrs if world is None else world, context), bool)
     return out
 
 
@@ -247,6 +264,7 @@ def critical_tau(attrs: PcolAttributes, camera: Camera, tests: Tests = ALL_TESTS
 
 @eqx.filter_jit  # compiled like _collapse_mask, so both see the same bits
 def _critical_tau(attrs, camera, tests):
+    attrs, camera = in_model_units(attrs, camera)
     view = View.of(camera, 0.0)
 
     def per_pcol(a):
@@ -305,7 +323,7 @@ def _in_rows(per_pcol, attrs: PcolAttributes):
     """Evaluate an elementwise per-pcol function on ``[P // ROW, ROW]`` views.
 
     XLA's CPU backend splits 2-D loops over both cores and vectorizes the rows;
-    the same kernel over a 1-D ``[P]`` array ran 7x slower (dragon, measured).
+    the same kernel over a 1-D ``[P]`` array runs on one core, unvectorized.
     The ``P % ROW`` remainder is evaluated as a short 1-D tail. ``per_pcol``
     may return a pytree of per-pcol arrays.
     """

@@ -21,6 +21,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Bool, Int
 
+from ._arguments import check_camera, check_mesh, host_scalar
 from ._bitsets import WORD
 from ._camera import Camera, camera_count
 from ._model import ProgressiveMesh
@@ -234,16 +235,15 @@ def check_tau(tau) -> float:
     return value
 
 
-def _host_tau(tau):
+def _host_tau(tau, call: str = "refine"):
     """A host scalar tau as float32 (a new value does not recompile), checked;
-    a JAX array is passed on and checked inside the compiled call."""
-    if isinstance(tau, jax.Array) and not isinstance(tau, jax.core.Tracer):
+    a traced tau is passed on and checked inside the compiled call."""
+    if isinstance(tau, jax.core.Tracer):
+        return tau
+    if isinstance(tau, jax.Array):
         tau = np.asarray(tau)  # concrete: checked here, not inside the compiled call
-    if isinstance(tau, (int, float, np.generic, np.ndarray)):
-        tau = np.asarray(tau, np.float32)
-        if tau.shape != ():
-            raise ValueError(f"tau must be a scalar, got shape {tau.shape}")
-        check_tau(tau)
+    tau = host_scalar(tau, "tau", call)
+    check_tau(tau)
     return tau
 
 
@@ -307,6 +307,8 @@ def refine(
         and tolerances) it holds traced arrays; ``vmap`` of the front engine
         is one batched call into its core.
     """
+    check_mesh(pm, "refine")
+    check_camera(camera, "refine", batch=False)
     tau = _host_tau(tau)
     traced = is_traced(camera, tau)
     engine = select(pm, method, predicate=predicate, traced=traced)
@@ -339,17 +341,17 @@ def _test_flags(tests: Tests) -> tuple:
 _ALL_FLAGS = (True, True, True)
 
 
-@functools.partial(jax.jit, static_argnames=("n_roots", "tests", "lists", "check"))
-def _core_one_arrays(rows, kills, order, camera, tau, n_roots, tests, lists, check):
+@functools.partial(jax.jit, static_argnames=("n_roots", "exponent", "tests", "lists", "check"))
+def _core_one_arrays(rows, kills, order, camera, tau, n_roots, exponent, tests, lists, check):
     tau = _checked_tau(tau) if check else tau
-    tables = _core.CoreTables(rows=rows, kills=kills, order=order, n_roots=n_roots)
-    return _core.one_camera(Tests(*tests), camera.orthographic, lists)(tables, _core.camera_rows(camera, tau))
+    tables = _core.CoreTables(rows=rows, kills=kills, order=order, n_roots=n_roots, exponent=exponent)
+    return _core.one_camera(Tests(*tests), camera.orthographic, lists)(tables, _core.camera_rows(camera, tau, exponent))
 
 
 def _core_one(tables, camera, tau, tests, lists, check):
     """One camera through the core (jitted; the tables passed as arrays)."""
-    return _core_one_arrays(tables.rows, tables.kills, tables.order, camera, tau, tables.n_roots, _test_flags(tests),
-                            lists, check)
+    return _core_one_arrays(tables.rows, tables.kills, tables.order, camera, tau, tables.n_roots, tables.exponent,
+                            _test_flags(tests), lists, check)
 
 
 def _core_one_eager(d, camera, tau, tests):
@@ -357,7 +359,7 @@ def _core_one_eager(d, camera, tau, tests):
     NumPy lists ``[P + 16]`` and counts."""
     host, n_roots = d.memo("core_host", lambda: (tuple(np.asarray(a) for a in (d.core.rows, d.core.kills,
                                                                                 d.core.order)), d.core.n_roots))
-    return _core.refine_one_eager(d.core, host, n_roots, _core.eager_camera_row(camera, tau), tests,
+    return _core.refine_one_eager(d.core, host, n_roots, _core.eager_camera_row(camera, tau, d.exponent), tests,
                                   vars(camera)["orthographic"])
 
 
@@ -425,12 +427,11 @@ def refine_batch(
         request, ``executed`` (``bool[K, P]``): NumPy arrays, or JAX arrays
         under ``jit`` (the whole batch in one call).
     """
-    K = camera_count(cameras)
-    if K == 0:
-        raise ValueError("refine_batch needs a camera batch (leading axis); use refine for one camera")
+    check_mesh(pm, "refine_batch")
+    K = check_camera(cameras, "refine_batch", batch=True)
     traced = is_traced(cameras, tau)
     if not traced:
-        tau = check_tau(tau)
+        tau = check_tau(host_scalar(tau, "tau (one for all cameras)", "refine_batch"))
     engine = select(pm, method, predicate=predicate, batch=True, traced=traced)
     if traced:
         return _refine_batch_traced(pm, cameras, tau, tests, predicate, context, combine, return_masks, engine)
@@ -442,8 +443,7 @@ def refine_batch(
 
         starts = tqdm(starts, unit="chunk", desc="refine")
     # The front engines take nearby cameras together (their fronts share
-    # cache lines; 4-6 % faster on the dragon): chunks of cameras close in
-    # space. Results go back to the caller's order.
+    # cache lines): chunks of cameras close in space. Results go back to the caller's order.
     order = nearby_order(np.asarray(cameras.eye)) if engine != "dense" else np.arange(K)
     # Chunks are cut on the host (one transfer of the batch, then NumPy
     # indexing: slicing device arrays costs a dispatch per field and chunk),
@@ -451,13 +451,14 @@ def refine_batch(
     # cutting overlaps computing.
     host = jax.tree.map(np.asarray, cameras)
     counts_of = _Counts.of(pm) if engine == "core" else None
+    exponent = derived(pm).exponent if engine == "core" else 0
     taus = np.full(chunk, tau, np.float32)
     for s in starts:
         idx = order[np.minimum(np.arange(s, s + chunk), K - 1)]  # pad by repeating the last
         part = jax.tree.map(lambda a: a[idx], host)
         if engine == "core":
-            res = _core_many(derived(pm).core, _core.host_camera_rows(part, taus), tests, cameras.orthographic,
-                             return_masks)
+            res = _core_many(derived(pm).core, _core.host_camera_rows(part, taus, exponent), tests,
+                             cameras.orthographic, return_masks)
         elif engine == "jax":
             res = _front_jax.counts(pm, part, np.float32(tau), tests, return_masks)
         else:
@@ -493,8 +494,9 @@ def _refine_batch_traced(pm, cameras, tau, tests, predicate, context, combine, r
     K = camera_count(cameras)
     tau = _checked_tau(tau)
     if engine == "core":
-        rows = _core.camera_rows(cameras, jnp.broadcast_to(tau, (K,)))
-        counts, masks = _core_many(derived(pm).core, rows, tests, cameras.orthographic, return_masks)
+        tables = derived(pm).core
+        rows = _core.camera_rows(cameras, jnp.broadcast_to(tau, (K,)), tables.exponent)
+        counts, masks = _core_many(tables, rows, tests, cameras.orthographic, return_masks)
         out = dict(zip(("faces", "vertices", "executed_count"), _Counts.of(pm)(counts[:, 1], counts[:, 2])))
         if return_masks:
             out["executed"] = masks.astype(bool)
@@ -566,6 +568,8 @@ def faces_for_budget(pm: ProgressiveMesh, camera: Camera, budget: int, tests: Te
     Raises:
         ValueError: a budget that is negative, fractional, NaN or not a number.
     """
+    check_mesh(pm, "faces_for_budget")
+    check_camera(camera, "faces_for_budget", batch=False)
     traced = is_traced(camera, budget)
     if not traced:
         budget = check_budget(budget)
@@ -574,7 +578,7 @@ def faces_for_budget(pm: ProgressiveMesh, camera: Camera, budget: int, tests: Te
     # FRONT_FROM_PCOLS pcols on (measured in docs/front.md).
     if engine == "core" and (method == "front" or pm.n_pcols >= FRONT_FROM_PCOLS):
         counts_of = _Counts.of(pm)
-        tau, faces = _core_budget(derived(pm).core, _core.camera_rows(camera, jnp.float32(1.0)),
+        tau, faces = _core_budget(derived(pm).core, _core.camera_rows(camera, jnp.float32(1.0), derived(pm).exponent),
                                   jnp.asarray(budget, jnp.int32), tests, camera.orthographic, counts_of.base_faces)
         return (tau, faces) if traced else (np.float32(tau), int(faces))
     eps = critical_tolerances(pm, camera, tests)

@@ -17,12 +17,15 @@ from typing import Optional
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
+from ._arguments import check_camera, check_mesh, host_scalar
 from ._camera import Camera
 from ._model import PcolAttributes, ProgressiveMesh
 from ._predicate import (ALL_TESTS, Tests, _eye_offset, frustum_margins, in_row_parts, join_row_parts, safe_sqrt,
-                         screen_tolerance)
+                         view_screen_tolerance)
+from ._units import in_model_units
 from ._view import View
 from .engines._dense import down_the_batches, up_the_batches
 
@@ -75,6 +78,12 @@ def soft_tests(attrs: PcolAttributes, camera: Camera, tau, temperature, scale=No
     Returns:
         ``(collapse, visible, t_p)``, each shaped like ``attrs.radius``.
     """
+    attrs, camera = in_model_units(attrs, camera)
+    return soft_tests_in_model_units(attrs, camera, tau, temperature, scale, tests)
+
+
+def soft_tests_in_model_units(attrs, camera, tau, temperature, scale, tests):
+    """:func:`soft_tests` with ``attrs`` and ``camera`` already in model units."""
     view = View.of(camera, 0.0)
     one_px = view.one_pixel
     d2, h = _eye_offset(attrs, view)
@@ -106,7 +115,7 @@ def soft_tests(attrs: PcolAttributes, camera: Camera, tau, temperature, scale=No
             * _above(h - (sa * tangent + ca * r), d * one_px, temperature)
         )
         visible = visible * (1.0 - away)
-    t = screen_tolerance(attrs, camera, safe_sqrt)
+    t = view_screen_tolerance(attrs, view, safe_sqrt)
     collapse = 1.0 - visible
     if tests.screen:
         limit = tau if scale is None else tau * scale
@@ -189,8 +198,16 @@ def soft_refine(
     Returns:
         :class:`SoftRefinement`.
     """
+    check_mesh(pm, "soft_refine")
+    check_camera(camera, "soft_refine", batch=False)
     if camera.orthographic:
         raise ValueError("soft_refine supports perspective cameras only")
+    tau = host_scalar(tau, "tau", "soft_refine")
+    temperature = host_scalar(temperature, "temperature", "soft_refine")
+    if isinstance(tau, np.floating) and not tau >= 0:
+        raise ValueError(f"soft_refine: tau must be >= 0 pixels (not NaN), got {tau}")
+    if isinstance(temperature, np.floating) and not temperature > 0:
+        raise ValueError(f"soft_refine: temperature must be > 0 pixels (not NaN), got {temperature}")
     # Arrays, not Python floats, so a new value does not recompile.
     dtype = pm.attributes.radius.dtype
     tau, temperature = jnp.asarray(tau, dtype), jnp.asarray(temperature, dtype)
@@ -208,6 +225,7 @@ def _soft_refine_checked(pm, camera, tau, temperature, scale, tests):
 @eqx.filter_jit
 def _soft_test_parts(pm, camera, tau, temperature, scale, tests):
     temperature = eqx.error_if(temperature, ~(temperature > 0), "temperature must be > 0")
+    tau = eqx.error_if(tau, ~(tau >= 0), "tau must be >= 0 (and not NaN)")
     return _test_parts(pm, camera, tau, temperature, scale, tests)
 
 
@@ -220,9 +238,10 @@ def _test_parts(pm, camera, tau, temperature, scale, tests):
     dtype = pm.attributes.radius.dtype
     tau = jnp.asarray(tau, dtype)
     temperature = jnp.asarray(temperature, dtype)
+    attrs, camera = in_model_units(pm.attributes, camera)
     if scale is None:
-        return in_row_parts(lambda a: soft_tests(a, camera, tau, temperature, None, tests), pm.attributes)
-    return None, soft_tests(pm.attributes, camera, tau, temperature, jnp.asarray(scale, dtype), tests)
+        return in_row_parts(lambda a: soft_tests_in_model_units(a, camera, tau, temperature, None, tests), attrs)
+    return None, soft_tests_in_model_units(attrs, camera, tau, temperature, jnp.asarray(scale, dtype), tests)
 
 
 def soft_refine_unchecked(pm, camera, tau, temperature, scale=None, tests: Tests = ALL_TESTS) -> SoftRefinement:

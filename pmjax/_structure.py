@@ -288,8 +288,11 @@ class NestingCheck:
     instead by passing the object to :func:`pmjax._subtree.subtree_bounds`.
     """
 
-    def __init__(self, pm: PMData, source: str):
+    def __init__(self, pm: PMData, source: str, exponent: int = 0):
         self.pm, self.source = pm, source
+        # The bounds pass may run in model units (pmjax._units): its gaps are
+        # brought back to world units, exactly (a power of two).
+        self.unit = 2.0 ** exponent
         self.radius = pm.radius.astype(np.float64)
         self.limit = sphere_slack(pm.vertices, pm.radius) + self.radius
         alpha = pm.alpha.astype(np.float64)
@@ -303,7 +306,7 @@ class NestingCheck:
 
     def __call__(self, p, q, gap, turn, which) -> None:
         """Check parents ``p`` against created children ``q`` (pcol ids)."""
-        bad = gap + self.radius[q] > self.limit[p]
+        bad = gap * self.unit + self.radius[q] > self.limit[p]
         if bad.any():
             self._raise(bad, p, which, "sphere does not contain {child}'s sphere")
         bad = turn + self.alpha[q] > self.cone_limit[p]

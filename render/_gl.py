@@ -12,6 +12,12 @@ class RenderError(RuntimeError):
     """pyrender/OpenGL is unavailable or failed (names what to install)."""
 
 
+# pyrender 0.1.45 pins PyOpenGL 3.1.0, which cannot render headless through
+# OSMesa; pmjax depends on 3.1.10 and pyrender is installed without its pins.
+PYRENDER_INSTALL = "pip install --no-deps --no-warn-conflicts pyrender==0.1.45"
+BROKEN_PYOPENGL = "3.1.0"
+
+
 def pyrender_module(offscreen: bool = True):
     """Import and return ``pyrender``.
 
@@ -26,8 +32,21 @@ def pyrender_module(offscreen: bool = True):
     if not hasattr(np, "infty"):
         np.infty = np.inf
     try:
+        import OpenGL
+    except ImportError as exc:
+        raise RenderError(f"PyOpenGL is not installed ({exc}): pip install PyOpenGL==3.1.10") from exc
+    if OpenGL.__version__ == BROKEN_PYOPENGL:
+        raise RenderError(f"PyOpenGL {BROKEN_PYOPENGL} is installed (pyrender's own pin, brought back by installing "
+                          "pyrender with its dependencies); it cannot render headless: "
+                          "pip install PyOpenGL==3.1.10")
+    try:
         import pyrender
-    except Exception as exc:  # ImportError, or OpenGL failing to find its library
+    except ModuleNotFoundError as exc:
+        if exc.name != "pyrender":
+            raise RenderError(f"cannot import pyrender ({exc})") from exc
+        raise RenderError(f"pyrender is not installed: {PYRENDER_INSTALL} (without its dependencies, whose "
+                          "PyOpenGL pin breaks headless rendering; pmjax installs the others)") from exc
+    except Exception as exc:  # OpenGL failing to find its library
         raise RenderError(
             f"cannot import pyrender ({exc}); headless rendering needs Debian packages "
             "libegl1 libegl-mesa0 libgl1-mesa-dri (PYOPENGL_PLATFORM=egl) or libosmesa6 "

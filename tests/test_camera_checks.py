@@ -224,6 +224,19 @@ def _hand(camera=None, **change):
     return Camera(**fields)
 
 
+def _unchecked(**change):
+    """:func:`_hand` made without Camera's own check (as a pytree function
+    makes cameras), so that check_camera is what sees the bad value."""
+    c = pmjax.look_at(**LOOK)
+    fields = dict(eye=c.eye, rotation=c.rotation, fov_y=c.fov_y, near=c.near, far=c.far,
+                  ortho_height=c.ortho_height, width=c.width, height=c.height, orthographic=c.orthographic)
+    fields.update(change)
+    camera = object.__new__(Camera)
+    for name, value in fields.items():
+        object.__setattr__(camera, name, value)
+    return camera
+
+
 def _rot_x(deg):
     a = math.radians(deg)
     return np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
@@ -255,8 +268,12 @@ BAD_VALUES = [
 @pytest.mark.parametrize("change, message, look, look_message", BAD_VALUES)
 def test_check_camera_and_look_at_refuse_the_same_values(change, message, look, look_message):
     with pytest.raises(CameraError) as info:
-        check_camera(_hand(**change))
+        check_camera(_unchecked(**change))
     assert str(info.value).startswith(f"camera: {message}"), str(info.value)
+    # Camera(...) itself refuses it, as look_at does.
+    with pytest.raises(CameraError) as info:
+        _hand(**change)
+    assert str(info.value).startswith(f"Camera: {message}"), str(info.value)
     args = {**LOOK, **look}
     with pytest.raises(CameraError) as info:
         pmjax.look_at(args.pop("eye"), args.pop("target"), **args)
@@ -278,10 +295,12 @@ def test_check_camera_and_look_at_refuse_the_same_values(change, message, look, 
 ])
 def test_check_camera_refuses_hand_made_cameras(change, message):
     with pytest.raises(CameraError) as info:
-        check_camera(_hand(**change))
+        check_camera(_unchecked(**change))
     assert str(info.value).startswith(f"camera: {message}"), str(info.value)
     with pytest.raises(CameraError, match="^view: "):
-        check_camera(_hand(**change), what="view")
+        check_camera(_unchecked(**change), what="view")
+    with pytest.raises(CameraError, match="^Camera: "):
+        _hand(**change)
 
 
 @pytest.mark.parametrize("change, message", [
@@ -365,7 +384,7 @@ def test_check_camera_names_the_first_bad_camera():
 
 
 def test_check_camera_trusts_traced_values():
-    bad = _hand(height=0)
+    bad = _unchecked(height=jnp.int32(0))
     with pytest.raises(CameraError):
         check_camera(bad)
     # Under jit and vmap the values are unknown: nothing is checked, nothing raised.

@@ -15,6 +15,7 @@ import pytest
 import pmjax
 from pmjax import engines
 from pmjax._camera import index_camera, stack_cameras
+from pmjax._units import camera_in_model_units
 from pmjax._view import View
 from pmjax.engines import _core
 from pmjax.engines._tables import derived
@@ -46,17 +47,20 @@ def assert_refinements_equal(a, b, where):
         assert int(getattr(a, field)) == int(getattr(b, field)), (where, field)
 
 
-def xla_view(cam, tau):
-    """The view constants the dense engine computes."""
-    return np.asarray(jax.jit(lambda c, t: View.of(c, t).values)(cam, jnp.float32(tau)))
+def xla_view(cam, tau, exponent=0):
+    """The view constants the dense engine computes, the camera in the model
+    unit ``2^exponent``."""
+    view = jax.jit(lambda c, t: View.of(camera_in_model_units(c, exponent), t).values)
+    return np.asarray(view(cam, jnp.float32(tau)))
 
 
 def decide_every_pcol(pm, cam, tau, tests):
     """``uint8 [P]`` by pcol: the core's certified decision of every pcol
     (``NO``, ``YES``, ``UNSURE``) | ``WHOLE`` where the bound over its subtree
     decides everything below."""
-    return np.asarray(_core.decide_all(derived(pm).jax.table, xla_view(cam, tau), _core.flags_of(tests,
-                                                                                                   cam.orthographic)))
+    d = derived(pm)
+    return np.asarray(_core.decide_all(d.jax.table, xla_view(cam, tau, d.exponent),
+                                       _core.flags_of(tests, cam.orthographic)))
 
 
 TESTS = (pmjax.ALL_TESTS, pmjax.Tests(frustum=False), pmjax.Tests(orientation=False), pmjax.Tests(screen=False))
@@ -223,7 +227,7 @@ def test_core_batch_equals_dense(built, simd):
         dense = pmjax.refine_batch(pm, cams, tau, chunk=64, return_masks=True, method="dense")
         for key in dense:
             assert np.array_equal(core[key], dense[key]), (tau, key)
-    rows = _core.camera_rows(cams, jnp.ones(70, jnp.float32))
+    rows = _core.camera_rows(cams, jnp.ones(70, jnp.float32), derived(pm).exponent)
     counts = [np.asarray(_core.many_cameras(pmjax.ALL_TESTS, False, True, True, threads)(derived(pm).core, rows)[0])
               for threads in (1, 2, 3)]
     assert all(np.array_equal(counts[0], c) for c in counts[1:])
@@ -302,9 +306,10 @@ def fat_words(data):
     return words
 
 
-def core_views(word, taus):
-    """The view constants the core computes for a word's frames."""
-    return _core.views(_core.camera_rows(word, taus), word.orthographic)
+def core_views(word, taus, exponent=0):
+    """The view constants the core computes for a word's frames, in the
+    model unit ``2^exponent``."""
+    return _core.views(_core.camera_rows(word, taus, exponent), word.orthographic)
 
 
 @pytest.mark.parametrize("name", ["cow.ply", "bunny.ply", "terrain_gcanyon.ply"])
@@ -320,7 +325,7 @@ def test_fat_camera_decisions_hold_for_every_frame(built, name):
     for label, word in fat_words(data).items():
         for tau in (1e-3, 1.0, 4.0, 0.0):
             taus = np.full(16, tau, np.float32)
-            views = core_views(word, taus)
+            views = core_views(word, taus, derived(pm).exponent)
             fat = _core.fat_cameras(views[None])[0]
             got = np.asarray(_core.decide_fat_all(table, views, fat, _core.flags_of(pmjax.ALL_TESTS, False)))
             if tau == 0.0:
@@ -377,7 +382,7 @@ def test_core_view_constants_are_within_the_allowance(orthographic):
         cams = pmjax.Camera(cams.eye, cams.rotation, cams.fov_y, cams.near, cams.far, cams.ortho_height, cams.width,
                             cams.height, orthographic=True)
     for tau in (0.0, 1e-3, 1.0, 4.0, 1e6):
-        core = np.asarray(_core.views(_core.camera_rows(cams, jnp.full(400, tau, jnp.float32)), orthographic))
+        core = np.asarray(_core.views(_core.camera_rows(cams, jnp.full(400, tau, jnp.float32), 0), orthographic))
         xla = np.asarray(View.batch(cams, jnp.float32(tau)).values).T
         rel = np.abs(core.astype(np.float64) - xla) / np.maximum(np.abs(xla.astype(np.float64)),
                                                                  np.finfo(np.float32).tiny)
@@ -401,7 +406,7 @@ def test_batch_at_a_float_tie_asks_the_predicate_once_per_batch(built, room, sim
     assert decide_every_pcol(pm, cam, t[p], pmjax.ALL_TESTS)[p] & 3 == _core.UNSURE
     assert p in np.asarray(pmjax.refine(pm, cam, t[p], method="front").visited)  # so 40 cameras have a record
     dense = pmjax.refine_batch(pm, cams, t[p], chunk=64, return_masks=True, method="dense")
-    rows = _core.camera_rows(cams, jnp.full(44, t[p], jnp.float32))
+    rows = _core.camera_rows(cams, jnp.full(44, t[p], jnp.float32), derived(pm).exponent)
     counts, masks, (pcols, ran, positions) = _core.many_cameras(pmjax.ALL_TESTS, False, True, True, 0, room)(
         derived(pm).core, rows)
     counts = np.asarray(counts)
@@ -476,7 +481,7 @@ def test_bad_buffers_are_errors_that_name_the_argument(built):
     bunny = pmjax.ProgressiveMesh.from_data(built("bunny.ply"))
     tables = derived(cow).core
     cam = index_camera(views_of(built("cow.ply"), 2, seed=1), 0)
-    row = _core.camera_rows(cam, jnp.float32(1.0))
+    row = _core.camera_rows(cam, jnp.float32(1.0), tables.exponent)
     P = tables.n_pcols
     S = jax.ShapeDtypeStruct
     one = lambda rows, kills, order, camera, results=None: _core._call(
@@ -531,7 +536,7 @@ def test_the_eager_entry_checks_every_array(built):
     tables = derived(cow).core
     host = tuple(np.asarray(a) for a in (tables.rows, tables.kills, tables.order))
     cam = index_camera(views_of(built("cow.ply"), 2, seed=1), 0)
-    row = _core.eager_camera_row(cam, 1.0)
+    row = _core.eager_camera_row(cam, 1.0, tables.exponent)
     L = tables.n_pcols + 16
 
     def outputs():

@@ -301,3 +301,33 @@ def test_one_compilation_serves_every_image_size(cow, tmp_path):
         expect = pmjax.refine_batch(pm, pmjax.standard_orbit(v0, 40, width=w, height=h), 1.0)["faces"]
         assert np.array_equal(got["faces"][40 * k:40 * (k + 1)], expect)
     assert got["faces"][40:80].sum() < got["faces"][:40].sum() < got["faces"][80:].sum()
+
+
+def test_path_runs_follow_each_path_in_frame_order():
+    """Rows of a table part as paths for the coherent engine: one run per path
+    and image size, frames in order, short runs and rows off any path left
+    to the batch."""
+    from pmjax._eval import MIN_PATH_FRAMES, path_runs
+
+    n = MIN_PATH_FRAMES
+    rng = np.random.default_rng(0)
+    path_id = np.concatenate([np.full(2 * n, 7), np.full(n, 3), np.full(5, 9)])
+    frame = np.concatenate([rng.permutation(2 * n), np.arange(n)[::-1], np.arange(5)])
+    width = np.concatenate([np.full(n, 800), np.full(n, 320), np.full(n + 5, 800)])
+    rows = len(path_id)
+    table = pmjax._camera_table.CameraTable(
+        eye=np.zeros((rows, 3)), rotation=np.tile(np.eye(3), (rows, 1, 1)), fov_y=np.ones(rows),
+        near=np.ones(rows), far=np.ones(rows), ortho_height=np.ones(rows), width=width.astype(np.int32),
+        height=np.full(rows, 600, np.int32), orthographic=np.zeros(rows, bool), path_id=path_id, frame=frame)
+    idx = np.arange(rows)
+    runs, rest = path_runs(table, idx)
+    # Path 7 is split by its image size into two runs of n frames each, then path 3.
+    assert sorted(len(r) for r in runs) == [n, n, n]
+    for run in runs:
+        assert len(set(path_id[run])) == 1 and len(set(width[run])) == 1
+        assert np.all(np.diff(frame[run]) > 0)
+    assert np.array_equal(rest, np.arange(3 * n, rows))  # path 9: 5 frames
+    assert sorted(np.concatenate(runs + [rest]).tolist()) == list(range(rows))
+    # A table without paths: everything to the batch.
+    no_paths = pmjax._camera_table.CameraTable(**{**table.__dict__, "path_id": None, "frame": None})
+    assert path_runs(no_paths, idx)[0] == [] and np.array_equal(path_runs(no_paths, idx)[1], idx)

@@ -168,9 +168,10 @@ def test_subtree_bounds_hold_over_every_subtree(built):
     data = built("cow.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
     a = pm.attributes
-    c, n = np.asarray(a.center, np.float64).T, np.asarray(a.axis, np.float64).T
-    r, alpha = np.asarray(a.radius, np.float64), np.asarray(a.alpha, np.float64)
-    err = np.maximum(np.asarray(a.mu, np.float64), np.asarray(a.delta, np.float64))
+    unit = 2.0 ** -derived(pm).exponent  # the bounds are in model units
+    c, n = unit * np.asarray(a.center, np.float64).T, np.asarray(a.axis, np.float64).T
+    r, alpha = unit * np.asarray(a.radius, np.float64), np.asarray(a.alpha, np.float64)
+    err = unit * np.maximum(np.asarray(a.mu, np.float64), np.asarray(a.delta, np.float64))
     b = {k: np.asarray(derived(pm).bounds[k], np.float64) for k in ("reach", "spread", "cone", "error")}
     kids = derived(pm).children
     for p in range(data.n_pcols):

@@ -28,8 +28,8 @@ def test_levels_equal_the_recursion_and_are_tight(built):
         assert levels.dtype == np.int32 and levels.shape == (data.n_pcols,)
         assert np.array_equal(levels, reference_levels(data))
         height = int(levels.max())
-        # Fewer steps than batches here (docs/bench-refine.md): the builder's
-        # batches are finer than the dependencies.
+        # Fewer steps than batches: the builder's batches are finer than the
+        # dependencies.
         assert 1 <= height < data.n_batches
         # Tight: every pcol above level 1 has a child exactly one level lower,
         # so a chain of `height` pcols exists and no schedule needs fewer steps.

@@ -227,7 +227,7 @@ def test_path_at_a_float_tie_decides_the_unsure_pairs(built, monkeypatch, room):
     cams = stack_cameras([cam] * 40 + [index_camera(orbit, i) for i in range(8)])
     monkeypatch.setattr(_path, "RECORD_ROOM", room)
     d = engines.derived(pm)
-    rows = engines._core.camera_rows(cams, np.full(48, t[p], np.float32))
+    rows = engines._core.camera_rows(cams, np.full(48, t[p], np.float32), d.exponent)
     overflow = np.asarray(_path._core_words(d.core_words, d.core, rows, pmjax.ALL_TESTS, False, False, room)[3])
     assert overflow.any() == (room is not None)
     for tau in (np.nextafter(t[p], np.float32(0)), t[p], np.nextafter(t[p], np.float32(np.inf))):

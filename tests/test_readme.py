@@ -5,7 +5,8 @@ run in order in a scratch folder laid out like a checkout (``../shared``
 linked beside it), each checked for exit status 0 and for the files it names
 with ``-o``/``--csv``/``--stats-json``. ``pmjax view`` needs a display and
 runs until closed: it is run under Xvfb with ``--close-after`` appended when
-Xvfb is installed, and skipped otherwise. Durations are printed (``-s -n 0``: in this process).
+Xvfb is installed, and skipped otherwise. Then the README's Python block runs in the same folder, as a reader would
+continue. Durations are printed (``-s -n 0``: in this process).
 """
 
 import os
@@ -27,6 +28,12 @@ def use_lines() -> list[str]:
     text = (ROOT / "README.md").read_text()
     block = re.search(r"## Use.*?```bash\n(.*?)```", text, re.S).group(1)
     return [line.split("  #")[0].strip() for line in block.splitlines() if line.strip().startswith("pmjax ")]
+
+
+def python_block() -> str:
+    """The README's first ``python`` block under "## Use" (it follows the bash block)."""
+    text = (ROOT / "README.md").read_text()
+    return re.search(r"## Use.*?```python\n(.*?)```", text, re.S).group(1)
 
 
 def outputs(argv: list[str]) -> list[str]:
@@ -58,5 +65,12 @@ def test_every_use_line_runs_as_written(tmp_path):
         assert "Traceback" not in r.stderr and "Warning" not in r.stderr, f"{line}\n{r.stderr[-2000:]}"
         for out in outputs(argv):
             assert (checkout / out).exists(), f"{line}: {out} was not written"
+    # Then the Python block, in the same folder, as a reader continues.
+    t = time.perf_counter()
+    r = subprocess.run([sys.executable, "-c", python_block()], cwd=checkout, capture_output=True, text=True, env=env,
+                       timeout=900)
+    times["the Python block"] = time.perf_counter() - t
+    assert r.returncode == 0, f"the README's Python block\n{r.stderr[-2000:]}"
+    assert (checkout / "results-api").is_dir()
     for line, seconds in times.items():
         print(f"{seconds:7.1f} s  {line}")

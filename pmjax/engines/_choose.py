@@ -28,9 +28,8 @@ from . import _core
 
 METHODS = ("auto", "front", "dense")
 
-# "auto" picks the front engine (docs/front.md, same-run measurements on 2
-# cores): with the core, for one camera on every hierarchy (cow, 2,896
-# pcols, to the dragon, 436,325: 4-19x faster than dense) and for camera
+# "auto" picks the front engine where it is faster (docs/front.md): with the
+# core, for one camera on every hierarchy, and for camera
 # batches from FRONT_BATCH_FROM_PCOLS on (smaller batches run faster dense);
 # as JAX kernels, for one camera only from FRONT_FROM_PCOLS on, and never for
 # batches.

@@ -39,6 +39,7 @@ from jax import lax
 
 from .._camera import Camera
 from .._predicate import ALL_TESTS, view_collapse_mask
+from .._units import camera_lengths_in_model_units
 from .._view import View
 from ._switch import core_allowed
 from ._front_mesh import CoreMesh
@@ -111,40 +112,43 @@ def flags_of(tests, orthographic: bool) -> int:
     return chosen | ORTHOGRAPHIC * bool(orthographic)
 
 
-def camera_rows(cameras: Camera, taus, xp=jnp):
+def camera_rows(cameras: Camera, taus, exponent: int, xp=jnp):
     """Cameras and their tolerances as the core reads them: ``float32 [...,
     CAMERA]`` rows (eye, rotation row-major, fov_y, near, far, ortho_height,
-    width, height, tau), one per camera of the batch's leading axes. The
-    core computes each view's constants from them. ``xp``: ``jax.numpy``
+    width, height, tau), one per camera of the batch's leading axes, the
+    lengths in the tables' model unit ``2^exponent`` (:mod:`pmjax._units`).
+    The core computes each view's constants from them. ``xp``: ``jax.numpy``
     (traceable) or ``numpy`` (eager calls, on the host)."""
     f = lambda x: xp.asarray(x, xp.float32)
-    eye = f(cameras.eye)
+    eye, near, far, ortho_height = camera_lengths_in_model_units(cameras.eye, cameras.near, cameras.far,
+                                                                 cameras.ortho_height, exponent, xp)
+    eye = f(eye)
     lead = eye.shape[:-1]
-    scalars = [cameras.fov_y, cameras.near, cameras.far, cameras.ortho_height, cameras.width, cameras.height, taus]
+    scalars = [cameras.fov_y, near, far, ortho_height, cameras.width, cameras.height, taus]
     scalars = xp.stack([xp.broadcast_to(f(x), lead) for x in scalars], axis=-1)
     return xp.concatenate([eye, f(cameras.rotation).reshape(lead + (9,)), scalars], axis=-1)
 
 
-def host_camera_rows(cameras: Camera, taus) -> np.ndarray:
+def host_camera_rows(cameras: Camera, taus, exponent: int) -> np.ndarray:
     """:func:`camera_rows` on the host (NumPy)."""
-    return camera_rows(cameras, taus, np)
+    return camera_rows(cameras, taus, exponent, np)
 
 
 @jax.jit
-def _camera_row_of_fields(eye, rotation, fov_y, near, far, ortho_height, width, height, tau):
+def _camera_row_of_fields(eye, rotation, fov_y, near, far, ortho_height, width, height, tau, exponent):
     fields = types.SimpleNamespace(eye=eye, rotation=rotation, fov_y=fov_y, near=near, far=far,
                                    ortho_height=ortho_height, width=width, height=height)
-    return camera_rows(fields, tau)
+    return camera_rows(fields, tau, exponent)
 
 
-def eager_camera_row(camera: Camera, tau) -> np.ndarray:
+def eager_camera_row(camera: Camera, tau, exponent: int) -> np.ndarray:
     """``float32 [CAMERA]``: :func:`camera_rows` of one camera for an eager
     call, as a NumPy array: one compiled call on the camera's fields, read
     from the instance's dictionary (an equinox module's attribute access
     runs Python code, a per-call cost here) and passed one by one."""
     f = vars(camera)
     return np.asarray(_camera_row_of_fields(f["eye"], f["rotation"], f["fov_y"], f["near"], f["far"],
-                                            f["ortho_height"], f["width"], f["height"], tau))
+                                            f["ortho_height"], f["width"], f["height"], tau, exponent))
 
 
 def _view_of_rows(rows, orthographic: bool, step=None):

@@ -21,6 +21,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._bitsets import column_popcounts, pack_cameras, unpack_cameras, weight_bits_for
 from .._predicate import ALL_TESTS, Tests, collapse_mask, critical_tau, view_collapse_mask
+from .._units import attributes_in_model_units, camera_in_model_units
 from .._view import View
 
 if TYPE_CHECKING:
@@ -30,7 +31,7 @@ if TYPE_CHECKING:
 
 def gather(values, indices):
     """``values[indices]`` for indices known to be in range: no wrapping of
-    negative indices nor clamping (2x faster gathers on the CPU)."""
+    negative indices nor clamping (cheaper gathers on the CPU)."""
     return values.at[indices].get(mode="promise_in_bounds")
 
 
@@ -271,8 +272,8 @@ _NOTHING_STATIC = _Static(None)
 
 
 # jax.jit, not eqx.filter_jit: the call is a few hundred microseconds on small
-# meshes, and filter_jit's Python-side partition of the pytrees cost 60-90 us of
-# it (bunny 0.37 -> 0.28 ms per refine).
+# meshes, and filter_jit's Python-side partition of the pytrees would be a
+# large share of it.
 @functools.partial(jax.jit, static_argnames=("context_static", "tests", "predicate", "combine"))
 def refine(pm, camera, tau, context_arrays, context_static, tests, predicate, combine):
     context = eqx.combine(context_arrays, context_static.tree)
@@ -284,8 +285,10 @@ def refine(pm, camera, tau, context_arrays, context_static, tests, predicate, co
 @eqx.filter_jit
 def counts_chunk(pm, cameras, tau, tests, predicate, context, combine, want_masks):
     # Collapse decisions per camera, then 32 cameras per word through the hierarchy.
-    views = View.batch(cameras, tau)
-    collapse = views.map(lambda v: view_collapse_mask(pm.attributes, v, tests, predicate, context, combine, rows=False))
+    attrs, exponent = attributes_in_model_units(pm.attributes)
+    views = View.batch(camera_in_model_units(cameras, exponent), tau)
+    collapse = views.map(lambda v: view_collapse_mask(attrs, v, tests, predicate, context, combine, rows=False,
+                                                      world=pm.attributes))
     words = propagate(pm, pack_cameras(collapse))
     n_exec, killed = executed_and_killed(pm, words)
     out = (pm.n_faces - killed, pm.n_original_vertices - n_exec, n_exec)

@@ -48,6 +48,7 @@ import numpy as np
 from .._bitsets import WORD, column_popcounts, unpack_cameras, weight_bits_for
 from .._predicate import view_collapse_mask
 from .._subtree import subtree_collapses
+from .._units import camera_in_model_units
 from .._view import View
 from ._dense import gather
 from ._tables import derived, table_columns
@@ -137,7 +138,7 @@ def prefix_count(flags):
     Two small matrix products with triangular matrices of ones (exact in
     float32 below 2^24, at full precision: a GPU's default TF32 products
     would round counts above 1024): blocks of 64, then the blocks' totals. On the CPU,
-    ``jnp.cumsum`` (a reduce-window) ran 3x slower, and an associative scan
+    ``jnp.cumsum`` is a reduce-window, much slower, and an associative scan
     cost a dozen tiny kernels per call.
     """
     n = flags.shape[0]
@@ -256,7 +257,7 @@ def front_counts(pm, visited, not_ran):
 @functools.partial(jax.jit, static_argnames=("tests", "capacities"))
 def refine_chunk(pm, jt, camera, tau, tests, capacities):
     tau = eqx.error_if(jnp.asarray(tau, jnp.float32), ~(tau >= 0), "tau must be >= 0 (and not NaN)")
-    view = View.of(camera, tau)
+    view = View.of(camera_in_model_units(camera, jt.exponent), tau)
     visited, ran, needed = traverse(jt, one_camera_decide(view, tests), capacities, bool)
     counts = front_counts(pm, visited, (visited < pm.n_pcols) & ~ran)
     return (visited, ran) + counts + (needed,)
@@ -284,7 +285,7 @@ def word_counts(pm, visited, ran):
 def pack_word(mask):
     """One word of 32 cameras per column: bit ``c`` is ``mask[c]``. An
     unrolled OR of shifted rows, one elementwise loop (the reduction over
-    the camera axis of :func:`pmjax._bitsets.pack_cameras` ran 3x slower on
+    the camera axis of :func:`pmjax._bitsets.pack_cameras` is slower on
     the front's gathered columns)."""
     word = mask[0].astype(jnp.uint32)
     for c in range(1, WORD):
@@ -320,7 +321,7 @@ def counts_chunk(pm, jt, cameras, tau, tests, capacities, want_masks, want_front
     cameras the visited pcols ``int32[W, C]`` and their executed words
     ``uint32[W, C]``, and last the buffers each word needed. ``tau``: a
     scalar or one per camera."""
-    views = View.batch(cameras, tau)
+    views = View.batch(camera_in_model_units(cameras, jt.exponent), tau)
     words = views.values.reshape(views.values.shape[0], -1, WORD)  # [22, W, 32]
 
     def one_word(values):

@@ -25,6 +25,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .._model import PcolAttributes
+from .._units import host_lengths_in_model_units, unit_exponent
 from .._subtree import FrontBounds, below_bounds, front_bounds, subtree_bounds
 from . import _content
 from ._front_mesh import CoreMesh, core_records, depth_first
@@ -53,12 +54,16 @@ class CoreTables(eqx.Module):
         kills: ``int32 [P]`` faces each position's pcol kills.
         order: ``int32 [P]`` the pcol at each position.
         n_roots: static, the roots (positions ``0 .. n_roots - 1``).
+        exponent: static, the model unit ``2^exponent`` of the lengths
+            (:mod:`pmjax._units`); cameras are brought to it before they meet
+            the rows.
     """
 
     rows: Float[Array, "P 16"]
     kills: Int[Array, " P"]
     order: Int[Array, " P"]
     n_roots: int = eqx.field(static=True)
+    exponent: int = eqx.field(static=True, default=0)
 
     @property
     def n_pcols(self) -> int:
@@ -75,12 +80,14 @@ class JaxTables(eqx.Module):
         children: ``int32 [P, 2]`` the pcols that made each endpoint (-1: original).
         roots: ``int32 [R]`` the pcols no pcol consumes.
         kills: ``int32 [P]``.
+        exponent: static, the model unit (as :class:`CoreTables`).
     """
 
     table: Float[Array, "P 16"]
     children: Int[Array, "P 2"]
     roots: Int[Array, " R"]
     kills: Int[Array, " P"]
+    exponent: int = eqx.field(static=True, default=0)
 
 
 def device(x: np.ndarray) -> jax.Array:
@@ -114,7 +121,10 @@ class Derived:
     def __init__(self, pm):
         self.n_original, self.n_pcols, self.n_faces = pm.n_original_vertices, pm.n_pcols, pm.n_faces
         self.batch_offsets = pm.batch_offsets
-        self._host = {k: np.asarray(v) for k, v in zip(_SOURCE_NAMES, source_arrays(pm))}
+        host = {k: np.asarray(v) for k, v in zip(_SOURCE_NAMES, source_arrays(pm))}
+        # Every table holds the attributes in model units (pmjax._units).
+        self.exponent = unit_exponent(host["radius"])
+        self._host = host_lengths_in_model_units(host, self.exponent)
         self._lock = threading.RLock()
         self._made: dict = {}
 
@@ -183,7 +193,8 @@ class Derived:
             rows = front_bounds(self.bounds, self._host["axis"])
             table = np.concatenate(self._attribute_columns() + [rows[k].reshape(1, -1) for k in TABLE_BOUNDS]).T
             return JaxTables(table=device(np.asarray(table, np.float32)), children=device(self.children),
-                             roots=device(self.roots), kills=device(np.asarray(self._host["kills"], np.int32)))
+                             roots=device(self.roots), kills=device(np.asarray(self._host["kills"], np.int32)),
+                             exponent=self.exponent)
         return self._once("jax", make)
 
     @property
@@ -225,7 +236,7 @@ class Derived:
         kids = (lay["first"] << 2) | lay["count"] | (kills != 2).astype(np.int64) << 31
         rows[:, -1] = kids.astype(np.uint32).view(np.float32)
         return CoreTables(rows=device(rows), kills=device(kills), order=device(order),
-                          n_roots=len(self.roots))
+                          n_roots=len(self.roots), exponent=self.exponent)
 
     @property
     def core(self) -> CoreTables:

@@ -1,0 +1,67 @@
+"""The checks every public refinement call makes of its arguments.
+
+Each says which call and which argument is wrong and what was expected, before
+any work, so a wrong type never surfaces as an error from deep inside JAX.
+They cost a few attribute reads (the calls are hot: a refine is a fraction of
+a millisecond). Camera values are checked when a :class:`pmjax.Camera` is made.
+"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+
+from ._camera import Camera
+from ._model import ProgressiveMesh
+from ._pmdata import PMData
+
+
+def check_mesh(pm, call: str) -> None:
+    """``pm`` is a :class:`ProgressiveMesh` (``TypeError`` otherwise, with the remedy)."""
+    if isinstance(pm, ProgressiveMesh):
+        return
+    if isinstance(pm, PMData):
+        raise TypeError(f"{call}: pm is a PMData (host arrays, as read_pm gives); the refinement needs a "
+                        "ProgressiveMesh: pmjax.load(path), or pmjax.ProgressiveMesh.from_data(data)")
+    raise TypeError(f"{call}: pm must be a ProgressiveMesh (pmjax.load(path)), got {type(pm).__name__}")
+
+
+def check_camera(camera, call: str, *, batch: bool) -> int:
+    """``camera`` is a :class:`Camera`: one (``batch=False``, eye ``[3]``) or a
+    non-empty batch (eye ``[K, 3]``). Returns K (0 for one camera)."""
+    if not isinstance(camera, Camera):
+        raise TypeError(f"{call}: camera must be a pmjax.Camera (pmjax.look_at, pmjax.load_cameras, ...), "
+                        f"got {type(camera).__name__}")
+    shape = np.shape(camera.eye)
+    if batch:
+        if len(shape) != 2 or shape[1] != 3:
+            raise ValueError(f"{call}: needs a camera batch (eye of shape [K, 3]), got eye of shape {list(shape)}; "
+                             "stack cameras with pmjax.stack_cameras, or call refine for one camera")
+        if shape[0] == 0:
+            raise ValueError(f"{call}: the camera batch is empty (0 cameras)")
+        return int(shape[0])
+    if shape != (3,):
+        what = f"a batch of {shape[0]} cameras" if len(shape) == 2 else f"eye of shape {list(shape)}"
+        raise ValueError(f"{call}: takes one camera (eye of shape [3]), got {what}; use refine_batch or "
+                         "path_counts for many, or pmjax.index_camera(cameras, i) for one of them")
+    return 0
+
+
+def host_scalar(value, name: str, call: str):
+    """A tolerance-like argument: a JAX tracer or array is returned as it is;
+    anything else must be one real number (``TypeError`` or ``ValueError``
+    naming the argument otherwise), returned as float32."""
+    if isinstance(value, jax.Array):
+        return value
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating,
+                                                                     np.ndarray)):
+        raise TypeError(f"{call}: {name} must be a number, got {type(value).__name__} {_short(value)}")
+    value = np.asarray(value)
+    if value.shape != () or value.dtype.kind not in "iuf":
+        raise ValueError(f"{call}: {name} must be one number, got {_short(value)} (shape {list(value.shape)})")
+    return np.float32(value)
+
+
+def _short(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
