@@ -4,7 +4,8 @@ A progressive mesh is the original mesh plus an ordered, batched list of
 vertex-pair collapses (pcols). See ``docs/`` for the format and semantics.
 """
 
-from ._meshio import CleanReport, MeshError, clean_mesh, default_model_path, load_clean_mesh, read_mesh
+from ._meshfiles import MeshError, read_mesh
+from ._meshio import CleanReport, clean_mesh, default_model_path, load_clean_mesh
 from ._pmfile import METRICS, PMData, PMFormatError, read_arrays, read_pm, save_pm, validate_pm
 from ._structure import check_structure, structure_known
 from ._invariants import check_invariants, direct_killers

@@ -62,9 +62,9 @@ SIZE = _whole(1, 65536)
 
 def _write_mesh(path: str, vertices, faces) -> None:
     """Write a mesh atomically in the format of its extension (.ply, .obj,
-    .off, .stl, .glb; see :func:`pmjax._meshio.write_mesh`), or refuse the
+    .off, .stl, .glb; see :func:`pmjax._meshfiles.write_mesh`), or refuse the
     extension with the formats written."""
-    from pmjax._meshio import write_mesh
+    from pmjax._meshfiles import write_mesh
 
     write_mesh(path, vertices, faces)
 
