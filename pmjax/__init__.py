@@ -14,7 +14,8 @@ import importlib
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the names as a type checker and an editor see them
-    from ._meshio import CleanReport, MeshError, clean_mesh, default_model_path, load_clean_mesh, read_mesh
+    from ._meshfiles import MeshError, read_mesh
+    from ._meshio import CleanReport, clean_mesh, default_model_path, load_clean_mesh
     from ._pmfile import METRICS, PMData, PMFormatError, read_arrays, read_pm, save_pm, validate_pm
     from ._structure import check_structure, structure_known
     from ._invariants import check_invariants, direct_killers
@@ -42,11 +43,11 @@ if TYPE_CHECKING:  # the names as a type checker and an editor see them
 # Public name -> (module, name in it).
 _EXPORTS = {
     "CleanReport": ("._meshio", "CleanReport"),
-    "MeshError": ("._meshio", "MeshError"),
+    "MeshError": ("._meshfiles", "MeshError"),
     "clean_mesh": ("._meshio", "clean_mesh"),
     "default_model_path": ("._meshio", "default_model_path"),
     "load_clean_mesh": ("._meshio", "load_clean_mesh"),
-    "read_mesh": ("._meshio", "read_mesh"),
+    "read_mesh": ("._meshfiles", "read_mesh"),
     "METRICS": ("._pmfile", "METRICS"),
     "PMData": ("._pmfile", "PMData"),
     "PMFormatError": ("._pmfile", "PMFormatError"),

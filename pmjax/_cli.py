@@ -67,9 +67,9 @@ SIZE = _whole(1, 65536)
 
 def _write_mesh(path: str, vertices, faces) -> None:
     """Write a mesh atomically in the format of its extension (.ply, .obj,
-    .off, .stl, .glb; see :func:`pmjax._meshio.write_mesh`), or refuse the
+    .off, .stl, .glb; see :func:`pmjax._meshfiles.write_mesh`), or refuse the
     extension with the formats written."""
-    from pmjax._meshio import write_mesh
+    from pmjax._meshfiles import write_mesh
 
     write_mesh(path, vertices, faces)
 
@@ -715,7 +715,7 @@ def check_outputs(args) -> None:
         if path is not None:
             check_output_path(path, folder=folder)
     if args.command in ("lod", "refine"):  # a mesh format pmjax writes, before any work
-        from pmjax._meshio import check_mesh_output
+        from pmjax._meshfiles import check_mesh_output
 
         check_mesh_output(args.output)
 

@@ -14,7 +14,7 @@ import pmjax
 from pmjax import MeshError
 from pmjax._atomic import TEMP_MARK
 from pmjax._cli import main
-from pmjax._meshio import MESH_OUTPUTS, check_mesh_output, shown_name, write_mesh
+from pmjax._meshfiles import MESH_OUTPUTS, check_mesh_output, shown_name, write_mesh
 from pmjax.builders import build_pm
 
 V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
