@@ -11,6 +11,7 @@ errors cost no JAX start-up.
 from __future__ import annotations
 
 import importlib
+import importlib.util
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the names as a type checker and an editor see them
@@ -21,7 +22,8 @@ if TYPE_CHECKING:  # the names as a type checker and an editor see them
     from ._invariants import check_invariants, direct_killers
     from ._levels import dependency_levels
     from ._replay import active_faces, lod_mesh, mesh_for_executed, pcols_for_faces, prefix_executed, representatives
-    from ._camera import Camera, camera_count, fly_through, index_camera, load_cameras, look_at, save_cameras, stack_cameras
+    from ._camera import Camera, camera_count, fly_through, index_camera, look_at, stack_cameras
+    from ._camera_files import load_cameras, save_cameras
     from ._camera_sets import random_views, standard_orbit
     from ._model import PcolAttributes, ProgressiveMesh
     from ._load import load
@@ -70,9 +72,9 @@ _EXPORTS = {
     "camera_count": ("._camera", "camera_count"),
     "fly_through": ("._camera", "fly_through"),
     "index_camera": ("._camera", "index_camera"),
-    "load_cameras": ("._camera", "load_cameras"),
+    "load_cameras": ("._camera_files", "load_cameras"),
     "look_at": ("._camera", "look_at"),
-    "save_cameras": ("._camera", "save_cameras"),
+    "save_cameras": ("._camera_files", "save_cameras"),
     "stack_cameras": ("._camera", "stack_cameras"),
     "random_views": ("._camera_sets", "random_views"),
     "standard_orbit": ("._camera_sets", "standard_orbit"),
@@ -136,8 +138,9 @@ def __getattr__(name: str):
     if name in _EXPORTS:
         module, attribute = _EXPORTS[name]
         value = getattr(importlib.import_module(module, __name__), attribute)
-    elif name in _SUBPACKAGES:
-        value = importlib.import_module(f"{__name__}.{name}")
+    elif name in _SUBPACKAGES or (name.startswith("_") and not name.startswith("__")
+                                  and importlib.util.find_spec(f"{__name__}.{name}") is not None):
+        value = importlib.import_module(f"{__name__}.{name}")  # a submodule, as after importing it
     else:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     globals()[name] = value  # imported once

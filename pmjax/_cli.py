@@ -225,7 +225,9 @@ def cmd_refine(args) -> int:
         raise ValueError("--eye needs --target")
     # The camera first: a bad one is refused before the model is loaded.
     if args.camera:
-        cam = pmjax._camera.load_first_camera(args.camera)
+        from pmjax._camera_files import load_first_camera
+
+        cam = load_first_camera(args.camera)
     else:
         cam = _look_at(args, width=args.size[0], height=args.size[1], fov_y_deg=args.fov)
     pm = pmjax.load(args.pm)

@@ -14,8 +14,8 @@ import pyarrow.parquet as pq
 import pytest
 
 import pmjax
-from pmjax._camera import (CSV_COLUMNS, Camera, CameraError, check_camera, index_camera, load_cameras,
-                           load_first_camera)
+from pmjax._camera import Camera, CameraError, check_camera, index_camera
+from pmjax._camera_files import CSV_COLUMNS, load_cameras, load_first_camera
 from pmjax._camera_table import read_camera_table, table_from_cameras, write_camera_table
 
 LOOK = dict(eye=[0.0, 0.5, 3.0], target=[0.0, 0.0, 0.0])
@@ -515,7 +515,7 @@ def test_first_camera_of_a_large_json_file_is_refused(tmp_path, monkeypatch):
     path = tmp_path / "big.json"
     path.write_text(json.dumps({"cameras": [{**LOOK}] * 50}))
     _assert_fields_equal(load_first_camera(path), pmjax.look_at(**LOOK))
-    monkeypatch.setattr(pmjax._camera, "MAX_JSON_BYTES", 1000)
+    monkeypatch.setattr(pmjax._camera_files, "MAX_JSON_BYTES", 1000)
     with pytest.raises(CameraError) as info:
         load_first_camera(path)
     size = path.stat().st_size
@@ -523,9 +523,9 @@ def test_first_camera_of_a_large_json_file_is_refused(tmp_path, monkeypatch):
         f"{path}: a JSON camera file is read whole, and this one has {size} bytes (the limit is 1000 bytes, "
         "0.000953674 MiB): write the cameras as a .csv file or a .parquet table (read only as far as needed), "
         "or split the file")
-    assert pmjax._camera.MAX_JSON_BYTES == 1000 and size > 1000
+    assert pmjax._camera_files.MAX_JSON_BYTES == 1000 and size > 1000
     monkeypatch.undo()
-    assert pmjax._camera.MAX_JSON_BYTES == 64 << 20
+    assert pmjax._camera_files.MAX_JSON_BYTES == 64 << 20
 
 
 def test_read_camera_table_limit_is_checked(tmp_path):

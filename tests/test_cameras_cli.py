@@ -198,5 +198,5 @@ def test_load_cameras_reads_camera_tables(tmp_path, ext):
         got, want = np.asarray(getattr(back, name)), np.asarray(getattr(cams, name))
         assert got.dtype == want.dtype and np.array_equal(got, want), name
     assert np.allclose(np.asarray(back.fov_y), np.asarray(cams.fov_y), rtol=1e-7, atol=0)
-    first = pmjax._camera.load_first_camera(path)
+    first = pmjax._camera_files.load_first_camera(path)
     assert np.array_equal(np.asarray(first.eye), np.asarray(cams.eye[0])) and int(first.width) == 320
