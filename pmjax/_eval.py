@@ -47,7 +47,7 @@ from ._camera_table import CameraTable, fly_rows, orbit_rows, random_rows, read_
 from ._pmfile import file_sha256
 from ._predicate import ALL_TESTS, Tests
 
-FORMAT = "pmjax-eval/1"
+FORMAT = "pmjax-eval/2"
 JOB_FILE = "_job.json"
 # Sub-folder of the dataset that part files failing verification are moved
 # into: pyarrow, pandas and DuckDB's 'folder/*.parquet' all skip it.
@@ -292,6 +292,9 @@ def run_part(task: dict):
         "path_id": null_ints if table.path_id is None else pa.array(table.path_id, pa.int64()),
         "frame": null_ints if table.frame is None else pa.array(table.frame, pa.int64()),
         "budget": null_ints if budget is None else pa.array(np.full(n, budget, np.int64)),
+        # A budget below the coarsest mesh cannot be met: tau is inf and the
+        # faces (the base mesh's) exceed it.
+        "budget_met": pa.nulls(n, pa.bool_()) if budget is None else pa.array(faces <= budget),
         "tau": pa.array(tau),
         "faces": pa.array(faces),
         "vertices": pa.array(vertices),
@@ -336,6 +339,7 @@ def _schema():
         ("path_id", pa.int64()),
         ("frame", pa.int64()),
         ("budget", pa.int64()),
+        ("budget_met", pa.bool_()),
         ("tau", pa.float32()),
         ("faces", pa.int64()),
         ("vertices", pa.int64()),
@@ -460,7 +464,7 @@ def evaluate(
     tables = [read_camera_table(s.path) if s.kind == "file" else None for s in sets]
     job = dict(format=FORMAT, models=[os.path.abspath(m) for m in models], camera_sets=[s.describe() for s in sets],
                taus=[float(t) for t in taus], budgets=[int(b) for b in budgets], tests=_tests_dict(tests),
-               method=method, chunk=int(chunk), batch_chunk=int(batch_chunk))
+               method=method, chunk=int(chunk), batch_chunk=int(batch_chunk), columns=_schema().names)
     job_sha = hashlib.sha256(json.dumps(job, sort_keys=True).encode()).hexdigest()
     counts = [len(t) if t is not None else s.count for s, t in zip(sets, tables)]
     total = len(models) * len(values) * sum(counts)
