@@ -22,7 +22,7 @@ Rows depend only on the job description, never on where or when a part ran:
 a camera's row comes from that camera alone (generated sets give a row's
 camera from its index), so an interrupted and resumed job, or one run on a
 Dask cluster, gives the same rows as one uninterrupted process; only
-``refine_ms``, a measured time, differs.
+``refine_ms`` and ``compile_ms``, measured times, differ.
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ._atomic import TEMP_MARK, atomic_path
+from ._bitsets import WORD
 from ._camera import index_camera
 from ._camera_table import CameraTable, fly_rows, orbit_rows, random_rows, read_camera_table
 from ._pmfile import file_sha256
@@ -178,9 +179,11 @@ _LOADED_LOCK = threading.Lock()
 
 
 def _model(path: str, digest: str):
-    """The loaded model, kept per process (so its kernels stay compiled) for
-    the last few models; older ones are dropped with JAX's compiled
-    executables, which otherwise pile up in a process that visits many models."""
+    """The loaded model and the set of its engine calls this process has
+    compiled (see :func:`_warm`), kept per process (so its kernels stay
+    compiled) for the last few models; older ones are dropped with JAX's
+    compiled executables, which otherwise pile up in a process that visits
+    many models."""
     import jax
 
     from ._load import load
@@ -192,12 +195,28 @@ def _model(path: str, digest: str):
             return _LOADED[key]
         if file_sha256(path) != digest:
             raise EvalError(f"{path}: the model file changed while the job ran")
-        pm = load(path)
-        _LOADED[key] = pm
+        _LOADED[key] = load(path), set()
         if len(_LOADED) > MODELS_KEPT:
             _LOADED.popitem(last=False)
             jax.clear_caches()
-        return pm
+            # Every model's kernels are gone: each compiles again on its next call.
+            for _, warm in _LOADED.values():
+                warm.clear()
+        return _LOADED[key]
+
+
+def _warm(warm: set, key: tuple, call) -> float:
+    """Run ``call`` once, untimed by the caller, when ``key`` (an engine call
+    and what its compiled kernel depends on: padded batch size, projection,
+    tests, method) is not in ``warm``; its wall time in milliseconds, 0 when
+    the call was already compiled. Compilation (or its load from the
+    persistent cache) so stays out of ``refine_ms``."""
+    if key in warm:
+        return 0.0
+    t = time.perf_counter()
+    call()
+    warm.add(key)
+    return 1e3 * (time.perf_counter() - t)
 
 
 def _compile_cache(folder: Optional[str]) -> None:
@@ -249,40 +268,63 @@ def run_part(task: dict):
     from ._refine import faces_for_budget, refine, refine_batch
 
     _compile_cache(task["compile_cache"])
-    pm = _model(task["model_path"], task["model_sha256"])
+    pm, warm = _model(task["model_path"], task["model_sha256"])
     table: CameraTable = task["rows"]
     tests = Tests(**task["tests"])
     n = len(table)
     faces, vertices, executed = (np.zeros(n, np.int64) for _ in range(3))
     tau, ms = np.zeros(n, np.float32), np.zeros(n)
-    budget = task["budget"]
+    budget, method = task["budget"], task["method"]
+    # Wall time of the part's warm-up calls (compilation, or its load from the
+    # persistent cache), kept out of the per-camera times; on the part's first row.
+    compile_ms = 0.0
     for idx, cams in table.batches():
+        setting = (cams.orthographic, tests, method)
         if budget is None:
             # Paths through the coherent engine, frames in order; the other
-            # cameras in one batched call. Each call's wall time is shared by
-            # its cameras.
-            runs, rest = path_runs(table, idx) if task["method"] != "dense" else ([], np.arange(len(idx)))
-            calls = [(run, lambda c: path_counts(pm, c, task["tau"], tests=tests)) for run in runs]
-            if len(rest):
-                calls.append((rest, lambda c: refine_batch(pm, c, task["tau"], tests=tests, chunk=task["batch_chunk"],
-                                                          method=task["method"])))
-            for at, call in calls:
-                rows = idx[at]
+            # cameras in one batched call, its wall time shared by its cameras.
+            runs, rest = path_runs(table, idx) if method != "dense" else ([], np.arange(len(idx)))
+            for run in runs:
+                rows = idx[run]
+                # path_counts times each block after compiling every block size
+                # on the path's first frames: the rest of the call's wall time
+                # is that warm-up.
                 t = time.perf_counter()
-                out = call(index_camera(cams, at))
+                out = path_counts(pm, index_camera(cams, run), task["tau"], tests=tests, timing=True)
+                wall = 1e3 * (time.perf_counter() - t)
+                ms[rows] = out["milliseconds"]
+                compile_ms += max(0.0, wall - float(np.sum(out["milliseconds"])))
+                faces[rows], vertices[rows], executed[rows] = out["faces"], out["vertices"], out["executed_count"]
+            if len(rest):
+                rows, batch = idx[rest], index_camera(cams, rest)
+                call = lambda c: refine_batch(pm, c, task["tau"], tests=tests, chunk=task["batch_chunk"],
+                                              method=method)
+                # refine_batch compiles one kernel per padded chunk size: the
+                # first `size` cameras (the last repeated) compile the one used here.
+                size = -(-min(task["batch_chunk"], len(rest)) // WORD) * WORD
+                first = index_camera(batch, np.minimum(np.arange(size), len(rest) - 1))
+                compile_ms += _warm(warm, ("batch", size) + setting, lambda: call(first))
+                t = time.perf_counter()
+                out = call(batch)
                 ms[rows] = 1e3 * (time.perf_counter() - t) / len(rows)
                 faces[rows], vertices[rows], executed[rows] = out["faces"], out["vertices"], out["executed_count"]
-                tau[rows] = task["tau"]
+            tau[idx] = task["tau"]
             continue
-        for j, row in enumerate(idx):
+
+        def one(cam):
             # A budget needs its own tolerance per camera: the exact one from
             # the sorted critical tolerances, then a refine at it.
+            t, _ = faces_for_budget(pm, cam, budget, tests)
+            return t, refine(pm, cam, float(t), tests=tests, method=method)
+
+        compile_ms += _warm(warm, ("budget",) + setting, lambda: one(index_camera(cams, 0)))
+        for j, row in enumerate(idx):
             t = time.perf_counter()
-            cam = index_camera(cams, j)
-            tau[row], _ = faces_for_budget(pm, cam, budget, tests)
-            r = refine(pm, cam, float(tau[row]), tests=tests, method=task["method"])
+            tau[row], r = one(index_camera(cams, j))
             faces[row], vertices[row], executed[row] = int(r.n_faces), int(r.n_vertices), int(r.n_executed)
             ms[row] = 1e3 * (time.perf_counter() - t)
+    compile = np.zeros(n)
+    compile[:1] = compile_ms
     camera = np.arange(task["lo"], task["hi"], dtype=np.int64)
     null_ints = pa.nulls(n, pa.int64())
     columns = {
@@ -300,6 +342,7 @@ def run_part(task: dict):
         "vertices": pa.array(vertices),
         "executed": pa.array(executed),
         "refine_ms": pa.array(ms),
+        "compile_ms": pa.array(compile),
     }
     out = pa.table(columns, schema=_schema())
     # Checked when the folder is reopened (_verify_part): the part read back
@@ -345,6 +388,7 @@ def _schema():
         ("vertices", pa.int64()),
         ("executed", pa.int64()),
         ("refine_ms", pa.float64()),
+        ("compile_ms", pa.float64()),
     ])
 
 

@@ -136,7 +136,8 @@ def test_rows_equal_refine_batch(cow, tmp_path):
         ("camera_set", "dictionary<values=string, indices=int32, ordered=0>"),
         ("camera", "int64"), ("path_id", "int64"), ("frame", "int64"), ("budget", "int64"),
         ("budget_met", "bool"), ("tau", "float"),
-        ("faces", "int64"), ("vertices", "int64"), ("executed", "int64"), ("refine_ms", "double")]
+        ("faces", "int64"), ("vertices", "int64"), ("executed", "int64"), ("refine_ms", "double"),
+        ("compile_ms", "double")]
     got = rows(str(out))
     assert set(got["model"]) == {"cow"}
     start = 0
