@@ -302,7 +302,8 @@ def cmd_eval(args) -> int:
     summary = evaluate(args.models, sets, args.output, taus=taus, budgets=args.budget or [], tests=_tests(args),
                        method=args.method, chunk=args.chunk,
                        compile_cache=None if args.no_compile_cache else (args.compile_cache or DEFAULT_COMPILE_CACHE),
-                       scheduler=args.scheduler, workers=args.workers, progress=not args.quiet)
+                       scheduler=args.scheduler, workers=args.workers, progress=not args.quiet,
+                       camera_columns=args.camera_columns)
     print(f"{summary.folder}: {summary.rows} rows; {summary.parts_written} parts written now "
           f"({summary.cameras} cameras, {summary.cameras_per_s:.0f} cameras/s over {summary.seconds:.1f} s), "
           f"{summary.parts_skipped} parts found done")
@@ -608,6 +609,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="switch a test off (repeatable)")
     add_method_arg(p)
     p.add_argument("--chunk", type=COUNT, default=2048, help="cameras per part file and per task (default 2048)")
+    p.add_argument("--camera-columns", action="store_true",
+                   help="also write each camera's eye, distance to the model (model units and bounding radii), "
+                        "field of view and image size (part of the job: resume with the same setting)")
     p.add_argument("--workers", type=_whole(0), default=0,
                    help="run on a local Dask cluster of N single-threaded worker processes (default 0: this process)")
     p.add_argument("--scheduler", help="run on a Dask cluster: scheduler address, tcp://HOST:PORT")

@@ -44,7 +44,7 @@ import numpy as np
 from ._atomic import TEMP_MARK, atomic_path
 from ._bitsets import WORD
 from ._camera import index_camera
-from ._camera_table import CameraTable, fly_rows, orbit_rows, random_rows, read_camera_table
+from ._camera_table import CameraTable, _bounds, fly_rows, orbit_rows, random_rows, read_camera_table
 from ._pmfile import file_sha256
 from ._predicate import ALL_TESTS, Tests
 
@@ -344,11 +344,29 @@ def run_part(task: dict):
         "refine_ms": pa.array(ms),
         "compile_ms": pa.array(compile),
     }
-    out = pa.table(columns, schema=_schema())
+    if task["bounds"] is not None:
+        columns.update(_camera_context(table, task["bounds"][:3], task["bounds"][3]))
+    out = pa.table(columns, schema=_schema(task["bounds"] is not None))
     # Checked when the folder is reopened (_verify_part): the part read back
     # must have these rows, and this checksum over them and this record.
     info = dict(job=task["job_sha256"], model_sha256=task["model_sha256"], part=task["part"], rows=n)
     return out.replace_schema_metadata({"pmjax": json.dumps(dict(info, sha256=_table_sha256(out, info)))})
+
+
+def _camera_context(table: CameraTable, centre, radius) -> dict:
+    """The camera columns of ``table``'s rows: eye, its distance to the
+    model's bounding-box ``centre`` (model units) and that distance over the
+    bounding sphere's ``radius`` (half the box diagonal), vertical field of
+    view in degrees (null for orthographic cameras) and image size."""
+    import pyarrow as pa
+
+    eye = np.asarray(table.eye, np.float64)
+    distance = np.linalg.norm(eye - np.asarray(centre, np.float64), axis=1)
+    fov = np.degrees(np.asarray(table.fov_y, np.float64))
+    return dict(eye_x=pa.array(eye[:, 0]), eye_y=pa.array(eye[:, 1]), eye_z=pa.array(eye[:, 2]),
+                distance=pa.array(distance), distance_radii=pa.array(distance / radius),
+                fov_y_deg=pa.array(fov, mask=np.asarray(table.orthographic, bool)),
+                width=pa.array(np.asarray(table.width, np.int32)), height=pa.array(np.asarray(table.height, np.int32)))
 
 
 def _table_sha256(table, info: dict) -> str:
@@ -372,9 +390,15 @@ def _table_sha256(table, info: dict) -> str:
     return h.hexdigest()
 
 
-def _schema():
+# Columns of the camera context (``camera_columns``), after the others.
+CAMERA_COLUMNS = ("eye_x", "eye_y", "eye_z", "distance", "distance_radii", "fov_y_deg", "width", "height")
+
+
+def _schema(camera_columns: bool = False):
+    """The columns of a job's rows (``camera_columns``: with the camera context)."""
     import pyarrow as pa
 
+    extra = [(name, pa.float64()) for name in CAMERA_COLUMNS[:6]] + [("width", pa.int32()), ("height", pa.int32())]
     return pa.schema([
         ("model", pa.dictionary(pa.int32(), pa.string())),
         ("camera_set", pa.dictionary(pa.int32(), pa.string())),
@@ -389,7 +413,7 @@ def _schema():
         ("executed", pa.int64()),
         ("refine_ms", pa.float64()),
         ("compile_ms", pa.float64()),
-    ])
+    ] + (extra if camera_columns else []))
 
 
 # ---------------------------------------------------------------- the driver
@@ -435,6 +459,7 @@ def evaluate(
     workers: int = 0,
     progress: bool = True,
     max_parts: Optional[int] = None,
+    camera_columns: bool = False,
 ) -> EvalSummary:
     """Evaluate models × camera sets × tolerances (or face budgets) into a
     Parquet dataset folder, one row per (model, camera set, value, camera).
@@ -461,6 +486,9 @@ def evaluate(
         progress: a progress bar (cameras/s and ETA).
         max_parts: compute at most this many parts in this run, then stop
             (``None``: every part); a later run of the same job resumes.
+        camera_columns: also write each camera's context (eye, distance to
+            the model, field of view, image size; docs/eval.md); part of the
+            job, so a resumed run must give the same setting.
 
     Returns:
         :class:`EvalSummary`. Read the rows with ``pyarrow.dataset.dataset(folder)``,
@@ -491,6 +519,10 @@ def evaluate(
     if max_parts is not None and (isinstance(max_parts, bool) or not isinstance(max_parts, (int, np.integer))
                                   or max_parts < 1):
         raise EvalError(f"max_parts must be a whole number >= 1 or None, not {max_parts!r}")
+    if not isinstance(camera_columns, (bool, np.bool_)):
+        raise EvalError(f"camera_columns must be True or False, not {camera_columns!r}")
+    camera_columns = bool(camera_columns)
+    schema = _schema(camera_columns)
     sets = [s if isinstance(s, CameraSet) else camera_set(s) for s in camera_sets]
     if not sets:
         raise EvalError("no camera sets")
@@ -508,14 +540,16 @@ def evaluate(
     tables = [read_camera_table(s.path) if s.kind == "file" else None for s in sets]
     job = dict(format=FORMAT, models=[os.path.abspath(m) for m in models], camera_sets=[s.describe() for s in sets],
                taus=[float(t) for t in taus], budgets=[int(b) for b in budgets], tests=_tests_dict(tests),
-               method=method, chunk=int(chunk), batch_chunk=int(batch_chunk), columns=_schema().names)
+               method=method, chunk=int(chunk), batch_chunk=int(batch_chunk), camera_columns=camera_columns,
+               columns=schema.names)
     job_sha = hashlib.sha256(json.dumps(job, sort_keys=True).encode()).hexdigest()
     counts = [len(t) if t is not None else s.count for s, t in zip(sets, tables)]
     total = len(models) * len(values) * sum(counts)
     with contextlib.ExitStack() as stack:
         stack.enter_context(_lock_folder(folder))
         # The parts found done and verified: file name -> SHA-256 of the model they came from.
-        done = _verify_folder(folder, _open_folder(folder, job), job_sha, counts, len(models), len(values), chunk)
+        done = _verify_folder(folder, _open_folder(folder, job), job_sha, counts, len(models), len(values), chunk,
+                              schema)
         n_done = sum(_rows_of(name, counts, chunk) for name in done)
         bar = stack.enter_context(_progress(progress, total, n_done))
         written = submitted = rows_now = 0
@@ -542,6 +576,8 @@ def evaluate(
                 raise EvalError(f"model {model_path}: {exc}") from exc
             digest = file_sha256(model_path)
             vertices = data.vertices[: data.n_original_vertices]
+            # The box centre and half diagonal: those the generated camera sets use.
+            bounds = tuple(float(x) for x in np.append(*_bounds(vertices))) if camera_columns else None
             # Parts come one at a time from a generator: nothing is planned
             # ahead of the work, whatever the job's size.
             for part in _model_parts(mi, counts, len(values), chunk):
@@ -559,7 +595,7 @@ def evaluate(
                             lo=part.lo, hi=part.hi, tau=None if budgets else value,
                             budget=value if budgets else None, tests=_tests_dict(tests), method=method,
                             batch_chunk=int(batch_chunk), compile_cache=compile_cache, job_sha256=job_sha,
-                            part=part.file)
+                            part=part.file, bounds=bounds)
                 submitted += 1
                 store(runner.submit(part, task))
             del data, vertices
@@ -646,7 +682,7 @@ def _open_folder(folder, job) -> set:
     return {name for name in os.listdir(folder) if name.startswith("part-") and name.endswith(".parquet")}
 
 
-def _verify_folder(folder, names, job_sha, counts, n_models, n_values, chunk) -> dict:
+def _verify_folder(folder, names, job_sha, counts, n_models, n_values, chunk, schema=None) -> dict:
     """Verify the part files ``names`` of the dataset folder; those that fail
     are moved into ``folder/_damaged/`` (a line on stderr says which and why)
     so that the job computes them again.
@@ -664,7 +700,7 @@ def _verify_folder(folder, names, job_sha, counts, n_models, n_values, chunk) ->
         if part is None:
             return ("is not a part of this job (its name is outside the job's models, camera sets, values or "
                     "chunks)"), None
-        return _verify_part(os.path.join(folder, name), part, job_sha)
+        return _verify_part(os.path.join(folder, name), part, job_sha, schema)
 
     done = {}
     # Parquet decoding and hashing release the GIL: verify parts in parallel.
@@ -681,8 +717,9 @@ def _verify_folder(folder, names, job_sha, counts, n_models, n_values, chunk) ->
     return done
 
 
-def _verify_part(path, part, job_sha):
-    """Read a part file in full and check it against its part of the job.
+def _verify_part(path, part, job_sha, schema=None):
+    """Read a part file in full and check it against its part of the job
+    (``schema``: the job's columns, by default those without camera context).
 
     Returns:
         ``(problem, model_sha256)``: ``problem`` is ``None`` for a part that
@@ -718,7 +755,7 @@ def _verify_part(path, part, job_sha):
     name = os.path.basename(path)
     if info.get("part", name) != name:
         return f"holds the rows of {info['part']}, another part", None
-    if not table.schema.remove_metadata().equals(_schema()):
+    if not table.schema.remove_metadata().equals(schema if schema is not None else _schema()):
         return f"has columns {table.schema.remove_metadata().to_string()!r}, not this job's", None
     want = part.hi - part.lo
     if table.num_rows != want or info.get("rows", want) != want:
