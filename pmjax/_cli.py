@@ -590,7 +590,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "folder as the work goes; re-running the same command resumes. "
                                    "Columns and camera files: docs/eval.md.")
     p.add_argument("models", nargs="+", help=".pmz files")
-    p.add_argument("-o", "--output", required=True, help="dataset folder (Parquet part files and _job.json)")
+    p.add_argument("-o", "--output", required=True, help="dataset folder (Parquet part files and _job.parquet)")
     p.add_argument("--cameras", action="append", metavar="FILE",
                    help="camera table, .npz or .parquet (repeatable; schema in docs/eval.md)")
     p.add_argument("--orbit", type=COUNT, action="append", metavar="N",

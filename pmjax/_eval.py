@@ -8,11 +8,12 @@ Parquet file, atomically (a temporary file, then a rename), so a part file
 that exists was written whole; its metadata records the job, the model's
 SHA-256, the part's name, its row count, and a SHA-256 over that record and
 the rows (:func:`_table_sha256`). The dataset folder holds the part files,
-named so that their lexical order is the row order, and ``_job.json``, the
-job's description. Re-running a job reads every part file there back in full
-and skips those that verify; one that does not (a truncated file, a damaged
-page, the wrong rows) is moved into ``_damaged/`` with a line on stderr and
-computed again. A different job refuses to write into the folder.
+named so that their lexical order is the row order, and ``_job.parquet``, the
+job's description (no rows; :func:`read_job`), so that pyarrow, pandas,
+polars and DuckDB read the folder by name. Re-running a job reads every part
+file there back in full and skips those that verify; one that does not (a
+truncated file, a damaged page, the wrong rows) is moved into the folder
+``FOLDER.damaged`` beside it with a line on stderr and computed again. A different job refuses to write into the folder.
 
 Parts are planned lazily, one at a time as the work reaches them, so a job's
 size (10^12 random views) costs neither memory nor time before the first part
@@ -49,10 +50,20 @@ from ._pmfile import file_sha256
 from ._predicate import ALL_TESTS, Tests
 
 FORMAT = "pmjax-eval/2"
-JOB_FILE = "_job.json"
-# Sub-folder of the dataset that part files failing verification are moved
-# into: pyarrow, pandas and DuckDB's 'folder/*.parquet' all skip it.
-DAMAGED_DIR = "_damaged"
+# The job's description: a Parquet file with the job's columns and no rows,
+# the description (JSON) in its metadata under JOB_KEY. Being Parquet of the
+# same columns, it leaves a read of the whole folder unchanged: pyarrow and
+# pandas skip files starting with '_', polars and DuckDB read it as no rows
+# (polars reads every file under the folder and refuses any that is not
+# Parquet, so the folder holds nothing else).
+JOB_FILE = "_job.parquet"
+JOB_KEY = b"pmjax_job"
+# Where folders in format pmjax-eval/1 kept their description (JSON).
+OLD_JOB_FILE = "_job.json"
+# Part files failing verification are moved into a folder beside the dataset
+# folder, named after it with this suffix: inside, polars and DuckDB's
+# 'folder/**/*.parquet' would read them as rows.
+DAMAGED_SUFFIX = ".damaged"
 # Chunk numbers in part names have at least this many digits (more when a
 # camera set has more chunks, so that lexical order stays row order).
 CHUNK_DIGITS = 7
@@ -328,8 +339,8 @@ def run_part(task: dict):
     camera = np.arange(task["lo"], task["hi"], dtype=np.int64)
     null_ints = pa.nulls(n, pa.int64())
     columns = {
-        "model": pa.array([task["model_name"]] * n, pa.string()).dictionary_encode(),
-        "camera_set": pa.array([task["set_name"]] * n, pa.string()).dictionary_encode(),
+        "model": pa.array([task["model_name"]] * n, pa.string()),
+        "camera_set": pa.array([task["set_name"]] * n, pa.string()),
         "camera": pa.array(camera),
         "path_id": null_ints if table.path_id is None else pa.array(table.path_id, pa.int64()),
         "frame": null_ints if table.frame is None else pa.array(table.frame, pa.int64()),
@@ -400,8 +411,11 @@ def _schema(camera_columns: bool = False):
 
     extra = [(name, pa.float64()) for name in CAMERA_COLUMNS[:6]] + [("width", pa.int32()), ("height", pa.int32())]
     return pa.schema([
-        ("model", pa.dictionary(pa.int32(), pa.string())),
-        ("camera_set", pa.dictionary(pa.int32(), pa.string())),
+        # Plain strings (Parquet still stores them dictionary-encoded): one
+        # Arrow type whatever the part, so readers group and join on them
+        # without unifying per-file dictionaries.
+        ("model", pa.string()),
+        ("camera_set", pa.string()),
         ("camera", pa.int64()),
         ("path_id", pa.int64()),
         ("frame", pa.int64()),
@@ -548,7 +562,7 @@ def evaluate(
     with contextlib.ExitStack() as stack:
         stack.enter_context(_lock_folder(folder))
         # The parts found done and verified: file name -> SHA-256 of the model they came from.
-        done = _verify_folder(folder, _open_folder(folder, job), job_sha, counts, len(models), len(values), chunk,
+        done = _verify_folder(folder, _open_folder(folder, job, schema), job_sha, counts, len(models), len(values), chunk,
                               schema)
         n_done = sum(_rows_of(name, counts, chunk) for name in done)
         bar = stack.enter_context(_progress(progress, total, n_done))
@@ -658,23 +672,59 @@ def _lock_folder(folder):
     return fh
 
 
-def _open_folder(folder, job) -> set:
-    """Reopen (or start) the locked dataset folder for ``job``: the names of
-    the part files there (not yet verified, see :func:`_verify_folder`)."""
+def damaged_folder(folder) -> str:
+    """The folder that part files of the dataset ``folder`` failing
+    verification are moved into: beside it, its name plus ``.damaged``."""
+    return os.path.abspath(folder) + DAMAGED_SUFFIX
+
+
+def read_job(folder) -> dict:
+    """The job description of the dataset ``folder`` (what ``_job.parquet``
+    holds: models, camera sets, values, tests, method, chunk sizes, columns).
+
+    Raises:
+        EvalError: no job description there, or one that cannot be read.
+    """
+    import pyarrow.parquet as pq
+
     path = os.path.join(folder, JOB_FILE)
-    if os.path.exists(path):
+    try:
+        metadata = pq.read_schema(path).metadata or {}
+        return json.loads(metadata[JOB_KEY])
+    except FileNotFoundError:
+        raise EvalError(f"{folder}: no {JOB_FILE}, not a pmjax eval dataset folder") from None
+    except Exception as exc:  # pyarrow raises several types for a damaged file
+        raise EvalError(f"{path}: unreadable job description ({type(exc).__name__}: {exc}); "
+                        "use another folder, or delete this one to start over") from None
+
+
+def _open_folder(folder, job, schema) -> set:
+    """Reopen (or start) the locked dataset folder for ``job`` (whose rows
+    have ``schema``): the names of the part files there (not yet verified,
+    see :func:`_verify_folder`)."""
+    import pyarrow.parquet as pq
+
+    path = os.path.join(folder, JOB_FILE)
+    old_path = os.path.join(folder, OLD_JOB_FILE)
+    if not os.path.exists(path) and os.path.exists(old_path):
         try:
-            with open(path) as fh:
-                old = json.load(fh)
-        except (OSError, ValueError) as exc:
-            raise EvalError(f"{path}: unreadable job description ({exc}); use another folder") from exc
+            with open(old_path) as fh:
+                form = json.load(fh).get("format", "unknown")
+        except (OSError, ValueError, AttributeError):
+            form = "unknown"
+        raise EvalError(f"{folder} holds a job in format {form} (described by {OLD_JOB_FILE}), whose parts lack "
+                        f"columns of format {FORMAT}; its rows stay readable, but it cannot be resumed: use "
+                        "another folder, or delete this one to start over")
+    if os.path.exists(path):
+        old = read_job(folder)
         if old != job:
             changed = sorted(k for k in set(old) | set(job) if old.get(k) != job.get(k))
             raise EvalError(f"{folder} holds another job (differs in: {', '.join(changed)}); "
                             "use another folder, or delete this one to start over")
     else:
-        with atomic_path(path) as tmp, open(tmp, "w") as fh:
-            json.dump(job, fh, indent=1, sort_keys=True)
+        empty = schema.empty_table().replace_schema_metadata({JOB_KEY: json.dumps(job, indent=1, sort_keys=True)})
+        with atomic_path(path) as tmp:
+            pq.write_table(empty, tmp)
     # Temporary files of a killed run are debris: no part is half-written.
     for name in os.listdir(folder):
         if TEMP_MARK in name:
@@ -684,7 +734,7 @@ def _open_folder(folder, job) -> set:
 
 def _verify_folder(folder, names, job_sha, counts, n_models, n_values, chunk, schema=None) -> dict:
     """Verify the part files ``names`` of the dataset folder; those that fail
-    are moved into ``folder/_damaged/`` (a line on stderr says which and why)
+    are moved into :func:`damaged_folder` (a line on stderr says which and why)
     so that the job computes them again.
 
     Returns:
@@ -709,7 +759,7 @@ def _verify_folder(folder, names, job_sha, counts, n_models, n_values, chunk, sc
             if problem is None:
                 done[name] = model_sha
                 continue
-            path, aside = os.path.join(folder, name), os.path.join(folder, DAMAGED_DIR, name)
+            path, aside = os.path.join(folder, name), os.path.join(damaged_folder(folder), name)
             os.makedirs(os.path.dirname(aside), exist_ok=True)
             os.replace(path, aside)
             print(f"pmjax eval: {path}: {problem}; moved to {aside}, the part is computed again",

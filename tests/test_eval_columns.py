@@ -4,6 +4,8 @@ Parquet readers."""
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -100,3 +102,99 @@ def test_camera_columns_on_request(cow, tmp_path):
     context = _camera_context(t, (0.0, 0.0, 0.0), 2.5)
     assert context["fov_y_deg"].to_pylist()[0] == pytest.approx(30.0) and context["fov_y_deg"].to_pylist()[1] is None
     assert context["distance"].to_pylist() == [5.0, 5.0] and context["distance_radii"].to_pylist() == [2.0, 2.0]
+
+
+@pytest.fixture(scope="module")
+def two_models(cow, tmp_path_factory):
+    """A finished job of two models and two tolerances in parts of 8
+    cameras, one part damaged and computed again (its file set aside)."""
+    import shutil
+
+    from pmjax._eval import damaged_folder
+
+    folder = tmp_path_factory.mktemp("readers")
+    other = str(folder / "calf.pmz")
+    shutil.copy(cow, other)
+    out = str(folder / "results")
+    job = dict(taus=[1.0, 4.0], chunk=8, compile_cache=None, progress=False)
+    evaluate([cow, other], ["orbit:20", "random:12:1"], out, **job)
+    first = sorted(n for n in os.listdir(out) if n.startswith("part-"))[0]
+    with open(os.path.join(out, first), "r+b") as fh:
+        fh.truncate(100)
+    assert evaluate([cow, other], ["orbit:20", "random:12:1"], out, **job).parts_written == 1
+    assert os.listdir(damaged_folder(out)) == [first]
+    return out
+
+
+# (model, tau) -> rows: 20 + 12 cameras per model and tolerance.
+GROUPS = {(m, t): 32 for m in ("calf", "cow") for t in (1.0, 4.0)}
+
+
+def _check(got, reference):
+    for c in DETERMINISTIC:
+        assert got[c] == reference[c], c
+
+
+def test_pyarrow_reads_the_folder_by_name(two_models):
+    pq = pytest.importorskip("pyarrow.parquet")
+    reference = table(two_models)
+    assert reference.num_rows == 128
+    whole = pq.read_table(two_models)
+    assert whole.equals(reference)
+    # Group by on the string columns, no unify_dictionaries first.
+    groups = whole.group_by(["model", "tau"]).aggregate([("faces", "count")])
+    assert {(m, t): n for m, t, n in zip(*(groups.column(c).to_pylist() for c in ("model", "tau", "faces_count")))} \
+        == GROUPS
+
+
+def test_pandas_reads_the_folder_by_name(two_models):
+    pd = pytest.importorskip("pandas")
+    frame = pd.read_parquet(two_models)
+    assert len(frame) == 128
+    _check({c: [None if pd.isna(x) else x for x in frame[c].tolist()] for c in DETERMINISTIC},
+           {c: table(two_models).column(c).to_pylist() for c in DETERMINISTIC})
+    assert frame.groupby(["model", "tau"]).size().to_dict() == GROUPS
+
+
+def test_polars_reads_the_folder_by_name(two_models):
+    pl = pytest.importorskip("polars")
+    frame = pl.read_parquet(two_models)
+    assert frame.height == 128
+    # The job description (no rows) and the set-aside part are not read as rows.
+    _check({c: frame[c].to_list() for c in DETERMINISTIC},
+           {c: table(two_models).column(c).to_pylist() for c in DETERMINISTIC})
+    counts = frame.group_by(["model", "tau"]).len()
+    assert dict(zip(zip(counts["model"].to_list(), counts["tau"].to_list()), counts["len"].to_list())) == GROUPS
+
+
+def test_duckdb_reads_the_folder_by_name(two_models):
+    duckdb = pytest.importorskip("duckdb")
+    for source in (f"read_parquet('{two_models}')", f"read_parquet('{two_models}/**/*.parquet')"):
+        got = duckdb.sql(f"select model, tau, count(*) from {source} group by model, tau").fetchall()
+        assert {(m, t): n for m, t, n in got} == GROUPS, source
+    rows_ = duckdb.sql(f"select {', '.join(DETERMINISTIC)} from read_parquet('{two_models}/*.parquet', "
+                       "filename=true) order by filename, camera").fetchall()
+    _check({c: [r[i] for r in rows_] for i, c in enumerate(DETERMINISTIC)},
+           {c: table(two_models).column(c).to_pylist() for c in DETERMINISTIC})
+
+
+def test_the_job_description_and_folders_of_format_1(cow, tmp_path, two_models):
+    """The job is read back with read_job; a folder of format pmjax-eval/1
+    (its job in _job.json) is refused with the reason, its files untouched."""
+    import json
+
+    from pmjax._eval import EvalError, read_job
+
+    job = read_job(two_models)
+    assert job["taus"] == [1.0, 4.0] and [os.path.basename(m) for m in job["models"]] == ["cow.pmz", "calf.pmz"]
+    assert job["columns"] == table(two_models).schema.names
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "_job.json").write_text(json.dumps(dict(format="pmjax-eval/1")))
+    with pytest.raises(EvalError, match=f"{old} holds a job in format pmjax-eval/1 \\(described by _job.json\\), "
+                                        "whose parts lack columns of format pmjax-eval/2; its rows stay readable, "
+                                        "but it cannot be resumed: use another folder, or delete this one"):
+        evaluate([cow], ["orbit:8"], str(old), taus=[1.0], compile_cache=None, progress=False)
+    assert sorted(os.listdir(old)) == [".lock", "_job.json"]
+    with pytest.raises(EvalError, match=f"{old}: no _job.parquet, not a pmjax eval dataset folder"):
+        read_job(str(old))
