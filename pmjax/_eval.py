@@ -364,6 +364,23 @@ def run_part(task: dict):
     return out.replace_schema_metadata({"pmjax": json.dumps(dict(info, sha256=_table_sha256(out, info)))})
 
 
+def run_part_on_worker(task: dict):
+    """:func:`run_part` on a Dask worker: an error raised there comes back as
+    an :class:`EvalError` naming the worker (its address), the part and the
+    model, so the client's message says where it happened."""
+    try:
+        return run_part(task)
+    except Exception as exc:
+        try:
+            from distributed import get_worker
+
+            where = f"Dask worker {get_worker().address}"
+        except (ImportError, ValueError):
+            where = "a Dask worker"
+        raise EvalError(f"{where}: part {task.get('part')} of model {task.get('model_path')}: "
+                        f"{type(exc).__name__}: {exc}") from None
+
+
 def _camera_context(table: CameraTable, centre, radius) -> dict:
     """The camera columns of ``table``'s rows: eye, its distance to the
     model's bounding-box ``centre`` (model units) and that distance over the
@@ -562,8 +579,8 @@ def evaluate(
     with contextlib.ExitStack() as stack:
         stack.enter_context(_lock_folder(folder))
         # The parts found done and verified: file name -> SHA-256 of the model they came from.
-        done = _verify_folder(folder, _open_folder(folder, job, schema), job_sha, counts, len(models), len(values), chunk,
-                              schema)
+        done = _verify_folder(folder, _open_folder(folder, job, schema), job_sha, counts, len(models), len(values),
+                              chunk, schema)
         n_done = sum(_rows_of(name, counts, chunk) for name in done)
         bar = stack.enter_context(_progress(progress, total, n_done))
         written = submitted = rows_now = 0
@@ -604,7 +621,9 @@ def evaluate(
                 if max_parts is not None and submitted >= max_parts:
                     break
                 s, value = sets[part.cameras], values[part.value]
-                task = dict(model_path=model_path, model_sha256=digest, model_name=_model_name(model_path),
+                # The absolute path: a worker may run in another folder.
+                task = dict(model_path=os.path.abspath(model_path), model_sha256=digest,
+                            model_name=_model_name(model_path),
                             set_name=s.name, rows=s.rows(vertices, part.lo, part.hi, tables[part.cameras]),
                             lo=part.lo, hi=part.hi, tau=None if budgets else value,
                             budget=value if budgets else None, tests=_tests_dict(tests), method=method,
@@ -895,7 +914,7 @@ class _Runner:
     def submit(self, part, task):
         if self.client is None:
             return [(part, run_part(task))]
-        future = self.client.submit(run_part, task, key=f"pmjax-eval-{task['job_sha256'][:12]}-{part.file}",
+        future = self.client.submit(run_part_on_worker, task, key=f"pmjax-eval-{task['job_sha256'][:12]}-{part.file}",
                                     pure=False, retries=2)
         self.parts[future.key] = part
         self.pending.append(future)
