@@ -289,7 +289,7 @@ FIDELITY_COLUMNS = ("differing_share", "psnr", "silhouette_share", "popping_shar
 
 
 def cmd_eval(args) -> int:
-    from pmjax._eval import DEFAULT_COMPILE_CACHE, camera_set, evaluate
+    from pmjax._eval import DEFAULT_COMPILE_CACHE, EvalInterrupted, camera_set, evaluate
 
     image = dict(width=args.size[0], height=args.size[1], fov_y_deg=args.fov)
     sets = [camera_set(spec, **image) for spec in args.cameras or []]
@@ -299,11 +299,16 @@ def cmd_eval(args) -> int:
     if not sets:
         sets = [camera_set("orbit:240", **image)]
     taus = args.tau or ([] if args.budget else [1.0])
-    summary = evaluate(args.models, sets, args.output, taus=taus, budgets=args.budget or [], tests=_tests(args),
-                       method=args.method, chunk=args.chunk,
-                       compile_cache=None if args.no_compile_cache else (args.compile_cache or DEFAULT_COMPILE_CACHE),
-                       scheduler=args.scheduler, workers=args.workers, progress=not args.quiet,
-                       camera_columns=args.camera_columns)
+    try:
+        summary = evaluate(args.models, sets, args.output, taus=taus, budgets=args.budget or [], tests=_tests(args),
+                           method=args.method, chunk=args.chunk,
+                           compile_cache=None if args.no_compile_cache else (args.compile_cache
+                                                                             or DEFAULT_COMPILE_CACHE),
+                           scheduler=args.scheduler, workers=args.workers, progress=not args.quiet,
+                           camera_columns=args.camera_columns)
+    except EvalInterrupted as exc:  # Ctrl-C: one line, the parts kept and how to resume
+        print(f"pmjax eval: {exc}", file=sys.stderr)
+        return 130
     print(f"{summary.folder}: {summary.rows} rows; {summary.parts_written} parts written now "
           f"({summary.cameras} cameras, {summary.cameras_per_s:.0f} cameras/s over {summary.seconds:.1f} s), "
           f"{summary.parts_skipped} parts found done")

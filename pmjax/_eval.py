@@ -79,6 +79,28 @@ class EvalError(ValueError):
     camera set, file or setting, and why."""
 
 
+class EvalInterrupted(KeyboardInterrupt):
+    """Ctrl-C stopped :func:`evaluate`; the parts written are kept, and the
+    same call resumes. The message says how many.
+
+    Attributes:
+        folder: the dataset folder.
+        parts_saved: part files of the job in the folder (verified, or written
+            by this run); ``None`` when the run stopped while verifying them.
+        parts_total, rows_saved, rows_total: the job's parts, and rows saved / in all.
+    """
+
+    def __init__(self, folder, parts_saved, parts_total, rows_saved, rows_total):
+        self.folder, self.parts_saved, self.parts_total = folder, parts_saved, parts_total
+        self.rows_saved, self.rows_total = rows_saved, rows_total
+        if parts_saved is None:
+            text = f"interrupted while verifying the parts in {folder}"
+        else:
+            text = (f"interrupted; {parts_saved} of {parts_total} parts saved in {folder} "
+                    f"({rows_saved} of {rows_total} rows)")
+        super().__init__(text + "; run the same command to resume")
+
+
 # ---------------------------------------------------------------- the job
 
 
@@ -530,6 +552,8 @@ def evaluate(
             that fails validation (parts finished before it are kept), a
             folder holding another job, or a part computed from a model file
             whose content has changed since.
+        EvalInterrupted: Ctrl-C (a ``KeyboardInterrupt``); its message
+            says how many parts are saved, and the same call resumes.
     """
     from ._pmfile import PMFormatError, read_pm
     from ._refine import check_budget, check_tau
@@ -576,63 +600,75 @@ def evaluate(
     job_sha = hashlib.sha256(json.dumps(job, sort_keys=True).encode()).hexdigest()
     counts = [len(t) if t is not None else s.count for s, t in zip(sets, tables)]
     total = len(models) * len(values) * sum(counts)
-    with contextlib.ExitStack() as stack:
-        stack.enter_context(_lock_folder(folder))
-        # The parts found done and verified: file name -> SHA-256 of the model they came from.
-        done = _verify_folder(folder, _open_folder(folder, job, schema), job_sha, counts, len(models), len(values),
-                              chunk, schema)
-        n_done = sum(_rows_of(name, counts, chunk) for name in done)
-        bar = stack.enter_context(_progress(progress, total, n_done))
-        written = submitted = rows_now = 0
-        runner = _Runner(scheduler, workers)
-        stack.callback(runner.close)
+    # The parts found done and verified (file name -> SHA-256 of the model
+    # they came from), and those written now: what an interruption reports.
+    done, checked = {}, False
+    written = rows_now = n_done = 0
+    try:
+        with contextlib.ExitStack() as stack:
+            stack.enter_context(_lock_folder(folder))
+            verified = _verify_folder(folder, _open_folder(folder, job, schema), job_sha, counts, len(models),
+                                      len(values), chunk, schema)
+            done.update(verified)
+            checked = True
+            n_done = sum(_rows_of(name, counts, chunk) for name in done)
+            bar = stack.enter_context(_progress(progress, total, n_done))
+            submitted = 0
+            runner = _Runner(scheduler, workers)
+            # Closed on the way out; quietly after Ctrl-C (see _Runner.close).
+            stack.push(lambda kind, exc, tb: runner.close(quiet=kind is not None
+                                                         and issubclass(kind, KeyboardInterrupt)))
 
-        def store(finished_parts):
-            nonlocal written, rows_now
-            for finished, table in finished_parts:
-                _write_part(folder, finished, table)
-                written += 1
-                rows_now += table.num_rows
-                bar.update(table.num_rows)
+            def store(finished_parts):
+                nonlocal written, rows_now
+                for finished, table in finished_parts:
+                    _write_part(folder, finished, table)
+                    written += 1
+                    rows_now += table.num_rows
+                    bar.update(table.num_rows)
 
-        for mi, model_path in enumerate(models):
-            if max_parts is not None and submitted >= max_parts:
-                break
-            # The model is validated before its parts start; a bad one stops
-            # the job with the parts before it kept.
-            try:
-                data = read_pm(model_path)
-            except PMFormatError as exc:
-                store(runner.drain())
-                raise EvalError(f"model {model_path}: {exc}") from exc
-            digest = file_sha256(model_path)
-            vertices = data.vertices[: data.n_original_vertices]
-            # The box centre and half diagonal: those the generated camera sets use.
-            bounds = tuple(float(x) for x in np.append(*_bounds(vertices))) if camera_columns else None
-            # Parts come one at a time from a generator: nothing is planned
-            # ahead of the work, whatever the job's size.
-            for part in _model_parts(mi, counts, len(values), chunk):
-                if part.file in done:
-                    if done[part.file] != digest:
-                        raise EvalError(f"{os.path.join(folder, part.file)} was computed from another version of "
-                                        f"{model_path} (its content changed); use another folder, or delete this "
-                                        "one to start over")
-                    continue
+            for mi, model_path in enumerate(models):
                 if max_parts is not None and submitted >= max_parts:
                     break
-                s, value = sets[part.cameras], values[part.value]
-                # The absolute path: a worker may run in another folder.
-                task = dict(model_path=os.path.abspath(model_path), model_sha256=digest,
-                            model_name=_model_name(model_path),
-                            set_name=s.name, rows=s.rows(vertices, part.lo, part.hi, tables[part.cameras]),
-                            lo=part.lo, hi=part.hi, tau=None if budgets else value,
-                            budget=value if budgets else None, tests=_tests_dict(tests), method=method,
-                            batch_chunk=int(batch_chunk), compile_cache=compile_cache, job_sha256=job_sha,
-                            part=part.file, bounds=bounds)
-                submitted += 1
-                store(runner.submit(part, task))
-            del data, vertices
-        store(runner.drain())
+                # The model is validated before its parts start; a bad one stops
+                # the job with the parts before it kept.
+                try:
+                    data = read_pm(model_path)
+                except PMFormatError as exc:
+                    store(runner.drain())
+                    raise EvalError(f"model {model_path}: {exc}") from exc
+                digest = file_sha256(model_path)
+                vertices = data.vertices[: data.n_original_vertices]
+                # The box centre and half diagonal: those the generated camera sets use.
+                bounds = tuple(float(x) for x in np.append(*_bounds(vertices))) if camera_columns else None
+                # Parts come one at a time from a generator: nothing is planned
+                # ahead of the work, whatever the job's size.
+                for part in _model_parts(mi, counts, len(values), chunk):
+                    if part.file in done:
+                        if done[part.file] != digest:
+                            raise EvalError(f"{os.path.join(folder, part.file)} was computed from another version "
+                                            f"of {model_path} (its content changed); use another folder, or delete "
+                                            "this one to start over")
+                        continue
+                    if max_parts is not None and submitted >= max_parts:
+                        break
+                    s, value = sets[part.cameras], values[part.value]
+                    # The absolute path: a worker may run in another folder.
+                    task = dict(model_path=os.path.abspath(model_path), model_sha256=digest,
+                                model_name=_model_name(model_path),
+                                set_name=s.name, rows=s.rows(vertices, part.lo, part.hi, tables[part.cameras]),
+                                lo=part.lo, hi=part.hi, tau=None if budgets else value,
+                                budget=value if budgets else None, tests=_tests_dict(tests), method=method,
+                                batch_chunk=int(batch_chunk), compile_cache=compile_cache, job_sha256=job_sha,
+                                part=part.file, bounds=bounds)
+                    submitted += 1
+                    store(runner.submit(part, task))
+                del data, vertices
+            store(runner.drain())
+    except KeyboardInterrupt:
+        n_parts = len(models) * len(values) * sum(-(-c // chunk) for c in counts)
+        raise EvalInterrupted(os.fspath(folder), len(done) + written if checked else None, n_parts,
+                              n_done + rows_now, total) from None
     return EvalSummary(folder=os.fspath(folder), rows=n_done + rows_now, parts_written=written,
                        parts_skipped=len(done), cameras=rows_now, seconds=time.perf_counter() - start)
 
@@ -887,6 +923,30 @@ def _progress(on, total, done):
                 smoothing=0.1)
 
 
+def _quiet_dask_logs() -> None:
+    """Dask's logs at level ERROR and above only (run on workers)."""
+    import logging
+
+    logging.getLogger("distributed").setLevel(logging.ERROR)
+
+
+@contextlib.contextmanager
+def _sigint_ignored():
+    """SIGINT ignored in this process while the block runs (in the main
+    thread; elsewhere signals cannot be set, and nothing changes): child
+    processes started in it keep ignoring it."""
+    import signal
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 class _Runner:
     """Runs parts in this process, or on Dask with a bounded number in flight
     (camera rows are made as parts are submitted, so memory stays flat)."""
@@ -899,8 +959,12 @@ class _Runner:
             if scheduler:
                 self.client = Client(scheduler, set_as_default=False)
             else:
-                self.cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                                            dashboard_address=None)
+                # Ctrl-C in a terminal reaches every process of the group: the
+                # workers ignore it (they inherit the ignored signal when
+                # started), and this process stops them on its way out.
+                with _sigint_ignored():
+                    self.cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
+                                                dashboard_address=None)
                 self.client = Client(self.cluster, set_as_default=False)
             # Pending futures; each result is fetched with the future's own
             # result(), which waits for the scheduler to recompute a result
@@ -940,7 +1004,18 @@ class _Runner:
     def drain(self):
         return [] if self.client is None else self._collect(0)
 
-    def close(self):
+    def close(self, quiet=False):
+        """Close the client (and the local cluster). ``quiet``: after Ctrl-C,
+        Dask's warnings about the tasks cut short are expected, not news:
+        they are silenced here and on the local cluster's workers (which
+        write to this process's stderr)."""
+        if self.client is not None and quiet:
+            import logging
+
+            logging.getLogger("distributed").setLevel(logging.ERROR)
+            if self.cluster is not None:
+                with contextlib.suppress(Exception):
+                    self.client.run(_quiet_dask_logs)
         if self.client is not None:
             self.client.close()
         if self.cluster is not None:
