@@ -13,7 +13,8 @@ job's description (no rows; :func:`read_job`), so that pyarrow, pandas,
 polars and DuckDB read the folder by name. Re-running a job reads every part
 file there back in full and skips those that verify; one that does not (a
 truncated file, a damaged page, the wrong rows) is moved into the folder
-``FOLDER.damaged`` beside it with a line on stderr and computed again. A different job refuses to write into the folder.
+``FOLDER.damaged`` beside it with a line on stderr and computed again. A
+different job refuses to write into the folder.
 
 Parts are planned lazily, one at a time as the work reaches them, so a job's
 size (10^12 random views) costs neither memory nor time before the first part
@@ -544,8 +545,9 @@ def evaluate(
             job, so a resumed run must give the same setting.
 
     Returns:
-        :class:`EvalSummary`. Read the rows with ``pyarrow.dataset.dataset(folder)``,
-        ``pandas.read_parquet(folder)`` or DuckDB's ``read_parquet('folder/*.parquet')``.
+        :class:`EvalSummary`. Read the rows by the folder's name:
+        ``pyarrow.parquet.read_table(folder)``, ``pandas.read_parquet(folder)``,
+        ``polars.read_parquet(folder)`` or DuckDB's ``read_parquet('folder')``.
 
     Raises:
         EvalError: a bad setting, a camera set that cannot be read, a model

@@ -15,7 +15,8 @@ import time
 import pytest
 
 import pmjax
-from pmjax._eval import EvalError, damaged_folder, _model_parts, _part, _part_named, _table_sha256, _verify_part, evaluate
+from pmjax._eval import (EvalError, _model_parts, _part, _part_named, _table_sha256, _verify_part, damaged_folder,
+                         evaluate)
 
 pa = pytest.importorskip("pyarrow")
 pq = pytest.importorskip("pyarrow.parquet")
