@@ -39,7 +39,8 @@ if TYPE_CHECKING:  # the names as a type checker and an editor see them
     from ._budget import BudgetSolution, soft_tau_for_budget
     from ._geomorph import Geomorph, geomorph_mesh, geomorph_start, geomorph_step, hidden_pcols
     from ._camera_table import CameraError, CameraTable, read_camera_table, table_from_cameras, write_camera_table
-    from ._eval import CameraSet, EvalError, EvalSummary, camera_set, evaluate
+    from ._eval import CameraSet, EvalError, EvalInterrupted, EvalSummary, camera_set, evaluate
+    from ._eval import read_job as read_eval_job
     from ._distance import distance_to_surface, point_triangle_distance, sample_surface, surface_distance
 
 # Public name -> (module, name in it).
@@ -122,6 +123,8 @@ _EXPORTS = {
     "write_camera_table": ("._camera_table", "write_camera_table"),
     "CameraSet": ("._eval", "CameraSet"),
     "EvalError": ("._eval", "EvalError"),
+    "EvalInterrupted": ("._eval", "EvalInterrupted"),
+    "read_eval_job": ("._eval", "read_job"),
     "EvalSummary": ("._eval", "EvalSummary"),
     "camera_set": ("._eval", "camera_set"),
     "evaluate": ("._eval", "evaluate"),
@@ -196,6 +199,8 @@ __all__ = [
     "write_camera_table",
     "CameraSet",
     "EvalError",
+    "EvalInterrupted",
+    "read_eval_job",
     "EvalSummary",
     "camera_set",
     "evaluate",

@@ -291,7 +291,7 @@ FIDELITY_COLUMNS = ("differing_share", "psnr", "silhouette_share", "popping_shar
 
 
 def cmd_eval(args) -> int:
-    from pmjax._eval import DEFAULT_COMPILE_CACHE, camera_set, evaluate
+    from pmjax._eval import DEFAULT_COMPILE_CACHE, EvalInterrupted, camera_set, evaluate
 
     image = dict(width=args.size[0], height=args.size[1], fov_y_deg=args.fov)
     sets = [camera_set(spec, **image) for spec in args.cameras or []]
@@ -301,10 +301,16 @@ def cmd_eval(args) -> int:
     if not sets:
         sets = [camera_set("orbit:240", **image)]
     taus = args.tau or ([] if args.budget else [1.0])
-    summary = evaluate(args.models, sets, args.output, taus=taus, budgets=args.budget or [], tests=_tests(args),
-                       method=args.method, chunk=args.chunk,
-                       compile_cache=None if args.no_compile_cache else (args.compile_cache or DEFAULT_COMPILE_CACHE),
-                       scheduler=args.scheduler, workers=args.workers, progress=not args.quiet)
+    try:
+        summary = evaluate(args.models, sets, args.output, taus=taus, budgets=args.budget or [], tests=_tests(args),
+                           method=args.method, chunk=args.chunk,
+                           compile_cache=None if args.no_compile_cache else (args.compile_cache
+                                                                             or DEFAULT_COMPILE_CACHE),
+                           scheduler=args.scheduler, workers=args.workers, progress=not args.quiet,
+                           camera_columns=args.camera_columns)
+    except EvalInterrupted as exc:  # Ctrl-C: one line, the parts kept and how to resume
+        print(f"pmjax eval: {exc}", file=sys.stderr)
+        return 130
     print(f"{summary.folder}: {summary.rows} rows; {summary.parts_written} parts written now "
           f"({summary.cameras} cameras, {summary.cameras_per_s:.0f} cameras/s over {summary.seconds:.1f} s), "
           f"{summary.parts_skipped} parts found done")
@@ -591,7 +597,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "folder as the work goes; re-running the same command resumes. "
                                    "Columns and camera files: docs/eval.md.")
     p.add_argument("models", nargs="+", help=".pmz files")
-    p.add_argument("-o", "--output", required=True, help="dataset folder (Parquet part files and _job.json)")
+    p.add_argument("-o", "--output", required=True, help="dataset folder (Parquet part files and _job.parquet)")
     p.add_argument("--cameras", action="append", metavar="FILE",
                    help="camera table, .npz or .parquet (repeatable; schema in docs/eval.md)")
     p.add_argument("--orbit", type=COUNT, action="append", metavar="N",
@@ -610,6 +616,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="switch a test off (repeatable)")
     add_method_arg(p)
     p.add_argument("--chunk", type=COUNT, default=2048, help="cameras per part file and per task (default 2048)")
+    p.add_argument("--camera-columns", action="store_true",
+                   help="also write each camera's eye, distance to the model (model units and bounding radii), "
+                        "field of view and image size (part of the job: resume with the same setting)")
     p.add_argument("--workers", type=_whole(0), default=0,
                    help="run on a local Dask cluster of N single-threaded worker processes (default 0: this process)")
     p.add_argument("--scheduler", help="run on a Dask cluster: scheduler address, tcp://HOST:PORT")

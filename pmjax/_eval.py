@@ -8,11 +8,13 @@ Parquet file, atomically (a temporary file, then a rename), so a part file
 that exists was written whole; its metadata records the job, the model's
 SHA-256, the part's name, its row count, and a SHA-256 over that record and
 the rows (:func:`_table_sha256`). The dataset folder holds the part files,
-named so that their lexical order is the row order, and ``_job.json``, the
-job's description. Re-running a job reads every part file there back in full
-and skips those that verify; one that does not (a truncated file, a damaged
-page, the wrong rows) is moved into ``_damaged/`` with a line on stderr and
-computed again. A different job refuses to write into the folder.
+named so that their lexical order is the row order, and ``_job.parquet``, the
+job's description (no rows; :func:`read_job`), so that pyarrow, pandas,
+polars and DuckDB read the folder by name. Re-running a job reads every part
+file there back in full and skips those that verify; one that does not (a
+truncated file, a damaged page, the wrong rows) is moved into the folder
+``FOLDER.damaged`` beside it with a line on stderr and computed again. A
+different job refuses to write into the folder.
 
 Parts are planned lazily, one at a time as the work reaches them, so a job's
 size (10^12 random views) costs neither memory nor time before the first part
@@ -22,7 +24,7 @@ Rows depend only on the job description, never on where or when a part ran:
 a camera's row comes from that camera alone (generated sets give a row's
 camera from its index), so an interrupted and resumed job, or one run on a
 Dask cluster, gives the same rows as one uninterrupted process; only
-``refine_ms``, a measured time, differs.
+``refine_ms`` and ``compile_ms``, measured times, differ.
 """
 
 from __future__ import annotations
@@ -42,16 +44,27 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ._atomic import TEMP_MARK, atomic_path
+from ._bitsets import WORD
 from ._camera import index_camera
-from ._camera_table import CameraTable, fly_rows, orbit_rows, random_rows, read_camera_table
+from ._camera_table import CameraTable, _bounds, fly_rows, orbit_rows, random_rows, read_camera_table
 from ._pmfile import file_sha256
 from ._predicate import ALL_TESTS, Tests
 
-FORMAT = "pmjax-eval/1"
-JOB_FILE = "_job.json"
-# Sub-folder of the dataset that part files failing verification are moved
-# into: pyarrow, pandas and DuckDB's 'folder/*.parquet' all skip it.
-DAMAGED_DIR = "_damaged"
+FORMAT = "pmjax-eval/2"
+# The job's description: a Parquet file with the job's columns and no rows,
+# the description (JSON) in its metadata under JOB_KEY. Being Parquet of the
+# same columns, it leaves a read of the whole folder unchanged: pyarrow and
+# pandas skip files starting with '_', polars and DuckDB read it as no rows
+# (polars reads every file under the folder and refuses any that is not
+# Parquet, so the folder holds nothing else).
+JOB_FILE = "_job.parquet"
+JOB_KEY = b"pmjax_job"
+# Where folders in format pmjax-eval/1 kept their description (JSON).
+OLD_JOB_FILE = "_job.json"
+# Part files failing verification are moved into a folder beside the dataset
+# folder, named after it with this suffix: inside, polars and DuckDB's
+# 'folder/**/*.parquet' would read them as rows.
+DAMAGED_SUFFIX = ".damaged"
 # Chunk numbers in part names have at least this many digits (more when a
 # camera set has more chunks, so that lexical order stays row order).
 CHUNK_DIGITS = 7
@@ -65,6 +78,28 @@ MODELS_KEPT = 2
 class EvalError(ValueError):
     """A job that cannot run or cannot resume; the message says which model,
     camera set, file or setting, and why."""
+
+
+class EvalInterrupted(KeyboardInterrupt):
+    """Ctrl-C stopped :func:`evaluate`; the parts written are kept, and the
+    same call resumes. The message says how many.
+
+    Attributes:
+        folder: the dataset folder.
+        parts_saved: part files of the job in the folder (verified, or written
+            by this run); ``None`` when the run stopped while verifying them.
+        parts_total, rows_saved, rows_total: the job's parts, and rows saved / in all.
+    """
+
+    def __init__(self, folder, parts_saved, parts_total, rows_saved, rows_total):
+        self.folder, self.parts_saved, self.parts_total = folder, parts_saved, parts_total
+        self.rows_saved, self.rows_total = rows_saved, rows_total
+        if parts_saved is None:
+            text = f"interrupted while verifying the parts in {folder}"
+        else:
+            text = (f"interrupted; {parts_saved} of {parts_total} parts saved in {folder} "
+                    f"({rows_saved} of {rows_total} rows)")
+        super().__init__(text + "; run the same command to resume")
 
 
 # ---------------------------------------------------------------- the job
@@ -178,9 +213,11 @@ _LOADED_LOCK = threading.Lock()
 
 
 def _model(path: str, digest: str):
-    """The loaded model, kept per process (so its kernels stay compiled) for
-    the last few models; older ones are dropped with JAX's compiled
-    executables, which otherwise pile up in a process that visits many models."""
+    """The loaded model and the set of its engine calls this process has
+    compiled (see :func:`_warm`), kept per process (so its kernels stay
+    compiled) for the last few models; older ones are dropped with JAX's
+    compiled executables, which otherwise pile up in a process that visits
+    many models."""
     import jax
 
     from ._load import load
@@ -192,12 +229,28 @@ def _model(path: str, digest: str):
             return _LOADED[key]
         if file_sha256(path) != digest:
             raise EvalError(f"{path}: the model file changed while the job ran")
-        pm = load(path)
-        _LOADED[key] = pm
+        _LOADED[key] = load(path), set()
         if len(_LOADED) > MODELS_KEPT:
             _LOADED.popitem(last=False)
             jax.clear_caches()
-        return pm
+            # Every model's kernels are gone: each compiles again on its next call.
+            for _, warm in _LOADED.values():
+                warm.clear()
+        return _LOADED[key]
+
+
+def _warm(warm: set, key: tuple, call) -> float:
+    """Run ``call`` once, untimed by the caller, when ``key`` (an engine call
+    and what its compiled kernel depends on: padded batch size, projection,
+    tests, method) is not in ``warm``; its wall time in milliseconds, 0 when
+    the call was already compiled. Compilation (or its load from the
+    persistent cache) so stays out of ``refine_ms``."""
+    if key in warm:
+        return 0.0
+    t = time.perf_counter()
+    call()
+    warm.add(key)
+    return 1e3 * (time.perf_counter() - t)
 
 
 def _compile_cache(folder: Optional[str]) -> None:
@@ -249,60 +302,122 @@ def run_part(task: dict):
     from ._refine import faces_for_budget, refine, refine_batch
 
     _compile_cache(task["compile_cache"])
-    pm = _model(task["model_path"], task["model_sha256"])
+    pm, warm = _model(task["model_path"], task["model_sha256"])
     table: CameraTable = task["rows"]
     tests = Tests(**task["tests"])
     n = len(table)
     faces, vertices, executed = (np.zeros(n, np.int64) for _ in range(3))
     tau, ms = np.zeros(n, np.float32), np.zeros(n)
-    budget = task["budget"]
+    budget, method = task["budget"], task["method"]
+    # Wall time of the part's warm-up calls (compilation, or its load from the
+    # persistent cache), kept out of the per-camera times; on the part's first row.
+    compile_ms = 0.0
     for idx, cams in table.batches():
+        setting = (cams.orthographic, tests, method)
         if budget is None:
             # Paths through the coherent engine, frames in order; the other
-            # cameras in one batched call. Each call's wall time is shared by
-            # its cameras.
-            runs, rest = path_runs(table, idx) if task["method"] != "dense" else ([], np.arange(len(idx)))
-            calls = [(run, lambda c: path_counts(pm, c, task["tau"], tests=tests)) for run in runs]
-            if len(rest):
-                calls.append((rest, lambda c: refine_batch(pm, c, task["tau"], tests=tests, chunk=task["batch_chunk"],
-                                                          method=task["method"])))
-            for at, call in calls:
-                rows = idx[at]
+            # cameras in one batched call, its wall time shared by its cameras.
+            runs, rest = path_runs(table, idx) if method != "dense" else ([], np.arange(len(idx)))
+            for run in runs:
+                rows = idx[run]
+                # path_counts times each block after compiling every block size
+                # on the path's first frames: the rest of the call's wall time
+                # is that warm-up.
                 t = time.perf_counter()
-                out = call(index_camera(cams, at))
+                out = path_counts(pm, index_camera(cams, run), task["tau"], tests=tests, timing=True)
+                wall = 1e3 * (time.perf_counter() - t)
+                ms[rows] = out["milliseconds"]
+                compile_ms += max(0.0, wall - float(np.sum(out["milliseconds"])))
+                faces[rows], vertices[rows], executed[rows] = out["faces"], out["vertices"], out["executed_count"]
+            if len(rest):
+                rows, batch = idx[rest], index_camera(cams, rest)
+                call = lambda c: refine_batch(pm, c, task["tau"], tests=tests, chunk=task["batch_chunk"],
+                                              method=method)
+                # refine_batch compiles one kernel per padded chunk size: the
+                # first `size` cameras (the last repeated) compile the one used here.
+                size = -(-min(task["batch_chunk"], len(rest)) // WORD) * WORD
+                first = index_camera(batch, np.minimum(np.arange(size), len(rest) - 1))
+                compile_ms += _warm(warm, ("batch", size) + setting, lambda: call(first))
+                t = time.perf_counter()
+                out = call(batch)
                 ms[rows] = 1e3 * (time.perf_counter() - t) / len(rows)
                 faces[rows], vertices[rows], executed[rows] = out["faces"], out["vertices"], out["executed_count"]
-                tau[rows] = task["tau"]
+            tau[idx] = task["tau"]
             continue
-        for j, row in enumerate(idx):
+
+        def one(cam):
             # A budget needs its own tolerance per camera: the exact one from
             # the sorted critical tolerances, then a refine at it.
+            t, _ = faces_for_budget(pm, cam, budget, tests)
+            return t, refine(pm, cam, float(t), tests=tests, method=method)
+
+        compile_ms += _warm(warm, ("budget",) + setting, lambda: one(index_camera(cams, 0)))
+        for j, row in enumerate(idx):
             t = time.perf_counter()
-            cam = index_camera(cams, j)
-            tau[row], _ = faces_for_budget(pm, cam, budget, tests)
-            r = refine(pm, cam, float(tau[row]), tests=tests, method=task["method"])
+            tau[row], r = one(index_camera(cams, j))
             faces[row], vertices[row], executed[row] = int(r.n_faces), int(r.n_vertices), int(r.n_executed)
             ms[row] = 1e3 * (time.perf_counter() - t)
+    compile = np.zeros(n)
+    compile[:1] = compile_ms
     camera = np.arange(task["lo"], task["hi"], dtype=np.int64)
     null_ints = pa.nulls(n, pa.int64())
     columns = {
-        "model": pa.array([task["model_name"]] * n, pa.string()).dictionary_encode(),
-        "camera_set": pa.array([task["set_name"]] * n, pa.string()).dictionary_encode(),
+        "model": pa.array([task["model_name"]] * n, pa.string()),
+        "camera_set": pa.array([task["set_name"]] * n, pa.string()),
         "camera": pa.array(camera),
         "path_id": null_ints if table.path_id is None else pa.array(table.path_id, pa.int64()),
         "frame": null_ints if table.frame is None else pa.array(table.frame, pa.int64()),
         "budget": null_ints if budget is None else pa.array(np.full(n, budget, np.int64)),
+        # A budget below the coarsest mesh cannot be met: tau is inf and the
+        # faces (the base mesh's) exceed it.
+        "budget_met": pa.nulls(n, pa.bool_()) if budget is None else pa.array(faces <= budget),
         "tau": pa.array(tau),
         "faces": pa.array(faces),
         "vertices": pa.array(vertices),
         "executed": pa.array(executed),
         "refine_ms": pa.array(ms),
+        "compile_ms": pa.array(compile),
     }
-    out = pa.table(columns, schema=_schema())
+    if task["bounds"] is not None:
+        columns.update(_camera_context(table, task["bounds"][:3], task["bounds"][3]))
+    out = pa.table(columns, schema=_schema(task["bounds"] is not None))
     # Checked when the folder is reopened (_verify_part): the part read back
     # must have these rows, and this checksum over them and this record.
     info = dict(job=task["job_sha256"], model_sha256=task["model_sha256"], part=task["part"], rows=n)
     return out.replace_schema_metadata({"pmjax": json.dumps(dict(info, sha256=_table_sha256(out, info)))})
+
+
+def run_part_on_worker(task: dict):
+    """:func:`run_part` on a Dask worker: an error raised there comes back as
+    an :class:`EvalError` naming the worker (its address), the part and the
+    model, so the client's message says where it happened."""
+    try:
+        return run_part(task)
+    except Exception as exc:
+        try:
+            from distributed import get_worker
+
+            where = f"Dask worker {get_worker().address}"
+        except (ImportError, ValueError):
+            where = "a Dask worker"
+        raise EvalError(f"{where}: part {task.get('part')} of model {task.get('model_path')}: "
+                        f"{type(exc).__name__}: {exc}") from None
+
+
+def _camera_context(table: CameraTable, centre, radius) -> dict:
+    """The camera columns of ``table``'s rows: eye, its distance to the
+    model's bounding-box ``centre`` (model units) and that distance over the
+    bounding sphere's ``radius`` (half the box diagonal), vertical field of
+    view in degrees (null for orthographic cameras) and image size."""
+    import pyarrow as pa
+
+    eye = np.asarray(table.eye, np.float64)
+    distance = np.linalg.norm(eye - np.asarray(centre, np.float64), axis=1)
+    fov = np.degrees(np.asarray(table.fov_y, np.float64))
+    return dict(eye_x=pa.array(eye[:, 0]), eye_y=pa.array(eye[:, 1]), eye_z=pa.array(eye[:, 2]),
+                distance=pa.array(distance), distance_radii=pa.array(distance / radius),
+                fov_y_deg=pa.array(fov, mask=np.asarray(table.orthographic, bool)),
+                width=pa.array(np.asarray(table.width, np.int32)), height=pa.array(np.asarray(table.height, np.int32)))
 
 
 def _table_sha256(table, info: dict) -> str:
@@ -326,22 +441,33 @@ def _table_sha256(table, info: dict) -> str:
     return h.hexdigest()
 
 
-def _schema():
+# Columns of the camera context (``camera_columns``), after the others.
+CAMERA_COLUMNS = ("eye_x", "eye_y", "eye_z", "distance", "distance_radii", "fov_y_deg", "width", "height")
+
+
+def _schema(camera_columns: bool = False):
+    """The columns of a job's rows (``camera_columns``: with the camera context)."""
     import pyarrow as pa
 
+    extra = [(name, pa.float64()) for name in CAMERA_COLUMNS[:6]] + [("width", pa.int32()), ("height", pa.int32())]
     return pa.schema([
-        ("model", pa.dictionary(pa.int32(), pa.string())),
-        ("camera_set", pa.dictionary(pa.int32(), pa.string())),
+        # Plain strings (Parquet still stores them dictionary-encoded): one
+        # Arrow type whatever the part, so readers group and join on them
+        # without unifying per-file dictionaries.
+        ("model", pa.string()),
+        ("camera_set", pa.string()),
         ("camera", pa.int64()),
         ("path_id", pa.int64()),
         ("frame", pa.int64()),
         ("budget", pa.int64()),
+        ("budget_met", pa.bool_()),
         ("tau", pa.float32()),
         ("faces", pa.int64()),
         ("vertices", pa.int64()),
         ("executed", pa.int64()),
         ("refine_ms", pa.float64()),
-    ])
+        ("compile_ms", pa.float64()),
+    ] + (extra if camera_columns else []))
 
 
 # ---------------------------------------------------------------- the driver
@@ -387,6 +513,7 @@ def evaluate(
     workers: int = 0,
     progress: bool = True,
     max_parts: Optional[int] = None,
+    camera_columns: bool = False,
 ) -> EvalSummary:
     """Evaluate models × camera sets × tolerances (or face budgets) into a
     Parquet dataset folder, one row per (model, camera set, value, camera).
@@ -413,16 +540,22 @@ def evaluate(
         progress: a progress bar (cameras/s and ETA).
         max_parts: compute at most this many parts in this run, then stop
             (``None``: every part); a later run of the same job resumes.
+        camera_columns: also write each camera's context (eye, distance to
+            the model, field of view, image size; docs/eval.md); part of the
+            job, so a resumed run must give the same setting.
 
     Returns:
-        :class:`EvalSummary`. Read the rows with ``pyarrow.dataset.dataset(folder)``,
-        ``pandas.read_parquet(folder)`` or DuckDB's ``read_parquet('folder/*.parquet')``.
+        :class:`EvalSummary`. Read the rows by the folder's name:
+        ``pyarrow.parquet.read_table(folder)``, ``pandas.read_parquet(folder)``,
+        ``polars.read_parquet(folder)`` or DuckDB's ``read_parquet('folder')``.
 
     Raises:
         EvalError: a bad setting, a camera set that cannot be read, a model
             that fails validation (parts finished before it are kept), a
             folder holding another job, or a part computed from a model file
             whose content has changed since.
+        EvalInterrupted: Ctrl-C (a ``KeyboardInterrupt``); its message
+            says how many parts are saved, and the same call resumes.
     """
     from ._pmfile import PMFormatError, read_pm
     from ._refine import check_budget, check_tau
@@ -443,6 +576,10 @@ def evaluate(
     if max_parts is not None and (isinstance(max_parts, bool) or not isinstance(max_parts, (int, np.integer))
                                   or max_parts < 1):
         raise EvalError(f"max_parts must be a whole number >= 1 or None, not {max_parts!r}")
+    if not isinstance(camera_columns, (bool, np.bool_)):
+        raise EvalError(f"camera_columns must be True or False, not {camera_columns!r}")
+    camera_columns = bool(camera_columns)
+    schema = _schema(camera_columns)
     sets = [s if isinstance(s, CameraSet) else camera_set(s) for s in camera_sets]
     if not sets:
         raise EvalError("no camera sets")
@@ -460,62 +597,80 @@ def evaluate(
     tables = [read_camera_table(s.path) if s.kind == "file" else None for s in sets]
     job = dict(format=FORMAT, models=[os.path.abspath(m) for m in models], camera_sets=[s.describe() for s in sets],
                taus=[float(t) for t in taus], budgets=[int(b) for b in budgets], tests=_tests_dict(tests),
-               method=method, chunk=int(chunk), batch_chunk=int(batch_chunk))
+               method=method, chunk=int(chunk), batch_chunk=int(batch_chunk), camera_columns=camera_columns,
+               columns=schema.names)
     job_sha = hashlib.sha256(json.dumps(job, sort_keys=True).encode()).hexdigest()
     counts = [len(t) if t is not None else s.count for s, t in zip(sets, tables)]
     total = len(models) * len(values) * sum(counts)
-    with contextlib.ExitStack() as stack:
-        stack.enter_context(_lock_folder(folder))
-        # The parts found done and verified: file name -> SHA-256 of the model they came from.
-        done = _verify_folder(folder, _open_folder(folder, job), job_sha, counts, len(models), len(values), chunk)
-        n_done = sum(_rows_of(name, counts, chunk) for name in done)
-        bar = stack.enter_context(_progress(progress, total, n_done))
-        written = submitted = rows_now = 0
-        runner = _Runner(scheduler, workers)
-        stack.callback(runner.close)
+    # The parts found done and verified (file name -> SHA-256 of the model
+    # they came from), and those written now: what an interruption reports.
+    done, checked = {}, False
+    written = rows_now = n_done = 0
+    try:
+        with contextlib.ExitStack() as stack:
+            stack.enter_context(_lock_folder(folder))
+            verified = _verify_folder(folder, _open_folder(folder, job, schema), job_sha, counts, len(models),
+                                      len(values), chunk, schema)
+            done.update(verified)
+            checked = True
+            n_done = sum(_rows_of(name, counts, chunk) for name in done)
+            bar = stack.enter_context(_progress(progress, total, n_done))
+            submitted = 0
+            runner = _Runner(scheduler, workers)
+            # Closed on the way out; quietly after Ctrl-C (see _Runner.close).
+            stack.push(lambda kind, exc, tb: runner.close(quiet=kind is not None
+                                                         and issubclass(kind, KeyboardInterrupt)))
 
-        def store(finished_parts):
-            nonlocal written, rows_now
-            for finished, table in finished_parts:
-                _write_part(folder, finished, table)
-                written += 1
-                rows_now += table.num_rows
-                bar.update(table.num_rows)
+            def store(finished_parts):
+                nonlocal written, rows_now
+                for finished, table in finished_parts:
+                    _write_part(folder, finished, table)
+                    written += 1
+                    rows_now += table.num_rows
+                    bar.update(table.num_rows)
 
-        for mi, model_path in enumerate(models):
-            if max_parts is not None and submitted >= max_parts:
-                break
-            # The model is validated before its parts start; a bad one stops
-            # the job with the parts before it kept.
-            try:
-                data = read_pm(model_path)
-            except PMFormatError as exc:
-                store(runner.drain())
-                raise EvalError(f"model {model_path}: {exc}") from exc
-            digest = file_sha256(model_path)
-            vertices = data.vertices[: data.n_original_vertices]
-            # Parts come one at a time from a generator: nothing is planned
-            # ahead of the work, whatever the job's size.
-            for part in _model_parts(mi, counts, len(values), chunk):
-                if part.file in done:
-                    if done[part.file] != digest:
-                        raise EvalError(f"{os.path.join(folder, part.file)} was computed from another version of "
-                                        f"{model_path} (its content changed); use another folder, or delete this "
-                                        "one to start over")
-                    continue
+            for mi, model_path in enumerate(models):
                 if max_parts is not None and submitted >= max_parts:
                     break
-                s, value = sets[part.cameras], values[part.value]
-                task = dict(model_path=model_path, model_sha256=digest, model_name=_model_name(model_path),
-                            set_name=s.name, rows=s.rows(vertices, part.lo, part.hi, tables[part.cameras]),
-                            lo=part.lo, hi=part.hi, tau=None if budgets else value,
-                            budget=value if budgets else None, tests=_tests_dict(tests), method=method,
-                            batch_chunk=int(batch_chunk), compile_cache=compile_cache, job_sha256=job_sha,
-                            part=part.file)
-                submitted += 1
-                store(runner.submit(part, task))
-            del data, vertices
-        store(runner.drain())
+                # The model is validated before its parts start; a bad one stops
+                # the job with the parts before it kept.
+                try:
+                    data = read_pm(model_path)
+                except PMFormatError as exc:
+                    store(runner.drain())
+                    raise EvalError(f"model {model_path}: {exc}") from exc
+                digest = file_sha256(model_path)
+                vertices = data.vertices[: data.n_original_vertices]
+                # The box centre and half diagonal: those the generated camera sets use.
+                bounds = tuple(float(x) for x in np.append(*_bounds(vertices))) if camera_columns else None
+                # Parts come one at a time from a generator: nothing is planned
+                # ahead of the work, whatever the job's size.
+                for part in _model_parts(mi, counts, len(values), chunk):
+                    if part.file in done:
+                        if done[part.file] != digest:
+                            raise EvalError(f"{os.path.join(folder, part.file)} was computed from another version "
+                                            f"of {model_path} (its content changed); use another folder, or delete "
+                                            "this one to start over")
+                        continue
+                    if max_parts is not None and submitted >= max_parts:
+                        break
+                    s, value = sets[part.cameras], values[part.value]
+                    # The absolute path: a worker may run in another folder.
+                    task = dict(model_path=os.path.abspath(model_path), model_sha256=digest,
+                                model_name=_model_name(model_path),
+                                set_name=s.name, rows=s.rows(vertices, part.lo, part.hi, tables[part.cameras]),
+                                lo=part.lo, hi=part.hi, tau=None if budgets else value,
+                                budget=value if budgets else None, tests=_tests_dict(tests), method=method,
+                                batch_chunk=int(batch_chunk), compile_cache=compile_cache, job_sha256=job_sha,
+                                part=part.file, bounds=bounds)
+                    submitted += 1
+                    store(runner.submit(part, task))
+                del data, vertices
+            store(runner.drain())
+    except KeyboardInterrupt:
+        n_parts = len(models) * len(values) * sum(-(-c // chunk) for c in counts)
+        raise EvalInterrupted(os.fspath(folder), len(done) + written if checked else None, n_parts,
+                              n_done + rows_now, total) from None
     return EvalSummary(folder=os.fspath(folder), rows=n_done + rows_now, parts_written=written,
                        parts_skipped=len(done), cameras=rows_now, seconds=time.perf_counter() - start)
 
@@ -574,23 +729,59 @@ def _lock_folder(folder):
     return fh
 
 
-def _open_folder(folder, job) -> set:
-    """Reopen (or start) the locked dataset folder for ``job``: the names of
-    the part files there (not yet verified, see :func:`_verify_folder`)."""
+def damaged_folder(folder) -> str:
+    """The folder that part files of the dataset ``folder`` failing
+    verification are moved into: beside it, its name plus ``.damaged``."""
+    return os.path.abspath(folder) + DAMAGED_SUFFIX
+
+
+def read_job(folder) -> dict:
+    """The job description of the dataset ``folder`` (what ``_job.parquet``
+    holds: models, camera sets, values, tests, method, chunk sizes, columns).
+
+    Raises:
+        EvalError: no job description there, or one that cannot be read.
+    """
+    import pyarrow.parquet as pq
+
     path = os.path.join(folder, JOB_FILE)
-    if os.path.exists(path):
+    try:
+        metadata = pq.read_schema(path).metadata or {}
+        return json.loads(metadata[JOB_KEY])
+    except FileNotFoundError:
+        raise EvalError(f"{folder}: no {JOB_FILE}, not a pmjax eval dataset folder") from None
+    except Exception as exc:  # pyarrow raises several types for a damaged file
+        raise EvalError(f"{path}: unreadable job description ({type(exc).__name__}: {exc}); "
+                        "use another folder, or delete this one to start over") from None
+
+
+def _open_folder(folder, job, schema) -> set:
+    """Reopen (or start) the locked dataset folder for ``job`` (whose rows
+    have ``schema``): the names of the part files there (not yet verified,
+    see :func:`_verify_folder`)."""
+    import pyarrow.parquet as pq
+
+    path = os.path.join(folder, JOB_FILE)
+    old_path = os.path.join(folder, OLD_JOB_FILE)
+    if not os.path.exists(path) and os.path.exists(old_path):
         try:
-            with open(path) as fh:
-                old = json.load(fh)
-        except (OSError, ValueError) as exc:
-            raise EvalError(f"{path}: unreadable job description ({exc}); use another folder") from exc
+            with open(old_path) as fh:
+                form = json.load(fh).get("format", "unknown")
+        except (OSError, ValueError, AttributeError):
+            form = "unknown"
+        raise EvalError(f"{folder} holds a job in format {form} (described by {OLD_JOB_FILE}), whose parts lack "
+                        f"columns of format {FORMAT}; its rows stay readable, but it cannot be resumed: use "
+                        "another folder, or delete this one to start over")
+    if os.path.exists(path):
+        old = read_job(folder)
         if old != job:
             changed = sorted(k for k in set(old) | set(job) if old.get(k) != job.get(k))
             raise EvalError(f"{folder} holds another job (differs in: {', '.join(changed)}); "
                             "use another folder, or delete this one to start over")
     else:
-        with atomic_path(path) as tmp, open(tmp, "w") as fh:
-            json.dump(job, fh, indent=1, sort_keys=True)
+        empty = schema.empty_table().replace_schema_metadata({JOB_KEY: json.dumps(job, indent=1, sort_keys=True)})
+        with atomic_path(path) as tmp:
+            pq.write_table(empty, tmp)
     # Temporary files of a killed run are debris: no part is half-written.
     for name in os.listdir(folder):
         if TEMP_MARK in name:
@@ -598,9 +789,9 @@ def _open_folder(folder, job) -> set:
     return {name for name in os.listdir(folder) if name.startswith("part-") and name.endswith(".parquet")}
 
 
-def _verify_folder(folder, names, job_sha, counts, n_models, n_values, chunk) -> dict:
+def _verify_folder(folder, names, job_sha, counts, n_models, n_values, chunk, schema=None) -> dict:
     """Verify the part files ``names`` of the dataset folder; those that fail
-    are moved into ``folder/_damaged/`` (a line on stderr says which and why)
+    are moved into :func:`damaged_folder` (a line on stderr says which and why)
     so that the job computes them again.
 
     Returns:
@@ -616,7 +807,7 @@ def _verify_folder(folder, names, job_sha, counts, n_models, n_values, chunk) ->
         if part is None:
             return ("is not a part of this job (its name is outside the job's models, camera sets, values or "
                     "chunks)"), None
-        return _verify_part(os.path.join(folder, name), part, job_sha)
+        return _verify_part(os.path.join(folder, name), part, job_sha, schema)
 
     done = {}
     # Parquet decoding and hashing release the GIL: verify parts in parallel.
@@ -625,7 +816,7 @@ def _verify_folder(folder, names, job_sha, counts, n_models, n_values, chunk) ->
             if problem is None:
                 done[name] = model_sha
                 continue
-            path, aside = os.path.join(folder, name), os.path.join(folder, DAMAGED_DIR, name)
+            path, aside = os.path.join(folder, name), os.path.join(damaged_folder(folder), name)
             os.makedirs(os.path.dirname(aside), exist_ok=True)
             os.replace(path, aside)
             print(f"pmjax eval: {path}: {problem}; moved to {aside}, the part is computed again",
@@ -633,8 +824,9 @@ def _verify_folder(folder, names, job_sha, counts, n_models, n_values, chunk) ->
     return done
 
 
-def _verify_part(path, part, job_sha):
-    """Read a part file in full and check it against its part of the job.
+def _verify_part(path, part, job_sha, schema=None):
+    """Read a part file in full and check it against its part of the job
+    (``schema``: the job's columns, by default those without camera context).
 
     Returns:
         ``(problem, model_sha256)``: ``problem`` is ``None`` for a part that
@@ -670,7 +862,7 @@ def _verify_part(path, part, job_sha):
     name = os.path.basename(path)
     if info.get("part", name) != name:
         return f"holds the rows of {info['part']}, another part", None
-    if not table.schema.remove_metadata().equals(_schema()):
+    if not table.schema.remove_metadata().equals(schema if schema is not None else _schema()):
         return f"has columns {table.schema.remove_metadata().to_string()!r}, not this job's", None
     want = part.hi - part.lo
     if table.num_rows != want or info.get("rows", want) != want:
@@ -733,6 +925,30 @@ def _progress(on, total, done):
                 smoothing=0.1)
 
 
+def _quiet_dask_logs() -> None:
+    """Dask's logs at level ERROR and above only (run on workers)."""
+    import logging
+
+    logging.getLogger("distributed").setLevel(logging.ERROR)
+
+
+@contextlib.contextmanager
+def _sigint_ignored():
+    """SIGINT ignored in this process while the block runs (in the main
+    thread; elsewhere signals cannot be set, and nothing changes): child
+    processes started in it keep ignoring it."""
+    import signal
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 class _Runner:
     """Runs parts in this process, or on Dask with a bounded number in flight
     (camera rows are made as parts are submitted, so memory stays flat)."""
@@ -745,8 +961,12 @@ class _Runner:
             if scheduler:
                 self.client = Client(scheduler, set_as_default=False)
             else:
-                self.cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                                            dashboard_address=None)
+                # Ctrl-C in a terminal reaches every process of the group: the
+                # workers ignore it (they inherit the ignored signal when
+                # started), and this process stops them on its way out.
+                with _sigint_ignored():
+                    self.cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
+                                                dashboard_address=None)
                 self.client = Client(self.cluster, set_as_default=False)
             # Pending futures; each result is fetched with the future's own
             # result(), which waits for the scheduler to recompute a result
@@ -760,7 +980,7 @@ class _Runner:
     def submit(self, part, task):
         if self.client is None:
             return [(part, run_part(task))]
-        future = self.client.submit(run_part, task, key=f"pmjax-eval-{task['job_sha256'][:12]}-{part.file}",
+        future = self.client.submit(run_part_on_worker, task, key=f"pmjax-eval-{task['job_sha256'][:12]}-{part.file}",
                                     pure=False, retries=2)
         self.parts[future.key] = part
         self.pending.append(future)
@@ -786,7 +1006,18 @@ class _Runner:
     def drain(self):
         return [] if self.client is None else self._collect(0)
 
-    def close(self):
+    def close(self, quiet=False):
+        """Close the client (and the local cluster). ``quiet``: after Ctrl-C,
+        Dask's warnings about the tasks cut short are expected, not news:
+        they are silenced here and on the local cluster's workers (which
+        write to this process's stderr)."""
+        if self.client is not None and quiet:
+            import logging
+
+            logging.getLogger("distributed").setLevel(logging.ERROR)
+            if self.cluster is not None:
+                with contextlib.suppress(Exception):
+                    self.client.run(_quiet_dask_logs)
         if self.client is not None:
             self.client.close()
         if self.cluster is not None:

@@ -25,7 +25,7 @@ pa = pytest.importorskip("pyarrow")
 pq = pytest.importorskip("pyarrow.parquet")
 ds = pytest.importorskip("pyarrow.dataset")
 
-DETERMINISTIC = ["model", "camera_set", "camera", "path_id", "frame", "budget", "tau", "faces", "vertices", "executed"]
+DETERMINISTIC = ["model", "camera_set", "camera", "path_id", "frame", "budget", "budget_met", "tau", "faces", "vertices", "executed"]
 
 
 @pytest.fixture(scope="module")
@@ -132,10 +132,11 @@ def test_rows_equal_refine_batch(cow, tmp_path):
     assert summary.rows == summary.cameras == 2 * (50 + 300 + 100) and summary.parts_skipped == 0
     table = ds.dataset(str(out), format="parquet").to_table()
     assert [(f.name, str(f.type)) for f in table.schema] == [
-        ("model", "dictionary<values=string, indices=int32, ordered=0>"),
-        ("camera_set", "dictionary<values=string, indices=int32, ordered=0>"),
-        ("camera", "int64"), ("path_id", "int64"), ("frame", "int64"), ("budget", "int64"), ("tau", "float"),
-        ("faces", "int64"), ("vertices", "int64"), ("executed", "int64"), ("refine_ms", "double")]
+        ("model", "string"), ("camera_set", "string"),
+        ("camera", "int64"), ("path_id", "int64"), ("frame", "int64"), ("budget", "int64"),
+        ("budget_met", "bool"), ("tau", "float"),
+        ("faces", "int64"), ("vertices", "int64"), ("executed", "int64"), ("refine_ms", "double"),
+        ("compile_ms", "double")]
     got = rows(str(out))
     assert set(got["model"]) == {"cow"}
     start = 0
@@ -162,6 +163,7 @@ def test_rows_equal_refine_batch(cow, tmp_path):
                 assert np.array_equal(got["frame"][sl].astype(int), paths[1])
             start += n
     assert start == len(got["camera"])
+    assert all(x is None for x in got["budget_met"])  # tau jobs have no budget
     # Same job again: nothing recomputed. Another job: refused, folder intact.
     again = evaluate([cow], ["orbit:50", "random:300:2", str(tmp_path / "mixed.parquet")], str(out),
                      taus=[0.5, 2.0], chunk=128, compile_cache=None, progress=False)
@@ -176,14 +178,21 @@ def test_budgets(cow, tmp_path):
     data = pmjax.read_pm(cow)
     pm = pmjax.load(cow)
     cams = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 6)
-    evaluate([cow], ["orbit:6"], str(tmp_path / "b"), budgets=[400, 3000], compile_cache=None, progress=False)
+    base = int(pmjax.refine(pm, pmjax.index_camera(cams, 0), np.inf).n_faces)  # the coarsest mesh
+    # A budget below the coarsest mesh cannot be met: tau inf, faces above it, budget_met false.
+    low = base - 1
+    evaluate([cow], ["orbit:6"], str(tmp_path / "b"), budgets=[low, 400, 3000], compile_cache=None,
+             progress=False)
     got = rows(str(tmp_path / "b"))
     k = 0
-    for budget in (400, 3000):
+    for budget in (low, 400, 3000):
         for i in range(6):
             cam = pmjax.index_camera(cams, i)
             tau, faces = pmjax.faces_for_budget(pm, cam, budget)
-            assert got["budget"][k] == budget and got["tau"][k] == tau and got["faces"][k] == faces <= budget
+            assert got["budget"][k] == budget and got["tau"][k] == tau and got["faces"][k] == faces
+            assert bool(got["budget_met"][k]) == (faces <= budget) == (budget != low)
+            if budget == low:
+                assert tau == np.inf and faces == base
             assert got["executed"][k] == int(pmjax.refine(pm, cam, float(tau)).n_executed)
             k += 1
 

@@ -15,13 +15,15 @@ import time
 import pytest
 
 import pmjax
-from pmjax._eval import DAMAGED_DIR, EvalError, _model_parts, _part, _part_named, _table_sha256, _verify_part, evaluate
+from pmjax._eval import (EvalError, _model_parts, _part, _part_named, _table_sha256, _verify_part, damaged_folder,
+                         evaluate)
 
 pa = pytest.importorskip("pyarrow")
 pq = pytest.importorskip("pyarrow.parquet")
 ds = pytest.importorskip("pyarrow.dataset")
 
-DETERMINISTIC = ["model", "camera_set", "camera", "path_id", "frame", "budget", "tau", "faces", "vertices", "executed"]
+DETERMINISTIC = ["model", "camera_set", "camera", "path_id", "frame", "budget", "budget_met", "tau", "faces",
+                 "vertices", "executed"]
 HUGE = 10 ** 12
 # Generous limit against a hang; a job that plans its parts lazily takes seconds.
 HANG = 300
@@ -178,7 +180,7 @@ def test_damaged_parts_are_set_aside_and_computed_again(cow, tmp_path, capsys):
     summary = evaluate([cow], ["orbit:56"], out, **job)
     err = capsys.readouterr().err
     assert (summary.parts_skipped, summary.parts_written, summary.rows) == (2, 5, 56)
-    damaged = os.path.join(out, DAMAGED_DIR)
+    damaged = damaged_folder(out)
     lines = [line for line in err.splitlines() if line.startswith("pmjax eval: ")]
     assert len(lines) == 6, err
     why = {}

@@ -1,0 +1,48 @@
+"""Evaluation on Dask workers that run in another folder than the client:
+model paths travel absolute, and an error on a worker names the worker."""
+
+from __future__ import annotations
+
+import os
+import shutil
+
+import pytest
+
+import pmjax
+from pmjax._eval import EvalError, evaluate, run_part_on_worker
+
+pytest.importorskip("pyarrow")
+ds = pytest.importorskip("pyarrow.dataset")
+distributed = pytest.importorskip("dask.distributed")
+
+
+def test_workers_in_another_folder(built, tmp_path, monkeypatch):
+    models = tmp_path / "models"
+    models.mkdir()
+    pmjax.save_pm(built("cow.ply"), str(models / "cow.pmz"))
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    job = dict(taus=[1.0], chunk=16, compile_cache=None, progress=False)
+    reference = str(tmp_path / "reference")
+    evaluate([str(models / "cow.pmz")], ["random:48:2"], reference, **job)
+    # Worker processes start in `elsewhere` (they keep the folder they were
+    # started in); the client then names the model relative to its own folder.
+    monkeypatch.chdir(elsewhere)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, \
+            distributed.Client(cluster, set_as_default=False) as client:
+        monkeypatch.chdir(models)
+        assert client.run(os.getcwd) == {w: str(elsewhere) for w in client.scheduler_info()["workers"]}
+        out = str(tmp_path / "dask")
+        summary = evaluate(["cow.pmz"], ["random:48:2"], out, scheduler=cluster.scheduler_address, **job)
+        assert summary.parts_written == 3
+        columns = ["model", "camera", "faces", "vertices", "executed"]
+        assert ds.dataset(out).to_table(columns).equals(ds.dataset(reference).to_table(columns))
+        # An error on a worker comes back naming the worker, the part and the model.
+        (worker,) = client.scheduler_info()["workers"]
+        task = dict(model_path="gone.pmz", model_sha256="0" * 64, part="part-m0000-c0000-v0000-0000000.parquet",
+                    compile_cache=None)
+        with pytest.raises(EvalError) as info:
+            client.submit(run_part_on_worker, task, pure=False).result()
+        assert str(info.value) == (f"Dask worker {worker}: part part-m0000-c0000-v0000-0000000.parquet of model "
+                                   "gone.pmz: FileNotFoundError: [Errno 2] No such file or directory: 'gone.pmz'")
