@@ -131,6 +131,7 @@ def test_a_misspelt_flag_gets_a_suggestion(capsys):
     assert "usage: pmjax info" in err and "--jsn" in err and "did you mean --json?" in err
 
 
+@pytest.mark.slow
 def test_api_parameters_have_one_rule(spot_pm):
     pm = pmjax.load(spot_pm)
     cams = pmjax.standard_orbit(np.asarray(pm.vertices)[: pm.n_original_vertices], 4)
@@ -222,6 +223,7 @@ def test_a_killed_write_leaves_a_recognised_temporary_that_the_next_write_remove
     assert target.read_text() == "whole" and leftovers(tmp_path) == []
 
 
+@pytest.mark.slow
 def test_kill_during_build_never_leaves_a_partial_pm(tmp_path, data_path):
     out = tmp_path / "bunny.pmz"
     proc = subprocess.Popen([sys.executable, "-m", "pmjax", "build", data_path("bunny.ply"), "-o", str(out), "-q"],
@@ -240,6 +242,7 @@ def test_kill_during_build_never_leaves_a_partial_pm(tmp_path, data_path):
 # -- environment -----------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_view_without_a_display_exits_with_a_message(spot_pm):
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     r = run("view", spot_pm, "--close-after", "1", env=env, timeout=60)

@@ -29,12 +29,14 @@ def compile_all(compiler: str, flags: list) -> list:
 
 
 @pytest.mark.parametrize("compiler", ["gcc", "aarch64-linux-gnu-gcc"])
+@pytest.mark.slow
 def test_core_compiles_without_warnings(compiler):
     if shutil.which(compiler) is None:
         pytest.skip(f"{compiler} is not installed")
     assert compile_all(compiler, CORE_CFLAGS) == []
 
 
+@pytest.mark.slow
 def test_binding_compiles_without_warnings():
     import jax.ffi
 

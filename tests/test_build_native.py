@@ -44,6 +44,7 @@ def test_bunny_hierarchy_is_the_numpy_builders(built, data_path):
         ("terrain_gcanyon", dict(batch_share=1.0)),
     ],
 )
+@pytest.mark.slow
 def test_other_builds_are_the_numpy_builders(data_path, name, options):
     """Targets, metric schedules (costs from NumPy with the C batch choice,
     quadrics rebuilt from the faces every batch), virtual pairs (no link

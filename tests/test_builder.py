@@ -71,6 +71,7 @@ def test_replay_never_flips_a_face(built):
     assert V0 > 0
 
 
+@pytest.mark.slow
 def test_pair_distance_merges_separate_parts(data_path):
     v, f, _, _ = pmjax.load_clean_mesh(data_path("cessna.ply"))
     assert components(v, f) == 11

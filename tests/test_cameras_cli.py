@@ -53,6 +53,7 @@ def test_fly_through_and_orthographic_views(built):
     assert 0 < int(r_small.n_faces) < len(data.faces)
 
 
+@pytest.mark.slow
 def test_refine_and_path_commands(tmp_path, built, capsys):
     data = built("cow.ply")
     pmz = tmp_path / "cow.pmz"

@@ -67,6 +67,7 @@ TESTS = (pmjax.ALL_TESTS, pmjax.Tests(frustum=False), pmjax.Tests(orientation=Fa
 
 
 @pytest.mark.parametrize("name", ["cow.ply", "bunny.ply", "terrain_gcanyon.ply"])
+@pytest.mark.slow
 def test_certified_decisions_equal_the_float32_predicate(built, name, simd):
     """Over every pcol: a decision the core is sure of is the float32
     predicate's bit, and a bound that says "whole" holds for every pcol
@@ -101,6 +102,7 @@ def test_certified_decisions_equal_the_float32_predicate(built, name, simd):
 
 @pytest.mark.parametrize("name, pair_distance", [("cow.ply", 0.0), ("bunny.ply", 0.0), ("cessna.ply", 0.02),
                                                  ("terrain_gcanyon.ply", 0.0)])
+@pytest.mark.slow
 def test_core_refine_equals_dense(built, name, pair_distance, simd):
     data = built(name, pair_distance)
     pm = pmjax.ProgressiveMesh.from_data(data)
@@ -112,6 +114,7 @@ def test_core_refine_equals_dense(built, name, pair_distance, simd):
             assert_refinements_equal(core, pmjax.refine(pm, cam, tau, method="dense"), (i, tau))
 
 
+@pytest.mark.slow
 def test_unsure_decisions_are_asked_of_the_float32_predicate(built, simd):
     """At tau equal to pcols' critical tolerances the screen test is a float
     tie: the core must leave those pcols unsure, and the answer is still the
@@ -130,6 +133,7 @@ def test_unsure_decisions_are_asked_of_the_float32_predicate(built, simd):
     assert unsure >= len(picks)  # at least the tie itself is never guessed
 
 
+@pytest.mark.slow
 def test_extreme_scales_fall_back_to_the_float32_predicate(built):
     """A model scaled to 1e-18 or 1e15 units (float32 products near the
     smallest normal, or huge): many decisions are unsure, and the
@@ -152,6 +156,7 @@ def test_extreme_scales_fall_back_to_the_float32_predicate(built):
 
 
 @pytest.mark.parametrize("name", ["cow.ply", "bunny.ply", "cessna.ply", "terrain_gcanyon.ply"])
+@pytest.mark.slow
 def test_core_mesh_equals_dense_mesh(built, name):
     data = built(name, 0.02 if name == "cessna.ply" else 0.0)
     pm = pmjax.ProgressiveMesh.from_data(data)
@@ -218,6 +223,7 @@ def test_tables_start_on_cache_lines_and_link_the_forest(built):
         _core.check_hierarchy(bad)
 
 
+@pytest.mark.slow
 def test_core_batch_equals_dense(built, simd):
     data = built("bunny.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
@@ -268,6 +274,7 @@ def test_core_batches_from_several_threads_at_once(built):
         assert all(np.array_equal(alone[i % 4][k], got[k]) for k in got), i
 
 
+@pytest.mark.slow
 def test_dragon_front_visits_a_small_share(built):
     """Structural: on the dragon at tau = 1 the front engine visits a few
     percent of the pcols (about twice those not executed), with the dense
@@ -390,6 +397,7 @@ def test_core_view_constants_are_within_the_allowance(orthographic):
 
 
 @pytest.mark.parametrize("room", [None, 4])
+@pytest.mark.slow
 def test_batch_at_a_float_tie_asks_the_predicate_once_per_batch(built, room, simd):
     """A batch refined at a pcol's critical tolerance has unsure decisions in
     many cameras; they are answered for the whole batch and the cameras'
@@ -454,6 +462,7 @@ def test_an_eager_refinement_holds_what_it_visited(built):
 
 
 @pytest.mark.parametrize("name", ["cow.ply", "bunny.ply"])
+@pytest.mark.slow
 def test_budget_by_search_equals_the_sort(built, name):
     """faces_for_budget from the core's counts (a search over the float32
     patterns of tau, one compiled loop) gives the dense sort's tau and face

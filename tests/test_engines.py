@@ -62,6 +62,7 @@ def test_select_decides_in_one_place(cow):
 
 
 @pytest.mark.core
+@pytest.mark.slow
 def test_refine_under_jit_and_vmap_gives_the_eager_bits(cow, simd):
     """refine with default arguments: eager, jit, vmap over cameras, jit of
     vmap, vmap over tolerances; counts and the executed set (from the lists),
@@ -110,6 +111,7 @@ def test_mesh_under_jit_is_the_eager_mesh_padded(cow, engine):
 
 
 @pytest.mark.core
+@pytest.mark.slow
 def test_batches_paths_and_budgets_under_jit_and_vmap(cow):
     data, pm = cow
     cams = views(data, 40, seed=5)
@@ -173,6 +175,7 @@ UPDATES = {
 
 @pytest.mark.parametrize("engine", ENGINES)
 @pytest.mark.parametrize("field", sorted(UPDATES))
+@pytest.mark.slow
 def test_no_table_survives_an_update(cow, engine, field):
     """After an ``eqx.tree_at`` update of an attribute (or the positions),
     every engine gives the dense engine's bits for the updated mesh: no table

@@ -116,6 +116,7 @@ def test_bad_camera_tables_are_refused_by_row_and_column(tmp_path, suffix):
         read_camera_table(tmp_path / f"flip{suffix}")
 
 
+@pytest.mark.slow
 def test_rows_equal_refine_batch(cow, tmp_path):
     data = pmjax.read_pm(cow)
     v0 = data.vertices[: data.n_original_vertices]
@@ -217,6 +218,7 @@ def _run_cli(args, **kw):
                             stderr=subprocess.STDOUT, text=True, **kw)
 
 
+@pytest.mark.slow
 def test_kill_and_resume_gives_the_uninterrupted_rows(cow, tmp_path):
     job = [cow, "--random", "2000", "--seed", "3", "--tau", "1", "--tau", "3", "--chunk", "50", "-q",
            "--compile-cache", str(tmp_path / "xla")]
@@ -243,6 +245,7 @@ def test_kill_and_resume_gives_the_uninterrupted_rows(cow, tmp_path):
     assert sorted(os.listdir(out)) == sorted(os.listdir(reference))  # no temporary files left
 
 
+@pytest.mark.slow
 def test_dask_cluster_gives_the_same_rows_even_when_a_worker_dies(cow, tmp_path):
     distributed = pytest.importorskip("dask.distributed")
     reference = str(tmp_path / "reference")
@@ -278,6 +281,7 @@ def test_dask_cluster_gives_the_same_rows_even_when_a_worker_dies(cow, tmp_path)
         assert_same_rows(rows(out), rows(reference))
 
 
+@pytest.mark.slow
 def test_one_compilation_serves_every_image_size(cow, tmp_path):
     import jax
 

@@ -11,6 +11,8 @@ import pytest
 import pmjax
 from pmjax._eval import EvalError, evaluate, run_part_on_worker
 
+pytestmark = pytest.mark.slow
+
 pytest.importorskip("pyarrow")
 ds = pytest.importorskip("pyarrow.dataset")
 distributed = pytest.importorskip("dask.distributed")

@@ -15,6 +15,8 @@ import pytest
 
 import pmjax
 
+pytestmark = pytest.mark.slow
+
 pytest.importorskip("pyarrow")
 
 

@@ -110,6 +110,7 @@ def test_a_huge_job_writes_its_first_parts_at_once_and_resumes(cow, tmp_path):
     assert got == want
 
 
+@pytest.mark.slow
 def test_a_killed_huge_cli_job_resumes(cow, tmp_path):
     out = tmp_path / "huge"
     log = open(tmp_path / "log", "w")
@@ -204,6 +205,7 @@ def test_damaged_parts_are_set_aside_and_computed_again(cow, tmp_path, capsys):
     assert (again.parts_skipped, again.parts_written) == (7, 0) and capsys.readouterr().err == ""
 
 
+@pytest.mark.slow
 def test_no_flipped_byte_is_taken_with_other_content(cow, tmp_path):
     """Every single-byte change to a part file is refused, or leaves the rows,
     the record and the footer statistics (readers skip files by them) as

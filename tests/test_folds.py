@@ -37,6 +37,7 @@ def test_window_plan_gives_each_batch_one_wide_enough_window(seed):
         assert all(w >= sizes[j:].max() for j in i)
 
 
+@pytest.mark.slow
 def test_folds_equal_sequential_loops(built):
     data, pm = _pm(built, "bunny.ply")
     V0, P = data.n_original_vertices, data.n_pcols
@@ -103,6 +104,7 @@ def _size(jaxpr):
     return total
 
 
+@pytest.mark.slow
 def test_the_program_does_not_grow_with_the_batches(built):
     """Soft refinement and its gradient trace to programs of the same size on
     hierarchies of 41 and 57 batches: the folds are loops, not unrolled."""

@@ -172,6 +172,7 @@ def test_fast_and_slow_checks_agree_on_random_structural_forgeries(built):
     assert refused >= 10
 
 
+@pytest.mark.slow
 def test_a_forged_file_fails_the_cli_with_its_name(cow, tmp_path):
     pm, path = cow
     bad = forge(path, tmp_path / "forged.pmz", killer=np.full_like(pm.killer, -1))
@@ -315,6 +316,7 @@ def test_an_entry_expanding_past_its_declared_size_is_read_only_to_it(cow, tmp_p
     assert peak < 32 << 20, peak
 
 
+@pytest.mark.slow
 def test_an_honest_but_absurd_array_size_is_refused_by_the_header_counts(cow, tmp_path):
     pm, path = cow
     rows = BOMB // 12  # float32 rows of 3

@@ -50,6 +50,7 @@ def views_of(data, n, seed):
 
 
 @pytest.mark.parametrize("name, pair_distance", CASES)
+@pytest.mark.slow
 def test_front_equals_dense_and_oracle(built, name, pair_distance):
     data = built(name, pair_distance)
     pm = pmjax.ProgressiveMesh.from_data(data)
@@ -68,6 +69,7 @@ def test_front_equals_dense_and_oracle(built, name, pair_distance):
     assert partial >= 6
 
 
+@pytest.mark.slow
 def test_front_orthographic_and_tests_switched_off(built):
     data = built("cow.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
@@ -86,6 +88,7 @@ def test_front_orthographic_and_tests_switched_off(built):
                 assert_same(front, pmjax.refine(pm, cam, tau, tests=tests, method="dense"), (tests, tau))
 
 
+@pytest.mark.slow
 def test_front_at_the_critical_tolerances(built):
     """At tau equal to a pcol's critical tolerance (the float tie of its own
     test) and one step above, the front engine decides as the dense one."""
@@ -99,6 +102,7 @@ def test_front_at_the_critical_tolerances(built):
             assert_same(pmjax.refine(pm, cam, tau, method="front"), pmjax.refine(pm, cam, tau, method="dense"), tau)
 
 
+@pytest.mark.slow
 def test_capacity_overflow_still_exact(built):
     data = built("bunny.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
@@ -121,6 +125,7 @@ def test_capacity_overflow_still_exact(built):
     assert calls == [grown]
 
 
+@pytest.mark.slow
 def test_user_predicate_uses_the_dense_engine(built):
     data = built("cow.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
@@ -148,6 +153,7 @@ def test_front_mesh_equals_dense_mesh(built, name):
                 assert a.dtype == b.dtype and np.array_equal(a, b), (i, tau)
 
 
+@pytest.mark.slow
 def test_refine_batch_front_equals_dense(built):
     data = built("cow.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)

@@ -101,6 +101,7 @@ def meshes():
     return _cleaned_meshes()
 
 
+@pytest.mark.slow
 def test_every_random_mesh_builds_a_valid_hierarchy(meshes, tmp_path):
     cleaned, refused = meshes
     assert len(cleaned) > 0.7 * N  # most random meshes are usable
@@ -128,6 +129,7 @@ def _side_by_side(group):
     return np.concatenate(vs), np.concatenate(fs)
 
 
+@pytest.mark.slow
 def test_refinement_of_random_meshes_equals_the_oracle(meshes, tmp_path):
     cleaned, _ = meshes
     rng = np.random.default_rng(SEED + 1)

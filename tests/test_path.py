@@ -121,6 +121,7 @@ def test_tau_along_the_path_budgets_and_orthographic(built):
     ("cessna.ply", 0.02, 3),  # parts merged by virtual pairs
     ("terrain_gcanyon.ply", 0.0, 4),
 ])
+@pytest.mark.slow
 def test_many_random_paths_on_several_models(built, name, pair_distance, seed):
     """Property test: K random paths (small steps, random cuts, a tolerance
     drawn per frame) advanced together; every frame's counts as the dense
@@ -211,6 +212,7 @@ def test_long_path_streams_word_by_word(built, monkeypatch):
 
 @needs_core
 @pytest.mark.parametrize("room", [None, 16])
+@pytest.mark.slow
 def test_path_at_a_float_tie_decides_the_unsure_pairs(built, monkeypatch, room):
     """A path that holds a pcol's critical tolerance (a float tie) in many
     frames: each word with unsure pairs is counted as if they kept and leaves
@@ -242,6 +244,7 @@ def test_path_at_a_float_tie_decides_the_unsure_pairs(built, monkeypatch, room):
                 assert all(np.array_equal(a, b) for a, b in zip(frame.mesh(), r.mesh())), i
 
 
+@pytest.mark.slow
 def test_path_as_jax_kernels_is_exact_and_streams(built, monkeypatch):
     """The word traversal as JAX kernels (where the C core is not built): 32
     frames per word, each as refine alone; the refinements are computed one

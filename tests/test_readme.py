@@ -41,6 +41,7 @@ def outputs(argv: list[str]) -> list[str]:
 
 
 @pytest.mark.skipif(not (SHARED / "data" / "bunny.ply").exists(), reason="needs ../shared/data")
+@pytest.mark.slow
 def test_every_use_line_runs_as_written(tmp_path):
     checkout = tmp_path / "checkout"
     checkout.mkdir()

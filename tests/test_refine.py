@@ -22,6 +22,7 @@ CASES = [("cow.ply", 0.0), ("bunny.ply", 0.0), ("cessna.ply", 0.02), ("terrain_g
 
 
 @pytest.mark.parametrize("name, pair_distance", CASES)
+@pytest.mark.slow
 def test_engine_equals_oracle_on_50_random_views(built, name, pair_distance):
     data = built(name, pair_distance)
     pm = pmjax.ProgressiveMesh.from_data(data)
@@ -76,6 +77,7 @@ def test_ablations_and_monotonicity_in_tau(built):
     assert no_orient > full
 
 
+@pytest.mark.slow
 def test_user_predicate_or_and_replace(built):
     data = built("cow.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
@@ -100,6 +102,7 @@ def test_user_predicate_or_and_replace(built):
         assert got.any() and np.array_equal(got, want)
 
 
+@pytest.mark.slow
 def test_critical_tolerances_reproduce_every_tau(built):
     data = built("bunny.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
@@ -113,6 +116,7 @@ def test_critical_tolerances_reproduce_every_tau(built):
             assert np.array_equal(executed, np.float32(tau) > eps)
 
 
+@pytest.mark.slow
 def test_critical_tau_is_the_exact_switch_of_the_hard_test(built):
     """At tau = t_p a pcol does not collapse, one float32 step above it does:
     the bisection finds the switch of the hard comparisons bit for bit, also
@@ -137,6 +141,7 @@ def test_critical_tau_is_the_exact_switch_of_the_hard_test(built):
             assert np.array_equal(at, t[p] > t)
 
 
+@pytest.mark.slow
 def test_faces_for_budget_is_exact(built):
     data = built("bunny.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
@@ -151,6 +156,7 @@ def test_faces_for_budget_is_exact(built):
 
 
 @pytest.mark.parametrize("common", ["most", 0, 7])
+@pytest.mark.slow
 def test_batched_face_count_for_any_kills(built, common):
     """The batched face count (``common_kills`` per executed pcol plus bit-plane
     corrections for the others) equals the direct sum over executed pcols,
@@ -200,6 +206,7 @@ def test_bad_tau_and_camera_batches_are_refused(built):
         jax.block_until_ready(pmjax.refine(pm, index_camera(cams, 0), jnp.float32(-1.0)))
 
 
+@pytest.mark.slow
 def test_refined_mesh_covers_the_same_screen_area(built):
     """Projected coverage of refined vs original (software raster of the silhouette)."""
     data = built("bunny.ply")
@@ -253,6 +260,7 @@ def coverage(cam, vertices, faces, w=200, h=150):
 
 
 @pytest.mark.parametrize("orthographic", [False, True])
+@pytest.mark.slow
 def test_frustum_test_is_the_six_planes(orthographic):
     """The camera-space sphere test (one |x| test per pair of side planes)
     decides as the six frustum planes do, in float64, away from float ties."""

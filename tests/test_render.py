@@ -121,6 +121,7 @@ def test_batch_level_colours_and_wireframe(cow, renderer):
 
 
 @pytest.mark.parametrize("ext", [".gif", ".mp4"])
+@pytest.mark.slow
 def test_video_has_one_frame_per_camera(cow, tmp_path, ext):
     path, _, _ = cow
     out = tmp_path / f"orbit{ext}"
@@ -169,6 +170,7 @@ def test_figures_command(cow, tmp_path):
     assert _red(imageio.imread(out["phantom"][0])[-240:]).sum() > 50
 
 
+@pytest.mark.slow
 def test_path_fidelity_columns(cow, tmp_path):
     path, _, _ = cow
     out = tmp_path / "stats.csv"
@@ -184,6 +186,7 @@ def test_path_fidelity_columns(cow, tmp_path):
 
 
 @pytest.mark.skipif(not (shutil.which("Xvfb") and shutil.which("xdotool")), reason="needs Xvfb and xdotool")
+@pytest.mark.slow
 def test_viewer_in_a_real_window_reacts_to_keys(cow, tmp_path):
     from PIL import ImageGrab
 
@@ -246,6 +249,7 @@ def test_viewer_in_a_real_window_reacts_to_keys(cow, tmp_path):
         xvfb.terminate()
 
 
+@pytest.mark.slow
 def test_render_refuses_an_unknown_video_format(cow, tmp_path):
     path, _, _ = cow
     out = tmp_path / "orbit.avi"
@@ -256,6 +260,7 @@ def test_render_refuses_an_unknown_video_format(cow, tmp_path):
     assert not out.exists() and not list(tmp_path.glob("*" + TEMP_MARK + "*"))
 
 
+@pytest.mark.slow
 def test_geomorph_spreads_a_refinement_change(cow, renderer):
     """At a fixed camera, a jump from tau 0.5 to tau 6 rendered at once vs blended
     over 4 frames: every blended step changes the image less than the jump, and
@@ -284,6 +289,7 @@ def test_geomorph_spreads_a_refinement_change(cow, renderer):
     assert sum(s["mse"] for s in steps) < jump["mse"]
 
 
+@pytest.mark.slow
 def test_render_and_path_with_geomorphs(cow, tmp_path):
     path, _, _ = cow
     out = tmp_path / "stats.csv"

@@ -53,6 +53,7 @@ def unit_counts(cow_data):
 
 
 @pytest.mark.parametrize("scale,offset", PLACES)
+@pytest.mark.slow
 def test_face_counts_do_not_depend_on_scale_or_offset(cow_data, unit_counts, scale, offset):
     pm = ProgressiveMesh.from_data(_moved(cow_data, scale, offset))
     cams = _cameras(cow_data, scale, offset)

@@ -79,6 +79,7 @@ def _yaw(a):
     return jnp.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
+@pytest.mark.slow
 def test_gradients_match_central_differences(built):
     data, pm32 = _pm(built, "bunny.ply")
     centre, diag = _bounds(data)
@@ -113,6 +114,7 @@ def test_gradients_match_central_differences(built):
                     f"d {out} / d {name}: gradient {jac[i, j]} vs central difference {fd[i]}"
 
 
+@pytest.mark.slow
 def test_vmap_and_grad_compose(built):
     data, pm = _pm(built, "cow.ply")
     cams = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 4)
@@ -138,6 +140,7 @@ def test_bad_temperature_is_refused(built):
 # -- budgets ---------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_soft_budget_lanes_converge_alone_and_together(built):
     """Every camera is a lane of one solve: budgets from 0.5 % to 70 % of the
     faces converge to the budget, and a camera's answer does not depend on
@@ -156,6 +159,7 @@ def test_soft_budget_lanes_converge_alone_and_together(built):
 
 
 @pytest.mark.parametrize("budget", [500, 2000, 6000])
+@pytest.mark.slow
 def test_soft_budget_matches_the_exact_budget(built, budget):
     data, pm = _pm(built, "bunny.ply")
     cams = pmjax.random_views(data.vertices[: data.n_original_vertices], 16, seed=7)

@@ -4,9 +4,12 @@ import importlib.util
 import json
 from pathlib import Path
 
+import pytest
+
 STUDY = Path(__file__).resolve().parents[1] / "docs" / "study" / "tau_schedule.py"
 
 
+@pytest.mark.slow
 def test_tau_schedule_study(tmp_path):
     spec = importlib.util.spec_from_file_location("tau_schedule", STUDY)
     study = importlib.util.module_from_spec(spec)

@@ -33,6 +33,7 @@ def test_readers(tiny):
     assert len(f) == len(data.faces) - int(data.n_pcols > 0) * int((data.killer >= 0).sum())
 
 
+@pytest.mark.slow
 def test_engines_agree_with_the_oracle(tiny):
     path, data = tiny
     pm = pmjax.load(path)
