@@ -134,7 +134,9 @@ def host_camera_rows(cameras: Camera, taus, exponent: int) -> np.ndarray:
     return camera_rows(cameras, taus, exponent, np)
 
 
-@jax.jit
+# The exponent is static: one per mesh, and a Python int is cheaper hashed than
+# converted to an array at every call.
+@functools.partial(jax.jit, static_argnames=("exponent",))
 def _camera_row_of_fields(eye, rotation, fov_y, near, far, ortho_height, width, height, tau, exponent):
     fields = types.SimpleNamespace(eye=eye, rotation=rotation, fov_y=fov_y, near=near, far=far,
                                    ortho_height=ortho_height, width=width, height=height)
@@ -148,7 +150,7 @@ def eager_camera_row(camera: Camera, tau, exponent: int) -> np.ndarray:
     runs Python code, a per-call cost here) and passed one by one."""
     f = vars(camera)
     return np.asarray(_camera_row_of_fields(f["eye"], f["rotation"], f["fov_y"], f["near"], f["far"],
-                                            f["ortho_height"], f["width"], f["height"], tau, exponent))
+                                            f["ortho_height"], f["width"], f["height"], tau, exponent=exponent))
 
 
 def _view_of_rows(rows, orthographic: bool, step=None):
