@@ -6,6 +6,7 @@ JAX traversal; none checks the core against itself. Tests that take the
 """
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -47,11 +48,15 @@ def assert_refinements_equal(a, b, where):
         assert int(getattr(a, field)) == int(getattr(b, field)), (where, field)
 
 
+@functools.partial(jax.jit, static_argnames=("exponent",))
+def _xla_view(cam, tau, exponent):
+    return View.of(camera_in_model_units(cam, exponent), tau).values
+
+
 def xla_view(cam, tau, exponent=0):
     """The view constants the dense engine computes, the camera in the model
-    unit ``2^exponent``."""
-    view = jax.jit(lambda c, t: View.of(camera_in_model_units(c, exponent), t).values)
-    return np.asarray(view(cam, jnp.float32(tau)))
+    unit ``2^exponent`` (compiled once per exponent and projection)."""
+    return np.asarray(_xla_view(cam, jnp.float32(tau), exponent=exponent))
 
 
 def decide_every_pcol(pm, cam, tau, tests):
@@ -91,10 +96,9 @@ def test_certified_decisions_equal_the_float32_predicate(built, name, simd):
                 # come from earlier batches, so one pass from the first batch
                 # gives "the whole subtree collapses" per pcol).
                 all_below = want.copy()
-                for p in range(pm.n_pcols):
-                    for k in kids[p]:
-                        if k >= 0:
-                            all_below[p] &= all_below[k]
+                for lo, hi in zip(pm.batch_offsets[:-1], pm.batch_offsets[1:]):
+                    for k in (kids[lo:hi, 0], kids[lo:hi, 1]):
+                        all_below[lo:hi] &= np.where(k >= 0, all_below[np.maximum(k, 0)], True)
                 whole = (got & _core.WHOLE) != 0
                 assert np.all(all_below[whole]), (cam.orthographic, tests, tau)
     assert checked > 0 and unsure <= 1e-4 * checked
