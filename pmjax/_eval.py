@@ -13,8 +13,11 @@ job's description (no rows; :func:`read_job`), so that pyarrow, pandas,
 polars and DuckDB read the folder by name. Re-running a job reads every part
 file there back in full and skips those that verify; one that does not (a
 truncated file, a damaged page, the wrong rows) is moved into the folder
-``FOLDER.damaged`` beside it with a line on stderr and computed again. A
-different job refuses to write into the folder.
+``FOLDER.damaged`` beside it with a line on stderr and computed again. A job
+grows: a later command may add models, camera sets and values, whose parts
+take new names; one that would change a part already there is refused
+(:func:`_merge_job`). Models and camera files are known by their content, so
+a moved data folder resumes.
 
 Parts are planned lazily, one at a time as the work reaches them, so a job's
 size (10^12 random views) costs neither memory nor time before the first part
@@ -50,7 +53,14 @@ from ._camera_table import CameraTable, _bounds, fly_rows, orbit_rows, random_ro
 from ._pmfile import file_sha256
 from ._predicate import ALL_TESTS, Tests
 
-FORMAT = "pmjax-eval/2"
+FORMAT = "pmjax-eval/3"
+# Folders of format pmjax-eval/2 are resumed too: their description names
+# models by path alone, and their parts carry a checksum of that whole
+# description (kept in the description as ``legacy_jobs``).
+FORMAT_2 = "pmjax-eval/2"
+# The settings that define every part of a job: a folder's parts keep them,
+# so a command that gives others is refused.
+SETTINGS = ("tests", "method", "chunk", "batch_chunk", "camera_columns", "columns")
 # The job's description: a Parquet file with the job's columns and no rows,
 # the description (JSON) in its metadata under JOB_KEY. Being Parquet of the
 # same columns, it leaves a read of the whole folder unchanged: pyarrow and
@@ -524,7 +534,8 @@ def evaluate(
             (``orbit:N``, ``fly:N``, ``random:N[:SEED]``, a ``.npz`` or
             ``.parquet`` camera table).
         folder: the dataset folder (created; a finished or interrupted run of
-            the same job there is resumed).
+            the same job there is resumed, and a job there gains the models,
+            camera sets and values it lacks, see docs/eval.md).
         taus: tolerances in pixels; or
         budgets: face budgets (exclusive with ``taus``): per camera, the
             smallest tolerance whose face count is the largest within the
@@ -552,8 +563,10 @@ def evaluate(
     Raises:
         EvalError: a bad setting, a camera set that cannot be read, a model
             that fails validation (parts finished before it are kept), a
-            folder holding another job, or a part computed from a model file
-            whose content has changed since.
+            folder whose parts this job defines otherwise (other settings, a
+            model of the same name with other content; the message names the
+            old and new values), or a part computed from a model file whose
+            content has changed since.
         EvalInterrupted: Ctrl-C (a ``KeyboardInterrupt``); its message
             says how many parts are saved, and the same call resumes.
     """
@@ -592,16 +605,24 @@ def evaluate(
         raise EvalError(f"two models are named {twice!r} (the file name without .pmz names a model's rows)")
     if len({s.name for s in sets}) < len(sets):
         raise EvalError("two camera sets have the same name; give each file set a distinct file name")
+    kind = "taus" if len(taus) else "budgets"
+    twice = next((x for i, x in enumerate(values) if x in values[:i]), None)
+    if twice is not None:
+        raise EvalError(f"{kind[:-1]} {twice!r} is given twice")
     start = time.perf_counter()
     # Camera files are read (and validated) once, before any work.
     tables = [read_camera_table(s.path) if s.kind == "file" else None for s in sets]
-    job = dict(format=FORMAT, models=[os.path.abspath(m) for m in models], camera_sets=[s.describe() for s in sets],
-               taus=[float(t) for t in taus], budgets=[int(b) for b in budgets], tests=_tests_dict(tests),
-               method=method, chunk=int(chunk), batch_chunk=int(batch_chunk), camera_columns=camera_columns,
-               columns=schema.names)
-    job_sha = hashlib.sha256(json.dumps(job, sort_keys=True).encode()).hexdigest()
     counts = [len(t) if t is not None else s.count for s, t in zip(sets, tables)]
+    # Models are known by their content: the path is where this command
+    # finds them (a folder of models may move between runs).
+    digests = [file_sha256(m) for m in models]
+    described = [dict(s.describe(), count=n) for s, n in zip(sets, counts)]
+    command = dict(format=FORMAT, models=[os.path.abspath(m) for m in models], model_sha256=digests,
+                   camera_sets=described, taus=[float(t) for t in taus], budgets=[int(b) for b in budgets],
+                   tests=_tests_dict(tests), method=method, chunk=int(chunk), batch_chunk=int(batch_chunk),
+                   camera_columns=camera_columns, columns=schema.names)
     total = len(models) * len(values) * sum(counts)
+    n_parts = len(models) * len(values) * sum(-(-n // chunk) for n in counts)
     # The parts found done and verified (file name -> SHA-256 of the model
     # they came from), and those written now: what an interruption reports.
     done, checked = {}, False
@@ -609,11 +630,24 @@ def evaluate(
     try:
         with contextlib.ExitStack() as stack:
             stack.enter_context(_lock_folder(folder))
-            verified = _verify_folder(folder, _open_folder(folder, job, schema), job_sha, counts, len(models),
-                                      len(values), chunk, schema)
-            done.update(verified)
+            job, names = _open_folder(folder, command, schema)
+            verified = _verify_folder(folder, names, job, schema)
+            # The command's entries by their positions in the folder's job,
+            # which name its part files.
+            model_names = [_model_name(m) for m in job["models"]]
+            set_names = [CameraSet(**{k: v for k, v in d.items() if k in CameraSet.__dataclass_fields__}).name
+                         for d in job["camera_sets"]]
+            at_model = [model_names.index(_model_name(m)) for m in models]
+            at_set = {set_names.index(s.name): i for i, s in enumerate(sets)}
+            at_value = {job[kind].index(x): i for i, x in enumerate(command[kind])}
+            job_counts = [d["count"] for d in job["camera_sets"]]
+            mine = {(m, c, v) for m in at_model for c in at_set for v in at_value}
+            for name, model_sha in verified.items():
+                m, c, v, _ = (int(g) for g in _PART_NAME.fullmatch(name).groups())
+                if (m, c, v) in mine:
+                    done[name] = model_sha
             checked = True
-            n_done = sum(_rows_of(name, counts, chunk) for name in done)
+            n_done = sum(_rows_of(name, job_counts, chunk) for name in done)
             bar = stack.enter_context(_progress(progress, total, n_done))
             submitted = 0
             runner = _Runner(scheduler, workers)
@@ -629,7 +663,7 @@ def evaluate(
                     rows_now += table.num_rows
                     bar.update(table.num_rows)
 
-            for mi, model_path in enumerate(models):
+            for model_path, mi, digest in zip(models, at_model, digests):
                 if max_parts is not None and submitted >= max_parts:
                     break
                 # The model is validated before its parts start; a bad one stops
@@ -639,7 +673,6 @@ def evaluate(
                 except PMFormatError as exc:
                     store(runner.drain())
                     raise EvalError(f"model {model_path}: {exc}") from exc
-                digest = file_sha256(model_path)
                 vertices = data.vertices[: data.n_original_vertices]
                 # The camera sets depend on the box alone: its two corners make
                 # the same cameras, without a pass over every vertex per part.
@@ -649,7 +682,7 @@ def evaluate(
                 bounds = tuple(float(x) for x in np.append(*_bounds(vertices))) if camera_columns else None
                 # Parts come one at a time from a generator: nothing is planned
                 # ahead of the work, whatever the job's size.
-                for part in _model_parts(mi, counts, len(values), chunk):
+                for part in _model_parts(mi, sorted(at_set), sorted(at_value), job_counts, chunk):
                     if part.file in done:
                         if done[part.file] != digest:
                             raise EvalError(f"{os.path.join(folder, part.file)} was computed from another version "
@@ -658,31 +691,34 @@ def evaluate(
                         continue
                     if max_parts is not None and submitted >= max_parts:
                         break
-                    s, value = sets[part.cameras], values[part.value]
+                    ci = at_set[part.cameras]
+                    s, value = sets[ci], values[at_value[part.value]]
+                    key = _part_key(job, part.model, part.cameras, part.value)
                     # The absolute path: a worker may run in another folder.
                     task = dict(model_path=os.path.abspath(model_path), model_sha256=digest,
                                 model_name=_model_name(model_path),
-                                set_name=s.name, rows=s.rows(vertices, part.lo, part.hi, tables[part.cameras]),
+                                set_name=s.name, rows=s.rows(vertices, part.lo, part.hi, tables[ci]),
                                 lo=part.lo, hi=part.hi, tau=None if budgets else value,
                                 budget=value if budgets else None, tests=_tests_dict(tests), method=method,
-                                batch_chunk=int(batch_chunk), compile_cache=compile_cache, job_sha256=job_sha,
+                                batch_chunk=int(batch_chunk), compile_cache=compile_cache, job_sha256=key,
                                 part=part.file, bounds=bounds)
                     submitted += 1
                     store(runner.submit(part, task))
                 del data, vertices, v64
             store(runner.drain())
     except KeyboardInterrupt:
-        n_parts = len(models) * len(values) * sum(-(-c // chunk) for c in counts)
         raise EvalInterrupted(os.fspath(folder), len(done) + written if checked else None, n_parts,
                               n_done + rows_now, total) from None
     return EvalSummary(folder=os.fspath(folder), rows=n_done + rows_now, parts_written=written,
                        parts_skipped=len(done), cameras=rows_now, seconds=time.perf_counter() - start)
 
 
-def _model_parts(m, counts, n_values, chunk):
-    """The parts of model ``m``, in row order, made as they are asked for."""
-    for c in range(len(counts)):
-        for v in range(n_values):
+def _model_parts(m, sets, values, counts, chunk):
+    """The parts of model ``m`` for the camera sets ``sets`` and values
+    ``values`` (positions in the job's lists, increasing), in row order,
+    made as they are asked for."""
+    for c in sets:
+        for v in values:
             for k in range(-(-counts[c] // chunk)):
                 yield _part(m, c, v, k, counts, chunk)
 
@@ -759,10 +795,11 @@ def read_job(folder) -> dict:
                         "use another folder, or delete this one to start over") from None
 
 
-def _open_folder(folder, job, schema) -> set:
-    """Reopen (or start) the locked dataset folder for ``job`` (whose rows
-    have ``schema``): the names of the part files there (not yet verified,
-    see :func:`_verify_folder`)."""
+def _open_folder(folder, command, schema) -> tuple[dict, set]:
+    """Reopen (or start) the locked dataset folder for the job ``command``
+    (whose rows have ``schema``): the folder's job, extended by the command
+    (:func:`_merge_job`) and written back atomically when it changed, and the
+    names of the part files there (not yet verified, see :func:`_verify_folder`)."""
     import pyarrow.parquet as pq
 
     path = os.path.join(folder, JOB_FILE)
@@ -774,15 +811,10 @@ def _open_folder(folder, job, schema) -> set:
         except (OSError, ValueError, AttributeError):
             form = "unknown"
         raise EvalError(f"{folder} holds a job in format {form} (described by {OLD_JOB_FILE}), whose parts lack "
-                        f"columns of format {FORMAT}; its rows stay readable, but it cannot be resumed: use "
+                        f"columns of format {FORMAT_2}; its rows stay readable, but it cannot be resumed: use "
                         "another folder, or delete this one to start over")
-    if os.path.exists(path):
-        old = read_job(folder)
-        if old != job:
-            changed = sorted(k for k in set(old) | set(job) if old.get(k) != job.get(k))
-            raise EvalError(f"{folder} holds another job (differs in: {', '.join(changed)}); "
-                            "use another folder, or delete this one to start over")
-    else:
+    job = _merge_job(folder, read_job(folder), command) if os.path.exists(path) else command
+    if not os.path.exists(path) or read_job(folder) != job:
         empty = schema.empty_table().replace_schema_metadata({JOB_KEY: json.dumps(job, indent=1, sort_keys=True)})
         with atomic_path(path) as tmp:
             pq.write_table(empty, tmp)
@@ -790,13 +822,121 @@ def _open_folder(folder, job, schema) -> set:
     for name in os.listdir(folder):
         if TEMP_MARK in name:
             os.unlink(os.path.join(folder, name))
-    return {name for name in os.listdir(folder) if name.startswith("part-") and name.endswith(".parquet")}
+    return job, {name for name in os.listdir(folder) if name.startswith("part-") and name.endswith(".parquet")}
 
 
-def _verify_folder(folder, names, job_sha, counts, n_models, n_values, chunk, schema=None) -> dict:
-    """Verify the part files ``names`` of the dataset folder; those that fail
-    are moved into :func:`damaged_folder` (a line on stderr says which and why)
-    so that the job computes them again.
+def _short(value):
+    """A value for a message: SHA-256 digests cut to their first 12 digits."""
+    if isinstance(value, str) and re.fullmatch(r"[0-9a-f]{64}", value):
+        return value[:12]
+    return value
+
+
+def _from_format_2(job: dict) -> dict:
+    """A description of format pmjax-eval/2 in this format: its models'
+    digests and camera files' row counts unknown (``None``, taken from the
+    next command that names them), its checksum kept as ``legacy_jobs``."""
+    sha = hashlib.sha256(json.dumps(job, sort_keys=True).encode()).hexdigest()
+    sets = [dict(d, count=None) if d.get("kind") == "file" else d for d in job.get("camera_sets", [])]
+    return dict(job, format=FORMAT, model_sha256=[None] * len(job.get("models", [])), camera_sets=sets,
+                legacy_jobs=[sha])
+
+
+def _merge_job(folder, old: dict, new: dict) -> dict:
+    """The job of ``folder`` (``old``) extended by a command's job ``new``.
+
+    A job grows: models, camera sets and values (tolerances or budgets) the
+    folder lacks are appended to its lists, so parts there keep their names
+    (a part file is named by positions in these lists), and the folder's
+    rows are those of every command run into it. What defines an existing
+    part cannot change: the settings (:data:`SETTINGS`), tolerances against
+    budgets, a model's content (SHA-256; its path is only where it was last
+    seen, so a moved model resumes), a camera set's definition (a file's
+    content; its path is a hint too).
+
+    Raises:
+        EvalError: a change to what defines the folder's parts, naming the
+            old and new values; or a folder of another format.
+    """
+    if old.get("format") == FORMAT_2:
+        old = _from_format_2(old)
+    if old.get("format") != FORMAT:
+        raise EvalError(f"{folder} holds a job in format {old.get('format')!r}, this version writes {FORMAT}; "
+                        "use another folder, or delete this one to start over")
+    changes = [f"{key}: {_short(old.get(key))!r} there, {_short(new[key])!r} here"
+               for key in SETTINGS if old.get(key) != new[key]
+               # The columns follow camera_columns: named once.
+               and not (key == "columns" and old.get("camera_columns") != new["camera_columns"])]
+    if bool(old["taus"]) != bool(new["taus"]):
+        there = f"tolerances {old['taus']}" if old["taus"] else f"budgets {old['budgets']}"
+        here = f"tolerances {new['taus']}" if new["taus"] else f"budgets {new['budgets']}"
+        changes.append(f"values: {there} there, {here} here")
+    job = json.loads(json.dumps(old))
+    names = [_model_name(m) for m in job["models"]]
+    for path, digest in zip(new["models"], new["model_sha256"]):
+        name = _model_name(path)
+        if name not in names:
+            names.append(name)
+            job["models"].append(path)
+            job["model_sha256"].append(digest)
+            continue
+        i = names.index(name)
+        if job["model_sha256"][i] not in (None, digest):
+            changes.append(f"model {name!r}: content SHA-256 {_short(job['model_sha256'][i])} there (then at "
+                           f"{job['models'][i]}), {_short(digest)} here ({path}; its content changed)")
+        job["models"][i], job["model_sha256"][i] = path, digest
+    set_names = [CameraSet(**{k: v for k, v in d.items() if k in CameraSet.__dataclass_fields__}).name
+                 for d in job["camera_sets"]]
+    for d in new["camera_sets"]:
+        name = CameraSet(**{k: v for k, v in d.items() if k in CameraSet.__dataclass_fields__}).name
+        if name not in set_names:
+            set_names.append(name)
+            job["camera_sets"].append(d)
+            continue
+        i = set_names.index(name)
+        was = job["camera_sets"][i]
+        differ = [f"{key} {_short(was.get(key))!r} there, {_short(d.get(key))!r} here" for key in sorted(set(was) | set(d))
+                  if key != "path" and was.get(key) != d.get(key) and not (key == "count" and was.get(key) is None)]
+        if differ:
+            changes.append(f"camera set {name!r}: " + ", ".join(differ))
+        job["camera_sets"][i] = d
+    kind = "taus" if new["taus"] else "budgets"
+    if not changes:
+        job[kind] = job[kind] + [x for x in new[kind] if x not in job[kind]]
+    if changes:
+        raise EvalError(f"{folder} holds parts that this command defines otherwise ({'; '.join(changes)}); a job "
+                        "can gain models, camera sets and values, but its parts cannot change: use another folder, "
+                        "or delete this one to start over")
+    return job
+
+
+def _part_key(job: dict, m: int, c: int, v: int) -> str:
+    """SHA-256, hex, of what defines the rows of model ``m``, camera set ``c``
+    and value ``v`` of ``job`` (positions in its lists): the settings, the
+    model's name, the set's definition and the value; not the paths (hints)
+    nor the job's other entries, so a part stays valid as its job grows or
+    its files move. A part file records it (``job``); the model's content is
+    recorded and checked apart (``model_sha256``)."""
+    value = (job["taus"] or job["budgets"])[v]
+    record = dict(format=FORMAT, model=_model_name(job["models"][m]),
+                  camera_set={k: x for k, x in job["camera_sets"][c].items() if k != "path"},
+                  tau=value if job["taus"] else None, budget=None if job["taus"] else value,
+                  **{key: job[key] for key in SETTINGS})
+    return hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()
+
+
+def _job_shape(job: dict):
+    """Of the job: its camera sets' counts (``None`` where unknown: a camera
+    file of a pmjax-eval/2 folder no command has named since), models and values."""
+    return ([d["count"] for d in job["camera_sets"]], len(job["models"]), len(job["taus"] or job["budgets"]))
+
+
+def _verify_folder(folder, names, job, schema=None) -> dict:
+    """Verify the part files ``names`` of the dataset folder against its
+    ``job``; those that fail are moved into :func:`damaged_folder` (a line on
+    stderr says which and why) so that the job computes them again. Parts of
+    a camera file whose row count is unknown (:func:`_job_shape`) are left
+    as they are, unverified, until a command names that file.
 
     Returns:
         ``{file name: SHA-256 of the model the part was computed from}`` for
@@ -804,14 +944,22 @@ def _verify_folder(folder, names, job_sha, counts, n_models, n_values, chunk, sc
     """
     from concurrent.futures import ThreadPoolExecutor
 
-    parts = {name: _part_named(name, counts, n_models, n_values, chunk) for name in sorted(names)}
+    counts, n_models, n_values = _job_shape(job)
+    legacy = set(job.get("legacy_jobs", ()))
+    parts = {}
+    for name in sorted(names):
+        match = _PART_NAME.fullmatch(name)
+        if match and int(match.group(2)) < len(counts) and counts[int(match.group(2))] is None:
+            continue
+        parts[name] = _part_named(name, counts, n_models, n_values, job["chunk"])
 
     def check(name):
         part = parts[name]
         if part is None:
             return ("is not a part of this job (its name is outside the job's models, camera sets, values or "
                     "chunks)"), None
-        return _verify_part(os.path.join(folder, name), part, job_sha, schema)
+        keys = {_part_key(job, part.model, part.cameras, part.value)} | legacy
+        return _verify_part(os.path.join(folder, name), part, keys, schema)
 
     done = {}
     # Parquet decoding and hashing release the GIL: verify parts in parallel.
@@ -830,7 +978,9 @@ def _verify_folder(folder, names, job_sha, counts, n_models, n_values, chunk, sc
 
 def _verify_part(path, part, job_sha, schema=None):
     """Read a part file in full and check it against its part of the job
-    (``schema``: the job's columns, by default those without camera context).
+    (``job_sha``: the key its record must hold, :func:`_part_key`, or a set
+    of keys accepted; ``schema``: the job's columns, by default those
+    without camera context).
 
     Returns:
         ``(problem, model_sha256)``: ``problem`` is ``None`` for a part that
@@ -861,7 +1011,7 @@ def _verify_part(path, part, job_sha, schema=None):
     # The checksum first: once it holds, the record (job, part, rows) is the one written.
     if signed and info["sha256"] != digest:
         return "its content does not match its checksum (damaged data)", None
-    if info.get("job") != job_sha:
+    if info.get("job") not in ({job_sha} if isinstance(job_sha, str) else set(job_sha)):
         return "was written by another job", None
     name = os.path.basename(path)
     if info.get("part", name) != name:
