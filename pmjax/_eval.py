@@ -79,6 +79,10 @@ DAMAGED_SUFFIX = ".damaged"
 # camera set has more chunks, so that lexical order stays row order).
 CHUNK_DIGITS = 7
 DEFAULT_CHUNK = 2048
+# Rows per compacted file and per row group in it, by default: a compacted
+# file is read whole when verified (about 110 bytes a row), one at a time.
+COMPACT_ROWS = 1 << 22
+COMPACT_GROUP_ROWS = 1 << 20
 # Default folder of JAX's persistent compilation cache for evaluations.
 DEFAULT_COMPILE_CACHE = os.path.join(os.path.expanduser("~"), ".cache", "pmjax", "xla")
 # Models a process keeps loaded (with their compiled kernels) at once.
@@ -713,6 +717,173 @@ def evaluate(
                        parts_skipped=len(done), cameras=rows_now, seconds=time.perf_counter() - start)
 
 
+@dataclasses.dataclass(frozen=True)
+class CompactSummary:
+    """What :func:`compact` did.
+
+    Attributes:
+        folder: the dataset folder.
+        parts: parts in the folder (verified), rows: their rows.
+        files_before, files_after: part and compacted files before and after.
+        seconds: wall time.
+    """
+
+    folder: str
+    parts: int
+    rows: int
+    files_before: int
+    files_after: int
+    seconds: float
+
+
+def compact(folder, *, rows_per_file: int = COMPACT_ROWS, row_group_rows: int = COMPACT_GROUP_ROWS) -> CompactSummary:
+    """Rewrite the part files of an evaluation dataset ``folder`` into few
+    large files, the same rows in the same order, resumable as before.
+
+    Every file is verified first (as a resumed job does: a damaged part is
+    set aside, to be computed by the next run of the job). Then each run of
+    consecutive parts (in the job's row order: models, camera sets, values,
+    chunks) is written into files of at most ``rows_per_file`` rows (a file
+    is never cut inside a part), in row groups of ``row_group_rows``, each
+    named after its first and last part (``part-m0000-c0000-v0000-0000000-to-
+    m0001-c0002-v0003-0000012.parquet``), so lexical order stays row order.
+    A compacted file records every part it holds (name, definition key,
+    model checksum, rows, checksum over its rows): the job resumes from it,
+    verifies each part in it, and sets aside a damaged one whole (its parts
+    are computed again). Each file is written atomically, then the files it
+    replaces are removed; files left by an interrupted compaction (rows also
+    in a compacted file) are removed when the folder is next opened. A folder
+    compacted while its job is unfinished resumes too: the missing parts come
+    as part files, and a later compaction merges them.
+
+    Args:
+        folder: a dataset folder written by :func:`evaluate`.
+        rows_per_file: rows per compacted file, at most (a part larger
+            than this stays alone); a compacted file is read whole when
+            verified, about 110 bytes a row (camera columns: about 170).
+        row_group_rows: rows per Parquet row group.
+
+    Returns:
+        :class:`CompactSummary`.
+
+    Raises:
+        EvalError: not a dataset folder, one another run is writing into, or
+            a bad argument.
+    """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    for name, value in (("rows_per_file", rows_per_file), ("row_group_rows", row_group_rows)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise EvalError(f"{name} must be a whole number >= 1, not {value!r}")
+    if not os.path.isdir(folder):
+        raise EvalError(f"{folder}: no such folder")
+    start = time.perf_counter()
+    with _lock_folder(folder):
+        job = read_job(folder)
+        if job.get("format") == FORMAT_2:
+            job = _from_format_2(job)
+        if job.get("format") != FORMAT:
+            raise EvalError(f"{folder} holds a job in format {job.get('format')!r}, this version compacts {FORMAT}")
+        schema = _schema(job["camera_columns"])
+        _remove_temporaries(folder)
+        names = _part_files(folder)
+        counts, n_models, n_values = _job_shape(job)
+        shape = (counts, n_models, n_values, job["chunk"])
+        files = _verify_files(folder, names, job, schema)
+        # Every part: where its rows are (file, first row) and its record.
+        where, records, holds = {}, {}, {}
+        for name, shas in files:
+            info = json.loads((pq.read_schema(os.path.join(folder, name)).metadata or {})[b"pmjax"])
+            listed = info["compacted"] if "compacted" in info else [info]
+            offset = 0
+            for record in listed:
+                part = _part_named(record.get("part", name), counts, n_models, n_values, job["chunk"])
+                where[part.file] = (part, name, offset)
+                records[part.file] = record
+                offset += part.hi - part.lo
+            holds[name] = list(shas)
+        # Runs of consecutive parts in the job's row order, cut into files of
+        # at most rows_per_file rows (never inside a part).
+        groups, current, rows = [], [], 0
+        for part, _, _ in sorted(where.values(), key=lambda w: (w[0].model, w[0].cameras, w[0].value, w[0].chunk)):
+            n = part.hi - part.lo
+            if current and (_next_part(current[-1], *shape) != part or rows + n > rows_per_file):
+                groups.append(current)
+                current, rows = [], 0
+            current.append(part)
+            rows += n
+        if current:
+            groups.append(current)
+        # A source file goes once every part it holds is written elsewhere.
+        left = {name: len(parts) for name, parts in holds.items()}
+        cached = [None, None]  # one source file's rows at a time
+        for group in groups:
+            target = group[0].file if len(group) == 1 else _compact_name(group[0].file, group[-1].file)
+            if holds.get(target) == [p.file for p in group]:
+                continue  # already this file
+            body = []
+            for part in group:
+                record = records[part.file]
+                # A part written without its name, rows or checksum: recorded in full.
+                if not all(key in record for key in ("part", "rows", "sha256")):
+                    record = dict(job=record["job"], model_sha256=record["model_sha256"], part=part.file,
+                                  rows=part.hi - part.lo)
+                    record["sha256"] = _table_sha256(_rows_in(folder, where[part.file], cached), record)
+                body.append(record)
+            metadata = {"pmjax": json.dumps(body[0] if len(group) == 1 else {"compacted": body})}
+            with atomic_path(os.path.join(folder, target)) as tmp:
+                with pq.ParquetWriter(tmp, schema.with_metadata(metadata)) as writer:
+                    buffer, buffered = [], 0
+                    for part in group:
+                        for batch in _rows_in(folder, where[part.file], cached).to_batches():
+                            buffer.append(batch)
+                            buffered += batch.num_rows
+                        while buffered >= row_group_rows:
+                            table = pa.Table.from_batches(buffer, schema)
+                            writer.write_table(table.slice(0, row_group_rows), row_group_size=row_group_rows)
+                            rest = table.slice(row_group_rows)
+                            buffer, buffered = rest.to_batches(), rest.num_rows
+                    if buffered:
+                        writer.write_table(pa.Table.from_batches(buffer, schema), row_group_size=row_group_rows)
+            cached[:] = [None, None]
+            # The new file is in place: sources whose every part it (or an
+            # earlier new file) holds go; a source of the target's name was
+            # replaced by it.
+            for part in group:
+                source = where[part.file][1]
+                left[source] -= 1
+                if left[source] == 0 and source != target and os.path.exists(os.path.join(folder, source)):
+                    os.unlink(os.path.join(folder, source))
+        after = _part_files(folder)
+    return CompactSummary(folder=os.fspath(folder), parts=len(where),
+                          rows=sum(p.hi - p.lo for p, _, _ in where.values()), files_before=len(names),
+                          files_after=len(after), seconds=time.perf_counter() - start)
+
+
+def _rows_in(folder, located, cached):
+    """The rows of a part located at ``(part, file, first row)`` in ``folder``,
+    without metadata; ``cached``: ``[file name, its table]``, the last file read."""
+    import pyarrow.parquet as pq
+
+    part, name, offset = located
+    if cached[0] != name:
+        cached[:] = [name, pq.read_table(os.path.join(folder, name)).replace_schema_metadata(None)]
+    return cached[1].slice(offset, part.hi - part.lo)
+
+
+def _part_files(folder) -> set:
+    """The names of the part and compacted files in ``folder``."""
+    return {name for name in os.listdir(folder) if name.startswith("part-") and name.endswith(".parquet")}
+
+
+def _remove_temporaries(folder) -> None:
+    """Temporary files of a killed run are debris: no part is half-written."""
+    for name in os.listdir(folder):
+        if TEMP_MARK in name:
+            os.unlink(os.path.join(folder, name))
+
+
 def _model_parts(m, sets, values, counts, chunk):
     """The parts of model ``m`` for the camera sets ``sets`` and values
     ``values`` (positions in the job's lists, increasing), in row order,
@@ -818,11 +989,8 @@ def _open_folder(folder, command, schema) -> tuple[dict, set]:
         empty = schema.empty_table().replace_schema_metadata({JOB_KEY: json.dumps(job, indent=1, sort_keys=True)})
         with atomic_path(path) as tmp:
             pq.write_table(empty, tmp)
-    # Temporary files of a killed run are debris: no part is half-written.
-    for name in os.listdir(folder):
-        if TEMP_MARK in name:
-            os.unlink(os.path.join(folder, name))
-    return job, {name for name in os.listdir(folder) if name.startswith("part-") and name.endswith(".parquet")}
+    _remove_temporaries(folder)
+    return job, _part_files(folder)
 
 
 def _short(value):
@@ -933,47 +1101,192 @@ def _job_shape(job: dict):
 
 def _verify_folder(folder, names, job, schema=None) -> dict:
     """Verify the part files ``names`` of the dataset folder against its
-    ``job``; those that fail are moved into :func:`damaged_folder` (a line on
-    stderr says which and why) so that the job computes them again. Parts of
-    a camera file whose row count is unknown (:func:`_job_shape`) are left
-    as they are, unverified, until a command names that file.
+    ``job`` (:func:`_verify_files`).
 
     Returns:
-        ``{file name: SHA-256 of the model the part was computed from}`` for
-        the parts that verify.
+        ``{part file name: SHA-256 of the model the part was computed from}``
+        for the parts that verify, those in compacted files included.
+    """
+    return {name: sha for _, shas in _verify_files(folder, names, job, schema) for name, sha in shas.items()}
+
+
+def _set_aside(folder, name, problem) -> None:
+    """Move the file ``name`` of ``folder`` into :func:`damaged_folder`, with a line on stderr."""
+    path, aside = os.path.join(folder, name), os.path.join(damaged_folder(folder), name)
+    os.makedirs(os.path.dirname(aside), exist_ok=True)
+    os.replace(path, aside)
+    print(f"pmjax eval: {path}: {problem}; moved to {aside}, the part is computed again", file=sys.stderr, flush=True)
+
+
+def _verify_files(folder, names, job, schema=None) -> list:
+    """Verify the files ``names`` of the dataset folder (part files and
+    compacted files, :func:`compact`) against its ``job``; those that fail are
+    moved into :func:`damaged_folder` (a line on stderr says which and why) so
+    that the job computes their parts again. Parts of a camera file whose row
+    count is unknown (:func:`_job_shape`) are left as they are, unverified,
+    until a command names that file. A file whose parts are all in a larger
+    compacted file that verifies is what an interrupted compaction left
+    behind: it is removed (a line on stderr).
+
+    Returns:
+        ``[(file name, {part name: model SHA-256})]``, the files that verify.
     """
     from concurrent.futures import ThreadPoolExecutor
 
     counts, n_models, n_values = _job_shape(job)
     legacy = set(job.get("legacy_jobs", ()))
-    parts = {}
-    for name in sorted(names):
+
+    def unknown(name):
         match = _PART_NAME.fullmatch(name)
-        if match and int(match.group(2)) < len(counts) and counts[int(match.group(2))] is None:
+        return bool(match) and int(match.group(2)) < len(counts) and counts[int(match.group(2))] is None
+
+    def keys(part):
+        return {_part_key(job, part.model, part.cameras, part.value)} | legacy
+
+    singles, compacted = {}, {}
+    for name in sorted(names):
+        span = _COMPACT_NAME.fullmatch(name)
+        if span is None:
+            if not unknown(name):
+                singles[name] = _part_named(name, counts, n_models, n_values, job["chunk"])
             continue
-        parts[name] = _part_named(name, counts, n_models, n_values, job["chunk"])
+        first, last = (f"part-{span.group(i)}.parquet" for i in (1, 2))
+        if unknown(first) or unknown(last):
+            continue
+        compacted[name] = [_part_named(n, counts, n_models, n_values, job["chunk"]) for n in (first, last)]
+    outside = ("is not a part of this job (its name is outside the job's models, camera sets, values or chunks)",
+               None)
+    verified = []
+    # Compacted files one at a time (each is read whole, up to its rows_per_file rows).
+    def named(name):
+        return None if unknown(name) else _part_named(name, counts, n_models, n_values, job["chunk"])
+
+    for name, (first, last) in compacted.items():
+        problem, shas = _verify_compacted(os.path.join(folder, name), first, last, named, keys, schema)
+        if problem is None:
+            verified.append((name, shas))
+        else:
+            _set_aside(folder, name, problem)
+    # The largest first: a file whose parts it holds is left over from its compaction.
+    claimed, kept = {}, []
+    for name, shas in sorted(verified, key=lambda item: -len(item[1])):
+        if all(part in claimed for part in shas):
+            _remove_leftover(folder, name, claimed[next(iter(shas))])
+        elif any(part in claimed for part in shas):
+            _set_aside(folder, name, f"holds parts also in {claimed[next(p for p in shas if p in claimed)]}")
+        else:
+            claimed.update(dict.fromkeys(shas, name))
+            kept.append((name, shas))
+    for name in [n for n in singles if n in claimed]:
+        _remove_leftover(folder, name, claimed[name])
+        del singles[name]
 
     def check(name):
-        part = parts[name]
+        part = singles[name]
         if part is None:
-            return ("is not a part of this job (its name is outside the job's models, camera sets, values or "
-                    "chunks)"), None
-        keys = {_part_key(job, part.model, part.cameras, part.value)} | legacy
-        return _verify_part(os.path.join(folder, name), part, keys, schema)
+            return outside
+        return _verify_part(os.path.join(folder, name), part, keys(part), schema)
 
-    done = {}
     # Parquet decoding and hashing release the GIL: verify parts in parallel.
     with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
-        for name, (problem, model_sha) in zip(parts, pool.map(check, parts)):
+        for name, (problem, model_sha) in zip(singles, pool.map(check, singles)):
             if problem is None:
-                done[name] = model_sha
-                continue
-            path, aside = os.path.join(folder, name), os.path.join(damaged_folder(folder), name)
-            os.makedirs(os.path.dirname(aside), exist_ok=True)
-            os.replace(path, aside)
-            print(f"pmjax eval: {path}: {problem}; moved to {aside}, the part is computed again",
-                  file=sys.stderr, flush=True)
-    return done
+                kept.append((name, {name: model_sha}))
+            else:
+                _set_aside(folder, name, problem)
+    return kept
+
+
+# A compacted file (:func:`compact`): the rows of a run of consecutive parts,
+# named after its first and last, so that lexical order stays row order.
+_COMPACT_NAME = re.compile(r"part-(m\d+-c\d+-v\d+-\d+)-to-(m\d+-c\d+-v\d+-\d+)\.parquet")
+
+
+def _next_part(part, counts, n_models, n_values, chunk) -> Optional[_Part]:
+    """The part after ``part`` in the job's row order (models, camera sets,
+    values, chunks; all the job's entries), or ``None`` after the last or
+    before a camera set of unknown count."""
+    m, c, v, k = part.model, part.cameras, part.value, part.chunk
+    if (k + 1) * chunk < counts[c]:
+        return _part(m, c, v, k + 1, counts, chunk)
+    if v + 1 < n_values:
+        return _part(m, c, v + 1, 0, counts, chunk)
+    if c + 1 < len(counts):
+        return None if counts[c + 1] is None else _part(m, c + 1, 0, 0, counts, chunk)
+    if m + 1 < n_models:
+        return None if counts[0] is None else _part(m + 1, 0, 0, 0, counts, chunk)
+    return None
+
+
+def _compact_name(first: str, last: str) -> str:
+    """The name of the compacted file holding the parts ``first`` to ``last``."""
+    return f"{first[:-len('.parquet')]}-to-{last[len('part-'):]}"
+
+
+def _verify_compacted(path, first, last, named, keys, schema=None):
+    """Read a compacted file in full and check it: Arrow's validation, the
+    footer statistics, the columns, and per part in its record, from
+    ``first`` to ``last`` in the job's row order (``named(name)``: the job's
+    part of that name or ``None``; ``keys(part)``: the definition keys its
+    record may hold), its name, row count, checksum over its rows, job and
+    model checksum.
+
+    Returns:
+        ``(problem, {part name: model SHA-256})``, ``problem`` ``None`` when it verifies.
+    """
+    import pyarrow.parquet as pq
+
+    if first is None or last is None:
+        return ("is not a part of this job (its name is outside the job's models, camera sets, values or "
+                "chunks)"), None
+    try:
+        with pq.ParquetFile(path) as pf:
+            table = pf.read()
+            table.validate(full=True)
+            info = json.loads((table.schema.metadata or {}).get(b"pmjax", b"{}"))
+            wrong = _wrong_statistics(pf.metadata, table)
+    except Exception as exc:  # pyarrow raises several types for a damaged file
+        return f"unreadable ({type(exc).__name__}: {exc})", None
+    if wrong:
+        return wrong, None
+    records = info.get("compacted") if isinstance(info, dict) else None
+    if not isinstance(records, list) or not records or not all(isinstance(r, dict) for r in records):
+        return "has no pmjax record of the parts it holds", None
+    if not table.schema.remove_metadata().equals(schema if schema is not None else _schema()):
+        return f"has columns {table.schema.remove_metadata().to_string()!r}, not this job's", None
+    if records[0].get("part") != first.file or records[-1].get("part") != last.file:
+        return f"its records run from {records[0].get('part')!r} to {records[-1].get('part')!r}, its name says " \
+               f"{first.file} to {last.file}", None
+    shas, offset, before = {}, 0, None
+    for i, record in enumerate(records):
+        part = named(record.get("part")) if isinstance(record.get("part"), str) else None
+        if part is None:
+            return f"its record {i} names {record.get('part')!r}, not a part of this job", None
+        order = (part.model, part.cameras, part.value, part.chunk)
+        if before is not None and order <= before:
+            return f"its record {i} names {part.file}, out of the job's row order", None
+        before = order
+        n = part.hi - part.lo
+        if record.get("rows") != n or offset + n > table.num_rows:
+            return f"holds {record.get('rows')!r} rows of {part.file} from row {offset}, expected {n}", None
+        body = {k: v for k, v in record.items() if k != "sha256"}
+        if record.get("sha256") != _table_sha256(table.slice(offset, n), body):
+            return f"the rows of {part.file} do not match their checksum (damaged data)", None
+        if record.get("job") not in keys(part):
+            return f"{part.file} was written by another job", None
+        if not isinstance(record.get("model_sha256"), str):
+            return f"{part.file} has no model checksum", None
+        shas[part.file] = record["model_sha256"]
+        offset += n
+    if offset != table.num_rows:
+        return f"holds {table.num_rows} rows, its records {offset}", None
+    return None, shas
+
+
+def _remove_leftover(folder, name, holder) -> None:
+    os.unlink(os.path.join(folder, name))
+    print(f"pmjax eval: {os.path.join(folder, name)}: its rows are in {holder} (left over from an interrupted "
+          "compaction); removed", file=sys.stderr, flush=True)
 
 
 def _verify_part(path, part, job_sha, schema=None):
