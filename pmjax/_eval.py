@@ -17,7 +17,8 @@ truncated file, a damaged page, the wrong rows) is moved into the folder
 grows: a later command may add models, camera sets and values, whose parts
 take new names; one that would change a part already there is refused
 (:func:`_merge_job`). Models and camera files are known by their content, so
-a moved data folder resumes.
+a moved data folder resumes. :func:`compact` rewrites the part files into few
+large files that record the parts they hold, so the folder still resumes.
 
 Parts are planned lazily, one at a time as the work reaches them, so a job's
 size (10^12 random views) costs neither memory nor time before the first part
@@ -948,7 +949,9 @@ def damaged_folder(folder) -> str:
 
 def read_job(folder) -> dict:
     """The job description of the dataset ``folder`` (what ``_job.parquet``
-    holds: models, camera sets, values, tests, method, chunk sizes, columns).
+    holds: models (``models``, the paths where they were last seen;
+    ``model_sha256``, their content), camera sets, values, tests, method,
+    chunk sizes, columns), the union of every command run into the folder.
 
     Raises:
         EvalError: no job description there, or one that cannot be read.
@@ -1063,7 +1066,8 @@ def _merge_job(folder, old: dict, new: dict) -> dict:
             continue
         i = set_names.index(name)
         was = job["camera_sets"][i]
-        differ = [f"{key} {_short(was.get(key))!r} there, {_short(d.get(key))!r} here" for key in sorted(set(was) | set(d))
+        differ = [f"{key} {_short(was.get(key))!r} there, {_short(d.get(key))!r} here"
+                  for key in sorted(set(was) | set(d))
                   if key != "path" and was.get(key) != d.get(key) and not (key == "count" and was.get(key) is None)]
         if differ:
             changes.append(f"camera set {name!r}: " + ", ".join(differ))
@@ -1115,7 +1119,8 @@ def _set_aside(folder, name, problem) -> None:
     path, aside = os.path.join(folder, name), os.path.join(damaged_folder(folder), name)
     os.makedirs(os.path.dirname(aside), exist_ok=True)
     os.replace(path, aside)
-    print(f"pmjax eval: {path}: {problem}; moved to {aside}, the part is computed again", file=sys.stderr, flush=True)
+    what = "its parts are" if _COMPACT_NAME.fullmatch(name) else "the part is"
+    print(f"pmjax eval: {path}: {problem}; moved to {aside}, {what} computed again", file=sys.stderr, flush=True)
 
 
 def _verify_files(folder, names, job, schema=None) -> list:

@@ -148,8 +148,9 @@ def test_a_damaged_compacted_file_is_set_aside_and_its_parts_computed_again(mode
     summary = evaluate(models[:1], SETS, out, taus=[1.0], **JOB)
     err = capsys.readouterr().err
     assert (summary.parts_skipped, summary.parts_written) == (3, 5)
+    aside = os.path.join(damaged_folder(out), names[0])
     assert (f"pmjax eval: {path}: the rows of part-m0000-c0000-v0000-0000001.parquet do not match their checksum "
-            f"(damaged data); moved to {os.path.join(damaged_folder(out), names[0])}, the part is computed again") in err
+            f"(damaged data); moved to {aside}, its parts are computed again") in err
     assert whole(out).select(DETERMINISTIC).equals(reference.select(DETERMINISTIC))
 
 
