@@ -41,6 +41,7 @@ if TYPE_CHECKING:  # the names as a type checker and an editor see them
     from ._camera_table import CameraError, CameraTable, read_camera_table, table_from_cameras, write_camera_table
     from ._eval import CameraSet, EvalError, EvalInterrupted, EvalSummary, camera_set, evaluate
     from ._eval import read_job as read_eval_job
+    from ._eval import CompactSummary, compact as compact_eval
     from ._distance import distance_to_surface, point_triangle_distance, sample_surface, surface_distance
 
 # Public name -> (module, name in it).
@@ -125,6 +126,8 @@ _EXPORTS = {
     "EvalError": ("._eval", "EvalError"),
     "EvalInterrupted": ("._eval", "EvalInterrupted"),
     "read_eval_job": ("._eval", "read_job"),
+    "compact_eval": ("._eval", "compact"),
+    "CompactSummary": ("._eval", "CompactSummary"),
     "EvalSummary": ("._eval", "EvalSummary"),
     "camera_set": ("._eval", "camera_set"),
     "evaluate": ("._eval", "evaluate"),
@@ -201,6 +204,8 @@ __all__ = [
     "EvalError",
     "EvalInterrupted",
     "read_eval_job",
+    "compact_eval",
+    "CompactSummary",
     "EvalSummary",
     "camera_set",
     "evaluate",

@@ -291,8 +291,13 @@ FIDELITY_COLUMNS = ("differing_share", "psnr", "silhouette_share", "popping_shar
 
 
 def cmd_eval(args) -> int:
-    from pmjax._eval import DEFAULT_COMPILE_CACHE, EvalInterrupted, camera_set, evaluate
+    from pmjax._eval import DEFAULT_COMPILE_CACHE, EvalInterrupted, camera_set, compact, evaluate
 
+    if args.compact is not None:
+        done = compact(args.compact)
+        print(f"{done.folder}: {done.rows} rows in {done.parts} parts; {done.files_before} files compacted into "
+              f"{done.files_after} ({done.seconds:.1f} s)")
+        return 0
     image = dict(width=args.size[0], height=args.size[1], fov_y_deg=args.fov)
     sets = [camera_set(spec, **image) for spec in args.cameras or []]
     sets += [camera_set(f"orbit:{n}", **image) for n in args.orbit or []]
@@ -596,8 +601,12 @@ def build_parser() -> argparse.ArgumentParser:
                                    "executed pcols, refine time. Parts are written atomically into the output "
                                    "folder as the work goes; re-running the same command resumes. "
                                    "Columns and camera files: docs/eval.md.")
-    p.add_argument("models", nargs="+", help=".pmz files")
-    p.add_argument("-o", "--output", required=True, help="dataset folder (Parquet part files and _job.parquet)")
+    p.add_argument("models", nargs="*", help=".pmz files")
+    p.add_argument("-o", "--output", help="dataset folder (Parquet part files and _job.parquet; required but with "
+                                         "--compact)")
+    p.add_argument("--compact", metavar="FOLDER",
+                   help="rewrite the part files of the dataset FOLDER into few large files (same rows, still "
+                        "resumable), instead of running a job")
     p.add_argument("--cameras", action="append", metavar="FILE",
                    help="camera table, .npz or .parquet (repeatable; schema in docs/eval.md)")
     p.add_argument("--orbit", type=COUNT, action="append", metavar="N",
@@ -747,6 +756,13 @@ def _parse(parser: argparse.ArgumentParser, argv):
         hints = [m for x in extra for m in difflib.get_close_matches(x.split("=")[0], known, n=1)]
         sub.error(f"unrecognized arguments: {' '.join(extra)}"
                   + (f" (did you mean {', '.join(hints)}?)" if hints else ""))
+    if getattr(args, "command", None) == "eval":
+        # A job (models and -o) or a compaction (--compact FOLDER), not both.
+        sub = parser._subparsers._group_actions[0].choices["eval"]
+        if args.compact is not None and (args.models or args.output):
+            sub.error("--compact takes the dataset folder alone: give no models and no -o")
+        if args.compact is None and not (args.models and args.output):
+            sub.error("give the models (.pmz files) and -o FOLDER, or --compact FOLDER")
     return args
 
 

@@ -13,8 +13,12 @@ job's description (no rows; :func:`read_job`), so that pyarrow, pandas,
 polars and DuckDB read the folder by name. Re-running a job reads every part
 file there back in full and skips those that verify; one that does not (a
 truncated file, a damaged page, the wrong rows) is moved into the folder
-``FOLDER.damaged`` beside it with a line on stderr and computed again. A
-different job refuses to write into the folder.
+``FOLDER.damaged`` beside it with a line on stderr and computed again. A job
+grows: a later command may add models, camera sets and values, whose parts
+take new names; one that would change a part already there is refused
+(:func:`_merge_job`). Models and camera files are known by their content, so
+a moved data folder resumes. :func:`compact` rewrites the part files into few
+large files that record the parts they hold, so the folder still resumes.
 
 Parts are planned lazily, one at a time as the work reaches them, so a job's
 size (10^12 random views) costs neither memory nor time before the first part
@@ -50,7 +54,14 @@ from ._camera_table import CameraTable, _bounds, fly_rows, orbit_rows, random_ro
 from ._pmfile import file_sha256
 from ._predicate import ALL_TESTS, Tests
 
-FORMAT = "pmjax-eval/2"
+FORMAT = "pmjax-eval/3"
+# Folders of format pmjax-eval/2 are resumed too: their description names
+# models by path alone, and their parts carry a checksum of that whole
+# description (kept in the description as ``legacy_jobs``).
+FORMAT_2 = "pmjax-eval/2"
+# The settings that define every part of a job: a folder's parts keep them,
+# so a command that gives others is refused.
+SETTINGS = ("tests", "method", "chunk", "batch_chunk", "camera_columns", "columns")
 # The job's description: a Parquet file with the job's columns and no rows,
 # the description (JSON) in its metadata under JOB_KEY. Being Parquet of the
 # same columns, it leaves a read of the whole folder unchanged: pyarrow and
@@ -69,6 +80,10 @@ DAMAGED_SUFFIX = ".damaged"
 # camera set has more chunks, so that lexical order stays row order).
 CHUNK_DIGITS = 7
 DEFAULT_CHUNK = 2048
+# Rows per compacted file and per row group in it, by default: a compacted
+# file is read whole when verified (about 110 bytes a row), one at a time.
+COMPACT_ROWS = 1 << 22
+COMPACT_GROUP_ROWS = 1 << 20
 # Default folder of JAX's persistent compilation cache for evaluations.
 DEFAULT_COMPILE_CACHE = os.path.join(os.path.expanduser("~"), ".cache", "pmjax", "xla")
 # Models a process keeps loaded (with their compiled kernels) at once.
@@ -524,7 +539,8 @@ def evaluate(
             (``orbit:N``, ``fly:N``, ``random:N[:SEED]``, a ``.npz`` or
             ``.parquet`` camera table).
         folder: the dataset folder (created; a finished or interrupted run of
-            the same job there is resumed).
+            the same job there is resumed, and a job there gains the models,
+            camera sets and values it lacks, see docs/eval.md).
         taus: tolerances in pixels; or
         budgets: face budgets (exclusive with ``taus``): per camera, the
             smallest tolerance whose face count is the largest within the
@@ -552,8 +568,10 @@ def evaluate(
     Raises:
         EvalError: a bad setting, a camera set that cannot be read, a model
             that fails validation (parts finished before it are kept), a
-            folder holding another job, or a part computed from a model file
-            whose content has changed since.
+            folder whose parts this job defines otherwise (other settings, a
+            model of the same name with other content; the message names the
+            old and new values), or a part computed from a model file whose
+            content has changed since.
         EvalInterrupted: Ctrl-C (a ``KeyboardInterrupt``); its message
             says how many parts are saved, and the same call resumes.
     """
@@ -592,16 +610,24 @@ def evaluate(
         raise EvalError(f"two models are named {twice!r} (the file name without .pmz names a model's rows)")
     if len({s.name for s in sets}) < len(sets):
         raise EvalError("two camera sets have the same name; give each file set a distinct file name")
+    kind = "taus" if len(taus) else "budgets"
+    twice = next((x for i, x in enumerate(values) if x in values[:i]), None)
+    if twice is not None:
+        raise EvalError(f"{kind[:-1]} {twice!r} is given twice")
     start = time.perf_counter()
     # Camera files are read (and validated) once, before any work.
     tables = [read_camera_table(s.path) if s.kind == "file" else None for s in sets]
-    job = dict(format=FORMAT, models=[os.path.abspath(m) for m in models], camera_sets=[s.describe() for s in sets],
-               taus=[float(t) for t in taus], budgets=[int(b) for b in budgets], tests=_tests_dict(tests),
-               method=method, chunk=int(chunk), batch_chunk=int(batch_chunk), camera_columns=camera_columns,
-               columns=schema.names)
-    job_sha = hashlib.sha256(json.dumps(job, sort_keys=True).encode()).hexdigest()
     counts = [len(t) if t is not None else s.count for s, t in zip(sets, tables)]
+    # Models are known by their content: the path is where this command
+    # finds them (a folder of models may move between runs).
+    digests = [file_sha256(m) for m in models]
+    described = [dict(s.describe(), count=n) for s, n in zip(sets, counts)]
+    command = dict(format=FORMAT, models=[os.path.abspath(m) for m in models], model_sha256=digests,
+                   camera_sets=described, taus=[float(t) for t in taus], budgets=[int(b) for b in budgets],
+                   tests=_tests_dict(tests), method=method, chunk=int(chunk), batch_chunk=int(batch_chunk),
+                   camera_columns=camera_columns, columns=schema.names)
     total = len(models) * len(values) * sum(counts)
+    n_parts = len(models) * len(values) * sum(-(-n // chunk) for n in counts)
     # The parts found done and verified (file name -> SHA-256 of the model
     # they came from), and those written now: what an interruption reports.
     done, checked = {}, False
@@ -609,11 +635,24 @@ def evaluate(
     try:
         with contextlib.ExitStack() as stack:
             stack.enter_context(_lock_folder(folder))
-            verified = _verify_folder(folder, _open_folder(folder, job, schema), job_sha, counts, len(models),
-                                      len(values), chunk, schema)
-            done.update(verified)
+            job, names = _open_folder(folder, command, schema)
+            verified = _verify_folder(folder, names, job, schema)
+            # The command's entries by their positions in the folder's job,
+            # which name its part files.
+            model_names = [_model_name(m) for m in job["models"]]
+            set_names = [CameraSet(**{k: v for k, v in d.items() if k in CameraSet.__dataclass_fields__}).name
+                         for d in job["camera_sets"]]
+            at_model = [model_names.index(_model_name(m)) for m in models]
+            at_set = {set_names.index(s.name): i for i, s in enumerate(sets)}
+            at_value = {job[kind].index(x): i for i, x in enumerate(command[kind])}
+            job_counts = [d["count"] for d in job["camera_sets"]]
+            mine = {(m, c, v) for m in at_model for c in at_set for v in at_value}
+            for name, model_sha in verified.items():
+                m, c, v, _ = (int(g) for g in _PART_NAME.fullmatch(name).groups())
+                if (m, c, v) in mine:
+                    done[name] = model_sha
             checked = True
-            n_done = sum(_rows_of(name, counts, chunk) for name in done)
+            n_done = sum(_rows_of(name, job_counts, chunk) for name in done)
             bar = stack.enter_context(_progress(progress, total, n_done))
             submitted = 0
             runner = _Runner(scheduler, workers)
@@ -629,7 +668,7 @@ def evaluate(
                     rows_now += table.num_rows
                     bar.update(table.num_rows)
 
-            for mi, model_path in enumerate(models):
+            for model_path, mi, digest in zip(models, at_model, digests):
                 if max_parts is not None and submitted >= max_parts:
                     break
                 # The model is validated before its parts start; a bad one stops
@@ -639,7 +678,6 @@ def evaluate(
                 except PMFormatError as exc:
                     store(runner.drain())
                     raise EvalError(f"model {model_path}: {exc}") from exc
-                digest = file_sha256(model_path)
                 vertices = data.vertices[: data.n_original_vertices]
                 # The camera sets depend on the box alone: its two corners make
                 # the same cameras, without a pass over every vertex per part.
@@ -649,7 +687,7 @@ def evaluate(
                 bounds = tuple(float(x) for x in np.append(*_bounds(vertices))) if camera_columns else None
                 # Parts come one at a time from a generator: nothing is planned
                 # ahead of the work, whatever the job's size.
-                for part in _model_parts(mi, counts, len(values), chunk):
+                for part in _model_parts(mi, sorted(at_set), sorted(at_value), job_counts, chunk):
                     if part.file in done:
                         if done[part.file] != digest:
                             raise EvalError(f"{os.path.join(folder, part.file)} was computed from another version "
@@ -658,31 +696,201 @@ def evaluate(
                         continue
                     if max_parts is not None and submitted >= max_parts:
                         break
-                    s, value = sets[part.cameras], values[part.value]
+                    ci = at_set[part.cameras]
+                    s, value = sets[ci], values[at_value[part.value]]
+                    key = _part_key(job, part.model, part.cameras, part.value)
                     # The absolute path: a worker may run in another folder.
                     task = dict(model_path=os.path.abspath(model_path), model_sha256=digest,
                                 model_name=_model_name(model_path),
-                                set_name=s.name, rows=s.rows(vertices, part.lo, part.hi, tables[part.cameras]),
+                                set_name=s.name, rows=s.rows(vertices, part.lo, part.hi, tables[ci]),
                                 lo=part.lo, hi=part.hi, tau=None if budgets else value,
                                 budget=value if budgets else None, tests=_tests_dict(tests), method=method,
-                                batch_chunk=int(batch_chunk), compile_cache=compile_cache, job_sha256=job_sha,
+                                batch_chunk=int(batch_chunk), compile_cache=compile_cache, job_sha256=key,
                                 part=part.file, bounds=bounds)
                     submitted += 1
                     store(runner.submit(part, task))
                 del data, vertices, v64
             store(runner.drain())
     except KeyboardInterrupt:
-        n_parts = len(models) * len(values) * sum(-(-c // chunk) for c in counts)
         raise EvalInterrupted(os.fspath(folder), len(done) + written if checked else None, n_parts,
                               n_done + rows_now, total) from None
     return EvalSummary(folder=os.fspath(folder), rows=n_done + rows_now, parts_written=written,
                        parts_skipped=len(done), cameras=rows_now, seconds=time.perf_counter() - start)
 
 
-def _model_parts(m, counts, n_values, chunk):
-    """The parts of model ``m``, in row order, made as they are asked for."""
-    for c in range(len(counts)):
-        for v in range(n_values):
+@dataclasses.dataclass(frozen=True)
+class CompactSummary:
+    """What :func:`compact` did.
+
+    Attributes:
+        folder: the dataset folder.
+        parts: parts in the folder (verified), rows: their rows.
+        files_before, files_after: part and compacted files before and after.
+        seconds: wall time.
+    """
+
+    folder: str
+    parts: int
+    rows: int
+    files_before: int
+    files_after: int
+    seconds: float
+
+
+def compact(folder, *, rows_per_file: int = COMPACT_ROWS, row_group_rows: int = COMPACT_GROUP_ROWS) -> CompactSummary:
+    """Rewrite the part files of an evaluation dataset ``folder`` into few
+    large files, the same rows in the same order, resumable as before.
+
+    Every file is verified first (as a resumed job does: a damaged part is
+    set aside, to be computed by the next run of the job). Then each run of
+    consecutive parts (in the job's row order: models, camera sets, values,
+    chunks) is written into files of at most ``rows_per_file`` rows (a file
+    is never cut inside a part), in row groups of ``row_group_rows``, each
+    named after its first and last part (``part-m0000-c0000-v0000-0000000-to-
+    m0001-c0002-v0003-0000012.parquet``), so lexical order stays row order.
+    A compacted file records every part it holds (name, definition key,
+    model checksum, rows, checksum over its rows): the job resumes from it,
+    verifies each part in it, and sets aside a damaged one whole (its parts
+    are computed again). Each file is written atomically, then the files it
+    replaces are removed; files left by an interrupted compaction (rows also
+    in a compacted file) are removed when the folder is next opened. A folder
+    compacted while its job is unfinished resumes too: the missing parts come
+    as part files, and a later compaction merges them.
+
+    Args:
+        folder: a dataset folder written by :func:`evaluate`.
+        rows_per_file: rows per compacted file, at most (a part larger
+            than this stays alone); a compacted file is read whole when
+            verified, about 110 bytes a row (camera columns: about 170).
+        row_group_rows: rows per Parquet row group.
+
+    Returns:
+        :class:`CompactSummary`.
+
+    Raises:
+        EvalError: not a dataset folder, one another run is writing into, or
+            a bad argument.
+    """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    for name, value in (("rows_per_file", rows_per_file), ("row_group_rows", row_group_rows)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise EvalError(f"{name} must be a whole number >= 1, not {value!r}")
+    if not os.path.isdir(folder):
+        raise EvalError(f"{folder}: no such folder")
+    start = time.perf_counter()
+    with _lock_folder(folder):
+        job = read_job(folder)
+        if job.get("format") == FORMAT_2:
+            job = _from_format_2(job)
+        if job.get("format") != FORMAT:
+            raise EvalError(f"{folder} holds a job in format {job.get('format')!r}, this version compacts {FORMAT}")
+        schema = _schema(job["camera_columns"])
+        _remove_temporaries(folder)
+        names = _part_files(folder)
+        counts, n_models, n_values = _job_shape(job)
+        shape = (counts, n_models, n_values, job["chunk"])
+        files = _verify_files(folder, names, job, schema)
+        # Every part: where its rows are (file, first row) and its record.
+        where, records, holds = {}, {}, {}
+        for name, shas in files:
+            info = json.loads((pq.read_schema(os.path.join(folder, name)).metadata or {})[b"pmjax"])
+            listed = info["compacted"] if "compacted" in info else [info]
+            offset = 0
+            for record in listed:
+                part = _part_named(record.get("part", name), counts, n_models, n_values, job["chunk"])
+                where[part.file] = (part, name, offset)
+                records[part.file] = record
+                offset += part.hi - part.lo
+            holds[name] = list(shas)
+        # Runs of consecutive parts in the job's row order, cut into files of
+        # at most rows_per_file rows (never inside a part).
+        groups, current, rows = [], [], 0
+        for part, _, _ in sorted(where.values(), key=lambda w: (w[0].model, w[0].cameras, w[0].value, w[0].chunk)):
+            n = part.hi - part.lo
+            if current and (_next_part(current[-1], *shape) != part or rows + n > rows_per_file):
+                groups.append(current)
+                current, rows = [], 0
+            current.append(part)
+            rows += n
+        if current:
+            groups.append(current)
+        # A source file goes once every part it holds is written elsewhere.
+        left = {name: len(parts) for name, parts in holds.items()}
+        cached = [None, None]  # one source file's rows at a time
+        for group in groups:
+            target = group[0].file if len(group) == 1 else _compact_name(group[0].file, group[-1].file)
+            if holds.get(target) == [p.file for p in group]:
+                continue  # already this file
+            body = []
+            for part in group:
+                record = records[part.file]
+                # A part written without its name, rows or checksum: recorded in full.
+                if not all(key in record for key in ("part", "rows", "sha256")):
+                    record = dict(job=record["job"], model_sha256=record["model_sha256"], part=part.file,
+                                  rows=part.hi - part.lo)
+                    record["sha256"] = _table_sha256(_rows_in(folder, where[part.file], cached), record)
+                body.append(record)
+            metadata = {"pmjax": json.dumps(body[0] if len(group) == 1 else {"compacted": body})}
+            with atomic_path(os.path.join(folder, target)) as tmp:
+                with pq.ParquetWriter(tmp, schema.with_metadata(metadata)) as writer:
+                    buffer, buffered = [], 0
+                    for part in group:
+                        for batch in _rows_in(folder, where[part.file], cached).to_batches():
+                            buffer.append(batch)
+                            buffered += batch.num_rows
+                        while buffered >= row_group_rows:
+                            table = pa.Table.from_batches(buffer, schema)
+                            writer.write_table(table.slice(0, row_group_rows), row_group_size=row_group_rows)
+                            rest = table.slice(row_group_rows)
+                            buffer, buffered = rest.to_batches(), rest.num_rows
+                    if buffered:
+                        writer.write_table(pa.Table.from_batches(buffer, schema), row_group_size=row_group_rows)
+            cached[:] = [None, None]
+            # The new file is in place: sources whose every part it (or an
+            # earlier new file) holds go; a source of the target's name was
+            # replaced by it.
+            for part in group:
+                source = where[part.file][1]
+                left[source] -= 1
+                if left[source] == 0 and source != target and os.path.exists(os.path.join(folder, source)):
+                    os.unlink(os.path.join(folder, source))
+        after = _part_files(folder)
+    return CompactSummary(folder=os.fspath(folder), parts=len(where),
+                          rows=sum(p.hi - p.lo for p, _, _ in where.values()), files_before=len(names),
+                          files_after=len(after), seconds=time.perf_counter() - start)
+
+
+def _rows_in(folder, located, cached):
+    """The rows of a part located at ``(part, file, first row)`` in ``folder``,
+    without metadata; ``cached``: ``[file name, its table]``, the last file read."""
+    import pyarrow.parquet as pq
+
+    part, name, offset = located
+    if cached[0] != name:
+        cached[:] = [name, pq.read_table(os.path.join(folder, name)).replace_schema_metadata(None)]
+    return cached[1].slice(offset, part.hi - part.lo)
+
+
+def _part_files(folder) -> set:
+    """The names of the part and compacted files in ``folder``."""
+    return {name for name in os.listdir(folder) if name.startswith("part-") and name.endswith(".parquet")}
+
+
+def _remove_temporaries(folder) -> None:
+    """Temporary files of a killed run are debris: no part is half-written."""
+    for name in os.listdir(folder):
+        if TEMP_MARK in name:
+            os.unlink(os.path.join(folder, name))
+
+
+def _model_parts(m, sets, values, counts, chunk):
+    """The parts of model ``m`` for the camera sets ``sets`` and values
+    ``values`` (positions in the job's lists, increasing), in row order,
+    made as they are asked for."""
+    for c in sets:
+        for v in values:
             for k in range(-(-counts[c] // chunk)):
                 yield _part(m, c, v, k, counts, chunk)
 
@@ -741,7 +949,9 @@ def damaged_folder(folder) -> str:
 
 def read_job(folder) -> dict:
     """The job description of the dataset ``folder`` (what ``_job.parquet``
-    holds: models, camera sets, values, tests, method, chunk sizes, columns).
+    holds: models (``models``, the paths where they were last seen;
+    ``model_sha256``, their content), camera sets, values, tests, method,
+    chunk sizes, columns), the union of every command run into the folder.
 
     Raises:
         EvalError: no job description there, or one that cannot be read.
@@ -759,10 +969,11 @@ def read_job(folder) -> dict:
                         "use another folder, or delete this one to start over") from None
 
 
-def _open_folder(folder, job, schema) -> set:
-    """Reopen (or start) the locked dataset folder for ``job`` (whose rows
-    have ``schema``): the names of the part files there (not yet verified,
-    see :func:`_verify_folder`)."""
+def _open_folder(folder, command, schema) -> tuple[dict, set]:
+    """Reopen (or start) the locked dataset folder for the job ``command``
+    (whose rows have ``schema``): the folder's job, extended by the command
+    (:func:`_merge_job`) and written back atomically when it changed, and the
+    names of the part files there (not yet verified, see :func:`_verify_folder`)."""
     import pyarrow.parquet as pq
 
     path = os.path.join(folder, JOB_FILE)
@@ -774,63 +985,320 @@ def _open_folder(folder, job, schema) -> set:
         except (OSError, ValueError, AttributeError):
             form = "unknown"
         raise EvalError(f"{folder} holds a job in format {form} (described by {OLD_JOB_FILE}), whose parts lack "
-                        f"columns of format {FORMAT}; its rows stay readable, but it cannot be resumed: use "
+                        f"columns of format {FORMAT_2}; its rows stay readable, but it cannot be resumed: use "
                         "another folder, or delete this one to start over")
-    if os.path.exists(path):
-        old = read_job(folder)
-        if old != job:
-            changed = sorted(k for k in set(old) | set(job) if old.get(k) != job.get(k))
-            raise EvalError(f"{folder} holds another job (differs in: {', '.join(changed)}); "
-                            "use another folder, or delete this one to start over")
-    else:
+    job = _merge_job(folder, read_job(folder), command) if os.path.exists(path) else command
+    if not os.path.exists(path) or read_job(folder) != job:
         empty = schema.empty_table().replace_schema_metadata({JOB_KEY: json.dumps(job, indent=1, sort_keys=True)})
         with atomic_path(path) as tmp:
             pq.write_table(empty, tmp)
-    # Temporary files of a killed run are debris: no part is half-written.
-    for name in os.listdir(folder):
-        if TEMP_MARK in name:
-            os.unlink(os.path.join(folder, name))
-    return {name for name in os.listdir(folder) if name.startswith("part-") and name.endswith(".parquet")}
+    _remove_temporaries(folder)
+    return job, _part_files(folder)
 
 
-def _verify_folder(folder, names, job_sha, counts, n_models, n_values, chunk, schema=None) -> dict:
-    """Verify the part files ``names`` of the dataset folder; those that fail
-    are moved into :func:`damaged_folder` (a line on stderr says which and why)
-    so that the job computes them again.
+def _short(value):
+    """A value for a message: SHA-256 digests cut to their first 12 digits."""
+    if isinstance(value, str) and re.fullmatch(r"[0-9a-f]{64}", value):
+        return value[:12]
+    return value
+
+
+def _from_format_2(job: dict) -> dict:
+    """A description of format pmjax-eval/2 in this format: its models'
+    digests and camera files' row counts unknown (``None``, taken from the
+    next command that names them), its checksum kept as ``legacy_jobs``."""
+    sha = hashlib.sha256(json.dumps(job, sort_keys=True).encode()).hexdigest()
+    sets = [dict(d, count=None) if d.get("kind") == "file" else d for d in job.get("camera_sets", [])]
+    return dict(job, format=FORMAT, model_sha256=[None] * len(job.get("models", [])), camera_sets=sets,
+                legacy_jobs=[sha])
+
+
+def _merge_job(folder, old: dict, new: dict) -> dict:
+    """The job of ``folder`` (``old``) extended by a command's job ``new``.
+
+    A job grows: models, camera sets and values (tolerances or budgets) the
+    folder lacks are appended to its lists, so parts there keep their names
+    (a part file is named by positions in these lists), and the folder's
+    rows are those of every command run into it. What defines an existing
+    part cannot change: the settings (:data:`SETTINGS`), tolerances against
+    budgets, a model's content (SHA-256; its path is only where it was last
+    seen, so a moved model resumes), a camera set's definition (a file's
+    content; its path is a hint too).
+
+    Raises:
+        EvalError: a change to what defines the folder's parts, naming the
+            old and new values; or a folder of another format.
+    """
+    if old.get("format") == FORMAT_2:
+        old = _from_format_2(old)
+    if old.get("format") != FORMAT:
+        raise EvalError(f"{folder} holds a job in format {old.get('format')!r}, this version writes {FORMAT}; "
+                        "use another folder, or delete this one to start over")
+    changes = [f"{key}: {_short(old.get(key))!r} there, {_short(new[key])!r} here"
+               for key in SETTINGS if old.get(key) != new[key]
+               # The columns follow camera_columns: named once.
+               and not (key == "columns" and old.get("camera_columns") != new["camera_columns"])]
+    if bool(old["taus"]) != bool(new["taus"]):
+        there = f"tolerances {old['taus']}" if old["taus"] else f"budgets {old['budgets']}"
+        here = f"tolerances {new['taus']}" if new["taus"] else f"budgets {new['budgets']}"
+        changes.append(f"values: {there} there, {here} here")
+    job = json.loads(json.dumps(old))
+    names = [_model_name(m) for m in job["models"]]
+    for path, digest in zip(new["models"], new["model_sha256"]):
+        name = _model_name(path)
+        if name not in names:
+            names.append(name)
+            job["models"].append(path)
+            job["model_sha256"].append(digest)
+            continue
+        i = names.index(name)
+        if job["model_sha256"][i] not in (None, digest):
+            changes.append(f"model {name!r}: content SHA-256 {_short(job['model_sha256'][i])} there (then at "
+                           f"{job['models'][i]}), {_short(digest)} here ({path}; its content changed)")
+        job["models"][i], job["model_sha256"][i] = path, digest
+    set_names = [CameraSet(**{k: v for k, v in d.items() if k in CameraSet.__dataclass_fields__}).name
+                 for d in job["camera_sets"]]
+    for d in new["camera_sets"]:
+        name = CameraSet(**{k: v for k, v in d.items() if k in CameraSet.__dataclass_fields__}).name
+        if name not in set_names:
+            set_names.append(name)
+            job["camera_sets"].append(d)
+            continue
+        i = set_names.index(name)
+        was = job["camera_sets"][i]
+        differ = [f"{key} {_short(was.get(key))!r} there, {_short(d.get(key))!r} here"
+                  for key in sorted(set(was) | set(d))
+                  if key != "path" and was.get(key) != d.get(key) and not (key == "count" and was.get(key) is None)]
+        if differ:
+            changes.append(f"camera set {name!r}: " + ", ".join(differ))
+        job["camera_sets"][i] = d
+    kind = "taus" if new["taus"] else "budgets"
+    if not changes:
+        job[kind] = job[kind] + [x for x in new[kind] if x not in job[kind]]
+    if changes:
+        raise EvalError(f"{folder} holds parts that this command defines otherwise ({'; '.join(changes)}); a job "
+                        "can gain models, camera sets and values, but its parts cannot change: use another folder, "
+                        "or delete this one to start over")
+    return job
+
+
+def _part_key(job: dict, m: int, c: int, v: int) -> str:
+    """SHA-256, hex, of what defines the rows of model ``m``, camera set ``c``
+    and value ``v`` of ``job`` (positions in its lists): the settings, the
+    model's name, the set's definition and the value; not the paths (hints)
+    nor the job's other entries, so a part stays valid as its job grows or
+    its files move. A part file records it (``job``); the model's content is
+    recorded and checked apart (``model_sha256``)."""
+    value = (job["taus"] or job["budgets"])[v]
+    record = dict(format=FORMAT, model=_model_name(job["models"][m]),
+                  camera_set={k: x for k, x in job["camera_sets"][c].items() if k != "path"},
+                  tau=value if job["taus"] else None, budget=None if job["taus"] else value,
+                  **{key: job[key] for key in SETTINGS})
+    return hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()
+
+
+def _job_shape(job: dict):
+    """Of the job: its camera sets' counts (``None`` where unknown: a camera
+    file of a pmjax-eval/2 folder no command has named since), models and values."""
+    return ([d["count"] for d in job["camera_sets"]], len(job["models"]), len(job["taus"] or job["budgets"]))
+
+
+def _verify_folder(folder, names, job, schema=None) -> dict:
+    """Verify the part files ``names`` of the dataset folder against its
+    ``job`` (:func:`_verify_files`).
 
     Returns:
-        ``{file name: SHA-256 of the model the part was computed from}`` for
-        the parts that verify.
+        ``{part file name: SHA-256 of the model the part was computed from}``
+        for the parts that verify, those in compacted files included.
+    """
+    return {name: sha for _, shas in _verify_files(folder, names, job, schema) for name, sha in shas.items()}
+
+
+def _set_aside(folder, name, problem) -> None:
+    """Move the file ``name`` of ``folder`` into :func:`damaged_folder`, with a line on stderr."""
+    path, aside = os.path.join(folder, name), os.path.join(damaged_folder(folder), name)
+    os.makedirs(os.path.dirname(aside), exist_ok=True)
+    os.replace(path, aside)
+    what = "its parts are" if _COMPACT_NAME.fullmatch(name) else "the part is"
+    print(f"pmjax eval: {path}: {problem}; moved to {aside}, {what} computed again", file=sys.stderr, flush=True)
+
+
+def _verify_files(folder, names, job, schema=None) -> list:
+    """Verify the files ``names`` of the dataset folder (part files and
+    compacted files, :func:`compact`) against its ``job``; those that fail are
+    moved into :func:`damaged_folder` (a line on stderr says which and why) so
+    that the job computes their parts again. Parts of a camera file whose row
+    count is unknown (:func:`_job_shape`) are left as they are, unverified,
+    until a command names that file. A file whose parts are all in a larger
+    compacted file that verifies is what an interrupted compaction left
+    behind: it is removed (a line on stderr).
+
+    Returns:
+        ``[(file name, {part name: model SHA-256})]``, the files that verify.
     """
     from concurrent.futures import ThreadPoolExecutor
 
-    parts = {name: _part_named(name, counts, n_models, n_values, chunk) for name in sorted(names)}
+    counts, n_models, n_values = _job_shape(job)
+    legacy = set(job.get("legacy_jobs", ()))
+
+    def unknown(name):
+        match = _PART_NAME.fullmatch(name)
+        return bool(match) and int(match.group(2)) < len(counts) and counts[int(match.group(2))] is None
+
+    def keys(part):
+        return {_part_key(job, part.model, part.cameras, part.value)} | legacy
+
+    singles, compacted = {}, {}
+    for name in sorted(names):
+        span = _COMPACT_NAME.fullmatch(name)
+        if span is None:
+            if not unknown(name):
+                singles[name] = _part_named(name, counts, n_models, n_values, job["chunk"])
+            continue
+        first, last = (f"part-{span.group(i)}.parquet" for i in (1, 2))
+        if unknown(first) or unknown(last):
+            continue
+        compacted[name] = [_part_named(n, counts, n_models, n_values, job["chunk"]) for n in (first, last)]
+    outside = ("is not a part of this job (its name is outside the job's models, camera sets, values or chunks)",
+               None)
+    verified = []
+    # Compacted files one at a time (each is read whole, up to its rows_per_file rows).
+    def named(name):
+        return None if unknown(name) else _part_named(name, counts, n_models, n_values, job["chunk"])
+
+    for name, (first, last) in compacted.items():
+        problem, shas = _verify_compacted(os.path.join(folder, name), first, last, named, keys, schema)
+        if problem is None:
+            verified.append((name, shas))
+        else:
+            _set_aside(folder, name, problem)
+    # The largest first: a file whose parts it holds is left over from its compaction.
+    claimed, kept = {}, []
+    for name, shas in sorted(verified, key=lambda item: -len(item[1])):
+        if all(part in claimed for part in shas):
+            _remove_leftover(folder, name, claimed[next(iter(shas))])
+        elif any(part in claimed for part in shas):
+            _set_aside(folder, name, f"holds parts also in {claimed[next(p for p in shas if p in claimed)]}")
+        else:
+            claimed.update(dict.fromkeys(shas, name))
+            kept.append((name, shas))
+    for name in [n for n in singles if n in claimed]:
+        _remove_leftover(folder, name, claimed[name])
+        del singles[name]
 
     def check(name):
-        part = parts[name]
+        part = singles[name]
         if part is None:
-            return ("is not a part of this job (its name is outside the job's models, camera sets, values or "
-                    "chunks)"), None
-        return _verify_part(os.path.join(folder, name), part, job_sha, schema)
+            return outside
+        return _verify_part(os.path.join(folder, name), part, keys(part), schema)
 
-    done = {}
     # Parquet decoding and hashing release the GIL: verify parts in parallel.
     with ThreadPoolExecutor(max_workers=min(8, os.cpu_count() or 1)) as pool:
-        for name, (problem, model_sha) in zip(parts, pool.map(check, parts)):
+        for name, (problem, model_sha) in zip(singles, pool.map(check, singles)):
             if problem is None:
-                done[name] = model_sha
-                continue
-            path, aside = os.path.join(folder, name), os.path.join(damaged_folder(folder), name)
-            os.makedirs(os.path.dirname(aside), exist_ok=True)
-            os.replace(path, aside)
-            print(f"pmjax eval: {path}: {problem}; moved to {aside}, the part is computed again",
-                  file=sys.stderr, flush=True)
-    return done
+                kept.append((name, {name: model_sha}))
+            else:
+                _set_aside(folder, name, problem)
+    return kept
+
+
+# A compacted file (:func:`compact`): the rows of a run of consecutive parts,
+# named after its first and last, so that lexical order stays row order.
+_COMPACT_NAME = re.compile(r"part-(m\d+-c\d+-v\d+-\d+)-to-(m\d+-c\d+-v\d+-\d+)\.parquet")
+
+
+def _next_part(part, counts, n_models, n_values, chunk) -> Optional[_Part]:
+    """The part after ``part`` in the job's row order (models, camera sets,
+    values, chunks; all the job's entries), or ``None`` after the last or
+    before a camera set of unknown count."""
+    m, c, v, k = part.model, part.cameras, part.value, part.chunk
+    if (k + 1) * chunk < counts[c]:
+        return _part(m, c, v, k + 1, counts, chunk)
+    if v + 1 < n_values:
+        return _part(m, c, v + 1, 0, counts, chunk)
+    if c + 1 < len(counts):
+        return None if counts[c + 1] is None else _part(m, c + 1, 0, 0, counts, chunk)
+    if m + 1 < n_models:
+        return None if counts[0] is None else _part(m + 1, 0, 0, 0, counts, chunk)
+    return None
+
+
+def _compact_name(first: str, last: str) -> str:
+    """The name of the compacted file holding the parts ``first`` to ``last``."""
+    return f"{first[:-len('.parquet')]}-to-{last[len('part-'):]}"
+
+
+def _verify_compacted(path, first, last, named, keys, schema=None):
+    """Read a compacted file in full and check it: Arrow's validation, the
+    footer statistics, the columns, and per part in its record, from
+    ``first`` to ``last`` in the job's row order (``named(name)``: the job's
+    part of that name or ``None``; ``keys(part)``: the definition keys its
+    record may hold), its name, row count, checksum over its rows, job and
+    model checksum.
+
+    Returns:
+        ``(problem, {part name: model SHA-256})``, ``problem`` ``None`` when it verifies.
+    """
+    import pyarrow.parquet as pq
+
+    if first is None or last is None:
+        return ("is not a part of this job (its name is outside the job's models, camera sets, values or "
+                "chunks)"), None
+    try:
+        with pq.ParquetFile(path) as pf:
+            table = pf.read()
+            table.validate(full=True)
+            info = json.loads((table.schema.metadata or {}).get(b"pmjax", b"{}"))
+            wrong = _wrong_statistics(pf.metadata, table)
+    except Exception as exc:  # pyarrow raises several types for a damaged file
+        return f"unreadable ({type(exc).__name__}: {exc})", None
+    if wrong:
+        return wrong, None
+    records = info.get("compacted") if isinstance(info, dict) else None
+    if not isinstance(records, list) or not records or not all(isinstance(r, dict) for r in records):
+        return "has no pmjax record of the parts it holds", None
+    if not table.schema.remove_metadata().equals(schema if schema is not None else _schema()):
+        return f"has columns {table.schema.remove_metadata().to_string()!r}, not this job's", None
+    if records[0].get("part") != first.file or records[-1].get("part") != last.file:
+        return f"its records run from {records[0].get('part')!r} to {records[-1].get('part')!r}, its name says " \
+               f"{first.file} to {last.file}", None
+    shas, offset, before = {}, 0, None
+    for i, record in enumerate(records):
+        part = named(record.get("part")) if isinstance(record.get("part"), str) else None
+        if part is None:
+            return f"its record {i} names {record.get('part')!r}, not a part of this job", None
+        order = (part.model, part.cameras, part.value, part.chunk)
+        if before is not None and order <= before:
+            return f"its record {i} names {part.file}, out of the job's row order", None
+        before = order
+        n = part.hi - part.lo
+        if record.get("rows") != n or offset + n > table.num_rows:
+            return f"holds {record.get('rows')!r} rows of {part.file} from row {offset}, expected {n}", None
+        body = {k: v for k, v in record.items() if k != "sha256"}
+        if record.get("sha256") != _table_sha256(table.slice(offset, n), body):
+            return f"the rows of {part.file} do not match their checksum (damaged data)", None
+        if record.get("job") not in keys(part):
+            return f"{part.file} was written by another job", None
+        if not isinstance(record.get("model_sha256"), str):
+            return f"{part.file} has no model checksum", None
+        shas[part.file] = record["model_sha256"]
+        offset += n
+    if offset != table.num_rows:
+        return f"holds {table.num_rows} rows, its records {offset}", None
+    return None, shas
+
+
+def _remove_leftover(folder, name, holder) -> None:
+    os.unlink(os.path.join(folder, name))
+    print(f"pmjax eval: {os.path.join(folder, name)}: its rows are in {holder} (left over from an interrupted "
+          "compaction); removed", file=sys.stderr, flush=True)
 
 
 def _verify_part(path, part, job_sha, schema=None):
     """Read a part file in full and check it against its part of the job
-    (``schema``: the job's columns, by default those without camera context).
+    (``job_sha``: the key its record must hold, :func:`_part_key`, or a set
+    of keys accepted; ``schema``: the job's columns, by default those
+    without camera context).
 
     Returns:
         ``(problem, model_sha256)``: ``problem`` is ``None`` for a part that
@@ -861,7 +1329,7 @@ def _verify_part(path, part, job_sha, schema=None):
     # The checksum first: once it holds, the record (job, part, rows) is the one written.
     if signed and info["sha256"] != digest:
         return "its content does not match its checksum (damaged data)", None
-    if info.get("job") != job_sha:
+    if info.get("job") not in ({job_sha} if isinstance(job_sha, str) else set(job_sha)):
         return "was written by another job", None
     name = os.path.basename(path)
     if info.get("part", name) != name:

@@ -165,13 +165,14 @@ def test_rows_equal_refine_batch(cow, tmp_path):
             start += n
     assert start == len(got["camera"])
     assert all(x is None for x in got["budget_met"])  # tau jobs have no budget
-    # Same job again: nothing recomputed. Another job: refused, folder intact.
+    # Same job again: nothing recomputed. Parts defined otherwise: refused, folder intact.
     again = evaluate([cow], ["orbit:50", "random:300:2", str(tmp_path / "mixed.parquet")], str(out),
                      taus=[0.5, 2.0], chunk=128, compile_cache=None, progress=False)
     assert again.parts_written == 0 and again.parts_skipped == summary.parts_written
-    with pytest.raises(EvalError, match="holds another job .*taus"):
-        evaluate([cow], ["orbit:50", "random:300:2", str(tmp_path / "mixed.parquet")], str(out), taus=[1.0],
-                 chunk=128, compile_cache=None, progress=False)
+    with pytest.raises(EvalError, match=r"holds parts that this command defines otherwise \(chunk: 128 there, "
+                                        r"64 here\)"):
+        evaluate([cow], ["orbit:50", "random:300:2", str(tmp_path / "mixed.parquet")], str(out), taus=[0.5, 2.0],
+                 chunk=64, compile_cache=None, progress=False)
     assert_same_rows(rows(str(out)), got)
 
 

@@ -85,8 +85,9 @@ def test_camera_columns_on_request(cow, tmp_path):
     assert got.column("fov_y_deg").to_pylist() == pytest.approx([45.0] * 40 + [60.0] * 50)
     assert got.column("width").to_pylist() == [800] * 40 + [320] * 50
     assert got.column("height").to_pylist() == [600] * 40 + [200] * 50
-    # Without the flag the folder holds another job.
-    with pytest.raises(pmjax.EvalError, match="holds another job .*camera_columns"):
+    # The setting defines the parts: without it, the folder's parts would change.
+    with pytest.raises(pmjax.EvalError, match=f"{out} holds parts that this command defines otherwise "
+                                              r"\(camera_columns: True there, False here\); a job can gain"):
         evaluate([cow], ["orbit:40", pmjax.camera_set("random:50:3", width=320, height=200, fov_y_deg=60)], out,
                  taus=[1.0], chunk=32, compile_cache=None, progress=False)
     with pytest.raises(pmjax.EvalError, match="camera_columns must be True or False, not 'yes'"):

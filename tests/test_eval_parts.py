@@ -61,7 +61,7 @@ def test_part_names_sort_as_rows_for_any_job_size():
     assert _part_named("part-m0000-c0000-v0000-0000013.parquet", [100], 1, 1, 8) is None  # past the last chunk
     assert _part_named("part-m0001-c0000-v0000-0000003.parquet", [100], 1, 1, 8) is None  # no model 1
     # Parts are made as they are asked for.
-    first = next(_model_parts(0, counts, 2, chunk))
+    first = next(_model_parts(0, [0], [0, 1], counts, chunk))
     assert (first.lo, first.hi, first.file) == (0, 16, "part-m0000-c0000-v0000-00000000000.parquet")
 
 
