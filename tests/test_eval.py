@@ -176,6 +176,7 @@ def test_rows_equal_refine_batch(cow, tmp_path):
     assert_same_rows(rows(str(out)), got)
 
 
+@pytest.mark.slow
 def test_budgets(cow, tmp_path):
     data = pmjax.read_pm(cow)
     pm = pmjax.load(cow)

@@ -173,6 +173,7 @@ def test_an_interrupted_compaction_leaves_no_duplicate_row(models, tmp_path, cap
     assert files(out) == [merged] and whole(out).equals(reference)
 
 
+@pytest.mark.slow
 def test_compact_arguments_and_the_command_line(models, tmp_path):
     for bad in (0, 1.5, True):
         with pytest.raises(EvalError, match=f"rows_per_file must be a whole number >= 1, not {bad!r}"):

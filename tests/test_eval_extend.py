@@ -46,6 +46,7 @@ def snapshot(folder):
     return {n: open(os.path.join(folder, n), "rb").read() for n in sorted(os.listdir(folder)) if n != ".lock"}
 
 
+@pytest.mark.slow
 def test_a_job_grows_by_values_models_and_camera_sets(cow, tmp_path):
     calf = str(tmp_path / "calf.pmz")
     shutil.copy(cow, calf)
