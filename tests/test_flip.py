@@ -16,8 +16,8 @@ def _render(data, renderer, normals=None):
     from pmjax.render import original_arrays
 
     pm = pmjax.ProgressiveMesh.from_data(data)
-    cam = pmjax.index_camera(pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 4, width=160,
-                                                  height=120), 1)
+    cam = pmjax.index_camera(pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 4,
+                                                  width=renderer.width, height=renderer.height), 1)
     v, f, n = original_arrays(pm)
     return renderer.render_mesh(v, f, cam, normals=n if normals is None else normals), n
 
@@ -65,3 +65,27 @@ def test_missing_package_is_named(monkeypatch, built):
     # Without FLIP the other columns are measured.
     rows = path_fidelity(pmjax.ProgressiveMesh.from_data(data), cams, 1.0, flip=False)
     assert len(rows) == 2 and "flip_mean" not in rows[0] and rows[0]["differing_share"] >= 0
+
+
+def test_flip_of_the_model_box_equals_flip_of_the_whole_image(built):
+    """The crop to the model's box plus the margin changes no pixel's FLIP."""
+    import flip_evaluator
+
+    from pmjax.render import Renderer, flip_difference
+
+    data = built("cow.ply")
+    with Renderer(400, 300, 1, True) as r:
+        (rgb, depth), n = _render(data, r)
+        bent = n + np.random.default_rng(1).normal(0.0, 0.2, n.shape).astype(np.float32)
+        bent /= np.linalg.norm(bent, axis=1, keepdims=True)
+        (other, other_depth), _ = _render(data, r, bent)
+    from pmjax.render._fidelity import FLIP_MARGIN
+
+    rows, cols = np.flatnonzero((depth > 0).any(axis=1)), np.flatnonzero((depth > 0).any(axis=0))
+    box = (rows[-1] - rows[0] + 1 + 2 * FLIP_MARGIN) * (cols[-1] - cols[0] + 1 + 2 * FLIP_MARGIN)
+    assert box < 0.8 * depth.size and rows[0] > FLIP_MARGIN and cols[0] > FLIP_MARGIN  # a real crop
+    full = flip_evaluator.evaluate(rgb / 255.0, other / 255.0, "LDR", applyMagma=False)[0][..., 0]
+    model = (depth > 0) | (other_depth > 0)
+    got = flip_difference(rgb, depth, other, other_depth)
+    assert got["flip_mean"] == pytest.approx(float(full.mean(dtype=np.float64)), rel=1e-6)
+    assert got["flip_model_mean"] == pytest.approx(float(full[model].mean(dtype=np.float64)), rel=1e-6)
