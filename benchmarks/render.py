@@ -1,7 +1,7 @@
 """Image-space fidelity benchmark: refined vs original renders along the standard orbit.
 
 Usage: python benchmarks/render.py [--models bunny,dragon] [--frames 240] [--taus 0.5,1,2,4]
-       [--figures docs/figures] [--parts orbit,frontier,normals] [--supersample 2] [--json OUT]
+       [--figures docs/figures] [--parts orbit,frontier,normals] [--supersample 2] [--plot PNG] [--json OUT]
 
 orbit: per model and tau, the median share of the model's pixels that differ
 from the original mesh's render (a pixel differs when a channel differs by >
@@ -150,6 +150,36 @@ def normals(name, frames, tau, supersample=2):
     return rows
 
 
+def pareto_plot(rows, path):
+    """Faces drawn against FLIP over the model's pixels and against the
+    differing share, per model, pmjax and the quadric (``frontier`` rows); PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pmjax._atomic import atomic_path
+
+    models = sorted({r["model"] for r in rows})
+    fig, axes = plt.subplots(len(models), 2, figsize=(9, 3.4 * len(models)), squeeze=False)
+    for axis_row, name in zip(axes, models):
+        for ax, key, label in zip(axis_row, ("flip_model_mean", "differing_share"),
+                                  ("mean FLIP over the model's pixels", "differing share of the model's pixels")):
+            for method, style in (("pmjax", "o-"), ("quadric", "s--")):
+                pts = sorted((r["faces"], r[key]) for r in rows if r["model"] == name and r["method"] == method)
+                if pts:
+                    ax.plot(*zip(*pts), style, label=method)
+            ax.set_xscale("log")
+            ax.set_xlabel(f"faces drawn ({name})")
+            ax.set_ylabel(label)
+            ax.grid(True, which="both", alpha=0.3)
+            ax.legend()
+    fig.tight_layout()
+    with atomic_path(path, ".png") as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--models", default="bunny,dragon")
@@ -165,6 +195,7 @@ def main():
     ap.add_argument("--normals-tau", type=float, default=1.0, help="tau of the normals part")
     ap.add_argument("--supersample", type=int, default=2, metavar="S",
                     help="S x S samples per pixel in every render (default 2, as `pmjax path --fidelity`)")
+    ap.add_argument("--plot", help="frontier part: write the faces-against-fidelity plot (PNG) here")
     ap.add_argument("--json")
     args = ap.parse_args()
     parts = set(args.parts.split(","))
@@ -202,6 +233,8 @@ def main():
             frontier_rows += frontier(name, n, [float(t) for t in args.frontier_taus.split(",")],
                                       None if args.quadric_shares == "match"
                                       else [float(s) for s in args.quadric_shares.split(",")], args.supersample)
+    if args.plot and frontier_rows:
+        pareto_plot(frontier_rows, args.plot)
     if "normals" in parts:
         print("\nShading normals (same refinements and frames for both):")
         for name, n in zip(names, per_model(args.normals_frames, names)):
