@@ -157,6 +157,7 @@ def pareto_plot(rows, path):
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     from pmjax._atomic import atomic_path
 
@@ -170,6 +171,7 @@ def pareto_plot(rows, path):
                 if pts:
                     ax.plot(*zip(*pts), style, label=method)
             ax.set_xscale("log")
+            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # overlapping labels otherwise
             ax.set_xlabel(f"faces drawn ({name})")
             ax.set_ylabel(label)
             ax.grid(True, which="both", alpha=0.3)
