@@ -1,7 +1,7 @@
 """Image-space fidelity benchmark: refined vs original renders along the standard orbit.
 
 Usage: python benchmarks/render.py [--models bunny,dragon] [--frames 240] [--taus 0.5,1,2,4]
-       [--figures docs/figures] [--parts orbit,frontier] [--supersample 2] [--json OUT]
+       [--figures docs/figures] [--parts orbit,frontier,normals] [--supersample 2] [--plot PNG] [--json OUT]
 
 orbit: per model and tau, the median share of the model's pixels that differ
 from the original mesh's render (a pixel differs when a channel differs by >
@@ -12,15 +12,23 @@ changed), median faces and render ms.
 
 frontier: differing pixels against faces drawn, for pmjax's view-dependent
 refinement at several tau and for a view-independent quadric simplifier
-(fast-simplification, the ``bench`` extra) at several face shares, on the same
+(fast-simplification, the ``bench`` extra) at several face shares (or, with
+``--quadric-shares match``, at pmjax's median face count of each tau), on the same
 frames: where each reaches a given fidelity, and how many faces it needs; with
-the unlit (geometry-only) share for each row.
+the unlit (geometry-only) share for each row and mean FLIP over the model's pixels.
+
+normals: the shading normals compared on the same refinements and frames (one
+refinement and one original render per frame): the subtree means
+(``pmjax.hierarchy_normals``) against the fitted ones (``pmjax.fitted_normals``,
+what the renderer draws): differing share, silhouette share and mean FLIP over
+the model's pixels, medians and means over the frames, at one tau.
 """
 
 from __future__ import annotations
 
 import argparse
 import statistics
+import time
 import sys
 
 import numpy as np
@@ -32,9 +40,9 @@ from refine import pm_file  # noqa: E402
 import pmjax  # noqa: E402
 from pmjax._camera import index_camera  # noqa: E402
 from pmjax.render import Renderer, image_difference, original_arrays, paper_figures, path_fidelity  # noqa: E402
-from pmjax.render import refined_arrays, vertex_normals  # noqa: E402
+from pmjax.render import flip_difference, refined_arrays, silhouette_difference, vertex_normals  # noqa: E402
 
-PARTS = ("orbit", "frontier")
+PARTS = ("orbit", "frontier", "normals")
 
 
 def per_model(counts: str, names: list) -> list:
@@ -63,24 +71,30 @@ def frontier(name, frames, taus, shares, supersample=2):
 
         def row(method, setting, faces, meshes):
             # meshes: one (vertices, faces, vertex normals) per frame.
-            share = [image_difference(*orig, *r.render_mesh(v, f, cam, normals=n))["differing_share"]
-                     for orig, cam, (v, f, n) in zip(originals, views, meshes)]
+            share, flip = [], []
+            for orig, cam, (v, f, n) in zip(originals, views, meshes):
+                image = r.render_mesh(v, f, cam, normals=n)
+                share.append(image_difference(*orig, *image)["differing_share"])
+                flip.append(flip_difference(*orig, *image)["flip_model_mean"])
             # About the part no shading could remove: flat renders, geometry only,
             # as silhouette_difference compares them.
             flat = [image_difference(*orig, *r.render_mesh(v, f, cam, light=False))["differing_share"]
                     for orig, cam, (v, f, _) in zip(flat_originals, views, meshes)]
             out = dict(model=name, frames=frames, method=method, setting=setting, F=F, faces=statistics.median(faces),
                        face_share=statistics.median(faces) / F, differing_share=statistics.median(share),
-                       max_differing_share=max(share), silhouette_share=statistics.median(flat))
+                       max_differing_share=max(share), silhouette_share=statistics.median(flat),
+                       flip_model_mean=statistics.median(flip))
             print(f"{name:8s} {method:9s} {setting:>11s}: faces {out['faces']:8.0f} ({out['face_share']:6.2%}) | "
                   f"differing {out['differing_share']:7.3%} (max {out['max_differing_share']:7.3%}) | "
-                  f"silhouette {out['silhouette_share']:7.3%}", flush=True)
+                  f"silhouette {out['silhouette_share']:7.3%} | FLIP {out['flip_model_mean']:.4f}", flush=True)
             rows.append(out)
 
         for tau in taus:
             refined = [refined_arrays(pm, pmjax.refine(pm, cam, tau)) for cam in views]
             row("pmjax", f"tau {tau:g}", [len(f) for _, f, _, _ in refined],
                 [(v, f, n) for v, f, _, n in refined])
+        if shares is None:  # the quadric at pmjax's face counts, row by row
+            shares = [out["face_share"] for out in rows if out["method"] == "pmjax"]
         try:
             import fast_simplification
         except ImportError:
@@ -88,8 +102,84 @@ def frontier(name, frames, taus, shares, supersample=2):
             return rows
         for share in shares:
             v, f = fast_simplification.simplify(ov.astype(np.float32), of.astype(np.int32), target_reduction=1 - share)
-            row("quadric", f"{share:.0%} faces", [len(f)] * frames, [(v, f, vertex_normals(v, f))] * frames)
+            row("quadric", f"{share:.1%} faces", [len(f)] * frames, [(v, f, vertex_normals(v, f))] * frames)
     return rows
+
+
+def normals(name, frames, tau, supersample=2):
+    """The subtree-mean and the fitted shading normals on the same refinements
+    of ``frames`` frames of the standard orbit at ``tau``: per normals, the
+    median and mean over the frames of the differing share, the silhouette
+    share and FLIP over the model's pixels."""
+    data = pmjax.read_pm(pm_file(name))
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    V0 = data.n_original_vertices
+    sets = {"hierarchy": pmjax.hierarchy_normals(pm), "fitted": pmjax.fitted_normals(data)}
+    cams = pmjax.standard_orbit(data.vertices[:V0], frames)
+    views = [index_camera(cams, i) for i in range(frames)]
+    # The original is drawn with its own vertex normals, the same in both sets.
+    ov, of = data.vertices[:V0], data.faces
+    measures = {key: dict(differing_share=[], silhouette_share=[], flip_model_mean=[]) for key in sets}
+    faces = []
+    t0 = time.perf_counter()
+    with Renderer(views[0].width, views[0].height, supersample=supersample, float_color=True) as r:
+        for cam in views:
+            v, f, ids = pmjax.refine(pm, cam, tau).mesh(pm)
+            ids = np.asarray(ids)
+            faces.append(len(f))
+            original = r.render_mesh(ov, of, cam, normals=sets["fitted"][:V0])
+            silhouette = silhouette_difference(r, (ov, of), (v, f), cam)["differing_share"]
+            for key, n in sets.items():
+                image = r.render_mesh(v, f, cam, normals=n[ids])
+                m = measures[key]
+                m["differing_share"].append(image_difference(*original, *image)["differing_share"])
+                m["silhouette_share"].append(silhouette)
+                m["flip_model_mean"].append(flip_difference(*original, *image)["flip_model_mean"])
+    rows = []
+    for key, m in measures.items():
+        out = dict(model=name, frames=frames, tau=tau, normals=key, F=len(of), faces=statistics.median(faces),
+                   seconds=round(time.perf_counter() - t0, 1))
+        for k, values in m.items():
+            out[k] = statistics.median(values)
+            out["mean_" + k] = statistics.fmean(values)
+        rows.append(out)
+        print(f"{name:8s} {frames:4d} frames tau {tau:g} {key:9s}: faces {out['faces']:8.0f} | differing "
+              f"{out['differing_share']:7.3%} (mean {out['mean_differing_share']:7.3%}) | silhouette "
+              f"{out['silhouette_share']:7.3%} | FLIP {out['flip_model_mean']:.4f} (mean "
+              f"{out['mean_flip_model_mean']:.4f})", flush=True)
+    return rows
+
+
+def pareto_plot(rows, path):
+    """Faces drawn against FLIP over the model's pixels and against the
+    differing share, per model, pmjax and the quadric (``frontier`` rows); PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker
+
+    from pmjax._atomic import atomic_path
+
+    models = sorted({r["model"] for r in rows})
+    fig, axes = plt.subplots(len(models), 2, figsize=(9, 3.4 * len(models)), squeeze=False)
+    for axis_row, name in zip(axes, models):
+        for ax, key, label in zip(axis_row, ("flip_model_mean", "differing_share"),
+                                  ("mean FLIP over the model's pixels", "differing share of the model's pixels")):
+            for method, style in (("pmjax", "o-"), ("quadric", "s--")):
+                pts = sorted((r["faces"], r[key]) for r in rows if r["model"] == name and r["method"] == method)
+                if pts:
+                    ax.plot(*zip(*pts), style, label=method)
+            ax.set_xscale("log")
+            ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # overlapping labels otherwise
+            ax.set_xlabel(f"faces drawn ({name})")
+            ax.set_ylabel(label)
+            ax.grid(True, which="both", alpha=0.3)
+            ax.legend()
+    fig.tight_layout()
+    with atomic_path(path, ".png") as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
 
 
 def main():
@@ -101,9 +191,13 @@ def main():
     ap.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated subset of {','.join(PARTS)}")
     ap.add_argument("--frontier-frames", default="48,24", help="frames per model for the frontier part")
     ap.add_argument("--frontier-taus", default="0.125,0.25,0.5,1")
-    ap.add_argument("--quadric-shares", default="0.1,0.2,0.4,0.7", help="face shares of the quadric baseline")
+    ap.add_argument("--quadric-shares", default="0.1,0.2,0.4,0.7",
+                    help="face shares of the quadric baseline, or 'match': pmjax's median face share at each tau")
+    ap.add_argument("--normals-frames", default="24", help="frames per model for the normals part")
+    ap.add_argument("--normals-tau", type=float, default=1.0, help="tau of the normals part")
     ap.add_argument("--supersample", type=int, default=2, metavar="S",
                     help="S x S samples per pixel in every render (default 2, as `pmjax path --fidelity`)")
+    ap.add_argument("--plot", help="frontier part: write the faces-against-fidelity plot (PNG) here")
     ap.add_argument("--json")
     args = ap.parse_args()
     parts = set(args.parts.split(","))
@@ -112,7 +206,7 @@ def main():
     print(f"machine: {machine()}\n")
     names = args.models.split(",")
     frames = per_model(args.frames, names)
-    rows, frontier_rows = [], []
+    rows, frontier_rows, normals_rows = [], [], []
     for name, n in zip(names, frames if "orbit" in parts else []):
         data = pmjax.read_pm(pm_file(name))
         pm = pmjax.ProgressiveMesh.from_data(data)
@@ -139,10 +233,17 @@ def main():
         print("\nFidelity against faces (same frames for every row):")
         for name, n in zip(names, per_model(args.frontier_frames, names)):
             frontier_rows += frontier(name, n, [float(t) for t in args.frontier_taus.split(",")],
-                                      [float(s) for s in args.quadric_shares.split(",")], args.supersample)
+                                      None if args.quadric_shares == "match"
+                                      else [float(s) for s in args.quadric_shares.split(",")], args.supersample)
+    if args.plot and frontier_rows:
+        pareto_plot(frontier_rows, args.plot)
+    if "normals" in parts:
+        print("\nShading normals (same refinements and frames for both):")
+        for name, n in zip(names, per_model(args.normals_frames, names)):
+            normals_rows += normals(name, n, args.normals_tau, args.supersample)
     if args.json:
         write_json(args.json, dict(machine=machine(), supersample=args.supersample, rows=rows,
-                                   frontier=frontier_rows))
+                                   frontier=frontier_rows, normals=normals_rows))
 
 
 if __name__ == "__main__":

@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 
 from pmjax._pmfile import METRICS, PMData, file_sha256  # noqa: F401 (re-exported)
 from pmjax._meshio import check_float32_precision
+from pmjax._normals import fitted_normals
 
 from . import _native as native
 from . import _quadrics as qd
@@ -318,7 +319,7 @@ def build_pm(
         bbox_diagonal=diag,
     )
     header["build"]["max_error"] = None if math.isinf(options.max_error) else options.max_error
-    return PMData(
+    data = PMData(
         vertices=pos[:next_id].astype(np.float32),
         normals=normals[:next_id].astype(np.float32),
         faces=f0.astype(np.int32),
@@ -334,6 +335,8 @@ def build_pm(
         killer=killer,
         header=header,
     )
+    # Shading normals fitted to the original surface, for drawing refinements.
+    return dataclasses.replace(data, shading_normals=fitted_normals(data))
 
 
 def _select_batch(a, b, x, link_test, elig, cur, n_vertices, pos, min_area2, boundary_vertex, linear, eager_skip,

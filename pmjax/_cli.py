@@ -280,14 +280,17 @@ def cmd_path(args) -> int:
         share = np.array([r["differing_share"] for r in rows])
         pop = np.array([r["popping_share"] for r in rows[1:]]) if K > 1 else np.zeros(1)
         silhouette = np.array([r["silhouette_share"] for r in rows])
+        flip = np.array([r["flip_model_mean"] for r in rows])
+        cost = np.array([r["fidelity_ms"] for r in rows])
         print(f"fidelity: median {np.median(share):.3%} of the model's pixels differ from the original "
               f"(max {share.max():.3%}; {np.median(silhouette):.3%} by geometry alone, drawn unlit); "
-              f"popping median {np.median(pop):.3%} per frame")
+              f"FLIP over the model's pixels median {np.median(flip):.4f}; "
+              f"popping median {np.median(pop):.3%} per frame; measuring cost median {np.median(cost):.0f} ms/frame")
     return 0
 
 
 FIDELITY_COLUMNS = ("differing_share", "psnr", "silhouette_share", "popping_share", "popping_mse",
-                    "render_ms")
+                    "flip_mean", "flip_model_mean", "render_ms", "fidelity_ms")
 
 
 def cmd_eval(args) -> int:
@@ -586,7 +589,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--csv", help="output CSV")
     p.add_argument("--fidelity", action="store_true",
                    help="also render each frame and the original: differing-pixel share, PSNR, "
-                        "the share due to geometry alone (silhouette), popping")
+                        "the share due to geometry alone (silhouette), popping, NVIDIA's FLIP over the image "
+                        "and over the model's pixels (needs flip-evaluator), and the measuring cost per frame")
     p.add_argument("--supersample", type=_whole(1, 16), default=2, metavar="S",
                    help="fidelity renders: S×S samples per pixel (default 2; popping wants 4, docs/soft.md)")
     add_geomorph_arg(p)

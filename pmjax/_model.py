@@ -90,6 +90,9 @@ class ProgressiveMesh(eqx.Module):
             bit planes these size).
         uncommon: ``[N]`` int32, the pcols whose kills differ from
             ``common_kills`` (the only ones the correction looks at).
+        shading_normals: ``[V0 + P, 3]`` float32 shading normals stored in
+            the file (:func:`pmjax.fitted_normals`), or None when the file has
+            none; drawing only, the refinement never reads them.
     """
 
     vertices: Float[Array, "V 3"]
@@ -106,6 +109,7 @@ class ProgressiveMesh(eqx.Module):
     max_kills: int = eqx.field(static=True, default=0)
     min_kills: int = eqx.field(static=True, default=0)
     common_kills: int = eqx.field(static=True, default=0)
+    shading_normals: Float[Array, "V 3"] | None = None
 
     @property
     def n_pcols(self) -> int:
@@ -153,6 +157,7 @@ class ProgressiveMesh(eqx.Module):
             batch_offsets=tuple(int(o) for o in pm.batch_offsets),
             n_original_vertices=V0,
             **kill_summary(pm.kills.astype(np.int32)),
+            shading_normals=None if pm.shading_normals is None else jnp.asarray(pm.shading_normals),
         )
 
 

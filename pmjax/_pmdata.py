@@ -23,6 +23,14 @@ ARRAY_SPECS: dict[str, tuple[str, tuple[str, ...]]] = {
     "killer": ("int32", ("F",)),
 }
 
+# Arrays a file may hold or omit (files written before they existed still
+# read): name -> (dtype, shape), as ARRAY_SPECS.
+OPTIONAL_ARRAY_SPECS: dict[str, tuple[str, tuple[str, ...]]] = {
+    # Unit shading normals fitted to the original surface (pmjax.fitted_normals);
+    # zero for a vertex with no face area below it.
+    "shading_normals": ("float32", ("V", "3")),
+}
+
 # Metric ids stored per pcol.
 METRICS = ("quadric", "quadric-memoryless", "edge", "pm", "hybrid")
 
@@ -54,6 +62,8 @@ class PMData:
     batch_offsets: np.ndarray  # int64[B+1]
     killer: np.ndarray  # int32[F], pcol that removes the face, -1 if none
     header: dict = dataclasses.field(default_factory=dict)
+    shading_normals: np.ndarray | None = None  # float32[V0+P, 3], unit or zero; optional
+
 
     @property
     def n_original_vertices(self) -> int:
@@ -73,5 +83,8 @@ class PMData:
         return np.bincount(self.killer[self.killer >= 0], minlength=self.n_pcols)
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """All arrays by name, in :data:`ARRAY_SPECS` order."""
-        return {name: getattr(self, name) for name in ARRAY_SPECS}
+        """All arrays by name, in :data:`ARRAY_SPECS` order, then the optional
+        ones present (:data:`OPTIONAL_ARRAY_SPECS`)."""
+        out = {name: getattr(self, name) for name in ARRAY_SPECS}
+        out.update({name: getattr(self, name) for name in OPTIONAL_ARRAY_SPECS if getattr(self, name) is not None})
+        return out

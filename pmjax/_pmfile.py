@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from ._atomic import atomic_path
-from ._pmdata import ARRAY_SPECS, METRICS, PMData, PMFormatError  # noqa: F401 (re-exported)
+from ._pmdata import ARRAY_SPECS, METRICS, OPTIONAL_ARRAY_SPECS, PMData, PMFormatError  # noqa: F401 (re-exported)
 from ._structure import check_structure, remember_structure, structure_known
 
 MAGIC = "pmjax.progressive-mesh"
@@ -32,6 +32,11 @@ VERSION = 1
 HEADER_LIMIT = 1 << 20
 # Largest .npy header read, bytes (numpy writes 128, and refuses over 10000).
 NPY_HEADER_LIMIT = 10000
+
+# Largest distance from 1 of a stored shading normal's length: float32
+# rounding of a normalized vector is below 1e-6.
+SHADING_UNIT_TOLERANCE = 1e-4
+
 
 def _sha256(a: np.ndarray) -> str:
     # Hash the array's memory directly (no tobytes() copy).
@@ -166,10 +171,16 @@ def read_arrays(path: str | os.PathLike) -> tuple[PMData, str]:
         for name in ARRAY_SPECS:
             if name + ".npy" not in names:
                 raise PMFormatError(f"{path}: array {name!r} is missing")
+        # An optional array is read when the file holds it; one the checksums
+        # name must be there.
+        optional = [name for name in OPTIONAL_ARRAY_SPECS if name + ".npy" in names or name in sums]
+        for name in optional:
+            if name + ".npy" not in names:
+                raise PMFormatError(f"{path}: array {name!r} is missing (the header has its checksum)")
         # Every array's shape and dtype, and its entry's size, checked before
         # any data is read.
         shapes, counts = _expected_shapes(path, header.get("counts"))
-        layout = {name: _npy_layout(zf, path, name, shapes[name], counts) for name in ARRAY_SPECS}
+        layout = {name: _npy_layout(zf, path, name, shapes[name], counts) for name in [*ARRAY_SPECS, *optional]}
         arrays: dict[str, Any] = {}
         for name, (offset, shape, fortran, dtype) in layout.items():
             arrays[name] = _read_npy(zf, path, name, offset, shape, fortran, dtype)
@@ -210,7 +221,8 @@ def _expected_shapes(path: str, counts: Any) -> tuple[dict[str, tuple[int, ...]]
             raise PMFormatError(f"{path}: header count {key}={value!r} is not a whole number >= 0")
     sizes = dict(V=counts["V0"] + counts["P"], F=counts["F"], P=counts["P"], B1=counts["B"] + 1, **{"3": 3})
     text = ", ".join(f"{key}={counts[key]}" for key in ("V0", "F", "P", "B"))
-    return {name: tuple(sizes[s] for s in shape) for name, (_, shape) in ARRAY_SPECS.items()}, text
+    specs = {**ARRAY_SPECS, **OPTIONAL_ARRAY_SPECS}
+    return {name: tuple(sizes[s] for s in shape) for name, (_, shape) in specs.items()}, text
 
 
 def _npy_layout(zf: zipfile.ZipFile, path: str, name: str, want: tuple[int, ...], counts: str):
@@ -244,7 +256,7 @@ def _npy_layout(zf: zipfile.ZipFile, path: str, name: str, want: tuple[int, ...]
         shape, fortran, dtype = read(buf)
     except Exception as exc:  # a damaged entry, a bad .npy header
         raise PMFormatError(f"{path}: array {name!r} is unreadable ({type(exc).__name__}: {exc})") from exc
-    spec = np.dtype(ARRAY_SPECS[name][0])
+    spec = np.dtype({**ARRAY_SPECS, **OPTIONAL_ARRAY_SPECS}[name][0])
     entry = f"{path}: array {name!r} (entry {info.filename})"
     if dtype != spec:
         raise PMFormatError(f"{entry} has dtype {dtype}, expected {spec}")
@@ -307,6 +319,17 @@ def validate_pm(pm: PMData, *, source: str = "<memory>") -> None:
         want = tuple(sizes[s] for s in shape)
         if a.shape != want:
             raise PMFormatError(f"{source}: {name} has shape {a.shape}, expected {want}")
+    for name, (dtype, shape) in OPTIONAL_ARRAY_SPECS.items():
+        a = getattr(pm, name)
+        if a is None:
+            continue
+        if not isinstance(a, np.ndarray):
+            raise PMFormatError(f"{source}: {name} is not an array")
+        if a.dtype != np.dtype(dtype):
+            raise PMFormatError(f"{source}: {name} has dtype {a.dtype}, expected {dtype}")
+        want = tuple(sizes[s] for s in shape)
+        if a.shape != want:
+            raise PMFormatError(f"{source}: {name} has shape {a.shape}, expected {want}")
     if V0 < 1 or F < 1:
         raise PMFormatError(f"{source}: empty mesh (V0={V0}, F={F})")
 
@@ -324,6 +347,12 @@ def validate_pm(pm: PMData, *, source: str = "<memory>") -> None:
 
     first_bad_row(~np.isfinite(pm.vertices), "non-finite vertex position")
     first_bad_row(~np.isfinite(pm.normals), "non-finite vertex normal")
+    if pm.shading_normals is not None:
+        shading = pm.shading_normals
+        first_bad_row(~np.isfinite(shading), "non-finite shading normal")
+        length = np.sqrt(np.einsum("ij,ij->i", shading, shading, dtype=np.float64))
+        first_bad((length != 0) & (np.abs(length - 1) > SHADING_UNIT_TOLERANCE),
+                  "shading normal neither unit length nor zero (re-save the mesh with pmjax.fitted_normals)")
     first_bad_row((pm.faces < 0) | (pm.faces >= V0), "face index out of range [0, V0)")
     off = pm.batch_offsets
     if off[0] != 0 or off[-1] != P or np.any(np.diff(off) < 0):

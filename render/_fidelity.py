@@ -38,6 +38,58 @@ def image_difference(rgb_a, depth_a, rgb_b, depth_b, threshold: int = DIFF_THRES
     return dict(model_pixels=n, differing=differing, differing_share=differing / n if n else 0.0, mse=mse, psnr=psnr)
 
 
+# Pixels beyond the model's bounding box that FLIP is evaluated on: more than
+# its filters' reach at the default 67 pixels per degree (the error of a change
+# spreads about 10 pixels), so the cropped evaluation equals the full one.
+FLIP_MARGIN = 32
+
+
+def flip_module():
+    """NVIDIA's FLIP (the ``flip_evaluator`` module), or a clear error naming the package."""
+    try:
+        import flip_evaluator
+    except ImportError as exc:
+        raise RuntimeError("FLIP needs the flip-evaluator package (NVIDIA's FLIP image metric): "
+                           "pip install flip-evaluator") from exc
+    return flip_evaluator
+
+
+def flip_difference(rgb_ref, depth_ref, rgb_test, depth_test) -> dict:
+    """NVIDIA's FLIP (LDR) between a reference render and a test render of the same view.
+
+    Args:
+        rgb_ref, rgb_test: ``[H, W, 3]`` sRGB colour in [0, 255] (uint8 or
+            unrounded float32, :class:`Renderer`).
+        depth_ref, depth_test: ``[H, W]``, 0 where empty; the model's pixels
+            are those covered in either.
+
+    Returns:
+        dict: ``flip_mean`` (mean FLIP over the image, 0 for identical
+        images, at most 1) and ``flip_model_mean`` (over the model's pixels;
+        0 when there are none). FLIP is evaluated on the model's bounding box
+        grown by :data:`FLIP_MARGIN` pixels: the background around it is the
+        same in both renders.
+    """
+    a = np.clip(np.asarray(rgb_ref, np.float32) / 255.0, 0.0, 1.0)
+    b = np.clip(np.asarray(rgb_test, np.float32) / 255.0, 0.0, 1.0)
+    if a.shape != b.shape:
+        raise ValueError(f"image shapes differ: {a.shape} vs {b.shape}")
+    model = (np.asarray(depth_ref) > 0) | (np.asarray(depth_test) > 0)
+    if not model.any():
+        # Nothing drawn in either: two renders of the background alone.
+        error = np.asarray(flip_module().evaluate(a, b, "LDR", applyMagma=False)[0], np.float64)
+        return dict(flip_mean=float(error.mean()), flip_model_mean=0.0)
+    # Away from the model both images are the same background, where FLIP is
+    # 0; its filters reach FLIP_MARGIN pixels at most, so FLIP of the model's
+    # box grown by the margin equals the full image's there.
+    rows, cols = np.flatnonzero(model.any(axis=1)), np.flatnonzero(model.any(axis=0))
+    y0, y1 = max(rows[0] - FLIP_MARGIN, 0), min(rows[-1] + 1 + FLIP_MARGIN, a.shape[0])
+    x0, x1 = max(cols[0] - FLIP_MARGIN, 0), min(cols[-1] + 1 + FLIP_MARGIN, a.shape[1])
+    error, _, _ = flip_module().evaluate(a[y0:y1, x0:x1], b[y0:y1, x0:x1], "LDR", applyMagma=False)
+    error = np.asarray(error, np.float64).reshape(y1 - y0, x1 - x0)
+    return dict(flip_mean=float(error.sum() / model.size), flip_model_mean=float(error[model[y0:y1, x0:x1]].mean()))
+
+
 def silhouette_difference(renderer, mesh_a, mesh_b, camera: Camera) -> dict:
     """:func:`image_difference` of two meshes drawn unlit, in one flat colour.
 
@@ -65,7 +117,7 @@ def silhouette_difference(renderer, mesh_a, mesh_b, camera: Camera) -> dict:
 
 def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Tests = ALL_TESTS,
                   geomorph: int = 0, supersample: int = 2, float_color: bool = True, coherent: bool = True,
-                  progress: bool = False) -> list[dict]:
+                  progress: bool = False, flip: bool = True) -> list[dict]:
     """Per frame: faces, share of the model's pixels that differ from the
     original mesh's render (and PSNR), the part of that share due to geometry
     alone (:func:`silhouette_difference`), and popping — the share of pixels
@@ -86,14 +138,22 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
             their size, not as a 0-or-1 rounding flip.
         coherent: refine 32 consecutive frames at a time (same refinements,
             :func:`pmjax.refine_path`).
+        flip: also NVIDIA's FLIP against the original (:func:`flip_difference`;
+            needs the flip-evaluator package).
 
     Returns:
         list of dicts (one per camera) with ``faces``, ``differing_share``,
         ``psnr``, ``silhouette_share``, ``popping_share`` (visibly changed pixels, see
         :data:`DIFF_THRESHOLD`), ``popping_mse`` (mean squared change: a
         change spread over ``n`` frames counts ``1/n`` as much per frame),
-        both 0 for the first frame, and ``render_ms``.
+        both 0 for the first frame, ``flip_mean`` and ``flip_model_mean``
+        (with ``flip``), ``render_ms`` (drawing the refined frame) and
+        ``fidelity_ms`` (all of this frame's measuring: renders and metrics).
+        The original is drawn once per frame (lit, and unlit for the
+        silhouette) for every column.
     """
+    if flip:
+        flip_module()  # a missing package is named before any rendering
     first = index_camera(cameras, 0)
     ov, of, on = original_arrays(pm)
     rows, previous = [], None
@@ -104,7 +164,10 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
             t = time.perf_counter()
             rgb, depth = r.render_mesh(v, f, cam, normals=n)
             render_ms = 1e3 * (time.perf_counter() - t)
-            row = image_difference(*r.render_mesh(ov, of, cam, normals=on), rgb, depth)
+            original = r.render_mesh(ov, of, cam, normals=on)
+            row = image_difference(*original, rgb, depth)
+            if flip:
+                row.update(flip_difference(*original, rgb, depth))
             row.update(frame=i, faces=int(len(f)), render_ms=render_ms, popping_share=0.0, popping_mse=0.0,
                        silhouette_share=silhouette_difference(r, (ov, of), (v, f), cam)["differing_share"])
             if previous is not None:
@@ -112,5 +175,6 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
                 pop = image_difference(*r.render_mesh(pv, pf, cam, normals=pn), rgb, depth)
                 row.update(popping_share=pop["differing_share"], popping_mse=pop["mse"])
             previous = (v, f, n)
+            row.update(fidelity_ms=1e3 * (time.perf_counter() - t))
             rows.append(row)
     return rows

@@ -8,7 +8,7 @@ from typing import Optional
 import numpy as np
 
 from pmjax import ALL_TESTS, Camera, ProgressiveMesh, Refinement, Tests, camera_count, index_camera
-from pmjax import geomorph_mesh, geomorph_start, geomorph_step, hierarchy_normals, refine_path
+from pmjax import fitted_normals, geomorph_mesh, geomorph_start, geomorph_step, refine_path
 from pmjax._path import path_refinement_pairs
 from pmjax._atomic import atomic_folder, atomic_path, check_output_path
 
@@ -111,18 +111,21 @@ _NORMALS: dict = {}
 
 
 def shading_normals(pm: ProgressiveMesh) -> np.ndarray:
-    """:func:`pmjax.hierarchy_normals` of ``pm``, computed once per mesh."""
+    """The vertex normals refinements of ``pm`` are drawn with: those stored
+    in its file (``pm.shading_normals``), else :func:`pmjax.fitted_normals`
+    computed once per mesh (a file written before they were stored)."""
     key = id(pm)
     if key not in _NORMALS or _NORMALS[key][0] is not pm:
         _NORMALS.clear()  # one mesh at a time; keeps the mesh alive while cached
-        _NORMALS[key] = (pm, hierarchy_normals(pm))
+        stored = getattr(pm, "shading_normals", None)
+        _NORMALS[key] = (pm, fitted_normals(pm) if stored is None else np.asarray(stored, np.float32))
     return _NORMALS[key][1]
 
 
 def refined_arrays(pm: ProgressiveMesh, refinement: Refinement, *, color_levels=False):
     """``(vertices, faces, face levels or None, normals)`` of a refinement,
-    ready to draw; each vertex is shaded with the normal of the original
-    surface it stands for (:func:`pmjax.hierarchy_normals`)."""
+    ready to draw; each vertex is shaded with the normal fitted to the
+    original surface it stands for (:func:`shading_normals`)."""
     v, f, ids = refinement.mesh(pm)
     levels = face_levels(f, batch_levels(pm, ids)) if color_levels else None
     return v, f, levels, shading_normals(pm)[ids]

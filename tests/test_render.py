@@ -179,8 +179,13 @@ def test_path_fidelity_columns(cow, tmp_path):
     assert r.returncode == 0, r.stderr
     rows = list(csv.DictReader(open(out)))
     assert len(rows) == 4
-    assert {"differing_share", "psnr", "silhouette_share", "popping_share", "render_ms"} <= set(rows[0])
+    assert {"differing_share", "psnr", "silhouette_share", "popping_share", "render_ms", "flip_mean",
+            "flip_model_mean", "fidelity_ms"} <= set(rows[0])
     assert float(rows[0]["popping_share"]) == 0.0
+    # FLIP over the model's pixels exceeds FLIP over the image (the background matches).
+    assert all(0 < float(r["flip_mean"]) < float(r["flip_model_mean"]) < 0.5 for r in rows)
+    assert all(float(r["fidelity_ms"]) > float(r["render_ms"]) for r in rows)
+    assert "FLIP over the model's pixels median" in r.stdout and "measuring cost median" in r.stdout
     assert all(0 <= float(r["differing_share"]) < 0.5 for r in rows)
     assert all(0 < float(r["silhouette_share"]) < 0.5 for r in rows)
 

@@ -1,0 +1,147 @@
+"""Shading normals fitted to the original surface: the rule recomputed by
+brute force, unit length, stored in the .pmz (old files still read), checked
+on load, and no effect on refinement."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import zipfile
+
+import numpy as np
+import pytest
+
+import pmjax
+from pmjax._normals import SHARPEN
+
+
+@pytest.fixture(scope="module")
+def cow(built):
+    return built("cow.ply")
+
+
+def _brute_force(data, u):
+    """The fitted normal of created vertex ``u`` from its definition, vertex by vertex."""
+    V0, P = data.n_original_vertices, data.n_pcols
+    v = data.vertices.astype(np.float64)
+    f = data.faces.astype(np.int64)
+    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+
+    def leaves(x):
+        return [x] if x < V0 else leaves(int(data.v1[x - V0])) + leaves(int(data.v2[x - V0]))
+
+    def mean(x):
+        inside = np.isin(f, leaves(x)).sum(axis=1)  # corners in the subtree
+        n = (inside[:, None] * cross).sum(axis=0)
+        return n / np.linalg.norm(n)
+
+    # The mesh just after u's batch: each original vertex's newest ancestor made by then.
+    b = int(np.searchsorted(data.batch_offsets, u - V0, side="right") - 1)
+    limit = V0 + int(data.batch_offsets[b + 1])
+    rep = np.arange(V0)
+    parent = np.full(V0 + P, -1)
+    parent[data.v1], parent[data.v2] = np.arange(P) + V0, np.arange(P) + V0
+    for x in range(V0):
+        while parent[rep[x]] >= 0 and parent[rep[x]] < limit:
+            rep[x] = parent[rep[x]]
+    corners = rep[f]
+    live = corners[(corners[:, 0] != corners[:, 1]) & (corners[:, 1] != corners[:, 2])
+                   & (corners[:, 0] != corners[:, 2])]
+    ring = [w for row in live if u in row for w in row if w != u]
+    own = mean(u)
+    if ring:
+        own = (1 - SHARPEN) * own + SHARPEN * np.mean([mean(w) if w >= V0 else _vertex_normal(data, w) for w in ring],
+                                                       axis=0)
+    return own / np.linalg.norm(own)
+
+
+def _vertex_normal(data, w):
+    v = data.vertices.astype(np.float64)
+    f = data.faces.astype(np.int64)
+    around = f[(f == w).any(axis=1)]
+    n = np.cross(v[around[:, 1]] - v[around[:, 0]], v[around[:, 2]] - v[around[:, 0]]).sum(axis=0)
+    return n / np.linalg.norm(n)
+
+
+def test_fitted_normals_follow_their_rule(cow):
+    fitted = pmjax.fitted_normals(cow)
+    V0 = cow.n_original_vertices
+    assert fitted.shape == (len(cow.vertices), 3) and fitted.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(fitted, axis=1), 1.0, atol=1e-6)
+    # Original vertices keep their own area-weighted normals.
+    for w in (0, V0 // 2, V0 - 1):
+        np.testing.assert_allclose(fitted[w], _vertex_normal(cow, w), atol=1e-5)
+    # Created vertices from the first, a middle and the last batch.
+    off = cow.batch_offsets
+    for p in (0, int(off[len(off) // 2]), cow.n_pcols - 1):
+        np.testing.assert_allclose(fitted[V0 + p], _brute_force(cow, V0 + p), atol=1e-5)
+    # The same normals from the device mesh (parents instead of v1, v2), and
+    # the fitted ones are not the plain subtree means.
+    pm = pmjax.ProgressiveMesh.from_data(cow)
+    np.testing.assert_array_equal(pmjax.fitted_normals(pm), fitted)
+    assert np.abs(fitted[V0:] - pmjax.hierarchy_normals(pm)[V0:]).max() > 0.01
+
+
+def test_build_stores_them_and_the_file_round_trips(cow, tmp_path):
+    np.testing.assert_array_equal(cow.shading_normals, pmjax.fitted_normals(cow))
+    path = tmp_path / "cow.pmz"
+    pmjax.save_pm(cow, path)
+    back = pmjax.read_pm(path)
+    for name, a in cow.arrays().items():
+        np.testing.assert_array_equal(getattr(back, name), a, err_msg=name)
+    assert "shading_normals" in back.arrays()
+    np.testing.assert_array_equal(np.asarray(pmjax.load(path).shading_normals), cow.shading_normals)
+
+
+def test_a_file_without_them_reads_and_draws_fitted_normals(cow, tmp_path):
+    from pmjax.render._offscreen import shading_normals
+
+    old = dataclasses.replace(cow, shading_normals=None)
+    path = tmp_path / "old.pmz"
+    pmjax.save_pm(old, path)
+    with zipfile.ZipFile(path) as zf:
+        assert "shading_normals.npy" not in zf.namelist()
+        assert "shading_normals" not in json.loads(zf.read("header.json"))["array_sha256"]
+    back = pmjax.read_pm(path)
+    assert back.shading_normals is None and "shading_normals" not in back.arrays()
+    pm = pmjax.load(path)
+    assert pm.shading_normals is None
+    np.testing.assert_array_equal(shading_normals(pm), cow.shading_normals)
+
+
+def test_refinement_is_unchanged_by_them(cow):
+    """The cone axes are the stored vertex normals, not the shading normals:
+    refining with or without them gives the same bits."""
+    with_them = pmjax.ProgressiveMesh.from_data(cow)
+    without = pmjax.ProgressiveMesh.from_data(dataclasses.replace(cow, shading_normals=None))
+    V0 = cow.n_original_vertices
+    np.testing.assert_array_equal(np.asarray(with_them.attributes.axis), cow.normals[V0:].T)
+    cams = pmjax.standard_orbit(cow.vertices[:V0], 4, width=320, height=240)
+    for i in range(4):
+        cam = pmjax.index_camera(cams, i)
+        for tau in (0.5, 2.0, 8.0):
+            a, b = pmjax.refine(with_them, cam, tau), pmjax.refine(without, cam, tau)
+            np.testing.assert_array_equal(np.asarray(a.executed), np.asarray(b.executed))
+            assert int(a.n_faces) == int(b.n_faces)
+
+
+def test_bad_shading_normals_are_refused(cow, tmp_path):
+    bad = cow.shading_normals.copy()
+    bad[7] *= 2.0
+    with pytest.raises(pmjax.PMFormatError, match=r"x\.pmz: shading normal neither unit length nor zero .*index 7\)"):
+        pmjax.save_pm(dataclasses.replace(cow, shading_normals=bad), tmp_path / "x.pmz")
+    bad[7] = np.nan
+    with pytest.raises(pmjax.PMFormatError, match=r"non-finite shading normal \(first at index 7\)"):
+        pmjax.validate_pm(dataclasses.replace(cow, shading_normals=bad))
+    with pytest.raises(pmjax.PMFormatError, match=r"shading_normals has shape \(5, 3\)"):
+        pmjax.validate_pm(dataclasses.replace(cow, shading_normals=bad[:5]))
+    # An entry the header's checksums name must be in the archive.
+    path = tmp_path / "cow.pmz"
+    pmjax.save_pm(cow, path)
+    stripped = tmp_path / "stripped.pmz"
+    with zipfile.ZipFile(path) as src, zipfile.ZipFile(stripped, "w") as dst:
+        for item in src.infolist():
+            if item.filename != "shading_normals.npy":
+                dst.writestr(item, src.read(item))
+    with pytest.raises(pmjax.PMFormatError, match=r"array 'shading_normals' is missing \(the header has its checksum\)"):
+        pmjax.read_pm(stripped)
