@@ -68,6 +68,7 @@ def test_face_counts_do_not_depend_on_scale_or_offset(cow_data, unit_counts, sca
     assert faces <= 1000 and np.isfinite(tau)
 
 
+@pytest.mark.slow
 def test_power_of_two_scale_gives_the_same_bits(cow_data):
     """Exact scaling: critical tolerances, soft counts and path counts are equal, not close."""
     unit = ProgressiveMesh.from_data(cow_data)
@@ -97,6 +98,7 @@ def test_a_distant_camera_gets_the_coarsest_mesh(cow_data, distance):
         assert int(pmjax.refine(pm, cam, np.inf, method=method).n_faces) == base
 
 
+@pytest.mark.slow
 def test_the_builder_has_no_absolute_tolerance(cow_data):
     """A mesh scaled by a power of two builds the same hierarchy, its lengths scaled exactly."""
     V0 = cow_data.n_original_vertices
