@@ -1228,6 +1228,25 @@ def _compact_name(first: str, last: str) -> str:
     return f"{first[:-len('.parquet')]}-to-{last[len('part-'):]}"
 
 
+def _read_checked(path):
+    """``(table, pmjax metadata, problem)`` of a Parquet file read in full:
+    ``problem`` says why it is unreadable (a truncated file, a damaged page)
+    or why its footer statistics disagree with its rows, else ``None``."""
+    import pyarrow.parquet as pq
+
+    try:
+        with pq.ParquetFile(path) as pf:
+            table = pf.read()
+            # Damaged pages can decode into invalid arrays (a dictionary index out of range).
+            table.validate(full=True)
+            info = json.loads((table.schema.metadata or {}).get(b"pmjax", b"{}"))
+            # Readers skip files by the footer's statistics: damaged ones would drop rows from a filtered read.
+            wrong = _wrong_statistics(pf.metadata, table)
+    except Exception as exc:  # pyarrow raises several types for a damaged file
+        return None, None, f"unreadable ({type(exc).__name__}: {exc})"
+    return table, info, wrong or None
+
+
 def _verify_compacted(path, first, last, named, keys, schema=None):
     """Read a compacted file in full and check it: Arrow's validation, the
     footer statistics, the columns, and per part in its record, from
@@ -1239,21 +1258,12 @@ def _verify_compacted(path, first, last, named, keys, schema=None):
     Returns:
         ``(problem, {part name: model SHA-256})``, ``problem`` ``None`` when it verifies.
     """
-    import pyarrow.parquet as pq
-
     if first is None or last is None:
         return ("is not a part of this job (its name is outside the job's models, camera sets, values or "
                 "chunks)"), None
-    try:
-        with pq.ParquetFile(path) as pf:
-            table = pf.read()
-            table.validate(full=True)
-            info = json.loads((table.schema.metadata or {}).get(b"pmjax", b"{}"))
-            wrong = _wrong_statistics(pf.metadata, table)
-    except Exception as exc:  # pyarrow raises several types for a damaged file
-        return f"unreadable ({type(exc).__name__}: {exc})", None
-    if wrong:
-        return wrong, None
+    table, info, problem = _read_checked(path)
+    if problem:
+        return problem, None
     records = info.get("compacted") if isinstance(info, dict) else None
     if not isinstance(records, list) or not records or not all(isinstance(r, dict) for r in records):
         return "has no pmjax record of the parts it holds", None
@@ -1308,22 +1318,14 @@ def _verify_part(path, part, job_sha, schema=None):
         written by another job or for another part, other columns, the wrong
         row count or (parts written without a checksum) camera rows.
     """
-    import pyarrow.parquet as pq
-
+    table, info, problem = _read_checked(path)
+    if problem:
+        return problem, None
+    signed = isinstance(info, dict) and "sha256" in info
     try:
-        with pq.ParquetFile(path) as pf:
-            table = pf.read()
-            # Damaged pages can decode into invalid arrays (a dictionary index out of range).
-            table.validate(full=True)
-            info = json.loads((table.schema.metadata or {}).get(b"pmjax", b"{}"))
-            # Readers skip files by the footer's statistics: damaged ones would drop rows from a filtered read.
-            wrong = _wrong_statistics(pf.metadata, table)
-            signed = isinstance(info, dict) and "sha256" in info
-            digest = _table_sha256(table, {k: v for k, v in info.items() if k != "sha256"}) if signed else None
-    except Exception as exc:  # pyarrow raises several types for a damaged file
+        digest = _table_sha256(table, {k: v for k, v in info.items() if k != "sha256"}) if signed else None
+    except Exception as exc:  # a damaged record that still decodes
         return f"unreadable ({type(exc).__name__}: {exc})", None
-    if wrong:
-        return wrong, None
     if not isinstance(info, dict) or not isinstance(info.get("model_sha256"), str):
         return "has no pmjax metadata (job and model checksums)", None
     # The checksum first: once it holds, the record (job, part, rows) is the one written.

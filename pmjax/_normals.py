@@ -22,26 +22,13 @@ def hierarchy_normals(pm: ProgressiveMesh) -> np.ndarray:
     Returns:
         ``float32[V0 + P, 3]`` (zero for a vertex with no faces around it).
     """
-    V0 = pm.n_original_vertices
-    vertices = np.asarray(pm.vertices, np.float64)
-    faces = np.asarray(pm.faces, np.int64)
-    parent = np.asarray(pm.parent)
-    # Area-weighted sums around the original vertices (cross products are 2·area·normal).
-    total = np.zeros_like(vertices)
-    if len(faces):
-        cross = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
-        for k in range(3):
-            np.add.at(total, faces[:, k], cross)
+    V0, vertices, faces, parent, offsets = _hierarchy_arrays(pm)
+    total = _area_normal_sums(vertices, faces)
     # Up the batches: a created vertex sums its two children (children are
     # finished before their parent's batch).
-    order = np.argsort(parent, kind="stable")
-    consumed = order[parent[order] >= 0]
-    starts = np.searchsorted(parent[consumed], pm.batch_offsets)
-    for b in range(len(pm.batch_offsets) - 1):
-        kids = consumed[starts[b]:starts[b + 1]]
+    for kids in _consumed_by_batch(parent, offsets):
         np.add.at(total, V0 + parent[kids], total[kids])
-    length = np.linalg.norm(total, axis=1, keepdims=True)
-    return (total / np.where(length > 0, length, 1.0)).astype(np.float32)
+    return _unit(total).astype(np.float32)
 
 
 # Weight of the 1-ring in the fitted normal: n = (1 - SHARPEN) * own + SHARPEN *
@@ -71,6 +58,24 @@ def _hierarchy_arrays(pm):
     return V0, vertices, faces, parent, offsets
 
 
+def _area_normal_sums(vertices, faces) -> np.ndarray:
+    """``[V, 3]`` per vertex the sum of its faces' cross products (2·area·normal)."""
+    total = np.zeros_like(vertices)
+    if len(faces):
+        cross = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
+        for k in range(3):
+            np.add.at(total, faces[:, k], cross)
+    return total
+
+
+def _consumed_by_batch(parent, offsets) -> list:
+    """Per batch, the vertices its pcols consume (``parent`` in the batch)."""
+    order = np.argsort(parent, kind="stable")
+    consumed = order[parent[order] >= 0]
+    starts = np.searchsorted(parent[consumed], offsets)
+    return [consumed[starts[b]:starts[b + 1]] for b in range(len(offsets) - 1)]
+
+
 def _unit(n: np.ndarray) -> np.ndarray:
     length = np.linalg.norm(n, axis=1, keepdims=True)
     return n / np.where(length > 0, length, 1.0)
@@ -98,14 +103,8 @@ def fitted_normals(pm) -> np.ndarray:
         below it).
     """
     V0, vertices, faces, parent, offsets = _hierarchy_arrays(pm)
-    total = np.zeros_like(vertices)
-    if len(faces):
-        cross = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
-        for k in range(3):
-            np.add.at(total, faces[:, k], cross)
-    order = np.argsort(parent, kind="stable")
-    consumed = order[parent[order] >= 0]
-    starts = np.searchsorted(parent[consumed], offsets)
+    total = _area_normal_sums(vertices, faces)
+    consumed = _consumed_by_batch(parent, offsets)
     # rep[x]: the vertex that stands for x after the current batch (x itself
     # until consumed); corners: the live faces' corners after the batch.
     rep = np.arange(len(vertices))
@@ -113,7 +112,7 @@ def fitted_normals(pm) -> np.ndarray:
     base = _unit(total)  # the subtree means, updated batch by batch
     out = base.copy()
     for b in range(len(offsets) - 1):
-        kids = consumed[starts[b]:starts[b + 1]]
+        kids = consumed[b]
         np.add.at(total, V0 + parent[kids], total[kids])
         lo, hi = V0 + offsets[b], V0 + offsets[b + 1]
         base[lo:hi] = _unit(total[lo:hi])

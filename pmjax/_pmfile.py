@@ -9,7 +9,6 @@ on load. See ``docs/format.md``.
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import io
 import json
@@ -310,18 +309,11 @@ def validate_pm(pm: PMData, *, source: str = "<memory>") -> None:
     V0 = V - P
     F = len(pm.faces)
     sizes = dict(V=V, F=F, P=P, B1=len(pm.batch_offsets), **{"3": 3})
-    for name, (dtype, shape) in ARRAY_SPECS.items():
+    specs = [(name, spec, False) for name, spec in ARRAY_SPECS.items()]
+    specs += [(name, spec, True) for name, spec in OPTIONAL_ARRAY_SPECS.items()]
+    for name, (dtype, shape), optional in specs:
         a = getattr(pm, name)
-        if not isinstance(a, np.ndarray):
-            raise PMFormatError(f"{source}: {name} is not an array")
-        if a.dtype != np.dtype(dtype):
-            raise PMFormatError(f"{source}: {name} has dtype {a.dtype}, expected {dtype}")
-        want = tuple(sizes[s] for s in shape)
-        if a.shape != want:
-            raise PMFormatError(f"{source}: {name} has shape {a.shape}, expected {want}")
-    for name, (dtype, shape) in OPTIONAL_ARRAY_SPECS.items():
-        a = getattr(pm, name)
-        if a is None:
+        if a is None and optional:
             continue
         if not isinstance(a, np.ndarray):
             raise PMFormatError(f"{source}: {name} is not an array")
