@@ -26,12 +26,17 @@ def check_mesh(pm, call: str) -> None:
     raise TypeError(f"{call}: pm must be a ProgressiveMesh (pmjax.load(path)), got {type(pm).__name__}")
 
 
+def check_camera_type(camera, call: str, what: str = "camera") -> None:
+    """``camera`` is a :class:`Camera` (``TypeError`` naming ``what`` otherwise)."""
+    if not isinstance(camera, Camera):
+        raise TypeError(f"{call}: {what} must be a pmjax.Camera (pmjax.look_at, pmjax.standard_orbit, "
+                        f"pmjax.load_cameras, ...), got {type(camera).__name__}")
+
+
 def check_camera(camera, call: str, *, batch: bool) -> int:
     """``camera`` is a :class:`Camera`: one (``batch=False``, eye ``[3]``) or a
     non-empty batch (eye ``[K, 3]``). Returns K (0 for one camera)."""
-    if not isinstance(camera, Camera):
-        raise TypeError(f"{call}: camera must be a pmjax.Camera (pmjax.look_at, pmjax.load_cameras, ...), "
-                        f"got {type(camera).__name__}")
+    check_camera_type(camera, call)
     shape = np.shape(camera.eye)
     if batch:
         if len(shape) != 2 or shape[1] != 3:

@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._arguments import check_mesh
+from ._arguments import check_camera_type, check_mesh
 from ._bitsets import WORD
 from ._camera import Camera, check_camera_values
 from ._model import ProgressiveMesh
@@ -54,12 +54,6 @@ CHUNK = 8 * WORD
 
 class PathError(ValueError):
     """A path that cannot be refined: empty, a bad camera or tolerance (the message names the frame)."""
-
-
-def _check_path_cameras(cameras, call: str) -> None:
-    if not isinstance(cameras, Camera):
-        raise TypeError(f"{call}: cameras must be a pmjax.Camera batch (pmjax.standard_orbit, pmjax.load_cameras, "
-                        f"...), got {type(cameras).__name__}")
 
 
 def check_path(cameras: Camera, tau=1.0, budget=None, *, paths: bool = False):
@@ -350,7 +344,7 @@ def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, t
             changes along the path, a bad ``tau`` or budget (naming the frame).
     """
     check_mesh(pm, "refine_path")
-    _check_path_cameras(cameras, "refine_path")
+    check_camera_type(cameras, "refine_path", "cameras")
     if is_traced(cameras, tau, budget):
         T = _traced_path_length(cameras)
         taus = _traced_taus(pm, cameras, tau, budget, tests, (T,))
@@ -429,7 +423,7 @@ def path_counts(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, t
         all of them).
     """
     check_mesh(pm, "path_counts")
-    _check_path_cameras(cameras, "path_counts")
+    check_camera_type(cameras, "path_counts", "cameras")
     if is_traced(cameras, tau, budget):
         return _traced_path_counts(pm, cameras, tau, budget, tests, coherent, method, paths)
     host, taus, budgets, shape = check_path(cameras, tau, budget, paths=paths)
