@@ -29,7 +29,8 @@ if TYPE_CHECKING:  # the names as a type checker and an editor see them
     from ._load import load
     from ._view import kappa
     from ._predicate import ALL_TESTS, Tests, collapse_mask, critical_tau, oriented_away, outside_frustum, small_on_screen
-    from ._refine import Refinement, critical_tolerances, faces_for_budget, propagate, refine, refine_batch
+    from ._refine import (Refinement, critical_tolerances, faces_for_budget, faces_for_budget_batch, propagate, refine,
+                          refine_batch)
     from .engines import core_enabled as native_available
     from .engines import info as engine_info
     from ._path import PathError, path_counts, refine_path
@@ -94,6 +95,7 @@ _EXPORTS = {
     "Refinement": ("._refine", "Refinement"),
     "critical_tolerances": ("._refine", "critical_tolerances"),
     "faces_for_budget": ("._refine", "faces_for_budget"),
+    "faces_for_budget_batch": ("._refine", "faces_for_budget_batch"),
     "propagate": ("._refine", "propagate"),
     "refine": ("._refine", "refine"),
     "refine_batch": ("._refine", "refine_batch"),
@@ -225,6 +227,7 @@ __all__ = [
     "Refinement",
     "critical_tolerances",
     "faces_for_budget",
+    "faces_for_budget_batch",
     "propagate",
     "refine",
     "native_available",

@@ -32,7 +32,7 @@ from .engines._dense import DenseRefinement, critical_tolerances, propagate, rep
 from .engines._front_mesh import numpy_mesh
 from .engines._tables import derived
 
-__all__ = ["Refinement", "critical_tolerances", "faces_for_budget", "propagate", "refine", "refine_batch",
+__all__ = ["Refinement", "critical_tolerances", "faces_for_budget", "faces_for_budget_batch", "propagate", "refine", "refine_batch",
            "representatives"]
 
 
@@ -681,3 +681,174 @@ def budget_search(faces_at, budget):
 
     out = lax.while_loop(cond, body, state)
     return out[9], out[10]
+
+
+_INF_BITS = 0x7F800000
+
+
+def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, tests: Tests = ALL_TESTS,
+                           chunk: int = 256, method: str = "auto") -> dict:
+    """:func:`faces_for_budget` for K cameras at once: the same ``(tau, faces)``
+    per camera, and the counts there.
+
+    With the C core, each chunk of cameras is one threaded call that
+    traverses each camera once at a tolerance below its answer and guesses the
+    answer from the critical tolerances of the pcols that do not run there
+    (docs/design.md); exact counts at the guess and just below it, batched
+    over the chunk, confirm it (or a few more counts, galloping then
+    bisecting over the float32 bit patterns, correct it). Without the core
+    (or under ``jit``/``vmap``) each camera is :func:`faces_for_budget`.
+
+    Args:
+        pm: :class:`ProgressiveMesh`.
+        cameras: a camera batch (leading axis K).
+        budget: faces, a whole number >= 0, one for all cameras or ``[K]``.
+        tests: :class:`Tests`.
+        chunk: cameras per call, rounded up to a multiple of 32.
+        method: ``"auto"``, ``"front"`` or ``"dense"`` (as :func:`faces_for_budget`).
+
+    Returns:
+        dict ``tau`` (``float32 [K]``, pixels; ``0`` when even the finest view
+        fits, ``inf`` when nothing does), ``faces``, ``vertices``,
+        ``executed_count`` (``int32 [K]``, the refinement at ``tau``): NumPy
+        arrays, or JAX arrays under ``jit``.
+
+    Raises:
+        ValueError: a budget that is negative, fractional, NaN or not a number,
+            or a ``[K]`` budget of another length.
+    """
+    check_mesh(pm, "faces_for_budget_batch")
+    K = check_camera(cameras, "faces_for_budget_batch", batch=True)
+    traced = is_traced(cameras, budget)
+    if traced:
+        budgets = jnp.broadcast_to(jnp.asarray(budget, jnp.int32), (K,))
+
+        def one(camera, b):
+            tau, faces = faces_for_budget(pm, camera, b, tests, method)
+            r = refine(pm, camera, tau, tests=tests, method=method)
+            return tau, faces, r.n_vertices, r.n_executed
+
+        tau, faces, vertices, executed = jax.vmap(one)(cameras, budgets)
+        return dict(tau=tau, faces=faces, vertices=vertices, executed_count=executed)
+    budgets = np.asarray(budget, dtype=object) if not isinstance(budget, np.ndarray) else budget
+    if np.ndim(budgets) == 0:
+        budgets = np.full(K, check_budget(budget), np.int64)
+    else:
+        if np.shape(budgets) != (K,):
+            raise ValueError(f"faces_for_budget_batch: budget must be one number or one per camera ([{K}]), "
+                             f"got shape {list(np.shape(budgets))}")
+        budgets = np.array([check_budget(b.item() if isinstance(b, np.generic) else b) for b in budgets], np.int64)
+    engine = select(pm, method, batch=True)
+    if engine != "core" or K == 0:
+        out = dict(tau=np.zeros(K, np.float32), faces=np.zeros(K, np.int32), vertices=np.zeros(K, np.int32),
+                   executed_count=np.zeros(K, np.int32))
+        for k in range(K):
+            camera = jax.tree.map(lambda a: a[k], cameras)
+            tau, faces = faces_for_budget(pm, camera, int(budgets[k]), tests, method)
+            r = refine(pm, camera, float(tau), tests=tests, method=method)
+            out["tau"][k], out["faces"][k] = tau, faces
+            out["vertices"][k], out["executed_count"][k] = int(r.n_vertices), int(r.n_executed)
+        return out
+    chunk = -(-max(1, min(int(chunk), K)) // WORD) * WORD
+    order = nearby_order(np.asarray(cameras.eye))
+    host = jax.tree.map(np.asarray, cameras)
+    d = derived(pm)
+    counts_of = _Counts.of(pm)
+    # A count never exceeds F: budgets above it are the same as F (and fit int32).
+    budgets = np.minimum(budgets, counts_of.F)
+    tau = np.empty(K, np.float32)
+    cols = [np.empty(K, np.int32) for _ in range(3)]
+    for s in range(0, K, chunk):
+        idx = order[np.minimum(np.arange(s, s + chunk), K - 1)]  # pad by repeating the last
+        part = jax.tree.map(lambda a: a[idx], host)
+        rows = _core.host_camera_rows(part, np.zeros(chunk, np.float32), d.exponent)
+        guess = np.asarray(_core_guesses(d.core, rows, budgets[idx].astype(np.int32), tests, cameras.orthographic,
+                                         counts_of.base_faces))
+        n = min(chunk, K - s)
+        t, c = _exact_from_guess(d.core, rows[:n], budgets[idx[:n]], guess[:n], tests, cameras.orthographic,
+                                 counts_of)
+        tau[idx[:n]] = t
+        for col, v in zip(cols, c):
+            col[idx[:n]] = v
+    return dict(tau=tau, faces=cols[0], vertices=cols[1], executed_count=cols[2])
+
+
+@functools.partial(jax.jit, static_argnames=("tests", "orthographic", "base_faces"))
+def _core_guesses(tables, rows, budgets, tests, orthographic, base_faces):
+    return _core.budget_guesses(tables, rows, budgets, tests, orthographic, base_faces)
+
+
+def _exact_from_guess(tables, rows, budgets, guess, tests, orthographic, counts_of):
+    """The exact answers from the guesses, by rounds of exact counts.
+
+    Over the float32 bit patterns ``b`` of ``tau`` (``0 .. INF_BITS``; a
+    virtual ``-1`` below, whose count exceeds every budget, and ``INF_BITS +
+    1`` above, within every budget), each camera keeps a bracket ``lo < hi``
+    with ``faces(lo) > budget >= faces(hi)``; the answer is ``hi`` once they
+    are adjacent (``INF_BITS + 1``: ``tau = inf`` with the count at inf). The
+    first round counts at the guess and just below it; later rounds gallop
+    from a virtual end (steps growing geometrically) or split the bracket.
+    Each round is one batched call of exact counts over the cameras still
+    open.
+    """
+    n = len(budgets)
+    lo = np.full(n, -1, np.int64)
+    hi = np.full(n, _INF_BITS + 1, np.int64)
+    at_hi = np.zeros((n, 3), np.int64)   # counts at hi (faces, vertices, executed)
+    at_inf = np.zeros((n, 3), np.int64)  # counts at INF_BITS, where counted
+    step = np.ones(n, np.int64)
+    g = np.clip(guess.astype(np.int64), 0, _INF_BITS + 1)
+    # Groups of probes, at most one per camera in each: (cameras, bit patterns).
+    groups = [(np.arange(n), g), (np.arange(n), g - 1)]
+    rounds = 0
+    while True:
+        groups = [(c[(b >= 0) & (b <= _INF_BITS)], b[(b >= 0) & (b <= _INF_BITS)]) for c, b in groups]
+        cams, bits = np.concatenate([c for c, _ in groups]), np.concatenate([b for _, b in groups])
+        if len(cams):
+            counted = np.stack(_counts_at(tables, rows, cams, bits, tests, orthographic, counts_of), 1)
+            start = 0
+            for c, b in groups:
+                got = counted[start:start + len(c)]
+                start += len(c)
+                at_inf[c[b == _INF_BITS]] = got[b == _INF_BITS]
+                within = got[:, 0] <= budgets[c]
+                lower = within & (b < hi[c])
+                hi[c[lower]], at_hi[c[lower]] = b[lower], got[lower]
+                raise_ = ~within & (b > lo[c])
+                lo[c[raise_]] = b[raise_]
+        open_ = hi - lo > 1
+        if not open_.any():
+            break
+        c = np.flatnonzero(open_)
+        l, h, st = lo[c], hi[c], step[c]
+        below, above = l < 0, h > _INF_BITS
+        # The second round probes once (most guesses are an ulp or two off);
+        # later ones, left to the few guesses far off, probe `m` points each.
+        m = 1 if rounds == 0 else 8
+        groups = []
+        for j in range(m):
+            reach = st << j
+            inner = l + (h - l) * (j + 1) // (m + 1)
+            b = np.where(below, np.maximum(h - reach, 0), np.where(above, np.minimum(l + reach, _INF_BITS), inner))
+            groups.append((c, b))
+        step[c] = np.where(below | above, st << m, st)
+        rounds += 1
+    tau = np.where(hi > _INF_BITS, np.inf, hi.astype(np.int32).view(np.float32) if n else 0.0).astype(np.float32)
+    counted = np.where((hi > _INF_BITS)[:, None], at_inf, at_hi)
+    return tau, (counted[:, 0], counted[:, 1], counted[:, 2])
+
+
+def _counts_at(tables, rows, cams, bits, tests, orthographic, counts_of):
+    """Exact counts of cameras ``rows[cams]`` at ``tau`` of bit patterns
+    ``bits``: one batched call, padded to a power of two (few compiled sizes)
+    by rows at ``tau = inf``, whose traversal stops at the roots."""
+    m = len(cams)
+    size = max(WORD, 1 << int(m - 1).bit_length())
+    probe = np.empty((size, rows.shape[1]), np.float32)
+    probe[:m] = rows[cams]
+    probe[m:] = rows[cams[0]]
+    probe[:m, -1] = bits.astype(np.int32).view(np.float32)
+    probe[m:, -1] = np.inf
+    counts = np.asarray(_core_many(tables, probe, tests, orthographic, False)[0])[:m]
+    faces, vertices, executed = counts_of(counts[:, 1], counts[:, 2], np)
+    return faces.astype(np.int64), vertices.astype(np.int64), executed.astype(np.int64)

@@ -415,6 +415,31 @@ def _redo_overflowed(tables, cameras, tests, orthographic, overflow, counts, mas
     return lax.fori_loop(0, jnp.sum(overflow, dtype=jnp.int32), step, (counts, mask, pcols, ran, positions))
 
 
+# -- face budgets -----------------------------------------------------------------------
+
+
+def budget_guesses(tables: CoreTables, cameras, budgets, tests, orthographic: bool, base_faces: int,
+                   threads: int = 0):
+    """Per camera, a guess of the smallest float32 ``tau`` whose face count
+    is within its budget: one traversal at a tolerance below the answer and
+    the critical tolerances of the pcols that do not run there, estimated in
+    double (``pmjax/engines/core/budget.c``); exact counts confirm or correct it.
+
+    Args:
+        cameras: ``float32 [K, CAMERA]`` (:func:`camera_rows`), the tolerance a
+            first one to traverse at (the core lowers it where needed).
+        budgets: ``int32 [K]`` faces.
+        base_faces: the coarsest mesh's faces.
+
+    Returns:
+        ``int32 [K]``: float32 bit patterns, ``0x7F800001`` for ``tau = inf``.
+    """
+    K = cameras.shape[0]
+    return _call("pmx_budget_many", _sds((K,), jnp.int32), *_hierarchy_args(tables), cameras, budgets,
+                 flags=np.int32(flags_of(tests, orthographic)), n_roots=np.int64(tables.n_roots),
+                 base_faces=np.int64(base_faces), threads=np.int64(threads))
+
+
 # -- words of a path -------------------------------------------------------------------
 
 

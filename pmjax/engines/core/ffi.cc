@@ -285,6 +285,30 @@ ffi::Error RefineMany(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> rows, ffi::Buf
   return ffi::Error::Success();
 }
 
+// ---- face budgets of camera batches -----------------------------------------
+// operands: rows, kills, order, cameras f32[K, PMX_CAMERA] (tau: a first tolerance), budgets s32[K]
+// results: guess s32[K] (float32 bit patterns; 0x7F800001: inf)
+ffi::Error BudgetMany(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> rows, ffi::Buffer<ffi::S32> kills,
+                      ffi::Buffer<ffi::S32> order, ffi::Buffer<ffi::F32> cameras, ffi::Buffer<ffi::S32> budgets,
+                      ffi::ResultBuffer<ffi::S32> guess, int32_t flags, int64_t n_roots, int64_t base_faces,
+                      int64_t threads) {
+  PmxHierarchy h;
+  PMX_CHECK(Hierarchy(rows, kills, order, n_roots, &h));
+  auto vd = cameras.dimensions();
+  if (vd.size() != 2 || vd[1] != PMX_CAMERA)
+    return ffi::Error::InvalidArgument("cameras must have shape [K, " + std::to_string(PMX_CAMERA) + "], got " +
+                                       Shape(vd));
+  const int64_t K = vd[0];
+  PMX_CHECK(Expect("budgets", budgets.dimensions(), {K}));
+  PMX_CHECK(Expect("guess", guess->dimensions(), {K}));
+  if (base_faces < 0) return ffi::Error::InvalidArgument("base_faces must be >= 0");
+  PmxRunner runner = Runner(pool, threads);
+  PMX_CHECK(Status(pmx_budget_many(&h, cameras.typed_data(), K, flags, budgets.typed_data(), base_faces,
+                                   guess->typed_data(), &runner),
+                   "faces_for_budget"));
+  return ffi::Error::Success();
+}
+
 // ---- words of a path ---------------------------------------------------------
 // operands: rows, kills, order, cameras f32[W * 16, PMX_CAMERA]
 // results: counts s32[W * 16, 4], at_once s32[W], pcols s32[W, L], ran u16[W, L], positions s32[W, L],
@@ -619,6 +643,20 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxRefineMany, RefineMany,
                                   .Attr<int64_t>("n_roots")
                                   .Attr<int64_t>("threads"));
 
+XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxBudgetMany, BudgetMany,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Attr<int32_t>("flags")
+                                  .Attr<int64_t>("n_roots")
+                                  .Attr<int64_t>("base_faces")
+                                  .Attr<int64_t>("threads"));
+
 XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxRefineWords, RefineWords,
                               ffi::Ffi::Bind()
                                   .Ctx<ffi::ThreadPool>()
@@ -718,6 +756,7 @@ PyObject* Targets(PyObject*, PyObject*) {
                  {"pmx_refine_answered", reinterpret_cast<void*>(PmxRefineAnswered)},
                  {"pmx_refine_many", reinterpret_cast<void*>(PmxRefineMany)},
                  {"pmx_refine_words", reinterpret_cast<void*>(PmxRefineWords)},
+                 {"pmx_budget_many", reinterpret_cast<void*>(PmxBudgetMany)},
                  {"pmx_apply_unsure", reinterpret_cast<void*>(PmxApplyUnsure)},
                  {"pmx_front_mesh", reinterpret_cast<void*>(PmxFrontMesh)},
                  {"pmx_check_hierarchy", reinterpret_cast<void*>(PmxCheckHierarchy)},

@@ -1,0 +1,127 @@
+"""faces_for_budget_batch: exact face budgets for camera batches.
+
+Every answer must be faces_for_budget's, bit for bit: the dense sort of the
+critical tolerances (method="dense") and the core's search (method="front"),
+with the counts of a refine at the answer.
+"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import pytest
+
+import pmjax
+from pmjax import _refine
+from pmjax._camera import index_camera, stack_cameras
+
+pytestmark = pytest.mark.core
+
+
+def _views(data, n, seed):
+    v0 = data.vertices[: data.n_original_vertices]
+    cams = pmjax.random_views(v0, n, seed=seed, min_scale=0.05, max_scale=6.0)
+    c, r = v0.mean(0), np.linalg.norm(np.ptp(v0, 0))
+    # Views away from the model (everything culled) and from inside it.
+    away = pmjax.look_at(c + [3 * r, 0, 0], c + [6 * r, 0, 0])
+    inside = pmjax.look_at(c, c + [0, 0, r])
+    return stack_cameras([index_camera(cams, i) for i in range(n)] + [away, inside])
+
+
+def _orthographic(data):
+    v0 = data.vertices[: data.n_original_vertices]
+    c, r = v0.mean(0), np.linalg.norm(np.ptp(v0, 0))
+    return stack_cameras([pmjax.look_at(c + d, c, orthographic=True, ortho_height=h, near=1e-3, far=10 * r)
+                          for d, h in (([0, 0, r], 0.5 * r), ([r, 0.3 * r, 0], 2 * r), ([0, r, 0.1 * r], 0.1 * r))])
+
+
+def _budgets(pm, cams):
+    """Budgets across the range: below the base mesh, at it, between, at and
+    above the finest view."""
+    full = pm.n_faces
+    base = full - int(np.sum(np.asarray(pm.kills)))
+    some = pmjax.refine_batch(pm, cams, 1.0)["faces"]
+    return sorted({0, max(base - 1, 0), base, base + 1, int(np.median(some)), int(some.min()), full // 3, full,
+                   full + 7})
+
+
+def _assert_same(pm, cams, budget, out, tests=pmjax.ALL_TESTS, methods=("dense", "front")):
+    budgets = np.broadcast_to(budget, (len(out["tau"]),))
+    for k in range(len(out["tau"])):
+        cam = index_camera(cams, k)
+        for method in methods:
+            tau, faces = pmjax.faces_for_budget(pm, cam, int(budgets[k]), tests, method=method)
+            assert np.float32(out["tau"][k]).tobytes() == np.float32(tau).tobytes(), (method, k, budgets[k])
+            assert out["faces"][k] == faces, (method, k, budgets[k])
+        r = pmjax.refine(pm, cam, out["tau"][k], tests=tests, method="dense")
+        assert (out["faces"][k], out["vertices"][k], out["executed_count"][k]) == \
+            (int(r.n_faces), int(r.n_vertices), int(r.n_executed)), k
+
+
+def test_batch_equals_faces_for_budget_on_the_cow(built):
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _views(data, 10, seed=5)
+    for budget in _budgets(pm, cams):
+        _assert_same(pm, cams, budget, pmjax.faces_for_budget_batch(pm, cams, budget, method="front"))
+
+
+def test_orthographic_ablations_and_budgets_per_camera(built):
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _orthographic(data)
+    budgets = _budgets(pm, cams)
+    for budget in budgets:
+        _assert_same(pm, cams, budget, pmjax.faces_for_budget_batch(pm, cams, budget, method="front"))
+    persp = _views(data, 6, seed=9)
+    per_camera = np.array(budgets * 2)[: 8]
+    for tests in (pmjax.Tests(frustum=False), pmjax.Tests(orientation=False), pmjax.Tests(screen=False),
+                  pmjax.Tests(frustum=False, orientation=False)):
+        out = pmjax.faces_for_budget_batch(pm, persp, per_camera, tests=tests, method="front")
+        _assert_same(pm, persp, per_camera, out, tests)
+
+
+def test_wrong_guesses_still_give_the_exact_answer(built, monkeypatch):
+    """The exact counts make any guess exact: guesses far off in both
+    directions, at 0, at inf and past it, give the same answers."""
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _views(data, 6, seed=2)
+    want = {b: pmjax.faces_for_budget_batch(pm, cams, b, method="front") for b in _budgets(pm, cams)}
+    rng = np.random.default_rng(0)
+    for bad in (lambda g: g * 0, lambda g: g * 0 + 0x7F800001, lambda g: g * 0 + 0x7F800000,
+                lambda g: g + rng.integers(-10 ** 7, 10 ** 7, g.shape), lambda g: g + 1, lambda g: g - 1,
+                lambda g: rng.integers(0, 0x7F800002, g.shape)):
+        original = _refine._core_guesses
+        monkeypatch.setattr(_refine, "_core_guesses", lambda *a, **k: bad(np.asarray(original(*a, **k),
+                                                                                        np.int64)).astype(np.int32))
+        for b, out in want.items():
+            got = pmjax.faces_for_budget_batch(pm, cams, b, method="front")
+            for key in out:
+                assert out[key].tobytes() == got[key].tobytes(), (b, key)
+        monkeypatch.setattr(_refine, "_core_guesses", original)
+
+
+def test_jit_and_bad_budgets(built):
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _views(data, 4, seed=3)
+    budgets = np.array([100, 900, 5000, 40, 2000, 10 ** 6], np.int32)
+    want = pmjax.faces_for_budget_batch(pm, cams, budgets, method="front")
+    got = jax.jit(lambda c, b: pmjax.faces_for_budget_batch(pm, c, b))(cams, budgets)
+    for key in want:
+        assert np.array_equal(np.asarray(got[key]), want[key]), key
+    for bad in (-1, 2.5, float("nan"), "10", np.array([1, 2])):
+        with pytest.raises(ValueError, match="budget"):
+            pmjax.faces_for_budget_batch(pm, cams, bad)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["bunny.ply", "terrain_gcanyon.ply"])
+def test_batch_equals_faces_for_budget(built, name):
+    data = built(name)
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _views(data, 24, seed=len(name))
+    for budget in _budgets(pm, cams):
+        out = pmjax.faces_for_budget_batch(pm, cams, budget, chunk=32)
+        _assert_same(pm, cams, budget, out, methods=("dense",))
