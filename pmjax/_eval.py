@@ -3,7 +3,7 @@ Parquet dataset, streamed, resumable, and optionally spread over Dask workers.
 
 A job is cut into parts: one chunk of cameras of one camera set, for one model
 and one tolerance (or budget). A part is refined with :func:`pmjax.refine_batch`
-(budgets: one camera at a time, see :func:`evaluate`) and written as one
+(budgets: :func:`pmjax.faces_for_budget_batch`) and written as one
 Parquet file, atomically (a temporary file, then a rename), so a part file
 that exists was written whole; its metadata records the job, the model's
 SHA-256, the part's name, its row count, and a SHA-256 over that record and
@@ -314,7 +314,7 @@ def run_part(task: dict):
     import pyarrow as pa
 
     from ._path import path_counts
-    from ._refine import faces_for_budget, refine, refine_batch
+    from ._refine import faces_for_budget_batch, refine_batch
 
     _compile_cache(task["compile_cache"])
     pm, warm = _model(task["model_path"], task["model_sha256"])
@@ -360,18 +360,18 @@ def run_part(task: dict):
             tau[idx] = task["tau"]
             continue
 
-        def one(cam):
-            # A budget needs its own tolerance per camera: the exact one from
-            # the sorted critical tolerances, then a refine at it.
-            t, _ = faces_for_budget(pm, cam, budget, tests)
-            return t, refine(pm, cam, float(t), tests=tests, method=method)
-
-        compile_ms += _warm(warm, ("budget",) + setting, lambda: one(index_camera(cams, 0)))
-        for j, row in enumerate(idx):
-            t = time.perf_counter()
-            tau[row], r = one(index_camera(cams, j))
-            faces[row], vertices[row], executed[row] = int(r.n_faces), int(r.n_vertices), int(r.n_executed)
-            ms[row] = 1e3 * (time.perf_counter() - t)
+        # A budget needs its own tolerance per camera: the exact one of
+        # faces_for_budget, found for the batch's cameras together (the
+        # core's threads across cameras), with the counts there.
+        call = lambda c: faces_for_budget_batch(pm, c, budget, tests=tests, chunk=task["batch_chunk"], method=method)
+        size = -(-min(task["batch_chunk"], len(idx)) // WORD) * WORD
+        first = index_camera(cams, np.minimum(np.arange(size), len(idx) - 1))
+        compile_ms += _warm(warm, ("budget", size) + setting, lambda: call(first))
+        t = time.perf_counter()
+        out = call(cams)
+        ms[idx] = 1e3 * (time.perf_counter() - t) / len(idx)
+        tau[idx], faces[idx], vertices[idx], executed[idx] = (out["tau"], out["faces"], out["vertices"],
+                                                              out["executed_count"])
     compile = np.zeros(n)
     compile[:1] = compile_ms
     camera = np.arange(task["lo"], task["hi"], dtype=np.int64)
@@ -544,7 +544,8 @@ def evaluate(
         taus: tolerances in pixels; or
         budgets: face budgets (exclusive with ``taus``): per camera, the
             smallest tolerance whose face count is the largest within the
-            budget (:func:`pmjax.faces_for_budget`), refined one camera at a time.
+            budget (:func:`pmjax.faces_for_budget`), the cameras of a part
+            together (:func:`pmjax.faces_for_budget_batch`).
         tests, method: as :func:`pmjax.refine_batch`.
         chunk: cameras per part (the unit of resumption and of Dask tasks).
         batch_chunk: cameras per vmapped kernel call inside a part.

@@ -840,10 +840,12 @@ def _exact_from_guess(tables, rows, budgets, guess, tests, orthographic, counts_
 
 def _counts_at(tables, rows, cams, bits, tests, orthographic, counts_of):
     """Exact counts of cameras ``rows[cams]`` at ``tau`` of bit patterns
-    ``bits``: one batched call, padded to a power of two (few compiled sizes)
-    by rows at ``tau = inf``, whose traversal stops at the roots."""
+    ``bits``: one batched call, padded to 32 times a power of 4 (few compiled
+    sizes) by rows at ``tau = inf``, whose traversal stops at the roots."""
     m = len(cams)
-    size = max(WORD, 1 << int(m - 1).bit_length())
+    size = WORD
+    while size < m:
+        size *= 4
     probe = np.empty((size, rows.shape[1]), np.float32)
     probe[:m] = rows[cams]
     probe[m:] = rows[cams[0]]

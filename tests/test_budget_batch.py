@@ -14,6 +14,7 @@ import pytest
 import pmjax
 from pmjax import _refine
 from pmjax._camera import index_camera, stack_cameras
+from pmjax.engines import _dense
 
 pytestmark = pytest.mark.core
 
@@ -45,40 +46,50 @@ def _budgets(pm, cams):
                    full + 7})
 
 
-def _assert_same(pm, cams, budget, out, tests=pmjax.ALL_TESTS, methods=("dense", "front")):
-    budgets = np.broadcast_to(budget, (len(out["tau"]),))
-    for k in range(len(out["tau"])):
+def _assert_same(pm, cams, budgets, run, tests=pmjax.ALL_TESTS, front=True):
+    """``run(budget)`` (a batch's answers) against faces_for_budget per camera
+    and budget: the dense sort (one sort per camera's critical tolerances)
+    and, with ``front``, the core's search; and the counts of a refine at
+    the answer."""
+    outs = [run(b) for b in budgets]
+    for k in range(len(outs[0]["tau"])):
         cam = index_camera(cams, k)
-        for method in methods:
-            tau, faces = pmjax.faces_for_budget(pm, cam, int(budgets[k]), tests, method=method)
-            assert np.float32(out["tau"][k]).tobytes() == np.float32(tau).tobytes(), (method, k, budgets[k])
-            assert out["faces"][k] == faces, (method, k, budgets[k])
-        r = pmjax.refine(pm, cam, out["tau"][k], tests=tests, method="dense")
-        assert (out["faces"][k], out["vertices"][k], out["executed_count"][k]) == \
-            (int(r.n_faces), int(r.n_vertices), int(r.n_executed)), k
+        eps = pmjax.critical_tolerances(pm, cam, tests)
+        for budget, out in zip(budgets, outs):
+            b = int(np.broadcast_to(budget, (len(out["tau"]),))[k])
+            want = [_dense.budget_sort(pm, eps, b)]
+            if front:
+                want.append(pmjax.faces_for_budget(pm, cam, b, tests, method="front"))
+            for tau, faces in want:
+                assert np.float32(out["tau"][k]).tobytes() == np.float32(tau).tobytes(), (k, b)
+                assert out["faces"][k] == faces, (k, b)
+            r = pmjax.refine(pm, cam, out["tau"][k], tests=tests)
+            assert (out["faces"][k], out["vertices"][k], out["executed_count"][k]) == \
+                (int(r.n_faces), int(r.n_vertices), int(r.n_executed)), (k, b)
 
 
-def test_batch_equals_faces_for_budget_on_the_cow(built):
+@pytest.mark.slow
+def test_batch_equals_the_dense_sort_on_the_cow(built):
     data = built("cow.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
-    cams = _views(data, 10, seed=5)
-    for budget in _budgets(pm, cams):
-        _assert_same(pm, cams, budget, pmjax.faces_for_budget_batch(pm, cams, budget, method="front"))
+    cams = _views(data, 4, seed=5)
+    _assert_same(pm, cams, _budgets(pm, cams), lambda b: pmjax.faces_for_budget_batch(pm, cams, b, method="front"),
+                 front=False)
 
 
+@pytest.mark.slow
 def test_orthographic_ablations_and_budgets_per_camera(built):
     data = built("cow.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
     cams = _orthographic(data)
     budgets = _budgets(pm, cams)
-    for budget in budgets:
-        _assert_same(pm, cams, budget, pmjax.faces_for_budget_batch(pm, cams, budget, method="front"))
+    _assert_same(pm, cams, budgets, lambda b: pmjax.faces_for_budget_batch(pm, cams, b, method="front"))
     persp = _views(data, 6, seed=9)
     per_camera = np.array(budgets * 2)[: 8]
     for tests in (pmjax.Tests(frustum=False), pmjax.Tests(orientation=False), pmjax.Tests(screen=False),
                   pmjax.Tests(frustum=False, orientation=False)):
-        out = pmjax.faces_for_budget_batch(pm, persp, per_camera, tests=tests, method="front")
-        _assert_same(pm, persp, per_camera, out, tests)
+        _assert_same(pm, persp, [per_camera, per_camera[::-1]],
+                     lambda b: pmjax.faces_for_budget_batch(pm, persp, b, tests=tests, method="front"), tests)
 
 
 def test_wrong_guesses_still_give_the_exact_answer(built, monkeypatch):
@@ -102,7 +113,8 @@ def test_wrong_guesses_still_give_the_exact_answer(built, monkeypatch):
         monkeypatch.setattr(_refine, "_core_guesses", original)
 
 
-def test_jit_and_bad_budgets(built):
+@pytest.mark.slow
+def test_under_jit(built):
     data = built("cow.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
     cams = _views(data, 4, seed=3)
@@ -111,6 +123,12 @@ def test_jit_and_bad_budgets(built):
     got = jax.jit(lambda c, b: pmjax.faces_for_budget_batch(pm, c, b))(cams, budgets)
     for key in want:
         assert np.array_equal(np.asarray(got[key]), want[key]), key
+
+
+def test_bad_budgets_are_refused(built):
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _views(data, 4, seed=3)
     for bad in (-1, 2.5, float("nan"), "10", np.array([1, 2])):
         with pytest.raises(ValueError, match="budget"):
             pmjax.faces_for_budget_batch(pm, cams, bad)
@@ -122,6 +140,5 @@ def test_batch_equals_faces_for_budget(built, name):
     data = built(name)
     pm = pmjax.ProgressiveMesh.from_data(data)
     cams = _views(data, 24, seed=len(name))
-    for budget in _budgets(pm, cams):
-        out = pmjax.faces_for_budget_batch(pm, cams, budget, chunk=32)
-        _assert_same(pm, cams, budget, out, methods=("dense",))
+    _assert_same(pm, cams, _budgets(pm, cams), lambda b: pmjax.faces_for_budget_batch(pm, cams, b, chunk=32),
+                 front=False)
