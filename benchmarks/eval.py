@@ -1,7 +1,7 @@
 """Evaluation-job benchmark: streaming, Dask, the compilation cache, many models.
 
-Usage: python benchmarks/eval.py [--parts stream,dask,cache,models,paths] [--cameras 1000000]
-       [--dask-cameras 20000] [--path-frames 7680] [--json out.json]
+Usage: python benchmarks/eval.py [--parts stream,dask,cache,models,paths,budgets] [--cameras 1000000]
+       [--dask-cameras 20000] [--path-frames 7680] [--budget-cameras 2048] [--json out.json]
 
 - stream: random views of the bunny streamed to Parquet by ``pmjax eval`` (a
   child process per run, for its peak RSS): the full set against 10,000
@@ -16,6 +16,11 @@ Usage: python benchmarks/eval.py [--parts stream,dask,cache,models,paths] [--cam
 - paths: the standard orbit of the dragon (7,680 frames) as an evaluation job,
   in-process with the model loaded and the kernels compiled, against
   ``path_counts`` on the same cameras: medians of 3 alternating runs.
+- budgets: the bunny and the dragon, random views and the standard orbit: a
+  job with three face budgets against a job with three tolerances on the same
+  cameras (the budgets: the median face counts of the tolerances), in-process
+  with the model loaded and the kernels compiled, start-up subtracted (a job
+  of 32 cameras of each kind); medians of 3 alternating runs.
 """
 
 from __future__ import annotations
@@ -38,7 +43,7 @@ from refine import pm_file  # noqa: E402
 
 import pmjax  # noqa: E402
 
-PARTS = ("stream", "dask", "cache", "models", "paths")
+PARTS = ("stream", "dask", "cache", "models", "paths", "budgets")
 
 
 def _child(code: str) -> dict:
@@ -246,12 +251,50 @@ def paths(frames: int, work: str, model: str = "dragon", repeats: int = 3) -> di
     return row
 
 
+def budgets(n: int, work: str, repeats: int = 3) -> list:
+    from pmjax._camera_table import orbit_rows, random_rows
+
+    taus = [0.5, 1.0, 2.0]
+    rows = []
+    for model in ("bunny", "dragon"):
+        path = pm_file(model)
+        pm, data = pmjax.load(path), pmjax.read_pm(path)
+        v0 = data.vertices[: data.n_original_vertices]
+        for spec in (f"random:{n}:7", f"orbit:{n}"):
+            table = random_rows(v0, 7, 0, n) if spec.startswith("random") else orbit_rows(v0, n, 0, n)
+            cams = table.camera()
+            values = [int(np.median(pmjax.refine_batch(pm, cams, t)["faces"])) for t in taus]
+            small = spec.replace(f":{n}", ":32")
+            jobs = {"tau": (spec, dict(taus=taus)), "budget": (spec, dict(budgets=values)),
+                    "tau_start": (small, dict(taus=taus)), "budget_start": (small, dict(budgets=values))}
+            times = {k: [] for k in jobs}
+            for rep in range(repeats + 1):  # the first round loads and compiles
+                for kind, (cameras, values_kw) in jobs.items():
+                    folder = os.path.join(work, f"budgets-{model}-{kind}-{rep}")
+                    t = time.perf_counter()
+                    pmjax.evaluate([path], [cameras], folder, compile_cache=None, progress=False, **values_kw)
+                    if rep:
+                        times[kind].append(time.perf_counter() - t)
+                    shutil.rmtree(folder)
+            med = {k: float(np.median(v)) for k, v in times.items()}
+            steady = {k: med[k] - med[f"{k}_start"] for k in ("tau", "budget")}
+            rate = {k: 3 * (n - 32) / steady[k] for k in steady}
+            row = dict(model=model, cameras=spec.split(":")[0], n=n, taus=taus, budgets=values, seconds=times,
+                       tau_rate=rate["tau"], budget_rate=rate["budget"], ratio=rate["budget"] / rate["tau"])
+            print(f"budgets {model} {spec}: tau job (taus {taus}) {rate['tau']:.0f} camera-values/s, budget job "
+                  f"(budgets {values}) {rate['budget']:.0f} camera-values/s, budget / tau rate "
+                  f"{row['ratio']:.2f} (start-up subtracted)", flush=True)
+            rows.append(row)
+    return rows
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--parts", default=",".join(PARTS))
     ap.add_argument("--cameras", type=int, default=1_000_000)
     ap.add_argument("--dask-cameras", type=int, default=20_000)
     ap.add_argument("--path-frames", type=int, default=7680)
+    ap.add_argument("--budget-cameras", type=int, default=2048)
     ap.add_argument("--json")
     args = ap.parse_args()
     parts = args.parts.split(",")
@@ -268,6 +311,8 @@ def main():
             report["models"] = models(work)
         if "paths" in parts:
             report["paths"] = paths(args.path_frames, work)
+        if "budgets" in parts:
+            report["budgets"] = budgets(args.budget_cameras, work)
     print(f"peak RSS of this process {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
     if args.json:
         write_json(args.json, report)

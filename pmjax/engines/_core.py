@@ -427,7 +427,8 @@ def budget_guesses(tables: CoreTables, cameras, budgets, tests, orthographic: bo
 
     Args:
         cameras: ``float32 [K, CAMERA]`` (:func:`camera_rows`), the tolerance a
-            first one to traverse at (the core lowers it where needed).
+            first one to traverse at (the core lowers it where needed), or 0:
+            one from the answers of the cameras before.
         budgets: ``int32 [K]`` faces.
         base_faces: the coarsest mesh's faces.
 
@@ -435,7 +436,10 @@ def budget_guesses(tables: CoreTables, cameras, budgets, tests, orthographic: bo
         ``int32 [K]``: float32 bit patterns, ``0x7F800001`` for ``tau = inf``.
     """
     K = cameras.shape[0]
-    return _call("pmx_budget_many", _sds((K,), jnp.int32), *_hierarchy_args(tables), cameras, budgets,
+    # One pixel as XLA computes it (the dense engine's value), which the
+    # screen test's switch points depend on to the last bit.
+    units = _view_of_rows(cameras, orthographic)[:, 20]
+    return _call("pmx_budget_many", _sds((K,), jnp.int32), *_hierarchy_args(tables), cameras, units, budgets,
                  flags=np.int32(flags_of(tests, orthographic)), n_roots=np.int64(tables.n_roots),
                  base_faces=np.int64(base_faces), threads=np.int64(threads))
 

@@ -9,10 +9,12 @@
  * faces(tau) = base faces + the kills of the pcols with eps >= tau. One
  * weighted selection over the slots with eps >= lo then gives the answer.
  *
- * t_p is estimated in double from the screen test's closed form, where the
- * float32 predicate's switch can lie an ulp or two away: the result is a
- * guess, which the caller turns into the exact answer by exact counts at it
- * and just below it (pmjax/_refine.py). */
+ * t_p is the screen test's switch, from its closed form corrected by the
+ * float32 test itself evaluated on terms computed as the predicate computes
+ * them, which an evaluation with other roundings (or an unsure frustum or
+ * orientation decision) can move: the result is a guess, which the caller
+ * turns into the exact answer by exact counts at it and just below it
+ * (pmjax/_refine.py). */
 #include <float.h>
 #include <stdlib.h>
 
@@ -20,7 +22,7 @@
 
 #define INF_BITS 0x7F800000
 /* The first tolerance of a camera, as a share of the answer predicted for it. */
-#define MARGIN 0.6
+#define MARGIN 0.85
 
 static int32_t bits_of(float x)
 {
@@ -29,13 +31,42 @@ static int32_t bits_of(float x)
     return b;
 }
 
-/* The square of the largest float32 tau at which the pcol of `row` is not
- * small on screen under `view` (+inf when it never is): the screen test's
- * terms in float32 in the predicate's order of operations (so that a
- * cancellation in d^2 - h^2 comes out as the predicate's does, to rounding),
- * then the closed form in double. Squares keep the order of the tolerances
- * and cost no root per pcol. */
-static double own_squared(const float *row, const float *view, int ortho)
+/* The screen test at tau as the float32 predicate evaluates it from its
+ * terms (products only: no evaluation contracts them differently). */
+static int small_at(float mu2, float normal2, float s, float unit, float tau)
+{
+    const float k = unit * tau, kappa2 = k * k, limit = kappa2 * s;
+    return (mu2 < limit) & (normal2 < limit * s);
+}
+
+/* Steps of one float32 pattern taken at most to correct the closed form. */
+#define STEPS 8
+
+/* The float32 just above and just below a finite x >= 0 (non-negative floats
+ * are ordered as their bit patterns). */
+static float up(float x)
+{
+    int32_t b;
+    memcpy(&b, &x, sizeof b);
+    b++;
+    memcpy(&x, &b, sizeof b);
+    return x;
+}
+
+static float down(float x)
+{
+    int32_t b;
+    memcpy(&b, &x, sizeof b);
+    b -= b > 0;
+    memcpy(&x, &b, sizeof b);
+    return x;
+}
+
+/* The largest float32 tau at which the pcol of `row` is not small on screen
+ * under `view` with one pixel `unit` (+inf when it never is): the screen
+ * test's terms in float32 in the predicate's order of operations, the
+ * closed form, then corrected by a few steps of the float32 test itself. */
+static float own_tolerance(const float *row, const float *view, float unit, int ortho)
 {
     float s, normal2;
     const float mu2 = row[MU] * row[MU], delta2 = row[DELTA] * row[DELTA];
@@ -47,38 +78,140 @@ static double own_squared(const float *row, const float *view, int ortho)
         const float d2 = fmaf(vz, vz, fmaf(vy, vy, vx * vx)), h = fmaf(vz, row[NZ], fmaf(vy, row[NY], vx * row[NX]));
         s = d2, normal2 = delta2 * fmaf(-h, h, d2);
     }
-    if (!(s > 0))
+    if (!small_at(mu2, normal2, s, unit, INFINITY))
         return INFINITY;
     /* small <=> mu^2 < (unit tau)^2 s and normal^2 < (unit tau)^2 s^2 */
-    const double ds = s, unit = view[ONE_PIXEL];
-    const double x = fmax((double)mu2 * ds, normal2 > 0 ? (double)normal2 : 0.0) / (ds * ds * unit * unit);
-    return x == x ? x : INFINITY;
+    const float m = mu2 * s > normal2 ? mu2 * s : normal2;
+    float f = sqrtf(m > 0 ? m : 0.0f) / (s * unit);
+    if (!(f <= FLT_MAX))
+        f = FLT_MAX;
+    if (small_at(mu2, normal2, s, unit, f)) {
+        for (int i = 0; i < STEPS && f > 0 && small_at(mu2, normal2, s, unit, f); i++)
+            f = down(f);
+    } else {
+        for (int i = 0; i < STEPS && f < FLT_MAX && !small_at(mu2, normal2, s, unit, up(f)); i++)
+            f = up(f);
+    }
+    return f;
 }
 
-/* The float32 tolerance of a squared one, rounded down. */
-static float tolerance_of(double squared)
+/* Pcols a block of the vectorized pass takes. */
+#define LANES 256
+
+/* own_tolerance of the pcols at positions pos[0..n) (n <= LANES) into out,
+ * as loops over the block's columns that the compiler vectorizes: the
+ * closed form and the float32 test around it; a pcol whose switch lies
+ * farther (rare) takes the scalar steps. */
+PMX_INLINE void own_block_body(const float *rows, const int32_t *pos, int64_t n, const float *view, float unit,
+                               int ortho, float *out)
 {
-    const double t = sqrt(squared);
-    if (!(t < (double)FLT_MAX))
-        return t > (double)FLT_MAX ? INFINITY : FLT_MAX;
-    float f = (float)t;
-    if ((double)f > t)
-        f = nextafterf(f, 0.0f);
-    return f;
+    float mu2[LANES], normal2[LANES], s[LANES], f[LANES], fu[LANES];
+    int32_t ok[LANES], never[LANES];
+    const float ex = view[EYE], ey = view[EYE + 1], ez = view[EYE + 2];
+    const float fx = view[FORWARD], fy = view[FORWARD + 1], fz = view[FORWARD + 2];
+    /* The screen test's terms, in the predicate's order of operations. */
+    for (int64_t j = 0; j < n; j++) {
+        const float *row = rows + (int64_t)pos[j] * ROW;
+        const float m = row[MU], d = row[DELTA], delta2 = d * d;
+        mu2[j] = m * m;
+        if (ortho) {
+            const float h = fmaf(row[NZ], fz, fmaf(row[NY], fy, row[NX] * fx));
+            s[j] = 1.0f, normal2[j] = delta2 * fmaf(-h, h, 1.0f);
+        } else {
+            const float vx = row[CX] - ex, vy = row[CY] - ey, vz = row[CZ] - ez;
+            const float d2 = fmaf(vz, vz, fmaf(vy, vy, vx * vx)), h = fmaf(vz, row[NZ], fmaf(vy, row[NY], vx * row[NX]));
+            s[j] = d2, normal2[j] = delta2 * fmaf(-h, h, d2);
+        }
+    }
+    /* The closed form (in double) and the float32 test at it and at the two
+     * patterns on either side: the switch is the pattern not small whose
+     * next one is. */
+    for (int64_t j = 0; j < n; j++) {
+        const double ds = s[j], nn = normal2[j] > 0 ? normal2[j] : 0.0f;
+        const double x = (double)mu2[j] / ds > nn / (ds * ds) ? (double)mu2[j] / ds : nn / (ds * ds);
+        double t = sqrt(x) / unit;
+        t = t <= FLT_MAX ? t : FLT_MAX;
+        const float tf = (float)t;
+        memcpy(&f[j], &tf, sizeof tf);
+    }
+    for (int64_t j = 0; j < n; j++) {
+        int32_t b0;
+        memcpy(&b0, &f[j], sizeof b0);
+        const int32_t bm2 = b0 - 2 > 0 ? b0 - 2 : 0, bm1 = b0 - 1 > 0 ? b0 - 1 : 0, bp1 = b0 + 1, bp2 = b0 + 2;
+        float tm2, tm1, tp1, tp2;
+        memcpy(&tm2, &bm2, 4), memcpy(&tm1, &bm1, 4), memcpy(&tp1, &bp1, 4), memcpy(&tp2, &bp2, 4);
+        const float m = mu2[j], q = normal2[j], sj = s[j];
+        const float k0 = unit * tm2, k1 = unit * tm1, k2 = unit * f[j], k3 = unit * tp1, k4 = unit * tp2;
+        const float l0 = k0 * k0 * sj, l1 = k1 * k1 * sj, l2 = k2 * k2 * sj, l3 = k3 * k3 * sj, l4 = k4 * k4 * sj;
+        const int s0 = (m < l0) & (q < l0 * sj), s1 = (m < l1) & (q < l1 * sj), s2 = (m < l2) & (q < l2 * sj);
+        const int s3 = (m < l3) & (q < l3 * sj), s4 = (m < l4) & (q < l4 * sj);
+        const float ki = unit * INFINITY, li = ki * ki * sj;
+        never[j] = !((m < li) & (q < li * sj));
+        /* The last pattern not small before one that is (the test is
+         * monotone in tau: at most one such pair). */
+        const int e3 = (1 - s3) & s4, e2 = (1 - s2) & s3, e1 = (1 - s1) & s2, e0 = (1 - s0) & s1 & (b0 >= 2);
+        const int32_t bt = e3 ? bp1 : e2 ? b0 : e1 ? bm1 : bm2;
+        ok[j] = e3 | e2 | e1 | e0;
+        memcpy(&fu[j], &bt, sizeof bt);
+    }
+    for (int64_t j = 0; j < n; j++)
+        if (never[j])
+            out[j] = INFINITY;
+        else if (ok[j])
+            out[j] = fu[j];
+        else
+            out[j] = own_tolerance(rows + (int64_t)pos[j] * ROW, view, unit, ortho);
+}
+
+static void own_block_plain(const float *rows, const int32_t *pos, int64_t n, const float *view, float unit, int ortho,
+                            float *out)
+{
+    own_block_body(rows, pos, n, view, unit, ortho, out);
+}
+
+#if PMX_X86
+PMX_TARGET_AVX2 static void own_block_avx2(const float *rows, const int32_t *pos, int64_t n, const float *view,
+                                           float unit, int ortho, float *out)
+{
+    own_block_body(rows, pos, n, view, unit, ortho, out);
+}
+
+PMX_TARGET_AVX512 static void own_block_avx512(const float *rows, const int32_t *pos, int64_t n, const float *view,
+                                               float unit, int ortho, float *out)
+{
+    own_block_body(rows, pos, n, view, unit, ortho, out);
+}
+#endif
+
+typedef void (*OwnBlock)(const float *, const int32_t *, int64_t, const float *, float, int, float *);
+
+/* The block kernel of the SIMD level in use (the same bits at every level:
+ * fmaf, sqrtf and the division are exactly rounded). */
+static OwnBlock own_block(void)
+{
+    int level = 0;
+    (void)pmx_kernels_at(-1, &level);
+#if PMX_X86
+    if (level == PMX_SIMD_AVX512)
+        return own_block_avx512;
+    if (level == PMX_SIMD_AVX2)
+        return own_block_avx2;
+#endif
+    return own_block_plain;
 }
 
 /* The largest value v of val[0..n) with the weights of the values >= v
  * above `over` (the total weight is above it): a three-way quickselect. */
-static double crossing(double *val, int32_t *wt, int64_t n, int64_t over)
+static float crossing(float *val, int32_t *wt, int64_t n, int64_t over)
 {
     int64_t lo = 0, hi = n;
     for (;;) {
-        const double p = val[lo + (hi - lo) / 2];
+        const float p = val[lo + (hi - lo) / 2];
         /* Partition [lo, hi) into > p, == p, < p. */
         int64_t gt = lo, i = lo, lt = hi;
         int64_t w_gt = 0, w_eq = 0;
         while (i < lt) {
-            const double v = val[i];
+            const float v = val[i];
             const int32_t w = wt[i];
             if (v > p) {
                 val[i] = val[gt], wt[i] = wt[gt], val[gt] = v, wt[gt] = w;
@@ -101,20 +234,48 @@ static double crossing(double *val, int32_t *wt, int64_t n, int64_t over)
     }
 }
 
-/* Working memory of one thread beyond its scratch: the slots' eps and the
- * values and weights selected from. */
+/* Buckets of the values above lo: 128 per octave (the top 7 bits of the
+ * mantissa), 16 octaves, the last holding everything above. */
+#define BUCKETS 2048
+
+static int64_t bucket_of(float v, int32_t lo_bits)
+{
+    const int64_t q = ((int64_t)bits_of(v) - lo_bits) >> 16;
+    return q < BUCKETS - 1 ? q : BUCKETS - 1;
+}
+
+/* Working memory of one thread beyond its scratch: the slots' eps (eps[-1]
+ * valid, -inf), the values and weights selected from, the buckets' weights. */
 typedef struct {
-    double *eps, *val;
+    float *eps, *val;
     int32_t *wt;
+    int64_t *bucket;
 } Budget;
+
+/* The own tolerances of the m slots listed in b->wt into b->eps (inf for
+ * all when the screen test is off). */
+static void flush_block(const PmxHierarchy *h, const PmxScratch *s, Budget *b, int64_t m, const float *view,
+                        float unit, int ortho, int screen, OwnBlock own)
+{
+    int32_t pos[LANES];
+    float out[LANES];
+    for (int64_t j = 0; j < m; j++)
+        pos[j] = s->ids[b->wt[j]];
+    if (screen)
+        own(h->rows, pos, m, view, unit, ortho, out);
+    for (int64_t j = 0; j < m; j++)
+        b->eps[b->wt[j]] = screen ? out[j] : INFINITY;
+}
 
 /* One camera: the guessed answer's bit pattern (INF_BITS + 1: tau = inf),
  * from a traversal at `lo` (lowered while the count there is within the
- * budget); -1 on a table that is not a forest. */
-static int64_t budget_one(const Kernels *kern, const PmxHierarchy *h, const float *camera, float lo, int flags,
-                          int64_t budget, int64_t base_faces, PmxScratch *s, Budget *b)
+ * budget), the screen test with one pixel `unit`; -1 on a table that is not
+ * a forest. */
+static int64_t budget_one(const Kernels *kern, const PmxHierarchy *h, const float *camera, float unit, float lo,
+                          int flags, int64_t budget, int64_t base_faces, PmxScratch *s, Budget *b)
 {
     const int ortho = (flags & PMX_ORTHOGRAPHIC) != 0, screen = (flags & PMX_SCREEN) != 0;
+    const OwnBlock own = own_block();
     float row[PMX_CAMERA], view[PMX_VIEW];
     memcpy(row, camera, sizeof row);
     if (budget < base_faces) /* even the coarsest mesh keeps more */
@@ -135,39 +296,61 @@ static int64_t budget_one(const Kernels *kern, const PmxHierarchy *h, const floa
         int64_t not_run = 0, kept = 0;
         kern->resolve(h, n, s->ids, s->kid, s->state, s->kill, s->ran, NULL, &not_run, &kept);
         if (base_faces + kept > budget) {
-            /* eps^2 bottom-up over the slots that did not run (children sit
+            /* eps bottom-up over the slots that did not run (children sit
              * after their parents); a slot that ran at lo, and every pcol
-             * under it, runs at every tau >= lo and counts as -inf. */
-            const double lo2 = (double)lo * lo;
-            int64_t total = base_faces, count = 0;
-            for (int64_t i = n - 1; i >= 0; i--) {
-                if (s->ran[i]) {
-                    b->eps[i] = -INFINITY;
-                    continue;
-                }
-                const int st = s->state[i] & 3;
-                double e = -INFINITY;
-                if (st != YES) {
-                    const double t = screen ? own_squared(h->rows + (int64_t)s->ids[i] * ROW, view, ortho) : INFINITY;
-                    /* A sure "keep" at lo puts the switch at lo or above. */
-                    e = st == NO ? (t > lo2 ? t : lo2) : (t >= lo2 ? t : -INFINITY);
-                }
-                const int32_t k0 = s->kid[2 * i], k1 = s->kid[2 * i + 1];
-                if (k0 >= 0 && b->eps[k0] > e)
-                    e = b->eps[k0];
-                if (k1 >= 0 && b->eps[k1] > e)
-                    e = b->eps[k1];
-                b->eps[i] = e;
-                if (e >= lo2) {
-                    b->val[count] = e, b->wt[count] = s->kill[i];
-                    total += s->kill[i], count++;
+             * under it, runs at every tau >= lo and counts as -inf. The
+             * weights of the values >= lo go to their buckets. */
+            const int32_t lo_bits = bits_of(lo);
+            memset(b->bucket, 0, sizeof(int64_t) * BUCKETS);
+            /* Own tolerances of the slots that did not run and whose own
+             * decision is not a sure collapse (into eps, then folded in
+             * place), a block of positions at a time. */
+            int64_t m = 0;
+            for (int64_t i = 0; i < n; i++) {
+                b->eps[i] = -INFINITY;
+                b->wt[m] = (int32_t)i;
+                m += !s->ran[i] & ((s->state[i] & 3) != YES);
+                if (m == LANES) {
+                    flush_block(h, s, b, m, view, unit, ortho, screen, own);
+                    m = 0;
                 }
             }
+            if (m)
+                flush_block(h, s, b, m, view, unit, ortho, screen, own);
+            /* Branch-free: a child not visited reads eps[-1] = -inf. */
+            int64_t total = base_faces, count = 0;
+            for (int64_t i = n - 1; i >= 0; i--) {
+                const int st = s->state[i] & 3;
+                const float own_e = b->eps[i];
+                /* A sure "keep" at lo puts the switch at lo or above. */
+                float e = st == NO ? (own_e > lo ? own_e : lo) : (own_e >= lo ? own_e : -INFINITY);
+                const float e0 = b->eps[s->kid[2 * i]], e1 = b->eps[s->kid[2 * i + 1]];
+                e = e0 > e ? e0 : e;
+                e = e1 > e ? e1 : e;
+                e = s->ran[i] ? -INFINITY : e;
+                b->eps[i] = e;
+                const int in = e >= lo;
+                const int32_t kill = in ? s->kill[i] : 0;
+                b->val[count] = e, b->wt[count] = kill;
+                b->bucket[in ? bucket_of(e, lo_bits) : 0] += kill;
+                total += kill, count += in;
+            }
             if (total > budget) {
-                /* The answer: just above the largest eps whose pcols, with
-                 * those above, keep too many faces. */
-                const double v = crossing(b->val, b->wt, count, budget - base_faces);
-                return v == INFINITY ? (int64_t)INF_BITS + 1 : (int64_t)bits_of(tolerance_of(v)) + 1;
+                /* The bucket where the faces kept by the pcols above a
+                 * value pass the budget; the values in it then give the
+                 * answer: just above the largest eps whose pcols, with those
+                 * above, keep too many faces. */
+                int64_t over = budget - base_faces, q = BUCKETS - 1;
+                while (b->bucket[q] <= over) {
+                    over -= b->bucket[q];
+                    q--;
+                }
+                m = 0;
+                for (int64_t j = 0; j < count; j++)
+                    if (bucket_of(b->val[j], lo_bits) == q)
+                        b->val[m] = b->val[j], b->wt[m] = b->wt[j], m++;
+                const float v = crossing(b->val, b->wt, m, over);
+                return v == INFINITY ? (int64_t)INF_BITS + 1 : (int64_t)bits_of(v) + 1;
             }
         }
         if (lo == 0.0f)
@@ -176,7 +359,7 @@ static int64_t budget_one(const Kernels *kern, const PmxHierarchy *h, const floa
          * inverse proportion to tau (a margin of 2). A count that did not
          * change from the last lo says the view is as fine as it gets: 0. */
         const int64_t count_at_lo = base_faces + kept;
-        double next = lo * 0.5 * (double)(count_at_lo - base_faces + 1) / (double)(budget - base_faces + 1);
+        double next = lo * 0.7 * (double)(count_at_lo - base_faces + 1) / (double)(budget - base_faces + 1);
         if (count_at_lo == last_count || next < 1e-30)
             return 0;
         last_count = count_at_lo;
@@ -187,7 +370,7 @@ static int64_t budget_one(const Kernels *kern, const PmxHierarchy *h, const floa
 /* A batch shared by its threads (cursor), as in traverse.c. */
 typedef struct {
     const PmxHierarchy *h;
-    const float *cameras;
+    const float *cameras, *units;
     const int32_t *budgets;
     int64_t K, cursor, base_faces;
     int flags;
@@ -202,9 +385,12 @@ static void batch_work(void *arg)
     const PmxHierarchy *h = bt->h;
     const int64_t room = h->n_pcols + PMX_SPARE;
     PmxScratch *s = pmx_scratch_take(h->n_pcols);
-    Budget b = {malloc(sizeof(double) * (size_t)room), malloc(sizeof(double) * (size_t)room),
-                malloc(sizeof(int32_t) * (size_t)room)};
-    if (!s || !scratch_slots(s) || !b.eps || !b.val || !b.wt) {
+    float *eps_room = malloc(sizeof(float) * (size_t)(room + 1));
+    Budget b = {eps_room ? eps_room + 1 : NULL, malloc(sizeof(float) * (size_t)room),
+                malloc(sizeof(int32_t) * (size_t)room), malloc(sizeof(int64_t) * BUCKETS)};
+    if (eps_room)
+        eps_room[0] = -INFINITY; /* eps[-1]: a child not visited */
+    if (!s || !scratch_slots(s) || !b.eps || !b.val || !b.wt || !b.bucket) {
         __atomic_store_n(&bt->status, PMX_NO_MEMORY, __ATOMIC_RELAXED);
         goto done;
     }
@@ -226,7 +412,8 @@ static void batch_work(void *arg)
             lo = scaled > 0 ? (float)(ortho ? MARGIN * scaled : MARGIN * scaled / dist) : 1.0f;
         if (!(lo > 0.0f) || lo > 1e30f)
             lo = 1.0f;
-        const int64_t g = budget_one(kern, h, camera, lo, bt->flags, bt->budgets[c], bt->base_faces, s, &b);
+        const int64_t g = budget_one(kern, h, camera, bt->units[c], lo, bt->flags, bt->budgets[c], bt->base_faces, s,
+                                     &b);
         if (g < 0) {
             __atomic_store_n(&bt->status, PMX_BAD_TABLE, __ATOMIC_RELAXED);
             break;
@@ -241,15 +428,15 @@ static void batch_work(void *arg)
     }
     subnormals_back(mode);
 done:
-    free(b.eps), free(b.val), free(b.wt);
+    free(eps_room), free(b.val), free(b.wt), free(b.bucket);
     if (s)
         pmx_scratch_give(s);
 }
 
-PmxStatus pmx_budget_many(const PmxHierarchy *h, const float *cameras, int64_t K, int flags, const int32_t *budgets,
-                          int64_t base_faces, int32_t *guess, const PmxRunner *run)
+PmxStatus pmx_budget_many(const PmxHierarchy *h, const float *cameras, const float *units, int64_t K, int flags,
+                          const int32_t *budgets, int64_t base_faces, int32_t *guess, const PmxRunner *run)
 {
-    Batch bt = {h, cameras, budgets, K, 0, base_faces, flags, {0, 0, 0}, guess, PMX_OK};
+    Batch bt = {h, cameras, units, budgets, K, 0, base_faces, flags, {0, 0, 0}, guess, PMX_OK};
     /* The model's centre: the mean of the roots' centres. */
     double c[3] = {0, 0, 0};
     for (int64_t q = 0; q < h->n_roots; q++)

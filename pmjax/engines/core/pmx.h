@@ -140,13 +140,15 @@ PmxStatus pmx_refine_many(const PmxHierarchy *h, const float *views, int64_t K, 
                           const PmxRunner *run);
 
 /* Face budgets of K cameras (cameras [K, PMX_CAMERA], the tau column a first
- * tolerance to traverse at; budgets [K]; base_faces: the coarsest mesh's
- * faces): guess[k] the float32 bit pattern of a guess of the smallest tau
- * whose face count is within budgets[k] (0x7F800001: tau = inf), from the
- * critical tolerances of the pcols that do not run at a tolerance below it,
- * estimated in double (budget.c). The caller makes it exact by counts. */
-PmxStatus pmx_budget_many(const PmxHierarchy *h, const float *cameras, int64_t K, int flags, const int32_t *budgets,
-                          int64_t base_faces, int32_t *guess, const PmxRunner *run);
+ * tolerance to traverse at, 0: one from the answers before; units [K] each
+ * camera's one pixel as the float32 predicate computes it; budgets [K];
+ * base_faces: the coarsest mesh's faces): guess[k] the float32 bit pattern
+ * of a guess of the smallest tau whose face count is within budgets[k]
+ * (0x7F800001: tau = inf), from the critical tolerances of the pcols that do
+ * not run at a tolerance below it (budget.c). The caller makes it exact by
+ * counts. */
+PmxStatus pmx_budget_many(const PmxHierarchy *h, const float *cameras, const float *units, int64_t K, int flags,
+                          const int32_t *budgets, int64_t base_faces, int32_t *guess, const PmxRunner *run);
 
 /* Words of PMX_FRAMES consecutive frames of a path (views [W * PMX_FRAMES,
  * PMX_VIEW]; a word's spare frames repeat one of its own): each word
