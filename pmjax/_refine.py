@@ -762,10 +762,10 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
         idx = order[np.minimum(np.arange(s, s + chunk), K - 1)]  # pad by repeating the last
         part = jax.tree.map(lambda a: a[idx], host)
         rows = _core.host_camera_rows(part, np.zeros(chunk, np.float32), d.exponent)
-        guess = np.asarray(_core_guesses(d.core, rows, budgets[idx].astype(np.int32), tests, cameras.orthographic,
-                                         counts_of.base_faces))
+        guess, alt = (np.asarray(g) for g in _core_guesses(d.core, rows, budgets[idx].astype(np.int32), tests,
+                                                            cameras.orthographic, counts_of.base_faces))
         n = min(chunk, K - s)
-        t, c = _exact_from_guess(d.core, rows[:n], budgets[idx[:n]], guess[:n], tests, cameras.orthographic,
+        t, c = _exact_from_guess(d.core, rows[:n], budgets[idx[:n]], guess[:n], alt[:n], tests, cameras.orthographic,
                                  counts_of)
         tau[idx[:n]] = t
         for col, v in zip(cols, c):
@@ -778,7 +778,7 @@ def _core_guesses(tables, rows, budgets, tests, orthographic, base_faces):
     return _core.budget_guesses(tables, rows, budgets, tests, orthographic, base_faces)
 
 
-def _exact_from_guess(tables, rows, budgets, guess, tests, orthographic, counts_of):
+def _exact_from_guess(tables, rows, budgets, guess, alt, tests, orthographic, counts_of):
     """The exact answers from the guesses, by rounds of exact counts.
 
     Over the float32 bit patterns ``b`` of ``tau`` (``0 .. INF_BITS``; a
@@ -786,10 +786,12 @@ def _exact_from_guess(tables, rows, budgets, guess, tests, orthographic, counts_
     1`` above, within every budget), each camera keeps a bracket ``lo < hi``
     with ``faces(lo) > budget >= faces(hi)``; the answer is ``hi`` once they
     are adjacent (``INF_BITS + 1``: ``tau = inf`` with the count at inf). The
-    first round counts at the guess and just below it; later rounds gallop
-    from a virtual end (steps growing geometrically) or split the bracket.
-    Each round is one batched call of exact counts over the cameras still
-    open.
+    first round counts at the guess and just below it, the second at the
+    other guess (``alt``, the core's unsure decisions taken the other way)
+    and just below it where that differs, else one step on; later rounds
+    gallop from a virtual end (steps growing geometrically) or split the
+    bracket. Each round is one batched call of exact counts over the cameras
+    still open.
     """
     n = len(budgets)
     lo = np.full(n, -1, np.int64)
@@ -826,6 +828,11 @@ def _exact_from_guess(tables, rows, budgets, guess, tests, orthographic, counts_
         # later ones, left to the few guesses far off, probe `m` points each.
         m = 1 if rounds == 0 else 8
         groups = []
+        if rounds == 0:  # the other guess, where it differs and lies inside the bracket
+            a = np.clip(alt[c].astype(np.int64), 0, _INF_BITS + 1)
+            other = (a != g[c]) & (a > l) & (a <= h)
+            groups += [(c[other], a[other]), (c[other], a[other] - 1)]
+            c, l, h, st, below, above = (x[~other] for x in (c, l, h, st, below, above))
         for j in range(m):
             reach = st << j
             inner = l + (h - l) * (j + 1) // (m + 1)

@@ -433,13 +433,16 @@ def budget_guesses(tables: CoreTables, cameras, budgets, tests, orthographic: bo
         base_faces: the coarsest mesh's faces.
 
     Returns:
-        ``int32 [K]``: float32 bit patterns, ``0x7F800001`` for ``tau = inf``.
+        ``(guess, guess_alt)`` ``int32 [K]``: float32 bit patterns, ``0x7F800001``
+        for ``tau = inf``; ``guess_alt`` takes the core's unsure decisions
+        as collapses, ``guess`` as "keep".
     """
     K = cameras.shape[0]
     # One pixel as XLA computes it (the dense engine's value), which the
     # screen test's switch points depend on to the last bit.
     units = _view_of_rows(cameras, orthographic)[:, 20]
-    return _call("pmx_budget_many", _sds((K,), jnp.int32), *_hierarchy_args(tables), cameras, units, budgets,
+    return _call("pmx_budget_many", (_sds((K,), jnp.int32), _sds((K,), jnp.int32)), *_hierarchy_args(tables), cameras,
+                 units, budgets,
                  flags=np.int32(flags_of(tests, orthographic)), n_roots=np.int64(tables.n_roots),
                  base_faces=np.int64(base_faces), threads=np.int64(threads))
 

@@ -245,14 +245,15 @@ static int64_t bucket_of(float v, int32_t lo_bits)
 }
 
 /* Working memory of one thread beyond its scratch: the slots' eps (eps[-1]
- * valid, -inf), the values and weights selected from, the buckets' weights. */
+ * valid, -inf) and own tolerances, the values and weights selected from,
+ * the buckets' weights. */
 typedef struct {
-    float *eps, *val;
+    float *eps, *own, *val;
     int32_t *wt;
     int64_t *bucket;
 } Budget;
 
-/* The own tolerances of the m slots listed in b->wt into b->eps (inf for
+/* The own tolerances of the m slots listed in b->wt into b->own (inf for
  * all when the screen test is off). */
 static void flush_block(const PmxHierarchy *h, const PmxScratch *s, Budget *b, int64_t m, const float *view,
                         float unit, int ortho, int screen, OwnBlock own)
@@ -264,20 +265,70 @@ static void flush_block(const PmxHierarchy *h, const PmxScratch *s, Budget *b, i
     if (screen)
         own(h->rows, pos, m, view, unit, ortho, out);
     for (int64_t j = 0; j < m; j++)
-        b->eps[b->wt[j]] = screen ? out[j] : INFINITY;
+        b->own[b->wt[j]] = screen ? out[j] : INFINITY;
+}
+
+/* The answer from the n slots of a traversal at lo and their own
+ * tolerances: eps bottom-up over the slots that did not run (children sit
+ * after their parents; a slot that ran at lo, and every pcol under it, runs
+ * at every tau >= lo and counts as -inf), the kills of the values >= lo in
+ * their buckets, then the value where the faces kept pass the budget. An
+ * unsure own decision counts as a collapse where unsure_collapses. Returns
+ * the answer's bit pattern, or -2 when the count at lo is within the budget. */
+static int64_t answer_at(const PmxScratch *s, Budget *b, int64_t n, float lo, int64_t budget, int64_t base_faces,
+                         int unsure_collapses)
+{
+    const int32_t lo_bits = bits_of(lo);
+    memset(b->bucket, 0, sizeof(int64_t) * BUCKETS);
+    /* Branch-free: a child not visited reads eps[-1] = -inf. */
+    int64_t total = base_faces, count = 0;
+    for (int64_t i = n - 1; i >= 0; i--) {
+        const int st = s->state[i] & 3;
+        const float own_e = st == YES || (st == UNSURE && unsure_collapses) ? -INFINITY : b->own[i];
+        /* A sure "keep" at lo puts the switch at lo or above. */
+        float e = st == NO ? (own_e > lo ? own_e : lo) : (own_e >= lo ? own_e : -INFINITY);
+        const float e0 = b->eps[s->kid[2 * i]], e1 = b->eps[s->kid[2 * i + 1]];
+        e = e0 > e ? e0 : e;
+        e = e1 > e ? e1 : e;
+        e = s->ran[i] ? -INFINITY : e;
+        b->eps[i] = e;
+        const int in = e >= lo;
+        const int32_t kill = in ? s->kill[i] : 0;
+        b->val[count] = e, b->wt[count] = kill;
+        b->bucket[in ? bucket_of(e, lo_bits) : 0] += kill;
+        total += kill, count += in;
+    }
+    if (total <= budget)
+        return -2;
+    /* The bucket where the faces kept by the pcols above a value pass the
+     * budget; the values in it then give the answer: just above the largest
+     * eps whose pcols, with those above, keep too many faces. */
+    int64_t over = budget - base_faces, q = BUCKETS - 1;
+    while (b->bucket[q] <= over) {
+        over -= b->bucket[q];
+        q--;
+    }
+    int64_t m = 0;
+    for (int64_t j = 0; j < count; j++)
+        if (bucket_of(b->val[j], lo_bits) == q)
+            b->val[m] = b->val[j], b->wt[m] = b->wt[j], m++;
+    const float v = crossing(b->val, b->wt, m, over);
+    return v == INFINITY ? (int64_t)INF_BITS + 1 : (int64_t)bits_of(v) + 1;
 }
 
 /* One camera: the guessed answer's bit pattern (INF_BITS + 1: tau = inf),
  * from a traversal at `lo` (lowered while the count there is within the
- * budget), the screen test with one pixel `unit`; -1 on a table that is not
- * a forest. */
+ * budget), the screen test with one pixel `unit`, and in *alt the guess
+ * with the unsure decisions taken as collapses; -1 on a table that is not a
+ * forest. */
 static int64_t budget_one(const Kernels *kern, const PmxHierarchy *h, const float *camera, float unit, float lo,
-                          int flags, int64_t budget, int64_t base_faces, PmxScratch *s, Budget *b)
+                          int flags, int64_t budget, int64_t base_faces, PmxScratch *s, Budget *b, int64_t *alt)
 {
     const int ortho = (flags & PMX_ORTHOGRAPHIC) != 0, screen = (flags & PMX_SCREEN) != 0;
     const OwnBlock own = own_block();
     float row[PMX_CAMERA], view[PMX_VIEW];
     memcpy(row, camera, sizeof row);
+    *alt = (int64_t)INF_BITS + 1;
     if (budget < base_faces) /* even the coarsest mesh keeps more */
         return (int64_t)INF_BITS + 1;
     int64_t last_count = -1;
@@ -296,63 +347,31 @@ static int64_t budget_one(const Kernels *kern, const PmxHierarchy *h, const floa
         int64_t not_run = 0, kept = 0;
         kern->resolve(h, n, s->ids, s->kid, s->state, s->kill, s->ran, NULL, &not_run, &kept);
         if (base_faces + kept > budget) {
-            /* eps bottom-up over the slots that did not run (children sit
-             * after their parents); a slot that ran at lo, and every pcol
-             * under it, runs at every tau >= lo and counts as -inf. The
-             * weights of the values >= lo go to their buckets. */
-            const int32_t lo_bits = bits_of(lo);
-            memset(b->bucket, 0, sizeof(int64_t) * BUCKETS);
             /* Own tolerances of the slots that did not run and whose own
-             * decision is not a sure collapse (into eps, then folded in
-             * place), a block of positions at a time. */
-            int64_t m = 0;
+             * decision is not a sure collapse, a block of positions at a
+             * time. */
+            int64_t k = 0;
             for (int64_t i = 0; i < n; i++) {
-                b->eps[i] = -INFINITY;
-                b->wt[m] = (int32_t)i;
-                m += !s->ran[i] & ((s->state[i] & 3) != YES);
-                if (m == LANES) {
-                    flush_block(h, s, b, m, view, unit, ortho, screen, own);
-                    m = 0;
+                b->own[i] = -INFINITY;
+                b->wt[k] = (int32_t)i;
+                k += !s->ran[i] & ((s->state[i] & 3) != YES);
+                if (k == LANES) {
+                    flush_block(h, s, b, k, view, unit, ortho, screen, own);
+                    k = 0;
                 }
             }
-            if (m)
-                flush_block(h, s, b, m, view, unit, ortho, screen, own);
-            /* Branch-free: a child not visited reads eps[-1] = -inf. */
-            int64_t total = base_faces, count = 0;
-            for (int64_t i = n - 1; i >= 0; i--) {
-                const int st = s->state[i] & 3;
-                const float own_e = b->eps[i];
-                /* A sure "keep" at lo puts the switch at lo or above. */
-                float e = st == NO ? (own_e > lo ? own_e : lo) : (own_e >= lo ? own_e : -INFINITY);
-                const float e0 = b->eps[s->kid[2 * i]], e1 = b->eps[s->kid[2 * i + 1]];
-                e = e0 > e ? e0 : e;
-                e = e1 > e ? e1 : e;
-                e = s->ran[i] ? -INFINITY : e;
-                b->eps[i] = e;
-                const int in = e >= lo;
-                const int32_t kill = in ? s->kill[i] : 0;
-                b->val[count] = e, b->wt[count] = kill;
-                b->bucket[in ? bucket_of(e, lo_bits) : 0] += kill;
-                total += kill, count += in;
-            }
-            if (total > budget) {
-                /* The bucket where the faces kept by the pcols above a
-                 * value pass the budget; the values in it then give the
-                 * answer: just above the largest eps whose pcols, with those
-                 * above, keep too many faces. */
-                int64_t over = budget - base_faces, q = BUCKETS - 1;
-                while (b->bucket[q] <= over) {
-                    over -= b->bucket[q];
-                    q--;
-                }
-                m = 0;
-                for (int64_t j = 0; j < count; j++)
-                    if (bucket_of(b->val[j], lo_bits) == q)
-                        b->val[m] = b->val[j], b->wt[m] = b->wt[j], m++;
-                const float v = crossing(b->val, b->wt, m, over);
-                return v == INFINITY ? (int64_t)INF_BITS + 1 : (int64_t)bits_of(v) + 1;
+            if (k)
+                flush_block(h, s, b, k, view, unit, ortho, screen, own);
+            /* An unsure decision (mostly a sphere on a frustum plane) is
+             * taken as "keep"; the second guess takes it as a collapse. */
+            const int64_t g = answer_at(s, b, n, lo, budget, base_faces, 0);
+            if (g != -2) {
+                const int64_t g_alt = m ? answer_at(s, b, n, lo, budget, base_faces, 1) : g;
+                *alt = g_alt == -2 ? g : g_alt;
+                return g;
             }
         }
+        *alt = 0;
         if (lo == 0.0f)
             return 0;
         /* Within the budget at lo: lower lo, by the face count's rough
@@ -375,7 +394,7 @@ typedef struct {
     int64_t K, cursor, base_faces;
     int flags;
     float centre[3];
-    int32_t *guess;
+    int32_t *guess, *guess_alt;
     PmxStatus status;
 } Batch;
 
@@ -387,10 +406,11 @@ static void batch_work(void *arg)
     PmxScratch *s = pmx_scratch_take(h->n_pcols);
     float *eps_room = malloc(sizeof(float) * (size_t)(room + 1));
     Budget b = {eps_room ? eps_room + 1 : NULL, malloc(sizeof(float) * (size_t)room),
-                malloc(sizeof(int32_t) * (size_t)room), malloc(sizeof(int64_t) * BUCKETS)};
+                malloc(sizeof(float) * (size_t)room), malloc(sizeof(int32_t) * (size_t)room),
+                malloc(sizeof(int64_t) * BUCKETS)};
     if (eps_room)
         eps_room[0] = -INFINITY; /* eps[-1]: a child not visited */
-    if (!s || !scratch_slots(s) || !b.eps || !b.val || !b.wt || !b.bucket) {
+    if (!s || !scratch_slots(s) || !b.eps || !b.own || !b.val || !b.wt || !b.bucket) {
         __atomic_store_n(&bt->status, PMX_NO_MEMORY, __ATOMIC_RELAXED);
         goto done;
     }
@@ -412,13 +432,15 @@ static void batch_work(void *arg)
             lo = scaled > 0 ? (float)(ortho ? MARGIN * scaled : MARGIN * scaled / dist) : 1.0f;
         if (!(lo > 0.0f) || lo > 1e30f)
             lo = 1.0f;
+        int64_t alt = 0;
         const int64_t g = budget_one(kern, h, camera, bt->units[c], lo, bt->flags, bt->budgets[c], bt->base_faces, s,
-                                     &b);
+                                     &b, &alt);
         if (g < 0) {
             __atomic_store_n(&bt->status, PMX_BAD_TABLE, __ATOMIC_RELAXED);
             break;
         }
         bt->guess[c] = (int32_t)(g > (int64_t)INF_BITS + 1 ? (int64_t)INF_BITS + 1 : g);
+        bt->guess_alt[c] = (int32_t)(alt > (int64_t)INF_BITS + 1 ? (int64_t)INF_BITS + 1 : alt);
         if (g > 0 && g <= INF_BITS) {
             float t;
             const int32_t gb = (int32_t)g;
@@ -428,15 +450,16 @@ static void batch_work(void *arg)
     }
     subnormals_back(mode);
 done:
-    free(eps_room), free(b.val), free(b.wt), free(b.bucket);
+    free(eps_room), free(b.own), free(b.val), free(b.wt), free(b.bucket);
     if (s)
         pmx_scratch_give(s);
 }
 
 PmxStatus pmx_budget_many(const PmxHierarchy *h, const float *cameras, const float *units, int64_t K, int flags,
-                          const int32_t *budgets, int64_t base_faces, int32_t *guess, const PmxRunner *run)
+                          const int32_t *budgets, int64_t base_faces, int32_t *guess, int32_t *guess_alt,
+                          const PmxRunner *run)
 {
-    Batch bt = {h, cameras, units, budgets, K, 0, base_faces, flags, {0, 0, 0}, guess, PMX_OK};
+    Batch bt = {h, cameras, units, budgets, K, 0, base_faces, flags, {0, 0, 0}, guess, guess_alt, PMX_OK};
     /* The model's centre: the mean of the roots' centres. */
     double c[3] = {0, 0, 0};
     for (int64_t q = 0; q < h->n_roots; q++)

@@ -288,10 +288,11 @@ ffi::Error RefineMany(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> rows, ffi::Buf
 // ---- face budgets of camera batches -----------------------------------------
 // operands: rows, kills, order, cameras f32[K, PMX_CAMERA] (tau: a first tolerance, or 0), units f32[K]
 //           (one pixel), budgets s32[K]
-// results: guess s32[K] (float32 bit patterns; 0x7F800001: inf)
+// results: guess s32[K], guess_alt s32[K] (float32 bit patterns; 0x7F800001: inf)
 ffi::Error BudgetMany(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> rows, ffi::Buffer<ffi::S32> kills,
                       ffi::Buffer<ffi::S32> order, ffi::Buffer<ffi::F32> cameras, ffi::Buffer<ffi::F32> units,
-                      ffi::Buffer<ffi::S32> budgets, ffi::ResultBuffer<ffi::S32> guess, int32_t flags, int64_t n_roots, int64_t base_faces,
+                      ffi::Buffer<ffi::S32> budgets, ffi::ResultBuffer<ffi::S32> guess,
+                      ffi::ResultBuffer<ffi::S32> guess_alt, int32_t flags, int64_t n_roots, int64_t base_faces,
                       int64_t threads) {
   PmxHierarchy h;
   PMX_CHECK(Hierarchy(rows, kills, order, n_roots, &h));
@@ -303,11 +304,12 @@ ffi::Error BudgetMany(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> rows, ffi::Buf
   PMX_CHECK(Expect("units", units.dimensions(), {K}));
   PMX_CHECK(Expect("budgets", budgets.dimensions(), {K}));
   PMX_CHECK(Expect("guess", guess->dimensions(), {K}));
+  PMX_CHECK(Expect("guess_alt", guess_alt->dimensions(), {K}));
   if (base_faces < 0) return ffi::Error::InvalidArgument("base_faces must be >= 0");
   PmxRunner runner = Runner(pool, threads);
   PMX_CHECK(Status(pmx_budget_many(&h, cameras.typed_data(), units.typed_data(), K, flags, budgets.typed_data(),
                                    base_faces,
-                                   guess->typed_data(), &runner),
+                                   guess->typed_data(), guess_alt->typed_data(), &runner),
                    "faces_for_budget"));
   return ffi::Error::Success();
 }
@@ -655,6 +657,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxBudgetMany, BudgetMany,
                                   .Arg<ffi::Buffer<ffi::F32>>()
                                   .Arg<ffi::Buffer<ffi::F32>>()
                                   .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
                                   .Ret<ffi::Buffer<ffi::S32>>()
                                   .Attr<int32_t>("flags")
                                   .Attr<int64_t>("n_roots")

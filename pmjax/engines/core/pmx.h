@@ -145,10 +145,12 @@ PmxStatus pmx_refine_many(const PmxHierarchy *h, const float *views, int64_t K, 
  * base_faces: the coarsest mesh's faces): guess[k] the float32 bit pattern
  * of a guess of the smallest tau whose face count is within budgets[k]
  * (0x7F800001: tau = inf), from the critical tolerances of the pcols that do
- * not run at a tolerance below it (budget.c). The caller makes it exact by
- * counts. */
+ * not run at a tolerance below it, and guess_alt[k] the same with the
+ * unsure decisions taken as collapses rather than "keep" (budget.c). The
+ * caller makes them exact by counts. */
 PmxStatus pmx_budget_many(const PmxHierarchy *h, const float *cameras, const float *units, int64_t K, int flags,
-                          const int32_t *budgets, int64_t base_faces, int32_t *guess, const PmxRunner *run);
+                          const int32_t *budgets, int64_t base_faces, int32_t *guess, int32_t *guess_alt,
+                          const PmxRunner *run);
 
 /* Words of PMX_FRAMES consecutive frames of a path (views [W * PMX_FRAMES,
  * PMX_VIEW]; a word's spare frames repeat one of its own): each word
