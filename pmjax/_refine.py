@@ -548,7 +548,9 @@ def faces_for_budget(pm: ProgressiveMesh, camera: Camera, budget: int, tests: Te
     search over the float32 bit patterns of ``tau`` (a bracket, then regula
     falsi on ``log tau``) on exact counts of the C core (about 24
     refinements, each costing what the view's front costs, in one compiled
-    loop); the same answer (docs/design.md).
+    loop); the same answer (docs/design.md). For many cameras,
+    :func:`faces_for_budget_batch` gives the same answers at a few refines'
+    cost per camera.
 
     Args:
         pm: :class:`ProgressiveMesh`.

@@ -21,7 +21,11 @@
 #include "internal.h"
 
 #define INF_BITS 0x7F800000
-/* The first tolerance of a camera, as a share of the answer predicted for it. */
+/* A camera's first tolerance, as a multiple of the answer its neighbour
+ * predicts (a traversal above the answer is cheap, one below costs the
+ * pcols between), and the next ones, as a share of the answer extrapolated
+ * from the counts at the last. */
+#define START 2.0
 #define MARGIN 0.85
 
 static int32_t bits_of(float x)
@@ -274,10 +278,13 @@ static void flush_block(const PmxHierarchy *h, const PmxScratch *s, Budget *b, i
  * at every tau >= lo and counts as -inf), the kills of the values >= lo in
  * their buckets, then the value where the faces kept pass the budget. An
  * unsure own decision counts as a collapse where unsure_collapses. Returns
- * the answer's bit pattern, or -2 when the count at lo is within the budget. */
+ * the answer's bit pattern, or -2 when the count at lo is within the budget;
+ * *at_twice: the count at 2 lo. */
 static int64_t answer_at(const PmxScratch *s, Budget *b, int64_t n, float lo, int64_t budget, int64_t base_faces,
-                         int unsure_collapses)
+                         int unsure_collapses, int64_t *at_twice)
 {
+    const float twice = 2 * lo;
+    int64_t total2 = base_faces;
     const int32_t lo_bits = bits_of(lo);
     memset(b->bucket, 0, sizeof(int64_t) * BUCKETS);
     /* Branch-free: a child not visited reads eps[-1] = -inf. */
@@ -297,7 +304,9 @@ static int64_t answer_at(const PmxScratch *s, Budget *b, int64_t n, float lo, in
         b->val[count] = e, b->wt[count] = kill;
         b->bucket[in ? bucket_of(e, lo_bits) : 0] += kill;
         total += kill, count += in;
+        total2 += e >= twice ? kill : 0;
     }
+    *at_twice = total2;
     if (total <= budget)
         return -2;
     /* The bucket where the faces kept by the pcols above a value pass the
@@ -346,43 +355,48 @@ static int64_t budget_one(const Kernels *kern, const PmxHierarchy *h, const floa
          * the answer lies below lo. */
         int64_t not_run = 0, kept = 0;
         kern->resolve(h, n, s->ids, s->kid, s->state, s->kill, s->ran, NULL, &not_run, &kept);
-        if (base_faces + kept > budget) {
-            /* Own tolerances of the slots that did not run and whose own
-             * decision is not a sure collapse, a block of positions at a
-             * time. */
-            int64_t k = 0;
-            for (int64_t i = 0; i < n; i++) {
-                b->own[i] = -INFINITY;
-                b->wt[k] = (int32_t)i;
-                k += !s->ran[i] & ((s->state[i] & 3) != YES);
-                if (k == LANES) {
-                    flush_block(h, s, b, k, view, unit, ortho, screen, own);
-                    k = 0;
-                }
-            }
-            if (k)
+        /* Own tolerances of the slots that did not run and whose own
+         * decision is not a sure collapse, a block of positions at a time. */
+        int64_t k = 0;
+        for (int64_t i = 0; i < n; i++) {
+            b->own[i] = -INFINITY;
+            b->wt[k] = (int32_t)i;
+            k += !s->ran[i] & ((s->state[i] & 3) != YES);
+            if (k == LANES) {
                 flush_block(h, s, b, k, view, unit, ortho, screen, own);
-            /* An unsure decision (mostly a sphere on a frustum plane) is
-             * taken as "keep"; the second guess takes it as a collapse. */
-            const int64_t g = answer_at(s, b, n, lo, budget, base_faces, 0);
-            if (g != -2) {
-                const int64_t g_alt = m ? answer_at(s, b, n, lo, budget, base_faces, 1) : g;
-                *alt = g_alt == -2 ? g : g_alt;
-                return g;
+                k = 0;
             }
+        }
+        if (k)
+            flush_block(h, s, b, k, view, unit, ortho, screen, own);
+        /* An unsure decision (mostly a sphere on a frustum plane) is taken
+         * as "keep"; the second guess takes it as a collapse. */
+        int64_t at_twice = 0;
+        const int64_t g = answer_at(s, b, n, lo, budget, base_faces, 0, &at_twice);
+        if (g != -2) {
+            int64_t unused;
+            const int64_t g_alt = m ? answer_at(s, b, n, lo, budget, base_faces, 1, &unused) : g;
+            *alt = g_alt == -2 ? g : g_alt;
+            return g;
         }
         *alt = 0;
         if (lo == 0.0f)
             return 0;
-        /* Within the budget at lo: lower lo, by the face count's rough
-         * inverse proportion to tau (a margin of 2). A count that did not
-         * change from the last lo says the view is as fine as it gets: 0. */
+        /* Within the budget at lo: the answer lies below. The counts at lo
+         * and 2 lo give the count's power of tau, extrapolated to the
+         * budget, times MARGIN; a count that does not change from 2 lo
+         * (or from the last lo) says the view is as fine as it gets: 0. */
         const int64_t count_at_lo = base_faces + kept;
-        double next = lo * 0.7 * (double)(count_at_lo - base_faces + 1) / (double)(budget - base_faces + 1);
-        if (count_at_lo == last_count || next < 1e-30)
+        if (count_at_lo == last_count || at_twice == count_at_lo)
+            return 0;
+        const double a = (double)(count_at_lo - base_faces + 1), a2 = (double)(at_twice - base_faces + 1);
+        double power = a > a2 ? log(a / a2) / log(2.0) : 1.0;
+        power = power < 0.5 ? 0.5 : power > 4.0 ? 4.0 : power;
+        const double next = lo * MARGIN * pow(a / (double)(budget - base_faces + 1), 1.0 / power);
+        if (next < 1e-30)
             return 0;
         last_count = count_at_lo;
-        lo = (float)next;
+        lo = (float)(next < lo * 0.9 ? next : lo * 0.9);
     }
 }
 
@@ -419,7 +433,7 @@ static void batch_work(void *arg)
     /* The first tolerance of a camera: its row's, or where that is 0, the
      * last answer of this thread times its eye's distance to the model's
      * centre, over this eye's (the screen error falls as the distance
-     * grows), times MARGIN; a camera whose answer lies below it lowers it
+     * grows), times START; a camera whose answer lies below it lowers it
      * and traverses again. */
     const int ortho = (bt->flags & PMX_ORTHOGRAPHIC) != 0;
     double scaled = -1.0;
@@ -429,7 +443,7 @@ static void batch_work(void *arg)
         const double dist = sqrt(dx * dx + dy * dy + dz * dz) + 1e-30;
         float lo = camera[PMX_CAMERA - 1];
         if (!(lo > 0.0f))
-            lo = scaled > 0 ? (float)(ortho ? MARGIN * scaled : MARGIN * scaled / dist) : 1.0f;
+            lo = scaled > 0 ? (float)(ortho ? START * scaled : START * scaled / dist) : 1.0f;
         if (!(lo > 0.0f) || lo > 1e30f)
             lo = 1.0f;
         int64_t alt = 0;
