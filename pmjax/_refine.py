@@ -32,8 +32,8 @@ from .engines._dense import DenseRefinement, critical_tolerances, propagate, rep
 from .engines._front_mesh import numpy_mesh
 from .engines._tables import derived
 
-__all__ = ["Refinement", "critical_tolerances", "faces_for_budget", "faces_for_budget_batch", "propagate", "refine", "refine_batch",
-           "representatives"]
+__all__ = ["Refinement", "critical_tolerances", "faces_for_budget", "faces_for_budget_batch", "propagate", "refine",
+           "refine_batch", "representatives"]
 
 
 @functools.partial(jax.tree_util.register_dataclass,
