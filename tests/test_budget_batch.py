@@ -142,3 +142,29 @@ def test_batch_equals_faces_for_budget(built, name):
     cams = _views(data, 24, seed=len(name))
     _assert_same(pm, cams, _budgets(pm, cams), lambda b: pmjax.faces_for_budget_batch(pm, cams, b, chunk=32),
                  front=False)
+
+
+def test_guesses_are_the_same_at_every_simd_level(built):
+    """The vectorized switch points are exactly rounded operations: every
+    SIMD level guesses the same (with the first tolerance given, so that no
+    thread's order enters)."""
+    from pmjax import engines
+    from pmjax.engines import _core
+    from pmjax.engines._tables import derived
+
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _views(data, 8, seed=4)
+    d, counts_of = derived(pm), _refine._Counts.of(pm)
+    rows = _core.host_camera_rows(jax.tree.map(np.asarray, cams), np.full(10, 0.7, np.float32), d.exponent)
+    was = engines.simd()
+    try:
+        got = []
+        for level in ("plain", "avx2", "avx512"):
+            engines.simd(level)
+            got.append([np.asarray(g) for g in _refine._core_guesses(d.core, rows, np.full(10, 900, np.int32),
+                                                                     pmjax.ALL_TESTS, False, counts_of.base_faces)])
+    finally:
+        engines.simd(was)
+    for other in got[1:]:
+        assert all(np.array_equal(a, b) for a, b in zip(got[0], other))
