@@ -631,7 +631,7 @@ class MeshStream:
             self._generation = -1
             self._step = _core._pmx.mesh_stream_step  # bound once: the per-frame call
             self._serial = 0
-            self._counts = (0,) * 7
+            self._counts = (0,) * 8
         else:
             self._stream = None
             self._numpy = _NumpyStream(pm)
@@ -694,7 +694,7 @@ class MeshStream:
         frame = self._frame(r)
         counts = self._step(self._stream, *frame)
         self._last, self._counts = frame, counts  # the core reads the last frame's lists at the next step
-        n_face_slots, n_vertex_slots, n_faces, n_vertices, _, _, generation = counts
+        n_face_slots, n_vertex_slots, n_faces, n_vertices, _, _, _, generation = counts
         self._views(generation)
         faces, vertices = self._fch[:n_faces].copy(), self._vch[:n_vertices].copy()
         return MeshChange(faces, self._fv[faces], vertices, self._vid[vertices], self._vpos[vertices],
@@ -735,6 +735,12 @@ class MeshStream:
             ``(vertices float32[n, 3], faces int32[m, 3], vertex_ids int32[n])``:
             faces in increasing original face order, ``vertex_ids`` sorted.
         """
+        if self._stream is not None:  # ranks in the core's bitmaps of the faces drawn and the ids used
+            n_faces, n_used = self._counts[4], self._counts[6]
+            faces, ids = np.empty((n_faces, 3), np.int32), np.empty(n_used, np.int32)
+            positions = np.empty((n_used, 3), np.float32)
+            _core._pmx.mesh_stream_compact(self._stream, faces, ids, positions)
+            return positions, faces, ids
         slots, ids, vids, positions = self.faces, self.face_ids, self.vertex_ids, self.vertex_positions
         live = np.flatnonzero(ids >= 0)
         faces = slots[live[np.argsort(ids[live])]]

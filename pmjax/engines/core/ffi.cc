@@ -1071,13 +1071,13 @@ PyObject* MeshStreamNew(PyObject*, PyObject* args) {
 PyObject* StreamState(const PmxMeshStream* s) {
   PmxStreamState st;
   pmx_mesh_stream_state(s, &st);
-  return Py_BuildValue("(LLLLLLL)", (long long)st.n_face_slots, (long long)st.n_vertex_slots,
+  return Py_BuildValue("(LLLLLLLL)", (long long)st.n_face_slots, (long long)st.n_vertex_slots,
                        (long long)st.n_face_changes, (long long)st.n_vertex_changes, (long long)st.n_faces,
-                       (long long)st.n_vertices, (long long)st.generation);
+                       (long long)st.n_vertices, (long long)st.n_used, (long long)st.generation);
 }
 
 // mesh_stream_step(stream, positions, ran, frame, n, key)
-//   -> (face slots, vertex slots, faces changed, vertices changed, faces, vertices, generation)
+//   -> (face slots, vertex slots, faces changed, vertices changed, faces, vertices, vertices used, generation)
 // The stream from the frame it holds to the next: its n visited slots'
 // positions s32[L] and ran bits (u8 [L], or a word's u16 [L] and the frame's
 // bit), key >= 0 naming lists that other frames share (a word), else -1.
@@ -1126,6 +1126,29 @@ PyObject* MeshStreamStep(PyObject*, PyObject* args) {
   return StreamState(h->stream);
 }
 
+// mesh_stream_compact(stream, faces, ids, positions)
+// The mesh held as Refinement.mesh() gives it, written: faces s32[faces, 3],
+// ids s32[used], positions f32[used, 3] (the counts of the last step).
+PyObject* MeshStreamCompact(PyObject*, PyObject* args) {
+  PyObject *stream_o, *faces_o, *ids_o, *positions_o;
+  if (!PyArg_ParseTuple(args, "OOOO", &stream_o, &faces_o, &ids_o, &positions_o)) return nullptr;
+  auto* h = static_cast<StreamHandle*>(PyCapsule_GetPointer(stream_o, kStreamCapsule));
+  if (!h) return nullptr;
+  HostArray faces, ids, positions;
+  if (!Take(faces_o, "faces", 'i', 4, true, false, &faces) || !Take(ids_o, "ids", 'i', 4, true, false, &ids) ||
+      !Take(positions_o, "positions", 'f', 4, true, false, &positions))
+    return nullptr;
+  PmxStreamState st;
+  pmx_mesh_stream_state(h->stream, &st);
+  if (!Raise(Expect("faces", faces.shape(), {st.n_faces, 3})) || !Raise(Expect("ids", ids.shape(), {st.n_used})) ||
+      !Raise(Expect("positions", positions.shape(), {st.n_used, 3})))
+    return nullptr;
+  Py_BEGIN_ALLOW_THREADS;
+  pmx_mesh_stream_compact(h->stream, faces.data<int32_t>(), ids.data<int32_t>(), positions.data<float>());
+  Py_END_ALLOW_THREADS;
+  Py_RETURN_NONE;
+}
+
 // mesh_stream_arrays(stream) -> (face_vertex, face_id, vertex_id, vertex_position, face_changes,
 //                                vertex_changes): read-only memoryviews of the stream's arrays at their
 // capacities, valid until a step grows them (the state's generation changes).
@@ -1168,7 +1191,10 @@ PyMethodDef methods[] = {
      "n_original, n_faces) -> stream: a drawable front mesh at the fully collapsed mesh (mesh_stream.c)."},
     {"mesh_stream_step", MeshStreamStep, METH_VARARGS,
      "mesh_stream_step(stream, positions, ran, frame, n, key) -> "
-     "(face slots, vertex slots, faces changed, vertices changed, faces, vertices, generation)."},
+     "(face slots, vertex slots, faces changed, vertices changed, faces, vertices, vertices used, generation)."},
+    {"mesh_stream_compact", MeshStreamCompact, METH_VARARGS,
+     "mesh_stream_compact(stream, faces, ids, positions): the mesh held as Refinement.mesh() gives it, written "
+     "into arrays of the last step's sizes."},
     {"mesh_stream_arrays", MeshStreamArrays, METH_VARARGS,
      "mesh_stream_arrays(stream) -> read-only memoryviews (face_vertex, face_id, vertex_id, vertex_position, "
      "face_changes, vertex_changes), valid until the generation changes."},

@@ -36,9 +36,9 @@ struct PmxMeshStream {
     int32_t *face_vertex, *face_id, *corner_start, *corner_next, *corner_prev, *face_free;
     uint32_t *face_stamp;
     int64_t face_cap, n_face_slots, n_face_free;
-    /* Vertex slots: id (-1 free), position, first corner, the depth-first
-     * interval [lo, hi) of the original vertices below. */
-    int32_t *vertex_id, *vertex_head, *vertex_free, *vertex_lo, *vertex_hi;
+    /* Vertex slots: id (-1 free), position, first corner, corners held, the
+     * depth-first interval [lo, hi) of the original vertices below. */
+    int32_t *vertex_id, *vertex_head, *vertex_free, *vertex_lo, *vertex_hi, *vertex_uses;
     float *vertex_position;
     uint32_t *vertex_stamp;
     int64_t vertex_cap, n_vertex_slots, n_vertex_free;
@@ -62,6 +62,12 @@ struct PmxMeshStream {
     int has_last, broken;
     int64_t events_key, events_first[FRAMES + 1], events_cap, flipped_cap;
     int32_t *events, *flipped;
+    /* For the compacted mesh: a bit per face drawn and per vertex id some
+     * face uses (ranks in them are the rows of Refinement.mesh()), and their
+     * words' prefix counts. */
+    uint64_t *face_bits, *used_bits;
+    int32_t *face_prefix, *used_prefix;
+    int64_t n_used;
     uint16_t *flipped_bits;
     int64_t n_faces_live, n_vertices_live, generation;
 };
@@ -103,7 +109,8 @@ static int grow_vertices(PmxMeshStream *s, int64_t need)
     if (!grow((void **)&s->vertex_id, old, cap, 4) || !grow((void **)&s->vertex_head, old, cap, 4) ||
         !grow((void **)&s->vertex_free, old, cap, 4) || !grow((void **)&s->vertex_position, 3 * old, 3 * cap, 4) ||
         !grow((void **)&s->vertex_stamp, old, cap, 4) || !grow((void **)&s->vertex_changes, old, cap, 4) ||
-        !grow((void **)&s->vertex_lo, old, cap, 4) || !grow((void **)&s->vertex_hi, old, cap, 4))
+        !grow((void **)&s->vertex_lo, old, cap, 4) || !grow((void **)&s->vertex_hi, old, cap, 4) ||
+        !grow((void **)&s->vertex_uses, old, cap, 4))
         return 0;
     s->vertex_cap = cap;
     s->generation++;
@@ -126,6 +133,20 @@ PMX_INLINE void touch_vertex(PmxMeshStream *s, int32_t slot)
     }
 }
 
+PMX_INLINE void flip_bit(uint64_t *bits, int64_t i) { bits[i >> 6] ^= (uint64_t)1 << (i & 63); }
+
+/* Vertex slot v holds one corner more (delta 1) or less (-1): its id is
+ * used by some face exactly while it holds corners. */
+PMX_INLINE void use(PmxMeshStream *s, int32_t v, int32_t delta)
+{
+    const int32_t before = s->vertex_uses[v];
+    s->vertex_uses[v] = before + delta;
+    if ((before == 0) != (before + delta == 0)) {
+        flip_bit(s->used_bits, s->vertex_id[v]);
+        s->n_used += delta > 0 ? 1 : -1;
+    }
+}
+
 /* Corner c at the head of vertex slot v's list. */
 PMX_INLINE void link(PmxMeshStream *s, int32_t c, int32_t v)
 {
@@ -136,6 +157,7 @@ PMX_INLINE void link(PmxMeshStream *s, int32_t c, int32_t v)
     if (head >= 0)
         s->corner_prev[head] = c;
     s->vertex_head[v] = c;
+    use(s, v, 1);
 }
 
 PMX_INLINE void unlink(PmxMeshStream *s, int32_t c)
@@ -147,11 +169,16 @@ PMX_INLINE void unlink(PmxMeshStream *s, int32_t c)
         s->vertex_head[s->face_vertex[c]] = next;
     if (next >= 0)
         s->corner_prev[next] = prev;
+    use(s, s->face_vertex[c], -1);
 }
 
 PMX_INLINE void set_vertex(PmxMeshStream *s, int32_t slot, int32_t id, const float *position, int32_t lo,
                            int32_t hi)
 {
+    if (s->vertex_uses[slot] > 0) { /* a used id changes */
+        flip_bit(s->used_bits, s->vertex_id[slot]);
+        flip_bit(s->used_bits, id);
+    }
     s->vertex_id[slot] = id;
     s->vertex_lo[slot] = lo;
     s->vertex_hi[slot] = hi;
@@ -172,6 +199,7 @@ static int32_t new_vertex(PmxMeshStream *s, int64_t index, int32_t id, const flo
         slot = (int32_t)s->n_vertex_slots++;
     }
     s->vertex_head[slot] = -1;
+    s->vertex_uses[slot] = 0;
     s->slot_at[index] = slot;
     set_vertex(s, slot, id, position, lo, hi);
     s->n_vertices_live++;
@@ -247,6 +275,7 @@ static PmxStatus add_face(PmxMeshStream *s, const PmxFaceRecord *f, int32_t *at,
         link(s, 3 * slot + c, u);
     }
     s->face_id[slot] = f->face;
+    flip_bit(s->face_bits, f->face);
     if (at)
         *at = slot;
     touch_face(s, slot);
@@ -264,6 +293,7 @@ static PmxStatus remove_face(PmxMeshStream *s, int32_t *at)
         unlink(s, 3 * slot + c);
         s->face_vertex[3 * slot + c] = -1;
     }
+    flip_bit(s->face_bits, s->face_id[slot]);
     s->face_id[slot] = -1;
     s->face_free[s->n_face_free++] = slot;
     touch_face(s, slot);
@@ -337,6 +367,9 @@ static PmxStatus collapse(PmxMeshStream *s, int32_t at)
         last = c;
     }
     if (last >= 0) {
+        const int32_t moved = s->vertex_uses[w];
+        use(s, w, -moved);
+        use(s, v, moved);
         const int32_t head = s->vertex_head[v];
         s->corner_next[last] = head;
         if (head >= 0)
@@ -358,9 +391,10 @@ void pmx_mesh_stream_free(PmxMeshStream *s)
     if (!s)
         return;
     void *arrays[] = {s->face_vertex, s->face_id, s->corner_start, s->corner_next, s->corner_prev, s->face_free,
-                      s->face_stamp, s->vertex_id, s->vertex_head, s->vertex_free, s->vertex_lo, s->vertex_hi, s->vertex_position,
+                      s->face_stamp, s->vertex_id, s->vertex_head, s->vertex_free, s->vertex_lo, s->vertex_hi, s->vertex_uses, s->vertex_position,
                       s->vertex_stamp, s->face_changes, s->vertex_changes, s->slot_at, s->kill_slot, s->mark,
-                      s->collapse, s->split, s->events, s->flipped, s->flipped_bits};
+                      s->collapse, s->split, s->events, s->flipped, s->flipped_bits, s->face_bits, s->used_bits, s->face_prefix,
+                      s->used_prefix};
     for (size_t i = 0; i < sizeof arrays / sizeof arrays[0]; i++)
         free(arrays[i]);
     free(s);
@@ -379,7 +413,13 @@ PmxMeshStream *pmx_mesh_stream_new(const PmxStreamTables *t, PmxStatus *status)
     s->slot_at = malloc(sizeof(int32_t) * (size_t)(P + V0 + 1));
     s->kill_slot = malloc(sizeof(int32_t) * (size_t)(t->n_kill_data + 1));
     s->mark = calloc((size_t)P + 1, 1);
-    if (!s->slot_at || !s->kill_slot || !s->mark) {
+    const size_t face_words = (size_t)t->n_faces / 64 + 1, used_words = (size_t)(V0 + P) / 64 + 1;
+    s->face_bits = calloc(face_words, sizeof(uint64_t));
+    s->used_bits = calloc(used_words, sizeof(uint64_t));
+    s->face_prefix = malloc(face_words * sizeof(int32_t));
+    s->used_prefix = malloc(used_words * sizeof(int32_t));
+    if (!s->slot_at || !s->kill_slot || !s->mark || !s->face_bits || !s->used_bits || !s->face_prefix ||
+        !s->used_prefix) {
         pmx_mesh_stream_free(s);
         return NULL;
     }
@@ -604,5 +644,48 @@ void pmx_mesh_stream_state(const PmxMeshStream *s, PmxStreamState *out)
     out->n_vertex_changes = s->n_vertex_changes;
     out->n_faces = s->n_faces_live;
     out->n_vertices = s->n_vertices_live;
+    out->n_used = s->n_used;
     out->generation = s->generation;
+}
+
+/* Rank of bit i among the set bits (bit i set): set bits before its word
+ * (prefix) plus those below it in its word. */
+PMX_INLINE int64_t rank_of(const uint64_t *bits, const int32_t *prefix, int64_t i)
+{
+    const uint64_t below = bits[i >> 6] & ((((uint64_t)2) << (i & 63)) - 1);
+    return prefix[i >> 6] + __builtin_popcountll(below) - 1;
+}
+
+static void prefix_counts(const uint64_t *bits, int64_t words, int32_t *prefix)
+{
+    int32_t total = 0;
+    for (int64_t w = 0; w < words; w++) {
+        prefix[w] = total;
+        total += __builtin_popcountll(bits[w]);
+    }
+}
+
+void pmx_mesh_stream_compact(PmxMeshStream *s, int32_t *faces, int32_t *ids, float *positions)
+{
+    /* The stream keeps a bit per face drawn and per vertex id used: a face's
+     * row is the rank of its id among the faces drawn, a vertex's the rank
+     * of its id among those used, as Refinement.mesh() orders them. Nothing
+     * is sorted and nothing but the two bitmaps' words and the slots is read. */
+    prefix_counts(s->face_bits, s->t.n_faces / 64 + 1, s->face_prefix);
+    prefix_counts(s->used_bits, (s->t.n_original + s->t.n_pcols) / 64 + 1, s->used_prefix);
+    for (int64_t slot = 0; slot < s->n_face_slots; slot++) {
+        const int32_t face = s->face_id[slot];
+        if (face < 0)
+            continue;
+        int32_t *row = faces + 3 * rank_of(s->face_bits, s->face_prefix, face);
+        for (int c = 0; c < 3; c++)
+            row[c] = (int32_t)rank_of(s->used_bits, s->used_prefix, s->vertex_id[s->face_vertex[3 * slot + c]]);
+    }
+    for (int64_t slot = 0; slot < s->n_vertex_slots; slot++) {
+        if (s->vertex_id[slot] < 0 || s->vertex_uses[slot] == 0)
+            continue;
+        const int64_t k = rank_of(s->used_bits, s->used_prefix, s->vertex_id[slot]);
+        ids[k] = s->vertex_id[slot];
+        memcpy(positions + 3 * k, s->vertex_position + 3 * slot, 3 * sizeof(float));
+    }
 }

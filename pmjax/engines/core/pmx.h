@@ -241,7 +241,7 @@ typedef struct {                 /* the stream's arrays (valid until it grows: g
     const float *vertex_position;
     const int32_t *face_changes, *vertex_changes; /* the slots the last step touched */
     int64_t face_cap, vertex_cap, n_face_slots, n_vertex_slots, n_face_changes, n_vertex_changes, n_faces,
-        n_vertices, generation;
+        n_vertices, n_used, generation;
 } PmxStreamState;
 
 /* A stream at the fully collapsed mesh (the tops and base faces); NULL with
@@ -255,6 +255,10 @@ void pmx_mesh_stream_free(PmxMeshStream *s);
  * stream is then broken: every later step fails). */
 PmxStatus pmx_mesh_stream_step(PmxMeshStream *s, const PmxStreamFrame *next);
 void pmx_mesh_stream_state(const PmxMeshStream *s, PmxStreamState *out);
+/* The mesh held, compacted as Refinement.mesh() gives it: faces [n_faces, 3]
+ * in increasing face id, ids and positions [n_used(, 3)] the vertices the
+ * faces use in increasing id. */
+void pmx_mesh_stream_compact(PmxMeshStream *s, int32_t *faces, int32_t *ids, float *positions);
 
 /* The view constants (PMX_VIEW floats) of a camera (PMX_CAMERA floats), and
  * of n cameras. */
