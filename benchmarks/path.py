@@ -2,6 +2,7 @@
 
 Usage: python benchmarks/path.py [--models cow,bunny,terrain_gcanyon,terrain_sthelens,dragon]
        [--frames 240] [--tau 1] [--paths 256] [--many-model dragon] [--repeats 3] [--json FILE]
+       python benchmarks/path.py --mesh [--mesh-models bunny,dragon] [--frames 240] [--tau 1] [--repeats 9]
 
 Per model and path (the standard orbit; a fly-through from far in front, close
 past the side and round the back; the orbit jittered as if hand-held), all in
@@ -15,6 +16,18 @@ frame alone visits, and the share of those the C core decided for all the
 word's frames at once (the fat camera). Many paths: ``--paths`` orbits
 of different radii and elevations advanced together, against ``refine_batch``
 on the same cameras (dense and front), cameras per second.
+
+Drawable meshes (``--mesh``, the standard orbit): per frame, amortized over the
+path, medians over repeats, the variants alternated within each repeat:
+``path_counts``; ``refine_path`` alone; ``refine_path`` with each frame's
+``Refinement.mesh()`` (a mesh built from nothing per frame); ``refine_path``
+with each frame's change (:class:`pmjax.MeshStream`), and that with the
+stream's compacted mesh too; and, on refinements held in memory, the change
+alone, ``Refinement.mesh()`` alone and the stream's compacted mesh alone.
+Targets are read against SrMesh's per-frame adapt through the ratio measured
+with it on one machine (SrMesh over ``refine_path`` + ``mesh()``: 0.052 / 0.160
+on the bunny, 0.343 / 0.431 on the dragon), applied to this run's
+``refine_path`` + ``mesh()``. Run pinned to one core (``taskset -c 0``).
 """
 
 from __future__ import annotations
@@ -134,6 +147,66 @@ def many_paths(name, n_paths, frames, tau, repeats):
     return row
 
 
+# SrMesh's per-frame adapt over refine_path + mesh(), measured in one run on
+# one machine (standard orbit, 240 frames, tau 1): this run's refine_path +
+# mesh() times it gives SrMesh's on this machine.
+SRMESH_OVER_MESH = {"bunny": 0.052 / 0.160, "dragon": 0.343 / 0.431}
+
+
+def mesh_path(name, frames, tau, repeats):
+    """Per-frame costs of drawable meshes along the standard orbit (``--mesh``)."""
+    pm = pmjax.load(pm_file(name))
+    cams = pmjax.standard_orbit(np.asarray(pm.vertices)[: pm.n_original_vertices], frames)
+    held = list(pmjax.refine_path(pm, cams, tau))
+    for r in held:  # every table made before the clocks start
+        r.mesh()
+    stream = pmjax.MeshStream(pm)
+    for r in held:
+        stream.update(r)
+    stream.mesh()
+    changed = []
+    for r in held:
+        change = stream.update(r)
+        changed.append(len(change.face_slots))
+
+    def follow(with_mesh):
+        for r in pmjax.refine_path(pm, cams, tau):
+            stream.update(r)
+            if with_mesh:
+                stream.mesh()
+
+    variants = {
+        "path_counts": lambda: pmjax.path_counts(pm, cams, tau),
+        "refine_path": lambda: sum(1 for _ in pmjax.refine_path(pm, cams, tau)),
+        "refine_path + mesh()": lambda: [r.mesh() for r in pmjax.refine_path(pm, cams, tau)],
+        "refine_path + change": lambda: follow(False),
+        "refine_path + change + compacted": lambda: follow(True),
+        "change alone": lambda: [stream.update(r) for r in held],
+        "mesh() alone": lambda: [r.mesh() for r in held],
+        "compacted from the stream alone": lambda: [(stream.update(r), stream.mesh()) for r in held],
+    }
+    times = {k: [] for k in variants}
+    for _ in range(repeats):
+        for key, fn in variants.items():
+            t = time.perf_counter()
+            fn()
+            times[key].append(1e3 * (time.perf_counter() - t) / frames)
+    ms = {k: statistics.median(v) for k, v in times.items()}
+    # The compacted mesh alone: the stream's update and compaction less its update.
+    ms["compacted from the stream alone"] -= ms["change alone"]
+    srmesh = SRMESH_OVER_MESH.get(name, float("nan")) * ms["refine_path + mesh()"]
+    row = dict(model=name, pcols=pm.n_pcols, frames=frames, faces=int(np.median([int(r.n_faces) for r in held])),
+               faces_changed=float(np.median(changed)), ms=ms, srmesh_equivalent_ms=srmesh)
+    print(f"{name}: P {pm.n_pcols}, faces {row['faces']} (median), faces changed per frame "
+          f"{row['faces_changed']:.0f} (median); SrMesh here ~ {srmesh:.3f} ms "
+          f"(= {SRMESH_OVER_MESH.get(name, float('nan')):.3f} x refine_path + mesh())")
+    base = ms["refine_path + mesh()"]
+    for key, value in ms.items():
+        print(f"  {key:34s} {value:7.4f} ms per frame   {base / value:5.2f}x refine_path + mesh()   "
+              f"{srmesh / value:5.2f}x SrMesh", flush=True)
+    return row
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--models", default="cow,bunny,terrain_gcanyon,terrain_sthelens,dragon")
@@ -143,8 +216,15 @@ def main():
     ap.add_argument("--many-model", default="dragon")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--json", help="also write results as JSON")
+    ap.add_argument("--mesh", action="store_true", help="drawable meshes along the orbit, per frame (only)")
+    ap.add_argument("--mesh-models", default="bunny,dragon")
     args = ap.parse_args()
     print(f"machine: {machine()}\n")
+    if args.mesh:
+        rows = [mesh_path(name, args.frames, args.tau, args.repeats) for name in args.mesh_models.split(",")]
+        if args.json:
+            write_json(args.json, dict(machine=machine(), mesh=rows))
+        return
     rows = []
     for name in args.models.split(","):
         pm = pmjax.load(pm_file(name))

@@ -656,7 +656,7 @@ PMX_INLINE int64_t rank_of(const uint64_t *bits, const int32_t *prefix, int64_t 
     return prefix[i >> 6] + __builtin_popcountll(below) - 1;
 }
 
-static void prefix_counts(const uint64_t *bits, int64_t words, int32_t *prefix)
+PMX_INLINE void prefix_counts(const uint64_t *bits, int64_t words, int32_t *prefix)
 {
     int32_t total = 0;
     for (int64_t w = 0; w < words; w++) {
@@ -665,27 +665,54 @@ static void prefix_counts(const uint64_t *bits, int64_t words, int32_t *prefix)
     }
 }
 
-void pmx_mesh_stream_compact(PmxMeshStream *s, int32_t *faces, int32_t *ids, float *positions)
+/* The stream keeps a bit per face drawn and per vertex id used: a face's row
+ * is the rank of its id among the faces drawn, a vertex's the rank of its id
+ * among those used, as Refinement.mesh() orders them. Nothing is sorted and
+ * nothing but the two bitmaps' words and the slots is read. */
+PMX_INLINE void compact_body(PmxMeshStream *s, int32_t *faces, int32_t *ids, float *positions)
 {
-    /* The stream keeps a bit per face drawn and per vertex id used: a face's
-     * row is the rank of its id among the faces drawn, a vertex's the rank
-     * of its id among those used, as Refinement.mesh() orders them. Nothing
-     * is sorted and nothing but the two bitmaps' words and the slots is read. */
-    prefix_counts(s->face_bits, s->t.n_faces / 64 + 1, s->face_prefix);
-    prefix_counts(s->used_bits, (s->t.n_original + s->t.n_pcols) / 64 + 1, s->used_prefix);
+    const uint64_t *const face_bits = s->face_bits, *const used_bits = s->used_bits;
+    int32_t *const face_prefix = s->face_prefix, *const used_prefix = s->used_prefix;
+    const int32_t *const face_id = s->face_id, *const face_vertex = s->face_vertex, *const vertex_id = s->vertex_id;
+    prefix_counts(face_bits, s->t.n_faces / 64 + 1, face_prefix);
+    prefix_counts(used_bits, (s->t.n_original + s->t.n_pcols) / 64 + 1, used_prefix);
     for (int64_t slot = 0; slot < s->n_face_slots; slot++) {
-        const int32_t face = s->face_id[slot];
+        const int32_t face = face_id[slot];
         if (face < 0)
             continue;
-        int32_t *row = faces + 3 * rank_of(s->face_bits, s->face_prefix, face);
+        int32_t *row = faces + 3 * rank_of(face_bits, face_prefix, face);
         for (int c = 0; c < 3; c++)
-            row[c] = (int32_t)rank_of(s->used_bits, s->used_prefix, s->vertex_id[s->face_vertex[3 * slot + c]]);
+            row[c] = (int32_t)rank_of(used_bits, used_prefix, vertex_id[face_vertex[3 * slot + c]]);
     }
     for (int64_t slot = 0; slot < s->n_vertex_slots; slot++) {
-        if (s->vertex_id[slot] < 0 || s->vertex_uses[slot] == 0)
+        if (vertex_id[slot] < 0 || s->vertex_uses[slot] == 0)
             continue;
-        const int64_t k = rank_of(s->used_bits, s->used_prefix, s->vertex_id[slot]);
-        ids[k] = s->vertex_id[slot];
+        const int64_t k = rank_of(used_bits, used_prefix, vertex_id[slot]);
+        ids[k] = vertex_id[slot];
         memcpy(positions + 3 * k, s->vertex_position + 3 * slot, 3 * sizeof(float));
     }
+}
+
+/* Popcount in one instruction where the processor has it. */
+static void compact_plain(PmxMeshStream *s, int32_t *faces, int32_t *ids, float *positions)
+{
+    compact_body(s, faces, ids, positions);
+}
+#if PMX_X86
+__attribute__((target("popcnt"))) static void compact_popcnt(PmxMeshStream *s, int32_t *faces, int32_t *ids,
+                                                             float *positions)
+{
+    compact_body(s, faces, ids, positions);
+}
+#endif
+
+void pmx_mesh_stream_compact(PmxMeshStream *s, int32_t *faces, int32_t *ids, float *positions)
+{
+#if PMX_X86
+    if (__builtin_cpu_supports("popcnt")) {
+        compact_popcnt(s, faces, ids, positions);
+        return;
+    }
+#endif
+    compact_plain(s, faces, ids, positions);
 }
