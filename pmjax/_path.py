@@ -639,13 +639,16 @@ class MeshStream:
     # The views of the core's arrays, made again whenever it grows them.
     def _views(self, generation):
         if generation != self._generation:
-            fv, fid, vid, vpos, fch, vch = _core._pmx.mesh_stream_arrays(self._stream)
+            fv, fid, vid, vpos, fch, vch, rows, ids, positions = _core._pmx.mesh_stream_arrays(self._stream)
             self._fv = np.frombuffer(fv, np.int32).reshape(-1, 3)
             self._fid = np.frombuffer(fid, np.int32)
             self._vid = np.frombuffer(vid, np.int32)
             self._vpos = np.frombuffer(vpos, np.float32).reshape(-1, 3)
             self._fch = np.frombuffer(fch, np.int32)
             self._vch = np.frombuffer(vch, np.int32)
+            self._rows = np.frombuffer(rows, np.int32).reshape(-1, 3)
+            self._ids = np.frombuffer(ids, np.int32)
+            self._positions = np.frombuffer(positions, np.float32).reshape(-1, 3)
             self._generation = generation
 
     def _frame(self, r: Refinement):
@@ -696,9 +699,10 @@ class MeshStream:
         self._last, self._counts = frame, counts  # the core reads the last frame's lists at the next step
         n_face_slots, n_vertex_slots, n_faces, n_vertices, _, _, _, generation = counts
         self._views(generation)
-        faces, vertices = self._fch[:n_faces].copy(), self._vch[:n_vertices].copy()
-        return MeshChange(faces, self._fv[faces], vertices, self._vid[vertices], self._vpos[vertices],
-                          n_face_slots, n_vertex_slots)
+        # Copies: the core's change buffers are written again at the next step.
+        return MeshChange(self._fch[:n_faces].copy(), self._rows[:n_faces].copy(), self._vch[:n_vertices].copy(),
+                          self._ids[:n_vertices].copy(), self._positions[:n_vertices].copy(), n_face_slots,
+                          n_vertex_slots)
 
     @property
     def faces(self) -> np.ndarray:

@@ -1150,7 +1150,7 @@ PyObject* MeshStreamCompact(PyObject*, PyObject* args) {
 }
 
 // mesh_stream_arrays(stream) -> (face_vertex, face_id, vertex_id, vertex_position, face_changes,
-//                                vertex_changes): read-only memoryviews of the stream's arrays at their
+//                                vertex_changes, changed_faces, changed_ids, changed_positions): read-only memoryviews of the stream's arrays at their
 // capacities, valid until a step grows them (the state's generation changes).
 PyObject* MeshStreamArrays(PyObject*, PyObject* args) {
   PyObject* stream_o;
@@ -1164,9 +1164,11 @@ PyObject* MeshStreamArrays(PyObject*, PyObject* args) {
     return PyMemoryView_FromMemory(const_cast<char*>(p ? static_cast<const char*>(p) : empty),
                                    p ? (Py_ssize_t)bytes : 0, PyBUF_READ);
   };
-  return Py_BuildValue("(NNNNNN)", view(st.face_vertex, 12 * st.face_cap), view(st.face_id, 4 * st.face_cap),
+  return Py_BuildValue("(NNNNNNNNN)", view(st.face_vertex, 12 * st.face_cap), view(st.face_id, 4 * st.face_cap),
                        view(st.vertex_id, 4 * st.vertex_cap), view(st.vertex_position, 12 * st.vertex_cap),
-                       view(st.face_changes, 4 * st.face_cap), view(st.vertex_changes, 4 * st.vertex_cap));
+                       view(st.face_changes, 4 * st.face_cap), view(st.vertex_changes, 4 * st.vertex_cap),
+                       view(st.changed_faces, 12 * st.face_cap), view(st.changed_ids, 4 * st.vertex_cap),
+                       view(st.changed_positions, 12 * st.vertex_cap));
 }
 
 PyMethodDef methods[] = {
@@ -1197,7 +1199,8 @@ PyMethodDef methods[] = {
      "into arrays of the last step's sizes."},
     {"mesh_stream_arrays", MeshStreamArrays, METH_VARARGS,
      "mesh_stream_arrays(stream) -> read-only memoryviews (face_vertex, face_id, vertex_id, vertex_position, "
-     "face_changes, vertex_changes), valid until the generation changes."},
+     "face_changes, vertex_changes, changed_faces, changed_ids, changed_positions), valid until the generation "
+     "changes."},
     {nullptr, nullptr, 0, nullptr}};
 
 PyModuleDef module = {PyModuleDef_HEAD_INIT, "_pmx", "The front engine's C core as XLA FFI targets (pmx.h).", -1,

@@ -42,8 +42,10 @@ struct PmxMeshStream {
     float *vertex_position;
     uint32_t *vertex_stamp;
     int64_t vertex_cap, n_vertex_slots, n_vertex_free;
-    /* The change since the last step: the slots touched, each once. */
-    int32_t *face_changes, *vertex_changes;
+    /* The change since the last step: the slots touched, each once, and
+     * their contents after it (rows side by side, for the caller to copy). */
+    int32_t *face_changes, *vertex_changes, *changed_faces, *changed_ids;
+    float *changed_positions;
     int64_t n_face_changes, n_vertex_changes;
     uint32_t stamp;
     int started; /* a step has run: the next one starts a new change */
@@ -93,7 +95,8 @@ static int grow_faces(PmxMeshStream *s, int64_t need)
         !grow((void **)&s->corner_start, 3 * old, 3 * cap, 4) ||
         !grow((void **)&s->corner_next, 3 * old, 3 * cap, 4) ||
         !grow((void **)&s->corner_prev, 3 * old, 3 * cap, 4) || !grow((void **)&s->face_free, old, cap, 4) ||
-        !grow((void **)&s->face_stamp, old, cap, 4) || !grow((void **)&s->face_changes, old, cap, 4))
+        !grow((void **)&s->face_stamp, old, cap, 4) || !grow((void **)&s->face_changes, old, cap, 4) ||
+        !grow((void **)&s->changed_faces, 3 * old, 3 * cap, 4))
         return 0;
     s->face_cap = cap;
     s->generation++;
@@ -110,7 +113,8 @@ static int grow_vertices(PmxMeshStream *s, int64_t need)
         !grow((void **)&s->vertex_free, old, cap, 4) || !grow((void **)&s->vertex_position, 3 * old, 3 * cap, 4) ||
         !grow((void **)&s->vertex_stamp, old, cap, 4) || !grow((void **)&s->vertex_changes, old, cap, 4) ||
         !grow((void **)&s->vertex_lo, old, cap, 4) || !grow((void **)&s->vertex_hi, old, cap, 4) ||
-        !grow((void **)&s->vertex_uses, old, cap, 4))
+        !grow((void **)&s->vertex_uses, old, cap, 4) || !grow((void **)&s->changed_ids, old, cap, 4) ||
+        !grow((void **)&s->changed_positions, 3 * old, 3 * cap, 4))
         return 0;
     s->vertex_cap = cap;
     s->generation++;
@@ -394,7 +398,7 @@ void pmx_mesh_stream_free(PmxMeshStream *s)
                       s->face_stamp, s->vertex_id, s->vertex_head, s->vertex_free, s->vertex_lo, s->vertex_hi, s->vertex_uses, s->vertex_position,
                       s->vertex_stamp, s->face_changes, s->vertex_changes, s->slot_at, s->kill_slot, s->mark,
                       s->collapse, s->split, s->events, s->flipped, s->flipped_bits, s->face_bits, s->used_bits, s->face_prefix,
-                      s->used_prefix};
+                      s->used_prefix, s->changed_faces, s->changed_ids, s->changed_positions};
     for (size_t i = 0; i < sizeof arrays / sizeof arrays[0]; i++)
         free(arrays[i]);
     free(s);
@@ -623,6 +627,14 @@ PmxStatus pmx_mesh_stream_step(PmxMeshStream *s, const PmxStreamFrame *next)
         s->broken = 1;
         return status;
     }
+    /* The changed slots' contents, side by side. */
+    for (int64_t k = 0; k < s->n_face_changes; k++)
+        memcpy(s->changed_faces + 3 * k, s->face_vertex + 3 * s->face_changes[k], 3 * sizeof(int32_t));
+    for (int64_t k = 0; k < s->n_vertex_changes; k++) {
+        const int32_t v = s->vertex_changes[k];
+        s->changed_ids[k] = s->vertex_id[v];
+        memcpy(s->changed_positions + 3 * k, s->vertex_position + 3 * v, 3 * sizeof(float));
+    }
     s->last = *next;
     s->has_last = 1;
     return PMX_OK;
@@ -635,6 +647,9 @@ void pmx_mesh_stream_state(const PmxMeshStream *s, PmxStreamState *out)
     out->vertex_id = s->vertex_id;
     out->vertex_position = s->vertex_position;
     out->face_changes = s->face_changes;
+    out->changed_faces = s->changed_faces;
+    out->changed_ids = s->changed_ids;
+    out->changed_positions = s->changed_positions;
     out->vertex_changes = s->vertex_changes;
     out->face_cap = s->face_cap;
     out->vertex_cap = s->vertex_cap;

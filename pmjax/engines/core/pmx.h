@@ -240,6 +240,8 @@ typedef struct {                 /* the stream's arrays (valid until it grows: g
     const int32_t *vertex_id;    /* [vertex_cap] vertex id, -1 free */
     const float *vertex_position;
     const int32_t *face_changes, *vertex_changes; /* the slots the last step touched */
+    const int32_t *changed_faces, *changed_ids;   /* their rows after it: [n_face_changes, 3], [n_vertex_changes] */
+    const float *changed_positions;               /* [n_vertex_changes, 3] */
     int64_t face_cap, vertex_cap, n_face_slots, n_vertex_slots, n_face_changes, n_vertex_changes, n_faces,
         n_vertices, n_used, generation;
 } PmxStreamState;
