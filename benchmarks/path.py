@@ -3,6 +3,7 @@
 Usage: python benchmarks/path.py [--models cow,bunny,terrain_gcanyon,terrain_sthelens,dragon]
        [--frames 240] [--tau 1] [--paths 256] [--many-model dragon] [--repeats 3] [--json FILE]
        python benchmarks/path.py --mesh [--mesh-models bunny,dragon] [--frames 240] [--tau 1] [--repeats 9]
+       python benchmarks/path.py --draw [--draw-model dragon] [--frames 240] [--tau 1] [--repeats 3]
 
 Per model and path (the standard orbit; a fly-through from far in front, close
 past the side and round the back; the orbit jittered as if hand-held), all in
@@ -28,6 +29,13 @@ Targets are read against SrMesh's per-frame adapt through the ratio measured
 with it on one machine (SrMesh over ``refine_path`` + ``mesh()``: 0.052 / 0.160
 on the bunny, 0.343 / 0.431 on the dragon), applied to this run's
 ``refine_path`` + ``mesh()``. Run pinned to one core (``taskset -c 0``).
+
+Drawing (``--draw``, the standard orbit at 800x600, headless): per frame, what
+a viewer pays from camera to image (refine, mesh, upload, draw), medians over
+repeats, the variants alternated: each view refined alone (as ``pmjax view``
+refines its live camera) or the path through ``refine_path``, each frame's mesh
+built and drawn as a new scene or its change written into the GPU buffers in
+place (``StreamScene``); and the draw of an unchanged scene alone.
 """
 
 from __future__ import annotations
@@ -207,6 +215,56 @@ def mesh_path(name, frames, tau, repeats):
     return row
 
 
+def draw_path(name, frames, tau, repeats, size=(800, 600)):
+    """Per-frame costs from camera to image along the standard orbit (``--draw``)."""
+    from pmjax.render import Renderer
+    from pmjax.render._offscreen import StreamScene, refined_arrays
+
+    pm = pmjax.load(pm_file(name))
+    cams = pmjax.standard_orbit(np.asarray(pm.vertices)[: pm.n_original_vertices], frames, width=size[0],
+                                height=size[1])
+    views = [index_camera(cams, i) for i in range(frames)]
+    with Renderer(*size) as renderer:
+        def drawn_anew(refinements):
+            for cam, r in zip(views, refinements):
+                v, f, _, normals = refined_arrays(pm, r)
+                renderer.render_mesh(v, f, cam, normals=normals)
+
+        def streamed(refinements):
+            scene = StreamScene(renderer, pm)
+            for cam, r in zip(views, refinements):
+                scene.update(r)
+                scene.render(cam)
+
+        def unchanged():
+            scene = StreamScene(renderer, pm)
+            scene.update(pmjax.refine(pm, views[0], tau))
+            for cam in views:
+                scene.render(cam)
+
+        one_by_one = lambda: (pmjax.refine(pm, cam, tau) for cam in views)
+        variants = {
+            "views one by one, mesh drawn anew": lambda: drawn_anew(one_by_one()),
+            "views one by one, change in place": lambda: streamed(one_by_one()),
+            "refine_path, mesh drawn anew": lambda: drawn_anew(pmjax.refine_path(pm, cams, tau)),
+            "refine_path, change in place": lambda: streamed(pmjax.refine_path(pm, cams, tau)),
+            "draw alone (scene unchanged)": unchanged,
+        }
+        for fn in variants.values():  # compiled, contexts and tables made
+            fn()
+        times = {k: [] for k in variants}
+        for _ in range(repeats):
+            for key, fn in variants.items():
+                t = time.perf_counter()
+                fn()
+                times[key].append(1e3 * (time.perf_counter() - t) / frames)
+    ms = {k: statistics.median(v) for k, v in times.items()}
+    print(f"{name}: {size[0]}x{size[1]}, {frames} frames, tau {tau}")
+    for key, value in ms.items():
+        print(f"  {key:36s} {value:8.3f} ms per frame", flush=True)
+    return dict(model=name, size=list(size), frames=frames, ms=ms)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--models", default="cow,bunny,terrain_gcanyon,terrain_sthelens,dragon")
@@ -218,8 +276,15 @@ def main():
     ap.add_argument("--json", help="also write results as JSON")
     ap.add_argument("--mesh", action="store_true", help="drawable meshes along the orbit, per frame (only)")
     ap.add_argument("--mesh-models", default="bunny,dragon")
+    ap.add_argument("--draw", action="store_true", help="camera to image along the orbit, per frame (only)")
+    ap.add_argument("--draw-model", default="dragon")
     args = ap.parse_args()
     print(f"machine: {machine()}\n")
+    if args.draw:
+        row = draw_path(args.draw_model, args.frames, args.tau, args.repeats)
+        if args.json:
+            write_json(args.json, dict(machine=machine(), draw=row))
+        return
     if args.mesh:
         rows = [mesh_path(name, args.frames, args.tau, args.repeats) for name in args.mesh_models.split(",")]
         if args.json:
