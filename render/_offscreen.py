@@ -164,7 +164,8 @@ class StreamScene:
     normal, as pyrender lays them out), the index buffer one triangle per face
     slot (a free slot: a degenerate triangle, drawn as nothing). A frame
     writes the changed rows only (runs of consecutive slots in one call each);
-    the buffers are made again, twice as large, when the slots outgrow them.
+    the buffers are made again, with room for a quarter more, when the slots
+    outgrow them; pyrender draws the slots in use.
     Drawn like :func:`render_refinement` without levels or wireframe: the
     same faces, vertices and normals.
 
@@ -185,6 +186,7 @@ class StreamScene:
         self._vertex_normals = np.zeros((0, 3), np.float32)
         self._indices = np.zeros((0, 3), np.uint32)
         self._pending = None  # rows changed since the buffers were last written
+        self._vaid, self._rows = None, 0  # the primitive's buffers last seen, and their triangles
 
     def update(self, refinement: Refinement) -> MeshChange:
         """Moves the mesh to ``refinement``'s; returns the change."""
@@ -201,8 +203,8 @@ class StreamScene:
         return change
 
     def _grow(self, n_faces: int, n_vertices: int):
-        """Host arrays and a new primitive twice the slots' size."""
-        F, V = max(2 * n_faces, 64), max(2 * n_vertices, 64)
+        """Host arrays and a new primitive with room for a quarter more slots."""
+        F, V = max(n_faces + n_faces // 4, 64), max(n_vertices + n_vertices // 4, 64)
         indices, positions, normals = (np.zeros((F, 3), np.uint32), np.zeros((V, 3), np.float32),
                                        np.zeros((V, 3), np.float32))
         indices[:len(self._indices)] = self._indices
@@ -245,6 +247,16 @@ class StreamScene:
         """``(rgb, depth)`` of the mesh held, seen from ``view`` (default
         ``camera``); ``lines``: optional ``[2n, 3]`` segments drawn red."""
         view = camera if view is None else view
+        # pyrender draws as many triangles as the primitive's index array
+        # holds: after its first draw, the slots in use, not the buffers'
+        # room. Buffers made again from that shorter array (pyrender drew
+        # another scene meanwhile) may have fewer rows than the slots now in
+        # use: the primitive is then made again.
+        n_faces = max(self.stream._counts[0] if self.stream._stream is not None else len(self.stream.faces), 1)
+        if (self._node is not None and self._primitive._vaid is not None and self._primitive._vaid == self._vaid
+                and n_faces > self._rows):
+            self.scene.remove_node(self._node)
+            self._node = None
         if self._node is None:  # a new primitive: its buffers are made from the host arrays when drawn
             material = self._pyrender.MetallicRoughnessMaterial(baseColorFactor=BASE_COLOR, metallicFactor=0.0,
                                                                 roughnessFactor=0.9, doubleSided=True)
@@ -255,10 +267,13 @@ class StreamScene:
             # whenever pyrender makes its buffers again (a renderer that drew
             # another scene meanwhile), they hold the current rows.
             self._primitive._positions, self._primitive._normals = self._positions, self._vertex_normals
-            self._primitive._indices = self._indices
             self._node = self.scene.add(self._pyrender.Mesh([self._primitive]), name="mesh")
-        elif self._pending is not None:
-            self._upload()
+            self._vaid = None
+            self._primitive._indices = self._indices  # its buffers made at full room
+        else:
+            if self._pending is not None:
+                self._upload()
+            self._primitive._indices = self._indices[:n_faces]
         pose = view.pose()
         for name in ("_camera", "_light", "_lines"):
             node = getattr(self, name)
@@ -269,6 +284,8 @@ class StreamScene:
                                      name="light")
         self._lines = self.scene.add(lines_mesh(lines), name="frustum") if lines is not None else None
         out = self.renderer.render_scene(self.scene)
+        if self._primitive._vaid != self._vaid:  # buffers made in this draw: their rows
+            self._vaid, self._rows = self._primitive._vaid, len(self._primitive._indices)
         if self._pending is None:  # drawn once: its buffers exist, later changes go into them
             self._pending = (np.zeros(0, np.int32), np.zeros(0, np.int32))
         return out
