@@ -163,7 +163,7 @@ class StreamScene:
     The vertex buffer holds one row per vertex slot (position and shading
     normal, as pyrender lays them out), the index buffer one triangle per face
     slot (a free slot: a degenerate triangle, drawn as nothing). A frame
-    writes the changed rows only (runs of consecutive slots in one call each);
+    writes the span of its changed rows (one call per buffer);
     the buffers are made again, with room for a quarter more, when the slots
     outgrow them; pyrender draws the slots in use.
     Drawn like :func:`render_refinement` without levels or wireframe: the
@@ -235,12 +235,12 @@ class StreamScene:
             if not len(slots):
                 continue
             GL.glBindBuffer(target, buffer)
-            slots = np.unique(slots)
-            # Runs of consecutive slots, one call each.
-            for run in np.split(slots, np.flatnonzero(np.diff(slots) != 1) + 1):
-                lo, hi = int(run[0]), int(run[-1]) + 1
-                block = np.ascontiguousarray(data[lo:hi])
-                GL.glBufferSubData(target, lo * block.strides[0], block.nbytes, block)
+            # One call over the span of the changed rows: a driver may copy the
+            # whole buffer per call (a buffer still being drawn from), so one
+            # longer write costs less than many short ones.
+            lo, hi = int(slots.min()), int(slots.max()) + 1
+            block = np.ascontiguousarray(data[lo:hi])
+            GL.glBufferSubData(target, lo * block.strides[0], block.nbytes, block)
             GL.glBindBuffer(target, 0)
 
     def render(self, camera: Camera, *, view: Optional[Camera] = None, lines=None):
