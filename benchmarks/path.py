@@ -2,6 +2,8 @@
 
 Usage: python benchmarks/path.py [--models cow,bunny,terrain_gcanyon,terrain_sthelens,dragon]
        [--frames 240] [--tau 1] [--paths 256] [--many-model dragon] [--repeats 3] [--json FILE]
+       python benchmarks/path.py --mesh [--mesh-models bunny,dragon] [--frames 240] [--tau 1] [--repeats 9]
+       python benchmarks/path.py --draw [--draw-model dragon] [--frames 240] [--tau 1] [--repeats 3]
 
 Per model and path (the standard orbit; a fly-through from far in front, close
 past the side and round the back; the orbit jittered as if hand-held), all in
@@ -15,6 +17,25 @@ frame alone visits, and the share of those the C core decided for all the
 word's frames at once (the fat camera). Many paths: ``--paths`` orbits
 of different radii and elevations advanced together, against ``refine_batch``
 on the same cameras (dense and front), cameras per second.
+
+Drawable meshes (``--mesh``, the standard orbit): per frame, amortized over the
+path, medians over repeats, the variants alternated within each repeat:
+``path_counts``; ``refine_path`` alone; ``refine_path`` with each frame's
+``Refinement.mesh()`` (a mesh built from nothing per frame); ``refine_path``
+with each frame's change (:class:`pmjax.MeshStream`), and that with the
+stream's compacted mesh too; and, on refinements held in memory, the change
+alone, ``Refinement.mesh()`` alone and the stream's compacted mesh alone.
+Targets are read against SrMesh's per-frame adapt through the ratio measured
+with it on one machine (SrMesh over ``refine_path`` + ``mesh()``: 0.052 / 0.160
+on the bunny, 0.343 / 0.431 on the dragon), applied to this run's
+``refine_path`` + ``mesh()``. Run pinned to one core (``taskset -c 0``).
+
+Drawing (``--draw``, the standard orbit at 800x600, headless): per frame, what
+a viewer pays from camera to image (refine, mesh, upload, draw), medians over
+repeats, the variants alternated: each view refined alone (as ``pmjax view``
+refines its live camera) or the path through ``refine_path``, each frame's mesh
+built and drawn as a new scene or its change written into the GPU buffers in
+place (``StreamScene``); and the draw of an unchanged scene alone.
 """
 
 from __future__ import annotations
@@ -134,6 +155,116 @@ def many_paths(name, n_paths, frames, tau, repeats):
     return row
 
 
+# SrMesh's per-frame adapt over refine_path + mesh(), measured in one run on
+# one machine (standard orbit, 240 frames, tau 1): this run's refine_path +
+# mesh() times it gives SrMesh's on this machine.
+SRMESH_OVER_MESH = {"bunny": 0.052 / 0.160, "dragon": 0.343 / 0.431}
+
+
+def mesh_path(name, frames, tau, repeats):
+    """Per-frame costs of drawable meshes along the standard orbit (``--mesh``)."""
+    pm = pmjax.load(pm_file(name))
+    cams = pmjax.standard_orbit(np.asarray(pm.vertices)[: pm.n_original_vertices], frames)
+    held = list(pmjax.refine_path(pm, cams, tau))
+    for r in held:  # every table made before the clocks start
+        r.mesh()
+    stream = pmjax.MeshStream(pm)
+    for r in held:
+        stream.update(r)
+    stream.mesh()
+    changed = []
+    for r in held:
+        change = stream.update(r)
+        changed.append(len(change.face_slots))
+
+    def follow(with_mesh):
+        for r in pmjax.refine_path(pm, cams, tau):
+            stream.update(r)
+            if with_mesh:
+                stream.mesh()
+
+    variants = {
+        "path_counts": lambda: pmjax.path_counts(pm, cams, tau),
+        "refine_path": lambda: sum(1 for _ in pmjax.refine_path(pm, cams, tau)),
+        "refine_path + mesh()": lambda: [r.mesh() for r in pmjax.refine_path(pm, cams, tau)],
+        "refine_path + change": lambda: follow(False),
+        "refine_path + change + compacted": lambda: follow(True),
+        "change alone": lambda: [stream.update(r) for r in held],
+        "mesh() alone": lambda: [r.mesh() for r in held],
+        "compacted from the stream alone": lambda: [(stream.update(r), stream.mesh()) for r in held],
+    }
+    times = {k: [] for k in variants}
+    for _ in range(repeats):
+        for key, fn in variants.items():
+            t = time.perf_counter()
+            fn()
+            times[key].append(1e3 * (time.perf_counter() - t) / frames)
+    ms = {k: statistics.median(v) for k, v in times.items()}
+    # The compacted mesh alone: the stream's update and compaction less its update.
+    ms["compacted from the stream alone"] -= ms["change alone"]
+    srmesh = SRMESH_OVER_MESH.get(name, float("nan")) * ms["refine_path + mesh()"]
+    row = dict(model=name, pcols=pm.n_pcols, frames=frames, faces=int(np.median([int(r.n_faces) for r in held])),
+               faces_changed=float(np.median(changed)), ms=ms, srmesh_equivalent_ms=srmesh)
+    print(f"{name}: P {pm.n_pcols}, faces {row['faces']} (median), faces changed per frame "
+          f"{row['faces_changed']:.0f} (median); SrMesh here ~ {srmesh:.3f} ms "
+          f"(= {SRMESH_OVER_MESH.get(name, float('nan')):.3f} x refine_path + mesh())")
+    base = ms["refine_path + mesh()"]
+    for key, value in ms.items():
+        print(f"  {key:34s} {value:7.4f} ms per frame   {base / value:5.2f}x refine_path + mesh()   "
+              f"{srmesh / value:5.2f}x SrMesh", flush=True)
+    return row
+
+
+def draw_path(name, frames, tau, repeats, size=(800, 600)):
+    """Per-frame costs from camera to image along the standard orbit (``--draw``)."""
+    from pmjax.render import Renderer
+    from pmjax.render._offscreen import StreamScene, refined_arrays
+
+    pm = pmjax.load(pm_file(name))
+    cams = pmjax.standard_orbit(np.asarray(pm.vertices)[: pm.n_original_vertices], frames, width=size[0],
+                                height=size[1])
+    views = [index_camera(cams, i) for i in range(frames)]
+    with Renderer(*size) as renderer:
+        def drawn_anew(refinements):
+            for cam, r in zip(views, refinements):
+                v, f, _, normals = refined_arrays(pm, r)
+                renderer.render_mesh(v, f, cam, normals=normals)
+
+        def streamed(refinements):
+            scene = StreamScene(renderer, pm)
+            for cam, r in zip(views, refinements):
+                scene.update(r)
+                scene.render(cam)
+
+        def unchanged():
+            scene = StreamScene(renderer, pm)
+            scene.update(pmjax.refine(pm, views[0], tau))
+            for cam in views:
+                scene.render(cam)
+
+        one_by_one = lambda: (pmjax.refine(pm, cam, tau) for cam in views)
+        variants = {
+            "views one by one, mesh drawn anew": lambda: drawn_anew(one_by_one()),
+            "views one by one, change in place": lambda: streamed(one_by_one()),
+            "refine_path, mesh drawn anew": lambda: drawn_anew(pmjax.refine_path(pm, cams, tau)),
+            "refine_path, change in place": lambda: streamed(pmjax.refine_path(pm, cams, tau)),
+            "draw alone (scene unchanged)": unchanged,
+        }
+        for fn in variants.values():  # compiled, contexts and tables made
+            fn()
+        times = {k: [] for k in variants}
+        for _ in range(repeats):
+            for key, fn in variants.items():
+                t = time.perf_counter()
+                fn()
+                times[key].append(1e3 * (time.perf_counter() - t) / frames)
+    ms = {k: statistics.median(v) for k, v in times.items()}
+    print(f"{name}: {size[0]}x{size[1]}, {frames} frames, tau {tau}")
+    for key, value in ms.items():
+        print(f"  {key:36s} {value:8.3f} ms per frame", flush=True)
+    return dict(model=name, size=list(size), frames=frames, ms=ms)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--models", default="cow,bunny,terrain_gcanyon,terrain_sthelens,dragon")
@@ -143,8 +274,22 @@ def main():
     ap.add_argument("--many-model", default="dragon")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--json", help="also write results as JSON")
+    ap.add_argument("--mesh", action="store_true", help="drawable meshes along the orbit, per frame (only)")
+    ap.add_argument("--mesh-models", default="bunny,dragon")
+    ap.add_argument("--draw", action="store_true", help="camera to image along the orbit, per frame (only)")
+    ap.add_argument("--draw-model", default="dragon")
     args = ap.parse_args()
     print(f"machine: {machine()}\n")
+    if args.draw:
+        row = draw_path(args.draw_model, args.frames, args.tau, args.repeats)
+        if args.json:
+            write_json(args.json, dict(machine=machine(), draw=row))
+        return
+    if args.mesh:
+        rows = [mesh_path(name, args.frames, args.tau, args.repeats) for name in args.mesh_models.split(",")]
+        if args.json:
+            write_json(args.json, dict(machine=machine(), mesh=rows))
+        return
     rows = []
     for name in args.models.split(","):
         pm = pmjax.load(pm_file(name))

@@ -33,7 +33,7 @@ if TYPE_CHECKING:  # the names as a type checker and an editor see them
                           refine_batch)
     from .engines import core_enabled as native_available
     from .engines import info as engine_info
-    from ._path import PathError, path_counts, refine_path
+    from ._path import MeshChange, MeshStream, PathError, path_counts, path_mesh_changes, refine_path
     from ._oracle import oracle_refine
     from ._soft import SoftRefinement, geomorph_blend, geomorph_positions, soft_refine, soft_tests, soft_weights
     from ._normals import fitted_normals, hierarchy_normals
@@ -104,6 +104,9 @@ _EXPORTS = {
     "PathError": ("._path", "PathError"),
     "path_counts": ("._path", "path_counts"),
     "refine_path": ("._path", "refine_path"),
+    "MeshChange": ("._path", "MeshChange"),
+    "MeshStream": ("._path", "MeshStream"),
+    "path_mesh_changes": ("._path", "path_mesh_changes"),
     "oracle_refine": ("._oracle", "oracle_refine"),
     "SoftRefinement": ("._soft", "SoftRefinement"),
     "geomorph_blend": ("._soft", "geomorph_blend"),
@@ -236,6 +239,9 @@ __all__ = [
     "refine_path",
     "path_counts",
     "PathError",
+    "MeshChange",
+    "MeshStream",
+    "path_mesh_changes",
     "oracle_refine",
     "SoftRefinement",
     "geomorph_blend",

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import functools
 import time
-from typing import Iterator
+from typing import Iterator, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -377,6 +377,42 @@ def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, t
                                  n_faces=faces[k], n_vertices=vertices[k], n_executed=executed[k])
 
 
+def path_mesh_changes(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, tests: Tests = ALL_TESTS,
+                      stream: "MeshStream | None" = None) -> Iterator[tuple[Refinement, "MeshChange"]]:
+    """The frames of :func:`refine_path`, each with its drawable mesh's change.
+
+    A :class:`MeshStream` follows the path: each frame's
+    :class:`MeshChange` turns the last frame's mesh (in stable slots) into
+    this frame's, at a cost that follows what changed. The stream then holds
+    the frame's mesh (``stream.mesh()`` is ``refinement.mesh()``). Eager only
+    (the stream is host-side).
+
+    Args:
+        pm, cameras, tau, budget, tests: as :func:`refine_path`.
+        stream: a :class:`MeshStream` of ``pm`` to continue (a viewer's, or
+            one that followed another path: the first change is then from
+            its last mesh); ``None``: a new one (the first change writes
+            every slot).
+
+    Yields:
+        ``(Refinement, MeshChange)`` per frame, in order.
+
+    Raises:
+        PathError: as :func:`refine_path`.
+        ValueError: a stream of another mesh, or cameras being traced.
+    """
+    check_mesh(pm, "path_mesh_changes")
+    if is_traced(cameras, tau, budget):
+        raise ValueError("path_mesh_changes: the cameras are being traced; the mesh stream holds host arrays "
+                         "(call it eagerly, or use refine_path under jax.jit)")
+    if stream is None:
+        stream = MeshStream(pm)
+    elif stream.pm is not pm:
+        raise ValueError("path_mesh_changes: stream is a MeshStream of another mesh; make one with MeshStream(pm)")
+    for r in refine_path(pm, cameras, tau, budget=budget, tests=tests):
+        yield r, stream.update(r)
+
+
 def _traced_path_length(cameras) -> int:
     eye = cameras.eye
     if eye.ndim != 2:
@@ -517,3 +553,276 @@ def path_refinement_pairs(pm: ProgressiveMesh, cameras: Camera, tau, *, tests: T
     tau 0, :func:`pmjax.hidden_pcols`), as a geomorphed path needs them."""
     return zip(refine_path(pm, cameras, tau, tests=tests, coherent=coherent),
                refine_path(pm, cameras, 0.0, tests=tests, coherent=coherent))
+
+
+# -- drawable meshes along a path: each frame a change against the last ------------------
+
+
+class MeshChange(NamedTuple):
+    """One frame's change to a :class:`MeshStream`'s mesh: the slots whose
+    contents changed, each once, with their new contents. Writing these rows
+    into buffers holding the last frame's slots gives this frame's.
+
+    Attributes:
+        face_slots: ``int32 [k]`` face slots changed.
+        faces: ``int32 [k, 3]`` their vertex slots (corners in the original
+            face's order); a row of -1: the slot is free (the face is gone).
+        vertex_slots: ``int32 [u]`` vertex slots changed.
+        vertex_ids: ``int32 [u]`` their PM vertex ids (-1: the slot is free).
+        vertex_positions: ``float32 [u, 3]`` their positions, model units
+            (zero in free slots).
+        n_face_slots, n_vertex_slots: slots in use so far (the rows a
+            buffer needs); every slot index is below them.
+    """
+
+    face_slots: np.ndarray
+    faces: np.ndarray
+    vertex_slots: np.ndarray
+    vertex_ids: np.ndarray
+    vertex_positions: np.ndarray
+    n_face_slots: int
+    n_vertex_slots: int
+
+
+class MeshStream:
+    """The drawable mesh of the last frame given, kept in stable slots, and
+    each new frame as a :class:`MeshChange` against it.
+
+    A face slot holds one face drawn (its three vertex slots), a vertex slot
+    one vertex of the front (a ``vref`` representative: its id and
+    position). After :meth:`update` with a refinement, the faces held (rows
+    of :attr:`faces` that are not -1, over :attr:`vertex_positions`) are
+    ``refinement.mesh()``'s faces as a set, each with its corners in the same
+    order and at the same positions; :meth:`mesh` compacts them into exactly
+    ``refinement.mesh()``'s arrays.
+
+    With the C core (``pmjax/engines/core/mesh_stream.c``) a frame costs
+    what changed: the pcols whose executed bit flipped since the last frame
+    (found from the two refinements' visited lists) are applied one by one, a
+    split handing its vertex slot to its first child and re-pointing the
+    corners that move to the second, a collapse the reverse, each drawing or
+    removing its kill list. Freed slots are reused first, so memory is one
+    frame's mesh plus the change (and maps over the hierarchy), whatever the
+    path's length. Any sequence of refinements of the mesh may be given (a
+    cut, a teleport, a new tolerance or image size): the change is always to
+    the new frame's mesh. Without the core, each frame's mesh is compared
+    with the last by ids (same results, cost of the whole mesh).
+
+    A host-side object: :meth:`update` takes concrete refinements (not
+    under ``jax.jit``), as a viewer or a renderer holds them.
+
+    Args:
+        pm: the :class:`ProgressiveMesh` whose refinements it is given.
+    """
+
+    def __init__(self, pm: ProgressiveMesh):
+        check_mesh(pm, "MeshStream")
+        self.pm = pm
+        self._last = None
+        self._block = (None, None, None)  # the last block's lists: (its object, positions, ran) on the host
+        d = derived(pm)
+        if _core.enabled() and pm.n_pcols > 0:
+            from .engines._front_mesh import stream_tables
+
+            tables = d.memo("mesh_stream_tables", lambda: stream_tables(
+                d.depth_first, np.asarray(pm.parent), d.layout["order"], d.core_mesh))
+            self._at = d.memo("mesh_stream_at", lambda: _positions_of(d.layout["order"]))
+            self._stream = _core._pmx.mesh_stream_new(*tables, pm.n_original_vertices, pm.n_faces)
+            self._generation = -1
+            self._step = _core._pmx.mesh_stream_step  # bound once: the per-frame call
+            self._serial = 0
+            self._counts = (0,) * 8
+        else:
+            self._stream = None
+            self._numpy = _NumpyStream(pm)
+
+    # The views of the core's arrays, made again whenever it grows them.
+    def _views(self, generation):
+        if generation != self._generation:
+            fv, fid, vid, vpos, fch, vch, rows, ids, positions = _core._pmx.mesh_stream_arrays(self._stream)
+            self._fv = np.frombuffer(fv, np.int32).reshape(-1, 3)
+            self._fid = np.frombuffer(fid, np.int32)
+            self._vid = np.frombuffer(vid, np.int32)
+            self._vpos = np.frombuffer(vpos, np.float32).reshape(-1, 3)
+            self._fch = np.frombuffer(fch, np.int32)
+            self._vch = np.frombuffer(vch, np.int32)
+            self._rows = np.frombuffer(rows, np.int32).reshape(-1, 3)
+            self._ids = np.frombuffer(ids, np.int32)
+            self._positions = np.frombuffer(positions, np.float32).reshape(-1, 3)
+            self._generation = generation
+
+    def _frame(self, r: Refinement):
+        """The refinement's visited slots as the core's stream reads them:
+        ``(positions, ran, frame bit, slots, key)``, ``key`` naming a word's
+        lists (its frames share them) or -1."""
+        if r.core_ran is not None:
+            ran = r.core_ran
+            if ran is not self._block[0]:  # a new block of words (its frames come one after another)
+                self._block = (ran, np.asarray(r.front_positions), np.asarray(ran))
+                self._serial += 1
+            positions, bits = self._block[1], self._block[2]
+            if bits.ndim == 2:
+                word, bit = divmod(int(r.core_item), _core.FRAMES)
+                return positions[word], bits[word], bit, int(r.n_slots), self._serial << 20 | word
+            return positions, bits, 0, int(r.n_slots if r.n_slots is not None else len(bits)), -1
+        # Other engines: every pcol that did not run, in breadth-first order.
+        not_run = np.flatnonzero(~np.asarray(r.executed))
+        positions = np.sort(self._at[not_run]).astype(np.int32)
+        return positions, np.zeros(len(positions), np.uint8), 0, len(positions), -1
+
+    def update(self, refinement: Refinement) -> MeshChange:
+        """Moves the stream to a refinement's mesh.
+
+        Args:
+            refinement: a concrete :class:`Refinement` of :attr:`pm` (any
+                engine; a path's frames or single views, in any order).
+
+        Returns:
+            :class:`MeshChange` from the mesh held before (the first update:
+            from nothing, every slot written).
+
+        Raises:
+            ValueError: a refinement of another mesh, or one being traced.
+        """
+        r = refinement
+        if r.pm is not self.pm and (r.pm.n_pcols, r.pm.n_faces, r.pm.n_original_vertices) != (
+                self.pm.n_pcols, self.pm.n_faces, self.pm.n_original_vertices):
+            raise ValueError(f"MeshStream.update: the refinement is of another mesh ({r.pm.n_pcols} pcols, "
+                             f"{r.pm.n_faces} faces; the stream's: {self.pm.n_pcols}, {self.pm.n_faces})")
+        if is_traced(r.n_faces, r.visited, r.dense):
+            raise ValueError("MeshStream.update: the refinement is being traced; a stream holds host arrays, "
+                             "give it concrete refinements (outside jax.jit)")
+        if self._stream is None:
+            return self._numpy.update(r)
+        frame = self._frame(r)
+        counts = self._step(self._stream, *frame)
+        self._last, self._counts = frame, counts  # the core reads the last frame's lists at the next step
+        n_face_slots, n_vertex_slots, n_faces, n_vertices, _, _, _, generation = counts
+        self._views(generation)
+        # Copies: the core's change buffers are written again at the next step.
+        return MeshChange(self._fch[:n_faces].copy(), self._rows[:n_faces].copy(), self._vch[:n_vertices].copy(),
+                          self._ids[:n_vertices].copy(), self._positions[:n_vertices].copy(), n_face_slots,
+                          n_vertex_slots)
+
+    @property
+    def faces(self) -> np.ndarray:
+        """``int32 [n_face_slots, 3]`` every face slot's vertex slots (-1 rows: free)."""
+        if self._stream is None:
+            return self._numpy.faces[:self._numpy.n_face_slots].copy()
+        return self._fv[:self._counts[0]].copy() if self._last is not None else np.zeros((0, 3), np.int32)
+
+    @property
+    def face_ids(self) -> np.ndarray:
+        """``int32 [n_face_slots]`` the original face in each slot (-1: free)."""
+        if self._stream is None:
+            return self._numpy.face_ids[:self._numpy.n_face_slots].copy()
+        return self._fid[:self._counts[0]].copy() if self._last is not None else np.zeros(0, np.int32)
+
+    @property
+    def vertex_ids(self) -> np.ndarray:
+        """``int32 [n_vertex_slots]`` the PM vertex in each slot (-1: free)."""
+        if self._stream is None:
+            return self._numpy.vertex_ids[:self._numpy.n_vertex_slots].copy()
+        return self._vid[:self._counts[1]].copy() if self._last is not None else np.zeros(0, np.int32)
+
+    @property
+    def vertex_positions(self) -> np.ndarray:
+        """``float32 [n_vertex_slots, 3]`` each vertex slot's position (zero where free)."""
+        if self._stream is None:
+            return self._numpy.positions[:self._numpy.n_vertex_slots].copy()
+        return self._vpos[:self._counts[1]].copy() if self._last is not None else np.zeros((0, 3), np.float32)
+
+    def mesh(self):
+        """The mesh held, compacted as :meth:`pmjax.Refinement.mesh` gives it.
+
+        Returns:
+            ``(vertices float32[n, 3], faces int32[m, 3], vertex_ids int32[n])``:
+            faces in increasing original face order, ``vertex_ids`` sorted.
+        """
+        if self._stream is not None:  # ranks in the core's bitmaps of the faces drawn and the ids used
+            n_faces, n_used = self._counts[4], self._counts[6]
+            faces, ids = np.empty((n_faces, 3), np.int32), np.empty(n_used, np.int32)
+            positions = np.empty((n_used, 3), np.float32)
+            _core._pmx.mesh_stream_compact(self._stream, faces, ids, positions)
+            return positions, faces, ids
+        slots, ids, vids, positions = self.faces, self.face_ids, self.vertex_ids, self.vertex_positions
+        live = np.flatnonzero(ids >= 0)
+        faces = slots[live[np.argsort(ids[live])]]
+        used = np.unique(faces)
+        by_id = used[np.argsort(vids[used])]
+        rank = np.zeros(len(vids), np.int32)
+        rank[by_id] = np.arange(len(by_id), dtype=np.int32)
+        return positions[by_id], rank[faces], vids[by_id]
+
+
+def _positions_of(order: np.ndarray) -> np.ndarray:
+    """Each pcol's breadth-first position (the inverse of ``order``)."""
+    at = np.empty(len(order), np.int32)
+    at[order] = np.arange(len(order), dtype=np.int32)
+    return at
+
+
+class _NumpyStream:
+    """:class:`MeshStream` without the C core: each frame's mesh compared
+    with the last by face and vertex ids (the same meshes; slots of its own)."""
+
+    def __init__(self, pm):
+        self.pm = pm
+        F, V = pm.n_faces, pm.n_original_vertices + pm.n_pcols
+        self.face_slot, self.vertex_slot = np.full(F, -1, np.int32), np.full(V, -1, np.int32)
+        self.faces, self.face_ids = np.zeros((0, 3), np.int32), np.zeros(0, np.int32)
+        self.vertex_ids, self.positions = np.zeros(0, np.int32), np.zeros((0, 3), np.float32)
+        self.free_faces, self.free_vertices = [], []
+        self.n_face_slots = self.n_vertex_slots = 0
+        self.all_positions = np.asarray(pm.vertices, np.float32)
+
+    def _take(self, free: list, n: int, kind: str) -> np.ndarray:
+        reuse = [free.pop() for _ in range(min(n, len(free)))]
+        count = getattr(self, f"n_{kind}_slots")
+        fresh = np.arange(count, count + n - len(reuse), dtype=np.int32)
+        setattr(self, f"n_{kind}_slots", count + len(fresh))
+        if kind == "face" and self.n_face_slots > len(self.face_ids):
+            grow = max(self.n_face_slots, 2 * len(self.face_ids)) - len(self.face_ids)
+            self.faces = np.concatenate([self.faces, np.full((grow, 3), -1, np.int32)])
+            self.face_ids = np.concatenate([self.face_ids, np.full(grow, -1, np.int32)])
+        if kind == "vertex" and self.n_vertex_slots > len(self.vertex_ids):
+            grow = max(self.n_vertex_slots, 2 * len(self.vertex_ids)) - len(self.vertex_ids)
+            self.vertex_ids = np.concatenate([self.vertex_ids, np.full(grow, -1, np.int32)])
+            self.positions = np.concatenate([self.positions, np.zeros((grow, 3), np.float32)])
+        return np.concatenate([np.asarray(reuse, np.int32), fresh])
+
+    def update(self, r) -> MeshChange:
+        _, faces, ids = r.mesh()
+        face_ids = np.flatnonzero(np.asarray(r.active)).astype(np.int32)
+        # Vertices: the slots of vertices gone are freed, new vertices get slots.
+        live_v = np.flatnonzero(self.vertex_slot >= 0)
+        gone_v = np.setdiff1d(live_v, ids)
+        freed_v = self.vertex_slot[gone_v]
+        self.vertex_slot[gone_v] = -1
+        self.vertex_ids[freed_v] = -1
+        self.positions[freed_v] = 0
+        self.free_vertices.extend(freed_v.tolist())
+        new_v = ids[self.vertex_slot[ids] < 0]
+        slots_v = self._take(self.free_vertices, len(new_v), "vertex")
+        self.vertex_slot[new_v] = slots_v
+        self.vertex_ids[slots_v] = new_v
+        self.positions[slots_v] = self.all_positions[new_v]
+        # Faces: gone ones freed, new ones placed, kept ones whose corners moved rewritten.
+        live_f = np.flatnonzero(self.face_slot >= 0)
+        gone_f = np.setdiff1d(live_f, face_ids)
+        freed_f = self.face_slot[gone_f]
+        self.face_slot[gone_f] = -1
+        self.faces[freed_f] = -1
+        self.face_ids[freed_f] = -1
+        self.free_faces.extend(freed_f.tolist())
+        new_f = face_ids[self.face_slot[face_ids] < 0]
+        self.face_slot[new_f] = self._take(self.free_faces, len(new_f), "face")
+        slots_f = self.face_slot[face_ids]
+        corners = self.vertex_slot[ids[faces]]
+        changed = np.any(self.faces[slots_f] != corners, axis=1)
+        self.faces[slots_f] = corners
+        self.face_ids[slots_f] = face_ids
+        face_slots = np.unique(np.concatenate([freed_f, slots_f[changed]])).astype(np.int32)
+        vertex_slots = np.unique(np.concatenate([freed_v, slots_v])).astype(np.int32)
+        return MeshChange(face_slots, self.faces[face_slots], vertex_slots, self.vertex_ids[vertex_slots],
+                          self.positions[vertex_slots], self.n_face_slots, self.n_vertex_slots)

@@ -8,13 +8,14 @@ from typing import Optional
 import numpy as np
 
 from pmjax import ALL_TESTS, Camera, ProgressiveMesh, Refinement, Tests, camera_count, index_camera
-from pmjax import fitted_normals, geomorph_mesh, geomorph_start, geomorph_step, refine_path
+from pmjax import MeshChange, MeshStream, fitted_normals, geomorph_mesh, geomorph_start, geomorph_step, refine_path
 from pmjax._path import path_refinement_pairs
 from pmjax._atomic import atomic_folder, atomic_path, check_output_path
 
 
 from ._gl import RenderError, pyrender_module
-from ._scene import batch_levels, build_scene, face_levels, frustum_past_model
+from ._scene import (BACKGROUND, BASE_COLOR, batch_levels, build_scene, face_levels, frustum_past_model, lines_mesh,
+                     pyrender_camera)
 from ._video import Mp4Writer
 
 
@@ -155,6 +156,141 @@ def render_refinement(renderer: Renderer, pm: ProgressiveMesh, refinement: Refin
                                 wireframe=wireframe, lines=lines, normals=normals)
 
 
+class StreamScene:
+    """A scene whose mesh is a :class:`pmjax.MeshStream`'s slots, drawn from
+    GPU buffers that each frame's :class:`pmjax.MeshChange` updates in place.
+
+    The vertex buffer holds one row per vertex slot (position and shading
+    normal, as pyrender lays them out), the index buffer one triangle per face
+    slot (a free slot: a degenerate triangle, drawn as nothing). A frame
+    writes the span of its changed rows (one call per buffer);
+    the buffers are made again, with room for a quarter more, when the slots
+    outgrow them; pyrender draws the slots in use.
+    Drawn like :func:`render_refinement` without levels or wireframe: the
+    same faces, vertices and normals.
+
+    Args:
+        renderer: the :class:`Renderer` drawing it.
+        pm: the mesh refined.
+    """
+
+    def __init__(self, renderer: "Renderer", pm: ProgressiveMesh):
+        self.renderer, self.pm = renderer, pm
+        self.stream = MeshStream(pm)
+        self._normals = shading_normals(pm)
+        self._pyrender = pyrender_module()
+        self.scene = self._pyrender.Scene(bg_color=BACKGROUND, ambient_light=(0.12, 0.12, 0.12))
+        self._node = self._primitive = None
+        self._camera = self._light = self._lines = None
+        self._positions = np.zeros((0, 3), np.float32)
+        self._vertex_normals = np.zeros((0, 3), np.float32)
+        self._indices = np.zeros((0, 3), np.uint32)
+        self._pending = None  # rows changed since the buffers were last written
+        self._vaid, self._rows = None, 0  # the primitive's buffers last seen, and their triangles
+
+    def update(self, refinement: Refinement) -> MeshChange:
+        """Moves the mesh to ``refinement``'s; returns the change."""
+        change = self.stream.update(refinement)
+        faces, vertices = change.face_slots, change.vertex_slots
+        if change.n_face_slots > len(self._indices) or change.n_vertex_slots > len(self._positions):
+            self._grow(change.n_face_slots, change.n_vertex_slots)
+        self._indices[faces] = np.maximum(change.faces, 0)  # a free slot: the degenerate triangle (0, 0, 0)
+        self._positions[vertices] = change.vertex_positions
+        self._vertex_normals[vertices] = np.where(change.vertex_ids[:, None] >= 0,
+                                                  self._normals[np.maximum(change.vertex_ids, 0)], 0)
+        if self._pending is not None:
+            self._pending = (np.concatenate([self._pending[0], faces]), np.concatenate([self._pending[1], vertices]))
+        return change
+
+    def _grow(self, n_faces: int, n_vertices: int):
+        """Host arrays and a new primitive with room for a quarter more slots."""
+        F, V = max(n_faces + n_faces // 4, 64), max(n_vertices + n_vertices // 4, 64)
+        indices, positions, normals = (np.zeros((F, 3), np.uint32), np.zeros((V, 3), np.float32),
+                                       np.zeros((V, 3), np.float32))
+        indices[:len(self._indices)] = self._indices
+        positions[:len(self._positions)] = self._positions
+        normals[:len(self._vertex_normals)] = self._vertex_normals
+        self._indices, self._positions, self._vertex_normals = indices, positions, normals
+        if self._node is not None:
+            self.scene.remove_node(self._node)
+        self._node = self._primitive = None
+        self._pending = None
+
+    def _upload(self):
+        """The changed rows into the primitive's buffers (pyrender's layout:
+        buffer 0 the vertices' position and normal rows, the last the indices)."""
+        from OpenGL import GL
+
+        faces, vertices = self._pending
+        self._pending = (np.zeros(0, np.int32), np.zeros(0, np.int32))
+        if self._primitive is None or self._primitive._vaid is None:  # made from the host arrays when drawn
+            return
+        self.renderer._gl._platform.make_current()
+        rows = np.concatenate([self._positions, self._vertex_normals], axis=1)
+        # Written through the copy-write target: binding an element buffer
+        # outside its vertex array object would change that object's binding.
+        target = GL.GL_COPY_WRITE_BUFFER
+        for buffer, data, slots in ((self._primitive._buffers[0], rows, vertices),
+                                    (self._primitive._buffers[-1], self._indices, faces)):
+            if not len(slots):
+                continue
+            GL.glBindBuffer(target, buffer)
+            # One call over the span of the changed rows: a driver may copy the
+            # whole buffer per call (a buffer still being drawn from), so one
+            # longer write costs less than many short ones.
+            lo, hi = int(slots.min()), int(slots.max()) + 1
+            block = np.ascontiguousarray(data[lo:hi])
+            GL.glBufferSubData(target, lo * block.strides[0], block.nbytes, block)
+            GL.glBindBuffer(target, 0)
+
+    def render(self, camera: Camera, *, view: Optional[Camera] = None, lines=None):
+        """``(rgb, depth)`` of the mesh held, seen from ``view`` (default
+        ``camera``); ``lines``: optional ``[2n, 3]`` segments drawn red."""
+        view = camera if view is None else view
+        # pyrender draws as many triangles as the primitive's index array
+        # holds: after its first draw, the slots in use, not the buffers'
+        # room. Buffers made again from that shorter array (pyrender drew
+        # another scene meanwhile) may have fewer rows than the slots now in
+        # use: the primitive is then made again.
+        n_faces = max(self.stream._counts[0] if self.stream._stream is not None else len(self.stream.faces), 1)
+        if (self._node is not None and self._primitive._vaid is not None and self._primitive._vaid == self._vaid
+                and n_faces > self._rows):
+            self.scene.remove_node(self._node)
+            self._node = None
+        if self._node is None:  # a new primitive: its buffers are made from the host arrays when drawn
+            material = self._pyrender.MetallicRoughnessMaterial(baseColorFactor=BASE_COLOR, metallicFactor=0.0,
+                                                                roughnessFactor=0.9, doubleSided=True)
+            self._primitive = self._pyrender.Primitive(positions=self._positions, normals=self._vertex_normals,
+                                                       indices=self._indices, material=material,
+                                                       mode=self._pyrender.GLTF.TRIANGLES)
+            # The primitive reads the host arrays themselves (its setters copy):
+            # whenever pyrender makes its buffers again (a renderer that drew
+            # another scene meanwhile), they hold the current rows.
+            self._primitive._positions, self._primitive._normals = self._positions, self._vertex_normals
+            self._node = self.scene.add(self._pyrender.Mesh([self._primitive]), name="mesh")
+            self._vaid = None
+            self._primitive._indices = self._indices  # its buffers made at full room
+        else:
+            if self._pending is not None:
+                self._upload()
+            self._primitive._indices = self._indices[:n_faces]
+        pose = view.pose()
+        for name in ("_camera", "_light", "_lines"):
+            node = getattr(self, name)
+            if node is not None:
+                self.scene.remove_node(node)
+        self._camera = self.scene.add(pyrender_camera(view), pose=pose, name="camera")
+        self._light = self.scene.add(self._pyrender.DirectionalLight(color=np.ones(3), intensity=3.0), pose=pose,
+                                     name="light")
+        self._lines = self.scene.add(lines_mesh(lines), name="frustum") if lines is not None else None
+        out = self.renderer.render_scene(self.scene)
+        if self._primitive._vaid != self._vaid:  # buffers made in this draw: their rows
+            self._vaid, self._rows = self._primitive._vaid, len(self._primitive._indices)
+        if self._pending is None:  # drawn once: its buffers exist, later changes go into them
+            self._pending = (np.zeros(0, np.int32), np.zeros(0, np.int32))
+        return out
+
+
 def check_frames_output(path: str, fps: int = 30) -> str:
     """Check a frames output and rate before any rendering; return the extension.
 
@@ -259,6 +395,10 @@ def render_path(pm: ProgressiveMesh, cameras: Camera, tau: float, out: str, *, t
                 fps: int = 30, coherent: bool = True, progress: bool = True) -> dict:
     """Refine and render every camera of a path; write ``out`` (.mp4/.gif/PNG folder).
 
+    Hard refinements in one colour (no geomorph, levels or wireframe) are
+    drawn from GPU buffers that each frame's change updates in place
+    (:class:`StreamScene`); the others build each frame's mesh.
+
     Args:
         phantom: if given, every frame is refined for its path camera but seen
             from this fixed overview camera, with the path camera's frustum drawn.
@@ -273,6 +413,28 @@ def render_path(pm: ProgressiveMesh, cameras: Camera, tau: float, out: str, *, t
     view = phantom if phantom is not None else index_camera(cameras, 0)
     n_batches = len(pm.batch_offsets) - 1
     faces = []
+
+    def streamed():
+        # Hard refinements in one colour: the GPU buffers follow each frame's change.
+        with Renderer(view.width, view.height) as r:
+            scene = StreamScene(r, pm)
+            it = range(camera_count(cameras))
+            if progress:
+                from tqdm import tqdm
+
+                it = tqdm(it, unit="frame", desc="render")
+            for i, refined in zip(it, refine_path(pm, cameras, tau, tests=tests, coherent=coherent)):
+                cam = index_camera(cameras, i)
+                scene.update(refined)
+                faces.append(int(refined.n_faces))
+                lines = frustum_past_model(pm, cam) if phantom is not None else None
+                yield scene.render(cam, view=phantom, lines=lines)[0]
+
+    if geomorph <= 1 and not color_levels and not wireframe:
+        if not tau >= 0:
+            raise ValueError(f"tau must be >= 0 (and not NaN), got {tau}")
+        write_frames(streamed(), out, fps=fps)
+        return dict(faces=np.asarray(faces), frames=len(faces))
 
     def frames():
         with Renderer(view.width, view.height) as r:

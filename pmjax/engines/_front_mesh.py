@@ -104,6 +104,7 @@ def depth_first(host: dict, children: np.ndarray, roots: np.ndarray, n_original:
     # faces, rather than scattered over all vertices.
     out["face_start"] = start[faces].astype(np.int32)
     out["start"] = start
+    out["leaves"] = leaves
     out["n_original"] = V0
     return out
 
@@ -192,3 +193,37 @@ def numpy_mesh(df: dict, n_pcols: int, visited: np.ndarray, visited_executed: np
     rank[by_id] = np.arange(len(by_id), dtype=np.int32)
     ids = front[by_id]
     return df["vertices"][ids], rank[slot].reshape(-1, 3), ids.astype(np.int32)
+
+
+def stream_tables(df: dict, parent: np.ndarray, order: np.ndarray, mesh: CoreMesh) -> tuple:
+    """The tables of the C core's mesh stream (``PmxStreamTables`` in
+    ``pmjax/engines/core/pmx.h``), in the order ``_pmx.mesh_stream_new``
+    takes them: the front mesh's records, then per breadth-first position the
+    pcol's own vertex and its position, the position of the pcol consuming
+    each position's vertex and each original vertex (``up``, -1 for a top),
+    and each face's original corners.
+
+    Args:
+        df: :func:`depth_first`; parent: ``[V0 + P]`` each vertex's consuming
+            pcol (-1: none); order: ``int32 [P]`` the pcol at each position;
+            mesh: :class:`CoreMesh` (its arrays read on the host).
+
+    Returns:
+        NumPy arrays ``(pcol_records [P, 14], kill_data [K, 4], base [B, 4],
+        tops [T, 5], top_at [T], own_vertex [P], own_end [P], own_position
+        [P, 3], up [P + V0], corners [F, 3])``, all int32 but ``own_position``;
+        ``own_end`` the end of the pcol's depth-first interval of original
+        vertices (it starts at its first child's start).
+    """
+    V0, P = df["n_original"], len(order)
+    parent = np.asarray(parent, np.int64)
+    at = np.empty(P, np.int64)
+    at[order] = np.arange(P)
+    own = V0 + order.astype(np.int64)
+    consumer = np.concatenate([parent[own], parent[:V0]])
+    up = np.where(consumer >= 0, at[np.maximum(consumer, 0)], -1).astype(np.int32)
+    host = lambda a: np.ascontiguousarray(np.asarray(a))
+    return (host(mesh.pcols), host(mesh.kill_data), host(mesh.base), host(mesh.tops), host(mesh.top_at),
+            own.astype(np.int32), (df["start"][own] + df["leaves"][own]).astype(np.int32),
+            np.ascontiguousarray(df["vertices"][own], np.float32), up,
+            np.ascontiguousarray(df["faces"], np.int32))

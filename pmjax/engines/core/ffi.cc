@@ -12,6 +12,7 @@
 #include <algorithm>
 #include <cstdint>
 #include <cstring>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -1012,6 +1013,210 @@ PyObject* FrontMeshEager(PyObject*, PyObject* args) {
   return PyLong_FromLongLong(n_ids);
 }
 
+// -- drawable front meshes along a path (mesh_stream.c) --------------------------------
+
+// A stream and the tables it reads (their buffers held as long as it lives).
+struct StreamHandle {
+  PmxMeshStream* stream = nullptr;
+  HostArray tables[10];
+  int64_t n_pcols = 0;
+  ~StreamHandle() { pmx_mesh_stream_free(stream); }
+};
+
+const char* kStreamCapsule = "pmjax.mesh_stream";
+
+void FreeStream(PyObject* capsule) {
+  delete static_cast<StreamHandle*>(PyCapsule_GetPointer(capsule, kStreamCapsule));
+}
+
+// mesh_stream_new(pcol_records, kill_data, base, tops, top_at, own_vertex, own_end, own_position, up,
+//                 corners, n_original, n_faces) -> stream (a capsule)
+// A stream at the fully collapsed mesh; the tables as front_mesh's, and per
+// position the pcol's own vertex, the end of its depth-first interval and
+// its position, the consuming positions (up) and the faces' original corners.
+PyObject* MeshStreamNew(PyObject*, PyObject* args) {
+  PyObject* o[10];
+  long long n_original = 0, n_faces = 0;
+  if (!PyArg_ParseTuple(args, "OOOOOOOOOOLL", &o[0], &o[1], &o[2], &o[3], &o[4], &o[5], &o[6], &o[7], &o[8],
+                        &o[9], &n_original, &n_faces))
+    return nullptr;
+  static const char* names[] = {"pcol_records", "kill_data", "base", "tops", "top_at", "own_vertex",
+                                "own_end", "own_position", "up", "corners"};
+  auto h = std::make_unique<StreamHandle>();
+  for (int i = 0; i < 10; ++i)
+    if (!Take(o[i], names[i], i == 7 ? 'f' : 'i', 4, false, false, &h->tables[i])) return nullptr;
+  HostArray* t = h->tables;
+  const int64_t P = t[0].dims.size() == 2 ? t[0].dims[0] : -1, V0 = n_original, F = n_faces;
+  if (P < 0 || t[0].dims[1] != 14) return Raise(ffi::Error::InvalidArgument("pcol_records must have shape [P, 14]")), nullptr;
+  const int64_t K = t[1].dims.size() == 2 ? t[1].dims[0] : -1, B = t[2].dims.size() == 2 ? t[2].dims[0] : -1;
+  const int64_t T = t[3].dims.size() == 2 ? t[3].dims[0] : -1;
+  if (K < 0 || t[1].dims[1] != 4 || B < 0 || t[2].dims[1] != 4 || T < 0 || t[3].dims[1] != 5 || V0 < 0 || F < 0 ||
+      K + B > F) {
+    PyErr_SetString(PyExc_ValueError, "mesh_stream_new: kill_data, base [n, 4] and tops [n, 5] must fit the faces");
+    return nullptr;
+  }
+  if (!Raise(Expect("top_at", t[4].shape(), {T})) || !Raise(Expect("own_vertex", t[5].shape(), {P})) ||
+      !Raise(Expect("own_end", t[6].shape(), {P})) || !Raise(Expect("own_position", t[7].shape(), {P, 3})) ||
+      !Raise(Expect("up", t[8].shape(), {P + V0})) || !Raise(Expect("corners", t[9].shape(), {F, 3})))
+    return nullptr;
+  // Every index the stream follows stays inside its table.
+  const PmxPcolRecord* records = reinterpret_cast<const PmxPcolRecord*>(t[0].data<int32_t>());
+  for (int64_t q = 0; q < P; ++q) {
+    const PmxPcolRecord& r = records[q];
+    bool ok = r.kill_first >= 0 && r.kill_count >= 0 && r.kill_first + (int64_t)r.kill_count <= K;
+    for (int j = 0; j < 2; ++j)
+      ok = ok && (r.made_at[j] >= 0 ? r.made_at[j] > q && r.made_at[j] < P : r.vertex[j] >= 0 && r.vertex[j] < V0);
+    if (!ok) {
+      PyErr_Format(PyExc_ValueError, "mesh_stream_new: pcol_records[%lld] points outside the tables", (long long)q);
+      return nullptr;
+    }
+  }
+  const int32_t* up = t[8].data<int32_t>();
+  for (int64_t i = 0; i < P + V0; ++i)
+    if (up[i] < -1 || up[i] >= P || (i < P && up[i] >= i)) {
+      PyErr_Format(PyExc_ValueError, "mesh_stream_new: up[%lld] = %d is not an earlier position", (long long)i, up[i]);
+      return nullptr;
+    }
+  const int32_t* corners = t[9].data<int32_t>();
+  for (int64_t i = 0; i < 3 * F; ++i)
+    if (corners[i] < 0 || corners[i] >= V0) {
+      PyErr_Format(PyExc_ValueError, "mesh_stream_new: corners[%lld] = %d is not an original vertex",
+                   (long long)(i / 3), corners[i]);
+      return nullptr;
+    }
+  const PmxFaceRecord* faces[2] = {reinterpret_cast<const PmxFaceRecord*>(t[1].data<int32_t>()),
+                                   reinterpret_cast<const PmxFaceRecord*>(t[2].data<int32_t>())};
+  for (int k = 0; k < 2; ++k)
+    for (int64_t i = 0; i < (k ? B : K); ++i)
+      if (faces[k][i].face < 0 || faces[k][i].face >= F) {
+        PyErr_Format(PyExc_ValueError, "mesh_stream_new: %s[%lld] is not a face", names[1 + k], (long long)i);
+        return nullptr;
+      }
+  const PmxFrontVertex* tops = reinterpret_cast<const PmxFrontVertex*>(t[3].data<int32_t>());
+  const int32_t* top_at = t[4].data<int32_t>();
+  for (int64_t i = 0; i < T; ++i)
+    if (top_at[i] < -1 || top_at[i] >= P || tops[i].vertex < 0 || tops[i].vertex >= V0 + P) {
+      PyErr_Format(PyExc_ValueError, "mesh_stream_new: tops[%lld] is not a root or an original", (long long)i);
+      return nullptr;
+    }
+  PmxStreamTables tables{records, faces[0], faces[1], tops, top_at, t[5].data<int32_t>(), t[6].data<int32_t>(),
+                         t[7].data<float>(), up, corners, K, B, T, V0, P, F};
+  PmxStatus status = PMX_OK;
+  h->stream = pmx_mesh_stream_new(&tables, &status);
+  if (!h->stream) {
+    PyErr_Format(status == PMX_NO_MEMORY ? PyExc_MemoryError : PyExc_ValueError,
+                 "mesh_stream_new: the base faces' corners have no top above them (%s)", pmx_status_text(status));
+    return nullptr;
+  }
+  h->n_pcols = P;
+  PyObject* capsule = PyCapsule_New(h.get(), kStreamCapsule, FreeStream);
+  if (capsule) h.release();
+  return capsule;
+}
+
+PyObject* StreamState(const PmxMeshStream* s) {
+  PmxStreamState st;
+  pmx_mesh_stream_state(s, &st);
+  return Py_BuildValue("(LLLLLLLL)", (long long)st.n_face_slots, (long long)st.n_vertex_slots,
+                       (long long)st.n_face_changes, (long long)st.n_vertex_changes, (long long)st.n_faces,
+                       (long long)st.n_vertices, (long long)st.n_used, (long long)st.generation);
+}
+
+// mesh_stream_step(stream, positions, ran, frame, n, key)
+//   -> (face slots, vertex slots, faces changed, vertices changed, faces, vertices, vertices used, generation)
+// The stream from the frame it holds to the next: its n visited slots'
+// positions s32[L] and ran bits (u8 [L], or a word's u16 [L] and the frame's
+// bit), key >= 0 naming lists that other frames share (a word), else -1.
+// The caller keeps the arrays until the next step (the stream reads them
+// as the frame it holds). A ValueError names what is wrong.
+PyObject* MeshStreamStep(PyObject*, PyObject* args) {
+  PyObject *stream_o, *positions_o, *ran_o;
+  int frame = 0;
+  long long n = 0, key = -1;
+  if (!PyArg_ParseTuple(args, "OOOiLL", &stream_o, &positions_o, &ran_o, &frame, &n, &key)) return nullptr;
+  auto* h = static_cast<StreamHandle*>(PyCapsule_GetPointer(stream_o, kStreamCapsule));
+  if (!h) return nullptr;
+  HostArray positions, ran;
+  if (!Take(positions_o, "positions", 'i', 4, false, false, &positions) ||
+      !Take(ran_o, "ran", 'u', 0, false, false, &ran))
+    return nullptr;
+  if (positions.dims.size() != 1 || ran.dims != positions.dims || n < 0 || n > positions.dims[0] ||
+      n > h->n_pcols) {
+    PyErr_Format(PyExc_ValueError,
+                 "mesh_stream_step: positions and ran must have one shape [L], and n (%lld) at most L and P", n);
+    return nullptr;
+  }
+  const bool words = ran.view.itemsize == 2;
+  if (frame < 0 || frame >= (words ? PMX_FRAMES : 1)) {
+    PyErr_Format(PyExc_ValueError, "mesh_stream_step: frame %d is not a bit of ran (%s)", frame,
+                 words ? "a word's 16 frames" : "one frame");
+    return nullptr;
+  }
+  PmxStreamFrame next{positions.data<int32_t>(), words ? nullptr : ran.data<uint8_t>(),
+                      words ? ran.data<uint16_t>() : nullptr, frame, n, key < 0 ? -1 : key};
+  PmxStatus status;
+  Py_BEGIN_ALLOW_THREADS;
+  status = pmx_mesh_stream_step(h->stream, &next);
+  Py_END_ALLOW_THREADS;
+  if (status != PMX_OK) {
+    PyErr_SetString(status == PMX_NO_MEMORY ? PyExc_MemoryError : PyExc_ValueError,
+                    status == PMX_BAD_SIZE
+                        ? "mesh_stream_step: the frame's positions do not increase inside the hierarchy "
+                          "(the stream still holds the last frame)"
+                    : status == PMX_NO_MEMORY
+                        ? "mesh_stream_step: out of memory for the stream's slots"
+                        : "mesh_stream_step: the frame's changes are not those of a refinement of this "
+                          "hierarchy; the stream is broken (make a new one)");
+    return nullptr;
+  }
+  return StreamState(h->stream);
+}
+
+// mesh_stream_compact(stream, faces, ids, positions)
+// The mesh held as Refinement.mesh() gives it, written: faces s32[faces, 3],
+// ids s32[used], positions f32[used, 3] (the counts of the last step).
+PyObject* MeshStreamCompact(PyObject*, PyObject* args) {
+  PyObject *stream_o, *faces_o, *ids_o, *positions_o;
+  if (!PyArg_ParseTuple(args, "OOOO", &stream_o, &faces_o, &ids_o, &positions_o)) return nullptr;
+  auto* h = static_cast<StreamHandle*>(PyCapsule_GetPointer(stream_o, kStreamCapsule));
+  if (!h) return nullptr;
+  HostArray faces, ids, positions;
+  if (!Take(faces_o, "faces", 'i', 4, true, false, &faces) || !Take(ids_o, "ids", 'i', 4, true, false, &ids) ||
+      !Take(positions_o, "positions", 'f', 4, true, false, &positions))
+    return nullptr;
+  PmxStreamState st;
+  pmx_mesh_stream_state(h->stream, &st);
+  if (!Raise(Expect("faces", faces.shape(), {st.n_faces, 3})) || !Raise(Expect("ids", ids.shape(), {st.n_used})) ||
+      !Raise(Expect("positions", positions.shape(), {st.n_used, 3})))
+    return nullptr;
+  Py_BEGIN_ALLOW_THREADS;
+  pmx_mesh_stream_compact(h->stream, faces.data<int32_t>(), ids.data<int32_t>(), positions.data<float>());
+  Py_END_ALLOW_THREADS;
+  Py_RETURN_NONE;
+}
+
+// mesh_stream_arrays(stream) -> (face_vertex, face_id, vertex_id, vertex_position, face_changes,
+//                                vertex_changes, changed_faces, changed_ids, changed_positions): read-only memoryviews of the stream's arrays at their
+// capacities, valid until a step grows them (the state's generation changes).
+PyObject* MeshStreamArrays(PyObject*, PyObject* args) {
+  PyObject* stream_o;
+  if (!PyArg_ParseTuple(args, "O", &stream_o)) return nullptr;
+  auto* h = static_cast<StreamHandle*>(PyCapsule_GetPointer(stream_o, kStreamCapsule));
+  if (!h) return nullptr;
+  PmxStreamState st;
+  pmx_mesh_stream_state(h->stream, &st);
+  auto view = [](const void* p, int64_t bytes) {
+    static char empty[4];
+    return PyMemoryView_FromMemory(const_cast<char*>(p ? static_cast<const char*>(p) : empty),
+                                   p ? (Py_ssize_t)bytes : 0, PyBUF_READ);
+  };
+  return Py_BuildValue("(NNNNNNNNN)", view(st.face_vertex, 12 * st.face_cap), view(st.face_id, 4 * st.face_cap),
+                       view(st.vertex_id, 4 * st.vertex_cap), view(st.vertex_position, 12 * st.vertex_cap),
+                       view(st.face_changes, 4 * st.face_cap), view(st.vertex_changes, 4 * st.vertex_cap),
+                       view(st.changed_faces, 12 * st.face_cap), view(st.changed_ids, 4 * st.vertex_cap),
+                       view(st.changed_positions, 12 * st.vertex_cap));
+}
+
 PyMethodDef methods[] = {
     {"targets", Targets, METH_NOARGS, "The XLA FFI targets of the core: {name: PyCapsule of the handler}."},
     {"simd", Simd, METH_VARARGS,
@@ -1029,6 +1234,19 @@ PyMethodDef methods[] = {
      "front_mesh(pcol_records, kill_data, base, tops, top_at, ran, positions, counts, item, n_original, "
      "n_faces_total, faces, ids, vertex_positions) -> n_ids: one refinement's mesh eagerly, as the target "
      "pmx_front_mesh reads it (NumPy arrays in and out; ValueError naming a bad argument)."},
+    {"mesh_stream_new", MeshStreamNew, METH_VARARGS,
+     "mesh_stream_new(pcol_records, kill_data, base, tops, top_at, own_vertex, own_end, own_position, up, corners, "
+     "n_original, n_faces) -> stream: a drawable front mesh at the fully collapsed mesh (mesh_stream.c)."},
+    {"mesh_stream_step", MeshStreamStep, METH_VARARGS,
+     "mesh_stream_step(stream, positions, ran, frame, n, key) -> "
+     "(face slots, vertex slots, faces changed, vertices changed, faces, vertices, vertices used, generation)."},
+    {"mesh_stream_compact", MeshStreamCompact, METH_VARARGS,
+     "mesh_stream_compact(stream, faces, ids, positions): the mesh held as Refinement.mesh() gives it, written "
+     "into arrays of the last step's sizes."},
+    {"mesh_stream_arrays", MeshStreamArrays, METH_VARARGS,
+     "mesh_stream_arrays(stream) -> read-only memoryviews (face_vertex, face_id, vertex_id, vertex_position, "
+     "face_changes, vertex_changes, changed_faces, changed_ids, changed_positions), valid until the generation "
+     "changes."},
     {nullptr, nullptr, 0, nullptr}};
 
 PyModuleDef module = {PyModuleDef_HEAD_INIT, "_pmx", "The front engine's C core as XLA FFI targets (pmx.h).", -1,

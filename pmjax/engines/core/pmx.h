@@ -223,6 +223,58 @@ PmxStatus pmx_front_mesh(const PmxMeshTables *m, const uint8_t *ran, const uint1
                          int32_t *ids, float *vertex_positions, int64_t id_capacity, int64_t *n_ids,
                          PmxScratch *s);
 
+/* Drawable front meshes along a path (mesh_stream.c): one frame's mesh in
+ * stable slots, each frame applied as a change against the last. */
+typedef struct PmxMeshStream PmxMeshStream;
+typedef struct {
+    const PmxPcolRecord *pcols; /* [n_pcols] by position (pmx_front_mesh's) */
+    const PmxFaceRecord *kill_data, *base;
+    const PmxFrontVertex *tops;
+    const int32_t *top_at;       /* [n_tops] the top's position, -1 for a lone original */
+    const int32_t *own_vertex;   /* [n_pcols] by position: the pcol's own vertex id */
+    const int32_t *own_end;      /* [n_pcols] the end of its depth-first interval of original vertices */
+    const float *own_position;   /* [n_pcols, 3] its position */
+    const int32_t *up;           /* [n_pcols + n_original] the consuming pcol's position (-1: a top) of each
+                                  * position's vertex, then of each original vertex */
+    const int32_t *corners;      /* [n_faces, 3] each face's original vertices */
+    int64_t n_kill_data, n_base, n_tops, n_original, n_pcols, n_faces;
+} PmxStreamTables;
+typedef struct {                 /* a frame: its n visited slots' positions and ran bits */
+    const int32_t *positions;
+    const uint8_t *ran8;         /* one byte per slot, or */
+    const uint16_t *ran16;       /* a word's frame bits, bit `frame` */
+    int frame;
+    int64_t n;
+    int64_t key;                 /* >= 0: frames with one key share these lists (a word); -1: none */
+} PmxStreamFrame;
+typedef struct {                 /* the stream's arrays (valid until it grows: generation) */
+    const int32_t *face_vertex;  /* [face_cap, 3] vertex slots, -1 in free slots */
+    const int32_t *face_id;      /* [face_cap] face drawn, -1 free */
+    const int32_t *vertex_id;    /* [vertex_cap] vertex id, -1 free */
+    const float *vertex_position;
+    const int32_t *face_changes, *vertex_changes; /* the slots the last step touched */
+    const int32_t *changed_faces, *changed_ids;   /* their rows after it: [n_face_changes, 3], [n_vertex_changes] */
+    const float *changed_positions;               /* [n_vertex_changes, 3] */
+    int64_t face_cap, vertex_cap, n_face_slots, n_vertex_slots, n_face_changes, n_vertex_changes, n_faces,
+        n_vertices, n_used, generation;
+} PmxStreamState;
+
+/* A stream at the fully collapsed mesh (the tops and base faces); NULL with
+ * *status on failure. The tables must outlive it. */
+PmxMeshStream *pmx_mesh_stream_new(const PmxStreamTables *t, PmxStatus *status);
+void pmx_mesh_stream_free(PmxMeshStream *s);
+/* From the frame the stream holds to `next` (whose arrays the caller keeps
+ * until the step after): the change's slots are those touched.
+ * PMX_BAD_SIZE (nothing changed) when next's positions do not increase
+ * inside [0, P); PMX_BAD_TABLE when its flips are not a refinement's (the
+ * stream is then broken: every later step fails). */
+PmxStatus pmx_mesh_stream_step(PmxMeshStream *s, const PmxStreamFrame *next);
+void pmx_mesh_stream_state(const PmxMeshStream *s, PmxStreamState *out);
+/* The mesh held, compacted as Refinement.mesh() gives it: faces [n_faces, 3]
+ * in increasing face id, ids and positions [n_used(, 3)] the vertices the
+ * faces use in increasing id. */
+void pmx_mesh_stream_compact(PmxMeshStream *s, int32_t *faces, int32_t *ids, float *positions);
+
 /* The view constants (PMX_VIEW floats) of a camera (PMX_CAMERA floats), and
  * of n cameras. */
 void pmx_view_of(const float *camera, int orthographic, float *view);

@@ -1,0 +1,733 @@
+/* Drawable front meshes along a path, each frame a change against the last.
+ *
+ * The stream holds one frame's mesh in slots that stay put: a face slot per
+ * face drawn (its three vertex slots), a vertex slot per front vertex (its
+ * id and position). A frame is given by its visited slots and ran bits (the
+ * refinement's lists); the pcols whose executed bit differs from the last
+ * frame's are found from the two lists, and each is applied as one collapse
+ * or one split, so the work follows the change, not the mesh:
+ *
+ * - a split of p (executed before, not now) hands p's vertex slot to its
+ *   first child, gives the second child a new slot, moves the corners lying
+ *   in the second child's depth-first interval to it, and draws p's kill list;
+ * - a collapse of p (the reverse) removes p's kill list, moves the second
+ *   child's corners to the first child's slot, which becomes p's vertex.
+ *
+ * Collapses run children first (decreasing breadth-first position), splits
+ * parents first (increasing): every intermediate state is the refinement of
+ * a set closed under children, so each vertex a step reads has its slot.
+ * Corners are kept in one list per vertex slot (linked through the corners),
+ * so a split or collapse touches only the corners of its vertex. A new
+ * face's corner finds its vertex by walking up from its original vertex to
+ * the first vertex with a slot: the front vertex above it.
+ *
+ * Memory: the slots of one frame's mesh (grown to the largest frame seen,
+ * freed slots reused first), the change's slot lists, and maps over the
+ * hierarchy (a slot per position and per original vertex, a slot per killed
+ * face, a byte per position), whatever the path's length. */
+#include <stdlib.h>
+
+#include "internal.h"
+
+struct PmxMeshStream {
+    PmxStreamTables t;
+    /* Face slots: vertex slots per corner (-1 free), face id (-1 free), each
+     * corner's depth-first start and its links in its vertex's list. */
+    int32_t *face_vertex, *face_id, *corner_start, *corner_next, *corner_prev, *face_free;
+    uint32_t *face_stamp;
+    int64_t face_cap, n_face_slots, n_face_free;
+    /* Vertex slots: id (-1 free), position, first corner, corners held, the
+     * depth-first interval [lo, hi) of the original vertices below. */
+    int32_t *vertex_id, *vertex_head, *vertex_free, *vertex_lo, *vertex_hi, *vertex_uses;
+    float *vertex_position;
+    uint32_t *vertex_stamp;
+    int64_t vertex_cap, n_vertex_slots, n_vertex_free;
+    /* The change since the last step: the slots touched, each once, and
+     * their contents after it (rows side by side, for the caller to copy). */
+    int32_t *face_changes, *vertex_changes, *changed_faces, *changed_ids;
+    float *changed_positions;
+    int64_t n_face_changes, n_vertex_changes;
+    uint32_t stamp;
+    int started; /* a step has run: the next one starts a new change */
+    /* Maps: the vertex slot at each index (positions, then P + original
+     * vertex; -1 off the front), the face slot of each killed face (by its
+     * place in kill_data: a pcol's kill list side by side), a mark per
+     * position. */
+    int32_t *slot_at, *kill_slot;
+    uint8_t *mark;
+    /* The steps' collapses and splits (positions). */
+    int32_t *collapse, *split;
+    int64_t step_cap;
+    /* The last frame (its arrays held by the caller) and the flips of the
+     * word whose key is events_key, frame by frame. */
+    PmxStreamFrame last;
+    int has_last, broken;
+    int64_t events_key, events_first[FRAMES + 1], events_cap, flipped_cap;
+    int32_t *events, *flipped;
+    /* For the compacted mesh: a bit per face drawn and per vertex id some
+     * face uses (ranks in them are the rows of Refinement.mesh()), and their
+     * words' prefix counts. */
+    uint64_t *face_bits, *used_bits;
+    int32_t *face_prefix, *used_prefix;
+    int64_t n_used;
+    uint16_t *flipped_bits;
+    int64_t n_faces_live, n_vertices_live, generation;
+};
+
+/* An array grown to `cap` elements of `size` bytes, the new part zeroed. */
+static int grow(void **p, int64_t old_cap, int64_t cap, size_t size)
+{
+    void *q = realloc(*p, (size_t)cap * size);
+    if (!q)
+        return 0;
+    memset((char *)q + (size_t)old_cap * size, 0, (size_t)(cap - old_cap) * size);
+    *p = q;
+    return 1;
+}
+
+static int grow_faces(PmxMeshStream *s, int64_t need)
+{
+    if (need <= s->face_cap)
+        return 1;
+    int64_t cap = s->face_cap * 2 > need ? s->face_cap * 2 : need < 256 ? 256 : need;
+    const int64_t old = s->face_cap;
+    if (!grow((void **)&s->face_vertex, 3 * old, 3 * cap, 4) || !grow((void **)&s->face_id, old, cap, 4) ||
+        !grow((void **)&s->corner_start, 3 * old, 3 * cap, 4) ||
+        !grow((void **)&s->corner_next, 3 * old, 3 * cap, 4) ||
+        !grow((void **)&s->corner_prev, 3 * old, 3 * cap, 4) || !grow((void **)&s->face_free, old, cap, 4) ||
+        !grow((void **)&s->face_stamp, old, cap, 4) || !grow((void **)&s->face_changes, old, cap, 4) ||
+        !grow((void **)&s->changed_faces, 3 * old, 3 * cap, 4))
+        return 0;
+    s->face_cap = cap;
+    s->generation++;
+    return 1;
+}
+
+static int grow_vertices(PmxMeshStream *s, int64_t need)
+{
+    if (need <= s->vertex_cap)
+        return 1;
+    int64_t cap = s->vertex_cap * 2 > need ? s->vertex_cap * 2 : need < 256 ? 256 : need;
+    const int64_t old = s->vertex_cap;
+    if (!grow((void **)&s->vertex_id, old, cap, 4) || !grow((void **)&s->vertex_head, old, cap, 4) ||
+        !grow((void **)&s->vertex_free, old, cap, 4) || !grow((void **)&s->vertex_position, 3 * old, 3 * cap, 4) ||
+        !grow((void **)&s->vertex_stamp, old, cap, 4) || !grow((void **)&s->vertex_changes, old, cap, 4) ||
+        !grow((void **)&s->vertex_lo, old, cap, 4) || !grow((void **)&s->vertex_hi, old, cap, 4) ||
+        !grow((void **)&s->vertex_uses, old, cap, 4) || !grow((void **)&s->changed_ids, old, cap, 4) ||
+        !grow((void **)&s->changed_positions, 3 * old, 3 * cap, 4))
+        return 0;
+    s->vertex_cap = cap;
+    s->generation++;
+    return 1;
+}
+
+PMX_INLINE void touch_face(PmxMeshStream *s, int32_t slot)
+{
+    if (s->face_stamp[slot] != s->stamp) {
+        s->face_stamp[slot] = s->stamp;
+        s->face_changes[s->n_face_changes++] = slot;
+    }
+}
+
+PMX_INLINE void touch_vertex(PmxMeshStream *s, int32_t slot)
+{
+    if (s->vertex_stamp[slot] != s->stamp) {
+        s->vertex_stamp[slot] = s->stamp;
+        s->vertex_changes[s->n_vertex_changes++] = slot;
+    }
+}
+
+PMX_INLINE void flip_bit(uint64_t *bits, int64_t i) { bits[i >> 6] ^= (uint64_t)1 << (i & 63); }
+
+/* Vertex slot v holds one corner more (delta 1) or less (-1): its id is
+ * used by some face exactly while it holds corners. */
+PMX_INLINE void use(PmxMeshStream *s, int32_t v, int32_t delta)
+{
+    const int32_t before = s->vertex_uses[v];
+    s->vertex_uses[v] = before + delta;
+    if ((before == 0) != (before + delta == 0)) {
+        flip_bit(s->used_bits, s->vertex_id[v]);
+        s->n_used += delta > 0 ? 1 : -1;
+    }
+}
+
+/* Corner c at the head of vertex slot v's list. */
+PMX_INLINE void link(PmxMeshStream *s, int32_t c, int32_t v)
+{
+    const int32_t head = s->vertex_head[v];
+    s->face_vertex[c] = v;
+    s->corner_prev[c] = -1;
+    s->corner_next[c] = head;
+    if (head >= 0)
+        s->corner_prev[head] = c;
+    s->vertex_head[v] = c;
+    use(s, v, 1);
+}
+
+PMX_INLINE void unlink(PmxMeshStream *s, int32_t c)
+{
+    const int32_t prev = s->corner_prev[c], next = s->corner_next[c];
+    if (prev >= 0)
+        s->corner_next[prev] = next;
+    else
+        s->vertex_head[s->face_vertex[c]] = next;
+    if (next >= 0)
+        s->corner_prev[next] = prev;
+    use(s, s->face_vertex[c], -1);
+}
+
+PMX_INLINE void set_vertex(PmxMeshStream *s, int32_t slot, int32_t id, const float *position, int32_t lo,
+                           int32_t hi)
+{
+    if (s->vertex_uses[slot] > 0) { /* a used id changes */
+        flip_bit(s->used_bits, s->vertex_id[slot]);
+        flip_bit(s->used_bits, id);
+    }
+    s->vertex_id[slot] = id;
+    s->vertex_lo[slot] = lo;
+    s->vertex_hi[slot] = hi;
+    memcpy(s->vertex_position + 3 * slot, position, 3 * sizeof(float));
+    touch_vertex(s, slot);
+}
+
+/* A vertex slot for the vertex at map index `index`: a freed one first. */
+static int32_t new_vertex(PmxMeshStream *s, int64_t index, int32_t id, const float *position, int32_t lo,
+                          int32_t hi)
+{
+    int32_t slot;
+    if (s->n_vertex_free)
+        slot = s->vertex_free[--s->n_vertex_free];
+    else {
+        if (!grow_vertices(s, s->n_vertex_slots + 1))
+            return -1;
+        slot = (int32_t)s->n_vertex_slots++;
+    }
+    s->vertex_head[slot] = -1;
+    s->vertex_uses[slot] = 0;
+    s->slot_at[index] = slot;
+    set_vertex(s, slot, id, position, lo, hi);
+    s->n_vertices_live++;
+    return slot;
+}
+
+static void free_vertex(PmxMeshStream *s, int32_t slot)
+{
+    s->vertex_id[slot] = -1;
+    s->vertex_lo[slot] = s->vertex_hi[slot] = 0;
+    memset(s->vertex_position + 3 * slot, 0, 3 * sizeof(float));
+    s->vertex_free[s->n_vertex_free++] = slot;
+    touch_vertex(s, slot);
+    s->n_vertices_live--;
+}
+
+/* The vertex slot above original vertex v: up from it to the first vertex
+ * on the front (-1 if none: the state is not a refinement's). */
+PMX_INLINE int32_t front_slot(const PmxMeshStream *s, int32_t v)
+{
+    int64_t index = s->t.n_pcols + v;
+    int32_t slot;
+    while ((slot = s->slot_at[index]) < 0) {
+        index = s->t.up[index];
+        if (index < 0)
+            return -1;
+    }
+    return slot;
+}
+
+/* The vertex slot above the corner at depth-first position `start`: one of
+ * the split's two vertices (v, w; -1 for none), else a neighbour of theirs
+ * (a face killed by a split joins its two vertices to vertices already
+ * around them), else up from the corner's original vertex. */
+PMX_INLINE int32_t corner_slot(const PmxMeshStream *s, int32_t start, int64_t face, int c, int32_t v, int32_t w)
+{
+    if (v >= 0) {
+        if (start >= s->vertex_lo[v] && start < s->vertex_hi[v])
+            return v;
+        if (start >= s->vertex_lo[w] && start < s->vertex_hi[w])
+            return w;
+        const int32_t around[2] = {v, w};
+        for (int k = 0; k < 2; k++)
+            for (int32_t c = s->vertex_head[around[k]]; c >= 0; c = s->corner_next[c]) {
+                const int32_t *face = s->face_vertex + 3 * (c / 3);
+                for (int j = 0; j < 3; j++) /* -1: a corner of the face being drawn, not linked yet */
+                    if (face[j] >= 0 && start >= s->vertex_lo[face[j]] && start < s->vertex_hi[face[j]])
+                        return face[j];
+            }
+    }
+    return front_slot(s, s->t.corners[3 * face + c]);
+}
+
+/* Draws face record f: a face slot (a freed one first, written to *at
+ * unless NULL), each corner linked to the front vertex above it (v, w: the
+ * vertices of the split drawing it). */
+static PmxStatus add_face(PmxMeshStream *s, const PmxFaceRecord *f, int32_t *at, int32_t v, int32_t w)
+{
+    int32_t slot;
+    if (s->n_face_free)
+        slot = s->face_free[--s->n_face_free];
+    else {
+        if (!grow_faces(s, s->n_face_slots + 1))
+            return PMX_NO_MEMORY;
+        slot = (int32_t)s->n_face_slots++;
+    }
+    s->face_vertex[3 * slot] = s->face_vertex[3 * slot + 1] = s->face_vertex[3 * slot + 2] = -1;
+    for (int c = 0; c < 3; c++) {
+        const int32_t u = corner_slot(s, f->start[c], f->face, c, v, w);
+        if (u < 0)
+            return PMX_BAD_TABLE;
+        s->corner_start[3 * slot + c] = f->start[c];
+        link(s, 3 * slot + c, u);
+    }
+    s->face_id[slot] = f->face;
+    flip_bit(s->face_bits, f->face);
+    if (at)
+        *at = slot;
+    touch_face(s, slot);
+    s->n_faces_live++;
+    return PMX_OK;
+}
+
+static PmxStatus remove_face(PmxMeshStream *s, int32_t *at)
+{
+    const int32_t slot = *at;
+    if (slot < 0)
+        return PMX_BAD_TABLE;
+    *at = -1;
+    for (int c = 0; c < 3; c++) {
+        unlink(s, 3 * slot + c);
+        s->face_vertex[3 * slot + c] = -1;
+    }
+    flip_bit(s->face_bits, s->face_id[slot]);
+    s->face_id[slot] = -1;
+    s->face_free[s->n_face_free++] = slot;
+    touch_face(s, slot);
+    s->n_faces_live--;
+    return PMX_OK;
+}
+
+/* The map index of a pcol record's child j: its pcol's position, or
+ * P + the original vertex. */
+PMX_INLINE int64_t child_index(const PmxMeshStream *s, const PmxPcolRecord *r, int j)
+{
+    return r->made_at[j] >= 0 ? r->made_at[j] : s->t.n_pcols + r->vertex[j];
+}
+
+/* The pcol at position `at` not executed any more: its vertex splits in two. */
+static PmxStatus split(PmxMeshStream *s, int32_t at)
+{
+    const PmxPcolRecord *r = s->t.pcols + at;
+    const int32_t v = s->slot_at[at];
+    if (v < 0)
+        return PMX_BAD_TABLE;
+    s->slot_at[at] = -1;
+    /* The first child keeps the slot; the second gets one. */
+    s->slot_at[child_index(s, r, 0)] = v;
+    /* The first child's interval ends where the second's starts. */
+    const int32_t end = s->vertex_hi[v];
+    set_vertex(s, v, r->vertex[0], r->position[0], r->start[0], r->start[1]);
+    const int32_t w = new_vertex(s, child_index(s, r, 1), r->vertex[1], r->position[1], r->start[1], end);
+    if (w < 0)
+        return PMX_NO_MEMORY;
+    /* The corners in the second child's interval (it follows the first's)
+     * move to it; their faces change. */
+    const int32_t second = r->start[1];
+    for (int32_t c = s->vertex_head[v], next; c >= 0; c = next) {
+        next = s->corner_next[c];
+        if (s->corner_start[c] >= second) {
+            unlink(s, c);
+            link(s, c, w);
+            touch_face(s, c / 3);
+        }
+    }
+    /* Its kill list is drawn again. */
+    for (int32_t j = 0; j < r->kill_count; j++) {
+        PmxStatus status = add_face(s, s->t.kill_data + r->kill_first + j, s->kill_slot + r->kill_first + j, v, w);
+        if (status != PMX_OK)
+            return status;
+    }
+    return PMX_OK;
+}
+
+/* The pcol at position `at` executed again: its two vertices merge. */
+static PmxStatus collapse(PmxMeshStream *s, int32_t at)
+{
+    const PmxPcolRecord *r = s->t.pcols + at;
+    const int64_t first = child_index(s, r, 0), second = child_index(s, r, 1);
+    const int32_t v = s->slot_at[first], w = s->slot_at[second];
+    if (v < 0 || w < 0)
+        return PMX_BAD_TABLE;
+    /* Its kill list goes. */
+    for (int32_t j = 0; j < r->kill_count; j++) {
+        PmxStatus status = remove_face(s, s->kill_slot + r->kill_first + j);
+        if (status != PMX_OK)
+            return status;
+    }
+    /* The second child's corners join the first's list, whose slot becomes
+     * the pcol's vertex. */
+    int32_t last = -1;
+    for (int32_t c = s->vertex_head[w]; c >= 0; c = s->corner_next[c]) {
+        s->face_vertex[c] = v;
+        touch_face(s, c / 3);
+        last = c;
+    }
+    if (last >= 0) {
+        const int32_t moved = s->vertex_uses[w];
+        use(s, w, -moved);
+        use(s, v, moved);
+        const int32_t head = s->vertex_head[v];
+        s->corner_next[last] = head;
+        if (head >= 0)
+            s->corner_prev[head] = last;
+        s->vertex_head[v] = s->vertex_head[w];
+        s->vertex_head[w] = -1;
+    }
+    const int32_t end = s->vertex_hi[w];
+    free_vertex(s, w);
+    s->slot_at[second] = -1;
+    s->slot_at[first] = -1;
+    s->slot_at[at] = v;
+    set_vertex(s, v, s->t.own_vertex[at], s->t.own_position + 3 * (int64_t)at, s->vertex_lo[v], end);
+    return PMX_OK;
+}
+
+void pmx_mesh_stream_free(PmxMeshStream *s)
+{
+    if (!s)
+        return;
+    void *arrays[] = {s->face_vertex, s->face_id, s->corner_start, s->corner_next, s->corner_prev, s->face_free,
+                      s->face_stamp, s->vertex_id, s->vertex_head, s->vertex_free, s->vertex_lo, s->vertex_hi, s->vertex_uses, s->vertex_position,
+                      s->vertex_stamp, s->face_changes, s->vertex_changes, s->slot_at, s->kill_slot, s->mark,
+                      s->collapse, s->split, s->events, s->flipped, s->flipped_bits, s->face_bits, s->used_bits, s->face_prefix,
+                      s->used_prefix, s->changed_faces, s->changed_ids, s->changed_positions};
+    for (size_t i = 0; i < sizeof arrays / sizeof arrays[0]; i++)
+        free(arrays[i]);
+    free(s);
+}
+
+PmxMeshStream *pmx_mesh_stream_new(const PmxStreamTables *t, PmxStatus *status)
+{
+    PmxMeshStream *s = calloc(1, sizeof *s);
+    *status = PMX_NO_MEMORY;
+    if (!s)
+        return NULL;
+    s->t = *t;
+    s->stamp = 1;
+    s->events_key = -1;
+    const int64_t P = t->n_pcols, V0 = t->n_original;
+    s->slot_at = malloc(sizeof(int32_t) * (size_t)(P + V0 + 1));
+    s->kill_slot = malloc(sizeof(int32_t) * (size_t)(t->n_kill_data + 1));
+    s->mark = calloc((size_t)P + 1, 1);
+    const size_t face_words = (size_t)t->n_faces / 64 + 1, used_words = (size_t)(V0 + P) / 64 + 1;
+    s->face_bits = calloc(face_words, sizeof(uint64_t));
+    s->used_bits = calloc(used_words, sizeof(uint64_t));
+    s->face_prefix = malloc(face_words * sizeof(int32_t));
+    s->used_prefix = malloc(used_words * sizeof(int32_t));
+    if (!s->slot_at || !s->kill_slot || !s->mark || !s->face_bits || !s->used_bits || !s->face_prefix ||
+        !s->used_prefix) {
+        pmx_mesh_stream_free(s);
+        return NULL;
+    }
+    memset(s->slot_at, 0xff, sizeof(int32_t) * (size_t)(P + V0 + 1));
+    memset(s->kill_slot, 0xff, sizeof(int32_t) * (size_t)(t->n_kill_data + 1));
+    /* The start: every pcol executed, the tops on the front, the base faces. */
+    for (int64_t i = 0; i < t->n_tops; i++) {
+        const int64_t index = t->top_at[i] >= 0 ? t->top_at[i] : P + t->tops[i].vertex;
+        const int32_t end = t->top_at[i] >= 0 ? t->own_end[t->top_at[i]] : t->tops[i].start + 1;
+        if (new_vertex(s, index, t->tops[i].vertex, t->tops[i].position, t->tops[i].start, end) < 0) {
+            pmx_mesh_stream_free(s);
+            return NULL;
+        }
+    }
+    for (int64_t i = 0; i < t->n_base; i++)
+        if ((*status = add_face(s, t->base + i, NULL, -1, -1)) != PMX_OK) {
+            pmx_mesh_stream_free(s);
+            return NULL;
+        }
+    *status = PMX_OK;
+    return s;
+}
+
+PMX_INLINE int ran_of(const PmxStreamFrame *f, int64_t i)
+{
+    return f->ran8 ? f->ran8[i] != 0 : (f->ran16[i] >> f->frame) & 1;
+}
+
+static int grow_steps(PmxMeshStream *s, int64_t need)
+{
+    if (need <= s->step_cap)
+        return 1;
+    if (!grow((void **)&s->collapse, s->step_cap, need, 4) || !grow((void **)&s->split, s->step_cap, need, 4))
+        return 0;
+    s->step_cap = need;
+    return 1;
+}
+
+/* Whether a list's n positions increase inside [0, P). */
+static int increasing(const int32_t *positions, int64_t n, int64_t P)
+{
+    int ok = 1;
+    for (int64_t i = 0; i < n; i++)
+        ok &= (positions[i] >= 0) & (positions[i] < P) & (i == 0 || positions[i] > positions[i - 1]);
+    return ok;
+}
+
+/* A word's flips: for each frame f > 0, the slots whose bit differs from
+ * frame f - 1's, in slot order (events_first[f] .. events_first[f + 1]).
+ * One pass over the word's slots serves its 16 frames. */
+static PmxStatus word_events(PmxMeshStream *s, const PmxStreamFrame *f)
+{
+    if (!increasing(f->positions, f->n, s->t.n_pcols))
+        return PMX_BAD_SIZE;
+    int64_t n_flipped = 0;
+    /* The slots that flip in some frame, with their frames' bits: most
+     * slots do not, and are passed over without a branch. */
+    if (f->n + 1 > s->flipped_cap) {
+        if (!grow((void **)&s->flipped, s->flipped_cap, f->n + 1, 4) ||
+            !grow((void **)&s->flipped_bits, s->flipped_cap, f->n + 1, 2))
+            return PMX_NO_MEMORY;
+        s->flipped_cap = f->n + 1;
+    }
+    for (int64_t i = 0; i < f->n; i++) {
+        const uint16_t bits = f->ran16[i];
+        const uint16_t flips = (uint16_t)((bits ^ (bits << 1)) & 0xfffe);
+        s->flipped[n_flipped] = (int32_t)i;
+        s->flipped_bits[n_flipped] = flips;
+        n_flipped += flips != 0;
+    }
+    /* Bucketed by frame: counts, offsets, then the slots in order. */
+    int64_t count[FRAMES + 1] = {0}, total = 0;
+    for (int64_t k = 0; k < n_flipped; k++)
+        for (uint32_t d = s->flipped_bits[k]; d; d &= d - 1)
+            count[__builtin_ctz(d)]++;
+    for (int j = 0; j < FRAMES; j++) {
+        s->events_first[j] = total;
+        total += count[j];
+    }
+    s->events_first[FRAMES] = total;
+    if (total > s->events_cap) {
+        if (!grow((void **)&s->events, s->events_cap, total, 4))
+            return PMX_NO_MEMORY;
+        s->events_cap = total;
+    }
+    int64_t at[FRAMES];
+    memcpy(at, s->events_first, sizeof at);
+    for (int64_t k = 0; k < n_flipped; k++)
+        for (uint32_t d = s->flipped_bits[k]; d; d &= d - 1)
+            s->events[at[__builtin_ctz(d)]++] = s->flipped[k];
+    s->events_key = f->key;
+    return PMX_OK;
+}
+
+/* The collapses and splits from frame `last` to `next`, in increasing
+ * position. */
+static PmxStatus flips(PmxMeshStream *s, const PmxStreamFrame *last, const PmxStreamFrame *next,
+                       int64_t *n_collapses, int64_t *n_splits)
+{
+    int32_t *const collapses = s->collapse, *const splits = s->split;
+    int64_t nc = 0, ns = 0;
+    if (last && next->key >= 0 && next->key == last->key && next->ran16 && last->ran16) {
+        /* The same word: its flips once for all its frames; the next frame
+         * reads its own. Frames further apart compare their bits. */
+        if (s->events_key != next->key) {
+            PmxStatus status = word_events(s, next);
+            if (status != PMX_OK)
+                return status;
+        }
+        if (next->frame == last->frame + 1) {
+            for (int64_t k = s->events_first[next->frame]; k < s->events_first[next->frame + 1]; k++) {
+                const int32_t i = s->events[k];
+                collapses[nc] = splits[ns] = next->positions[i];
+                const int ran = ran_of(next, i);
+                nc += ran;
+                ns += !ran;
+            }
+        } else {
+            for (int64_t i = 0; i < next->n; i++) {
+                const int a = ran_of(last, i), b = ran_of(next, i);
+                collapses[nc] = splits[ns] = next->positions[i];
+                nc += (!a) & b;
+                ns += a & (!b);
+            }
+        }
+    } else {
+        /* Other lists: mark the last frame's pcols that did not run (1) and
+         * the next frame's (2); a pcol marked 1 alone collapses, 2 alone
+         * splits. */
+        if (!increasing(next->positions, next->n, s->t.n_pcols))
+            return PMX_BAD_SIZE;
+        uint8_t *const mark = s->mark;
+        const int64_t n_last = last ? last->n : 0;
+        for (int64_t i = 0; i < n_last; i++)
+            mark[last->positions[i]] |= (uint8_t)!ran_of(last, i);
+        for (int64_t i = 0; i < next->n; i++)
+            mark[next->positions[i]] |= (uint8_t)(!ran_of(next, i) << 1);
+        for (int64_t i = 0; i < n_last; i++) {
+            collapses[nc] = last->positions[i];
+            nc += mark[last->positions[i]] == 1;
+        }
+        for (int64_t i = 0; i < next->n; i++) {
+            splits[ns] = next->positions[i];
+            ns += mark[next->positions[i]] == 2;
+        }
+        for (int64_t i = 0; i < n_last; i++)
+            mark[last->positions[i]] = 0;
+        for (int64_t i = 0; i < next->n; i++)
+            mark[next->positions[i]] = 0;
+    }
+    *n_collapses = nc;
+    *n_splits = ns;
+    return PMX_OK;
+}
+
+PmxStatus pmx_mesh_stream_step(PmxMeshStream *s, const PmxStreamFrame *next)
+{
+    if (s->broken)
+        return PMX_BAD_TABLE;
+    /* A new change: the slots touched from here on. */
+    if (s->started) {
+        if (++s->stamp == 0) { /* wrapped: no slot may hold the new stamp */
+            memset(s->face_stamp, 0, sizeof(uint32_t) * (size_t)s->face_cap);
+            memset(s->vertex_stamp, 0, sizeof(uint32_t) * (size_t)s->vertex_cap);
+            s->stamp = 1;
+        }
+        s->n_face_changes = s->n_vertex_changes = 0;
+    }
+    s->started = 1;
+    const PmxStreamFrame *last = s->has_last ? &s->last : NULL;
+    if (!grow_steps(s, (last ? last->n : 0) + next->n + 1))
+        return PMX_NO_MEMORY;
+    int64_t n_collapses = 0, n_splits = 0;
+    PmxStatus status = flips(s, last, next, &n_collapses, &n_splits);
+    if (status != PMX_OK)
+        return status; /* nothing changed yet: the stream still holds the last frame */
+    /* Children collapse before their parents, parents split before their
+     * children. A failure here leaves a state no frame has: the stream is
+     * broken. */
+    const PmxPcolRecord *const records = s->t.pcols;
+    const int32_t *const collapses = s->collapse, *const splits = s->split;
+    /* Each flip's record and kill list are misses in tables far larger than
+     * the cache: requested FLIPS_AHEAD flips early (the kill list once its record
+     * is in), the misses overlap. */
+    enum { FLIPS_AHEAD = 8 };
+    for (int64_t i = n_collapses - 1; i >= 0 && status == PMX_OK; i--) {
+        if (i >= FLIPS_AHEAD)
+            __builtin_prefetch(records + collapses[i - FLIPS_AHEAD]);
+        if (i >= FLIPS_AHEAD / 2)
+            __builtin_prefetch(s->kill_slot + records[collapses[i - FLIPS_AHEAD / 2]].kill_first);
+        status = collapse(s, collapses[i]);
+    }
+    for (int64_t i = 0; i < n_splits && status == PMX_OK; i++) {
+        if (i + FLIPS_AHEAD < n_splits)
+            __builtin_prefetch(records + splits[i + FLIPS_AHEAD]);
+        if (i + FLIPS_AHEAD / 2 < n_splits)
+            __builtin_prefetch(s->t.kill_data + records[splits[i + FLIPS_AHEAD / 2]].kill_first);
+        status = split(s, splits[i]);
+    }
+    if (status != PMX_OK) {
+        s->broken = 1;
+        return status;
+    }
+    /* The changed slots' contents, side by side. */
+    for (int64_t k = 0; k < s->n_face_changes; k++)
+        memcpy(s->changed_faces + 3 * k, s->face_vertex + 3 * s->face_changes[k], 3 * sizeof(int32_t));
+    for (int64_t k = 0; k < s->n_vertex_changes; k++) {
+        const int32_t v = s->vertex_changes[k];
+        s->changed_ids[k] = s->vertex_id[v];
+        memcpy(s->changed_positions + 3 * k, s->vertex_position + 3 * v, 3 * sizeof(float));
+    }
+    s->last = *next;
+    s->has_last = 1;
+    return PMX_OK;
+}
+
+void pmx_mesh_stream_state(const PmxMeshStream *s, PmxStreamState *out)
+{
+    out->face_vertex = s->face_vertex;
+    out->face_id = s->face_id;
+    out->vertex_id = s->vertex_id;
+    out->vertex_position = s->vertex_position;
+    out->face_changes = s->face_changes;
+    out->changed_faces = s->changed_faces;
+    out->changed_ids = s->changed_ids;
+    out->changed_positions = s->changed_positions;
+    out->vertex_changes = s->vertex_changes;
+    out->face_cap = s->face_cap;
+    out->vertex_cap = s->vertex_cap;
+    out->n_face_slots = s->n_face_slots;
+    out->n_vertex_slots = s->n_vertex_slots;
+    out->n_face_changes = s->n_face_changes;
+    out->n_vertex_changes = s->n_vertex_changes;
+    out->n_faces = s->n_faces_live;
+    out->n_vertices = s->n_vertices_live;
+    out->n_used = s->n_used;
+    out->generation = s->generation;
+}
+
+/* Rank of bit i among the set bits (bit i set): set bits before its word
+ * (prefix) plus those below it in its word. */
+PMX_INLINE int64_t rank_of(const uint64_t *bits, const int32_t *prefix, int64_t i)
+{
+    const uint64_t below = bits[i >> 6] & ((((uint64_t)2) << (i & 63)) - 1);
+    return prefix[i >> 6] + __builtin_popcountll(below) - 1;
+}
+
+PMX_INLINE void prefix_counts(const uint64_t *bits, int64_t words, int32_t *prefix)
+{
+    int32_t total = 0;
+    for (int64_t w = 0; w < words; w++) {
+        prefix[w] = total;
+        total += __builtin_popcountll(bits[w]);
+    }
+}
+
+/* The stream keeps a bit per face drawn and per vertex id used: a face's row
+ * is the rank of its id among the faces drawn, a vertex's the rank of its id
+ * among those used, as Refinement.mesh() orders them. Nothing is sorted and
+ * nothing but the two bitmaps' words and the slots is read. */
+PMX_INLINE void compact_body(PmxMeshStream *s, int32_t *faces, int32_t *ids, float *positions)
+{
+    const uint64_t *const face_bits = s->face_bits, *const used_bits = s->used_bits;
+    int32_t *const face_prefix = s->face_prefix, *const used_prefix = s->used_prefix;
+    const int32_t *const face_id = s->face_id, *const face_vertex = s->face_vertex, *const vertex_id = s->vertex_id;
+    prefix_counts(face_bits, s->t.n_faces / 64 + 1, face_prefix);
+    prefix_counts(used_bits, (s->t.n_original + s->t.n_pcols) / 64 + 1, used_prefix);
+    for (int64_t slot = 0; slot < s->n_face_slots; slot++) {
+        const int32_t face = face_id[slot];
+        if (face < 0)
+            continue;
+        int32_t *row = faces + 3 * rank_of(face_bits, face_prefix, face);
+        for (int c = 0; c < 3; c++)
+            row[c] = (int32_t)rank_of(used_bits, used_prefix, vertex_id[face_vertex[3 * slot + c]]);
+    }
+    for (int64_t slot = 0; slot < s->n_vertex_slots; slot++) {
+        if (vertex_id[slot] < 0 || s->vertex_uses[slot] == 0)
+            continue;
+        const int64_t k = rank_of(used_bits, used_prefix, vertex_id[slot]);
+        ids[k] = vertex_id[slot];
+        memcpy(positions + 3 * k, s->vertex_position + 3 * slot, 3 * sizeof(float));
+    }
+}
+
+/* Popcount in one instruction where the processor has it. */
+static void compact_plain(PmxMeshStream *s, int32_t *faces, int32_t *ids, float *positions)
+{
+    compact_body(s, faces, ids, positions);
+}
+#if PMX_X86
+__attribute__((target("popcnt"))) static void compact_popcnt(PmxMeshStream *s, int32_t *faces, int32_t *ids,
+                                                             float *positions)
+{
+    compact_body(s, faces, ids, positions);
+}
+#endif
+
+void pmx_mesh_stream_compact(PmxMeshStream *s, int32_t *faces, int32_t *ids, float *positions)
+{
+#if PMX_X86
+    if (__builtin_cpu_supports("popcnt")) {
+        compact_popcnt(s, faces, ids, positions);
+        return;
+    }
+#endif
+    compact_plain(s, faces, ids, positions);
+}

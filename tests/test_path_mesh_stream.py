@@ -1,0 +1,212 @@
+"""Drawable meshes along a path: each frame's change, applied to the last
+frame's slots, gives exactly that frame's Refinement.mesh()."""
+
+import equinox as eqx
+import jax
+import numpy as np
+import pytest
+
+import pmjax
+from pmjax import engines
+from pmjax._camera import index_camera, stack_cameras
+from pmjax.engines import _core
+
+_MESHES = {}
+
+
+def model(built, name):
+    if name not in _MESHES:
+        data = built(name)
+        _MESHES[name] = data, pmjax.ProgressiveMesh.from_data(data)
+    return _MESHES[name]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def release_meshes():
+    yield
+    _MESHES.clear()
+
+
+def originals(data):
+    return data.vertices[: data.n_original_vertices]
+
+
+def hand_held(data, n, seed, cuts=()):
+    """The standard orbit shaken as if hand-held (eye 1 %, aim 2 % of the
+    model's size per frame), jumping elsewhere at ``cuts``."""
+    v0 = originals(data)
+    c, r = v0.mean(0), np.linalg.norm(np.ptp(v0, 0))
+    rng = np.random.default_rng(seed)
+    orbit = pmjax.standard_orbit(v0, n)
+    eyes = np.asarray(orbit.eye) + 0.01 * r * rng.normal(size=(n, 3))
+    for i in cuts:
+        d = rng.normal(size=3)
+        eyes[i:] += rng.uniform(0.2, 1.5) * r * d / np.linalg.norm(d)
+    return stack_cameras([pmjax.look_at(e, c + 0.02 * r * rng.normal(size=3)) for e in eyes])
+
+
+def fly_through(data, n):
+    """From far in front, through the model, out the back."""
+    v0 = originals(data)
+    c, r = v0.mean(0), np.linalg.norm(np.ptp(v0, 0))
+    return pmjax.fly_through([(c + [0, 0, 2 * r], c), (c + [0, 0.02 * r, 0.05 * r], c), (c - [0, 0, 2 * r], c)], n)
+
+
+class Replay:
+    """A renderer's buffers: the change's rows written in place."""
+
+    def __init__(self):
+        self.faces = np.zeros((0, 3), np.int32)
+        self.ids = np.zeros(0, np.int32)
+        self.positions = np.zeros((0, 3), np.float32)
+
+    def apply(self, change: pmjax.MeshChange):
+        grow = change.n_face_slots - len(self.faces)
+        if grow > 0:
+            self.faces = np.concatenate([self.faces, np.full((grow, 3), -1, np.int32)])
+        grow = change.n_vertex_slots - len(self.ids)
+        if grow > 0:
+            self.ids = np.concatenate([self.ids, np.full(grow, -1, np.int32)])
+            self.positions = np.concatenate([self.positions, np.zeros((grow, 3), np.float32)])
+        assert len(np.unique(change.face_slots)) == len(change.face_slots)
+        assert len(np.unique(change.vertex_slots)) == len(change.vertex_slots)
+        self.faces[change.face_slots] = change.faces
+        self.ids[change.vertex_slots] = change.vertex_ids
+        self.positions[change.vertex_slots] = change.vertex_positions
+
+    def face_set(self):
+        """The faces held as (id, id, id) rows, corners in their order."""
+        live = self.faces[np.all(self.faces >= 0, axis=1)]
+        assert np.all(self.ids[live] >= 0)
+        return {tuple(row) for row in self.ids[live].tolist()}
+
+
+def assert_same_mesh(replay, stream, r, where):
+    v, f, ids = r.mesh()
+    # As a set of faces over the same vertex positions, from the change alone.
+    assert replay.face_set() == {tuple(row) for row in ids[f].tolist()}, where
+    live = replay.ids >= 0
+    assert np.array_equal(replay.positions[live], np.asarray(r.pm.vertices)[replay.ids[live]]), where
+    assert int(live.sum()) == int(r.n_vertices), where  # the whole front, one slot per vertex
+    assert int(np.all(replay.faces >= 0, axis=1).sum()) == int(r.n_faces), where
+    # The stream's own arrays are the replayed ones; compacted, they are mesh() bit for bit.
+    assert np.array_equal(stream.faces, replay.faces) and np.array_equal(stream.vertex_ids, replay.ids), where
+    v2, f2, ids2 = stream.mesh()
+    assert np.array_equal(ids, ids2) and np.array_equal(f, f2) and np.array_equal(v, v2), where
+
+
+def follow(pm, frames, stream=None, replay=None, where=""):
+    """Feed refinements to a stream (and the buffers replaying its changes),
+    checking every frame; with a new stream, the slots' high water marks
+    against the largest mesh seen (freed slots are reused first)."""
+    fresh = stream is None
+    stream, replay = stream or pmjax.MeshStream(pm), replay or Replay()
+    most_faces = most_vertices = 0
+    for i, r in enumerate(frames):
+        change = stream.update(r)
+        replay.apply(change)
+        assert_same_mesh(replay, stream, r, (where, i))
+        most_faces, most_vertices = max(most_faces, int(r.n_faces)), max(most_vertices, int(r.n_vertices))
+        if fresh and stream._stream is not None:
+            assert change.n_face_slots == most_faces and change.n_vertex_slots == most_vertices, (where, i)
+    return stream, replay
+
+
+@pytest.mark.parametrize("name", ["cow.ply", "bunny.ply"])
+def test_change_stream_equals_mesh_on_paths(built, name):
+    data, pm = model(built, name)
+    paths = {"orbit": pmjax.standard_orbit(originals(data), 48), "fly-through": fly_through(data, 40),
+             "hand-held with cuts": hand_held(data, 48, seed=3, cuts=(9, 10, 33))}
+    for label, cams in paths.items():
+        follow(pm, pmjax.refine_path(pm, cams, 1.0), where=label)
+
+
+def test_change_stream_through_tau_and_image_size_changes(built):
+    """One stream across paths: a tolerance changing each frame, then the
+    image size changing mid-way (a second path), then single views of other
+    engines, then back to a path."""
+    data, pm = model(built, "cow.ply")
+    cams = pmjax.standard_orbit(originals(data), 40)
+    taus = np.geomspace(0.05, 40, 40).astype(np.float32)
+    taus[5] = 0.0
+    taus[20] = np.inf
+    small = eqx.tree_at(lambda c: (c.width, c.height), cams,
+                        (np.full(40, 320, np.int32), np.full(40, 200, np.int32)))
+
+    def frames():
+        yield from pmjax.refine_path(pm, cams, taus)
+        yield from pmjax.refine_path(pm, small, 2.0)
+        for i in (3, 30):
+            yield pmjax.refine(pm, index_camera(cams, i), 1.0)
+            yield pmjax.refine(pm, index_camera(cams, i), 1.0, method="dense")
+        yield from pmjax.refine_path(pm, cams, 0.5, coherent=False)
+        yield from pmjax.refine_path(pm, cams, 1.0)
+
+    follow(pm, frames(), where="tau, size, engines")
+
+
+def test_refine_path_changes_yields_each_frame_with_its_change(built):
+    data, pm = model(built, "cow.ply")
+    cams = hand_held(data, 36, seed=5, cuts=(17,))
+    stream = pmjax.MeshStream(pm)
+    replay = Replay()
+    got = list(pmjax.path_mesh_changes(pm, cams, 1.0, stream=stream))
+    assert len(got) == 36
+    for i, ((r, change), want) in enumerate(zip(got, pmjax.refine_path(pm, cams, 1.0))):
+        assert np.array_equal(np.asarray(r.executed), np.asarray(want.executed)), i
+        replay.apply(change)
+    assert_same_mesh(replay, stream, got[-1][0], "last")
+
+
+def test_change_stream_without_the_core(built):
+    """Without the C core the stream compares meshes by ids: the same meshes."""
+    data, pm = model(built, "cow.ply")
+    cams = hand_held(data, 24, seed=7, cuts=(12,))
+    with engines.without_core():
+        stream = pmjax.MeshStream(pm)
+        assert stream._stream is None
+        stream, replay = follow(pm, pmjax.refine_path(pm, cams, 1.0), stream, where="no core")
+        follow(pm, pmjax.refine_path(pm, cams, 4.0), stream, replay, where="no core, tau 4")
+
+
+def test_change_stream_refuses_other_meshes_and_traced_refinements(built):
+    _, cow = model(built, "cow.ply")
+    data, bunny = model(built, "bunny.ply")
+    stream = pmjax.MeshStream(cow)
+    cam = pmjax.standard_orbit(originals(data), 2)
+    with pytest.raises(ValueError, match="another mesh"):
+        stream.update(pmjax.refine(bunny, index_camera(cam, 0), 1.0))
+
+    @jax.jit
+    def traced(c):
+        stream.update(pmjax.refine(cow, c, 1.0))
+        return 0
+
+    with pytest.raises(ValueError, match="being traced"):
+        traced(index_camera(cam, 0))
+
+
+@pytest.mark.skipif(not _core.built(), reason="the C core is not built")
+def test_core_stream_refuses_lists_out_of_order(built):
+    """Positions that do not increase are refused before anything changes:
+    the stream still holds its frame."""
+    data, pm = model(built, "cow.ply")
+    stream = pmjax.MeshStream(pm)
+    r = pmjax.refine(pm, index_camera(pmjax.standard_orbit(originals(data), 2), 0), 1.0)
+    stream.update(r)
+    before = stream.faces
+    positions = np.ascontiguousarray(np.asarray(r.front_positions)[::-1])
+    with pytest.raises(ValueError, match="do not increase"):
+        _core._pmx.mesh_stream_step(stream._stream, positions, np.asarray(r.core_ran)[::-1].copy(), 0,
+                                    len(positions), -1)
+    assert np.array_equal(stream.faces, before)
+    with pytest.raises(ValueError, match="frame 3 is not a bit"):
+        _core._pmx.mesh_stream_step(stream._stream, np.asarray(r.front_positions), np.asarray(r.core_ran), 3,
+                                    len(positions), -1)
+
+
+@pytest.mark.slow
+def test_change_stream_on_the_dragon(built):
+    data, pm = model(built, "dragon.ply")
+    follow(pm, pmjax.refine_path(pm, pmjax.standard_orbit(originals(data), 64), 1.0), where="dragon orbit")
+    follow(pm, pmjax.refine_path(pm, hand_held(data, 48, seed=11, cuts=(20,)), 1.0), where="dragon hand-held")
