@@ -315,7 +315,7 @@ def cmd_eval(args) -> int:
                            compile_cache=None if args.no_compile_cache else (args.compile_cache
                                                                              or DEFAULT_COMPILE_CACHE),
                            scheduler=args.scheduler, workers=args.workers, progress=not args.quiet,
-                           camera_columns=args.camera_columns)
+                           camera_columns=args.camera_columns, fidelity=args.fidelity)
     except EvalInterrupted as exc:  # Ctrl-C: one line, the parts kept and how to resume
         print(f"pmjax eval: {exc}", file=sys.stderr)
         return 130
@@ -632,6 +632,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--camera-columns", action="store_true",
                    help="also write each camera's eye, distance to the model (model units and bounding radii), "
                         "field of view and image size (part of the job: resume with the same setting)")
+    p.add_argument("--fidelity", action="store_true",
+                   help="also render each camera's refinement and the original (headless, EGL or OSMesa): "
+                        "differing-pixel share, PSNR, the share due to geometry alone (silhouette), NVIDIA's FLIP "
+                        "over the image and over the model's pixels, render and measuring times (part of the job: "
+                        "resume with the same setting; docs/eval.md gives the cost per camera)")
     p.add_argument("--workers", type=_whole(0), default=0,
                    help="run on a local Dask cluster of N single-threaded worker processes (default 0: this process)")
     p.add_argument("--scheduler", help="run on a Dask cluster: scheduler address, tcp://HOST:PORT")

@@ -88,6 +88,12 @@ COMPACT_GROUP_ROWS = 1 << 20
 DEFAULT_COMPILE_CACHE = os.path.join(os.path.expanduser("~"), ".cache", "pmjax", "xla")
 # Models a process keeps loaded (with their compiled kernels) at once.
 MODELS_KEPT = 2
+# Image metrics per camera (``fidelity``): the columns of ``pmjax path
+# --fidelity`` that a single view defines (popping compares two frames of a
+# path and is left to it), drawn with 2×2 samples per pixel, unrounded.
+FIDELITY_COLUMNS = ("differing_share", "psnr", "silhouette_share", "flip_mean", "flip_model_mean", "render_ms",
+                    "fidelity_ms")
+FIDELITY_SUPERSAMPLE = 2
 
 
 class EvalError(ValueError):
@@ -395,11 +401,52 @@ def run_part(task: dict):
     }
     if task["bounds"] is not None:
         columns.update(_camera_context(table, task["bounds"][:3], task["bounds"][3]))
-    out = pa.table(columns, schema=_schema(task["bounds"] is not None))
+    if task.get("fidelity"):
+        # Budgets: each camera's refinement at the tolerance found (its row's tau).
+        taus = np.full(n, task["tau"]) if budget is None else tau
+        columns.update({k: pa.array(v) for k, v in _fidelity(pm, task["model_sha256"], table, taus, tests,
+                                                             method).items()})
+    out = pa.table(columns, schema=_schema(task["bounds"] is not None, bool(task.get("fidelity"))))
     # Checked when the folder is reopened (_verify_part): the part read back
     # must have these rows, and this checksum over them and this record.
     info = dict(job=task["job_sha256"], model_sha256=task["model_sha256"], part=task["part"], rows=n)
     return out.replace_schema_metadata({"pmjax": json.dumps(dict(info, sha256=_table_sha256(out, info)))})
+
+
+_ORIGINALS: "collections.OrderedDict[str, tuple]" = collections.OrderedDict()
+# One OpenGL context per image size serves the process: one thread draws at a time.
+_RENDER_LOCK = threading.Lock()
+
+
+def _fidelity(pm, digest: str, table: CameraTable, taus: np.ndarray, tests: Tests, method: str) -> dict:
+    """The image metrics (:data:`FIDELITY_COLUMNS`) of each camera of
+    ``table``: its refinement at ``taus[row]`` against the original mesh,
+    both drawn from that camera (:func:`pmjax.render.camera_fidelity`, the
+    per-frame measure of :func:`pmjax.render.path_fidelity`); ``fidelity_ms``
+    is the camera's measuring (renders and metrics, not the refine)."""
+    from pmjax.render import Renderer, camera_fidelity, original_arrays, refined_arrays
+
+    from ._refine import refine
+
+    with _LOADED_LOCK:
+        if digest not in _ORIGINALS:
+            _ORIGINALS[digest] = original_arrays(pm)
+            while len(_ORIGINALS) > MODELS_KEPT:
+                _ORIGINALS.popitem(last=False)
+        original = _ORIGINALS[digest]
+    out = {name: np.zeros(len(table)) for name in FIDELITY_COLUMNS}
+    for idx, cams in table.batches():
+        for j, row in enumerate(idx):
+            cam = index_camera(cams, j)
+            mesh = refined_arrays(pm, refine(pm, cam, float(taus[row]), tests=tests, method=method))
+            with _RENDER_LOCK:
+                t = time.perf_counter()
+                renderer = Renderer(int(cam.width), int(cam.height), FIDELITY_SUPERSAMPLE, True)
+                got, _ = camera_fidelity(renderer, original, (mesh[0], mesh[1], mesh[3]), cam)
+                got["fidelity_ms"] = 1e3 * (time.perf_counter() - t)
+            for name in FIDELITY_COLUMNS:
+                out[name][row] = got[name]
+    return out
 
 
 def run_part_on_worker(task: dict):
@@ -460,8 +507,9 @@ def _table_sha256(table, info: dict) -> str:
 CAMERA_COLUMNS = ("eye_x", "eye_y", "eye_z", "distance", "distance_radii", "fov_y_deg", "width", "height")
 
 
-def _schema(camera_columns: bool = False):
-    """The columns of a job's rows (``camera_columns``: with the camera context)."""
+def _schema(camera_columns: bool = False, fidelity: bool = False):
+    """The columns of a job's rows (``camera_columns``: with the camera
+    context; ``fidelity``: with the image metrics, after it)."""
     import pyarrow as pa
 
     extra = [(name, pa.float64()) for name in CAMERA_COLUMNS[:6]] + [("width", pa.int32()), ("height", pa.int32())]
@@ -482,7 +530,8 @@ def _schema(camera_columns: bool = False):
         ("executed", pa.int64()),
         ("refine_ms", pa.float64()),
         ("compile_ms", pa.float64()),
-    ] + (extra if camera_columns else []))
+    ] + (extra if camera_columns else [])
+      + ([(name, pa.float64()) for name in FIDELITY_COLUMNS] if fidelity else []))
 
 
 # ---------------------------------------------------------------- the driver
@@ -529,6 +578,7 @@ def evaluate(
     progress: bool = True,
     max_parts: Optional[int] = None,
     camera_columns: bool = False,
+    fidelity: bool = False,
 ) -> EvalSummary:
     """Evaluate models × camera sets × tolerances (or face budgets) into a
     Parquet dataset folder, one row per (model, camera set, value, camera).
@@ -559,6 +609,12 @@ def evaluate(
         camera_columns: also write each camera's context (eye, distance to
             the model, field of view, image size; docs/eval.md); part of the
             job, so a resumed run must give the same setting.
+        fidelity: also write each camera's image metrics against the
+            original mesh (:data:`FIDELITY_COLUMNS`: differing share, PSNR,
+            silhouette share, FLIP over the image and over the model's
+            pixels, render and measuring times), rendering the refinement
+            and the original headless (EGL or OSMesa) once per camera, where
+            the part runs; part of the job, like ``camera_columns``.
 
     Returns:
         :class:`EvalSummary`. Read the rows by the folder's name:
@@ -597,7 +653,20 @@ def evaluate(
     if not isinstance(camera_columns, (bool, np.bool_)):
         raise EvalError(f"camera_columns must be True or False, not {camera_columns!r}")
     camera_columns = bool(camera_columns)
-    schema = _schema(camera_columns)
+    if not isinstance(fidelity, (bool, np.bool_)):
+        raise EvalError(f"fidelity must be True or False, not {fidelity!r}")
+    fidelity = bool(fidelity)
+    if fidelity and not (scheduler or workers):
+        # A missing renderer or FLIP is named before any work (on Dask, by the worker).
+        try:
+            from pmjax.render import pyrender_module
+            from pmjax.render._fidelity import flip_module
+
+            pyrender_module(offscreen=True)
+            flip_module()
+        except Exception as exc:
+            raise EvalError(f"fidelity: {exc}") from None
+    schema = _schema(camera_columns, fidelity)
     sets = [s if isinstance(s, CameraSet) else camera_set(s) for s in camera_sets]
     if not sets:
         raise EvalError("no camera sets")
@@ -625,7 +694,7 @@ def evaluate(
     command = dict(format=FORMAT, models=[os.path.abspath(m) for m in models], model_sha256=digests,
                    camera_sets=described, taus=[float(t) for t in taus], budgets=[int(b) for b in budgets],
                    tests=_tests_dict(tests), method=method, chunk=int(chunk), batch_chunk=int(batch_chunk),
-                   camera_columns=camera_columns, columns=schema.names)
+                   camera_columns=camera_columns, fidelity=fidelity, columns=schema.names)
     total = len(models) * len(values) * sum(counts)
     n_parts = len(models) * len(values) * sum(-(-n // chunk) for n in counts)
     # The parts found done and verified (file name -> SHA-256 of the model
@@ -706,7 +775,7 @@ def evaluate(
                                 lo=part.lo, hi=part.hi, tau=None if budgets else value,
                                 budget=value if budgets else None, tests=_tests_dict(tests), method=method,
                                 batch_chunk=int(batch_chunk), compile_cache=compile_cache, job_sha256=key,
-                                part=part.file, bounds=bounds)
+                                part=part.file, bounds=bounds, fidelity=fidelity)
                     submitted += 1
                     store(runner.submit(part, task))
                 del data, vertices, v64
@@ -786,7 +855,7 @@ def compact(folder, *, rows_per_file: int = COMPACT_ROWS, row_group_rows: int = 
             job = _from_format_2(job)
         if job.get("format") != FORMAT:
             raise EvalError(f"{folder} holds a job in format {job.get('format')!r}, this version compacts {FORMAT}")
-        schema = _schema(job["camera_columns"])
+        schema = _schema(job["camera_columns"], job.get("fidelity", False))
         _remove_temporaries(folder)
         names = _part_files(folder)
         counts, n_models, n_values = _job_shape(job)
@@ -1034,10 +1103,13 @@ def _merge_job(folder, old: dict, new: dict) -> dict:
     if old.get("format") != FORMAT:
         raise EvalError(f"{folder} holds a job in format {old.get('format')!r}, this version writes {FORMAT}; "
                         "use another folder, or delete this one to start over")
+    # A folder written before the image metrics existed has none.
+    old = dict(old, fidelity=old.get("fidelity", False))
     changes = [f"{key}: {_short(old.get(key))!r} there, {_short(new[key])!r} here"
-               for key in SETTINGS if old.get(key) != new[key]
-               # The columns follow camera_columns: named once.
-               and not (key == "columns" and old.get("camera_columns") != new["camera_columns"])]
+               for key in SETTINGS + ("fidelity",) if old.get(key) != new[key]
+               # The columns follow camera_columns and fidelity: named once.
+               and not (key == "columns" and (old.get("camera_columns") != new["camera_columns"]
+                                              or old["fidelity"] != new["fidelity"]))]
     if bool(old["taus"]) != bool(new["taus"]):
         there = f"tolerances {old['taus']}" if old["taus"] else f"budgets {old['budgets']}"
         here = f"tolerances {new['taus']}" if new["taus"] else f"budgets {new['budgets']}"
@@ -1094,6 +1166,9 @@ def _part_key(job: dict, m: int, c: int, v: int) -> str:
                   camera_set={k: x for k, x in job["camera_sets"][c].items() if k != "path"},
                   tau=value if job["taus"] else None, budget=None if job["taus"] else value,
                   **{key: job[key] for key in SETTINGS})
+    # Recorded when on only: parts without image metrics keep the key they had before the setting existed.
+    if job.get("fidelity"):
+        record["fidelity"] = True
     return hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()
 
 
