@@ -229,35 +229,67 @@ class _Part:
 # ---------------------------------------------------------------- one part
 
 
-_LOADED: "collections.OrderedDict[tuple, object]" = collections.OrderedDict()
+_LOADED: "collections.OrderedDict[str, object]" = collections.OrderedDict()
 _LOADED_LOCK = threading.Lock()
+# Serialises warm-up calls: threads of one process compile a kernel once.
+_WARM_LOCK = threading.Lock()
 
 
-def _model(path: str, digest: str):
-    """The loaded model and the set of its engine calls this process has
-    compiled (see :func:`_warm`), kept per process (so its kernels stay
-    compiled) for the last few models; older ones are dropped with JAX's
-    compiled executables, which otherwise pile up in a process that visits
-    many models."""
+def _model(path: str, digest: str, shipped: Optional[str] = None):
+    """The loaded model of content ``digest`` and the set of its engine calls
+    this process has compiled (see :func:`_warm`), kept per process by
+    digest (so its kernels stay compiled, whatever path names it) for the
+    last few models; older ones are dropped with JAX's compiled executables,
+    which otherwise pile up in a process that visits many models.
+
+    The model is read from ``path`` when that holds the content ``digest``;
+    else, on a Dask worker that cannot read it (no shared file system, or
+    another file there), from the bytes the client shipped as the Dask
+    dataset ``shipped`` (:meth:`_Runner.ship`), fetched once per process."""
     import jax
 
     from ._load import load
 
-    key = (os.path.abspath(path), digest)
     with _LOADED_LOCK:
-        if key in _LOADED:
-            _LOADED.move_to_end(key)
-            return _LOADED[key]
-        if file_sha256(path) != digest:
+        if digest in _LOADED:
+            _LOADED.move_to_end(digest)
+            return _LOADED[digest]
+        if shipped is not None and not (os.path.isfile(path) and os.access(path, os.R_OK)
+                                        and file_sha256(path) == digest):
+            path = _fetch_shipped(shipped, digest)
+        elif file_sha256(path) != digest:
             raise EvalError(f"{path}: the model file changed while the job ran")
-        _LOADED[key] = load(path), set()
+        _LOADED[digest] = load(path), set()
         if len(_LOADED) > MODELS_KEPT:
             _LOADED.popitem(last=False)
             jax.clear_caches()
             # Every model's kernels are gone: each compiles again on its next call.
             for _, warm in _LOADED.values():
                 warm.clear()
-        return _LOADED[key]
+        return _LOADED[digest]
+
+
+def _fetch_shipped(key: str, digest: str) -> str:
+    """The model bytes the client shipped as the Dask dataset ``key``, fetched
+    from the cluster into a file of this machine's temporary folder named by
+    ``digest`` (kept for later jobs: a file there of that content is used
+    without a fetch); its path."""
+    import tempfile
+
+    folder = os.path.join(tempfile.gettempdir(), f"pmjax-models-{os.getuid()}")
+    path = os.path.join(folder, f"{digest}.pmz")
+    if os.path.isfile(path) and file_sha256(path) == digest:
+        return path
+    from distributed import get_client
+
+    data = get_client().get_dataset(key).result()
+    if hashlib.sha256(data).hexdigest() != digest:
+        raise EvalError(f"the model bytes shipped under {key} do not have the content SHA-256 {digest[:12]}")
+    os.makedirs(folder, exist_ok=True)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+    return path
 
 
 def _warm(warm: set, key: tuple, call) -> float:
@@ -268,10 +300,13 @@ def _warm(warm: set, key: tuple, call) -> float:
     persistent cache) so stays out of ``refine_ms``."""
     if key in warm:
         return 0.0
-    t = time.perf_counter()
-    call()
-    warm.add(key)
-    return 1e3 * (time.perf_counter() - t)
+    with _WARM_LOCK:
+        if key in warm:  # another thread warmed it meanwhile
+            return 0.0
+        t = time.perf_counter()
+        call()
+        warm.add(key)
+        return 1e3 * (time.perf_counter() - t)
 
 
 def _compile_cache(folder: Optional[str]) -> None:
@@ -323,7 +358,7 @@ def run_part(task: dict):
     from ._refine import faces_for_budget, refine, refine_batch
 
     _compile_cache(task["compile_cache"])
-    pm, warm = _model(task["model_path"], task["model_sha256"])
+    pm, warm = _model(task["model_path"], task["model_sha256"], task.get("model_shipped"))
     table: CameraTable = task["rows"]
     tests = Tests(**task["tests"])
     n = len(table)
@@ -770,6 +805,7 @@ def evaluate(
                     key = _part_key(job, part.model, part.cameras, part.value)
                     # The absolute path: a worker may run in another folder.
                     task = dict(model_path=os.path.abspath(model_path), model_sha256=digest,
+                                model_shipped=runner.ship(model_path, digest),
                                 model_name=_model_name(model_path),
                                 set_name=s.name, rows=s.rows(vertices, part.lo, part.hi, tables[ci]),
                                 lo=part.lo, hi=part.hi, tau=None if budgets else value,
@@ -1481,23 +1517,6 @@ def _quiet_dask_logs() -> None:
     logging.getLogger("distributed").setLevel(logging.ERROR)
 
 
-@contextlib.contextmanager
-def _sigint_ignored():
-    """SIGINT ignored in this process while the block runs (in the main
-    thread; elsewhere signals cannot be set, and nothing changes): child
-    processes started in it keep ignoring it."""
-    import signal
-
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-
-
 class _Runner:
     """Runs parts in this process, or on Dask with a bounded number in flight
     (camera rows are made as parts are submitted, so memory stays flat)."""
@@ -1510,12 +1529,17 @@ class _Runner:
             if scheduler:
                 self.client = Client(scheduler, set_as_default=False)
             else:
-                # Ctrl-C in a terminal reaches every process of the group: the
-                # workers ignore it (they inherit the ignored signal when
-                # started), and this process stops them on its way out.
-                with _sigint_ignored():
-                    self.cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                                                dashboard_address=None)
+                # Threads of this process, not worker processes: it has
+                # imported pmjax already, and its threads share each loaded
+                # model and compiled kernel, where each process would import,
+                # load and compile on its own before its first part (about
+                # half the first minute of a fresh cluster; docs/eval.md). The
+                # engine's calls release the GIL and are safe to run
+                # concurrently.
+                # (A free port: even without a dashboard, an in-process
+                # scheduler's HTTP server would take 8787 and warn when it is in use.)
+                self.cluster = LocalCluster(n_workers=1, threads_per_worker=int(workers), processes=False,
+                                            dashboard_address=":0")
                 self.client = Client(self.cluster, set_as_default=False)
             # Pending futures; each result is fetched with the future's own
             # result(), which waits for the scheduler to recompute a result
@@ -1523,8 +1547,36 @@ class _Runner:
             # forever in that case).
             self.pending = []
             self.parts = {}
+            # Model bytes shipped to the cluster (digest -> future), and the
+            # model of each pending part (future key -> digest).
+            self.shipped, self.models = {}, {}
             threads = sum(self.client.nthreads().values()) or int(workers) or 1
             self.window = 2 * threads + 2
+
+    def ship(self, path: str, digest: str) -> Optional[str]:
+        """On a cluster given by its scheduler (whose workers may not share
+        this file system): the name of a Dask dataset holding the model's
+        bytes, put into the cluster once per job for workers that cannot read
+        ``path`` (they fetch them, :func:`_model`); models no pending part
+        needs are released. ``None`` in this process and on a local cluster
+        (same files)."""
+        if self.client is None or self.cluster is not None:
+            return None
+        if digest not in self.shipped:
+            for old in set(self.shipped) - set(self.models.values()):
+                name, future = self.shipped.pop(old)
+                self.client.unpublish_dataset(name)
+                future.release()
+            with open(path, "rb") as fh:
+                data = fh.read()
+            if hashlib.sha256(data).hexdigest() != digest:
+                raise EvalError(f"{path}: the model file changed while the job ran")
+            # Named per client: jobs running at once on one cluster keep their own.
+            name = f"pmjax-model-{digest[:16]}-{self.client.id}"
+            future = self.client.scatter(data, hash=False)
+            self.client.publish_dataset(future, name=name)
+            self.shipped[digest] = name, future
+        return self.shipped[digest][0]
 
     def submit(self, part, task):
         if self.client is None:
@@ -1532,6 +1584,7 @@ class _Runner:
         future = self.client.submit(run_part_on_worker, task, key=f"pmjax-eval-{task['job_sha256'][:12]}-{part.file}",
                                     pure=False, retries=2)
         self.parts[future.key] = part
+        self.models[future.key] = task["model_sha256"]
         self.pending.append(future)
         return self._collect(self.window)
 
@@ -1546,6 +1599,7 @@ class _Runner:
                 continue
             for future in done:
                 out.append((self.parts.pop(future.key), future.result()))
+                self.models.pop(future.key, None)
             # Keep what was not collected. (Not "not done": a future whose
             # result lived on a worker that died goes back to pending, and
             # would be collected twice.)
@@ -1568,6 +1622,10 @@ class _Runner:
                 with contextlib.suppress(Exception):
                     self.client.run(_quiet_dask_logs)
         if self.client is not None:
+            # Published data outlives its client: the shipped models are removed from the cluster.
+            for name, _ in self.shipped.values():
+                with contextlib.suppress(Exception):
+                    self.client.unpublish_dataset(name)
             self.client.close()
         if self.cluster is not None:
             self.cluster.close()
