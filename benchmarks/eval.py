@@ -1,7 +1,8 @@
 """Evaluation-job benchmark: streaming, Dask, the compilation cache, many models.
 
 Usage: python benchmarks/eval.py [--parts stream,dask,cache,models,paths,startup,fidelity] [--cameras 1000000]
-       [--dask-cameras 20000] [--path-frames 7680] [--startup-cameras 100000] [--fidelity-cameras 8]
+       [--dask-cameras 20000] [--path-frames 7680] [--startup-cameras 100000] [--startup-repeats 3]
+       [--fidelity-cameras 8]
        [--json out.json]
 
 - stream: random views of the bunny streamed to Parquet by ``pmjax eval`` (a
@@ -256,13 +257,18 @@ def paths(frames: int, work: str, model: str = "dragon", repeats: int = 3) -> di
     return row
 
 
-def _phases(model, digest, cache):
-    """On a fresh worker process: seconds to import pmjax's evaluation, load
-    the model, and make and run its first batch (compiled or loaded from the
-    persistent cache ``cache``)."""
-    import time
+_STARTUP_CHILD = """
+import json, os, sys, threading, time
+t0 = time.perf_counter()
+folder, first = {folder!r}, []
 
+
+def phases(model, digest, cache):
+    # On a fresh worker process (sent by value, so nothing is imported before
+    # it runs): seconds to import pmjax's evaluation, load the model, and make
+    # and run its first batch (compiled or loaded from the persistent cache).
     t = time.perf_counter()
+    import pmjax
     import pmjax._eval as E
     from pmjax._camera_table import random_rows
 
@@ -278,15 +284,6 @@ def _phases(model, digest, cache):
     out["compile"] = time.perf_counter() - t
     return out
 
-
-_STARTUP_CHILD = """
-import json, os, sys, threading, time
-t0 = time.perf_counter()
-sys.path.insert(0, {bench!r})
-import pmjax
-from dask.distributed import LocalCluster
-folder, first = {folder!r}, []
-
 def watch():
     while not first:
         if os.path.isdir(folder) and any(n.startswith("part-") for n in os.listdir(folder)):
@@ -294,32 +291,38 @@ def watch():
         time.sleep(0.005)
 
 if __name__ == "__main__":
+    # Imported here: worker processes start by importing this file, and the
+    # imports are part of what each worker pays before its first task.
+    sys.path.insert(0, {bench!r})
+    import pmjax
+    from dask.distributed import LocalCluster
+
     threading.Thread(target=watch, daemon=True).start()
     job = dict(taus=[1.0], compile_cache={cache!r}, progress=False)
-    phases = None
+    found = None
     if {mode!r} == "processes":
         t = time.perf_counter()
         with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
             start = time.perf_counter() - t
             if {breakdown!r}:
                 from dask.distributed import Client
-                from eval import _phases
                 from pmjax._pmfile import file_sha256
                 with Client(cluster, set_as_default=False) as client:
                     digest = file_sha256({model!r})
-                    futures = [client.submit(_phases, {model!r}, digest, {cache!r}, pure=False, workers=[w])
+                    futures = [client.submit(phases, {model!r}, digest, {cache!r}, pure=False, workers=[w])
                                for w in client.scheduler_info()["workers"]]
-                    phases = dict(cluster_start=start, workers=[f.result() for f in futures])
+                    found = dict(cluster_start=start, workers=[f.result() for f in futures])
             else:
                 pmjax.evaluate([{model!r}], ["random:{n}:3"], folder, scheduler=cluster.scheduler_address, **job)
     else:
         pmjax.evaluate([{model!r}], ["random:{n}:3"], folder, workers={workers}, **job)
     end = time.perf_counter()
-    print(json.dumps(dict(first_s=(first[0] - t0) if first else None, total_s=end - t0, phases=phases)))
+    print(json.dumps(dict(first_s=(first[0] - t0) if first else None, total_s=end - t0, phases=found)))
 """
 
 
 def startup(n: int, work: str, repeats: int = 3) -> dict:
+    """The breakdown, then ``repeats`` alternating runs of each variant (0: the breakdown only)."""
     model = pm_file("dragon")
     cache_dir = os.path.join(work, "xla-startup")
     pmjax.evaluate([model], ["random:4096:3"], os.path.join(work, "startup-warm"), taus=[1.0], compile_cache=cache_dir,
@@ -343,7 +346,7 @@ def startup(n: int, work: str, repeats: int = 3) -> dict:
         for mode in runs:
             runs[mode].append(child(mode))
     med = {m: dict(first_s=float(np.median([r["first_s"] for r in rs])),
-                   total_s=float(np.median([r["total_s"] for r in rs]))) for m, rs in runs.items()}
+                   total_s=float(np.median([r["total_s"] for r in rs]))) for m, rs in runs.items() if rs}
     workers = phases["workers"]
     row = dict(model="dragon", cameras=n, phases=phases, runs=runs, medians=med)
     print(f"startup, fresh cluster of 2 worker processes (dragon, warm compile cache): cluster start "
@@ -386,6 +389,7 @@ def main():
     ap.add_argument("--dask-cameras", type=int, default=20_000)
     ap.add_argument("--path-frames", type=int, default=7680)
     ap.add_argument("--startup-cameras", type=int, default=100_000)
+    ap.add_argument("--startup-repeats", type=int, default=3)
     ap.add_argument("--fidelity-cameras", type=int, default=8)
     ap.add_argument("--json")
     args = ap.parse_args()
@@ -404,7 +408,7 @@ def main():
         if "paths" in parts:
             report["paths"] = paths(args.path_frames, work)
         if "startup" in parts:
-            report["startup"] = startup(args.startup_cameras, work)
+            report["startup"] = startup(args.startup_cameras, work, args.startup_repeats)
         if "fidelity" in parts:
             report["fidelity"] = fidelity(args.fidelity_cameras, work)
     print(f"peak RSS of this process {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")

@@ -635,9 +635,12 @@ def evaluate(
         batch_chunk: cameras per vmapped kernel call inside a part.
         compile_cache: folder of JAX's persistent compilation cache (``None``:
             off), so a second run of a job, or another worker, skips compiling.
-        scheduler: address of a running Dask scheduler (``tcp://HOST:PORT``).
-        workers: start a local Dask cluster of this many single-threaded
-            worker processes (0: run in this process).
+        scheduler: address of a running Dask scheduler (``tcp://HOST:PORT``;
+            :func:`pmjax.slurm_cluster` makes one on SLURM). Workers that
+            cannot read a model file at its path receive its bytes.
+        workers: run on a local Dask cluster of this many threads in this
+            process (0: no cluster); they share each loaded model and its
+            compiled kernels (docs/eval.md).
         progress: a progress bar (cameras/s and ETA).
         max_parts: compute at most this many parts in this run, then stop
             (``None``: every part); a later run of the same job resumes.
@@ -691,8 +694,8 @@ def evaluate(
     if not isinstance(fidelity, (bool, np.bool_)):
         raise EvalError(f"fidelity must be True or False, not {fidelity!r}")
     fidelity = bool(fidelity)
-    if fidelity and not (scheduler or workers):
-        # A missing renderer or FLIP is named before any work (on Dask, by the worker).
+    if fidelity and not scheduler:
+        # A missing renderer or FLIP is named before any work (on a cluster's workers, by the worker).
         try:
             from pmjax.render import pyrender_module
             from pmjax.render._fidelity import flip_module

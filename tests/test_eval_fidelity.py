@@ -111,7 +111,8 @@ def test_resume_gives_identical_rows_and_fidelity_defines_the_job(cow, tmp_path)
 
 @pytest.mark.slow
 def test_dask_gives_identical_rows(cow, tmp_path):
-    """Parts rendered on Dask worker processes give the rows of one process."""
+    """Parts rendered on Dask worker processes, or on a local cluster's
+    threads (rendering one at a time), give the rows of one process."""
     distributed = pytest.importorskip("dask.distributed")
     job = dict(taus=[1.0], chunk=2, compile_cache=None, progress=False, fidelity=True)
     sets = [camera_set("orbit:4", **IMAGE)]
@@ -121,3 +122,6 @@ def test_dask_gives_identical_rows(cow, tmp_path):
                                   dashboard_address=None) as cluster:
         evaluate([cow], sets, there, scheduler=cluster.scheduler_address, **job)
     assert table(there, DETERMINISTIC).equals(table(here, DETERMINISTIC))
+    threads = str(tmp_path / "threads")
+    evaluate([cow], sets, threads, workers=2, **job)
+    assert table(threads, DETERMINISTIC).equals(table(here, DETERMINISTIC))
