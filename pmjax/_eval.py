@@ -1535,12 +1535,11 @@ class _Runner:
                 # Threads of this process, not worker processes: it has
                 # imported pmjax already, and its threads share each loaded
                 # model and compiled kernel, where each process would import,
-                # load and compile on its own before its first part (about
-                # half the first minute of a fresh cluster; docs/eval.md). The
-                # engine's calls release the GIL and are safe to run
-                # concurrently.
-                # (A free port: even without a dashboard, an in-process
-                # scheduler's HTTP server would take 8787 and warn when it is in use.)
+                # load and compile on its own before its first part, and then
+                # compete with this one for the cores (docs/eval.md measures
+                # both). The engine's calls release the GIL and may run
+                # concurrently. A free port for the scheduler's HTTP server:
+                # in-process, it would take 8787 and warn when that is in use.
                 self.cluster = LocalCluster(n_workers=1, threads_per_worker=int(workers), processes=False,
                                             dashboard_address=":0")
                 self.client = Client(self.cluster, set_as_default=False)
@@ -1550,8 +1549,8 @@ class _Runner:
             # forever in that case).
             self.pending = []
             self.parts = {}
-            # Model bytes shipped to the cluster (digest -> future), and the
-            # model of each pending part (future key -> digest).
+            # Model bytes shipped to the cluster (digest -> (dataset name,
+            # future)), and the model of each pending part (future key -> digest).
             self.shipped, self.models = {}, {}
             threads = sum(self.client.nthreads().values()) or int(workers) or 1
             self.window = 2 * threads + 2
