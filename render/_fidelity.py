@@ -131,20 +131,37 @@ def camera_fidelity(renderer, original, mesh, camera: Camera, *, flip: bool = Tr
         ``silhouette_share`` (:func:`silhouette_difference`), ``flip_mean`` and
         ``flip_model_mean`` (with ``flip``), ``render_ms`` (drawing ``mesh``,
         milliseconds) and the other keys of :func:`image_difference`;
-        ``(rgb, depth)`` is ``mesh``'s lit render.
+        ``(rgb, depth)`` is ``mesh``'s lit render. No OpenGL context is left
+        current in the calling thread, so another thread may call next.
     """
     v, f, n = mesh
     ov, of, on = original
-    t = time.perf_counter()
-    rgb, depth = renderer.render_mesh(v, f, camera, normals=n)
-    render_ms = 1e3 * (time.perf_counter() - t)
-    reference = renderer.render_mesh(ov, of, camera, normals=on)
+    try:
+        t = time.perf_counter()
+        rgb, depth = renderer.render_mesh(v, f, camera, normals=n)
+        render_ms = 1e3 * (time.perf_counter() - t)
+        reference = renderer.render_mesh(ov, of, camera, normals=on)
+        silhouette = silhouette_difference(renderer, (ov, of), (v, f), camera)["differing_share"]
+    finally:
+        _release_context(renderer)
     row = image_difference(*reference, rgb, depth)
     if flip:
         row.update(flip_difference(*reference, rgb, depth))
-    row.update(render_ms=render_ms,
-               silhouette_share=silhouette_difference(renderer, (ov, of), (v, f), camera)["differing_share"])
+    row.update(render_ms=render_ms, silhouette_share=silhouette)
     return row, (rgb, depth)
+
+
+def _release_context(renderer) -> None:
+    """Make ``renderer``'s EGL context current in no thread: EGL lets a
+    context be current in one thread at a time, and pyrender leaves it
+    current after drawing, so another thread could not draw with it. (OSMesa
+    rebinds a context to whichever thread draws.)"""
+    platform = getattr(getattr(renderer, "_gl", None), "_platform", None)
+    display = getattr(platform, "_egl_display", None)
+    if display is not None:
+        from OpenGL import EGL
+
+        EGL.eglMakeCurrent(display, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT)
 
 
 def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Tests = ALL_TESTS,
