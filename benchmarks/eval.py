@@ -1,7 +1,8 @@
 """Evaluation-job benchmark: streaming, Dask, the compilation cache, many models.
 
-Usage: python benchmarks/eval.py [--parts stream,dask,cache,models,paths,budgets] [--cameras 1000000]
-       [--dask-cameras 20000] [--path-frames 7680] [--budget-cameras 2048] [--json out.json]
+Usage: python benchmarks/eval.py [--parts stream,dask,cache,models,paths,budgets,startup,fidelity]
+       [--cameras 1000000] [--dask-cameras 20000] [--path-frames 7680] [--budget-cameras 2048]
+       [--startup-cameras 100000] [--startup-repeats 3] [--fidelity-cameras 8] [--json out.json]
 
 - stream: random views of the bunny streamed to Parquet by ``pmjax eval`` (a
   child process per run, for its peak RSS): the full set against 10,000
@@ -21,6 +22,15 @@ Usage: python benchmarks/eval.py [--parts stream,dask,cache,models,paths,budgets
   cameras (the budgets: the median face counts of the tolerances), in-process
   with the model loaded and the kernels compiled, start-up subtracted (a job
   of 32 cameras of each kind); medians of 3 alternating runs.
+- startup: where a fresh cluster's time goes before its first part (worker
+  processes: cluster start, each worker's imports, model load and first
+  compile from a warm persistent cache), and the dragon's random views as
+  ``pmjax eval`` from a fresh Python: in-process, ``--workers 2`` (threads of
+  this process) and a local cluster of 2 single-threaded worker processes;
+  time to the first part written and in all, medians of 3 alternating runs.
+- fidelity: milliseconds per camera of an orbit job with and without
+  ``fidelity`` (bunny and dragon, 800x600, model loaded and compiled),
+  medians of 3 alternating runs.
 """
 
 from __future__ import annotations
@@ -43,7 +53,7 @@ from refine import pm_file  # noqa: E402
 
 import pmjax  # noqa: E402
 
-PARTS = ("stream", "dask", "cache", "models", "paths", "budgets")
+PARTS = ("stream", "dask", "cache", "models", "paths", "budgets", "startup", "fidelity")
 
 
 def _child(code: str) -> dict:
@@ -285,6 +295,128 @@ def budgets(n: int, work: str, repeats: int = 3) -> list:
                   f"(budgets {values}) {rate['budget']:.0f} camera-values/s, budget / tau rate "
                   f"{row['ratio']:.2f} (start-up subtracted)", flush=True)
             rows.append(row)
+_STARTUP_CHILD = """
+import json, os, sys, threading, time
+t0 = time.perf_counter()
+folder, first = {folder!r}, []
+
+
+def phases(model, digest, cache):
+    # On a fresh worker process (sent by value, so nothing is imported before
+    # it runs): seconds to import pmjax's evaluation, load the model, and make
+    # and run its first batch (compiled or loaded from the persistent cache).
+    t = time.perf_counter()
+    import pmjax
+    import pmjax._eval as E
+    from pmjax._camera_table import random_rows
+
+    out = dict(imports=time.perf_counter() - t)
+    t = time.perf_counter()
+    E._compile_cache(cache)
+    pm, _ = E._model(model, digest)
+    out["model"] = time.perf_counter() - t
+    data = pmjax.read_pm(model)
+    cams = random_rows(data.vertices[: data.n_original_vertices], 1, 0, 256).camera()
+    t = time.perf_counter()
+    pmjax.refine_batch(pm, cams, 1.0, chunk=256)
+    out["compile"] = time.perf_counter() - t
+    return out
+
+def watch():
+    while not first:
+        if os.path.isdir(folder) and any(n.startswith("part-") for n in os.listdir(folder)):
+            first.append(time.perf_counter())
+        time.sleep(0.005)
+
+if __name__ == "__main__":
+    # Imported here: worker processes start by importing this file, and the
+    # imports are part of what each worker pays before its first task.
+    sys.path.insert(0, {bench!r})
+    import pmjax
+    from dask.distributed import LocalCluster
+
+    threading.Thread(target=watch, daemon=True).start()
+    job = dict(taus=[1.0], compile_cache={cache!r}, progress=False)
+    found = None
+    if {mode!r} == "processes":
+        t = time.perf_counter()
+        with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
+            start = time.perf_counter() - t
+            if {breakdown!r}:
+                from dask.distributed import Client
+                from pmjax._pmfile import file_sha256
+                with Client(cluster, set_as_default=False) as client:
+                    digest = file_sha256({model!r})
+                    futures = [client.submit(phases, {model!r}, digest, {cache!r}, pure=False, workers=[w])
+                               for w in client.scheduler_info()["workers"]]
+                    found = dict(cluster_start=start, workers=[f.result() for f in futures])
+            else:
+                pmjax.evaluate([{model!r}], ["random:{n}:3"], folder, scheduler=cluster.scheduler_address, **job)
+    else:
+        pmjax.evaluate([{model!r}], ["random:{n}:3"], folder, workers={workers}, **job)
+    end = time.perf_counter()
+    print(json.dumps(dict(first_s=(first[0] - t0) if first else None, total_s=end - t0, phases=found)))
+"""
+
+
+def startup(n: int, work: str, repeats: int = 3) -> dict:
+    """The breakdown, then ``repeats`` alternating runs of each variant (0: the breakdown only)."""
+    model = pm_file("dragon")
+    cache_dir = os.path.join(work, "xla-startup")
+    pmjax.evaluate([model], ["random:4096:3"], os.path.join(work, "startup-warm"), taus=[1.0], compile_cache=cache_dir,
+                   progress=False)  # fill the compilation cache
+    bench = os.path.dirname(os.path.abspath(__file__))
+
+    def child(mode, breakdown=False):
+        folder = os.path.join(work, f"startup-{mode}")
+        code = _STARTUP_CHILD.format(bench=bench, folder=folder, cache=cache_dir, mode=mode, breakdown=breakdown,
+                                     model=model, n=n, workers=2 if mode == "threads" else 0)
+        path = os.path.join(work, f"startup_{mode}.py")  # a file: worker processes start by importing it
+        with open(path, "w") as fh:
+            fh.write(code)
+        out = subprocess.run([sys.executable, path], capture_output=True, text=True, check=True, cwd=work)
+        shutil.rmtree(folder, ignore_errors=True)
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    phases = child("processes", breakdown=True)["phases"]
+    runs = {m: [] for m in ("process", "threads", "processes")}
+    for _ in range(repeats):
+        for mode in runs:
+            runs[mode].append(child(mode))
+    med = {m: dict(first_s=float(np.median([r["first_s"] for r in rs])),
+                   total_s=float(np.median([r["total_s"] for r in rs]))) for m, rs in runs.items() if rs}
+    workers = phases["workers"]
+    row = dict(model="dragon", cameras=n, phases=phases, runs=runs, medians=med)
+    print(f"startup, fresh cluster of 2 worker processes (dragon, warm compile cache): cluster start "
+          f"{phases['cluster_start']:.2f} s; per worker imports "
+          + ", ".join(f"{w['imports']:.2f}" for w in workers) + " s, model load "
+          + ", ".join(f"{w['model']:.2f}" for w in workers) + " s, first batch (kernel load) "
+          + ", ".join(f"{w['compile']:.2f}" for w in workers) + " s", flush=True)
+    for mode, m in med.items():
+        print(f"startup dragon {n} random views, {mode}: first part after {m['first_s']:.1f} s, all after "
+              f"{m['total_s']:.1f} s (from a fresh Python)", flush=True)
+    return row
+
+
+def fidelity(count: int, work: str, repeats: int = 3) -> list:
+    rows = []
+    for name in ("bunny", "dragon"):
+        model = pm_file(name)
+        job = dict(taus=[1.0], compile_cache=None, progress=False)
+        pmjax.evaluate([model], [f"orbit:{count}"], os.path.join(work, f"fid-warm-{name}"), fidelity=True, **job)
+        times = {False: [], True: []}
+        for k in range(repeats):
+            for on in (False, True):
+                folder = os.path.join(work, f"fid-{name}-{on}-{k}")
+                t = time.perf_counter()
+                pmjax.evaluate([model], [f"orbit:{count}"], folder, fidelity=on, **job)
+                times[on].append(time.perf_counter() - t)
+                shutil.rmtree(folder)
+        off, on = (1e3 * float(np.median(times[x])) / count for x in (False, True))
+        rows.append(dict(model=name, cameras=count, seconds={str(k): v for k, v in times.items()}, ms_per_camera=off,
+                         fidelity_ms_per_camera=on))
+        print(f"fidelity {name}, orbit of {count} cameras at 800x600: {off:.1f} ms per camera without, "
+              f"{on:.0f} ms with fidelity ({on / off:.0f}x)", flush=True)
     return rows
 
 
@@ -295,6 +427,9 @@ def main():
     ap.add_argument("--dask-cameras", type=int, default=20_000)
     ap.add_argument("--path-frames", type=int, default=7680)
     ap.add_argument("--budget-cameras", type=int, default=2048)
+    ap.add_argument("--startup-cameras", type=int, default=100_000)
+    ap.add_argument("--startup-repeats", type=int, default=3)
+    ap.add_argument("--fidelity-cameras", type=int, default=8)
     ap.add_argument("--json")
     args = ap.parse_args()
     parts = args.parts.split(",")
@@ -313,6 +448,10 @@ def main():
             report["paths"] = paths(args.path_frames, work)
         if "budgets" in parts:
             report["budgets"] = budgets(args.budget_cameras, work)
+        if "startup" in parts:
+            report["startup"] = startup(args.startup_cameras, work, args.startup_repeats)
+        if "fidelity" in parts:
+            report["fidelity"] = fidelity(args.fidelity_cameras, work)
     print(f"peak RSS of this process {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
     if args.json:
         write_json(args.json, report)

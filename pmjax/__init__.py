@@ -43,6 +43,7 @@ if TYPE_CHECKING:  # the names as a type checker and an editor see them
     from ._eval import CameraSet, EvalError, EvalInterrupted, EvalSummary, camera_set, evaluate
     from ._eval import read_job as read_eval_job
     from ._eval import CompactSummary, compact as compact_eval
+    from ._cluster import slurm_cluster
     from ._distance import distance_to_surface, point_triangle_distance, sample_surface, surface_distance
 
 # Public name -> (module, name in it).
@@ -137,6 +138,7 @@ _EXPORTS = {
     "EvalSummary": ("._eval", "EvalSummary"),
     "camera_set": ("._eval", "camera_set"),
     "evaluate": ("._eval", "evaluate"),
+    "slurm_cluster": ("._cluster", "slurm_cluster"),
     "distance_to_surface": ("._distance", "distance_to_surface"),
     "point_triangle_distance": ("._distance", "point_triangle_distance"),
     "sample_surface": ("._distance", "sample_surface"),

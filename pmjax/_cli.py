@@ -294,7 +294,7 @@ FIDELITY_COLUMNS = ("differing_share", "psnr", "silhouette_share", "popping_shar
 
 
 def cmd_eval(args) -> int:
-    from pmjax._eval import DEFAULT_COMPILE_CACHE, EvalInterrupted, camera_set, compact, evaluate
+    from pmjax._eval import DEFAULT_COMPILE_CACHE, EvalError, EvalInterrupted, camera_set, compact, evaluate
 
     if args.compact is not None:
         done = compact(args.compact)
@@ -309,16 +309,31 @@ def cmd_eval(args) -> int:
     if not sets:
         sets = [camera_set("orbit:240", **image)]
     taus = args.tau or ([] if args.budget else [1.0])
+    cluster, scheduler = None, args.scheduler
+    if args.slurm is not None:
+        if args.scheduler or args.workers:
+            raise EvalError("--slurm starts its own cluster: give it without --scheduler and --workers")
+        from pmjax._cluster import slurm_cluster
+
+        try:
+            cluster = slurm_cluster(args.slurm, cores=args.slurm_cores, memory=args.slurm_memory,
+                                    walltime=args.slurm_walltime, queue=args.slurm_queue, account=args.slurm_account)
+        except (RuntimeError, ValueError) as exc:
+            raise EvalError(f"--slurm: {exc}") from None
+        scheduler = cluster.scheduler_address
     try:
         summary = evaluate(args.models, sets, args.output, taus=taus, budgets=args.budget or [], tests=_tests(args),
                            method=args.method, chunk=args.chunk,
                            compile_cache=None if args.no_compile_cache else (args.compile_cache
                                                                              or DEFAULT_COMPILE_CACHE),
-                           scheduler=args.scheduler, workers=args.workers, progress=not args.quiet,
-                           camera_columns=args.camera_columns)
+                           scheduler=scheduler, workers=args.workers, progress=not args.quiet,
+                           camera_columns=args.camera_columns, fidelity=args.fidelity)
     except EvalInterrupted as exc:  # Ctrl-C: one line, the parts kept and how to resume
         print(f"pmjax eval: {exc}", file=sys.stderr)
         return 130
+    finally:
+        if cluster is not None:  # its batch jobs are cancelled
+            cluster.close()
     print(f"{summary.folder}: {summary.rows} rows; {summary.parts_written} parts written now "
           f"({summary.cameras} cameras, {summary.cameras_per_s:.0f} cameras/s over {summary.seconds:.1f} s), "
           f"{summary.parts_skipped} parts found done")
@@ -632,9 +647,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--camera-columns", action="store_true",
                    help="also write each camera's eye, distance to the model (model units and bounding radii), "
                         "field of view and image size (part of the job: resume with the same setting)")
+    p.add_argument("--fidelity", action="store_true",
+                   help="also render each camera's refinement and the original (headless, EGL or OSMesa): "
+                        "differing-pixel share, PSNR, the share due to geometry alone (silhouette), NVIDIA's FLIP "
+                        "over the image and over the model's pixels, render and measuring times (part of the job: "
+                        "resume with the same setting; docs/eval.md gives the cost per camera)")
     p.add_argument("--workers", type=_whole(0), default=0,
-                   help="run on a local Dask cluster of N single-threaded worker processes (default 0: this process)")
+                   help="run on a local Dask cluster of N threads in this process (default 0: no cluster)")
     p.add_argument("--scheduler", help="run on a Dask cluster: scheduler address, tcp://HOST:PORT")
+    p.add_argument("--slurm", type=_whole(1), metavar="JOBS",
+                   help="run on a Dask cluster of JOBS SLURM batch jobs, one worker process each (needs "
+                        "dask-jobqueue: pip install 'pmjax[cluster]'); each job's cores, memory, time, partition "
+                        "and account from the --slurm-* options or dask's jobqueue.slurm configuration")
+    p.add_argument("--slurm-cores", type=COUNT, metavar="N", help="cores per SLURM job (the worker's threads)")
+    p.add_argument("--slurm-memory", metavar="SIZE", help="memory per SLURM job, e.g. 16GB")
+    p.add_argument("--slurm-walltime", metavar="HH:MM:SS", help="time limit per SLURM job")
+    p.add_argument("--slurm-queue", metavar="PARTITION", help="SLURM partition")
+    p.add_argument("--slurm-account", metavar="ACCOUNT", help="SLURM account")
     p.add_argument("--compile-cache", metavar="DIR",
                    help="JAX's persistent compilation cache (default ~/.cache/pmjax/xla)")
     p.add_argument("--no-compile-cache", action="store_true", help="do not use the persistent compilation cache")

@@ -88,6 +88,12 @@ COMPACT_GROUP_ROWS = 1 << 20
 DEFAULT_COMPILE_CACHE = os.path.join(os.path.expanduser("~"), ".cache", "pmjax", "xla")
 # Models a process keeps loaded (with their compiled kernels) at once.
 MODELS_KEPT = 2
+# Image metrics per camera (``fidelity``): the columns of ``pmjax path
+# --fidelity`` that a single view defines (popping compares two frames of a
+# path and is left to it), drawn with 2×2 samples per pixel, unrounded.
+FIDELITY_COLUMNS = ("differing_share", "psnr", "silhouette_share", "flip_mean", "flip_model_mean", "render_ms",
+                    "fidelity_ms")
+FIDELITY_SUPERSAMPLE = 2
 
 
 class EvalError(ValueError):
@@ -223,35 +229,67 @@ class _Part:
 # ---------------------------------------------------------------- one part
 
 
-_LOADED: "collections.OrderedDict[tuple, object]" = collections.OrderedDict()
+_LOADED: "collections.OrderedDict[str, object]" = collections.OrderedDict()
 _LOADED_LOCK = threading.Lock()
+# Serialises warm-up calls: threads of one process compile a kernel once.
+_WARM_LOCK = threading.Lock()
 
 
-def _model(path: str, digest: str):
-    """The loaded model and the set of its engine calls this process has
-    compiled (see :func:`_warm`), kept per process (so its kernels stay
-    compiled) for the last few models; older ones are dropped with JAX's
-    compiled executables, which otherwise pile up in a process that visits
-    many models."""
+def _model(path: str, digest: str, shipped: Optional[str] = None):
+    """The loaded model of content ``digest`` and the set of its engine calls
+    this process has compiled (see :func:`_warm`), kept per process by
+    digest (so its kernels stay compiled, whatever path names it) for the
+    last few models; older ones are dropped with JAX's compiled executables,
+    which otherwise pile up in a process that visits many models.
+
+    The model is read from ``path`` when that holds the content ``digest``;
+    else, on a Dask worker that cannot read it (no shared file system, or
+    another file there), from the bytes the client shipped as the Dask
+    dataset ``shipped`` (:meth:`_Runner.ship`), fetched once per process."""
     import jax
 
     from ._load import load
 
-    key = (os.path.abspath(path), digest)
     with _LOADED_LOCK:
-        if key in _LOADED:
-            _LOADED.move_to_end(key)
-            return _LOADED[key]
-        if file_sha256(path) != digest:
+        if digest in _LOADED:
+            _LOADED.move_to_end(digest)
+            return _LOADED[digest]
+        if shipped is not None and not (os.path.isfile(path) and os.access(path, os.R_OK)
+                                        and file_sha256(path) == digest):
+            path = _fetch_shipped(shipped, digest)
+        elif file_sha256(path) != digest:
             raise EvalError(f"{path}: the model file changed while the job ran")
-        _LOADED[key] = load(path), set()
+        _LOADED[digest] = load(path), set()
         if len(_LOADED) > MODELS_KEPT:
             _LOADED.popitem(last=False)
             jax.clear_caches()
             # Every model's kernels are gone: each compiles again on its next call.
             for _, warm in _LOADED.values():
                 warm.clear()
-        return _LOADED[key]
+        return _LOADED[digest]
+
+
+def _fetch_shipped(key: str, digest: str) -> str:
+    """The model bytes the client shipped as the Dask dataset ``key``, fetched
+    from the cluster into a file of this machine's temporary folder named by
+    ``digest`` (kept for later jobs: a file there of that content is used
+    without a fetch); its path."""
+    import tempfile
+
+    folder = os.path.join(tempfile.gettempdir(), f"pmjax-models-{os.getuid()}")
+    path = os.path.join(folder, f"{digest}.pmz")
+    if os.path.isfile(path) and file_sha256(path) == digest:
+        return path
+    from distributed import get_client
+
+    data = get_client().get_dataset(key).result()
+    if hashlib.sha256(data).hexdigest() != digest:
+        raise EvalError(f"the model bytes shipped under {key} do not have the content SHA-256 {digest[:12]}")
+    os.makedirs(folder, exist_ok=True)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+    return path
 
 
 def _warm(warm: set, key: tuple, call) -> float:
@@ -262,10 +300,13 @@ def _warm(warm: set, key: tuple, call) -> float:
     persistent cache) so stays out of ``refine_ms``."""
     if key in warm:
         return 0.0
-    t = time.perf_counter()
-    call()
-    warm.add(key)
-    return 1e3 * (time.perf_counter() - t)
+    with _WARM_LOCK:
+        if key in warm:  # another thread warmed it meanwhile
+            return 0.0
+        t = time.perf_counter()
+        call()
+        warm.add(key)
+        return 1e3 * (time.perf_counter() - t)
 
 
 def _compile_cache(folder: Optional[str]) -> None:
@@ -317,7 +358,7 @@ def run_part(task: dict):
     from ._refine import faces_for_budget_batch, refine_batch
 
     _compile_cache(task["compile_cache"])
-    pm, warm = _model(task["model_path"], task["model_sha256"])
+    pm, warm = _model(task["model_path"], task["model_sha256"], task.get("model_shipped"))
     table: CameraTable = task["rows"]
     tests = Tests(**task["tests"])
     n = len(table)
@@ -395,11 +436,52 @@ def run_part(task: dict):
     }
     if task["bounds"] is not None:
         columns.update(_camera_context(table, task["bounds"][:3], task["bounds"][3]))
-    out = pa.table(columns, schema=_schema(task["bounds"] is not None))
+    if task.get("fidelity"):
+        # Budgets: each camera's refinement at the tolerance found (its row's tau).
+        taus = np.full(n, task["tau"]) if budget is None else tau
+        columns.update({k: pa.array(v) for k, v in _fidelity(pm, task["model_sha256"], table, taus, tests,
+                                                             method).items()})
+    out = pa.table(columns, schema=_schema(task["bounds"] is not None, bool(task.get("fidelity"))))
     # Checked when the folder is reopened (_verify_part): the part read back
     # must have these rows, and this checksum over them and this record.
     info = dict(job=task["job_sha256"], model_sha256=task["model_sha256"], part=task["part"], rows=n)
     return out.replace_schema_metadata({"pmjax": json.dumps(dict(info, sha256=_table_sha256(out, info)))})
+
+
+_ORIGINALS: "collections.OrderedDict[str, tuple]" = collections.OrderedDict()
+# One OpenGL context per image size serves the process: one thread draws at a time.
+_RENDER_LOCK = threading.Lock()
+
+
+def _fidelity(pm, digest: str, table: CameraTable, taus: np.ndarray, tests: Tests, method: str) -> dict:
+    """The image metrics (:data:`FIDELITY_COLUMNS`) of each camera of
+    ``table``: its refinement at ``taus[row]`` against the original mesh,
+    both drawn from that camera (:func:`pmjax.render.camera_fidelity`, the
+    per-frame measure of :func:`pmjax.render.path_fidelity`); ``fidelity_ms``
+    is the camera's measuring (renders and metrics, not the refine)."""
+    from pmjax.render import Renderer, camera_fidelity, original_arrays, refined_arrays
+
+    from ._refine import refine
+
+    with _LOADED_LOCK:
+        if digest not in _ORIGINALS:
+            _ORIGINALS[digest] = original_arrays(pm)
+            while len(_ORIGINALS) > MODELS_KEPT:
+                _ORIGINALS.popitem(last=False)
+        original = _ORIGINALS[digest]
+    out = {name: np.zeros(len(table)) for name in FIDELITY_COLUMNS}
+    for idx, cams in table.batches():
+        for j, row in enumerate(idx):
+            cam = index_camera(cams, j)
+            mesh = refined_arrays(pm, refine(pm, cam, float(taus[row]), tests=tests, method=method))
+            with _RENDER_LOCK:
+                t = time.perf_counter()
+                renderer = Renderer(int(cam.width), int(cam.height), FIDELITY_SUPERSAMPLE, True)
+                got, _ = camera_fidelity(renderer, original, (mesh[0], mesh[1], mesh[3]), cam)
+                got["fidelity_ms"] = 1e3 * (time.perf_counter() - t)
+            for name in FIDELITY_COLUMNS:
+                out[name][row] = got[name]
+    return out
 
 
 def run_part_on_worker(task: dict):
@@ -460,8 +542,9 @@ def _table_sha256(table, info: dict) -> str:
 CAMERA_COLUMNS = ("eye_x", "eye_y", "eye_z", "distance", "distance_radii", "fov_y_deg", "width", "height")
 
 
-def _schema(camera_columns: bool = False):
-    """The columns of a job's rows (``camera_columns``: with the camera context)."""
+def _schema(camera_columns: bool = False, fidelity: bool = False):
+    """The columns of a job's rows (``camera_columns``: with the camera
+    context; ``fidelity``: with the image metrics, after it)."""
     import pyarrow as pa
 
     extra = [(name, pa.float64()) for name in CAMERA_COLUMNS[:6]] + [("width", pa.int32()), ("height", pa.int32())]
@@ -482,7 +565,8 @@ def _schema(camera_columns: bool = False):
         ("executed", pa.int64()),
         ("refine_ms", pa.float64()),
         ("compile_ms", pa.float64()),
-    ] + (extra if camera_columns else []))
+    ] + (extra if camera_columns else [])
+      + ([(name, pa.float64()) for name in FIDELITY_COLUMNS] if fidelity else []))
 
 
 # ---------------------------------------------------------------- the driver
@@ -529,6 +613,7 @@ def evaluate(
     progress: bool = True,
     max_parts: Optional[int] = None,
     camera_columns: bool = False,
+    fidelity: bool = False,
 ) -> EvalSummary:
     """Evaluate models × camera sets × tolerances (or face budgets) into a
     Parquet dataset folder, one row per (model, camera set, value, camera).
@@ -551,15 +636,24 @@ def evaluate(
         batch_chunk: cameras per vmapped kernel call inside a part.
         compile_cache: folder of JAX's persistent compilation cache (``None``:
             off), so a second run of a job, or another worker, skips compiling.
-        scheduler: address of a running Dask scheduler (``tcp://HOST:PORT``).
-        workers: start a local Dask cluster of this many single-threaded
-            worker processes (0: run in this process).
+        scheduler: address of a running Dask scheduler (``tcp://HOST:PORT``;
+            :func:`pmjax.slurm_cluster` makes one on SLURM). Workers that
+            cannot read a model file at its path receive its bytes.
+        workers: run on a local Dask cluster of this many threads in this
+            process (0: no cluster); they share each loaded model and its
+            compiled kernels (docs/eval.md).
         progress: a progress bar (cameras/s and ETA).
         max_parts: compute at most this many parts in this run, then stop
             (``None``: every part); a later run of the same job resumes.
         camera_columns: also write each camera's context (eye, distance to
             the model, field of view, image size; docs/eval.md); part of the
             job, so a resumed run must give the same setting.
+        fidelity: also write each camera's image metrics against the
+            original mesh (:data:`FIDELITY_COLUMNS`: differing share, PSNR,
+            silhouette share, FLIP over the image and over the model's
+            pixels, render and measuring times), rendering the refinement
+            and the original headless (EGL or OSMesa) once per camera, where
+            the part runs; part of the job, like ``camera_columns``.
 
     Returns:
         :class:`EvalSummary`. Read the rows by the folder's name:
@@ -598,7 +692,20 @@ def evaluate(
     if not isinstance(camera_columns, (bool, np.bool_)):
         raise EvalError(f"camera_columns must be True or False, not {camera_columns!r}")
     camera_columns = bool(camera_columns)
-    schema = _schema(camera_columns)
+    if not isinstance(fidelity, (bool, np.bool_)):
+        raise EvalError(f"fidelity must be True or False, not {fidelity!r}")
+    fidelity = bool(fidelity)
+    if fidelity and not scheduler:
+        # A missing renderer or FLIP is named before any work (on a cluster's workers, by the worker).
+        try:
+            from pmjax.render import pyrender_module
+            from pmjax.render._fidelity import flip_module
+
+            pyrender_module(offscreen=True)
+            flip_module()
+        except Exception as exc:
+            raise EvalError(f"fidelity: {exc}") from None
+    schema = _schema(camera_columns, fidelity)
     sets = [s if isinstance(s, CameraSet) else camera_set(s) for s in camera_sets]
     if not sets:
         raise EvalError("no camera sets")
@@ -626,7 +733,7 @@ def evaluate(
     command = dict(format=FORMAT, models=[os.path.abspath(m) for m in models], model_sha256=digests,
                    camera_sets=described, taus=[float(t) for t in taus], budgets=[int(b) for b in budgets],
                    tests=_tests_dict(tests), method=method, chunk=int(chunk), batch_chunk=int(batch_chunk),
-                   camera_columns=camera_columns, columns=schema.names)
+                   camera_columns=camera_columns, fidelity=fidelity, columns=schema.names)
     total = len(models) * len(values) * sum(counts)
     n_parts = len(models) * len(values) * sum(-(-n // chunk) for n in counts)
     # The parts found done and verified (file name -> SHA-256 of the model
@@ -702,12 +809,13 @@ def evaluate(
                     key = _part_key(job, part.model, part.cameras, part.value)
                     # The absolute path: a worker may run in another folder.
                     task = dict(model_path=os.path.abspath(model_path), model_sha256=digest,
+                                model_shipped=runner.ship(model_path, digest),
                                 model_name=_model_name(model_path),
                                 set_name=s.name, rows=s.rows(vertices, part.lo, part.hi, tables[ci]),
                                 lo=part.lo, hi=part.hi, tau=None if budgets else value,
                                 budget=value if budgets else None, tests=_tests_dict(tests), method=method,
                                 batch_chunk=int(batch_chunk), compile_cache=compile_cache, job_sha256=key,
-                                part=part.file, bounds=bounds)
+                                part=part.file, bounds=bounds, fidelity=fidelity)
                     submitted += 1
                     store(runner.submit(part, task))
                 del data, vertices, v64
@@ -787,7 +895,7 @@ def compact(folder, *, rows_per_file: int = COMPACT_ROWS, row_group_rows: int = 
             job = _from_format_2(job)
         if job.get("format") != FORMAT:
             raise EvalError(f"{folder} holds a job in format {job.get('format')!r}, this version compacts {FORMAT}")
-        schema = _schema(job["camera_columns"])
+        schema = _schema(job["camera_columns"], job.get("fidelity", False))
         _remove_temporaries(folder)
         names = _part_files(folder)
         counts, n_models, n_values = _job_shape(job)
@@ -1035,10 +1143,13 @@ def _merge_job(folder, old: dict, new: dict) -> dict:
     if old.get("format") != FORMAT:
         raise EvalError(f"{folder} holds a job in format {old.get('format')!r}, this version writes {FORMAT}; "
                         "use another folder, or delete this one to start over")
+    # A folder written before the image metrics existed has none.
+    old = dict(old, fidelity=old.get("fidelity", False))
     changes = [f"{key}: {_short(old.get(key))!r} there, {_short(new[key])!r} here"
-               for key in SETTINGS if old.get(key) != new[key]
-               # The columns follow camera_columns: named once.
-               and not (key == "columns" and old.get("camera_columns") != new["camera_columns"])]
+               for key in SETTINGS + ("fidelity",) if old.get(key) != new[key]
+               # The columns follow camera_columns and fidelity: named once.
+               and not (key == "columns" and (old.get("camera_columns") != new["camera_columns"]
+                                              or old["fidelity"] != new["fidelity"]))]
     if bool(old["taus"]) != bool(new["taus"]):
         there = f"tolerances {old['taus']}" if old["taus"] else f"budgets {old['budgets']}"
         here = f"tolerances {new['taus']}" if new["taus"] else f"budgets {new['budgets']}"
@@ -1095,6 +1206,9 @@ def _part_key(job: dict, m: int, c: int, v: int) -> str:
                   camera_set={k: x for k, x in job["camera_sets"][c].items() if k != "path"},
                   tau=value if job["taus"] else None, budget=None if job["taus"] else value,
                   **{key: job[key] for key in SETTINGS})
+    # Recorded when on only: parts without image metrics keep the key they had before the setting existed.
+    if job.get("fidelity"):
+        record["fidelity"] = True
     return hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()
 
 
@@ -1407,23 +1521,6 @@ def _quiet_dask_logs() -> None:
     logging.getLogger("distributed").setLevel(logging.ERROR)
 
 
-@contextlib.contextmanager
-def _sigint_ignored():
-    """SIGINT ignored in this process while the block runs (in the main
-    thread; elsewhere signals cannot be set, and nothing changes): child
-    processes started in it keep ignoring it."""
-    import signal
-
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-
-
 class _Runner:
     """Runs parts in this process, or on Dask with a bounded number in flight
     (camera rows are made as parts are submitted, so memory stays flat)."""
@@ -1436,12 +1533,16 @@ class _Runner:
             if scheduler:
                 self.client = Client(scheduler, set_as_default=False)
             else:
-                # Ctrl-C in a terminal reaches every process of the group: the
-                # workers ignore it (they inherit the ignored signal when
-                # started), and this process stops them on its way out.
-                with _sigint_ignored():
-                    self.cluster = LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                                                dashboard_address=None)
+                # Threads of this process, not worker processes: it has
+                # imported pmjax already, and its threads share each loaded
+                # model and compiled kernel, where each process would import,
+                # load and compile on its own before its first part, and then
+                # compete with this one for the cores (docs/eval.md measures
+                # both). The engine's calls release the GIL and may run
+                # concurrently. A free port for the scheduler's HTTP server:
+                # in-process, it would take 8787 and warn when that is in use.
+                self.cluster = LocalCluster(n_workers=1, threads_per_worker=int(workers), processes=False,
+                                            dashboard_address=":0")
                 self.client = Client(self.cluster, set_as_default=False)
             # Pending futures; each result is fetched with the future's own
             # result(), which waits for the scheduler to recompute a result
@@ -1449,8 +1550,36 @@ class _Runner:
             # forever in that case).
             self.pending = []
             self.parts = {}
+            # Model bytes shipped to the cluster (digest -> (dataset name,
+            # future)), and the model of each pending part (future key -> digest).
+            self.shipped, self.models = {}, {}
             threads = sum(self.client.nthreads().values()) or int(workers) or 1
             self.window = 2 * threads + 2
+
+    def ship(self, path: str, digest: str) -> Optional[str]:
+        """On a cluster given by its scheduler (whose workers may not share
+        this file system): the name of a Dask dataset holding the model's
+        bytes, put into the cluster once per job for workers that cannot read
+        ``path`` (they fetch them, :func:`_model`); models no pending part
+        needs are released. ``None`` in this process and on a local cluster
+        (same files)."""
+        if self.client is None or self.cluster is not None:
+            return None
+        if digest not in self.shipped:
+            for old in set(self.shipped) - set(self.models.values()):
+                name, future = self.shipped.pop(old)
+                self.client.unpublish_dataset(name)
+                future.release()
+            with open(path, "rb") as fh:
+                data = fh.read()
+            if hashlib.sha256(data).hexdigest() != digest:
+                raise EvalError(f"{path}: the model file changed while the job ran")
+            # Named per client: jobs running at once on one cluster keep their own.
+            name = f"pmjax-model-{digest[:16]}-{self.client.id}"
+            future = self.client.scatter(data, hash=False)
+            self.client.publish_dataset(future, name=name)
+            self.shipped[digest] = name, future
+        return self.shipped[digest][0]
 
     def submit(self, part, task):
         if self.client is None:
@@ -1458,6 +1587,7 @@ class _Runner:
         future = self.client.submit(run_part_on_worker, task, key=f"pmjax-eval-{task['job_sha256'][:12]}-{part.file}",
                                     pure=False, retries=2)
         self.parts[future.key] = part
+        self.models[future.key] = task["model_sha256"]
         self.pending.append(future)
         return self._collect(self.window)
 
@@ -1472,6 +1602,7 @@ class _Runner:
                 continue
             for future in done:
                 out.append((self.parts.pop(future.key), future.result()))
+                self.models.pop(future.key, None)
             # Keep what was not collected. (Not "not done": a future whose
             # result lived on a worker that died goes back to pending, and
             # would be collected twice.)
@@ -1494,6 +1625,10 @@ class _Runner:
                 with contextlib.suppress(Exception):
                     self.client.run(_quiet_dask_logs)
         if self.client is not None:
+            # Published data outlives its client: the shipped models are removed from the cluster.
+            for name, _ in self.shipped.values():
+                with contextlib.suppress(Exception):
+                    self.client.unpublish_dataset(name)
             self.client.close()
         if self.cluster is not None:
             self.cluster.close()

@@ -26,7 +26,7 @@ from ._offscreen import (
     write_frames,
     write_png,
 )
-from ._fidelity import DIFF_THRESHOLD, flip_difference, image_difference, path_fidelity, silhouette_difference
+from ._fidelity import DIFF_THRESHOLD, camera_fidelity, flip_difference, image_difference, path_fidelity, silhouette_difference
 from ._figures import FIGURES, overview_camera, paper_figures, phantom
 from ._viewer import KEYS, ViewerState, camera_from_pose, run_viewer
 
@@ -50,6 +50,7 @@ __all__ = [
     "write_frames",
     "write_png",
     "DIFF_THRESHOLD",
+    "camera_fidelity",
     "flip_difference",
     "image_difference",
     "path_fidelity",

@@ -115,6 +115,55 @@ def silhouette_difference(renderer, mesh_a, mesh_b, camera: Camera) -> dict:
     return image_difference(*flat_a, *flat_b)
 
 
+def camera_fidelity(renderer, original, mesh, camera: Camera, *, flip: bool = True) -> tuple[dict, tuple]:
+    """One view's image metrics: ``mesh`` (a refinement's geometry) against
+    the ``original`` mesh, both drawn lit and unlit from ``camera``.
+
+    Args:
+        renderer: a :class:`Renderer` of ``camera``'s size.
+        original, mesh: ``(vertices [V, 3], faces [F, 3], normals [V, 3])``
+            each (:func:`original_arrays`, :func:`refined_arrays`).
+        camera: one view.
+        flip: also NVIDIA's FLIP against the original (:func:`flip_difference`).
+
+    Returns:
+        ``(row, (rgb, depth))``: ``row`` holds ``differing_share``, ``psnr``,
+        ``silhouette_share`` (:func:`silhouette_difference`), ``flip_mean`` and
+        ``flip_model_mean`` (with ``flip``), ``render_ms`` (drawing ``mesh``,
+        milliseconds) and the other keys of :func:`image_difference`;
+        ``(rgb, depth)`` is ``mesh``'s lit render. No OpenGL context is left
+        current in the calling thread, so another thread may call next.
+    """
+    v, f, n = mesh
+    ov, of, on = original
+    try:
+        t = time.perf_counter()
+        rgb, depth = renderer.render_mesh(v, f, camera, normals=n)
+        render_ms = 1e3 * (time.perf_counter() - t)
+        reference = renderer.render_mesh(ov, of, camera, normals=on)
+        silhouette = silhouette_difference(renderer, (ov, of), (v, f), camera)["differing_share"]
+    finally:
+        _release_context(renderer)
+    row = image_difference(*reference, rgb, depth)
+    if flip:
+        row.update(flip_difference(*reference, rgb, depth))
+    row.update(render_ms=render_ms, silhouette_share=silhouette)
+    return row, (rgb, depth)
+
+
+def _release_context(renderer) -> None:
+    """Make ``renderer``'s EGL context current in no thread: EGL lets a
+    context be current in one thread at a time, and pyrender leaves it
+    current after drawing, so another thread could not draw with it. (OSMesa
+    rebinds a context to whichever thread draws.)"""
+    platform = getattr(getattr(renderer, "_gl", None), "_platform", None)
+    display = getattr(platform, "_egl_display", None)
+    if display is not None:
+        from OpenGL import EGL
+
+        EGL.eglMakeCurrent(display, EGL.EGL_NO_SURFACE, EGL.EGL_NO_SURFACE, EGL.EGL_NO_CONTEXT)
+
+
 def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Tests = ALL_TESTS,
                   geomorph: int = 0, supersample: int = 2, float_color: bool = True, coherent: bool = True,
                   progress: bool = False, flip: bool = True) -> list[dict]:
@@ -155,21 +204,15 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
     if flip:
         flip_module()  # a missing package is named before any rendering
     first = index_camera(cameras, 0)
-    ov, of, on = original_arrays(pm)
+    original = original_arrays(pm)
     rows, previous = [], None
     with Renderer(int(first.width), int(first.height), supersample, float_color) as r:
         frames = path_geometry(pm, cameras, tau, tests=tests, geomorph=geomorph, coherent=coherent, progress=progress,
                                desc="fidelity")
         for i, (cam, v, f, _, n) in enumerate(frames):
             t = time.perf_counter()
-            rgb, depth = r.render_mesh(v, f, cam, normals=n)
-            render_ms = 1e3 * (time.perf_counter() - t)
-            original = r.render_mesh(ov, of, cam, normals=on)
-            row = image_difference(*original, rgb, depth)
-            if flip:
-                row.update(flip_difference(*original, rgb, depth))
-            row.update(frame=i, faces=int(len(f)), render_ms=render_ms, popping_share=0.0, popping_mse=0.0,
-                       silhouette_share=silhouette_difference(r, (ov, of), (v, f), cam)["differing_share"])
+            row, (rgb, depth) = camera_fidelity(r, original, (v, f, n), cam, flip=flip)
+            row.update(frame=i, faces=int(len(f)), popping_share=0.0, popping_mse=0.0)
             if previous is not None:
                 pv, pf, pn = previous
                 pop = image_difference(*r.render_mesh(pv, pf, cam, normals=pn), rgb, depth)

@@ -48,3 +48,24 @@ def test_workers_in_another_folder(built, tmp_path, monkeypatch):
             client.submit(run_part_on_worker, task, pure=False).result()
         assert str(info.value) == (f"Dask worker {worker}: part part-m0000-c0000-v0000-0000000.parquet of model "
                                    "gone.pmz: FileNotFoundError: [Errno 2] No such file or directory: 'gone.pmz'")
+
+
+@pytest.mark.parametrize("values", [dict(taus=[1.0, 0.5]), dict(budgets=[600])])
+def test_local_cluster_threads_give_the_rows_of_one_process(built, tmp_path, values):
+    """workers=N runs N threads of this process, parts in flight at once on
+    one loaded model: the rows of an in-process run, each kernel warmed up
+    once (compile_ms on one part's first row per kernel at most)."""
+    model = str(tmp_path / "cow.pmz")
+    pmjax.save_pm(built("cow.ply"), model)
+    small = "budgets" in values
+    sets = ["random:12:4"] if small else ["random:200:4", "orbit:96"]
+    job = dict(chunk=4 if small else 32, compile_cache=None, progress=False, **values)
+    columns = ["model", "camera_set", "camera", "path_id", "frame", "budget", "budget_met", "tau", "faces",
+               "vertices", "executed"]
+    here, threads = str(tmp_path / "here"), str(tmp_path / "threads")
+    evaluate([model], sets, here, **job)
+    summary = evaluate([model], sets, threads, workers=2, **job)
+    assert summary.parts_written == len(ds.dataset(here).files)
+    assert ds.dataset(threads).to_table(columns).equals(ds.dataset(here).to_table(columns))
+    # The in-process run warmed every kernel this process needs: the threads compile none.
+    assert ds.dataset(threads).to_table(["compile_ms"]).column(0).to_pylist() == [0.0] * summary.rows
