@@ -26,6 +26,7 @@ byte-planed (byte ``k`` of every element together) before compression.
 from __future__ import annotations
 
 import hashlib
+import math
 import zlib
 from dataclasses import dataclass
 
@@ -97,7 +98,7 @@ def planes(a: np.ndarray) -> bytes:
 def unplanes(raw: memoryview, dtype, shape) -> np.ndarray:
     """Inverse of :func:`planes`."""
     dtype = np.dtype(dtype)
-    n = int(np.prod(shape, dtype=np.int64))
+    n = math.prod(shape)
     b = np.frombuffer(raw, np.uint8, n * dtype.itemsize).reshape(dtype.itemsize, n)
     return np.ascontiguousarray(b.T).view(dtype).reshape(shape)
 
@@ -291,7 +292,7 @@ class _Cursor:
         self.raw, self.at = memoryview(raw), 0
 
     def take(self, dtype, shape) -> np.ndarray:
-        n = int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+        n = math.prod(shape) * np.dtype(dtype).itemsize
         if self.at + n > len(self.raw):
             raise ValueError(f"its arrays need more than its {len(self.raw)} bytes")
         a = unplanes(self.raw[self.at:self.at + n], dtype, shape)
@@ -369,7 +370,8 @@ def read_batch(s: Stream, raw: bytes, b: int, n_faces: int) -> None:
         if bad.any():
             raise ValueError(f"{name} of pcol {lo + int(np.flatnonzero(bad)[0])} is not a vertex made before its batch")
     both = np.concatenate([a, d])
-    if s.seen[both].any() or len(np.unique(both)) != len(both):
+    ordered_ids = np.sort(both)
+    if s.seen[both].any() or np.any(ordered_ids[1:] == ordered_ids[:-1]):
         raise ValueError("a pcol's child is already a vertex of the coarser mesh")
     u = np.arange(V0 + lo, V0 + hi)
     if not s.seen[u].all():
