@@ -104,15 +104,18 @@ def unplanes(raw: memoryview, dtype, shape) -> np.ndarray:
 
 
 def ordered(x: np.ndarray) -> np.ndarray:
-    """float32 -> uint32 order-preserving image (bit-exact, invertible)."""
+    """float32 -> uint32 order-preserving image (bit-exact, invertible): a
+    negative float's bits inverted, a positive one's sign bit set."""
     b = np.ascontiguousarray(x, np.float32).view(np.uint32)
-    return np.where(b >> 31, ~b, b | np.uint32(0x80000000)).astype(np.uint32)
+    mask = (np.uint32(0) - (b >> np.uint32(31))) | np.uint32(0x80000000)
+    return b ^ mask
 
 
 def unordered(u: np.ndarray) -> np.ndarray:
     """Inverse of :func:`ordered`."""
-    u = u.astype(np.uint32)
-    return np.where(u >> 31, u & np.uint32(0x7FFFFFFF), ~u).astype(np.uint32).view(np.float32)
+    u = np.asarray(u, np.uint32)
+    mask = ((u >> np.uint32(31)) - np.uint32(1)) | np.uint32(0x80000000)
+    return (u ^ mask).view(np.float32)
 
 
 def zigzag(d: np.ndarray) -> np.ndarray:
