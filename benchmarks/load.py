@@ -10,8 +10,8 @@ Three loads of each cached hierarchy, medians over repeats:
   is remembered, so the check is skipped).
 
 With ``--format FILE.pmz ...``: the file versions instead, per hierarchy,
-same run: sizes of version 1, version 2 and the source mesh (the header's
-``source``, where it exists); ``pmjax.load`` of each version, alternating,
+same run: sizes of version 1, version 2 and the source mesh (given as
+``FILE.pmz=MESH``); ``pmjax.load`` of each version, alternating,
 medians over repeats, with the structure check skipped (its content known)
 and run (forgotten first); and the coarse-first prefixes: the bytes needed
 for 1 % of the faces, and the faces a prefix of 10 % of the file holds.
@@ -19,7 +19,7 @@ for 1 % of the faces, and the faces a prefix of 10 % of the file holds.
 Usage::
 
     python benchmarks/load.py [--repeats 7] [--models bunny dragon] [--json out.json]
-    python benchmarks/load.py --format dragon.pmz bunny.pmz [--repeats 7] [--json out.json]
+    python benchmarks/load.py --format dragon.pmz=dragon.ply bunny.pmz=bunny.ply [--repeats 7] [--json out.json]
 """
 
 from __future__ import annotations
@@ -49,7 +49,8 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--models", nargs="*", help="model names (default: every cached build)")
     parser.add_argument("--json", help="also write the table as JSON")
-    parser.add_argument("--format", nargs="+", metavar="PMZ", help="compare the file versions of these hierarchies")
+    parser.add_argument("--format", nargs="+", metavar="PMZ[=MESH]",
+                        help="compare the file versions of these hierarchies (and the size of their source meshes)")
     args = parser.parse_args(argv)
     if args.format:
         return formats(args)
@@ -112,7 +113,8 @@ def formats(args) -> int:
     print(f"{'model':10s} {'faces':>8s} {'v1 MB':>7s} {'v2 MB':>7s} {'mesh MB':>8s} {'save s':>7s} "
           f"{'v1 load':>8s} {'v2 load':>8s} {'v1 first':>9s} {'v2 first':>9s} {'1% faces at':>12s} "
           f"{'10% file holds':>15s}")
-    for given in args.format:
+    for item in args.format:
+        given, _, source = item.partition("=")
         pm = pmjax.read_pm(given)
         name = Path(given).stem
         v1, v2 = os.path.join(work, name + "-v1.pmz"), os.path.join(work, name + "-v2.pmz")
@@ -135,8 +137,7 @@ def formats(args) -> int:
         # Prefixes end after the base chunk and after each batch chunk.
         first = next(i for i, f in enumerate(faces) if f >= 0.01 * F)
         within = [i for i in range(len(faces)) if ends[i] <= 0.10 * size]
-        source = pm.header.get("source")
-        mesh = os.path.getsize(source) if isinstance(source, str) and os.path.exists(source) else None
+        mesh = os.path.getsize(source) if source else None
         row = dict(model=name, faces=F, v1_bytes=os.path.getsize(v1), v2_bytes=size, mesh_bytes=mesh, save_s=save,
                    **{k.replace(" ", "_") + "_load_s": v for k, v in med.items()},
                    one_percent_prefix_bytes=ends[first], one_percent_prefix_batches=first,
