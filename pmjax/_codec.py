@@ -360,8 +360,10 @@ def read_base(s: Stream, raw: bytes, R: int, n_faces: int) -> None:
     c.done()
 
 
-def read_batch(s: Stream, raw: bytes, b: int, n_faces: int) -> None:
-    """Decode batch ``b``'s chunk into ``s`` (raises ``ValueError`` on bad content)."""
+def read_batch(s: Stream, raw: bytes, b: int, n_faces: int, pool=None) -> None:
+    """Decode batch ``b``'s chunk into ``s`` (raises ``ValueError`` on bad
+    content); ``pool`` (an executor) finds its killers beside the caller, to
+    be resolved by :func:`killers_of`."""
     V0 = s.V0
     lo, hi = int(s.offsets[b]), int(s.offsets[b + 1])
     n = hi - lo
@@ -402,12 +404,23 @@ def read_batch(s: Stream, raw: bytes, b: int, n_faces: int) -> None:
     c.done()
     if np.any((ranks < 0) | (ranks >= V0)):
         raise ValueError(f"a face corner's rank is outside [0, {V0})")
-    killer = face_killers(ranks, s.start[u], s.count[u], lo)
-    if np.any(killer < 0):
-        raise ValueError(f"face {int(np.flatnonzero(killer < 0)[0])} of the chunk has no two corners under one of "
-                         "its pcols")
     s.face_ranks.append(ranks)
-    s.killers.append(killer)
+    # The killers need only this batch's ranges, which finer chunks leave
+    # alone: with a pool they are found beside the next chunks' decoding.
+    job = (face_killers, ranks, s.start[u], s.count[u], lo)
+    s.killers.append(pool.submit(*job) if pool is not None else job[0](*job[1:]))
+
+
+def killers_of(s: Stream, names: list) -> None:
+    """Resolve the killers found beside the decoding (``names``: each face
+    group's chunk, for messages); a face no pcol of its batch kills raises
+    ``ValueError`` naming its chunk (the base mesh's faces have none)."""
+    for i, killer in enumerate(s.killers):
+        if not isinstance(killer, np.ndarray):
+            killer = s.killers[i] = killer.result()
+        if i and np.any(killer < 0):
+            raise ValueError(f"chunk {names[i]!r}: face {int(np.flatnonzero(killer < 0)[0])} of the chunk has no "
+                             "two corners under one of its batch's pcols")
 
 
 def finish_full(s: Stream, raw: bytes, B: int, F: int, shading: bool) -> dict:
@@ -415,7 +428,8 @@ def finish_full(s: Stream, raw: bytes, B: int, F: int, shading: bool) -> dict:
     the tail (raises ``ValueError`` on bad content)."""
     V0, P = s.V0, s.P
     c = _Cursor(raw)
-    group = c.take(group_dtype(B), (F,)).astype(np.int64)
+    # Kept in its narrow dtype: NumPy's stable sort of small integers is a radix sort.
+    group = c.take(group_dtype(B), (F,))
     residual = c.take(np.uint32, (V0, 3))
     shading_normals = c.take(np.float32, (V0 + P, 3)) if shading else None
     c.done()
@@ -428,11 +442,10 @@ def finish_full(s: Stream, raw: bytes, B: int, F: int, shading: bool) -> dict:
     killer = np.empty(F, np.int32)
     # Groups were read base first, then batches B-1 .. 0.
     sizes = [len(r) for r in s.face_ranks]
-    if np.any((group < 0) | (group > B)) or not np.array_equal(
-            np.bincount(group, minlength=B + 1)[::-1], sizes):
+    if np.any(group > B) or not np.array_equal(np.bincount(group, minlength=B + 1)[::-1], sizes):
         raise ValueError("the faces' groups do not match the chunks' face counts")
     by_group = np.argsort(group, kind="stable")
-    bounds = np.searchsorted(group[by_group], np.arange(B + 2))
+    bounds = np.concatenate([[0], np.cumsum(np.bincount(group, minlength=B + 1))])
     for i, g in enumerate(range(B, -1, -1)):
         sel = by_group[bounds[g]:bounds[g + 1]]
         faces[sel] = orig_of_rank[s.face_ranks[i]]

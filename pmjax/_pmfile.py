@@ -271,31 +271,43 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
     offsets = np.asarray(header["batch_offsets"], np.int64)
     stream = _codec.new_stream(V0, P, offsets)
     at = 12 + length
-    for i, (name, nbytes, raw) in enumerate(layout):
-        if i > k + (1 if batches is None else 0):
-            break
-        payload = fh.read(_codec.SHA_BYTES + nbytes)
-        if len(payload) < _codec.SHA_BYTES + nbytes:
-            end = at + _codec.SHA_BYTES + nbytes
-            held = (f"its base mesh and {i - 1} coarsest batches are whole; pmjax.load(path, batches={i - 1}) "
-                    "reads them") if i else "not even its base mesh is whole"
-            raise PMFormatError(f"{path}: truncated in chunk {name!r} (bytes {at} to {end}; the file ends at byte "
-                                f"{at + len(payload)}): {held}")
-        data = memoryview(payload)[_codec.SHA_BYTES:]
-        where = f"{path}: chunk {name!r} (bytes {at} to {at + len(payload)})"
-        if _codec.chunk_sha(data) != payload[:_codec.SHA_BYTES]:
-            raise PMFormatError(f"{where} fails its SHA-256: the file is damaged")
+    names = [name for name, _, _ in layout]
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        for i, (name, nbytes, raw) in enumerate(layout):
+            if i > k + (1 if batches is None else 0):
+                break
+            payload = fh.read(_codec.SHA_BYTES + nbytes)
+            if len(payload) < _codec.SHA_BYTES + nbytes:
+                end = at + _codec.SHA_BYTES + nbytes
+                held = (f"its base mesh and {i - 1} coarsest batches are whole; pmjax.load(path, batches={i - 1}) "
+                        "reads them") if i else "not even its base mesh is whole"
+                raise PMFormatError(f"{path}: truncated in chunk {name!r} (bytes {at} to {end}; the file ends at byte "
+                                    f"{at + len(payload)}): {held}")
+            data = memoryview(payload)[_codec.SHA_BYTES:]
+            where = f"{path}: chunk {name!r} (bytes {at} to {at + len(payload)})"
+            if _codec.chunk_sha(data) != payload[:_codec.SHA_BYTES]:
+                raise PMFormatError(f"{where} fails its SHA-256: the file is damaged")
+            try:
+                raw_bytes = _codec.decompress(data, header["codec"], raw)
+                if i == 0:
+                    _codec.read_base(stream, raw_bytes, header["roots"], header["group_faces"][0])
+                elif i <= B:
+                    _codec.read_batch(stream, raw_bytes, B - i, header["group_faces"][i], pool)
+            except ValueError as exc:
+                raise PMFormatError(f"{where} is damaged: {exc}") from exc
+            if i == B + 1:
+                tail = (where, raw_bytes)
+            at += len(payload)
         try:
-            raw_bytes = _codec.decompress(data, header["codec"], raw)
-            if i == 0:
-                _codec.read_base(stream, raw_bytes, header["roots"], header["group_faces"][0])
-            elif i <= B:
-                _codec.read_batch(stream, raw_bytes, B - i, header["group_faces"][i])
-            else:
-                arrays = _codec.finish_full(stream, raw_bytes, B, F, bool(header["shading_normals"]))
+            _codec.killers_of(stream, names)
+        except ValueError as exc:
+            raise PMFormatError(f"{path}: {exc}; the file is damaged") from exc
+    if batches is None:
+        where, raw_bytes = tail
+        try:
+            arrays = _codec.finish_full(stream, raw_bytes, B, F, bool(header["shading_normals"]))
         except ValueError as exc:
             raise PMFormatError(f"{where} is damaged: {exc}") from exc
-        at += len(payload)
     if batches is not None:
         return _prefix_pm(_codec.finish_prefix(stream, k), header, k, B, path)
     for name, shape in shapes.items():
