@@ -19,7 +19,8 @@ pcol (the leaves under ``v1``).
 Every transform is exact: floats are stored as their bits, positions as the
 difference of order-preserving integer images from the parent's (a child lies
 near its parent), the original vertices' normals as the difference from the
-area-weighted normals recomputed from the faces, and each chunk's arrays
+area-weighted normals recomputed from the faces, the shading normals as the
+difference from the normals, and each chunk's arrays
 byte-planed (byte ``k`` of every element together) before compression.
 """
 
@@ -260,7 +261,9 @@ def encode(pm: PMData, codec: str) -> tuple[dict, list[tuple[str, bytes, int]]]:
     tail = [group.astype(group_dtype(B)),
             float_residual(pm.normals[:V0], area_normals(pm.vertices[:V0], pm.faces, V0))]
     if pm.shading_normals is not None:
-        tail.append(pm.shading_normals)
+        # An original vertex's shading normal is its area-weighted normal, a
+        # created one's is near its cone axis: residuals against the normals.
+        tail.append(float_residual(pm.shading_normals, pm.normals))
     add("tail", tail)
     fields = dict(roots=int(len(roots)), batch_offsets=[int(o) for o in off], group_faces=[int(bounds[g + 1] - bounds[g]) for g in range(B, -1, -1)],
                   shading_normals=pm.shading_normals is not None, codec=codec)
@@ -432,7 +435,7 @@ def finish_full(s: Stream, raw: bytes, B: int, F: int, shading: bool) -> dict:
     # Kept in its narrow dtype: NumPy's stable sort of small integers is a radix sort.
     group = c.take(group_dtype(B), (F,))
     residual = c.take(np.uint32, (V0, 3))
-    shading_normals = c.take(np.float32, (V0 + P, 3)) if shading else None
+    shading = c.take(np.uint32, (V0 + P, 3)) if shading else None
     c.done()
     # Rank -> original vertex id: each original vertex appeared exactly once.
     orig_of_rank = np.full(V0, -1, np.int64)
@@ -453,6 +456,7 @@ def finish_full(s: Stream, raw: bytes, B: int, F: int, shading: bool) -> dict:
         killer[sel] = s.killers[i]
     normals = s.normals
     normals[:V0] = float_from_residual(residual, area_normals(s.vertices[:V0], faces, V0))
+    shading_normals = None if shading is None else float_from_residual(shading, normals)
     return dict(vertices=s.vertices, normals=normals, faces=faces, v1=s.v1, v2=s.v2, radius=s.radius,
                 alpha=s.alpha, delta=s.delta, mu=s.mu, cost=s.cost, metric=s.metric,
                 batch_offsets=np.asarray(s.offsets, np.int64), killer=killer, shading_normals=shading_normals)
