@@ -140,7 +140,9 @@ def read_pm(path, *, batches: int | None = None) -> PMData:
             batches (``0 .. B``): the result is the progressive mesh whose
             original mesh is the full one's mesh after its other batches ran
             (``pmjax lod --batch B-1-batches``). A version 2 file is read
-            only that far; ``None`` reads everything.
+            only that far (``B``: every batch chunk, not the tail: the
+            faces in the order read, no shading normals); ``None`` reads
+            everything.
 
     Raises:
         PMFormatError: naming the file and what is wrong (magic, version, a
@@ -220,14 +222,24 @@ def read_arrays(path, *, batches: int | None = None) -> tuple[PMData, str]:
     pm, fingerprint = _read_v1(path, source)
     if batches is None:
         return pm, fingerprint
-    _check_batches(source, batches, pm.n_batches)
+    kills = np.bincount(np.searchsorted(pm.batch_offsets, pm.killer[pm.killer >= 0], side="right") - 1,
+                        minlength=pm.n_batches)
+    _check_batches(source, batches, pm.n_batches, [int((pm.killer < 0).sum()), *kills[::-1]])
     data = _codec.finish_prefix(_codec.stream_of(pm, int(batches)), int(batches))
     return _prefix_pm(data, pm.header, int(batches), pm.n_batches, source)
 
 
-def _check_batches(source: str, batches: int, B: int) -> None:
+def _check_batches(source: str, batches: int, B: int, group_faces) -> None:
+    """``batches`` within ``0 .. B`` and giving a mesh with faces
+    (``group_faces``: the base mesh's faces, then each batch's kills, coarse
+    first)."""
     if batches > B:
         raise PMFormatError(f"{source}: batches={batches}, but the file has {B} batches")
+    total = np.cumsum(group_faces)
+    if total[batches] == 0:
+        first = int(np.argmax(total > 0))
+        raise PMFormatError(f"{source}: batches={batches} gives a mesh with no faces (the base mesh has none); "
+                            f"batches={first} is the first prefix with faces")
 
 
 def _prefix_pm(arrays: dict, header: dict, k: int, B: int, source: str) -> tuple[PMData, str]:
@@ -267,7 +279,7 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
     V0, F, P, B = c["V0"], c["F"], c["P"], c["B"]
     layout = _v2_layout(header, path, V0, F, P, B)
     k = B if batches is None else int(batches)
-    _check_batches(path, k, B)
+    _check_batches(path, k, B, header["group_faces"])
     offsets = np.asarray(header["batch_offsets"], np.int64)
     stream = _codec.new_stream(V0, P, offsets)
     at = 12 + length

@@ -93,8 +93,8 @@ def test_every_batch_boundary_gives_the_lod_there(cow):
     B = pm.n_batches
     for k in range(B + 1):
         prefix = read_pm(path, batches=k)  # validated and structure-checked
-        assert prefix.n_batches == k and prefix.header["prefix"] == dict(batches=k, of=B,
-                                                                         full_counts=prefix.header["prefix"]["full_counts"])
+        full = dict(V0=pm.n_original_vertices, F=len(pm.faces), P=pm.n_pcols, B=B)
+        assert prefix.n_batches == k and prefix.header["prefix"] == dict(batches=k, of=B, full_counts=full)
         lo = int(pm.batch_offsets[B - k])
         # Its pcols are the full hierarchy's last k batches, attributes bit for bit.
         for name in ("radius", "alpha", "delta", "mu", "cost", "metric"):
@@ -196,3 +196,23 @@ def test_bad_arguments():
         save_pm(None, "x.pmz", version=3)
     with pytest.raises(ValueError, match="batches must be a whole number >= 0"):
         read_pm(V1_FIXTURE, batches=-1)
+
+
+def test_a_prefix_without_faces_is_refused_with_the_first_that_has_some(tmp_path):
+    # A hierarchy whose base mesh has no faces: a terrain collapses to nothing.
+    from pmjax.builders import build_pm
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float64)
+    f = np.array([[0, 1, 2], [1, 3, 2]])
+    pm = build_pm(v, f)
+    assert (pm.killer >= 0).all()
+    path = tmp_path / "square.pmz"
+    save_pm(pm, path)
+    total = np.cumsum([0, *np.bincount(np.searchsorted(pm.batch_offsets, pm.killer, side="right") - 1,
+                                       minlength=pm.n_batches)[::-1]])
+    first = int(np.argmax(total > 0))
+    for source in (path, io.BytesIO(path.read_bytes())):
+        with pytest.raises(PMFormatError, match=rf"batches=0 gives a mesh with no faces \(the base mesh has none\); "
+                                                rf"batches={first} is the first prefix with faces"):
+            read_pm(source, batches=0)
+    assert read_pm(path, batches=first).n_batches == first
