@@ -143,16 +143,18 @@ def float_from_residual(r: np.ndarray, prediction: np.ndarray) -> np.ndarray:
 def area_normals(vertices: np.ndarray, faces: np.ndarray, n: int) -> np.ndarray:
     """``float32[n, 3]`` unit area-weighted vertex normals (zero without
     area), summed in float64 in face order as the builder sums them."""
-    pos = vertices.astype(np.float64)
-    if len(faces):
-        tri = pos[faces]
-        a, b = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-        cross = np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                          a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
-        corner = faces.reshape(-1)
-        total = np.stack([np.bincount(corner, np.repeat(cross[:, k], 3), minlength=n) for k in range(3)], axis=1)
-    else:
-        total = np.zeros((n, 3))
+    x, y, z = (vertices[:, k].astype(np.float64) for k in range(3))
+    f0, f1, f2 = faces[:, 0], faces[:, 1], faces[:, 2]
+    ax, ay, az = x[f1] - x[f0], y[f1] - y[f0], z[f1] - z[f0]
+    bx, by, bz = x[f2] - x[f0], y[f2] - y[f0], z[f2] - z[f0]
+    corner = faces.reshape(-1)
+    total = np.empty((n, 3))
+    for k, cross in enumerate((ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx)):
+        # Each face's cross product once per corner, in corner order: every
+        # vertex sums its faces in face order.
+        weights = np.empty((len(faces), 3))
+        weights[:] = cross[:, None]
+        total[:, k] = np.bincount(corner, weights.reshape(-1), minlength=n)
     length = np.sqrt(total[:, 0] * total[:, 0] + total[:, 1] * total[:, 1] + total[:, 2] * total[:, 2])
     return (total / np.where(length > 0, length, 1.0)[:, None]).astype(np.float32)
 
