@@ -26,8 +26,11 @@ byte-planed (byte ``k`` of every element together) before compression.
 
 from __future__ import annotations
 
+import ctypes
 import hashlib
+import importlib.util
 import math
+import os
 import zlib
 from dataclasses import dataclass
 
@@ -42,6 +45,44 @@ ZSTD_LEVEL = 12
 ZLIB_LEVEL = 6
 # Each chunk starts with the SHA-256 of its compressed bytes.
 SHA_BYTES = 32
+
+
+_p = ctypes.c_void_p
+_i64 = ctypes.c_int64
+
+
+def _load_native():
+    """The decoder's C loops (``pmjax/_pmz_native.c``) as a ctypes library,
+    or ``None`` where the extension is not built or ``PMJAX_NATIVE=0`` is set
+    (the NumPy steps then run: the same arrays, bit for bit)."""
+    if os.environ.get("PMJAX_NATIVE", "1") == "0":
+        return None
+    spec = importlib.util.find_spec("pmjax._pmz_native")
+    if spec is None or not spec.origin:
+        return None
+    lib = ctypes.CDLL(spec.origin)
+    lib.pmz_unplane.restype = None
+    lib.pmz_unplane.argtypes = [_p, _i64, _i64, _p]
+    lib.pmz_float_from_residual.restype = None
+    lib.pmz_float_from_residual.argtypes = [_i64, _p, _p, _p]
+    lib.pmz_read_batch.restype = _i64
+    lib.pmz_read_batch.argtypes = [_p, _i64, _i64, _i64, _i64, _i64] + [_p] * 17
+    lib.pmz_place_faces.restype = None
+    lib.pmz_place_faces.argtypes = [_i64, _i64, _p, _i64, _p, _p, _p, _p, _p, _p]
+    lib.pmz_area_normals.restype = None
+    lib.pmz_area_normals.argtypes = [_i64, _p, _p, _i64, _p, _p]
+    return lib
+
+
+# ctypes releases the GIL during each call: a second thread decompresses the
+# next chunk meanwhile.
+native = _load_native()
+
+
+def _ptr(a) -> int:
+    """Address of a C-contiguous array's first element (``a.ctypes.data``);
+    the caller keeps ``a`` referenced until the C call returns."""
+    return a.ctypes.data
 
 
 def zstd_available() -> bool:
@@ -101,8 +142,12 @@ def unplanes(raw: memoryview, dtype, shape) -> np.ndarray:
     """Inverse of :func:`planes`."""
     dtype = np.dtype(dtype)
     n = math.prod(shape)
-    b = np.frombuffer(raw, np.uint8, n * dtype.itemsize).reshape(dtype.itemsize, n)
-    return np.ascontiguousarray(b.T).view(dtype).reshape(shape)
+    b = np.frombuffer(raw, np.uint8, n * dtype.itemsize)
+    if native is not None:
+        out = np.empty(shape, dtype)
+        native.pmz_unplane(_ptr(b), n, dtype.itemsize, _ptr(out))
+        return out
+    return np.ascontiguousarray(b.reshape(dtype.itemsize, n).T).view(dtype).reshape(shape)
 
 
 def ordered(x: np.ndarray) -> np.ndarray:
@@ -137,12 +182,24 @@ def float_residual(x: np.ndarray, prediction: np.ndarray) -> np.ndarray:
 
 
 def float_from_residual(r: np.ndarray, prediction: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`float_residual`: float32 of ``r``'s shape."""
+    if native is not None and r.dtype == np.uint32 and prediction.dtype == np.float32 and r.shape == prediction.shape:
+        r, prediction = np.ascontiguousarray(r), np.ascontiguousarray(prediction)
+        out = np.empty(r.shape, np.float32)
+        native.pmz_float_from_residual(r.size, _ptr(r), _ptr(prediction), _ptr(out))
+        return out
     return unordered(unzigzag(r) + ordered(prediction))
 
 
 def area_normals(vertices: np.ndarray, faces: np.ndarray, n: int) -> np.ndarray:
     """``float32[n, 3]`` unit area-weighted vertex normals (zero without
     area), summed in float64 in face order as the builder sums them."""
+    if (native is not None and vertices.dtype == np.float32 and faces.dtype == np.int32 and len(vertices) >= n
+            and (not faces.size or (faces.min() >= 0 and faces.max() < n))):
+        vertices, faces = np.ascontiguousarray(vertices), np.ascontiguousarray(faces)
+        out, total = np.empty((n, 3), np.float32), np.empty((n, 3))
+        native.pmz_area_normals(len(faces), _ptr(faces), _ptr(vertices), n, _ptr(total), _ptr(out))
+        return out
     x, y, z = (vertices[:, k].astype(np.float64) for k in range(3))
     f0, f1, f2 = faces[:, 0], faces[:, 1], faces[:, 2]
     ax, ay, az = x[f1] - x[f0], y[f1] - y[f0], z[f1] - z[f0]
@@ -335,6 +392,7 @@ class Stream:
     metric: np.ndarray
     face_ranks: list  # per group read, coarse first: int64[n, 3]
     killers: list  # per group read: int32[n]
+    owner: np.ndarray | None = None  # int32[V0]: the C decoder's rank -> pcol stamps
 
 
 def new_stream(V0: int, P: int, offsets: np.ndarray) -> Stream:
@@ -361,9 +419,12 @@ def read_base(s: Stream, raw: bytes, R: int, n_faces: int) -> None:
     s.vertices[roots] = unordered(c.take(np.uint32, (R, 3)))
     created = roots[roots >= s.V0]
     s.normals[created] = c.take(np.float32, (len(created), 3))
-    s.face_ranks.append(ranks_decode(c.take(np.uint32, (n_faces, 3))))
-    s.killers.append(np.full(n_faces, -1, np.int32))
+    ranks = ranks_decode(c.take(np.uint32, (n_faces, 3)))
     c.done()
+    if np.any((ranks < 0) | (ranks >= s.V0)):
+        raise ValueError(f"a face corner's rank is outside [0, {s.V0})")
+    s.face_ranks.append(ranks)
+    s.killers.append(np.full(n_faces, -1, np.int32))
 
 
 def read_batch(s: Stream, raw: bytes, b: int, n_faces: int, pool=None) -> None:
@@ -373,6 +434,9 @@ def read_batch(s: Stream, raw: bytes, b: int, n_faces: int, pool=None) -> None:
     V0 = s.V0
     lo, hi = int(s.offsets[b]), int(s.offsets[b + 1])
     n = hi - lo
+    if native is not None:
+        _read_batch_native(s, raw, lo, hi, n_faces)
+        return
     c = _Cursor(raw)
     a, d = c.take(np.int32, (n,)), c.take(np.int32, (n,))
     c1 = c.take(np.int32, (n,)).astype(np.int64)
@@ -417,6 +481,40 @@ def read_batch(s: Stream, raw: bytes, b: int, n_faces: int, pool=None) -> None:
     s.killers.append(pool.submit(*job) if pool is not None else job[0](*job[1:]))
 
 
+# pmz_read_batch's outcomes (pmjax/_pmz_native.c), worded as read_batch words them.
+_NATIVE_ERRORS = {
+    2: "v1 of pcol {} is not a vertex made before its batch",
+    3: "v2 of pcol {} is not a vertex made before its batch",
+    4: "a pcol's child is already a vertex of the coarser mesh",
+    5: "a pcol splits a vertex the coarser chunks did not make",
+    6: "a pcol's leaf counts do not split its vertex's",
+    7: "{} bytes are left over after its arrays",
+}
+
+
+def _read_batch_native(s: Stream, raw, lo: int, hi: int, n_faces: int) -> None:
+    """:func:`read_batch` in one C pass: the same checks in the same order,
+    the same state and arrays."""
+    V0 = s.V0
+    buf = np.frombuffer(raw, np.uint8)
+    ranks = np.empty((n_faces, 3), np.int64)
+    killer = np.empty(n_faces, np.int32)
+    info = np.zeros(1, np.int64)
+    if s.owner is None:
+        s.owner = np.full(V0, -1, np.int32)
+    arrays = (s.seen, s.count, s.start, s.vertices, s.normals, s.v1, s.v2, s.radius, s.alpha, s.delta, s.mu,
+              s.cost, s.metric, ranks, killer, s.owner, info)
+    code = native.pmz_read_batch(_ptr(buf), len(buf), V0, lo, hi, n_faces, *(_ptr(a) for a in arrays))
+    if code == 1:
+        raise ValueError(f"its arrays need more than its {len(buf)} bytes")
+    if code == 8:
+        raise ValueError(f"a face corner's rank is outside [0, {V0})")
+    if code:
+        raise ValueError(_NATIVE_ERRORS[code].format(int(info[0])))
+    s.face_ranks.append(ranks)
+    s.killers.append(killer)
+
+
 def killers_of(s: Stream, names: list) -> None:
     """Resolve the killers found beside the decoding (``names``: each face
     group's chunk, for messages); a face no pcol of its batch kills raises
@@ -450,12 +548,22 @@ def finish_full(s: Stream, raw: bytes, B: int, F: int, shading: bool) -> dict:
     sizes = [len(r) for r in s.face_ranks]
     if np.any(group > B) or not np.array_equal(np.bincount(group, minlength=B + 1)[::-1], sizes):
         raise ValueError("the faces' groups do not match the chunks' face counts")
-    by_group = np.argsort(group, kind="stable")
-    bounds = np.concatenate([[0], np.cumsum(np.bincount(group, minlength=B + 1))])
-    for i, g in enumerate(range(B, -1, -1)):
-        sel = by_group[bounds[g]:bounds[g + 1]]
-        faces[sel] = orig_of_rank[s.face_ranks[i]]
-        killer[sel] = s.killers[i]
+    if native is not None:
+        # One pass in face order: each face is the next of its group.
+        ranks = [np.ascontiguousarray(r, np.int64) for r in s.face_ranks]
+        kills = [np.ascontiguousarray(k, np.int32) for k in s.killers]
+        rank_ptrs = (ctypes.c_void_p * len(ranks))(*(_ptr(r) for r in ranks))
+        kill_ptrs = (ctypes.c_void_p * len(kills))(*(_ptr(k) for k in kills))
+        cursor = np.empty(B + 1, np.int64)
+        native.pmz_place_faces(F, B, _ptr(group), group.dtype.itemsize, rank_ptrs, kill_ptrs, _ptr(orig_of_rank),
+                               _ptr(cursor), _ptr(faces), _ptr(killer))
+    else:
+        by_group = np.argsort(group, kind="stable")
+        bounds = np.concatenate([[0], np.cumsum(np.bincount(group, minlength=B + 1))])
+        for i, g in enumerate(range(B, -1, -1)):
+            sel = by_group[bounds[g]:bounds[g + 1]]
+            faces[sel] = orig_of_rank[s.face_ranks[i]]
+            killer[sel] = s.killers[i]
     normals = s.normals
     normals[:V0] = float_from_residual(residual, area_normals(s.vertices[:V0], faces, V0))
     shading_normals = None if shading is None else float_from_residual(shading, normals)

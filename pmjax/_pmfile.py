@@ -284,32 +284,57 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
     stream = _codec.new_stream(V0, P, offsets)
     at = 12 + length
     names = [name for name, _, _ in layout]
-    with ThreadPoolExecutor(max_workers=1) as pool:
+    codec = header["codec"]
+    tail = None
+
+    def expand(where: str, payload: bytes, raw: int):
+        # On the pool's thread: hashlib and the decompressors release the GIL.
+        data = memoryview(payload)[_codec.SHA_BYTES:]
+        if _codec.chunk_sha(data) != payload[:_codec.SHA_BYTES]:
+            raise PMFormatError(f"{where} fails its SHA-256: the file is damaged")
+        try:
+            return _codec.decompress(data, codec, raw)
+        except ValueError as exc:
+            raise PMFormatError(f"{where} is damaged: {exc}") from exc
+
+    def decode(i: int, where: str, job) -> None:
+        nonlocal tail
+        raw_bytes = job.result()
+        try:
+            if i == 0:
+                _codec.read_base(stream, raw_bytes, header["roots"], header["group_faces"][0])
+            elif i <= B:
+                _codec.read_batch(stream, raw_bytes, B - i, header["group_faces"][i], pool)
+        except ValueError as exc:
+            raise PMFormatError(f"{where} is damaged: {exc}") from exc
+        if i == B + 1:
+            tail = (where, raw_bytes)
+
+    # Chunk i+1 is read and expanded on the pool while chunk i is decoded;
+    # every failure is still raised in file order (chunk i's before chunk
+    # i+1's truncation).
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        pending = None
         for i, (name, nbytes, raw) in enumerate(layout):
             if i > k + (1 if batches is None else 0):
                 break
             payload = fh.read(_codec.SHA_BYTES + nbytes)
             if len(payload) < _codec.SHA_BYTES + nbytes:
+                if pending is not None:
+                    decode(*pending)
                 end = at + _codec.SHA_BYTES + nbytes
                 held = (f"its base mesh and {i - 1} coarsest batches are whole; pmjax.load(path, batches={i - 1}) "
                         "reads them") if i else "not even its base mesh is whole"
                 raise PMFormatError(f"{path}: truncated in chunk {name!r} (bytes {at} to {end}; the file ends at byte "
                                     f"{at + len(payload)}): {held}")
-            data = memoryview(payload)[_codec.SHA_BYTES:]
             where = f"{path}: chunk {name!r} (bytes {at} to {at + len(payload)})"
-            if _codec.chunk_sha(data) != payload[:_codec.SHA_BYTES]:
-                raise PMFormatError(f"{where} fails its SHA-256: the file is damaged")
-            try:
-                raw_bytes = _codec.decompress(data, header["codec"], raw)
-                if i == 0:
-                    _codec.read_base(stream, raw_bytes, header["roots"], header["group_faces"][0])
-                elif i <= B:
-                    _codec.read_batch(stream, raw_bytes, B - i, header["group_faces"][i], pool)
-            except ValueError as exc:
-                raise PMFormatError(f"{where} is damaged: {exc}") from exc
-            if i == B + 1:
-                tail = (where, raw_bytes)
+            job = (i, where, pool.submit(expand, where, payload, raw))
+            if pending is not None:
+                decode(*pending)
+            pending = job
             at += len(payload)
+        if pending is not None:
+            decode(*pending)
         try:
             _codec.killers_of(stream, names)
         except ValueError as exc:
