@@ -390,7 +390,7 @@ class Stream:
     mu: np.ndarray
     cost: np.ndarray
     metric: np.ndarray
-    face_ranks: list  # per group read, coarse first: int64[n, 3]
+    face_ranks: list  # per group read, coarse first: [n, 3] (int32 or int64)
     killers: list  # per group read: int32[n]
     owner: np.ndarray | None = None  # int32[V0]: the C decoder's rank -> pcol stamps
 
@@ -497,7 +497,7 @@ def _read_batch_native(s: Stream, raw, lo: int, hi: int, n_faces: int) -> None:
     the same state and arrays."""
     V0 = s.V0
     buf = np.frombuffer(raw, np.uint8)
-    ranks = np.empty((n_faces, 3), np.int64)
+    ranks = np.empty((n_faces, 3), np.int32)
     killer = np.empty(n_faces, np.int32)
     info = np.zeros(1, np.int64)
     if s.owner is None:
@@ -550,7 +550,7 @@ def finish_full(s: Stream, raw: bytes, B: int, F: int, shading: bool) -> dict:
         raise ValueError("the faces' groups do not match the chunks' face counts")
     if native is not None:
         # One pass in face order: each face is the next of its group.
-        ranks = [np.ascontiguousarray(r, np.int64) for r in s.face_ranks]
+        ranks = [np.ascontiguousarray(r, np.int32) for r in s.face_ranks]
         kills = [np.ascontiguousarray(k, np.int32) for k in s.killers]
         rank_ptrs = (ctypes.c_void_p * len(ranks))(*(_ptr(r) for r in ranks))
         kill_ptrs = (ctypes.c_void_p * len(kills))(*(_ptr(k) for k in kills))

@@ -78,13 +78,13 @@ void pmz_float_from_residual(int64_t n, const uint32_t *residual, const float *p
 /* Batch chunk of pcols lo .. hi-1 (ids V0+lo .. V0+hi-1) into the reader's
  * state (_codec.read_batch): seen uint8[V], count and start int64[V],
  * vertices and normals float32[V, 3], v1 .. metric at [lo, hi), and this
- * batch's face ranks int64[n_faces, 3] and killers int32[n_faces];
+ * batch's face ranks int32[n_faces, 3] and killers int32[n_faces];
  * owner int32[V0] is scratch kept across the batches of a read (no entry
  * in [lo, hi) before the call). */
 int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, int64_t hi, int64_t n_faces,
                        uint8_t *seen, int64_t *count, int64_t *start, float *vertices, float *normals, int32_t *v1,
                        int32_t *v2, float *radius, float *alpha, float *delta, float *mu, double *cost,
-                       uint8_t *metric, int64_t *ranks, int32_t *killer, int32_t *owner, int64_t *info) {
+                       uint8_t *metric, int32_t *ranks, int32_t *killer, int32_t *owner, int64_t *info) {
     const int64_t n = hi - lo, first = V0 + lo;
     int32_t *a = v1 + lo, *d = v2 + lo;
     /* The children and the count under v1, then the checks on them before
@@ -161,16 +161,17 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
         }
         at += 12 * m;
     }
-    /* Face code -> corner ranks, each within [0, V0). */
+    /* Face code -> corner ranks, each within [0, V0) (so int32). */
     int64_t r0 = 0;
     for (int64_t f = 0; f < n_faces; f++) {
         r0 += (int32_t)unzigzag(get32(at, 3 * n_faces, 3 * f));
-        ranks[3 * f] = r0;
-        ranks[3 * f + 1] = r0 + (int32_t)unzigzag(get32(at, 3 * n_faces, 3 * f + 1));
-        ranks[3 * f + 2] = r0 + (int32_t)unzigzag(get32(at, 3 * n_faces, 3 * f + 2));
+        int64_t r1 = r0 + (int32_t)unzigzag(get32(at, 3 * n_faces, 3 * f + 1));
+        int64_t r2 = r0 + (int32_t)unzigzag(get32(at, 3 * n_faces, 3 * f + 2));
+        if (r0 < 0 || r0 >= V0 || r1 < 0 || r1 >= V0 || r2 < 0 || r2 >= V0) return BAD_RANK;
+        ranks[3 * f] = (int32_t)r0;
+        ranks[3 * f + 1] = (int32_t)r1;
+        ranks[3 * f + 2] = (int32_t)r2;
     }
-    for (int64_t c = 0; c < 3 * n_faces; c++)
-        if (ranks[c] < 0 || ranks[c] >= V0) return BAD_RANK;
     /* Killers: per corner the pcol whose range holds it (the batch's ranges
      * are disjoint: each rank of a range is stamped with its pcol, and an
      * entry of another batch is no pcol of this one), then the pcol holding
@@ -194,7 +195,7 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
  * face of its group (groups read base first, then batches B-1 .. 0), its
  * corners the original vertices at its ranks. The groups' sizes were
  * checked against the chunks'. */
-void pmz_place_faces(int64_t F, int64_t B, const void *group, int64_t group_size, const int64_t *const *ranks,
+void pmz_place_faces(int64_t F, int64_t B, const void *group, int64_t group_size, const int32_t *const *ranks,
                      const int32_t *const *killers, const int64_t *orig_of_rank, int64_t *cursor, int32_t *faces,
                      int32_t *killer) {
     memset(cursor, 0, (size_t)(B + 1) * sizeof(int64_t));
@@ -203,7 +204,7 @@ void pmz_place_faces(int64_t F, int64_t B, const void *group, int64_t group_size
                     : group_size == 2 ? ((const uint16_t *)group)[f]
                                       : ((const uint32_t *)group)[f];
         int64_t i = B - g, j = cursor[i]++;
-        const int64_t *r = ranks[i] + 3 * j;
+        const int32_t *r = ranks[i] + 3 * j;
         faces[3 * f] = (int32_t)orig_of_rank[r[0]];
         faces[3 * f + 1] = (int32_t)orig_of_rank[r[1]];
         faces[3 * f + 2] = (int32_t)orig_of_rank[r[2]];
