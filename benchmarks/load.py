@@ -13,7 +13,8 @@ With ``--format FILE.pmz ...``: the file versions instead, per hierarchy,
 same run: sizes of version 1, version 2 and the source mesh (given as
 ``FILE.pmz=MESH``); ``pmjax.load`` of each version, alternating,
 medians over repeats, with the structure check skipped (its content known)
-and run (forgotten first); and the coarse-first prefixes: the bytes needed
+and run (forgotten first), and version 2 decoded by the NumPy steps instead of
+the C loops (structure known); and the coarse-first prefixes: the bytes needed
 for 1 % of the faces, and the faces a prefix of 10 % of the file holds.
 
 Usage::
@@ -39,6 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, median_time, write_json  # noqa: E402
 
 import pmjax  # noqa: E402
+from pmjax import _codec  # noqa: E402
 from pmjax._model import ProgressiveMesh  # noqa: E402
 
 CACHE = Path(__file__).resolve().parent / ".cache"
@@ -111,7 +113,7 @@ def formats(args) -> int:
     work = tempfile.mkdtemp(prefix="pmjax-format-")
     rows = []
     print(f"{'model':10s} {'faces':>8s} {'v1 MB':>7s} {'v2 MB':>7s} {'mesh MB':>8s} {'save s':>7s} "
-          f"{'v1 load':>8s} {'v2 load':>8s} {'v1 first':>9s} {'v2 first':>9s} {'1% faces at':>12s} "
+          f"{'v1 load':>8s} {'v2 load':>8s} {'v2 NumPy':>9s} {'v1 first':>9s} {'v2 first':>9s} {'1% faces at':>12s} "
           f"{'10% file holds':>15s}")
     for item in args.format:
         given, _, source = item.partition("=")
@@ -123,10 +125,16 @@ def formats(args) -> int:
         pmjax.save_pm(pm, v2)
         save = time.perf_counter() - t
         pmjax.load(v1)  # JAX start-up and first-call costs outside the timings
-        times = {"v1": [], "v2": [], "v1 first": [], "v2 first": []}
-        for _ in range(args.repeats):  # alternating, so a slow phase of the machine hits both
+        times = {"v1": [], "v2": [], "v2 numpy": [], "v1 first": [], "v2 first": []}
+        for _ in range(args.repeats):  # alternating, so a slow phase of the machine hits each
             for key, path in (("v1", v1), ("v2", v2)):
                 times[key].append(median_time(lambda: pmjax.load(path), 1)[0])
+            # Version 2 decoded by the NumPy steps (where the C loops are not built).
+            native, _codec.native = _codec.native, None
+            try:
+                times["v2 numpy"].append(median_time(lambda: pmjax.load(v2), 1)[0])
+            finally:
+                _codec.native = native
             for key, path in (("v1 first", v1), ("v2 first", v2)):
                 shutil.rmtree(record, ignore_errors=True)
                 times[key].append(median_time(lambda: pmjax.load(path), 1)[0])
@@ -147,7 +155,7 @@ def formats(args) -> int:
         rows.append(row)
         mb = lambda b: f"{b / 1e6:7.2f}" if b else "      -"
         print(f"{name:10s} {F:8d} {mb(row['v1_bytes'])} {mb(size)} {mb(mesh):>8s} {save:7.2f} "
-              f"{med['v1']:8.3f} {med['v2']:8.3f} {med['v1 first']:9.3f} {med['v2 first']:9.3f} "
+              f"{med['v1']:8.3f} {med['v2']:8.3f} {med['v2 numpy']:9.3f} {med['v1 first']:9.3f} {med['v2 first']:9.3f} "
               f"{ends[first] / size:11.1%} {row['ten_percent_prefix_faces'] / F:14.1%}")
     shutil.rmtree(record, ignore_errors=True)
     shutil.rmtree(work, ignore_errors=True)
