@@ -393,6 +393,7 @@ class Stream:
     face_ranks: list  # per group read, coarse first: [n, 3] (int32 or int64)
     killers: list  # per group read: int32[n]
     owner: np.ndarray | None = None  # int32[V0]: the C decoder's rank -> pcol stamps
+    pointers: tuple | None = None  # the C decoder's addresses of the arrays above (fixed for a read)
 
 
 def new_stream(V0: int, P: int, offsets: np.ndarray) -> Stream:
@@ -500,11 +501,12 @@ def _read_batch_native(s: Stream, raw, lo: int, hi: int, n_faces: int) -> None:
     ranks = np.empty((n_faces, 3), np.int32)
     killer = np.empty(n_faces, np.int32)
     info = np.zeros(1, np.int64)
-    if s.owner is None:
+    if s.pointers is None:
         s.owner = np.full(V0, -1, np.int32)
-    arrays = (s.seen, s.count, s.start, s.vertices, s.normals, s.v1, s.v2, s.radius, s.alpha, s.delta, s.mu,
-              s.cost, s.metric, ranks, killer, s.owner, info)
-    code = native.pmz_read_batch(_ptr(buf), len(buf), V0, lo, hi, n_faces, *(_ptr(a) for a in arrays))
+        s.pointers = tuple(_ptr(a) for a in (s.seen, s.count, s.start, s.vertices, s.normals, s.v1, s.v2, s.radius,
+                                             s.alpha, s.delta, s.mu, s.cost, s.metric))
+    code = native.pmz_read_batch(_ptr(buf), len(buf), V0, lo, hi, n_faces, *s.pointers, _ptr(ranks), _ptr(killer),
+                                 _ptr(s.owner), _ptr(info))
     if code == 1:
         raise ValueError(f"its arrays need more than its {len(buf)} bytes")
     if code == 8:

@@ -18,7 +18,7 @@ import json
 import math
 import os
 import zipfile
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -39,6 +39,10 @@ LAYOUT_FIELDS = ("array_sha256", "chunks", "roots", "group_faces", "codec", "sha
 HEADER_LIMIT = 1 << 20
 # Largest .npy header read, bytes (numpy writes 128, and refuses over 10000).
 NPY_HEADER_LIMIT = 10000
+
+# Smallest compressed chunk that version 2's reader expands on a second
+# thread: a smaller one costs less to expand than to hand over.
+PIPELINE_BYTES = 1 << 16
 
 # Largest distance from 1 of a stored shading normal's length: float32
 # rounding of a normalized vector is below 1e-6.
@@ -256,6 +260,17 @@ def _prefix_pm(arrays: dict, header: dict, k: int, B: int, source: str) -> tuple
     return pm, content_fingerprint(digests)
 
 
+def _done(fn, *args) -> Future:
+    """``fn(*args)`` run now, as a finished future (its result or exception
+    delivered when asked, like a pool's)."""
+    future = Future()
+    try:
+        future.set_result(fn(*args))
+    except BaseException as exc:  # delivered by result(), in file order
+        future.set_exception(exc)
+    return future
+
+
 def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
     """Version 2 after its magic bytes: the header, then the chunks the read
     needs, each checked (SHA-256, size, content) before it is used."""
@@ -310,10 +325,11 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
         if i == B + 1:
             tail = (where, raw_bytes)
 
-    # Chunk i+1 is read and expanded on the pool while chunk i is decoded;
-    # every failure is still raised in file order (chunk i's before chunk
-    # i+1's truncation).
-    with ThreadPoolExecutor(max_workers=2) as pool:
+    # Chunk i+1 is read and expanded (on the pool when it is large) while
+    # chunk i is decoded; every failure is still raised in file order (chunk
+    # i's before chunk i+1's truncation).
+    # One pool for expanding and for hashing: its threads start once.
+    with ThreadPoolExecutor(max_workers=max(2, os.cpu_count() or 1)) as pool:
         pending = None
         for i, (name, nbytes, raw) in enumerate(layout):
             if i > k + (1 if batches is None else 0):
@@ -328,7 +344,8 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
                 raise PMFormatError(f"{path}: truncated in chunk {name!r} (bytes {at} to {end}; the file ends at byte "
                                     f"{at + len(payload)}): {held}")
             where = f"{path}: chunk {name!r} (bytes {at} to {at + len(payload)})"
-            job = (i, where, pool.submit(expand, where, payload, raw))
+            job = (i, where, pool.submit(expand, where, payload, raw) if nbytes >= PIPELINE_BYTES
+                   else _done(expand, where, payload, raw))
             if pending is not None:
                 decode(*pending)
             pending = job
@@ -339,27 +356,26 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
             _codec.killers_of(stream, names)
         except ValueError as exc:
             raise PMFormatError(f"{path}: {exc}; the file is damaged") from exc
-    if batches is None:
-        where, raw_bytes = tail
-        try:
-            arrays = _codec.finish_full(stream, raw_bytes, B, F, bool(header["shading_normals"]))
-        except ValueError as exc:
-            raise PMFormatError(f"{where} is damaged: {exc}") from exc
-    if batches is not None:
-        return _prefix_pm(_codec.finish_prefix(stream, k), header, k, B, path)
-    for name, shape in shapes.items():
-        if arrays.get(name) is not None and arrays[name].shape != shape:
-            raise PMFormatError(f"{path}: array {name!r} decodes to shape {arrays[name].shape}, expected {shape}")
-    sums = header["array_sha256"]
-    present = {name: a for name, a in arrays.items() if a is not None}
-    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        if batches is None:
+            where, raw_bytes = tail
+            try:
+                arrays = _codec.finish_full(stream, raw_bytes, B, F, bool(header["shading_normals"]))
+            except ValueError as exc:
+                raise PMFormatError(f"{where} is damaged: {exc}") from exc
+        if batches is not None:
+            return _prefix_pm(_codec.finish_prefix(stream, k), header, k, B, path)
+        for name, shape in shapes.items():
+            if arrays.get(name) is not None and arrays[name].shape != shape:
+                raise PMFormatError(f"{path}: array {name!r} decodes to shape {arrays[name].shape}, expected {shape}")
+        sums = header["array_sha256"]
+        present = {name: a for name, a in arrays.items() if a is not None}
         digests = dict(zip(present, pool.map(_sha256, present.values())))
-    for name, digest in digests.items():
-        if digest != sums.get(name):
-            raise PMFormatError(f"{path}: checksum mismatch in array {name!r}")
-    for name in sums:
-        if name not in digests:
-            raise PMFormatError(f"{path}: array {name!r} is missing (the header has its checksum)")
+        for name, digest in digests.items():
+            if digest != sums.get(name):
+                raise PMFormatError(f"{path}: checksum mismatch in array {name!r}")
+        for name in sums:
+            if name not in digests:
+                raise PMFormatError(f"{path}: array {name!r} is missing (the header has its checksum)")
     meta = {key: v for key, v in header.items() if key not in LAYOUT_FIELDS}
     pm = PMData(**arrays, header=meta)
     validate_pm(pm, source=path)

@@ -72,7 +72,8 @@ static float bits_float(uint32_t u) {
 
 /* _codec.float_from_residual: n float32 from uint32 residuals against predictions. */
 void pmz_float_from_residual(int64_t n, const uint32_t *residual, const float *prediction, float *out) {
-    for (int64_t i = 0; i < n; i++) out[i] = bits_float(unordered(unzigzag(residual[i]) + ordered(float_bits(prediction[i]))));
+    for (int64_t i = 0; i < n; i++)
+        out[i] = bits_float(unordered(unzigzag(residual[i]) + ordered(float_bits(prediction[i]))));
 }
 
 /* Batch chunk of pcols lo .. hi-1 (ids V0+lo .. V0+hi-1) into the reader's
