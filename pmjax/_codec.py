@@ -430,7 +430,8 @@ def read_base(s: Stream, raw: bytes, R: int, n_faces: int) -> None:
 
 def read_batch(s: Stream, raw: bytes, b: int, n_faces: int, pool=None) -> None:
     """Decode batch ``b``'s chunk into ``s`` (raises ``ValueError`` on bad
-    content); ``pool`` (an executor) finds its killers beside the caller, to
+    content), by the C loops where they are built; otherwise by NumPy steps,
+    and then ``pool`` (an executor) finds its killers beside the caller, to
     be resolved by :func:`killers_of`."""
     V0 = s.V0
     lo, hi = int(s.offsets[b]), int(s.offsets[b + 1])
