@@ -436,7 +436,10 @@ def read_batch(s: Stream, raw: bytes, b: int, n_faces: int, pool=None) -> None:
     V0 = s.V0
     lo, hi = int(s.offsets[b]), int(s.offsets[b + 1])
     n = hi - lo
-    if native is not None:
+    # The C loops need the arrays' room for the face counts the header gives;
+    # a chunk without it fails either way, and the NumPy steps name the
+    # failure without allocating for those counts.
+    if native is not None and len(raw) >= 61 * n + 12 * n_faces:
         _read_batch_native(s, raw, lo, hi, n_faces)
         return
     c = _Cursor(raw)

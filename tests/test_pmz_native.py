@@ -176,6 +176,8 @@ def damage_cases(pm):
         (B - b, lambda r: put32(r, 8 * n, n, 0, 0), "a pcol's leaf counts do not split its vertex's"),
         (B, lambda r: r + b"\0\0\0\0", "4 bytes are left over after its arrays"),
         (B - b, lambda r: r[:-1], "its arrays need more than its"),
+        (B - b, lambda r: r[:12 * n + 5], "its arrays need more than its"),
+        (B - b, lambda r: put32(r[:12 * n + 5], 0, n, 1, late), f"v1 of pcol {lo + 1} is not a vertex made before"),
         (B - b, lambda r: put32(r, faces_at, n, 0, 2 * V0 + 6), "a face corner's rank is outside"),
         (B - b, far_corners(faces_at, V0), "has no two corners under one of its batch's pcols"),
     ]
