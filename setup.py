@@ -1,14 +1,15 @@
-"""Build of the compiled parts: the front engine's C core (as XLA FFI targets)
-and the builder's C loops.
+"""Build of the compiled parts: the front engine's C core (as XLA FFI targets),
+the builder's C loops and the .pmz version 2 decoder's loops.
 
-Everything else is in pyproject.toml. Both extensions are optional: where they
+Everything else is in pyproject.toml. All three are optional: where they
 cannot be compiled (no C compiler), pmjax installs without them, refinement
-runs on the dense engine (and the front engine as JAX kernels), and the
-builder chooses its batches with NumPy (the same hierarchies, slower).
+runs on the dense engine (and the front engine as JAX kernels), the
+builder chooses its batches with NumPy (the same hierarchies, slower) and
+the .pmz reader decodes with NumPy (the same arrays, slower).
 ``pmjax info --engines`` says which are active; CI sets PMJAX_REQUIRE_CORE=1,
 under which a missing core fails the tests.
 
-PMJAX_SANITIZE=address,undefined builds both with those sanitizers
+PMJAX_SANITIZE=address,undefined builds all three with those sanitizers
 (docs/front.md: how to run the tests under them).
 """
 
@@ -80,6 +81,15 @@ def main():
                 "pmjax.builders._build_native",
                 sources=["builders/_build_native.c"],
                 extra_compile_args=["-O3", "-std=c99", "-ffp-contract=off"] + SANITIZE_FLAGS,
+                extra_link_args=SANITIZE_FLAGS,
+                optional=True,
+            ),
+            # The .pmz version 2 decoder (pmjax/_pmz_native.c): the NumPy
+            # reader's arithmetic in its order, so no contraction either.
+            Extension(
+                "pmjax._pmz_native",
+                sources=["pmjax/_pmz_native.c"],
+                extra_compile_args=["-O3", "-std=c99", "-ffp-contract=off", "-Wall"] + SANITIZE_FLAGS,
                 extra_link_args=SANITIZE_FLAGS,
                 optional=True,
             ),

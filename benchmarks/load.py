@@ -9,9 +9,18 @@ Three loads of each cached hierarchy, medians over repeats:
 - ``repeat``: ``pmjax.load`` of content that passed before (its fingerprint
   is remembered, so the check is skipped).
 
+With ``--format FILE.pmz ...``: the file versions instead, per hierarchy,
+same run: sizes of version 1, version 2 and the source mesh (given as
+``FILE.pmz=MESH``); ``pmjax.load`` of each version, alternating,
+medians over repeats, with the structure check skipped (its content known)
+and run (forgotten first), and version 2 decoded by the NumPy steps instead of
+the C loops (structure known); and the coarse-first prefixes: the bytes needed
+for 1 % of the faces, and the faces a prefix of 10 % of the file holds.
+
 Usage::
 
     python benchmarks/load.py [--repeats 7] [--models bunny dragon] [--json out.json]
+    python benchmarks/load.py --format dragon.pmz=dragon.ply bunny.pmz=bunny.ply [--repeats 7] [--json out.json]
 """
 
 from __future__ import annotations
@@ -21,13 +30,17 @@ import os
 import shutil
 import sys
 import tempfile
+import time
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import machine, median_time, write_json  # noqa: E402
 
 import pmjax  # noqa: E402
+from pmjax import _codec  # noqa: E402
 from pmjax._model import ProgressiveMesh  # noqa: E402
 
 CACHE = Path(__file__).resolve().parent / ".cache"
@@ -38,7 +51,11 @@ def main(argv=None) -> int:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--models", nargs="*", help="model names (default: every cached build)")
     parser.add_argument("--json", help="also write the table as JSON")
+    parser.add_argument("--format", nargs="+", metavar="PMZ[=MESH]",
+                        help="compare the file versions of these hierarchies (and the size of their source meshes)")
     args = parser.parse_args(argv)
+    if args.format:
+        return formats(args)
     paths = sorted(p for p in CACHE.glob("*.pmz") if not args.models or p.name.split("-")[0] in args.models)
     if not paths:
         print(f"no cached builds in {CACHE}: run benchmarks/refine.py first", file=sys.stderr)
@@ -68,6 +85,80 @@ def main(argv=None) -> int:
         print(f"{row['model']:18s} {row['faces']:9d} {row['pcols']:8d} {row['unchecked_ms']:13.1f} "
               f"{row['first_ms']:9.1f} {row['first_added']:+7.0%} {row['repeat_ms']:10.1f} {row['repeat_added']:+7.0%}")
     shutil.rmtree(record, ignore_errors=True)
+    if args.json:
+        write_json(args.json, dict(machine=machine(), repeats=args.repeats, rows=rows))
+    return 0
+
+
+def chunk_ends(path) -> tuple[list[int], list[int]]:
+    """Byte offset where each chunk of a version 2 file ends, and the faces
+    the hierarchy read up to there holds (its original mesh's)."""
+    import json
+
+    with open(path, "rb") as fh:
+        fh.read(8)
+        length = int.from_bytes(fh.read(4), "little")
+        header = json.loads(fh.read(length))
+    at, ends = 12 + length, []
+    for _, size, _ in header["chunks"]:
+        at += 32 + size
+        ends.append(at)
+    return ends, list(np.cumsum(header["group_faces"]))
+
+
+def formats(args) -> int:
+    print(machine())
+    record = tempfile.mkdtemp(prefix="pmjax-known-")
+    os.environ["PMJAX_KNOWN_STRUCTURES"] = record
+    work = tempfile.mkdtemp(prefix="pmjax-format-")
+    rows = []
+    print(f"{'model':10s} {'faces':>8s} {'v1 MB':>7s} {'v2 MB':>7s} {'mesh MB':>8s} {'save s':>7s} "
+          f"{'v1 load':>8s} {'v2 load':>8s} {'v2 NumPy':>9s} {'v1 first':>9s} {'v2 first':>9s} {'1% faces at':>12s} "
+          f"{'10% file holds':>15s}")
+    for item in args.format:
+        given, _, source = item.partition("=")
+        pm = pmjax.read_pm(given)
+        name = Path(given).stem
+        v1, v2 = os.path.join(work, name + "-v1.pmz"), os.path.join(work, name + "-v2.pmz")
+        pmjax.save_pm(pm, v1, version=1)
+        t = time.perf_counter()
+        pmjax.save_pm(pm, v2)
+        save = time.perf_counter() - t
+        pmjax.load(v1)  # JAX start-up and first-call costs outside the timings
+        times = {"v1": [], "v2": [], "v2 numpy": [], "v1 first": [], "v2 first": []}
+        for _ in range(args.repeats):  # alternating, so a slow phase of the machine hits each
+            for key, path in (("v1", v1), ("v2", v2)):
+                times[key].append(median_time(lambda: pmjax.load(path), 1)[0])
+            # Version 2 decoded by the NumPy steps (where the C loops are not built).
+            native, _codec.native = _codec.native, None
+            try:
+                times["v2 numpy"].append(median_time(lambda: pmjax.load(v2), 1)[0])
+            finally:
+                _codec.native = native
+            for key, path in (("v1 first", v1), ("v2 first", v2)):
+                shutil.rmtree(record, ignore_errors=True)
+                times[key].append(median_time(lambda: pmjax.load(path), 1)[0])
+        med = {k: float(np.median(v)) for k, v in times.items()}
+        ends, faces = chunk_ends(v2)
+        F = len(pm.faces)
+        size = os.path.getsize(v2)
+        # Prefixes end after the base chunk and after each batch chunk.
+        first = next(i for i, f in enumerate(faces) if f >= 0.01 * F)
+        within = [i for i in range(len(faces)) if ends[i] <= 0.10 * size]
+        mesh = os.path.getsize(source) if source else None
+        row = dict(model=name, faces=F, v1_bytes=os.path.getsize(v1), v2_bytes=size, mesh_bytes=mesh, save_s=save,
+                   **{k.replace(" ", "_") + "_load_s": v for k, v in med.items()},
+                   one_percent_prefix_bytes=ends[first], one_percent_prefix_batches=first,
+                   one_percent_prefix_faces=int(faces[first]),
+                   ten_percent_prefix_faces=int(faces[within[-1]]) if within else 0,
+                   ten_percent_prefix_batches=within[-1] if within else None)
+        rows.append(row)
+        mb = lambda b: f"{b / 1e6:7.2f}" if b else "      -"
+        print(f"{name:10s} {F:8d} {mb(row['v1_bytes'])} {mb(size)} {mb(mesh):>8s} {save:7.2f} "
+              f"{med['v1']:8.3f} {med['v2']:8.3f} {med['v2 numpy']:9.3f} {med['v1 first']:9.3f} {med['v2 first']:9.3f} "
+              f"{ends[first] / size:11.1%} {row['ten_percent_prefix_faces'] / F:14.1%}")
+    shutil.rmtree(record, ignore_errors=True)
+    shutil.rmtree(work, ignore_errors=True)
     if args.json:
         write_json(args.json, dict(machine=machine(), repeats=args.repeats, rows=rows))
     return 0

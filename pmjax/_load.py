@@ -15,17 +15,22 @@ from ._units import host_lengths_in_model_units, unit_exponent
 from .engines._tables import derived
 
 
-def load(path: str | os.PathLike) -> ProgressiveMesh:
+def load(path, *, batches: int | None = None) -> ProgressiveMesh:
     """Read, validate and move a ``.pmz`` file to the JAX device.
+
+    Args:
+        path: a ``.pmz`` file, or a binary file object reading one.
+        batches: read only the base mesh and the ``batches`` coarsest batches
+            (a version 2 file is read only that far); see :func:`pmjax.read_pm`.
 
     Raises:
         PMFormatError: see :func:`pmjax.read_pm`.
     """
-    data, fingerprint = read_arrays(path)
+    data, fingerprint = read_arrays(path, batches=batches)
     pm = ProgressiveMesh.from_data(data)
     if structure_known(fingerprint):
         return pm
-    source = os.fspath(path)
+    source = str(getattr(path, "name", "<stream>")) if hasattr(path, "read") else os.fspath(path)
     # The structure check runs beside the subtree bounds (both mostly NumPy,
     # which releases the GIL), and the attributes' nesting inside the bounds'
     # pass, which gathers the same parent-child pairs; the bounds are then

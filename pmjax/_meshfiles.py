@@ -142,6 +142,8 @@ def _sniff_format(head: bytes, size: int) -> tuple[str, str]:
         return "glb", "binary"
     if head.startswith(b"PK\x03\x04"):
         return ("pmz" if b"header.json" in head[:200] else "zip"), "binary"
+    if head.startswith(b"\x89PMZ\r\n\x1a\n"):  # a version 2 .pmz
+        return "pmz", "binary"
     # A text file's bytes 80-84 read as a count of 0x20202020 or more, so
     # only a binary STL of that size (27 GB) could be mistaken.
     if size >= 84 and 84 + 50 * int.from_bytes(head[80:84], "little") == size:

@@ -1,10 +1,13 @@
 """The ``.pmz`` progressive-mesh file: flat arrays plus a JSON header.
 
-A ``.pmz`` is a zip archive (numpy's ``.npz`` layout) holding one ``.npy`` per
-array and ``header.json``. The header carries a magic string, a format version,
-the counts, the build parameters, a SHA-256 of the source mesh and a SHA-256 of
-every array (in :data:`ARRAY_SPECS` order), so truncation or tampering is caught
-on load. See ``docs/format.md``.
+Version 2 (written by :func:`save_pm`) is a JSON header followed by
+compressed chunks ordered coarse to fine (:mod:`pmjax._codec`), so a prefix
+that ends at a batch boundary is a valid progressive mesh. Version 1 (still
+read, and written with ``version=1``) is a zip archive (numpy's ``.npz``
+layout) holding one ``.npy`` per array and ``header.json``. Both headers carry
+a magic string, a format version, the counts, the build parameters, a SHA-256
+of the source mesh and a SHA-256 of every array (in :data:`ARRAY_SPECS`
+order), so truncation or tampering is caught on load. See ``docs/format.md``.
 """
 
 from __future__ import annotations
@@ -15,22 +18,31 @@ import json
 import math
 import os
 import zipfile
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
 
+from . import _codec
 from ._atomic import atomic_path
 from ._pmdata import ARRAY_SPECS, METRICS, OPTIONAL_ARRAY_SPECS, PMData, PMFormatError  # noqa: F401 (re-exported)
 from ._structure import check_structure, remember_structure, structure_known
 
 MAGIC = "pmjax.progressive-mesh"
-VERSION = 1
+# The version save_pm writes; read_pm reads every version in VERSIONS.
+VERSION = 2
+VERSIONS = (1, 2)
+# Header fields that describe one file's layout, not the hierarchy.
+LAYOUT_FIELDS = ("array_sha256", "chunks", "roots", "group_faces", "codec", "shading_normals", "batch_offsets")
 # Largest header.json read, bytes: it holds counts, build parameters and
 # checksums (a few KiB), so a larger one is damaged or forged.
 HEADER_LIMIT = 1 << 20
 # Largest .npy header read, bytes (numpy writes 128, and refuses over 10000).
 NPY_HEADER_LIMIT = 10000
+
+# Smallest compressed chunk that version 2's reader expands on a second
+# thread: a smaller one costs less to expand than to hand over.
+PIPELINE_BYTES = 1 << 16
 
 # Largest distance from 1 of a stored shading normal's length: float32
 # rounding of a normalized vector is below 1e-6.
@@ -42,21 +54,35 @@ def _sha256(a: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(a).ravel().view(np.uint8)).hexdigest()
 
 
-def save_pm(pm: PMData, path: str | os.PathLike) -> None:
+def save_pm(pm: PMData, path: str | os.PathLike, *, version: int = VERSION, codec: str | None = None) -> None:
     """Write ``pm`` to ``path`` atomically (temporary file, then rename).
 
     The arrays are first checked with :func:`validate_pm` and
     :func:`pmjax.check_structure`, so an inconsistent progressive mesh is
     never written.
+
+    Args:
+        pm: the progressive mesh (host arrays).
+        path: the ``.pmz`` file to write.
+        version: 2 (compressed, coarse to fine) or 1 (the uncompressed zip
+            that pmjax before version 2 reads).
+        codec: version 2's compression, ``"zstd"`` (the default when the
+            zstandard package is installed) or ``"zlib"``.
     """
     path = os.fspath(path)
+    if version not in VERSIONS:
+        raise ValueError(f"save_pm: version must be one of {VERSIONS}, got {version!r}")
+    if codec is None:
+        codec = "zstd" if _codec.zstd_available() else "zlib"
+    if codec not in ("zstd", "zlib"):
+        raise ValueError(f"save_pm: codec must be 'zstd' or 'zlib', got {codec!r}")
     validate_pm(pm, source=path)
     check_structure(pm, source=path)
     sums = {name: _sha256(a) for name, a in pm.arrays().items()}
-    header = dict(pm.header)
+    header = {k: v for k, v in pm.header.items() if k not in LAYOUT_FIELDS}
     header.update(
         magic=MAGIC,
-        version=VERSION,
+        version=version,
         counts=dict(
             V0=pm.n_original_vertices,
             F=int(len(pm.faces)),
@@ -67,16 +93,33 @@ def save_pm(pm: PMData, path: str | os.PathLike) -> None:
     )
     with atomic_path(path, ".pmz") as tmp:
         with open(tmp, "wb") as fh:
-            with zipfile.ZipFile(fh, "w", compression=zipfile.ZIP_STORED) as zf:
-                zf.writestr("header.json", json.dumps(header, indent=1, sort_keys=True))
-                for name, a in pm.arrays().items():
-                    buf = io.BytesIO()
-                    np.save(buf, np.ascontiguousarray(a), allow_pickle=False)
-                    zf.writestr(name + ".npy", buf.getvalue())
+            if version == 1:
+                _write_v1(fh, header, pm)
+            else:
+                fields, chunks = _codec.encode(pm, codec)
+                header.update(fields, chunks=[[name, len(data), raw] for name, data, raw in chunks])
+                text = json.dumps(header, indent=1, sort_keys=True).encode()
+                if len(text) > HEADER_LIMIT:
+                    raise PMFormatError(f"{path}: the header would take {len(text)} bytes, more than the "
+                                        f"{HEADER_LIMIT} a reader accepts ({pm.n_batches} batches)")
+                fh.write(_codec.MAGIC2 + len(text).to_bytes(4, "little") + text)
+                for _, data, _ in chunks:
+                    fh.write(_codec.chunk_sha(data))
+                    fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
     # Checked above: a later load of these bytes need not check again.
     remember_structure(content_fingerprint(sums))
+
+
+def _write_v1(fh, header: dict, pm: PMData) -> None:
+    """Version 1: an uncompressed zip of ``header.json`` and one ``.npy`` per array."""
+    with zipfile.ZipFile(fh, "w", compression=zipfile.ZIP_STORED) as zf:
+        zf.writestr("header.json", json.dumps(header, indent=1, sort_keys=True))
+        for name, a in pm.arrays().items():
+            buf = io.BytesIO()
+            np.save(buf, np.ascontiguousarray(a), allow_pickle=False)
+            zf.writestr(name + ".npy", buf.getvalue())
 
 
 def file_sha256(path) -> str:
@@ -89,22 +132,38 @@ def file_sha256(path) -> str:
     return h.hexdigest()
 
 
-def read_pm(path: str | os.PathLike) -> PMData:
+def read_pm(path, *, batches: int | None = None) -> PMData:
     """Read and fully validate a ``.pmz`` file, its structure included
     (:func:`pmjax.check_structure`), unless content with the same array
     checksums passed that check before on this machine
     (:func:`pmjax.structure_known`).
 
+    Args:
+        path: a ``.pmz`` file, or a binary file object reading one.
+        batches: read only the base mesh and the ``batches`` coarsest
+            batches (``0 .. B``): the result is the progressive mesh whose
+            original mesh is the full one's mesh after its other batches ran
+            (``pmjax lod --batch B-1-batches``). A version 2 file is read
+            only that far (``B``: every batch chunk, not the tail: the
+            faces in the order read, no shading normals); ``None`` reads
+            everything.
+
     Raises:
         PMFormatError: naming the file and what is wrong (magic, version, a
-            missing array, a dtype or shape, an index range, a checksum, the
-            structure).
+            missing array, a dtype or shape, an index range, a checksum, a
+            truncated or damaged chunk, the structure).
     """
-    pm, fingerprint = read_arrays(path)
+    pm, fingerprint = read_arrays(path, batches=batches)
     if not structure_known(fingerprint):
-        check_structure(pm, source=os.fspath(path))
+        check_structure(pm, source=_source_name(path))
         remember_structure(fingerprint)
     return pm
+
+
+def _source_name(path) -> str:
+    if hasattr(path, "read"):
+        return str(getattr(path, "name", "<stream>"))
+    return os.fspath(path)
 
 
 # Mesh formats recognised by their extension or first bytes, to say what a
@@ -126,47 +185,275 @@ def _mesh_kind(path: str) -> str:
     return _MESH_EXTENSIONS.get(os.path.splitext(path)[1].lower(), "")
 
 
-def read_arrays(path: str | os.PathLike) -> tuple[PMData, str]:
+def read_arrays(path, *, batches: int | None = None) -> tuple[PMData, str]:
     """Read a ``.pmz`` file with every check but the structure check.
 
-    Nothing is read beyond what the header's counts allow: every array's
-    ``.npy`` header (dtype, shape) is read first and checked against the
-    counts, and each zip entry's declared size against its ``.npy`` header,
-    before any array data is read; data is then read with that bound, so an
-    entry that expands past its declared size (a zip bomb) is not expanded.
+    Nothing is read beyond what the header's counts allow. Version 2: each
+    chunk's SHA-256 is checked before it is expanded, and it expands to at
+    most the size its header entry gives; a file that ends inside a chunk
+    the read needs is refused, naming the chunk and how many batches its
+    whole chunks hold. Version 1: every array's ``.npy`` header (dtype,
+    shape) is read first and checked against the counts, and each zip
+    entry's declared size against its ``.npy`` header, before any array data
+    is read; data is then read with that bound, so an entry that expands past
+    its declared size (a zip bomb) is not expanded.
+
+    Args:
+        path: a ``.pmz`` file, or a binary file object reading one.
+        batches: as :func:`read_pm`.
 
     Returns:
         ``(pm, fingerprint)``: the fingerprint is a SHA-256 over the arrays'
         checksums, verified against the bytes read, so it names the content.
     """
-    path = os.fspath(path)
-    if not os.path.exists(path):
-        raise PMFormatError(f"{path}: no such file")
+    if batches is not None and (isinstance(batches, bool) or not isinstance(batches, (int, np.integer))
+                                or batches < 0):
+        raise ValueError(f"read_arrays: batches must be a whole number >= 0 or None, got {batches!r}")
+    if hasattr(path, "read"):
+        source = _source_name(path)
+        head = path.read(len(_codec.MAGIC2))
+        if head == _codec.MAGIC2:
+            return _read_v2(path, source, batches)
+        path = io.BytesIO(head + path.read())
+    else:
+        path = os.fspath(path)
+        source = path
+        if not os.path.exists(path):
+            raise PMFormatError(f"{path}: no such file")
+        with open(path, "rb") as fh:
+            if fh.read(len(_codec.MAGIC2)) == _codec.MAGIC2:
+                return _read_v2(fh, source, batches)
+    pm, fingerprint = _read_v1(path, source)
+    if batches is None:
+        return pm, fingerprint
+    kills = np.bincount(np.searchsorted(pm.batch_offsets, pm.killer[pm.killer >= 0], side="right") - 1,
+                        minlength=pm.n_batches)
+    _check_batches(source, batches, pm.n_batches, [int((pm.killer < 0).sum()), *kills[::-1]])
+    data = _codec.finish_prefix(_codec.stream_of(pm, int(batches)), int(batches))
+    return _prefix_pm(data, pm.header, int(batches), pm.n_batches, source)
+
+
+def _check_batches(source: str, batches: int, B: int, group_faces) -> None:
+    """``batches`` within ``0 .. B`` and giving a mesh with faces
+    (``group_faces``: the base mesh's faces, then each batch's kills, coarse
+    first)."""
+    if batches > B:
+        raise PMFormatError(f"{source}: batches={batches}, but the file has {B} batches")
+    total = np.cumsum(group_faces)
+    if total[batches] == 0:
+        first = int(np.argmax(total > 0))
+        raise PMFormatError(f"{source}: batches={batches} gives a mesh with no faces (the base mesh has none); "
+                            f"batches={first} is the first prefix with faces")
+
+
+def _prefix_pm(arrays: dict, header: dict, k: int, B: int, source: str) -> tuple[PMData, str]:
+    """A progressive mesh of the ``k`` coarsest batches, validated, and its
+    content fingerprint."""
+    meta = {key: v for key, v in header.items() if key not in LAYOUT_FIELDS}
+    V0 = len(arrays["vertices"]) - len(arrays["v1"])
+    meta.update(counts=dict(V0=V0, F=len(arrays["faces"]), P=len(arrays["v1"]), B=k),
+                prefix=dict(batches=k, of=B, full_counts=header.get("counts")))
+    pm = PMData(**arrays, header=meta)
+    validate_pm(pm, source=source)
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        digests = dict(zip(pm.arrays(), pool.map(_sha256, pm.arrays().values())))
+    return pm, content_fingerprint(digests)
+
+
+def _done(fn, *args) -> Future:
+    """``fn(*args)`` run now, as a finished future (its result or exception
+    delivered when asked, like a pool's)."""
+    future = Future()
+    try:
+        future.set_result(fn(*args))
+    except BaseException as exc:  # delivered by result(), in file order
+        future.set_exception(exc)
+    return future
+
+
+def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
+    """Version 2 after its magic bytes: the header, then the chunks the read
+    needs, each checked (SHA-256, size, content) before it is used."""
+    size = fh.read(4)
+    length = int.from_bytes(size, "little")
+    if len(size) < 4:
+        raise PMFormatError(f"{path}: truncated in its header (the file ends after {8 + len(size)} bytes)")
+    if length > HEADER_LIMIT:
+        raise PMFormatError(f"{path}: header declares {length} bytes, more than the {HEADER_LIMIT} a header can "
+                            "need; the file is damaged or forged")
+    text = fh.read(length)
+    if len(text) < length:
+        raise PMFormatError(f"{path}: truncated in its header ({len(text)} of {length} bytes)")
+    try:
+        header = json.loads(text)
+    except Exception as exc:
+        raise PMFormatError(f"{path}: header is unreadable ({type(exc).__name__}: {exc})") from exc
+    _check_header(header, path, 2)
+    shapes, counts = _expected_shapes(path, header.get("counts"))
+    c = header["counts"]
+    V0, F, P, B = c["V0"], c["F"], c["P"], c["B"]
+    layout = _v2_layout(header, path, V0, F, P, B)
+    k = B if batches is None else int(batches)
+    _check_batches(path, k, B, header["group_faces"])
+    offsets = np.asarray(header["batch_offsets"], np.int64)
+    stream = _codec.new_stream(V0, P, offsets)
+    at = 12 + length
+    names = [name for name, _, _ in layout]
+    codec = header["codec"]
+    tail = None
+
+    def expand(where: str, payload: bytes, raw: int):
+        # On the pool's thread: hashlib and the decompressors release the GIL.
+        data = memoryview(payload)[_codec.SHA_BYTES:]
+        if _codec.chunk_sha(data) != payload[:_codec.SHA_BYTES]:
+            raise PMFormatError(f"{where} fails its SHA-256: the file is damaged")
+        try:
+            return _codec.decompress(data, codec, raw)
+        except ValueError as exc:
+            raise PMFormatError(f"{where} is damaged: {exc}") from exc
+
+    def decode(i: int, where: str, job) -> None:
+        nonlocal tail
+        raw_bytes = job.result()
+        try:
+            if i == 0:
+                _codec.read_base(stream, raw_bytes, header["roots"], header["group_faces"][0])
+            elif i <= B:
+                _codec.read_batch(stream, raw_bytes, B - i, header["group_faces"][i], pool)
+        except ValueError as exc:
+            raise PMFormatError(f"{where} is damaged: {exc}") from exc
+        if i == B + 1:
+            tail = (where, raw_bytes)
+
+    # Chunk i+1 is read and expanded (on the pool when it is large) while
+    # chunk i is decoded; every failure is still raised in file order (chunk
+    # i's before chunk i+1's truncation).
+    # One pool for expanding and for hashing: its threads start once.
+    with ThreadPoolExecutor(max_workers=max(2, os.cpu_count() or 1)) as pool:
+        pending = None
+        for i, (name, nbytes, raw) in enumerate(layout):
+            if i > k + (1 if batches is None else 0):
+                break
+            payload = fh.read(_codec.SHA_BYTES + nbytes)
+            if len(payload) < _codec.SHA_BYTES + nbytes:
+                if pending is not None:
+                    decode(*pending)
+                end = at + _codec.SHA_BYTES + nbytes
+                held = (f"its base mesh and {i - 1} coarsest batches are whole; pmjax.load(path, batches={i - 1}) "
+                        "reads them") if i else "not even its base mesh is whole"
+                raise PMFormatError(f"{path}: truncated in chunk {name!r} (bytes {at} to {end}; the file ends at byte "
+                                    f"{at + len(payload)}): {held}")
+            where = f"{path}: chunk {name!r} (bytes {at} to {at + len(payload)})"
+            job = (i, where, pool.submit(expand, where, payload, raw) if nbytes >= PIPELINE_BYTES
+                   else _done(expand, where, payload, raw))
+            if pending is not None:
+                decode(*pending)
+            pending = job
+            at += len(payload)
+        if pending is not None:
+            decode(*pending)
+        try:
+            _codec.killers_of(stream, names)
+        except ValueError as exc:
+            raise PMFormatError(f"{path}: {exc}; the file is damaged") from exc
+        if batches is None:
+            where, raw_bytes = tail
+            try:
+                arrays = _codec.finish_full(stream, raw_bytes, B, F, bool(header["shading_normals"]))
+            except ValueError as exc:
+                raise PMFormatError(f"{where} is damaged: {exc}") from exc
+        if batches is not None:
+            return _prefix_pm(_codec.finish_prefix(stream, k), header, k, B, path)
+        for name, shape in shapes.items():
+            if arrays.get(name) is not None and arrays[name].shape != shape:
+                raise PMFormatError(f"{path}: array {name!r} decodes to shape {arrays[name].shape}, expected {shape}")
+        sums = header["array_sha256"]
+        present = {name: a for name, a in arrays.items() if a is not None}
+        digests = dict(zip(present, pool.map(_sha256, present.values())))
+        for name, digest in digests.items():
+            if digest != sums.get(name):
+                raise PMFormatError(f"{path}: checksum mismatch in array {name!r}")
+        for name in sums:
+            if name not in digests:
+                raise PMFormatError(f"{path}: array {name!r} is missing (the header has its checksum)")
+    meta = {key: v for key, v in header.items() if key not in LAYOUT_FIELDS}
+    pm = PMData(**arrays, header=meta)
+    validate_pm(pm, source=path)
+    return pm, content_fingerprint(digests)
+
+
+def _check_header(header: Any, path: str, version: int | None = None) -> None:
+    """Magic, version and checksum table of a parsed header."""
+    if not isinstance(header, dict) or header.get("magic") != MAGIC:
+        raise PMFormatError(f"{path}: bad magic (expected {MAGIC!r})")
+    if header.get("version") not in VERSIONS or (version is not None and header.get("version") != version):
+        raise PMFormatError(
+            f"{path}: unsupported format version {header.get('version')!r} "
+            f"(this pmjax reads versions {', '.join(map(str, VERSIONS))})"
+        )
+    if not isinstance(header.get("array_sha256"), dict):
+        raise PMFormatError(f"{path}: header has no array checksums")
+
+
+def _v2_layout(header: dict, path: str, V0: int, F: int, P: int, B: int) -> list:
+    """The chunk table ``[name, compressed bytes, raw bytes]`` of a version 2
+    header, checked against the counts: names in order, sizes whole numbers,
+    raw sizes within what the counts allow."""
+    def bad(what):
+        raise PMFormatError(f"{path}: header {what}; the file is damaged or forged")
+
+    if header.get("codec") not in ("zstd", "zlib"):
+        bad(f"codec {header.get('codec')!r} is not zstd or zlib")
+    R = header.get("roots")
+    if isinstance(R, bool) or not isinstance(R, int) or not 0 <= R <= V0 + P:
+        bad(f"roots={R!r} is not a vertex count")
+    offsets = header.get("batch_offsets")
+    if not (isinstance(offsets, list) and len(offsets) == B + 1 and all(isinstance(o, int) for o in offsets)
+            and offsets and offsets[0] == 0 and offsets[-1] == P and all(a <= b for a, b in zip(offsets, offsets[1:]))):
+        bad(f"batch_offsets is not {B + 1} rising whole numbers from 0 to P={P}")
+    groups = header.get("group_faces")
+    if not (isinstance(groups, list) and len(groups) == B + 1 and all(
+            isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in groups) and sum(groups) == F):
+        bad(f"group_faces is not {B + 1} face counts summing to F={F}")
+    names = ["base", *(f"batch {b}" for b in range(B - 1, -1, -1)), "tail"]
+    table = header.get("chunks")
+    if not (isinstance(table, list) and len(table) == len(names)):
+        bad(f"chunks is not a table of {len(names)} chunks")
+    # Largest raw size of each chunk: every array at its largest count.
+    limits = [R * 24 + R * 12 + groups[0] * 12]
+    for i, b in enumerate(range(B - 1, -1, -1)):
+        n = offsets[b + 1] - offsets[b]
+        limits.append(n * (12 + 16 + 9 + 24 + 24) + groups[i + 1] * 12)
+    limits.append(F * 4 + V0 * 12 + (V0 + P) * 12)
+    for (name, limit), entry in zip(zip(names, limits), table):
+        if not (isinstance(entry, list) and len(entry) == 3 and entry[0] == name
+                and all(isinstance(x, int) and not isinstance(x, bool) and x >= 0 for x in entry[1:])):
+            bad(f"chunk entry {entry!r} is not [{name!r}, bytes, raw bytes]")
+        if entry[2] > limit:
+            bad(f"chunk {name!r} declares {entry[2]} bytes expanded, more than the {limit} its counts allow")
+    return table
+
+
+def _read_v1(path, source: str) -> tuple[PMData, str]:
+    """Version 1: the zip archive of ``.npy`` arrays."""
     try:
         zf = zipfile.ZipFile(path, "r")
     except Exception as exc:  # zipfile raises several types for a damaged archive
-        kind = _mesh_kind(path)
+        kind = _mesh_kind(path) if isinstance(path, str) else ""
         if kind:  # a mesh given where a progressive mesh is needed
             article = "an" if kind[0] in "AEFHILMNORSX" else "a"  # as the letters are spoken
             raise PMFormatError(f"{path}: is {article} {kind} mesh, not a .pmz progressive mesh; make one with "
                                 f"`pmjax build {path} -o model.pmz`") from exc
-        raise PMFormatError(f"{path}: not a .pmz progressive mesh (not a zip archive: {exc}); "
+        raise PMFormatError(f"{source}: not a .pmz progressive mesh (not a zip archive: {exc}); "
                             f"`pmjax build MESH -o model.pmz` makes one") from exc
+    path = source
     with zf:
         names = set(zf.namelist())
         if "header.json" not in names:
             raise PMFormatError(f"{path}: not a pmjax file (no header.json)")
         header = _read_header(zf, path)
-        if not isinstance(header, dict) or header.get("magic") != MAGIC:
-            raise PMFormatError(f"{path}: bad magic (expected {MAGIC!r})")
-        if header.get("version") != VERSION:
-            raise PMFormatError(
-                f"{path}: unsupported format version {header.get('version')!r} "
-                f"(this pmjax reads version {VERSION})"
-            )
-        sums = header.get("array_sha256")
-        if not isinstance(sums, dict):
-            raise PMFormatError(f"{path}: header has no array checksums")
+        _check_header(header, path, 1)
+        sums = header["array_sha256"]
         for name in ARRAY_SPECS:
             if name + ".npy" not in names:
                 raise PMFormatError(f"{path}: array {name!r} is missing")
@@ -189,7 +476,7 @@ def read_arrays(path: str | os.PathLike) -> tuple[PMData, str]:
     for name, digest in digests.items():
         if digest != sums.get(name):
             raise PMFormatError(f"{path}: checksum mismatch in array {name!r}")
-    meta = {k: v for k, v in header.items() if k not in ("array_sha256",)}
+    meta = {k: v for k, v in header.items() if k not in LAYOUT_FIELDS}
     pm = PMData(**arrays, header=meta)
     # The shapes were checked against the header's counts before reading.
     validate_pm(pm, source=path)

@@ -21,7 +21,7 @@ from pmjax import PMFormatError, check_structure, read_pm, save_pm
 def cow(built, tmp_path_factory):
     pm = built("cow.ply")
     path = tmp_path_factory.mktemp("forged") / "cow.pmz"
-    save_pm(pm, path)
+    save_pm(pm, path, version=1)  # the zip layout these forgeries edit
     return pm, path
 
 

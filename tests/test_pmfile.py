@@ -18,7 +18,7 @@ from pmjax import PMFormatError, read_pm, save_pm
 def saved(built, tmp_path):
     pm = built("cow.ply")
     path = tmp_path / "cow.pmz"
-    save_pm(pm, path)
+    save_pm(pm, path, version=1)  # the zip layout rewrite() edits
     return pm, path
 
 

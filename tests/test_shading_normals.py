@@ -98,7 +98,7 @@ def test_a_file_without_them_reads_and_draws_fitted_normals(cow, tmp_path):
 
     old = dataclasses.replace(cow, shading_normals=None)
     path = tmp_path / "old.pmz"
-    pmjax.save_pm(old, path)
+    pmjax.save_pm(old, path, version=1)
     with zipfile.ZipFile(path) as zf:
         assert "shading_normals.npy" not in zf.namelist()
         assert "shading_normals" not in json.loads(zf.read("header.json"))["array_sha256"]
@@ -137,7 +137,7 @@ def test_bad_shading_normals_are_refused(cow, tmp_path):
         pmjax.validate_pm(dataclasses.replace(cow, shading_normals=bad[:5]))
     # An entry the header's checksums name must be in the archive.
     path = tmp_path / "cow.pmz"
-    pmjax.save_pm(cow, path)
+    pmjax.save_pm(cow, path, version=1)
     stripped = tmp_path / "stripped.pmz"
     with zipfile.ZipFile(path) as src, zipfile.ZipFile(stripped, "w") as dst:
         for item in src.infolist():

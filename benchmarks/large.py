@@ -1,0 +1,163 @@
+"""Large models made from the shared data: build, file and refine at millions of faces.
+
+A model is ``NAME:LEVELS``: the shared mesh ``NAME`` (``dragon``,
+``terrain_gcanyon``, ...) with every triangle split in four ``LEVELS`` times
+(edge midpoints), each new vertex moved by Gaussian noise of 5 % of the
+original mesh's median edge length (seeded), so that the hierarchy is not a
+replay of the subdivision. ``dragon:1`` has 3.5 M faces, ``dragon:2`` 14 M,
+``terrain_gcanyon:4`` 20 M; ``dragon:0`` is the original, for comparison.
+Nothing is stored: each model is made in memory.
+
+Each model in a fresh subprocess, same run: one build (time, and the peak
+RSS of making and building, per input face), then one fast-simplification
+run to 1 % of the faces; the ``.pmz`` sizes as version 1 and version 2;
+``pmjax.load`` of each (median of 3, alternating, structure known); and
+``pmjax.refine`` at tau = 1 px along the standard orbit (24 frames, medians
+of time and faces after two warm-up frames).
+
+Usage::
+
+    python benchmarks/large.py [--models dragon:0,dragon:1] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+sys.path.insert(0, __file__.rsplit("/", 1)[0])
+from _common import DATA, machine, write_json  # noqa: E402
+
+NOISE = 0.05
+SEED = 44
+
+
+def subdivide(v: np.ndarray, f: np.ndarray, rng, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each triangle split in four at its edge midpoints (shared between
+    neighbours), the new vertices moved by Gaussian noise of ``sigma``."""
+    V = len(v)
+    edges = np.sort(np.stack([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]], axis=1).reshape(-1, 2), axis=1)
+    key = edges[:, 0].astype(np.int64) * V + edges[:, 1]
+    uniq, inv = np.unique(key, return_inverse=True)
+    a, b = uniq // V, uniq % V
+    mid = (v[a] + v[b]) / 2 + rng.normal(0.0, sigma, (len(uniq), 3))
+    m = (V + inv).reshape(-1, 3)  # midpoints of edges 01, 12, 20
+    c0, c1, c2 = f[:, 0], f[:, 1], f[:, 2]
+    faces = np.concatenate([np.stack([c0, m[:, 0], m[:, 2]], 1), np.stack([c1, m[:, 1], m[:, 0]], 1),
+                            np.stack([c2, m[:, 2], m[:, 1]], 1), m])
+    return np.concatenate([v, mid]), faces.astype(np.int64)
+
+
+def make(spec: str) -> tuple[np.ndarray, np.ndarray]:
+    import pmjax
+
+    name, _, levels = spec.partition(":")
+    v, f, _, _ = pmjax.load_clean_mesh(DATA / f"{name}.ply")
+    v, f = np.asarray(v, np.float64), np.asarray(f, np.int64)
+    edge = np.linalg.norm(v[f[:, 0]] - v[f[:, 1]], axis=1)
+    sigma = NOISE * float(np.median(edge))
+    rng = np.random.default_rng(SEED)
+    for _ in range(int(levels or 0)):
+        v, f = subdivide(v, f, rng, sigma)
+    # Positions as a mesh file stores them (float32).
+    return v.astype(np.float32).astype(np.float64), f
+
+
+def one_model(spec: str) -> dict:
+    import resource
+
+    import pmjax
+    from pmjax.builders import build_pm
+
+    t = time.perf_counter()
+    v, f = make(spec)
+    make_s = time.perf_counter() - t
+    t = time.perf_counter()
+    pm = build_pm(v, f)
+    build_s = time.perf_counter() - t
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    try:
+        import fast_simplification
+
+        t = time.perf_counter()
+        fast_simplification.simplify(v.astype(np.float32), f.astype(np.int32), target_reduction=0.99)
+        fs_s = time.perf_counter() - t
+    except ImportError:
+        fs_s = None
+    work = tempfile.mkdtemp(prefix="pmjax-large-")
+    os.environ["PMJAX_KNOWN_STRUCTURES"] = os.path.join(work, "known")
+    paths = {1: os.path.join(work, "v1.pmz"), 2: os.path.join(work, "v2.pmz")}
+    save_s = {}
+    for version, path in paths.items():
+        t = time.perf_counter()
+        pmjax.save_pm(pm, path, version=version)
+        save_s[version] = time.perf_counter() - t
+    sizes = {version: os.path.getsize(path) for version, path in paths.items()}
+    loads = {1: [], 2: []}
+    for _ in range(3):
+        for version, path in paths.items():
+            t = time.perf_counter()
+            mesh = pmjax.load(path)
+            loads[version].append(time.perf_counter() - t)
+    orbit = pmjax.standard_orbit(pm.vertices[: pm.n_original_vertices], 24)
+    import jax
+
+    frames = [jax.tree.map(lambda x, i=i: x[i], orbit) for i in range(24)]
+    for cam in frames[:2]:
+        int(pmjax.refine(mesh, cam, 1.0).n_faces)
+    times, faces = [], []
+    for cam in frames:
+        t = time.perf_counter()
+        r = pmjax.refine(mesh, cam, 1.0)
+        n = int(r.n_faces)
+        times.append(time.perf_counter() - t)
+        faces.append(n)
+    for path in paths.values():
+        os.remove(path)
+    return dict(model=spec, faces=len(f), vertices=len(v), pcols=pm.n_pcols, batches=pm.n_batches,
+                make_s=make_s, build_s=build_s, fs_1pct_s=fs_s, peak_rss_bytes=peak,
+                peak_bytes_per_face=peak / len(f), v1_bytes=sizes[1], v2_bytes=sizes[2],
+                save_v1_s=save_s[1], save_v2_s=save_s[2], load_v1_s=statistics.median(loads[1]),
+                load_v2_s=statistics.median(loads[2]), refine_ms=1e3 * statistics.median(times),
+                refine_faces=int(statistics.median(faces)))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--models", default="dragon:0,dragon:1")
+    ap.add_argument("--one", help=argparse.SUPPRESS)
+    ap.add_argument("--json", help="also write the rows as JSON")
+    args = ap.parse_args(argv)
+    if args.one:
+        print(json.dumps(one_model(args.one)))
+        return 0
+    print(machine())
+    rows = []
+    for spec in args.models.split(","):
+        out = subprocess.run([sys.executable, __file__, "--one", spec], capture_output=True, text=True)
+        if out.returncode:
+            print(f"{spec}: failed\n{out.stderr[-2000:]}", file=sys.stderr)
+            return 1
+        row = json.loads(out.stdout.strip().splitlines()[-1])
+        rows.append(row)
+        fs = f"{row['fs_1pct_s']:.1f} s ({row['build_s'] / row['fs_1pct_s']:.2f}x)" if row["fs_1pct_s"] else "-"
+        print(f"{spec:12s} {row['faces']:>10,d} faces  build {row['build_s']:.1f} s, fast-simpl. {fs}  "
+              f"peak {row['peak_rss_bytes'] / 1e9:.2f} GB ({row['peak_bytes_per_face']:.0f} B/face)  "
+              f"pmz v1 {row['v1_bytes'] / 1e6:.1f} MB v2 {row['v2_bytes'] / 1e6:.1f} MB  "
+              f"load v1 {row['load_v1_s']:.2f} s v2 {row['load_v2_s']:.2f} s  "
+              f"refine {row['refine_ms']:.1f} ms, {row['refine_faces']:,d} faces", flush=True)
+    if args.json:
+        write_json(args.json, dict(machine=machine(), rows=rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,635 @@
+"""Version 2 of the ``.pmz`` file: compact and ordered coarse to fine.
+
+The hierarchy is written as a stream of chunks: the base mesh, then one chunk
+per batch from the coarsest to the finest, then a tail that only a full read
+needs. Reading the base chunk and the first ``k`` batch chunks gives a valid
+progressive mesh: its original mesh is the full hierarchy's mesh after all
+but those ``k`` batches ran (``pmjax lod --batch``), its pcols those of the
+``k`` batches. Byte layout: ``docs/format.md``.
+
+Faces and vertices are named by leaf ranks: the original vertices numbered
+in depth-first order of the collapse forest (roots by id, ``v1`` before
+``v2``), so every vertex stands for a contiguous range of ranks. A face is
+stored once, in the chunk of the batch that kills it, as the ranks of its
+original corners; a reader that stopped at any batch finds each corner's
+vertex as the range holding its rank, and the killer as the batch's pcol
+whose range holds two corners. The forest's ranges come from one count per
+pcol (the leaves under ``v1``).
+
+Every transform is exact: floats are stored as their bits, positions as the
+difference of order-preserving integer images from the parent's (a child lies
+near its parent), the original vertices' normals as the difference from the
+area-weighted normals recomputed from the faces, the shading normals as the
+difference from the normals, and each chunk's arrays
+byte-planed (byte ``k`` of every element together) before compression.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import importlib.util
+import math
+import os
+import zlib
+from dataclasses import dataclass
+
+import numpy as np
+
+from ._pmdata import PMData, PMFormatError
+
+MAGIC2 = b"\x89PMZ\r\n\x1a\n"
+# zstd level for writing: the highest levels take several times longer for a
+# few percent of size.
+ZSTD_LEVEL = 12
+ZLIB_LEVEL = 6
+# Each chunk starts with the SHA-256 of its compressed bytes.
+SHA_BYTES = 32
+
+
+_p = ctypes.c_void_p
+_i64 = ctypes.c_int64
+
+
+def _load_native():
+    """The decoder's C loops (``pmjax/_pmz_native.c``) as a ctypes library,
+    or ``None`` where the extension is not built or ``PMJAX_NATIVE=0`` is set
+    (the NumPy steps then run: the same arrays, bit for bit)."""
+    if os.environ.get("PMJAX_NATIVE", "1") == "0":
+        return None
+    spec = importlib.util.find_spec("pmjax._pmz_native")
+    if spec is None or not spec.origin:
+        return None
+    lib = ctypes.CDLL(spec.origin)
+    lib.pmz_unplane.restype = None
+    lib.pmz_unplane.argtypes = [_p, _i64, _i64, _p]
+    lib.pmz_float_from_residual.restype = None
+    lib.pmz_float_from_residual.argtypes = [_i64, _p, _p, _p]
+    lib.pmz_read_batch.restype = _i64
+    lib.pmz_read_batch.argtypes = [_p, _i64, _i64, _i64, _i64, _i64] + [_p] * 17
+    lib.pmz_place_faces.restype = None
+    lib.pmz_place_faces.argtypes = [_i64, _i64, _p, _i64, _p, _p, _p, _p, _p, _p]
+    lib.pmz_area_normals.restype = None
+    lib.pmz_area_normals.argtypes = [_i64, _p, _p, _i64, _p, _p]
+    return lib
+
+
+# ctypes releases the GIL during each call: a second thread decompresses the
+# next chunk meanwhile.
+native = _load_native()
+
+
+def _ptr(a) -> int:
+    """Address of a C-contiguous array's first element (``a.ctypes.data``);
+    the caller keeps ``a`` referenced until the C call returns."""
+    return a.ctypes.data
+
+
+def zstd_available() -> bool:
+    try:
+        import zstandard  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def compress(raw: bytes, codec: str) -> bytes:
+    """``raw`` compressed with ``codec`` (``"zstd"`` or ``"zlib"``)."""
+    if codec == "zstd":
+        import zstandard
+
+        return zstandard.ZstdCompressor(level=ZSTD_LEVEL).compress(raw)
+    return zlib.compress(raw, ZLIB_LEVEL)
+
+
+def decompress(data, codec: str, size: int) -> bytes:
+    """``data`` expanded to exactly ``size`` bytes; a stream that holds more
+    or fewer raises ``ValueError`` without expanding beyond ``size``."""
+    # Read at most one byte past the counts' size: a stream that declares or
+    # holds more is refused without expanding it.
+    if codec == "zstd":
+        try:
+            import zstandard
+        except ImportError as exc:
+            raise ValueError("the file is zstd-compressed and the zstandard package is not installed "
+                             "(pip install zstandard)") from exc
+        with zstandard.ZstdDecompressor().stream_reader(bytes(data) if isinstance(data, memoryview) else data,
+                                                        read_across_frames=False) as r:
+            out = r.read(size + 1)
+    elif codec == "zlib":
+        d = zlib.decompressobj()
+        out = d.decompress(data, size + 1)
+        if not d.eof and len(out) == size:
+            raise ValueError("the compressed stream ends early")
+    else:
+        raise ValueError(f"unknown codec {codec!r} (this pmjax reads zstd and zlib)")
+    if len(out) != size:
+        raise ValueError(f"expands to {len(out)} bytes, but the counts give {size}")
+    return out
+
+
+# --- exact array transforms --------------------------------------------------
+
+
+def planes(a: np.ndarray) -> bytes:
+    """Bytes of ``a`` grouped by byte position (all first bytes, then all
+    second bytes, ...): floats and small integers then compress far better."""
+    a = np.ascontiguousarray(a)
+    return a.reshape(-1).view(np.uint8).reshape(-1, a.dtype.itemsize).T.tobytes()
+
+
+def unplanes(raw: memoryview, dtype, shape) -> np.ndarray:
+    """Inverse of :func:`planes`."""
+    dtype = np.dtype(dtype)
+    n = math.prod(shape)
+    b = np.frombuffer(raw, np.uint8, n * dtype.itemsize)
+    if native is not None:
+        out = np.empty(shape, dtype)
+        native.pmz_unplane(_ptr(b), n, dtype.itemsize, _ptr(out))
+        return out
+    return np.ascontiguousarray(b.reshape(dtype.itemsize, n).T).view(dtype).reshape(shape)
+
+
+def ordered(x: np.ndarray) -> np.ndarray:
+    """float32 -> uint32 order-preserving image (bit-exact, invertible): a
+    negative float's bits inverted, a positive one's sign bit set."""
+    b = np.ascontiguousarray(x, np.float32).view(np.uint32)
+    mask = (np.uint32(0) - (b >> np.uint32(31))) | np.uint32(0x80000000)
+    return b ^ mask
+
+
+def unordered(u: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`ordered`."""
+    u = np.asarray(u, np.uint32)
+    mask = ((u >> np.uint32(31)) - np.uint32(1)) | np.uint32(0x80000000)
+    return (u ^ mask).view(np.float32)
+
+
+def zigzag(d: np.ndarray) -> np.ndarray:
+    """Wrapped uint32 differences -> uint32 with small magnitudes small."""
+    s = d.astype(np.uint32).view(np.int32)
+    return ((s.astype(np.uint32) << np.uint32(1)) ^ (s >> 31).astype(np.uint32)).astype(np.uint32)
+
+
+def unzigzag(z: np.ndarray) -> np.ndarray:
+    z = z.astype(np.uint32)
+    return ((z >> np.uint32(1)) ^ (np.uint32(0) - (z & np.uint32(1)))).astype(np.uint32)
+
+
+def float_residual(x: np.ndarray, prediction: np.ndarray) -> np.ndarray:
+    """uint32 residual of float32 ``x`` against float32 ``prediction``."""
+    return zigzag(ordered(x) - ordered(prediction))
+
+
+def float_from_residual(r: np.ndarray, prediction: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`float_residual`: float32 of ``r``'s shape."""
+    if native is not None and r.dtype == np.uint32 and prediction.dtype == np.float32 and r.shape == prediction.shape:
+        r, prediction = np.ascontiguousarray(r), np.ascontiguousarray(prediction)
+        out = np.empty(r.shape, np.float32)
+        native.pmz_float_from_residual(r.size, _ptr(r), _ptr(prediction), _ptr(out))
+        return out
+    return unordered(unzigzag(r) + ordered(prediction))
+
+
+def area_normals(vertices: np.ndarray, faces: np.ndarray, n: int) -> np.ndarray:
+    """``float32[n, 3]`` unit area-weighted vertex normals (zero without
+    area), summed in float64 in face order as the builder sums them."""
+    if (native is not None and vertices.dtype == np.float32 and faces.dtype == np.int32 and len(vertices) >= n
+            and (not faces.size or (faces.min() >= 0 and faces.max() < n))):
+        vertices, faces = np.ascontiguousarray(vertices), np.ascontiguousarray(faces)
+        out, total = np.empty((n, 3), np.float32), np.empty((n, 3))
+        native.pmz_area_normals(len(faces), _ptr(faces), _ptr(vertices), n, _ptr(total), _ptr(out))
+        return out
+    x, y, z = (vertices[:, k].astype(np.float64) for k in range(3))
+    f0, f1, f2 = faces[:, 0], faces[:, 1], faces[:, 2]
+    ax, ay, az = x[f1] - x[f0], y[f1] - y[f0], z[f1] - z[f0]
+    bx, by, bz = x[f2] - x[f0], y[f2] - y[f0], z[f2] - z[f0]
+    corner = faces.reshape(-1)
+    total = np.empty((n, 3))
+    for k, cross in enumerate((ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx)):
+        # Each face's cross product once per corner, in corner order: every
+        # vertex sums its faces in face order.
+        weights = np.empty((len(faces), 3))
+        weights[:] = cross[:, None]
+        total[:, k] = np.bincount(corner, weights.reshape(-1), minlength=n)
+    length = np.sqrt(total[:, 0] * total[:, 0] + total[:, 1] * total[:, 1] + total[:, 2] * total[:, 2])
+    return (total / np.where(length > 0, length, 1.0)[:, None]).astype(np.float32)
+
+
+# --- the collapse forest's leaf ranges ---------------------------------------
+
+
+def leaf_ranges(V0: int, v1: np.ndarray, v2: np.ndarray, offsets: np.ndarray):
+    """Depth-first leaf ranges of every vertex.
+
+    Returns:
+        ``(roots int64[R], start int64[V], count int64[V])``: vertex ``v``
+        stands for the original vertices of ranks ``start[v] .. start[v] +
+        count[v] - 1``; roots (vertices no pcol consumes) in id order.
+    """
+    P = len(v1)
+    V = V0 + P
+    count = np.ones(V, np.int64)
+    for b in range(len(offsets) - 1):
+        lo, hi = int(offsets[b]), int(offsets[b + 1])
+        count[V0 + lo:V0 + hi] = count[v1[lo:hi]] + count[v2[lo:hi]]
+    consumed = np.zeros(V, bool)
+    consumed[v1] = True
+    consumed[v2] = True
+    roots = np.flatnonzero(~consumed)
+    start = np.zeros(V, np.int64)
+    start[roots] = np.cumsum(count[roots]) - count[roots]
+    for b in range(len(offsets) - 2, -1, -1):
+        lo, hi = int(offsets[b]), int(offsets[b + 1])
+        s = start[V0 + lo:V0 + hi]
+        start[v1[lo:hi]] = s
+        start[v2[lo:hi]] = s + count[v1[lo:hi]]
+    return roots, start, count
+
+
+def face_killers(ranks: np.ndarray, starts: np.ndarray, counts: np.ndarray, first: int) -> np.ndarray:
+    """Per face (corner ranks ``int64[n, 3]``), the pcol among ``first ..
+    first + len(starts) - 1`` (one batch: disjoint ranges) whose range holds
+    two of its corners, or -1 where none does."""
+    order = np.argsort(starts, kind="stable")
+    s = starts[order]
+    i = np.searchsorted(s, ranks, side="right") - 1
+    ok = (i >= 0) & (ranks < s[np.maximum(i, 0)] + counts[order][np.maximum(i, 0)])
+    cand = np.where(ok, order[np.maximum(i, 0)] + first, -1)
+    c0, c1, c2 = cand[:, 0], cand[:, 1], cand[:, 2]
+    k = np.where((c0 >= 0) & ((c0 == c1) | (c0 == c2)), c0, np.where((c1 >= 0) & (c1 == c2), c1, -1))
+    return k.astype(np.int32)
+
+
+def rank_owner(ranks: np.ndarray, starts: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """Per rank, the vertex of ``ids`` whose range holds it (ranges disjoint,
+    covering every rank)."""
+    order = np.argsort(starts, kind="stable")
+    return ids[order][np.searchsorted(starts[order], ranks, side="right") - 1]
+
+
+# --- writing -------------------------------------------------------------------
+
+
+def encode(pm: PMData, codec: str) -> tuple[dict, list[tuple[str, bytes, int]]]:
+    """Chunks of ``pm`` (already validated and structure-checked).
+
+    Returns:
+        ``(fields, chunks)``: header fields (``roots``, ``group_faces``) and
+        per chunk ``(name, compressed bytes, raw size)``, coarse to fine.
+    """
+    V0, P, B = pm.n_original_vertices, pm.n_pcols, pm.n_batches
+    off = pm.batch_offsets
+    v1, v2 = pm.v1.astype(np.int64), pm.v2.astype(np.int64)
+    roots, start, count = leaf_ranges(V0, v1, v2, off)
+    ranks = start[pm.faces]
+    # Group of each face: the batch of its killer, B for the base mesh.
+    batch_of = np.repeat(np.arange(B), np.diff(off))
+    group = np.where(pm.killer >= 0, batch_of[np.maximum(pm.killer, 0)] if P else 0, B)
+    by_group = np.argsort(group, kind="stable")
+    bounds = np.searchsorted(group[by_group], np.arange(B + 2))
+    faces_of = lambda g: ranks[by_group[bounds[g]:bounds[g + 1]]]
+
+    # The killers a reader derives must be the stored ones (check_structure
+    # guarantees it; checked here so a file never depends on it silently).
+    for b in range(B):
+        lo, hi = int(off[b]), int(off[b + 1])
+        sel = by_group[bounds[b]:bounds[b + 1]]
+        got = face_killers(ranks[sel], start[V0 + lo:V0 + hi], count[V0 + lo:V0 + hi], lo)
+        if not np.array_equal(got, pm.killer[sel]):
+            raise PMFormatError("killers are not the first pcols merging two corners of their faces")
+
+    chunks = []
+
+    def add(name, arrays):
+        raw = b"".join(planes(a) for a in arrays)
+        chunks.append((name, compress(raw, codec), len(raw)))
+
+    created = roots >= V0
+    add("base", [np.diff(roots, prepend=0).astype(np.int32), count[roots].astype(np.int32),
+                 ordered(pm.vertices[roots]), pm.normals[roots[created]], ranks_code(faces_of(B))])
+    for b in range(B - 1, -1, -1):
+        lo, hi = int(off[b]), int(off[b + 1])
+        a, c = v1[lo:hi], v2[lo:hi]
+        parent = pm.vertices[V0 + lo:V0 + hi]
+        add(f"batch {b}", [pm.v1[lo:hi], pm.v2[lo:hi], count[a].astype(np.int32),
+                           pm.radius[lo:hi], pm.alpha[lo:hi], pm.delta[lo:hi], pm.mu[lo:hi], pm.cost[lo:hi],
+                           pm.metric[lo:hi],
+                           float_residual(pm.vertices[a], parent), float_residual(pm.vertices[c], parent),
+                           pm.normals[a[a >= V0]], pm.normals[c[c >= V0]], ranks_code(faces_of(b))])
+    tail = [group.astype(group_dtype(B)),
+            float_residual(pm.normals[:V0], area_normals(pm.vertices[:V0], pm.faces, V0))]
+    if pm.shading_normals is not None:
+        # An original vertex's shading normal is its area-weighted normal, a
+        # created one's is near its cone axis: residuals against the normals.
+        tail.append(float_residual(pm.shading_normals, pm.normals))
+    add("tail", tail)
+    fields = dict(roots=int(len(roots)), batch_offsets=[int(o) for o in off], group_faces=[int(bounds[g + 1] - bounds[g]) for g in range(B, -1, -1)],
+                  shading_normals=pm.shading_normals is not None, codec=codec)
+    return fields, chunks
+
+
+def group_dtype(B: int):
+    return np.uint8 if B < 256 else np.uint16 if B < 65536 else np.uint32
+
+
+def ranks_code(r: np.ndarray) -> np.ndarray:
+    """Corner ranks ``[n, 3]`` as uint32: the first corner's difference from
+    the previous face's first corner, the others' from the first (zigzag)."""
+    r = r.astype(np.int64)
+    first = np.diff(r[:, 0], prepend=0)
+    out = np.stack([first, r[:, 1] - r[:, 0], r[:, 2] - r[:, 0]], axis=1)
+    return zigzag(out.astype(np.int32).view(np.uint32))
+
+
+def ranks_decode(z: np.ndarray) -> np.ndarray:
+    d = unzigzag(z).view(np.int32).astype(np.int64)
+    first = np.cumsum(d[:, 0])
+    return np.stack([first, first + d[:, 1], first + d[:, 2]], axis=1)
+
+
+# --- reading -------------------------------------------------------------------
+
+
+class _Cursor:
+    """Consumes a chunk's raw bytes array by array."""
+
+    def __init__(self, raw: bytes):
+        self.raw, self.at = memoryview(raw), 0
+
+    def take(self, dtype, shape) -> np.ndarray:
+        n = math.prod(shape) * np.dtype(dtype).itemsize
+        if self.at + n > len(self.raw):
+            raise ValueError(f"its arrays need more than its {len(self.raw)} bytes")
+        a = unplanes(self.raw[self.at:self.at + n], dtype, shape)
+        self.at += n
+        return a
+
+    def done(self) -> None:
+        if self.at != len(self.raw):
+            raise ValueError(f"{len(self.raw) - self.at} bytes are left over after its arrays")
+
+
+@dataclass
+class Stream:
+    """What a reader knows after the chunks read so far (full hierarchy ids)."""
+
+    V0: int
+    P: int
+    offsets: np.ndarray
+    vertices: np.ndarray
+    normals: np.ndarray
+    start: np.ndarray
+    count: np.ndarray
+    seen: np.ndarray  # bool[V]: the vertex appeared (a root or a read pcol's child)
+    v1: np.ndarray
+    v2: np.ndarray
+    radius: np.ndarray
+    alpha: np.ndarray
+    delta: np.ndarray
+    mu: np.ndarray
+    cost: np.ndarray
+    metric: np.ndarray
+    face_ranks: list  # per group read, coarse first: [n, 3] (int32 or int64)
+    killers: list  # per group read: int32[n]
+    owner: np.ndarray | None = None  # int32[V0]: the C decoder's rank -> pcol stamps
+    pointers: tuple | None = None  # the C decoder's addresses of the arrays above (fixed for a read)
+
+
+def new_stream(V0: int, P: int, offsets: np.ndarray) -> Stream:
+    V = V0 + P
+    return Stream(V0, P, offsets, np.zeros((V, 3), np.float32), np.zeros((V, 3), np.float32),
+                  np.zeros(V, np.int64), np.zeros(V, np.int64), np.zeros(V, bool),
+                  *(np.zeros(P, np.int32) for _ in range(2)), *(np.zeros(P, np.float32) for _ in range(4)),
+                  np.zeros(P, np.float64), np.zeros(P, np.uint8), [], [])
+
+
+def read_base(s: Stream, raw: bytes, R: int, n_faces: int) -> None:
+    """Decode the base chunk into ``s`` (raises ``ValueError`` on bad content)."""
+    c = _Cursor(raw)
+    roots = np.cumsum(c.take(np.int32, (R,)).astype(np.int64))
+    count = c.take(np.int32, (R,)).astype(np.int64)
+    V = s.V0 + s.P
+    if R and (roots[0] < 0 or roots[-1] >= V or np.any(np.diff(roots) <= 0)):
+        raise ValueError("its root ids are not rising vertex ids")
+    if np.any(count < 1) or (R and np.any(count[roots < s.V0] != 1)) or int(count.sum()) != s.V0:
+        raise ValueError(f"its roots' leaf counts do not cover the {s.V0} original vertices")
+    s.seen[roots] = True
+    s.count[roots] = count
+    s.start[roots] = np.cumsum(count) - count
+    s.vertices[roots] = unordered(c.take(np.uint32, (R, 3)))
+    created = roots[roots >= s.V0]
+    s.normals[created] = c.take(np.float32, (len(created), 3))
+    ranks = ranks_decode(c.take(np.uint32, (n_faces, 3)))
+    c.done()
+    if np.any((ranks < 0) | (ranks >= s.V0)):
+        raise ValueError(f"a face corner's rank is outside [0, {s.V0})")
+    s.face_ranks.append(ranks)
+    s.killers.append(np.full(n_faces, -1, np.int32))
+
+
+def read_batch(s: Stream, raw: bytes, b: int, n_faces: int, pool=None) -> None:
+    """Decode batch ``b``'s chunk into ``s`` (raises ``ValueError`` on bad
+    content), by the C loops where they are built; otherwise by NumPy steps,
+    and then ``pool`` (an executor) finds its killers beside the caller, to
+    be resolved by :func:`killers_of`."""
+    V0 = s.V0
+    lo, hi = int(s.offsets[b]), int(s.offsets[b + 1])
+    n = hi - lo
+    # The C loops need the arrays' room for the face counts the header gives;
+    # a chunk without it fails either way, and the NumPy steps name the
+    # failure without allocating for those counts.
+    if native is not None and len(raw) >= 61 * n + 12 * n_faces:
+        _read_batch_native(s, raw, lo, hi, n_faces)
+        return
+    c = _Cursor(raw)
+    a, d = c.take(np.int32, (n,)), c.take(np.int32, (n,))
+    c1 = c.take(np.int32, (n,)).astype(np.int64)
+    for name, idx in (("v1", a), ("v2", d)):
+        bad = (idx < 0) | (idx >= V0 + lo)
+        if bad.any():
+            raise ValueError(f"{name} of pcol {lo + int(np.flatnonzero(bad)[0])} is not a vertex made before its batch")
+    both = np.concatenate([a, d])
+    ordered_ids = np.sort(both)
+    if s.seen[both].any() or np.any(ordered_ids[1:] == ordered_ids[:-1]):
+        raise ValueError("a pcol's child is already a vertex of the coarser mesh")
+    u = np.arange(V0 + lo, V0 + hi)
+    if not s.seen[u].all():
+        raise ValueError("a pcol splits a vertex the coarser chunks did not make")
+    total = s.count[u]
+    c2 = total - c1
+    if np.any(c1 < 1) or np.any(c2 < 1) or np.any((a < V0) & (c1 != 1)) or np.any((d < V0) & (c2 != 1)):
+        raise ValueError("a pcol's leaf counts do not split its vertex's")
+    s.v1[lo:hi], s.v2[lo:hi] = a, d
+    s.seen[both] = True
+    s.seen[u] = False
+    s.count[a], s.count[d] = c1, c2
+    s.start[a], s.start[d] = s.start[u], s.start[u] + c1
+    for name in ("radius", "alpha", "delta", "mu"):
+        getattr(s, name)[lo:hi] = c.take(np.float32, (n,))
+    s.cost[lo:hi] = c.take(np.float64, (n,))
+    s.metric[lo:hi] = c.take(np.uint8, (n,))
+    parent = s.vertices[u]
+    s.vertices[a] = float_from_residual(c.take(np.uint32, (n, 3)), parent)
+    s.vertices[d] = float_from_residual(c.take(np.uint32, (n, 3)), parent)
+    for idx in (a, d):
+        made = idx[idx >= V0]
+        s.normals[made] = c.take(np.float32, (len(made), 3))
+    ranks = ranks_decode(c.take(np.uint32, (n_faces, 3)))
+    c.done()
+    if np.any((ranks < 0) | (ranks >= V0)):
+        raise ValueError(f"a face corner's rank is outside [0, {V0})")
+    s.face_ranks.append(ranks)
+    # The killers need only this batch's ranges, which finer chunks leave
+    # alone: with a pool they are found beside the next chunks' decoding.
+    job = (face_killers, ranks, s.start[u], s.count[u], lo)
+    s.killers.append(pool.submit(*job) if pool is not None else job[0](*job[1:]))
+
+
+# pmz_read_batch's outcomes (pmjax/_pmz_native.c), worded as read_batch words them.
+_NATIVE_ERRORS = {
+    2: "v1 of pcol {} is not a vertex made before its batch",
+    3: "v2 of pcol {} is not a vertex made before its batch",
+    4: "a pcol's child is already a vertex of the coarser mesh",
+    5: "a pcol splits a vertex the coarser chunks did not make",
+    6: "a pcol's leaf counts do not split its vertex's",
+    7: "{} bytes are left over after its arrays",
+}
+
+
+def _read_batch_native(s: Stream, raw, lo: int, hi: int, n_faces: int) -> None:
+    """:func:`read_batch` in one C pass: the same checks in the same order,
+    the same state and arrays."""
+    V0 = s.V0
+    buf = np.frombuffer(raw, np.uint8)
+    ranks = np.empty((n_faces, 3), np.int32)
+    killer = np.empty(n_faces, np.int32)
+    info = np.zeros(1, np.int64)
+    if s.pointers is None:
+        s.owner = np.full(V0, -1, np.int32)
+        s.pointers = tuple(_ptr(a) for a in (s.seen, s.count, s.start, s.vertices, s.normals, s.v1, s.v2, s.radius,
+                                             s.alpha, s.delta, s.mu, s.cost, s.metric))
+    code = native.pmz_read_batch(_ptr(buf), len(buf), V0, lo, hi, n_faces, *s.pointers, _ptr(ranks), _ptr(killer),
+                                 _ptr(s.owner), _ptr(info))
+    if code == 1:
+        raise ValueError(f"its arrays need more than its {len(buf)} bytes")
+    if code == 8:
+        raise ValueError(f"a face corner's rank is outside [0, {V0})")
+    if code:
+        raise ValueError(_NATIVE_ERRORS[code].format(int(info[0])))
+    s.face_ranks.append(ranks)
+    s.killers.append(killer)
+
+
+def killers_of(s: Stream, names: list) -> None:
+    """Resolve the killers found beside the decoding (``names``: each face
+    group's chunk, for messages); a face no pcol of its batch kills raises
+    ``ValueError`` naming its chunk (the base mesh's faces have none)."""
+    for i, killer in enumerate(s.killers):
+        if not isinstance(killer, np.ndarray):
+            killer = s.killers[i] = killer.result()
+        if i and np.any(killer < 0):
+            raise ValueError(f"chunk {names[i]!r}: face {int(np.flatnonzero(killer < 0)[0])} of the chunk has no "
+                             "two corners under one of its batch's pcols")
+
+
+def finish_full(s: Stream, raw: bytes, B: int, F: int, shading: bool) -> dict:
+    """The full hierarchy's arrays from a stream that read every batch and
+    the tail (raises ``ValueError`` on bad content)."""
+    V0, P = s.V0, s.P
+    c = _Cursor(raw)
+    # Kept in its narrow dtype: NumPy's stable sort of small integers is a radix sort.
+    group = c.take(group_dtype(B), (F,))
+    residual = c.take(np.uint32, (V0, 3))
+    shading = c.take(np.uint32, (V0 + P, 3)) if shading else None
+    c.done()
+    # Rank -> original vertex id: each original vertex appeared exactly once.
+    orig_of_rank = np.full(V0, -1, np.int64)
+    orig_of_rank[s.start[:V0]] = np.arange(V0)
+    if np.any(orig_of_rank < 0) or not s.seen[:V0].all():
+        raise ValueError("the original vertices' ranks are not a permutation")
+    faces = np.empty((F, 3), np.int32)
+    killer = np.empty(F, np.int32)
+    # Groups were read base first, then batches B-1 .. 0.
+    sizes = [len(r) for r in s.face_ranks]
+    if np.any(group > B) or not np.array_equal(np.bincount(group, minlength=B + 1)[::-1], sizes):
+        raise ValueError("the faces' groups do not match the chunks' face counts")
+    if native is not None:
+        # One pass in face order: each face is the next of its group.
+        ranks = [np.ascontiguousarray(r, np.int32) for r in s.face_ranks]
+        kills = [np.ascontiguousarray(k, np.int32) for k in s.killers]
+        rank_ptrs = (ctypes.c_void_p * len(ranks))(*(_ptr(r) for r in ranks))
+        kill_ptrs = (ctypes.c_void_p * len(kills))(*(_ptr(k) for k in kills))
+        cursor = np.empty(B + 1, np.int64)
+        native.pmz_place_faces(F, B, _ptr(group), group.dtype.itemsize, rank_ptrs, kill_ptrs, _ptr(orig_of_rank),
+                               _ptr(cursor), _ptr(faces), _ptr(killer))
+    else:
+        by_group = np.argsort(group, kind="stable")
+        bounds = np.concatenate([[0], np.cumsum(np.bincount(group, minlength=B + 1))])
+        for i, g in enumerate(range(B, -1, -1)):
+            sel = by_group[bounds[g]:bounds[g + 1]]
+            faces[sel] = orig_of_rank[s.face_ranks[i]]
+            killer[sel] = s.killers[i]
+    normals = s.normals
+    normals[:V0] = float_from_residual(residual, area_normals(s.vertices[:V0], faces, V0))
+    shading_normals = None if shading is None else float_from_residual(shading, normals)
+    return dict(vertices=s.vertices, normals=normals, faces=faces, v1=s.v1, v2=s.v2, radius=s.radius,
+                alpha=s.alpha, delta=s.delta, mu=s.mu, cost=s.cost, metric=s.metric,
+                batch_offsets=np.asarray(s.offsets, np.int64), killer=killer, shading_normals=shading_normals)
+
+
+def finish_prefix(s: Stream, k: int) -> dict:
+    """The progressive mesh of the base chunk and the ``k`` coarsest batches:
+    its original vertices are the coarser mesh's vertices (in full-hierarchy
+    id order), its pcols those of the batches read, in their order."""
+    V0, P = s.V0, s.P
+    B = len(s.offsets) - 1
+    lo = int(s.offsets[B - k])
+    frontier = np.flatnonzero(s.seen)
+    W0 = len(frontier)
+    new_id = np.full(V0 + P, -1, np.int64)
+    new_id[frontier] = np.arange(W0)
+    new_id[V0 + lo:] = W0 + np.arange(P - lo)
+    ranks = np.concatenate(s.face_ranks)
+    faces = new_id[rank_owner(ranks, s.start[frontier], frontier)].astype(np.int32)
+    killer = np.concatenate(s.killers)
+    killer = np.where(killer >= 0, killer - lo, -1).astype(np.int32)
+    vertices = np.concatenate([s.vertices[frontier], s.vertices[V0 + lo:]])
+    # The coarse mesh's vertices that are original vertices of the full
+    # hierarchy get the area-weighted normals of the coarse mesh (refinement
+    # never reads them); the others keep their cone axes.
+    normals = np.concatenate([s.normals[frontier], s.normals[V0 + lo:]])
+    own = area_normals(vertices[:W0], faces, W0)
+    orig = frontier < V0
+    normals[:W0][orig] = own[orig]
+    return dict(vertices=vertices, normals=normals, faces=faces,
+                v1=new_id[s.v1[lo:]].astype(np.int32), v2=new_id[s.v2[lo:]].astype(np.int32),
+                radius=s.radius[lo:], alpha=s.alpha[lo:], delta=s.delta[lo:], mu=s.mu[lo:], cost=s.cost[lo:],
+                metric=s.metric[lo:], batch_offsets=(np.asarray(s.offsets[B - k:], np.int64) - lo), killer=killer,
+                shading_normals=None)
+
+
+def chunk_sha(payload) -> bytes:
+    return hashlib.sha256(payload).digest()
+
+
+
+def stream_of(pm: PMData, k: int) -> Stream:
+    """The reader's state after the base chunk and the ``k`` coarsest batches
+    of ``pm`` (for a hierarchy already in memory, e.g. from a version 1 file)."""
+    V0, P, B = pm.n_original_vertices, pm.n_pcols, pm.n_batches
+    off = pm.batch_offsets
+    v1, v2 = pm.v1.astype(np.int64), pm.v2.astype(np.int64)
+    roots, start, count = leaf_ranges(V0, v1, v2, off)
+    lo = int(off[B - k])
+    seen = np.zeros(V0 + P, bool)
+    seen[roots] = True
+    seen[v1[lo:]] = True
+    seen[v2[lo:]] = True
+    seen[V0 + lo:] = False
+    batch_of = np.repeat(np.arange(B), np.diff(off))
+    group = np.where(pm.killer >= 0, batch_of[np.maximum(pm.killer, 0)] if P else 0, B)
+    groups = [np.flatnonzero(group == g) for g in range(B, B - k - 1, -1)]
+    return Stream(V0, P, off, pm.vertices, pm.normals, start, count, seen, pm.v1, pm.v2, pm.radius, pm.alpha,
+                  pm.delta, pm.mu, pm.cost, pm.metric, [start[pm.faces[g]] for g in groups],
+                  [pm.killer[g] for g in groups])

@@ -1,0 +1,246 @@
+/* Decoding of a version 2 .pmz file's chunks (docs/format.md), as plain C
+ * loops: a batch chunk in one pass (unplaning, the checks, leaf ranges,
+ * positions from parents, face ranks and killers), the faces in file order
+ * from the groups, the area-weighted normals, and float residuals.
+ *
+ * Each loop is a NumPy step of pmjax/_codec.py with its arithmetic in the
+ * same order (no contraction), so a read with these loops gives the NumPy
+ * read's arrays bit for bit (tests/test_pmz_native.py). The checks are the
+ * NumPy reader's, in its order; a failed one returns its code (and the
+ * offending index in info[0]) and pmjax/_codec.py words the message. The
+ * caller's arrays may be left half written then: the read is abandoned.
+ * Every pointer is a C-contiguous array of the dtype named.
+ */
+
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+/* Outcomes of pmz_read_batch (pmjax/_codec.py words each). */
+enum { OK = 0, SHORT = 1, BAD_V1 = 2, BAD_V2 = 3, CHILD_SEEN = 4, PARENT_UNSEEN = 5, BAD_COUNTS = 6,
+       LEFT_OVER = 7, BAD_RANK = 8 };
+
+/* Element i of a byte-planed array of n 4-byte elements: its bytes in
+ * memory order (any host byte order). */
+static uint32_t get32(const uint8_t *src, int64_t n, int64_t i) {
+    uint8_t b[4] = {src[i], src[n + i], src[2 * n + i], src[3 * n + i]};
+    uint32_t u;
+    memcpy(&u, b, 4);
+    return u;
+}
+
+static void unplane(const uint8_t *src, int64_t n, int64_t size, uint8_t *out) {
+    /* Output written in order, one byte plane read per byte of an element. */
+    if (size == 1) {
+        memcpy(out, src, (size_t)n);
+    } else if (size == 4) {
+        for (int64_t i = 0; i < n; i++) {
+            out[4 * i] = src[i];
+            out[4 * i + 1] = src[n + i];
+            out[4 * i + 2] = src[2 * n + i];
+            out[4 * i + 3] = src[3 * n + i];
+        }
+    } else {
+        for (int64_t i = 0; i < n; i++)
+            for (int64_t k = 0; k < size; k++) out[size * i + k] = src[k * n + i];
+    }
+}
+
+/* Inverse of _codec.planes: n elements of size bytes. */
+void pmz_unplane(const uint8_t *src, int64_t n, int64_t size, uint8_t *out) { unplane(src, n, size, out); }
+
+static uint32_t unzigzag(uint32_t z) { return (z >> 1) ^ (0u - (z & 1u)); }
+
+/* float32 bits -> order-preserving uint32 image, and back (_codec.ordered). */
+static uint32_t ordered(uint32_t b) { return b ^ ((0u - (b >> 31)) | 0x80000000u); }
+static uint32_t unordered(uint32_t u) { return u ^ (((u >> 31) - 1u) | 0x80000000u); }
+
+static uint32_t float_bits(float x) {
+    uint32_t u;
+    memcpy(&u, &x, 4);
+    return u;
+}
+
+static float bits_float(uint32_t u) {
+    float x;
+    memcpy(&x, &u, 4);
+    return x;
+}
+
+/* _codec.float_from_residual: n float32 from uint32 residuals against predictions. */
+void pmz_float_from_residual(int64_t n, const uint32_t *residual, const float *prediction, float *out) {
+    for (int64_t i = 0; i < n; i++)
+        out[i] = bits_float(unordered(unzigzag(residual[i]) + ordered(float_bits(prediction[i]))));
+}
+
+/* Batch chunk of pcols lo .. hi-1 (ids V0+lo .. V0+hi-1) into the reader's
+ * state (_codec.read_batch): seen uint8[V], count and start int64[V],
+ * vertices and normals float32[V, 3], v1 .. metric at [lo, hi), and this
+ * batch's face ranks int32[n_faces, 3] and killers int32[n_faces];
+ * owner int32[V0] is scratch kept across the batches of a read (no entry
+ * in [lo, hi) before the call). */
+int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, int64_t hi, int64_t n_faces,
+                       uint8_t *seen, int64_t *count, int64_t *start, float *vertices, float *normals, int32_t *v1,
+                       int32_t *v2, float *radius, float *alpha, float *delta, float *mu, double *cost,
+                       uint8_t *metric, int32_t *ranks, int32_t *killer, int32_t *owner, int64_t *info) {
+    const int64_t n = hi - lo, first = V0 + lo;
+    int32_t *a = v1 + lo, *d = v2 + lo;
+    /* The children and the count under v1, then the checks on them before
+     * any state changes. */
+    if (len < 12 * n) return SHORT;
+    unplane(raw, n, 4, (uint8_t *)a);
+    unplane(raw + 4 * n, n, 4, (uint8_t *)d);
+    const uint8_t *c1_planes = raw + 8 * n;
+    for (int64_t i = 0; i < n; i++)
+        if (a[i] < 0 || a[i] >= first) return info[0] = lo + i, BAD_V1;
+    for (int64_t i = 0; i < n; i++)
+        if (d[i] < 0 || d[i] >= first) return info[0] = lo + i, BAD_V2;
+    /* A child seen before, or twice in this batch (marked 2 while
+     * checking), is an error. */
+    for (int64_t i = 0; i < n; i++)
+        if (seen[a[i]] || seen[d[i]]) return CHILD_SEEN;
+    for (int64_t i = 0; i < n; i++) {
+        if (seen[a[i]]) return CHILD_SEEN;
+        seen[a[i]] = 2;
+        if (seen[d[i]]) return CHILD_SEEN;
+        seen[d[i]] = 2;
+    }
+    for (int64_t i = 0; i < n; i++)
+        if (!seen[first + i]) return PARENT_UNSEEN;
+    int64_t made = 0;
+    for (int64_t i = 0; i < n; i++) {
+        int64_t c1 = (int32_t)get32(c1_planes, n, i), c2 = count[first + i] - c1;
+        if (c1 < 1 || c2 < 1 || (a[i] < V0 && c1 != 1) || (d[i] < V0 && c2 != 1)) return BAD_COUNTS;
+        made += (a[i] >= V0) + (d[i] >= V0);
+    }
+    /* The chunk holds exactly the arrays these counts give. */
+    const int64_t need = n * (12 + 16 + 8 + 1 + 24) + made * 12 + n_faces * 12;
+    if (len < need) return SHORT;
+    if (len > need) return info[0] = len - need, LEFT_OVER;
+
+    /* Leaf ranges: the children split their parent's. */
+    for (int64_t i = 0; i < n; i++) {
+        int64_t u = first + i, c1 = (int32_t)get32(c1_planes, n, i);
+        seen[a[i]] = seen[d[i]] = 1;
+        seen[u] = 0;
+        count[a[i]] = c1;
+        count[d[i]] = count[u] - c1;
+        start[a[i]] = start[u];
+        start[d[i]] = start[u] + c1;
+    }
+    /* The attributes as stored. */
+    const uint8_t *at = raw + 12 * n;
+    unplane(at, n, 4, (uint8_t *)(radius + lo));
+    unplane(at + 4 * n, n, 4, (uint8_t *)(alpha + lo));
+    unplane(at + 8 * n, n, 4, (uint8_t *)(delta + lo));
+    unplane(at + 12 * n, n, 4, (uint8_t *)(mu + lo));
+    unplane(at + 16 * n, n, 8, (uint8_t *)(cost + lo));
+    unplane(at + 24 * n, n, 1, metric + lo);
+    at += 25 * n;
+    /* Children's positions from residuals against their parent's. */
+    for (int side = 0; side < 2; side++) {
+        const int32_t *child = side ? d : a;
+        for (int64_t i = 0; i < n; i++)
+            for (int k = 0; k < 3; k++) {
+                uint32_t p = ordered(float_bits(vertices[3 * (first + i) + k]));
+                vertices[3 * (int64_t)child[i] + k] = bits_float(unordered(unzigzag(get32(at, 3 * n, 3 * i + k)) + p));
+            }
+        at += 12 * n;
+    }
+    /* Normals of the children made by pcols, v1 children then v2 children. */
+    for (int side = 0; side < 2; side++) {
+        const int32_t *child = side ? d : a;
+        int64_t m = 0;
+        for (int64_t i = 0; i < n; i++) m += child[i] >= V0;
+        for (int64_t i = 0, j = 0; i < n; i++) {
+            if (child[i] < V0) continue;
+            for (int k = 0; k < 3; k++) normals[3 * (int64_t)child[i] + k] = bits_float(get32(at, 3 * m, 3 * j + k));
+            j++;
+        }
+        at += 12 * m;
+    }
+    /* Face code -> corner ranks, each within [0, V0) (so int32). */
+    int64_t r0 = 0;
+    for (int64_t f = 0; f < n_faces; f++) {
+        r0 += (int32_t)unzigzag(get32(at, 3 * n_faces, 3 * f));
+        int64_t r1 = r0 + (int32_t)unzigzag(get32(at, 3 * n_faces, 3 * f + 1));
+        int64_t r2 = r0 + (int32_t)unzigzag(get32(at, 3 * n_faces, 3 * f + 2));
+        if (r0 < 0 || r0 >= V0 || r1 < 0 || r1 >= V0 || r2 < 0 || r2 >= V0) return BAD_RANK;
+        ranks[3 * f] = (int32_t)r0;
+        ranks[3 * f + 1] = (int32_t)r1;
+        ranks[3 * f + 2] = (int32_t)r2;
+    }
+    /* Killers: per corner the pcol whose range holds it (the batch's ranges
+     * are disjoint: each rank of a range is stamped with its pcol, and an
+     * entry of another batch is no pcol of this one), then the pcol holding
+     * two corners, else -1. */
+    for (int64_t i = 0; i < n; i++)
+        for (int64_t r = start[first + i], end = r + count[first + i]; r < end; r++) owner[r] = (int32_t)(lo + i);
+    for (int64_t f = 0; f < n_faces; f++) {
+        int64_t cand[3];
+        for (int k = 0; k < 3; k++) {
+            int64_t o = owner[ranks[3 * f + k]];
+            cand[k] = o >= lo && o < hi ? o : -1;
+        }
+        killer[f] = (int32_t)(cand[0] >= 0 && (cand[0] == cand[1] || cand[0] == cand[2]) ? cand[0]
+                              : cand[1] >= 0 && cand[1] == cand[2]                       ? cand[1]
+                                                                                         : -1);
+    }
+    return OK;
+}
+
+/* Faces and killers in file order (_codec.finish_full): face f is the next
+ * face of its group (groups read base first, then batches B-1 .. 0), its
+ * corners the original vertices at its ranks. The groups' sizes were
+ * checked against the chunks'. */
+void pmz_place_faces(int64_t F, int64_t B, const void *group, int64_t group_size, const int32_t *const *ranks,
+                     const int32_t *const *killers, const int64_t *orig_of_rank, int64_t *cursor, int32_t *faces,
+                     int32_t *killer) {
+    memset(cursor, 0, (size_t)(B + 1) * sizeof(int64_t));
+    for (int64_t f = 0; f < F; f++) {
+        int64_t g = group_size == 1 ? ((const uint8_t *)group)[f]
+                    : group_size == 2 ? ((const uint16_t *)group)[f]
+                                      : ((const uint32_t *)group)[f];
+        int64_t i = B - g, j = cursor[i]++;
+        const int32_t *r = ranks[i] + 3 * j;
+        faces[3 * f] = (int32_t)orig_of_rank[r[0]];
+        faces[3 * f + 1] = (int32_t)orig_of_rank[r[1]];
+        faces[3 * f + 2] = (int32_t)orig_of_rank[r[2]];
+        killer[f] = killers[i][j];
+    }
+}
+
+/* _codec.area_normals: unit area-weighted normals of n vertices, float64
+ * cross products summed per vertex in face order (total: double[n, 3],
+ * scratch), zero where the sum has no length. */
+void pmz_area_normals(int64_t n_faces, const int32_t *faces, const float *vertices, int64_t n, double *total,
+                      float *out) {
+    memset(total, 0, (size_t)n * 3 * sizeof(double));
+    for (int64_t f = 0; f < n_faces; f++) {
+        const float *p = vertices + 3 * (int64_t)faces[3 * f], *q = vertices + 3 * (int64_t)faces[3 * f + 1],
+                    *s = vertices + 3 * (int64_t)faces[3 * f + 2];
+        double ax = (double)q[0] - (double)p[0], ay = (double)q[1] - (double)p[1], az = (double)q[2] - (double)p[2];
+        double bx = (double)s[0] - (double)p[0], by = (double)s[1] - (double)p[1], bz = (double)s[2] - (double)p[2];
+        double cx = ay * bz - az * by, cy = az * bx - ax * bz, cz = ax * by - ay * bx;
+        for (int k = 0; k < 3; k++) {
+            double *t = total + 3 * (int64_t)faces[3 * f + k];
+            t[0] += cx;
+            t[1] += cy;
+            t[2] += cz;
+        }
+    }
+    for (int64_t v = 0; v < n; v++) {
+        const double *t = total + 3 * v;
+        double length = sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2]);
+        double scale = length > 0 ? length : 1.0;
+        for (int k = 0; k < 3; k++) out[3 * v + k] = (float)(t[k] / scale);
+    }
+}
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_pmz_native",
+                                    "The .pmz version 2 decoder's C loops (called through ctypes).", -1, NULL};
+
+PyMODINIT_FUNC PyInit__pmz_native(void) { return PyModule_Create(&module); }

@@ -1,0 +1,218 @@
+"""The version 2 .pmz decoder's C loops (pmjax/_pmz_native.c) against its NumPy steps: the same arrays bit for
+bit, the same prefixes, and the same refusal, word for word, of every kind of damaged chunk."""
+
+import json
+import os
+import zlib
+
+import numpy as np
+import pytest
+
+from pmjax import PMFormatError, _codec, read_arrays, save_pm
+
+REQUIRED = os.environ.get("PMJAX_REQUIRE_CORE") == "1"
+needs_native = pytest.mark.skipif(_codec.native is None and not REQUIRED,
+                                  reason="the .pmz decoder's C loops (pmjax._pmz_native) are not built")
+
+
+def test_the_c_loops_are_built_where_required():
+    # Under PMJAX_REQUIRE_CORE=1 (CI) every compiled part must load.
+    if REQUIRED:
+        assert _codec.native is not None, "pmjax._pmz_native is not built (python setup.py build_ext --inplace)"
+    elif _codec.native is None:
+        pytest.skip("the .pmz decoder's C loops (pmjax._pmz_native) are not built")
+
+
+def same_bits(a, b):
+    """Equal dtype, shape and bytes (NaN payloads and signed zeros included)."""
+    return a.dtype == b.dtype and a.shape == b.shape and np.ascontiguousarray(a).tobytes() == \
+        np.ascontiguousarray(b).tobytes()
+
+
+def assert_same_pm(a, b):
+    assert set(a.arrays()) == set(b.arrays())
+    for name, x in a.arrays().items():
+        assert same_bits(x, getattr(b, name)), name
+
+
+@pytest.fixture
+def numpy_decoder(monkeypatch):
+    """Run the NumPy steps inside ``with numpy_decoder():``."""
+    import contextlib
+
+    @contextlib.contextmanager
+    def use():
+        with monkeypatch.context() as m:
+            m.setattr(_codec, "native", None)
+            yield
+
+    return use
+
+
+def both_ways(numpy_decoder, read):
+    """``read()`` with the C loops, then with the NumPy steps: each result,
+    or each exception's type and message."""
+    def run():
+        try:
+            return read()
+        except Exception as exc:  # compared below, type and words
+            return type(exc), str(exc)
+
+    native = run()
+    with numpy_decoder():
+        plain = run()
+    return native, plain
+
+
+def check_model(pm, tmp_path, numpy_decoder, codec="zstd"):
+    if codec == "zstd":
+        pytest.importorskip("zstandard")
+    path = tmp_path / "m.pmz"
+    save_pm(pm, path, codec=codec)
+    (native, _), (plain, _) = both_ways(numpy_decoder, lambda: read_arrays(path))
+    assert_same_pm(native, pm)
+    assert_same_pm(plain, pm)
+    B = pm.n_batches
+    for k in sorted({B // 3, B // 2, B - 1, B}):
+        (native, fa), (plain, fb) = both_ways(numpy_decoder, lambda: read_arrays(path, batches=k))
+        assert_same_pm(native, plain)
+        assert native.header == plain.header and fa == fb
+
+
+@needs_native
+@pytest.mark.parametrize("codec", ["zstd", "zlib"])
+def test_cow_decodes_to_the_same_bits_both_ways(built, tmp_path, numpy_decoder, codec):
+    check_model(built("cow.ply"), tmp_path, numpy_decoder, codec)
+
+
+@needs_native
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["bunny.ply", "terrain_gcanyon.ply", "dragon.ply"])
+def test_models_decode_to_the_same_bits_both_ways(built, tmp_path, numpy_decoder, name):
+    check_model(built(name), tmp_path, numpy_decoder)
+
+
+@needs_native
+def test_area_normals_and_residuals_match_the_numpy_steps(numpy_decoder):
+    rng = np.random.default_rng(7)
+    vertices = (rng.normal(size=(300, 3)) * 10.0 ** rng.integers(-3, 4, size=(300, 1))).astype(np.float32)
+    faces = rng.integers(0, 250, size=(900, 3)).astype(np.int32)
+    faces[:40, 1] = faces[:40, 0]  # no area: zero normals where nothing else adds
+    vertices[10:20] = vertices[9]
+    n = 280  # vertices 250 .. 279 on no face: zero
+    prediction = rng.normal(size=(500, 3)).astype(np.float32)
+    special = np.array([0.0, -0.0, np.inf, -np.inf, np.nan, 1e-45, -1e-45, 3.4e38], np.float32)
+    prediction[:8, 0] = special
+    residual = rng.integers(0, 2**32, size=(500, 3), dtype=np.uint64).astype(np.uint32)
+    residual[:8, 1] = _codec.float_residual(special, prediction[:8, 1])
+    native = (_codec.area_normals(vertices, faces, n), _codec.float_from_residual(residual, prediction))
+    with numpy_decoder():
+        plain = (_codec.area_normals(vertices, faces, n), _codec.float_from_residual(residual, prediction))
+    for a, b in zip(native, plain):
+        assert same_bits(a, b)
+    assert not native[0][250:].any()
+    assert same_bits(native[1][:8, 1], special)
+
+
+# --- damaged chunks: the same message both ways --------------------------------
+
+
+def rewrite(path, out, chunk, change):
+    """Copy the version 2 file ``path`` to ``out`` with chunk ``chunk``'s
+    expanded bytes replaced by ``change(bytearray)``'s (recompressed, its
+    sizes and SHA-256 updated)."""
+    data = path.read_bytes()
+    length = int.from_bytes(data[8:12], "little")
+    header = json.loads(data[12:12 + length])
+    at, chunks = 12 + length, []
+    for name, size, raw in header["chunks"]:
+        chunks.append(_codec.decompress(data[at + 32:at + 32 + size], header["codec"], raw))
+        at += 32 + size
+    chunks[chunk] = bytes(change(bytearray(chunks[chunk])))
+    packed = [_codec.compress(raw, header["codec"]) for raw in chunks]
+    header["chunks"] = [[name, len(p), len(raw)] for (name, _, _), p, raw in zip(header["chunks"], packed, chunks)]
+    text = json.dumps(header, indent=1, sort_keys=True).encode()
+    out.write_bytes(data[:8] + len(text).to_bytes(4, "little") + text
+                    + b"".join(_codec.chunk_sha(p) + p for p in packed))
+    return header
+
+
+def put32(raw, array_at, n, i, value):
+    """Set element ``i`` of the byte-planed 4-byte array of ``n`` elements at ``array_at``."""
+    for k, byte in enumerate(np.array([value]).astype(np.uint32).view(np.uint8)):
+        raw[array_at + k * n + i] = byte
+    return raw
+
+
+def get32(raw, array_at, n, i):
+    return int(np.frombuffer(bytes(raw[array_at + k * n + i] for k in range(4)), np.int32)[0])
+
+
+@pytest.fixture(scope="module")
+def cow_file(built, tmp_path_factory):
+    pm = built("cow.ply")
+    path = tmp_path_factory.mktemp("native") / "cow.pmz"
+    save_pm(pm, path, codec="zlib")
+    return pm, path
+
+
+def damage_cases(pm):
+    """``[(chunk index, change, expected message part)]``: the chunk of a
+    batch of a few dozen pcols damaged each way the reader checks; left-over
+    bytes in the finest batch's (whose children are mostly original vertices,
+    so its header entry allows more bytes than it holds)."""
+    B, V0 = pm.n_batches, pm.n_original_vertices
+    b = int(np.flatnonzero(np.diff(pm.batch_offsets) >= 20)[-1])
+    lo, hi = int(pm.batch_offsets[b]), int(pm.batch_offsets[b + 1])
+    n = hi - lo
+    late = V0 + hi  # made by a later (finer) batch
+    seen_root = int(np.flatnonzero(np.bincount(np.concatenate([pm.v1, pm.v2]), minlength=V0 + pm.n_pcols) == 0)[0])
+    faces_at = n * (12 + 16 + 9 + 24) + 12 * int((pm.v1[lo:hi] >= V0).sum() + (pm.v2[lo:hi] >= V0).sum())
+    return [
+        (B - b, lambda r: put32(r, 0, n, 1, late), f"v1 of pcol {lo + 1} is not a vertex made before its batch"),
+        (B - b, lambda r: put32(r, 4 * n, n, 2, -1), f"v2 of pcol {lo + 2} is not a vertex made before its batch"),
+        (B - b, lambda r: put32(r, 0, n, 0, seen_root), "a pcol's child is already a vertex of the coarser mesh"),
+        (B - b, lambda r: put32(r, 0, n, 1, get32(r, 4 * n, n, 1)), "a pcol's child is already a vertex"),
+        (B - b, lambda r: put32(r, 8 * n, n, 0, 0), "a pcol's leaf counts do not split its vertex's"),
+        (B, lambda r: r + b"\0\0\0\0", "4 bytes are left over after its arrays"),
+        (B - b, lambda r: r[:-1], "its arrays need more than its"),
+        (B - b, lambda r: r[:12 * n + 5], "its arrays need more than its"),
+        (B - b, lambda r: put32(r[:12 * n + 5], 0, n, 1, late), f"v1 of pcol {lo + 1} is not a vertex made before"),
+        (B - b, lambda r: put32(r, faces_at, n, 0, 2 * V0 + 6), "a face corner's rank is outside"),
+        (B - b, far_corners(faces_at, V0), "has no two corners under one of its batch's pcols"),
+    ]
+
+
+def far_corners(faces_at, V0):
+    """A change moving the first face's second and third corners to ranks 0
+    and ``V0 - 1`` (under no pcol holding its first corner)."""
+    def zigzag(d):
+        return int(_codec.zigzag(np.array([d], np.int64).astype(np.uint32))[0])
+
+    def change(r):
+        m = 3 * ((len(r) - faces_at) // 12)
+        r0 = int(_codec.unzigzag(np.array([get32(r, faces_at, m, 0)], np.int64).astype(np.uint32))[0])
+        put32(r, faces_at, m, 1, zigzag(-r0))
+        return put32(r, faces_at, m, 2, zigzag(V0 - 1 - r0))
+
+    return change
+
+
+@needs_native
+def test_damaged_batch_chunks_are_refused_in_the_same_words(cow_file, tmp_path, numpy_decoder):
+    pm, path = cow_file
+    for i, (chunk, change, words) in enumerate(damage_cases(pm)):
+        bad = tmp_path / f"bad{i}.pmz"
+        rewrite(path, bad, chunk, change)
+        native, plain = both_ways(numpy_decoder, lambda: read_arrays(bad))
+        assert native == plain, words
+        assert native[0] is PMFormatError and words in native[1], (words, native)
+
+
+def test_a_rewritten_file_reads_unchanged(cow_file, tmp_path):
+    # The damage cases' rewriting alone changes nothing.
+    pm, path = cow_file
+    same = tmp_path / "same.pmz"
+    rewrite(path, same, 3, lambda r: r)
+    assert_same_pm(read_arrays(same)[0], pm)
+    assert zlib.crc32(same.read_bytes()) == zlib.crc32(path.read_bytes())

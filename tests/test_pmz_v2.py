@@ -1,0 +1,218 @@
+"""The version 2 .pmz: exact round trips, coarse-first prefixes, streaming, and damage refused."""
+
+import io
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import pmjax
+from pmjax import PMFormatError, read_arrays, read_pm, save_pm
+from pmjax._replay import lod_mesh
+
+V1_FIXTURE = Path(__file__).parent / "data" / "cow_v1.pmz"
+
+
+def same_bits(a, b):
+    """Equal dtype, shape and bytes (NaN payloads and signed zeros included)."""
+    return a.dtype == b.dtype and a.shape == b.shape and np.ascontiguousarray(a).tobytes() == \
+        np.ascontiguousarray(b).tobytes()
+
+
+def assert_same_pm(a, b):
+    assert set(a.arrays()) == set(b.arrays())
+    for name, x in a.arrays().items():
+        assert same_bits(x, getattr(b, name)), name
+
+
+def chunk_table(path):
+    """``[(name, start, end)]`` of a version 2 file's chunks (bytes)."""
+    with open(path, "rb") as fh:
+        fh.read(8)
+        length = int.from_bytes(fh.read(4), "little")
+        header = json.loads(fh.read(length))
+    at, out = 12 + length, []
+    for name, size, _ in header["chunks"]:
+        out.append((name, at, at + 32 + size))
+        at += 32 + size
+    return out
+
+
+@pytest.fixture(scope="module")
+def cow(built, tmp_path_factory):
+    pm = built("cow.ply")
+    path = tmp_path_factory.mktemp("v2") / "cow.pmz"
+    save_pm(pm, path)
+    return pm, path
+
+
+@pytest.mark.parametrize("codec", ["zstd", "zlib"])
+def test_round_trip_is_bit_identical_and_smaller(built, tmp_path, codec):
+    if codec == "zstd":
+        pytest.importorskip("zstandard")
+    pm = built("cow.ply")
+    v1, v2 = tmp_path / "v1.pmz", tmp_path / "v2.pmz"
+    save_pm(pm, v1, version=1)
+    save_pm(pm, v2, codec=codec)
+    assert v2.read_bytes()[:8] == b"\x89PMZ\r\n\x1a\n"
+    assert_same_pm(read_pm(v2), pm)
+    assert_same_pm(read_pm(v2), read_pm(v1))
+    assert pm.shading_normals is not None and "shading_normals" in read_pm(v2).arrays()
+    assert os.path.getsize(v2) < 0.7 * os.path.getsize(v1)
+    # Same content, same fingerprint, whatever the version.
+    assert read_arrays(v1)[1] == read_arrays(v2)[1]
+
+
+def test_version_1_fixture_reads_and_re_saves_exactly(tmp_path):
+    old = read_pm(V1_FIXTURE)
+    assert old.header["version"] == 1
+    path = tmp_path / "cow.pmz"
+    save_pm(old, path)
+    assert_same_pm(read_pm(path), old)
+    # Prefixes of a version 1 file: the same hierarchy as the version 2 file's.
+    for k in (0, 1, old.n_batches // 2, old.n_batches):
+        assert_same_pm(read_pm(V1_FIXTURE, batches=k), read_pm(path, batches=k))
+
+
+def oriented(vertices, faces):
+    """A mesh's triangles as a sorted array of their corners' coordinates,
+    each triangle rotated to start at its smallest corner (orientation kept)."""
+    tri = vertices[faces]  # [m, 3, 3]
+    keys = [tuple(map(tuple, t)) for t in tri]
+    out = []
+    for t in keys:
+        i = min(range(3), key=lambda j: t[j])
+        out.append(t[i:] + t[:i])
+    return sorted(out)
+
+
+def test_every_batch_boundary_gives_the_lod_there(cow):
+    pm, path = cow
+    B = pm.n_batches
+    for k in range(B + 1):
+        prefix = read_pm(path, batches=k)  # validated and structure-checked
+        full = dict(V0=pm.n_original_vertices, F=len(pm.faces), P=pm.n_pcols, B=B)
+        assert prefix.n_batches == k and prefix.header["prefix"] == dict(batches=k, of=B, full_counts=full)
+        lo = int(pm.batch_offsets[B - k])
+        # Its pcols are the full hierarchy's last k batches, attributes bit for bit.
+        for name in ("radius", "alpha", "delta", "mu", "cost", "metric"):
+            assert same_bits(getattr(prefix, name), getattr(pm, name)[lo:]), name
+        assert same_bits(prefix.vertices[prefix.n_original_vertices:], pm.vertices[pm.n_original_vertices + lo:])
+        assert same_bits(prefix.normals[prefix.n_original_vertices:], pm.normals[pm.n_original_vertices + lo:])
+        np.testing.assert_array_equal(prefix.batch_offsets, pm.batch_offsets[B - k:] - lo)
+        # Its original mesh is the full hierarchy's LOD after batches 0 .. B-1-k,
+        # and each of its LODs is the full one's at the same batch.
+        for j in sorted({-1, k // 2 - 1, k - 1}):
+            if j < -1 or j >= k:
+                continue
+            pv, pf, _ = lod_mesh(prefix, j)
+            fv, ff, _ = lod_mesh(pm, B - k + j)
+            assert oriented(pv, pf) == oriented(fv, ff), (k, j)
+
+
+def test_a_prefix_refines(cow):
+    pm, path = cow
+    full = pmjax.load(path)
+    centre = pm.vertices.mean(axis=0)
+    cam = pmjax.look_at(centre + [0, 0, 3.0], centre)
+    everything = pmjax.Tests(frustum=False, orientation=False)
+    B = pm.n_batches
+    for k in (0, 1, B // 2, B):
+        prefix = pmjax.load(path, batches=k)
+        lod = lod_mesh(pm, B - 1 - k)[1] if k < B else pm.faces
+        # Fully refined: the prefix's finest mesh; not refined: the base mesh.
+        assert int(pmjax.refine(prefix, cam, 0.0, tests=everything).n_faces) == len(lod)
+        assert int(pmjax.refine(prefix, cam, 1e30).n_faces) == int(pmjax.refine(full, cam, 1e30).n_faces)
+
+
+def test_a_stream_is_read_to_the_batch_asked(cow):
+    pm, path = cow
+    table = chunk_table(path)
+    data = path.read_bytes()
+    B = pm.n_batches
+    for k in range(B + 1):
+        # Exactly the bytes of the base chunk and k batch chunks suffice.
+        prefix = io.BytesIO(data[:table[k][2]])
+        assert_same_pm(read_pm(prefix, batches=k), read_pm(path, batches=k))
+    assert_same_pm(read_pm(io.BytesIO(data)), pm)
+    with open(path, "rb") as fh:
+        assert_same_pm(read_pm(fh), pm)
+
+
+def test_a_truncated_file_is_refused_or_read_as_its_whole_prefix(cow, tmp_path):
+    pm, path = cow
+    table = chunk_table(path)
+    data = path.read_bytes()
+    name, start, end = table[3]  # the third batch chunk
+    cut = tmp_path / "cut.pmz"
+    cut.write_bytes(data[:(start + end) // 2])
+    with pytest.raises(PMFormatError, match=rf"cut.pmz: truncated in chunk '{name}' \(bytes {start} to {end}; the "
+                                            rf"file ends at byte {(start + end) // 2}\): its base mesh and 2 coarsest "
+                                            r"batches are whole; pmjax.load\(path, batches=2\) reads them"):
+        read_pm(cut)
+    assert_same_pm(read_pm(cut, batches=2), read_pm(path, batches=2))
+    cut.write_bytes(data[:table[0][2] - 1])
+    with pytest.raises(PMFormatError, match="truncated in chunk 'base'.*not even its base mesh is whole"):
+        read_pm(cut, batches=0)
+    cut.write_bytes(data[:20])
+    with pytest.raises(PMFormatError, match="truncated in its header"):
+        read_pm(cut)
+    with pytest.raises(PMFormatError, match=f"batches=99, but the file has {pm.n_batches} batches"):
+        read_pm(path, batches=99)
+
+
+def test_a_damaged_chunk_is_named(cow, tmp_path):
+    pm, path = cow
+    table = chunk_table(path)
+    data = bytearray(path.read_bytes())
+    name, start, end = table[-2]  # batch 0, the finest
+    data[(start + end) // 2] ^= 0x10
+    bad = tmp_path / "bad.pmz"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(PMFormatError, match=rf"bad.pmz: chunk '{name}' \(bytes {start} to {end}\) fails its SHA-256"):
+        read_pm(bad)
+    # A prefix that stops before the damage still reads.
+    assert_same_pm(read_pm(bad, batches=pm.n_batches - 1), read_pm(path, batches=pm.n_batches - 1))
+
+
+def test_forged_header_sizes_are_refused_before_reading(cow, tmp_path):
+    _, path = cow
+    data = path.read_bytes()
+    length = int.from_bytes(data[8:12], "little")
+    header = json.loads(data[12:12 + length])
+    header["chunks"][1][2] = 1 << 40  # a chunk that would expand to a terabyte
+    text = json.dumps(header).encode()
+    bad = tmp_path / "bomb.pmz"
+    bad.write_bytes(data[:8] + len(text).to_bytes(4, "little") + text + data[12 + length:])
+    with pytest.raises(PMFormatError, match=r"bomb.pmz: header chunk 'batch \d+' declares 1099511627776 bytes "
+                                            "expanded, more than the"):
+        read_pm(bad)
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="save_pm: version must be one of"):
+        save_pm(None, "x.pmz", version=3)
+    with pytest.raises(ValueError, match="batches must be a whole number >= 0"):
+        read_pm(V1_FIXTURE, batches=-1)
+
+
+def test_a_prefix_without_faces_is_refused_with_the_first_that_has_some(tmp_path):
+    # A hierarchy whose base mesh has no faces: a terrain collapses to nothing.
+    from pmjax.builders import build_pm
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], np.float64)
+    f = np.array([[0, 1, 2], [1, 3, 2]])
+    pm = build_pm(v, f)
+    assert (pm.killer >= 0).all()
+    path = tmp_path / "square.pmz"
+    save_pm(pm, path)
+    total = np.cumsum([0, *np.bincount(np.searchsorted(pm.batch_offsets, pm.killer, side="right") - 1,
+                                       minlength=pm.n_batches)[::-1]])
+    first = int(np.argmax(total > 0))
+    for source in (path, io.BytesIO(path.read_bytes())):
+        with pytest.raises(PMFormatError, match=rf"batches=0 gives a mesh with no faces \(the base mesh has none\); "
+                                                rf"batches={first} is the first prefix with faces"):
+            read_pm(source, batches=0)
+    assert read_pm(path, batches=first).n_batches == first
