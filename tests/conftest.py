@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import importlib.util
 import os
 from pathlib import Path
 
@@ -73,12 +74,14 @@ def _missing_compiled_parts() -> list[str]:
         missing.append(f"the front engine's C core ({_core.LOAD_ERROR})")
     if builder._LIB is None:
         missing.append("the builder's C loops (pmjax.builders._build_native)")
+    if importlib.util.find_spec("pmjax._pmz_native") is None:
+        missing.append("the .pmz version 2 decoder's C loops (pmjax._pmz_native)")
     return missing
 
 
 def pytest_collection_modifyitems(config, items):
     """Tests of the compiled parts (marker ``core``: the front engine's C
-    core, the builder's C loops) skip where they are not built, but under
+    core, the builder's C loops, the .pmz decoder's C loops) skip where they are not built, but under
     PMJAX_REQUIRE_CORE=1 (CI sets it) a part that does not compile or load is
     an error: CI cannot go green without them."""
     missing = _missing_compiled_parts()
