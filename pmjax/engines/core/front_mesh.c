@@ -13,23 +13,6 @@
 
 PMX_INLINE void set_bit(uint64_t *bits, int64_t i) { bits[i >> 6] |= (uint64_t)1 << (i & 63); }
 
-/* Rank of bit i among the set bits (bit i set): set bits before word i/64
- * (prefix[]) plus those below it in its word. */
-PMX_INLINE int64_t rank_of(const uint64_t *bits, const int32_t *prefix, int64_t i)
-{
-    uint64_t below = bits[i >> 6] & ((((uint64_t)2) << (i & 63)) - 1);
-    return prefix[i >> 6] + __builtin_popcountll(below) - 1;
-}
-
-PMX_INLINE void prefix_counts(const uint64_t *bits, int64_t words, int32_t *prefix)
-{
-    int32_t total = 0;
-    for (int64_t w = 0; w < words; w++) {
-        prefix[w] = total;
-        total += __builtin_popcountll(bits[w]);
-    }
-}
-
 /* The refined mesh from the pcols that did not run:
  * drawn faces are the base faces and those pcols' kill lists; each corner's
  * representative is the front vertex whose depth-first interval holds the

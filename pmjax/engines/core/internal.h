@@ -188,6 +188,24 @@ void resolve_avx512(const PmxHierarchy *h, int64_t n, const int32_t *ids, const 
 #define PMX_TARGET_AVX512 __attribute__((target("avx512f,avx512bw,avx512vl,avx512dq,bmi2,fma,popcnt")))
 #define PMX_INLINE static inline __attribute__((always_inline))
 
+/* Rank of bit i among the set bits (bit i set): set bits before its word
+ * (prefix) plus those below it in its word. */
+PMX_INLINE int64_t rank_of(const uint64_t *bits, const int32_t *prefix, int64_t i)
+{
+    const uint64_t below = bits[i >> 6] & ((((uint64_t)2) << (i & 63)) - 1);
+    return prefix[i >> 6] + __builtin_popcountll(below) - 1;
+}
+
+/* prefix[w]: the set bits in words before w. */
+PMX_INLINE void prefix_counts(const uint64_t *bits, int64_t words, int32_t *prefix)
+{
+    int32_t total = 0;
+    for (int64_t w = 0; w < words; w++) {
+        prefix[w] = total;
+        total += __builtin_popcountll(bits[w]);
+    }
+}
+
 /* Rows ids[0..n) of table into columns (the rest of the block repeats the
  * first row). */
 static inline void gather_block(const Kernels *kern, const float *table, const int32_t *ids, int64_t n, Columns col)

@@ -663,23 +663,6 @@ void pmx_mesh_stream_state(const PmxMeshStream *s, PmxStreamState *out)
     out->generation = s->generation;
 }
 
-/* Rank of bit i among the set bits (bit i set): set bits before its word
- * (prefix) plus those below it in its word. */
-PMX_INLINE int64_t rank_of(const uint64_t *bits, const int32_t *prefix, int64_t i)
-{
-    const uint64_t below = bits[i >> 6] & ((((uint64_t)2) << (i & 63)) - 1);
-    return prefix[i >> 6] + __builtin_popcountll(below) - 1;
-}
-
-PMX_INLINE void prefix_counts(const uint64_t *bits, int64_t words, int32_t *prefix)
-{
-    int32_t total = 0;
-    for (int64_t w = 0; w < words; w++) {
-        prefix[w] = total;
-        total += __builtin_popcountll(bits[w]);
-    }
-}
-
 /* The stream keeps a bit per face drawn and per vertex id used: a face's row
  * is the rank of its id among the faces drawn, a vertex's the rank of its id
  * among those used, as Refinement.mesh() orders them. Nothing is sorted and
