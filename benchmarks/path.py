@@ -41,8 +41,9 @@ place (``StreamScene``); and the draw of an unchanged scene alone.
 Viewer (``--viewer``, needs a display: ``xvfb-run -a``): ``pmjax view``'s
 window at 800x600 moved along the standard orbit, each view refined alone
 and shown as the viewer shows it (``ViewerMesh``), per frame: the refine,
-the mesh's change (or its arrays built anew), and the window's draw (from
-the upload of the changed rows, or of the new mesh, to ``glFinish``); the
+the mesh's change (or its arrays built anew) and the scene's update, the
+changed rows written into the buffers before the draw (the stream only), and
+the window's draw to ``glFinish`` (a new mesh's buffers made in it); the
 two variants alternated in one window, means over frames, medians over
 repeats.
 """
@@ -306,19 +307,21 @@ def viewer_path(name, frames, tau, repeats, size=(800, 600)):
     def timed_before_draw():  # the draw's start: the upload comes first
         clock["start"] = time.perf_counter()
         before_draw()
+        clock["uploaded"] = time.perf_counter()
 
     mesh.before_draw = timed_before_draw
 
     def one_pass(stream):
         mesh.stream = stream
-        parts = np.zeros((frames, 3))
+        parts = np.zeros((frames, 4))
         for i, cam in enumerate(views):
             t0 = time.perf_counter()
             r = pmjax.refine(pm, cam, tau)
             jax.block_until_ready(r.n_faces)
-            t1 = time.perf_counter()
-            # Held over the show and the request: the next draw is the first with this view.
+            # Held over the show and the request: the next draw is the first
+            # with this view (the wait for a draw in progress not timed).
             with viewer.render_lock:
+                t1 = time.perf_counter()
                 mesh.show(r, viewer.render_lock)
                 t2 = time.perf_counter()
                 viewer._trackball._n_pose = np.asarray(cam.pose(), np.float64)
@@ -326,7 +329,7 @@ def viewer_path(name, frames, tau, repeats, size=(800, 600)):
                 clock["want"] = True
             if not done.wait(120):
                 raise RuntimeError("the viewer's window drew nothing")
-            parts[i] = (t1 - t0, t2 - t1, clock["end"] - clock["start"])
+            parts[i] = (t1 - t0, t2 - t1, clock["uploaded"] - clock["start"], clock["end"] - clock["uploaded"])
         return 1e3 * parts.mean(axis=0)
 
     variants = {"change in place": True, "mesh drawn anew": False}
@@ -343,10 +346,11 @@ def viewer_path(name, frames, tau, repeats, size=(800, 600)):
           f"OpenGL {gl.get('version')}, {gl.get('renderer')}")
     ms = {}
     for key, rows in times.items():
-        refine_ms, mesh_ms, draw_ms = np.median(np.asarray(rows), axis=0)
-        ms[key] = dict(refine=refine_ms, mesh=mesh_ms, draw=draw_ms, frame=refine_ms + mesh_ms + draw_ms)
+        refine_ms, mesh_ms, upload_ms, draw_ms = np.median(np.asarray(rows), axis=0)
+        ms[key] = dict(refine=refine_ms, mesh=mesh_ms, upload=upload_ms, draw=draw_ms,
+                       frame=refine_ms + mesh_ms + upload_ms + draw_ms)
         print(f"  {key:16s} frame {ms[key]['frame']:8.3f} ms = refine {refine_ms:7.3f} + change/mesh "
-              f"{mesh_ms:7.3f} + upload and draw {draw_ms:8.3f}", flush=True)
+              f"{mesh_ms:7.3f} + rows written {upload_ms:7.3f} + draw {draw_ms:8.3f}", flush=True)
     return dict(model=name, size=list(size), frames=frames, ms=ms, gl=gl)
 
 
