@@ -4,6 +4,7 @@ Usage: python benchmarks/path.py [--models cow,bunny,terrain_gcanyon,terrain_sth
        [--frames 240] [--tau 1] [--paths 256] [--many-model dragon] [--repeats 3] [--json FILE]
        python benchmarks/path.py --mesh [--mesh-models bunny,dragon] [--frames 240] [--tau 1] [--repeats 9]
        python benchmarks/path.py --draw [--draw-model dragon] [--frames 240] [--tau 1] [--repeats 3]
+       xvfb-run -a python benchmarks/path.py --viewer [--draw-model dragon] [--frames 24] [--repeats 3]
 
 Per model and path (the standard orbit; a fly-through from far in front, close
 past the side and round the back; the orbit jittered as if hand-held), all in
@@ -36,6 +37,15 @@ repeats, the variants alternated: each view refined alone (as ``pmjax view``
 refines its live camera) or the path through ``refine_path``, each frame's mesh
 built and drawn as a new scene or its change written into the GPU buffers in
 place (``StreamScene``); and the draw of an unchanged scene alone.
+
+Viewer (``--viewer``, needs a display: ``xvfb-run -a``): ``pmjax view``'s
+window at 800x600 moved along the standard orbit, each view refined alone
+and shown as the viewer shows it (``ViewerMesh``), per frame: the refine,
+the mesh's change (or its arrays built anew) and the scene's update, the
+changed rows written into the buffers before the draw (the stream only), and
+the window's draw to ``glFinish`` (a new mesh's buffers made in it); the
+two variants alternated in one window, means over frames, medians over
+repeats.
 """
 
 from __future__ import annotations
@@ -265,6 +275,85 @@ def draw_path(name, frames, tau, repeats, size=(800, 600)):
     return dict(model=name, size=list(size), frames=frames, ms=ms)
 
 
+def viewer_path(name, frames, tau, repeats, size=(800, 600)):
+    """Per-frame costs of ``pmjax view``'s window along the standard orbit (``--viewer``)."""
+    import threading
+
+    from OpenGL import GL
+
+    from pmjax.render._viewer import ViewerState, check_display, open_viewer
+
+    check_display()
+    pm = pmjax.load(pm_file(name))
+    cams = pmjax.standard_orbit(np.asarray(pm.vertices)[: pm.n_original_vertices], frames, width=size[0],
+                                height=size[1])
+    views = [index_camera(cams, i) for i in range(frames)]
+    clock = {"want": False, "start": 0.0, "end": 0.0}
+    done = threading.Event()
+
+    gl = {}
+
+    def drawn(viewer):  # the window's thread: the scene drawn
+        if not gl:
+            gl.update(renderer=GL.glGetString(GL.GL_RENDERER).decode(), version=GL.glGetString(GL.GL_VERSION).decode())
+        if clock["want"]:
+            GL.glFinish()
+            clock["want"], clock["end"] = False, time.perf_counter()
+            done.set()
+
+    viewer, mesh, _ = open_viewer(pm, views[0], ViewerState(tau=tau), drawn=drawn)
+    before_draw = mesh.before_draw
+
+    def timed_before_draw():  # the draw's start: the upload comes first
+        clock["start"] = time.perf_counter()
+        before_draw()
+        clock["uploaded"] = time.perf_counter()
+
+    mesh.before_draw = timed_before_draw
+
+    def one_pass(stream):
+        mesh.stream = stream
+        parts = np.zeros((frames, 4))
+        for i, cam in enumerate(views):
+            t0 = time.perf_counter()
+            r = pmjax.refine(pm, cam, tau)
+            jax.block_until_ready(r.n_faces)
+            # Held over the show and the request: the next draw is the first
+            # with this view (the wait for a draw in progress not timed).
+            with viewer.render_lock:
+                t1 = time.perf_counter()
+                mesh.show(r, viewer.render_lock)
+                t2 = time.perf_counter()
+                viewer._trackball._n_pose = np.asarray(cam.pose(), np.float64)
+                done.clear()
+                clock["want"] = True
+            if not done.wait(120):
+                raise RuntimeError("the viewer's window drew nothing")
+            parts[i] = (t1 - t0, t2 - t1, clock["uploaded"] - clock["start"], clock["end"] - clock["uploaded"])
+        return 1e3 * parts.mean(axis=0)
+
+    variants = {"change in place": True, "mesh drawn anew": False}
+    try:
+        for stream in variants.values():  # compiled, tables and buffers made
+            one_pass(stream)
+        times = {k: [] for k in variants}
+        for _ in range(repeats):
+            for key, stream in variants.items():
+                times[key].append(one_pass(stream))
+    finally:
+        viewer.close_external()
+    print(f"{name}: pmjax view's window {size[0]}x{size[1]}, {frames} frames, tau {tau}; "
+          f"OpenGL {gl.get('version')}, {gl.get('renderer')}")
+    ms = {}
+    for key, rows in times.items():
+        refine_ms, mesh_ms, upload_ms, draw_ms = np.median(np.asarray(rows), axis=0)
+        ms[key] = dict(refine=refine_ms, mesh=mesh_ms, upload=upload_ms, draw=draw_ms,
+                       frame=refine_ms + mesh_ms + upload_ms + draw_ms)
+        print(f"  {key:16s} frame {ms[key]['frame']:8.3f} ms = refine {refine_ms:7.3f} + change/mesh "
+              f"{mesh_ms:7.3f} + rows written {upload_ms:7.3f} + draw {draw_ms:8.3f}", flush=True)
+    return dict(model=name, size=list(size), frames=frames, ms=ms, gl=gl)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--models", default="cow,bunny,terrain_gcanyon,terrain_sthelens,dragon")
@@ -278,8 +367,14 @@ def main():
     ap.add_argument("--mesh-models", default="bunny,dragon")
     ap.add_argument("--draw", action="store_true", help="camera to image along the orbit, per frame (only)")
     ap.add_argument("--draw-model", default="dragon")
+    ap.add_argument("--viewer", action="store_true", help="pmjax view's window along the orbit, per frame (only)")
     args = ap.parse_args()
     print(f"machine: {machine()}\n")
+    if args.viewer:
+        row = viewer_path(args.draw_model, args.frames, args.tau, args.repeats)
+        if args.json:
+            write_json(args.json, dict(machine=machine(), viewer=row))
+        return
     if args.draw:
         row = draw_path(args.draw_model, args.frames, args.tau, args.repeats)
         if args.json:

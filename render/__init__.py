@@ -17,6 +17,8 @@ from ._scene import (
 )
 from ._offscreen import (
     Renderer,
+    SlotMesh,
+    StreamScene,
     check_frames_output,
     original_arrays,
     path_geometry,
@@ -28,7 +30,7 @@ from ._offscreen import (
 )
 from ._fidelity import DIFF_THRESHOLD, camera_fidelity, flip_difference, image_difference, path_fidelity, silhouette_difference
 from ._figures import FIGURES, overview_camera, paper_figures, phantom
-from ._viewer import KEYS, ViewerState, camera_from_pose, run_viewer
+from ._viewer import KEYS, ViewerMesh, ViewerState, camera_from_pose, open_viewer, run_viewer
 
 __all__ = [
     "RenderError",
@@ -41,6 +43,8 @@ __all__ = [
     "level_colors",
     "vertex_normals",
     "Renderer",
+    "SlotMesh",
+    "StreamScene",
     "check_frames_output",
     "original_arrays",
     "path_geometry",
@@ -60,7 +64,9 @@ __all__ = [
     "paper_figures",
     "phantom",
     "KEYS",
+    "ViewerMesh",
     "ViewerState",
     "camera_from_pose",
+    "open_viewer",
     "run_viewer",
 ]

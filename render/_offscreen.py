@@ -156,9 +156,10 @@ def render_refinement(renderer: Renderer, pm: ProgressiveMesh, refinement: Refin
                                 wireframe=wireframe, lines=lines, normals=normals)
 
 
-class StreamScene:
-    """A scene whose mesh is a :class:`pmjax.MeshStream`'s slots, drawn from
-    GPU buffers that each frame's :class:`pmjax.MeshChange` updates in place.
+class SlotMesh:
+    """A :class:`pmjax.MeshStream`'s slots as one pyrender mesh node whose GPU
+    buffers each frame's :class:`pmjax.MeshChange` updates in place, in any
+    scene and OpenGL context (an offscreen renderer's, a viewer window's).
 
     The vertex buffer holds one row per vertex slot (position and shading
     normal, as pyrender lays them out), the index buffer one triangle per face
@@ -169,31 +170,40 @@ class StreamScene:
     Drawn like :func:`render_refinement` without levels or wireframe: the
     same faces, vertices and normals.
 
+    :meth:`update` (or :meth:`apply`) changes host arrays only; the drawing
+    thread calls :meth:`before_draw` with the scene's context current, then
+    draws, then :meth:`after_draw`. A caller drawing in another thread holds
+    its lock over :meth:`apply`, :meth:`detach` and the draw.
+
     Args:
-        renderer: the :class:`Renderer` drawing it.
         pm: the mesh refined.
+        scene: the ``pyrender.Scene`` the mesh node goes into.
     """
 
-    def __init__(self, renderer: "Renderer", pm: ProgressiveMesh):
-        self.renderer, self.pm = renderer, pm
+    def __init__(self, pm: ProgressiveMesh, scene):
+        self.pm, self.scene = pm, scene
         self.stream = MeshStream(pm)
         self._normals = shading_normals(pm)
         self._pyrender = pyrender_module()
-        self.scene = self._pyrender.Scene(bg_color=BACKGROUND, ambient_light=(0.12, 0.12, 0.12))
-        self._node = self._primitive = None
-        self._camera = self._light = self._lines = None
+        self.node = self.primitive = None
         self._positions = np.zeros((0, 3), np.float32)
         self._vertex_normals = np.zeros((0, 3), np.float32)
         self._indices = np.zeros((0, 3), np.uint32)
         self._pending = None  # rows changed since the buffers were last written
         self._vaid, self._rows = None, 0  # the primitive's buffers last seen, and their triangles
+        self._n_faces = 0  # face slots in use, as of the last change applied
+        self.uploads = 0  # frames written into existing buffers
 
     def update(self, refinement: Refinement) -> MeshChange:
         """Moves the mesh to ``refinement``'s; returns the change."""
-        change = self.stream.update(refinement)
+        return self.apply(self.stream.update(refinement))
+
+    def apply(self, change: MeshChange) -> MeshChange:
+        """Writes :attr:`stream`'s last ``change`` into the host arrays; returns it."""
         faces, vertices = change.face_slots, change.vertex_slots
         if change.n_face_slots > len(self._indices) or change.n_vertex_slots > len(self._positions):
             self._grow(change.n_face_slots, change.n_vertex_slots)
+        self._n_faces = int(change.n_face_slots)
         self._indices[faces] = np.maximum(change.faces, 0)  # a free slot: the degenerate triangle (0, 0, 0)
         self._positions[vertices] = change.vertex_positions
         self._vertex_normals[vertices] = np.where(change.vertex_ids[:, None] >= 0,
@@ -211,27 +221,32 @@ class StreamScene:
         positions[:len(self._positions)] = self._positions
         normals[:len(self._vertex_normals)] = self._vertex_normals
         self._indices, self._positions, self._vertex_normals = indices, positions, normals
-        if self._node is not None:
-            self.scene.remove_node(self._node)
-        self._node = self._primitive = None
+        self.detach()
+
+    def detach(self):
+        """Takes the mesh node out of the scene (a view drawn otherwise
+        meanwhile); the next draw makes it again from the host arrays."""
+        if self.node is not None:
+            self.scene.remove_node(self.node)
+        self.node = self.primitive = None
         self._pending = None
 
     def _upload(self):
         """The changed rows into the primitive's buffers (pyrender's layout:
-        buffer 0 the vertices' position and normal rows, the last the indices)."""
+        buffer 0 the vertices' position and normal rows, the last the
+        indices), in the context current."""
         from OpenGL import GL
 
         faces, vertices = self._pending
         self._pending = (np.zeros(0, np.int32), np.zeros(0, np.int32))
-        if self._primitive is None or self._primitive._vaid is None:  # made from the host arrays when drawn
+        if not (len(faces) or len(vertices)):
             return
-        self.renderer._gl._platform.make_current()
         rows = np.concatenate([self._positions, self._vertex_normals], axis=1)
         # Written through the copy-write target: binding an element buffer
         # outside its vertex array object would change that object's binding.
         target = GL.GL_COPY_WRITE_BUFFER
-        for buffer, data, slots in ((self._primitive._buffers[0], rows, vertices),
-                                    (self._primitive._buffers[-1], self._indices, faces)):
+        for buffer, data, slots in ((self.primitive._buffers[0], rows, vertices),
+                                    (self.primitive._buffers[-1], self._indices, faces)):
             if not len(slots):
                 continue
             GL.glBindBuffer(target, buffer)
@@ -242,38 +257,82 @@ class StreamScene:
             block = np.ascontiguousarray(data[lo:hi])
             GL.glBufferSubData(target, lo * block.strides[0], block.nbytes, block)
             GL.glBindBuffer(target, 0)
+        self.uploads += 1
 
-    def render(self, camera: Camera, *, view: Optional[Camera] = None, lines=None):
-        """``(rgb, depth)`` of the mesh held, seen from ``view`` (default
-        ``camera``); ``lines``: optional ``[2n, 3]`` segments drawn red."""
-        view = camera if view is None else view
+    def before_draw(self, make_current=None):
+        """Readies the node for a draw of the scene: the changed rows written
+        into its buffers (``make_current``: makes the drawing context current
+        first, if it may not be), or a new node made from the host arrays."""
         # pyrender draws as many triangles as the primitive's index array
         # holds: after its first draw, the slots in use, not the buffers'
         # room. Buffers made again from that shorter array (pyrender drew
         # another scene meanwhile) may have fewer rows than the slots now in
         # use: the primitive is then made again.
-        n_faces = max(self.stream._counts[0] if self.stream._stream is not None else len(self.stream.faces), 1)
-        if (self._node is not None and self._primitive._vaid is not None and self._primitive._vaid == self._vaid
+        n_faces = max(self._n_faces, 1)
+        if (self.node is not None and self.primitive._vaid is not None and self.primitive._vaid == self._vaid
                 and n_faces > self._rows):
-            self.scene.remove_node(self._node)
-            self._node = None
-        if self._node is None:  # a new primitive: its buffers are made from the host arrays when drawn
+            self.detach()
+        if self.node is None:  # a new primitive: its buffers are made from the host arrays when drawn
             material = self._pyrender.MetallicRoughnessMaterial(baseColorFactor=BASE_COLOR, metallicFactor=0.0,
                                                                 roughnessFactor=0.9, doubleSided=True)
-            self._primitive = self._pyrender.Primitive(positions=self._positions, normals=self._vertex_normals,
-                                                       indices=self._indices, material=material,
-                                                       mode=self._pyrender.GLTF.TRIANGLES)
+            self.primitive = self._pyrender.Primitive(positions=self._positions, normals=self._vertex_normals,
+                                                      indices=self._indices, material=material,
+                                                      mode=self._pyrender.GLTF.TRIANGLES)
             # The primitive reads the host arrays themselves (its setters copy):
             # whenever pyrender makes its buffers again (a renderer that drew
             # another scene meanwhile), they hold the current rows.
-            self._primitive._positions, self._primitive._normals = self._positions, self._vertex_normals
-            self._node = self.scene.add(self._pyrender.Mesh([self._primitive]), name="mesh")
+            self.primitive._positions, self.primitive._normals = self._positions, self._vertex_normals
+            self.node = self.scene.add(self._pyrender.Mesh([self.primitive]), name="mesh")
             self._vaid = None
-            self._primitive._indices = self._indices  # its buffers made at full room
-        else:
-            if self._pending is not None:
-                self._upload()
-            self._primitive._indices = self._indices[:n_faces]
+            self.primitive._indices = self._indices  # its buffers made at full room
+            return
+        if self._pending is not None and self.primitive._vaid is not None:
+            if make_current is not None:
+                make_current()
+            self._upload()
+        self.primitive._indices = self._indices[:n_faces]
+
+    def after_draw(self):
+        """Notes the buffers the draw used (made in it, or written before it)."""
+        if self.primitive is None:
+            return
+        if self.primitive._vaid != self._vaid:  # buffers made in this draw: their rows
+            self._vaid, self._rows = self.primitive._vaid, len(self.primitive._indices)
+        if self._pending is None and self.primitive._vaid is not None:  # its buffers exist: changes go into them
+            self._pending = (np.zeros(0, np.int32), np.zeros(0, np.int32))
+
+
+class StreamScene:
+    """A scene whose mesh is a :class:`pmjax.MeshStream`'s slots, drawn by
+    an offscreen :class:`Renderer` from GPU buffers that each frame's
+    :class:`pmjax.MeshChange` updates in place (:class:`SlotMesh`).
+
+    Args:
+        renderer: the :class:`Renderer` drawing it.
+        pm: the mesh refined.
+    """
+
+    def __init__(self, renderer: "Renderer", pm: ProgressiveMesh):
+        self.renderer, self.pm = renderer, pm
+        self._pyrender = pyrender_module()
+        self.scene = self._pyrender.Scene(bg_color=BACKGROUND, ambient_light=(0.12, 0.12, 0.12))
+        self.mesh = SlotMesh(pm, self.scene)
+        self.stream = self.mesh.stream
+        self._camera = self._light = self._lines = None
+
+    @property
+    def _primitive(self):
+        return self.mesh.primitive
+
+    def update(self, refinement: Refinement) -> MeshChange:
+        """Moves the mesh to ``refinement``'s; returns the change."""
+        return self.mesh.update(refinement)
+
+    def render(self, camera: Camera, *, view: Optional[Camera] = None, lines=None):
+        """``(rgb, depth)`` of the mesh held, seen from ``view`` (default
+        ``camera``); ``lines``: optional ``[2n, 3]`` segments drawn red."""
+        view = camera if view is None else view
+        self.mesh.before_draw(self.renderer._gl._platform.make_current)
         pose = view.pose()
         for name in ("_camera", "_light", "_lines"):
             node = getattr(self, name)
@@ -284,10 +343,7 @@ class StreamScene:
                                      name="light")
         self._lines = self.scene.add(lines_mesh(lines), name="frustum") if lines is not None else None
         out = self.renderer.render_scene(self.scene)
-        if self._primitive._vaid != self._vaid:  # buffers made in this draw: their rows
-            self._vaid, self._rows = self._primitive._vaid, len(self._primitive._indices)
-        if self._pending is None:  # drawn once: its buffers exist, later changes go into them
-            self._pending = (np.zeros(0, np.int32), np.zeros(0, np.int32))
+        self.mesh.after_draw()
         return out
 
 
