@@ -816,17 +816,43 @@ def _path_budgets(pm, host, budgets, tests, chunk):
     rows = _core.host_camera_rows(host, np.zeros(K, np.float32), d.exponent)
 
     def along_path(bits):
-        from ._path import _core_path_counts  # _path imports this module
-
-        cols = [np.zeros(K, np.int32) for _ in range(3)]
-        _core_path_counts(pm, host, bits.astype(np.int32).view(np.float32), tests, K, cols, np.zeros(K),
-                          lambda it, total, unit: it, False)
-        return np.stack(cols, 1).astype(np.int64)
+        at = rows.copy()
+        at[:, -1] = bits.astype(np.int32).view(np.float32)
+        return _word_counts(d, counts_of, at, tests, host.orthographic)
 
     tau, cols = _exact_from_guess(d.core, rows, budgets, guess, alt, tests, host.orthographic, counts_of,
                                   along_path)
     return dict(tau=tau, faces=cols[0].astype(np.int32), vertices=cols[1].astype(np.int32),
                 executed_count=cols[2].astype(np.int32))
+
+
+# Words of the core per call when counting a path (as pmjax.path_counts).
+WORDS_PER_CALL = 64
+
+
+def _word_counts(d, counts_of, rows, tests, orthographic):
+    """Exact ``(faces, vertices, executed)`` (``int64 [K, 3]``) of the frames
+    ``rows`` (``float32 [K, CAMERA]``, a path in order, each with its own
+    tolerance) through the core's words: the path padded to whole words by
+    its last frame, whole blocks of words per call, then the rest in powers
+    of two words (few compiled sizes)."""
+    K, F = len(rows), _core.FRAMES
+    words = -(-K // F)
+    order = np.minimum(np.arange(words * F), K - 1)
+    out = np.empty((K, 3), np.int64)
+    start = 0
+    while start < words:
+        n = min(WORDS_PER_CALL, 1 << int(np.log2(words - start)))
+        lanes = order[start * F:(start + n) * F]
+        counts = np.asarray(_core_word_counts(d.core_words, d.core, rows[lanes], tests, orthographic))
+        out[lanes] = np.stack(counts_of(counts[:, 1], counts[:, 2], np), 1)  # a repeated frame: the same counts
+        start += n
+    return out
+
+
+@functools.partial(jax.jit, static_argnames=("tests", "orthographic"))
+def _core_word_counts(tables, one_tables, rows, tests, orthographic):
+    return _core.refine_words(tables, one_tables, rows, tests, orthographic, False)[0]
 
 
 def _guesses(d, counts_of, host, frames, start, budgets, tests, chunk):

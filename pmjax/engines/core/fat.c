@@ -3,7 +3,7 @@
  * Consecutive frames of a path see nearly the same thing, so most pcols of a
  * word are decided alike by all its frames. A fat camera covers the word's
  * frames (pmx_fat_cameras below; all of them perspective views with every
- * test on and the same intrinsics and tolerance, the clip distances free):
+ * test on and the same intrinsics, the clip distances and tolerances free):
  *
  *  - every frame's eye lies within rho of the eye centre e, so every
  *    distance from a frame's eye is within rho of the distance from e, and
