@@ -403,16 +403,25 @@ def run_part(task: dict):
 
         # A budget needs its own tolerance per camera: the exact one of
         # faces_for_budget, found for the batch's cameras together (the
-        # core's threads across cameras), with the counts there.
-        call = lambda c: faces_for_budget_batch(pm, c, budget, tests=tests, chunk=task["batch_chunk"], method=method)
-        size = -(-min(task["batch_chunk"], len(idx)) // WORD) * WORD
-        first = index_camera(cams, np.minimum(np.arange(size), len(idx) - 1))
-        compile_ms += _warm(warm, ("budget", size) + setting, lambda: call(first))
-        t = time.perf_counter()
-        out = call(cams)
-        ms[idx] = 1e3 * (time.perf_counter() - t) / len(idx)
-        tau[idx], faces[idx], vertices[idx], executed[idx] = (out["tau"], out["faces"], out["vertices"],
-                                                              out["executed_count"])
+        # core's threads across cameras), with the counts there. Paths pass
+        # their frames in order (guesses seeded along the path, first counts
+        # through the coherent engine); the other cameras in one batch.
+        runs, rest = path_runs(table, idx) if method != "dense" else ([], np.arange(len(idx)))
+        for part, is_path in [(run, True) for run in runs] + ([(rest, False)] if len(rest) else []):
+            rows, batch = idx[part], index_camera(cams, part)
+            call = lambda c: faces_for_budget_batch(pm, c, budget, tests=tests, chunk=task["batch_chunk"],
+                                                    method=method, path=is_path)
+            size = -(-min(task["batch_chunk"], len(part)) // WORD) * WORD
+            if is_path:  # the path's calls: its length decides their sizes
+                compile_ms += _warm(warm, ("budget_path", len(part)) + setting, lambda: call(batch))
+            else:
+                first = index_camera(batch, np.minimum(np.arange(size), len(part) - 1))
+                compile_ms += _warm(warm, ("budget", size) + setting, lambda: call(first))
+            t = time.perf_counter()
+            out = call(batch)
+            ms[rows] = 1e3 * (time.perf_counter() - t) / len(rows)
+            tau[rows], faces[rows], vertices[rows], executed[rows] = (out["tau"], out["faces"], out["vertices"],
+                                                                      out["executed_count"])
     compile = np.zeros(n)
     compile[:1] = compile_ms
     camera = np.arange(task["lo"], task["hi"], dtype=np.int64)

@@ -689,7 +689,7 @@ _INF_BITS = 0x7F800000
 
 
 def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, tests: Tests = ALL_TESTS,
-                           chunk: int = 256, method: str = "auto") -> dict:
+                           chunk: int = 256, method: str = "auto", path: bool = False) -> dict:
     """:func:`faces_for_budget` for K cameras at once: the same ``(tau, faces)``
     per camera, and the counts there.
 
@@ -708,6 +708,11 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
         tests: :class:`Tests`.
         chunk: cameras per call, rounded up to a multiple of 32.
         method: ``"auto"``, ``"front"`` or ``"dense"`` (as :func:`faces_for_budget`).
+        path: the cameras are the frames of one path, in order (an orbit, a
+            fly-through): each frame's guess starts from the guesses of sampled
+            frames around it, and the first exact counts run through the
+            coherent path engine (:func:`pmjax.path_counts`, per-frame
+            tolerances). The same answers; only the cost differs.
 
     Returns:
         dict ``tau`` (``float32 [K]``, pixels; ``0`` when even the finest view
@@ -752,12 +757,14 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
             out["vertices"][k], out["executed_count"][k] = int(r.n_vertices), int(r.n_executed)
         return out
     chunk = -(-max(1, min(int(chunk), K)) // WORD) * WORD
-    order = nearby_order(np.asarray(cameras.eye))
     host = jax.tree.map(np.asarray, cameras)
     d = derived(pm)
     counts_of = _Counts.of(pm)
     # A count never exceeds F: budgets above it are the same as F (and fit int32).
     budgets = np.minimum(budgets, counts_of.F)
+    if path:
+        return _path_budgets(pm, host, budgets, tests, chunk)
+    order = nearby_order(np.asarray(cameras.eye))
     tau = np.empty(K, np.float32)
     cols = [np.empty(K, np.int32) for _ in range(3)]
     for s in range(0, K, chunk):
@@ -775,12 +782,101 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
     return dict(tau=tau, faces=cols[0], vertices=cols[1], executed_count=cols[2])
 
 
+# Along a path, every PATH_SAMPLE-th frame is guessed first (each from the
+# answer of the frame its thread did before, START times above, so usually
+# two traversals); the others start their single traversal PATH_START times
+# below the answer the sampled frames around them predict (log tau
+# interpolated along the path), where a traversal finds the answer at once.
+PATH_SAMPLE = 16
+PATH_START = 0.9
+
+
+def _path_budgets(pm, host, budgets, tests, chunk):
+    """:func:`faces_for_budget_batch` of one path's frames in order (``host``
+    NumPy cameras, ``budgets`` int64 [K] at most F): guesses seeded by
+    sampled frames, then exact counts, the first two rounds' (at the guess
+    and one pattern below it, all frames) through the core's words."""
+    K = len(budgets)
+    d, counts_of = derived(pm), _Counts.of(pm)
+    sampled = np.unique(np.r_[np.arange(0, K, PATH_SAMPLE), K - 1])
+    guess, alt = np.zeros(K, np.int32), np.zeros(K, np.int32)
+    guess[sampled], alt[sampled] = _guesses(d, counts_of, host, sampled, np.zeros(len(sampled), np.float32),
+                                            budgets, tests, chunk)
+    # Sampled answers at 0 or inf predict nothing: those frames start as the core would.
+    g = guess[sampled].astype(np.int64)
+    finite = (g > 0) & (g <= _INF_BITS)
+    start = np.zeros(K, np.float32)
+    if finite.any():
+        log_tau = np.log(g[finite].astype(np.int32).view(np.float32).astype(np.float64))
+        predicted = PATH_START * np.exp(np.interp(np.arange(K), sampled[finite], log_tau))
+        start = np.where(np.isfinite(predicted), predicted, 0.0).astype(np.float32)
+    rest = np.setdiff1d(np.arange(K), sampled)
+    if len(rest):
+        guess[rest], alt[rest] = _guesses(d, counts_of, host, rest, start[rest], budgets, tests, chunk)
+    rows = _core.host_camera_rows(host, np.zeros(K, np.float32), d.exponent)
+
+    def along_path(bits):
+        at = rows.copy()
+        at[:, -1] = bits.astype(np.int32).view(np.float32)
+        return _word_counts(d, counts_of, at, tests, host.orthographic)
+
+    tau, cols = _exact_from_guess(d.core, rows, budgets, guess, alt, tests, host.orthographic, counts_of,
+                                  along_path)
+    return dict(tau=tau, faces=cols[0].astype(np.int32), vertices=cols[1].astype(np.int32),
+                executed_count=cols[2].astype(np.int32))
+
+
+# Words of the core per call when counting a path (as pmjax.path_counts).
+WORDS_PER_CALL = 64
+
+
+def _word_counts(d, counts_of, rows, tests, orthographic):
+    """Exact ``(faces, vertices, executed)`` (``int64 [K, 3]``) of the frames
+    ``rows`` (``float32 [K, CAMERA]``, a path in order, each with its own
+    tolerance) through the core's words: the path padded to whole words by
+    its last frame, whole blocks of words per call, then the rest in powers
+    of two words (few compiled sizes)."""
+    K, F = len(rows), _core.FRAMES
+    words = -(-K // F)
+    order = np.minimum(np.arange(words * F), K - 1)
+    out = np.empty((K, 3), np.int64)
+    start = 0
+    while start < words:
+        n = min(WORDS_PER_CALL, 1 << int(np.log2(words - start)))
+        lanes = order[start * F:(start + n) * F]
+        counts = np.asarray(_core_word_counts(d.core_words, d.core, rows[lanes], tests, orthographic))
+        out[lanes] = np.stack(counts_of(counts[:, 1], counts[:, 2], np), 1)  # a repeated frame: the same counts
+        start += n
+    return out
+
+
+@functools.partial(jax.jit, static_argnames=("tests", "orthographic"))
+def _core_word_counts(tables, one_tables, rows, tests, orthographic):
+    return _core.refine_words(tables, one_tables, rows, tests, orthographic, False)[0]
+
+
+def _guesses(d, counts_of, host, frames, start, budgets, tests, chunk):
+    """The core's ``(guess, alt)`` of cameras ``host[frames]``, each traversal
+    starting at ``start`` (0: from the thread's last answer), ``chunk``
+    cameras per call (the last chunk padded by repeating its last camera)."""
+    guess, alt = np.empty(len(frames), np.int32), np.empty(len(frames), np.int32)
+    for s in range(0, len(frames), chunk):
+        pick = np.minimum(np.arange(s, s + chunk), len(frames) - 1)
+        part = jax.tree.map(lambda a: a[frames[pick]], host)
+        rows = _core.host_camera_rows(part, start[pick], d.exponent)
+        got = _core_guesses(d.core, rows, budgets[frames[pick]].astype(np.int32), tests, host.orthographic,
+                            counts_of.base_faces)
+        n = min(chunk, len(frames) - s)
+        guess[s:s + n], alt[s:s + n] = (np.asarray(x)[:n] for x in got)
+    return guess, alt
+
+
 @functools.partial(jax.jit, static_argnames=("tests", "orthographic", "base_faces"))
 def _core_guesses(tables, rows, budgets, tests, orthographic, base_faces):
     return _core.budget_guesses(tables, rows, budgets, tests, orthographic, base_faces)
 
 
-def _exact_from_guess(tables, rows, budgets, guess, alt, tests, orthographic, counts_of):
+def _exact_from_guess(tables, rows, budgets, guess, alt, tests, orthographic, counts_of, along_path=None):
     """The exact answers from the guesses, by rounds of exact counts.
 
     Over the float32 bit patterns ``b`` of ``tau`` (``0 .. INF_BITS``; a
@@ -793,7 +889,9 @@ def _exact_from_guess(tables, rows, budgets, guess, alt, tests, orthographic, co
     and just below it where that differs, else one step on; later rounds
     gallop from a virtual end (steps growing geometrically) or split the
     bracket. Each round is one batched call of exact counts over the cameras
-    still open.
+    still open. With ``along_path`` (``bits [n] -> counts int64 [n, 3]``, all
+    the cameras as a path at those patterns) the first round's two sets of
+    counts come from it instead.
     """
     n = len(budgets)
     lo = np.full(n, -1, np.int64)
@@ -808,8 +906,18 @@ def _exact_from_guess(tables, rows, budgets, guess, alt, tests, orthographic, co
     while True:
         groups = [(c[(b >= 0) & (b <= _INF_BITS)], b[(b >= 0) & (b <= _INF_BITS)]) for c, b in groups]
         cams, bits = np.concatenate([c for c, _ in groups]), np.concatenate([b for _, b in groups])
-        if len(cams):
+        if len(cams) and along_path is not None and rounds == 0:
+            # Every camera at the guess, then every camera one pattern below
+            # it, each as a path (patterns out of range counted at inf, unused).
+            counted = []
+            for c, b in groups:
+                at = np.full(n, _INF_BITS, np.int64)
+                at[c] = b
+                counted.append(along_path(at)[c] if len(c) else np.zeros((0, 3), np.int64))
+            counted = np.concatenate(counted)
+        elif len(cams):
             counted = np.stack(_counts_at(tables, rows, cams, bits, tests, orthographic, counts_of), 1)
+        if len(cams):
             start = 0
             for c, b in groups:
                 got = counted[start:start + len(c)]

@@ -3,7 +3,7 @@
  * Consecutive frames of a path see nearly the same thing, so most pcols of a
  * word are decided alike by all its frames. A fat camera covers the word's
  * frames (pmx_fat_cameras below; all of them perspective views with every
- * test on and the same intrinsics and tolerance, the clip distances free):
+ * test on and the same intrinsics, the clip distances and tolerances free):
  *
  *  - every frame's eye lies within rho of the eye centre e, so every
  *    distance from a frame's eye is within rho of the distance from e, and
@@ -31,6 +31,12 @@
  *    this evaluation's and any frame's (so `less` certifies it as it
  *    certifies a frame's comparison).
  *
+ * The frames' tolerances may differ (a face budget's per frame): the screen
+ * test is monotone in kappa2 = (unit tau)^2 (rounded products are monotone),
+ * so a subtree small at the smallest kappa2 is small for every frame, and a
+ * pcol surely too coarse at the largest is too coarse for every frame; the
+ * magnitudes take the largest.
+ *
  * Otherwise (about one slot in six along the dragon's orbit) the frames are
  * decided one by one. Either way every frame gets the bits of its own
  * refinement. */
@@ -44,8 +50,7 @@ enum {
 
 /* Frames can share the fat camera fat (FAT_N floats, or NULL): it is given
  * and finite, and they are perspective views of the usual kind (fast_view)
- * with the same constants (intrinsics and tolerance) but for the clip
- * distances. */
+ * with the same intrinsics; the clip distances and tolerances are free. */
 int fat_applies(const Frames *fr, const float *fat, int n_frames)
 {
     if (!fat || !fr->fast || fr->ortho)
@@ -57,8 +62,6 @@ int fat_applies(const Frames *fr, const float *fat, int n_frames)
         for (int i = 0; i < 6; i++)
             if (fr->k[i][l] != fr->k[i][0])
                 return 0;
-        if (fr->kappa2[l] != fr->kappa2[0])
-            return 0;
     }
     return 1;
 }
@@ -77,9 +80,11 @@ void load_fat(Fat *W, const float *fat, const Frames *fr, int n_frames)
     W->ab_inv = fat[FAT_STEP_INV], W->capsule = fat[FAT_CAPSULE];
     W->k0 = fr->k[0][0], W->k1 = fr->k[1][0], W->k2 = fr->k[2][0], W->k3 = fr->k[3][0];
     W->k4 = fr->k[4][0], W->k5 = fr->k[5][0];
-    W->kappa2 = fr->kappa2[0], W->kfac = fr->kfac[0], W->kabs = fr->kabs[0];
+    W->kappa2 = W->kappa2_hi = fr->kappa2[0], W->kfac = fr->kfac[0], W->kabs = fr->kabs[0];
     W->near_lo = W->near_hi = fr->k[6][0], W->far_lo = W->far_hi = fr->k[7][0], W->kpad = fr->kpad[0];
     for (int l = 1; l < n_frames; l++) {
+        W->kappa2 = fminf(W->kappa2, fr->kappa2[l]), W->kappa2_hi = fmaxf(W->kappa2_hi, fr->kappa2[l]);
+        W->kabs = fmaxf(W->kabs, fr->kabs[l]);
         W->near_lo = fminf(W->near_lo, fr->k[6][l]), W->near_hi = fmaxf(W->near_hi, fr->k[6][l]);
         W->far_lo = fminf(W->far_lo, fr->k[7][l]), W->far_hi = fmaxf(W->far_hi, fr->k[7][l]);
         W->kpad = fmaxf(W->kpad, fr->kpad[l]);
@@ -98,6 +103,7 @@ void load_fat(Fat *W, const float *fat, const Frames *fr, int n_frames)
 static inline __attribute__((always_inline)) int32_t decide_fat_one(const Fat *W, const Pcol q)
 {
     const float rho = W->rho, eps = W->eps, tau = W->tau, kappa2 = W->kappa2, kfac = W->kfac, kpad = W->kpad;
+    const float kappa2_hi = W->kappa2_hi;
     const float k0 = W->k0, k1 = W->k1, k2 = W->k2, k3 = W->k3, k4 = W->k4, k5 = W->k5;
     const float nx = q.nx, ny = q.ny, nz = q.nz, r = q.radius, ar = fabsf(r), sa = q.sin_a, ca = q.cos_a;
     const float delta = q.delta, mu = q.mu;
@@ -171,17 +177,17 @@ static inline __attribute__((always_inline)) int32_t decide_fat_one(const Fat *W
                          less(sa * sa * (dlo * dlo - r * r) - g2,
                               2 * sa * sa * (dhi2 * GROW_M + r * r) + mg_fat * mg_fat + mg_frame * mg_frame, slack)
                              .n;
-    /* Too coarse for every frame: mu^2 >= kappa2 d^2 surely, or delta^2 (d^2 -
+    /* Too coarse for every frame (at the largest kappa2): mu^2 >= kappa2 d^2 surely, or delta^2 (d^2 -
      * h^2) >= kappa2 d^4 surely, with d^2 - h^2 = |v x n|^2 + d^2 (1 - |n|^2)
      * and |v x n| moving by at most rho |n|. */
     const float wx = vy * nz - vz * ny, wy = vz * nx - vx * nz, wz = vx * ny - vy * nx;
     const float wlo = pos(sqrtf(wx * wx + wy * wy + wz * wz) - hshift), mw = v1 * n1 + hshift;
     const float nn = nx * nx + ny * ny + nz * nz;
     const _Bool coarse =
-        less(mu * mu - kappa2 * far_d2, 2 * mu * mu + 2 * kappa2 * far_d2 * GROW_M, slack).n |
-        less(delta * delta * (wlo * wlo - dhi2 * pos(nn - 1)) - kappa2 * far_d2 * far_d2,
+        less(mu * mu - kappa2_hi * far_d2, 2 * mu * mu + 2 * kappa2_hi * far_d2 * GROW_M, slack).n |
+        less(delta * delta * (wlo * wlo - dhi2 * pos(nn - 1)) - kappa2_hi * far_d2 * far_d2,
              delta * delta * (mw * mw + dhi2 * (nn + 1) + dhi2 * (1 + n1 * n1) * GROW_M) +
-                 2 * kappa2 * far_d2 * far_d2 * GROW_M,
+                 2 * kappa2_hi * far_d2 * far_d2 * GROW_M,
              slack)
             .n;
     const _Bool keep = guard & inside & toward & coarse;

@@ -74,7 +74,8 @@ typedef struct {
     float tx, ty, tz;                                 /* the pivot in reference camera coordinates */
     float eps, tau;                                   /* |R_f - R| <= eps, |R_f (p - e_f) - t| <= tau */
     float ax, ay, az, abx, aby, abz, ab_inv, capsule; /* every e_f within capsule of a + [0, 1] ab; 1 / |ab|^2 */
-    float k0, k1, k2, k3, k4, k5, kappa2, kfac, kabs; /* the frames' common constants */
+    float k0, k1, k2, k3, k4, k5, kfac, kabs;         /* the frames' common constants (kabs: the largest) */
+    float kappa2, kappa2_hi;                          /* the smallest and largest of the frames' kappa2 */
     float near_lo, near_hi, far_lo, far_hi, kpad;     /* clip distances over the frames, the largest kpad */
 } Fat;
 

@@ -1,0 +1,185 @@
+"""faces_for_budget_batch on camera paths (``path=True``): guesses seeded along
+the path and the first exact counts through the coherent path engine.
+
+Every answer must be faces_for_budget's, bit for bit: the dense sort of the
+critical tolerances, and the counts of a refine at the answer.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import pmjax
+from pmjax import _refine
+from pmjax._camera import index_camera, stack_cameras
+from pmjax.engines import _dense
+
+pytestmark = pytest.mark.core
+
+
+def _paths(data, n, seed):
+    """An orbit, a fly-through past and into the model, and the orbit with
+    its eyes and targets jittered frame to frame (a shaky hand-held path)."""
+    v0 = data.vertices[: data.n_original_vertices]
+    c, r = v0.mean(0), float(np.linalg.norm(np.ptp(v0, 0)))
+    orbit = pmjax.standard_orbit(v0, n)
+    fly = pmjax.fly_through([(c + [2 * r, 0.3 * r, 0], c), (c + [0.2 * r, 0.1 * r, 0.1 * r], c),
+                             (c + [-0.3 * r, 0, 0.4 * r], c + [-r, 0, 0])], n)
+    rng = np.random.default_rng(seed)
+    eyes, targets = np.asarray(orbit.eye, float), np.tile(c, (n, 1))
+    jittered = stack_cameras([pmjax.look_at(e + rng.normal(0, 0.02 * r, 3), t + rng.normal(0, 0.02 * r, 3))
+                              for e, t in zip(eyes, targets)])
+    return {"orbit": orbit, "fly": fly, "jittered": jittered}
+
+
+def _budgets(pm, cams):
+    """Budgets across the range: below the base mesh, at it, between, at and
+    above the finest view."""
+    full = pm.n_faces
+    base = full - int(np.sum(np.asarray(pm.kills)))
+    some = pmjax.refine_batch(pm, cams, 1.0)["faces"]
+    return sorted({0, max(base - 1, 0), base, int(np.median(some)), int(some.min()), full, full + 7})
+
+
+def _assert_dense(pm, cams, budget, out):
+    """``out`` (a path's answers) against the dense sort per frame and the
+    counts of a refine at the answer."""
+    for k in range(len(out["tau"])):
+        cam = index_camera(cams, k)
+        b = int(np.broadcast_to(budget, (len(out["tau"]),))[k])
+        tau, faces = _dense.budget_sort(pm, pmjax.critical_tolerances(pm, cam), b)
+        assert np.float32(out["tau"][k]).tobytes() == np.float32(tau).tobytes(), (k, b)
+        assert out["faces"][k] == faces, (k, b)
+        r = pmjax.refine(pm, cam, out["tau"][k])
+        assert (out["faces"][k], out["vertices"][k], out["executed_count"][k]) == \
+            (int(r.n_faces), int(r.n_vertices), int(r.n_executed)), (k, b)
+
+
+def _assert_same(a, b, why):
+    for key in a:
+        assert a[key].tobytes() == b[key].tobytes(), (why, key)
+
+
+@pytest.mark.slow
+def test_paths_equal_the_dense_sort_on_the_cow(built):
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    for name, cams in _paths(data, 20, seed=1).items():
+        budgets = _budgets(pm, cams)
+        for b in budgets:
+            out = pmjax.faces_for_budget_batch(pm, cams, b, path=True, chunk=32, method="front")
+            _assert_dense(pm, cams, b, out)
+        # A budget per frame, changing along the path.
+        per_frame = np.resize(np.array(budgets), 20)
+        out = pmjax.faces_for_budget_batch(pm, cams, per_frame, path=True, method="front")
+        _assert_dense(pm, cams, per_frame, out)
+
+
+@pytest.mark.slow
+def test_wrong_guesses_on_a_path_still_give_the_exact_answer(built, monkeypatch):
+    """Any guess, for the sampled frames or the others, far off in either
+    direction, at 0 or past inf, gives the same answers."""
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _paths(data, 20, seed=2)["jittered"]
+    budgets = _budgets(pm, cams)
+    want = {b: pmjax.faces_for_budget_batch(pm, cams, b, method="front") for b in budgets[1::2]}
+    rng = np.random.default_rng(0)
+    original = _refine._core_guesses
+    for bad in (lambda g: g * 0, lambda g: g * 0 + 0x7F800001, lambda g: g + rng.integers(-10 ** 7, 10 ** 7, g.shape),
+                lambda g: g - 1, lambda g: rng.integers(0, 0x7F800002, g.shape)):
+        monkeypatch.setattr(_refine, "_core_guesses", lambda *a, **k: tuple(
+            bad(np.asarray(g, np.int64)).astype(np.int32) for g in original(*a, **k)))
+        for b, out in want.items():
+            _assert_same(out, pmjax.faces_for_budget_batch(pm, cams, b, path=True, method="front"), b)
+    monkeypatch.setattr(_refine, "_core_guesses", original)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["bunny.ply", "terrain_gcanyon.ply"])
+def test_paths_equal_the_dense_sort(built, name):
+    data = built(name)
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    for kind, cams in _paths(data, 36, seed=len(name)).items():
+        for b in _budgets(pm, cams):
+            out = pmjax.faces_for_budget_batch(pm, cams, b, path=True)
+            _assert_dense(pm, cams, b, out)
+            _assert_same(out, pmjax.faces_for_budget_batch(pm, cams, b), (kind, b))
+
+
+def test_a_path_gives_the_batch_answers(built):
+    """Along an orbit, a budget below the base mesh, one between and one above
+    the full mesh: the answers of the cameras as a batch."""
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _paths(data, 20, seed=3)["orbit"]
+    budgets = _budgets(pm, cams)
+    for b in (budgets[1], budgets[3], budgets[-1]):
+        _assert_same(pmjax.faces_for_budget_batch(pm, cams, b, method="front"),
+                     pmjax.faces_for_budget_batch(pm, cams, b, path=True, method="front"), b)
+
+
+def test_evaluation_runs_paths_as_paths_with_the_same_answers(built, tmp_path, monkeypatch):
+    """A budget job on an orbit sends the orbit's frames as one path, in
+    order, and its rows are faces_for_budget's."""
+    pytest.importorskip("pyarrow")
+    import pyarrow.dataset as ds
+
+    data = built("cow.ply")
+    model = str(tmp_path / "cow.pmz")
+    pmjax.save_pm(data, model)
+    pm = pmjax.load(model)
+    seen = []
+    original = _refine._path_budgets
+    monkeypatch.setattr(_refine, "_path_budgets", lambda pm_, host, *a: seen.append(len(host.eye)) or
+                        original(pm_, host, *a))
+    pmjax.evaluate([model], ["orbit:40"], str(tmp_path / "b"), budgets=[600], method="front",
+                   compile_cache=None, progress=False)
+    assert seen and set(seen) == {40}
+    table = ds.dataset(str(tmp_path / "b"), format="parquet").to_table()
+    order = np.argsort(table.column("camera").to_numpy())
+    got = {c: table.column(c).to_numpy()[order] for c in ("tau", "faces", "executed")}
+    cams = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 40)
+    want = pmjax.faces_for_budget_batch(pm, cams, 600, method="front")
+    assert got["tau"].astype(np.float32).tobytes() == want["tau"].tobytes()
+    assert np.array_equal(got["faces"], want["faces"])
+    assert np.array_equal(got["executed"], want["executed_count"])
+
+
+@pytest.mark.parametrize("name", ["cow.ply", "terrain_gcanyon.ply"])
+def test_fat_camera_decisions_hold_with_a_tolerance_per_frame(built, name):
+    """A word's frames at their own tolerances (a budget's, along a path):
+    where the fat camera says "whole", every frame's subtree collapses under
+    the float32 predicate at its tolerance; where it says "no", no frame's
+    predicate collapses the pcol. Along the orbit it still decides pcols."""
+    import jax.numpy as jnp
+
+    from pmjax.engines import _core
+    from pmjax.engines._tables import derived
+
+    data = built(name)
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    d = derived(pm)
+    kids, table = d.children, d.jax.table
+    v0 = data.vertices[: data.n_original_vertices]
+    orbit = pmjax.standard_orbit(v0, 240)
+    rng = np.random.default_rng(5)
+    for start in (0, 96):
+        word = index_camera(orbit, np.arange(start, start + 16))
+        for taus in (np.float32(1.0) + np.float32(0.05) * rng.random(16, np.float32),
+                     np.geomspace(0.3, 3.0, 16).astype(np.float32)):
+            views = _core.views(_core.camera_rows(word, taus, d.exponent), word.orthographic)
+            fat = _core.fat_cameras(views[None])[0]
+            got = np.asarray(_core.decide_fat_all(table, views, fat, _core.flags_of(pmjax.ALL_TESTS, False)))
+            assert np.any(got == _core.FAT_NO) and np.any(got == _core.FAT_WHOLE), (start, taus[0])
+            for f in range(16):
+                want = np.asarray(pmjax.collapse_mask(pm.attributes, index_camera(word, f), jnp.float32(taus[f]),
+                                                      pmjax.ALL_TESTS))
+                assert not np.any(want[got == _core.FAT_NO]), (start, f)
+                all_below = want.copy()
+                for lo, hi in zip(pm.batch_offsets[:-1], pm.batch_offsets[1:]):
+                    for k in kids[lo:hi].T:
+                        has = k >= 0
+                        all_below[lo:hi][has] &= all_below[k[has]]
+                assert np.all(all_below[got == _core.FAT_WHOLE]), (start, f)
