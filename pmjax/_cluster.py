@@ -45,11 +45,7 @@ def slurm_cluster(jobs: int = 0, *, cores: Optional[int] = None, memory: Optiona
         RuntimeError: dask-jobqueue is not installed (``pip install pmjax[cluster]``).
         ValueError: ``jobs`` below 0, or no cores or memory given nor configured.
     """
-    try:
-        from dask_jobqueue import SLURMCluster
-    except ImportError as exc:
-        raise RuntimeError("a SLURM cluster needs dask-jobqueue: pip install 'pmjax[cluster]' "
-                           "(or pip install dask-jobqueue)") from exc
+    SLURMCluster = _slurm_cluster_class()
     import dask
 
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 0:
@@ -70,3 +66,26 @@ def slurm_cluster(jobs: int = 0, *, cores: Optional[int] = None, memory: Optiona
     if jobs:
         cluster.scale(jobs=jobs)
     return cluster
+
+
+def _slurm_cluster_class():
+    """dask-jobqueue's ``SLURMCluster``, imported with the caller's Ctrl-C kept.
+
+    dask-jobqueue sets a SIGINT handler that exits the process when it is
+    imported; pmjax keeps the handler the process had, so Ctrl-C during a job
+    stays a ``KeyboardInterrupt`` (``pmjax eval`` then says how many parts
+    are saved and exits with status 130)."""
+    import signal
+    import threading
+
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.getsignal(signal.SIGINT) if main else None
+    try:
+        from dask_jobqueue import SLURMCluster
+    except ImportError as exc:
+        raise RuntimeError("a SLURM cluster needs dask-jobqueue: pip install 'pmjax[cluster]' "
+                           "(or pip install dask-jobqueue)") from exc
+    finally:
+        if main and previous is not None:
+            signal.signal(signal.SIGINT, previous)
+    return SLURMCluster

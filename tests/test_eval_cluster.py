@@ -6,9 +6,11 @@ here to run it)."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -101,11 +103,28 @@ def test_scheduler_and_worker_started_by_hand(built, tmp_path):
                 proc.kill()
 
 
+def needs_dask_jobqueue():
+    """Skip where dask-jobqueue is not installed, without importing it here
+    (importing it sets a SIGINT handler that exits the process)."""
+    if importlib.util.find_spec("dask_jobqueue") is None:
+        pytest.skip("dask-jobqueue is not installed (pip install 'pmjax[cluster]')")
+
+
+def test_slurm_cluster_keeps_the_ctrl_c_handler():
+    """Building a SLURM cluster leaves the process's SIGINT handler as it was
+    (Ctrl-C stays a KeyboardInterrupt)."""
+    needs_dask_jobqueue()
+    before = signal.getsignal(signal.SIGINT)
+    cluster = pmjax.slurm_cluster(cores=1, memory="1GB", scheduler_options=dict(dashboard_address=":0"))
+    cluster.close()
+    assert signal.getsignal(signal.SIGINT) is before
+
+
 def test_slurm_cluster_job_script():
     """The batch job that pmjax.slurm_cluster builds: the resources given,
     one worker process with a thread per core, pmjax imported at start; no
     job is submitted (jobs=0)."""
-    pytest.importorskip("dask_jobqueue")
+    needs_dask_jobqueue()
     cluster = pmjax.slurm_cluster(cores=8, memory="16GB", walltime="01:30:00", queue="short", account="lab",
                                   job_directives=["--gres=gpu:1"], scheduler_options=dict(dashboard_address=":0"))
     try:
@@ -128,7 +147,7 @@ def test_slurm_cluster_job_script():
 def test_slurm_needs_cores_and_memory(tmp_path, capsys):
     """Without cores and memory (given or configured) the command is refused
     before any batch job, saying what to give."""
-    pytest.importorskip("dask_jobqueue")
+    needs_dask_jobqueue()
     import dask
 
     from pmjax._cli import main
