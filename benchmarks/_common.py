@@ -66,6 +66,19 @@ def median_time(fn, repeats: int) -> tuple[float, list[float]]:
     return statistics.median(times), times
 
 
+def alternating_medians(variants: dict, repeats: int, per: int = 1) -> dict:
+    """Median milliseconds per item (``per`` items per call) of each variant,
+    the variants run in turn within each repeat, so that a slow moment of a
+    shared machine falls on all of them alike."""
+    times = {k: [] for k in variants}
+    for _ in range(repeats):
+        for key, fn in variants.items():
+            t = time.perf_counter()
+            fn()
+            times[key].append(1e3 * (time.perf_counter() - t) / per)
+    return {k: statistics.median(v) for k, v in times.items()}
+
+
 def write_json(path, report) -> None:
     """Write a benchmark report as JSON, atomically (never a half-written file)."""
     from pmjax._atomic import atomic_path

@@ -59,7 +59,7 @@ import jax
 import numpy as np
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _common import machine, median_time, write_json  # noqa: E402
+from _common import alternating_medians, machine, median_time, write_json  # noqa: E402
 from refine import pm_file  # noqa: E402
 
 import pmjax  # noqa: E402
@@ -203,13 +203,7 @@ def mesh_path(name, frames, tau, repeats):
         "mesh() alone": lambda: [r.mesh() for r in held],
         "compacted from the stream alone": lambda: [(stream.update(r), stream.mesh()) for r in held],
     }
-    times = {k: [] for k in variants}
-    for _ in range(repeats):
-        for key, fn in variants.items():
-            t = time.perf_counter()
-            fn()
-            times[key].append(1e3 * (time.perf_counter() - t) / frames)
-    ms = {k: statistics.median(v) for k, v in times.items()}
+    ms = alternating_medians(variants, repeats, frames)
     # The compacted mesh alone: the stream's update and compaction less its update.
     ms["compacted from the stream alone"] -= ms["change alone"]
     srmesh = SRMESH_OVER_MESH.get(name, float("nan")) * ms["refine_path + mesh()"]
@@ -262,13 +256,7 @@ def draw_path(name, frames, tau, repeats, size=(800, 600)):
         }
         for fn in variants.values():  # compiled, contexts and tables made
             fn()
-        times = {k: [] for k in variants}
-        for _ in range(repeats):
-            for key, fn in variants.items():
-                t = time.perf_counter()
-                fn()
-                times[key].append(1e3 * (time.perf_counter() - t) / frames)
-    ms = {k: statistics.median(v) for k, v in times.items()}
+        ms = alternating_medians(variants, repeats, frames)
     print(f"{name}: {size[0]}x{size[1]}, {frames} frames, tau {tau}")
     for key, value in ms.items():
         print(f"  {key:36s} {value:8.3f} ms per frame", flush=True)
