@@ -39,6 +39,17 @@ def built():
     return get
 
 
+@pytest.fixture(scope="module")
+def cow(built, tmp_path_factory) -> str:
+    """The cow's hierarchy saved as a ``.pmz`` file: its path (the
+    evaluation tests' model; files that need another cow define their own)."""
+    import pmjax
+
+    path = str(tmp_path_factory.mktemp("models") / "cow.pmz")
+    pmjax.save_pm(built("cow.ply"), path)
+    return path
+
+
 def _simd_levels():
     from pmjax import engines
 

@@ -28,13 +28,6 @@ ds = pytest.importorskip("pyarrow.dataset")
 DETERMINISTIC = ["model", "camera_set", "camera", "path_id", "frame", "budget", "budget_met", "tau", "faces", "vertices", "executed"]
 
 
-@pytest.fixture(scope="module")
-def cow(built, tmp_path_factory):
-    path = str(tmp_path_factory.mktemp("models") / "cow.pmz")
-    pmjax.save_pm(built("cow.ply"), path)
-    return path
-
-
 def rows(folder):
     """The dataset's deterministic columns as NumPy arrays (strings decoded)."""
     table = ds.dataset(folder, format="parquet").to_table()

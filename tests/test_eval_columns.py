@@ -19,13 +19,6 @@ DETERMINISTIC = ["model", "camera_set", "camera", "path_id", "frame", "budget", 
                  "vertices", "executed"]
 
 
-@pytest.fixture(scope="module")
-def cow(built, tmp_path_factory):
-    path = str(tmp_path_factory.mktemp("models") / "cow.pmz")
-    pmjax.save_pm(built("cow.ply"), path)
-    return path
-
-
 def table(folder):
     return ds.dataset(folder, format="parquet").to_table()
 

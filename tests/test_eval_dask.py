@@ -4,7 +4,6 @@ model paths travel absolute, and an error on a worker names the worker."""
 from __future__ import annotations
 
 import os
-import shutil
 
 import pytest
 

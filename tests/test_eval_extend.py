@@ -24,13 +24,6 @@ DETERMINISTIC = ["model", "camera_set", "camera", "path_id", "frame", "budget", 
 JOB = dict(chunk=8, compile_cache=None, progress=False)
 
 
-@pytest.fixture(scope="module")
-def cow(built, tmp_path_factory):
-    path = str(tmp_path_factory.mktemp("models") / "cow.pmz")
-    pmjax.save_pm(built("cow.ply"), path)
-    return path
-
-
 def parts(folder):
     return sorted(n for n in os.listdir(folder) if n.startswith("part-"))
 

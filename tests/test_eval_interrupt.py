@@ -13,18 +13,10 @@ import time
 
 import pytest
 
-import pmjax
 
 pytestmark = pytest.mark.slow
 
 pytest.importorskip("pyarrow")
-
-
-@pytest.fixture(scope="module")
-def cow(built, tmp_path_factory):
-    path = str(tmp_path_factory.mktemp("models") / "cow.pmz")
-    pmjax.save_pm(built("cow.ply"), path)
-    return path
 
 
 def _parts(folder):

@@ -14,7 +14,6 @@ import time
 
 import pytest
 
-import pmjax
 from pmjax._eval import (EvalError, _model_parts, _part, _part_named, _table_sha256, _verify_part, damaged_folder,
                          evaluate)
 
@@ -27,13 +26,6 @@ DETERMINISTIC = ["model", "camera_set", "camera", "path_id", "frame", "budget", 
 HUGE = 10 ** 12
 # Generous limit against a hang; a job that plans its parts lazily takes seconds.
 HANG = 300
-
-
-@pytest.fixture(scope="module")
-def cow(built, tmp_path_factory):
-    path = str(tmp_path_factory.mktemp("models") / "cow.pmz")
-    pmjax.save_pm(built("cow.ply"), path)
-    return path
 
 
 def rows(folder, columns=DETERMINISTIC):
