@@ -39,6 +39,33 @@ def built():
     return get
 
 
+@pytest.fixture
+def xvfb_display():
+    """A virtual X display of the test's own: Xvfb picks a free display number
+    and writes it once it accepts connections (``-displayfd``), so neither a
+    display left by another run nor a slow start can break the test."""
+    import shutil
+    import subprocess
+
+    if not shutil.which("Xvfb"):
+        pytest.skip("needs Xvfb")
+    read, write = os.pipe()
+    xvfb = subprocess.Popen(["Xvfb", "-displayfd", str(write), "-screen", "0", "640x480x24", "-nolisten", "tcp"],
+                            pass_fds=(write,), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    os.close(write)
+    with os.fdopen(read) as ready:
+        number = ready.readline().strip()
+    try:
+        if not number:
+            xvfb.wait(10)
+            pytest.fail(f"Xvfb did not start: {xvfb.stderr.read().decode(errors='replace')[-2000:]}")
+        yield f":{number}"
+    finally:
+        xvfb.terminate()
+        xvfb.wait(10)
+        xvfb.stderr.close()
+
+
 @pytest.fixture(scope="module")
 def cow(built, tmp_path_factory) -> str:
     """The cow's hierarchy saved as a ``.pmz`` file: its path (the

@@ -192,19 +192,16 @@ def test_path_fidelity_columns(cow, tmp_path):
 
 @pytest.mark.skipif(not (shutil.which("Xvfb") and shutil.which("xdotool")), reason="needs Xvfb and xdotool")
 @pytest.mark.slow
-def test_viewer_in_a_real_window_reacts_to_keys(cow, tmp_path):
+def test_viewer_in_a_real_window_reacts_to_keys(cow, tmp_path, xvfb_display):
     from PIL import ImageGrab
 
     path, _, _ = cow
     saved = tmp_path / "seen.json"
-    display = f":{90 + os.getpid() % 100}"
-    xvfb = subprocess.Popen(["Xvfb", display, "-screen", "0", "640x480x24", "-nolisten", "tcp"],
-                            stderr=subprocess.DEVNULL)
+    display = xvfb_display
     env = dict(os.environ, DISPLAY=display)
     env.pop("PYOPENGL_PLATFORM", None)  # the viewer needs the X display, not EGL
     viewer = None
     try:
-        time.sleep(1.0)
         viewer = subprocess.Popen([sys.executable, "-m", "pmjax", "view", path, "--size", "400", "300",
                                    "--close-after", "90", "--camera-file", str(saved)], env=env,
                                   stderr=subprocess.PIPE, text=True)
@@ -251,7 +248,6 @@ def test_viewer_in_a_real_window_reacts_to_keys(cow, tmp_path):
         if viewer is not None:
             viewer.terminate()
             viewer.wait(10)
-        xvfb.terminate()
 
 
 @pytest.mark.slow

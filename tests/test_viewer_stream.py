@@ -9,7 +9,6 @@ import os
 import shutil
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -85,26 +84,18 @@ def cow(built, tmp_path_factory):
 
 @pytest.mark.skipif(not shutil.which("Xvfb"), reason="needs Xvfb")
 @pytest.mark.slow
-def test_viewer_writes_each_change_into_its_buffers(cow, tmp_path):
+def test_viewer_writes_each_change_into_its_buffers(cow, tmp_path, xvfb_display):
     from pmjax.render._offscreen import shading_normals
 
     path, pm = cow
     n, W, H = 10, 200, 150
     driver, out = tmp_path / "drive.py", tmp_path / "seen.npz"
     driver.write_text(DRIVER)
-    display = f":{190 + os.getpid() % 100}"
-    xvfb = subprocess.Popen(["Xvfb", display, "-screen", "0", "640x480x24", "-nolisten", "tcp"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        time.sleep(1.0)
-        env = dict(os.environ, DISPLAY=display)
-        env.pop("PYOPENGL_PLATFORM", None)  # the viewer needs the X display, not EGL
-        run = subprocess.run([sys.executable, str(driver), path, str(out), str(n), str(W), str(H)], env=env,
-                             capture_output=True, text=True, timeout=300)
-        assert run.returncode == 0, run.stderr[-3000:]
-    finally:
-        xvfb.terminate()
-        xvfb.wait(10)
+    env = dict(os.environ, DISPLAY=xvfb_display)
+    env.pop("PYOPENGL_PLATFORM", None)  # the viewer needs the X display, not EGL
+    run = subprocess.run([sys.executable, str(driver), path, str(out), str(n), str(W), str(H)], env=env,
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
     seen = np.load(out)
 
     # The same refinements given to a stream of our own: the same slots.
