@@ -46,6 +46,7 @@ from ._predicate import ALL_TESTS, Tests
 from ._refine import Refinement, _checked_tau, _Counts, check_budget, check_tau, faces_for_budget, refine
 from .engines import _core, _front_jax
 from .engines._choose import is_traced, select
+from .engines._core import WORDS_PER_CALL
 from .engines._tables import derived
 
 # Frames per compiled call: eight words. Memory is bounded by one chunk.
@@ -174,10 +175,6 @@ def _chunks(pm, host, taus, tests, path_length, want_front):
 # -- the C core's words ------------------------------------------------------------------
 
 FRAMES = _core.FRAMES
-# Words per call of the core (a path's words are taken by the core's threads,
-# each its own word): whole blocks, then the rest in powers of two words, so
-# that few shapes are compiled and a short path is padded little.
-WORDS_PER_CALL = 64
 # Words per call when refine_path streams a path (each word's lists are held
 # until its frames are read; the next block runs meanwhile).
 WORDS_STREAMED = 4
@@ -186,17 +183,6 @@ WORDS_STREAMED = 4
 def frames_per_word() -> int:
     """Consecutive frames traversed together: 16 in the C core, 32 as JAX kernels."""
     return FRAMES if _core.enabled() else WORD
-
-
-def _word_spans(words: int, most: int) -> list[tuple[int, int]]:
-    """``(first word, words)`` per call: whole blocks of ``most``, then the
-    rest in powers of two."""
-    spans, start = [], 0
-    while start < words:
-        n = min(most, 1 << int(np.log2(words - start)))
-        spans.append((start, n))
-        start += n
-    return spans
 
 
 @functools.lru_cache(maxsize=None)
@@ -246,7 +232,7 @@ def _core_word_plan(pm, host, taus, path_length, words_per_call):
     order = _word_padded(len(taus), path_length, FRAMES)
     real = np.ones(len(order), bool)
     real[1:] = order[1:] != order[:-1]
-    spans = _word_spans(len(order) // FRAMES, words_per_call)
+    spans = _core.word_spans(len(order) // FRAMES, words_per_call)
     return d.core_words, d.core, order, real, spans, _core.host_camera_rows(host, taus, d.exponent)
 
 

@@ -826,10 +826,6 @@ def _path_budgets(pm, host, budgets, tests, chunk):
                 executed_count=cols[2].astype(np.int32))
 
 
-# Words of the core per call when counting a path (as pmjax.path_counts).
-WORDS_PER_CALL = 64
-
-
 def _word_counts(d, counts_of, rows, tests, orthographic):
     """Exact ``(faces, vertices, executed)`` (``int64 [K, 3]``) of the frames
     ``rows`` (``float32 [K, CAMERA]``, a path in order, each with its own
@@ -840,13 +836,10 @@ def _word_counts(d, counts_of, rows, tests, orthographic):
     words = -(-K // F)
     order = np.minimum(np.arange(words * F), K - 1)
     out = np.empty((K, 3), np.int64)
-    start = 0
-    while start < words:
-        n = min(WORDS_PER_CALL, 1 << int(np.log2(words - start)))
+    for start, n in _core.word_spans(words, _core.WORDS_PER_CALL):
         lanes = order[start * F:(start + n) * F]
         counts = np.asarray(_core_word_counts(d.core_words, d.core, rows[lanes], tests, orthographic))
         out[lanes] = np.stack(counts_of(counts[:, 1], counts[:, 2], np), 1)  # a repeated frame: the same counts
-        start += n
     return out
 
 

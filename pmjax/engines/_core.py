@@ -63,6 +63,21 @@ SIMD_LEVELS = ("plain", "avx2", "avx512")
 # than the step saves).
 CHUNK = 64
 CHUNK_ONE = 4
+# Words per call of the path targets (a path's words are taken by the core's
+# threads, each its own word): whole blocks, then the rest in powers of two
+# words, so that few shapes are compiled and a short path is padded little.
+WORDS_PER_CALL = 64
+
+
+def word_spans(words: int, most: int) -> list:
+    """``(first word, words)`` per call of the path targets: whole blocks of
+    ``most``, then the rest in powers of two."""
+    spans, start = [], 0
+    while start < words:
+        n = min(most, 1 << int(np.log2(words - start)))
+        spans.append((start, n))
+        start += n
+    return spans
 
 if _pmx is not None:
     _layout = _pmx.layout()
