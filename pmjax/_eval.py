@@ -49,7 +49,7 @@ import numpy as np
 
 from ._atomic import TEMP_MARK, atomic_path
 from ._bitsets import WORD
-from ._camera import index_camera
+from ._camera import camera_count, index_camera
 from ._camera_table import CameraTable, _bounds, fly_rows, orbit_rows, random_rows, read_camera_table
 from ._pmfile import file_sha256
 from ._predicate import ALL_TESTS, Tests
@@ -345,6 +345,20 @@ def path_runs(table: CameraTable, idx: np.ndarray) -> tuple[list[np.ndarray], np
     return runs, rest
 
 
+# Rows of budget parts answered together with an earlier part of the same
+# cameras (run_part's budgets_together), until their own part runs: keyed
+# by (part key, model digest, lo, hi), the oldest dropped past TOGETHER_KEPT
+# (its part then computes them again).
+_TOGETHER: "collections.OrderedDict[tuple, list]" = collections.OrderedDict()
+TOGETHER_KEPT = 64
+
+
+def _keep_together(key, columns):
+    _TOGETHER[key] = columns
+    while len(_TOGETHER) > TOGETHER_KEPT:
+        _TOGETHER.popitem(last=False)
+
+
 def run_part(task: dict):
     """Refine one part and return its rows as a ``pyarrow.Table``.
 
@@ -368,7 +382,16 @@ def run_part(task: dict):
     # Wall time of the part's warm-up calls (compilation, or its load from the
     # persistent cache), kept out of the per-camera times; on the part's first row.
     compile_ms = 0.0
-    for idx, cams in table.batches():
+    batches, cols = table.batches(), {}
+    if budget is not None:
+        # A part's columns answered with an earlier part's call, or the
+        # budgets to answer with this one (see the budgets below).
+        together = task.get("budgets_together") or dict(budgets=[budget], keys=[task["job_sha256"]])
+        mine = _TOGETHER.pop((task["job_sha256"], task["model_sha256"], task["lo"], task["hi"]), None)
+        if mine is not None:
+            tau[:], faces[:], vertices[:], executed[:], ms[:] = mine
+            batches = []
+    for idx, cams in batches:
         setting = (cams.orthographic, tests, method)
         if budget is None:
             # Paths through the coherent engine, frames in order; the other
@@ -406,22 +429,39 @@ def run_part(task: dict):
         # core's threads across cameras), with the counts there. Paths pass
         # their frames in order (guesses seeded along the path, first counts
         # through the coherent engine); the other cameras in one batch.
+        # With budgets_together, the part's cameras get every budget listed
+        # at once (one guess traversal per camera for all), the call's wall
+        # time shared by its cameras and budgets; the other budgets' columns
+        # wait for their parts in _TOGETHER.
+        values_now = np.asarray(together["budgets"], np.int64)
         runs, rest = path_runs(table, idx) if method != "dense" else ([], np.arange(len(idx)))
         for part, is_path in [(run, True) for run in runs] + ([(rest, False)] if len(rest) else []):
             rows, batch = idx[part], index_camera(cams, part)
-            call = lambda c: faces_for_budget_batch(pm, c, budget, tests=tests, chunk=task["batch_chunk"],
-                                                    method=method, path=is_path)
+            call = lambda c: faces_for_budget_batch(pm, c, np.broadcast_to(values_now, (camera_count(c),
+                                                                                        len(values_now))),
+                                                    tests=tests, chunk=task["batch_chunk"], method=method,
+                                                    path=is_path)
             size = -(-min(task["batch_chunk"], len(part)) // WORD) * WORD
             if is_path:  # the path's calls: its length decides their sizes
-                compile_ms += _warm(warm, ("budget_path", len(part)) + setting, lambda: call(batch))
+                compile_ms += _warm(warm, ("budget_path", len(part), len(values_now)) + setting,
+                                    lambda: call(batch))
             else:
                 first = index_camera(batch, np.minimum(np.arange(size), len(part) - 1))
-                compile_ms += _warm(warm, ("budget", size) + setting, lambda: call(first))
+                compile_ms += _warm(warm, ("budget", size, len(values_now)) + setting, lambda: call(first))
             t = time.perf_counter()
             out = call(batch)
-            ms[rows] = 1e3 * (time.perf_counter() - t) / len(rows)
-            tau[rows], faces[rows], vertices[rows], executed[rows] = (out["tau"], out["faces"], out["vertices"],
-                                                                      out["executed_count"])
+            took = 1e3 * (time.perf_counter() - t) / (len(rows) * len(values_now))
+            for j, key in enumerate(together["keys"]):
+                got = cols.setdefault(key, [np.zeros(n, np.float32)] + [np.zeros(n, np.int64) for _ in range(3)] +
+                                      [np.zeros(n)])
+                for col, name in zip(got, ("tau", "faces", "vertices", "executed_count")):
+                    col[rows] = out[name][:, j]
+                got[4][rows] = took
+    for key, got in cols.items():
+        if key == task["job_sha256"]:
+            tau[:], faces[:], vertices[:], executed[:], ms[:] = got
+        else:
+            _keep_together((key, task["model_sha256"], task["lo"], task["hi"]), got)
     compile = np.zeros(n)
     compile[:1] = compile_ms
     camera = np.arange(task["lo"], task["hi"], dtype=np.int64)
@@ -804,7 +844,12 @@ def evaluate(
                 bounds = tuple(float(x) for x in np.append(*_bounds(vertices))) if camera_columns else None
                 # Parts come one at a time from a generator: nothing is planned
                 # ahead of the work, whatever the job's size.
-                for part in _model_parts(mi, sorted(at_set), sorted(at_value), job_counts, chunk):
+                # Budgets in this process: a chunk's values one after the
+                # other, the first part that runs answering the chunk's
+                # budgets still to do at once (one guess traversal per camera
+                # serves them all) and keeping the others' rows for their parts.
+                together = bool(budgets) and runner.client is None
+                for part in _model_parts(mi, sorted(at_set), sorted(at_value), job_counts, chunk, together):
                     if part.file in done:
                         if done[part.file] != digest:
                             raise EvalError(f"{os.path.join(folder, part.file)} was computed from another version "
@@ -825,6 +870,12 @@ def evaluate(
                                 budget=value if budgets else None, tests=_tests_dict(tests), method=method,
                                 batch_chunk=int(batch_chunk), compile_cache=compile_cache, job_sha256=key,
                                 part=part.file, bounds=bounds, fidelity=fidelity)
+                    if together:
+                        later = [v for v in sorted(at_value) if v >= part.value and
+                                 _part(mi, part.cameras, v, part.chunk, job_counts, chunk).file not in done]
+                        task["budgets_together"] = dict(
+                            budgets=[values[at_value[v]] for v in later],
+                            keys=[_part_key(job, part.model, part.cameras, v) for v in later])
                     submitted += 1
                     store(runner.submit(part, task))
                 del data, vertices, v64
@@ -1003,11 +1054,17 @@ def _remove_temporaries(folder) -> None:
             os.unlink(os.path.join(folder, name))
 
 
-def _model_parts(m, sets, values, counts, chunk):
+def _model_parts(m, sets, values, counts, chunk, chunk_major=False):
     """The parts of model ``m`` for the camera sets ``sets`` and values
-    ``values`` (positions in the job's lists, increasing), in row order,
-    made as they are asked for."""
+    ``values`` (positions in the job's lists, increasing), in row order
+    (``chunk_major``: a chunk's values one after the other), made as they
+    are asked for."""
     for c in sets:
+        if chunk_major:
+            for k in range(-(-counts[c] // chunk)):
+                for v in values:
+                    yield _part(m, c, v, k, counts, chunk)
+            continue
         for v in values:
             for k in range(-(-counts[c] // chunk)):
                 yield _part(m, c, v, k, counts, chunk)

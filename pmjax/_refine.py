@@ -691,20 +691,24 @@ _INF_BITS = 0x7F800000
 def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, tests: Tests = ALL_TESTS,
                            chunk: int = 256, method: str = "auto", path: bool = False) -> dict:
     """:func:`faces_for_budget` for K cameras at once: the same ``(tau, faces)``
-    per camera, and the counts there.
+    per camera (and per budget), and the counts there.
 
     With the C core, each chunk of cameras is one threaded call that
-    traverses each camera once at a tolerance below its answer and guesses the
-    answer from the critical tolerances of the pcols that do not run there
-    (docs/design.md); exact counts at the guess and just below it, batched
-    over the chunk, confirm it (or a few more counts, galloping then
-    bisecting over the float32 bit patterns, correct it). Without the core
-    (or under ``jit``/``vmap``) each camera is :func:`faces_for_budget`.
+    traverses each camera once at a tolerance below its smallest answer and
+    guesses the answer of each of its budgets from the critical tolerances
+    of the pcols that do not run there (docs/design.md); exact counts at the
+    guess and just below it, batched over the chunk, confirm it (or a few
+    more counts, galloping then bisecting over the float32 bit patterns,
+    correct it). Without the core (or under ``jit``/``vmap``) each camera
+    and budget is :func:`faces_for_budget`.
 
     Args:
         pm: :class:`ProgressiveMesh`.
         cameras: a camera batch (leading axis K).
-        budget: faces, a whole number >= 0, one for all cameras or ``[K]``.
+        budget: faces, whole numbers >= 0: one for all cameras, ``[K]`` one
+            per camera, or ``[K, B]``: B budgets per camera, answered by one
+            guess traversal per camera (several budgets of the same cameras
+            cost little more than the largest alone).
         tests: :class:`Tests`.
         chunk: cameras per call, rounded up to a multiple of 32.
         method: ``"auto"``, ``"front"`` or ``"dense"`` (as :func:`faces_for_budget`).
@@ -715,47 +719,61 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
             tolerances). The same answers; only the cost differs.
 
     Returns:
-        dict ``tau`` (``float32 [K]``, pixels; ``0`` when even the finest view
+        dict ``tau`` (``float32``, pixels; ``0`` when even the finest view
         fits, ``inf`` when nothing does), ``faces``, ``vertices``,
-        ``executed_count`` (``int32 [K]``, the refinement at ``tau``): NumPy
-        arrays, or JAX arrays under ``jit``.
+        ``executed_count`` (``int32``, the refinement at ``tau``), each ``[K]``,
+        or ``[K, B]`` for a ``[K, B]`` budget: NumPy arrays, or JAX arrays
+        under ``jit``.
 
     Raises:
         ValueError: a budget that is negative, fractional, NaN or not a number,
-            or a ``[K]`` budget of another length.
+            or a budget array of another shape than ``[K]`` or ``[K, B]``.
     """
     check_mesh(pm, "faces_for_budget_batch")
     K = check_camera(cameras, "faces_for_budget_batch", batch=True)
     traced = is_traced(cameras, budget)
     if traced:
-        budgets = jnp.broadcast_to(jnp.asarray(budget, jnp.int32), (K,))
+        budgets = jnp.asarray(budget, jnp.int32)
+        if budgets.ndim > 2 or (budgets.ndim >= 1 and budgets.shape[0] != K) or (budgets.ndim == 2 and
+                                                                                    budgets.shape[1] < 1):
+            raise ValueError(f"faces_for_budget_batch: budget must be one number, [{K}] or [{K}, B], "
+                             f"got shape {list(budgets.shape)}")
+        columns = budgets.ndim == 2
+        budgets = budgets if columns else jnp.broadcast_to(budgets, (K,))[:, None]
 
         def one(camera, b):
             tau, faces = faces_for_budget(pm, camera, b, tests, method)
             r = refine(pm, camera, tau, tests=tests, method=method)
             return tau, faces, r.n_vertices, r.n_executed
 
-        tau, faces, vertices, executed = jax.vmap(one)(cameras, budgets)
+        out = jax.vmap(jax.vmap(one, in_axes=(None, 0)))(cameras, budgets)
+        tau, faces, vertices, executed = (x if columns else x[:, 0] for x in out)
         return dict(tau=tau, faces=faces, vertices=vertices, executed_count=executed)
     budgets = np.asarray(budget, dtype=object) if not isinstance(budget, np.ndarray) else budget
     if np.ndim(budgets) == 0:
-        budgets = np.full(K, check_budget(budget), np.int64)
+        budgets, columns = np.full((K, 1), check_budget(budget), np.int64), False
     else:
-        if np.shape(budgets) != (K,):
-            raise ValueError(f"faces_for_budget_batch: budget must be one number or one per camera ([{K}]), "
-                             f"got shape {list(np.shape(budgets))}")
-        budgets = np.array([check_budget(b.item() if isinstance(b, np.generic) else b) for b in budgets], np.int64)
+        shape = np.shape(budgets)
+        if not (shape == (K,) or (len(shape) == 2 and shape[0] == K and shape[1] >= 1)):
+            raise ValueError(f"faces_for_budget_batch: budget must be one number, one per camera ([{K}]) or B per "
+                             f"camera ([{K}, B]), got shape {list(shape)}")
+        columns = len(shape) == 2
+        budgets = np.array([check_budget(b.item() if isinstance(b, np.generic) else b)
+                            for b in np.ravel(budgets)], np.int64).reshape(K, -1)
+    B = budgets.shape[1]
+    shaped = lambda out: out if columns else {k: v[:, 0] for k, v in out.items()}
     engine = select(pm, method, batch=True)
     if engine != "core" or K == 0:
-        out = dict(tau=np.zeros(K, np.float32), faces=np.zeros(K, np.int32), vertices=np.zeros(K, np.int32),
-                   executed_count=np.zeros(K, np.int32))
+        out = dict(tau=np.zeros((K, B), np.float32), faces=np.zeros((K, B), np.int32),
+                   vertices=np.zeros((K, B), np.int32), executed_count=np.zeros((K, B), np.int32))
         for k in range(K):
             camera = jax.tree.map(lambda a: a[k], cameras)
-            tau, faces = faces_for_budget(pm, camera, int(budgets[k]), tests, method)
-            r = refine(pm, camera, float(tau), tests=tests, method=method)
-            out["tau"][k], out["faces"][k] = tau, faces
-            out["vertices"][k], out["executed_count"][k] = int(r.n_vertices), int(r.n_executed)
-        return out
+            for j in range(B):
+                tau, faces = faces_for_budget(pm, camera, int(budgets[k, j]), tests, method)
+                r = refine(pm, camera, float(tau), tests=tests, method=method)
+                out["tau"][k, j], out["faces"][k, j] = tau, faces
+                out["vertices"][k, j], out["executed_count"][k, j] = int(r.n_vertices), int(r.n_executed)
+        return shaped(out)
     chunk = -(-max(1, min(int(chunk), K)) // WORD) * WORD
     host = jax.tree.map(np.asarray, cameras)
     d = derived(pm)
@@ -763,10 +781,10 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
     # A count never exceeds F: budgets above it are the same as F (and fit int32).
     budgets = np.minimum(budgets, counts_of.F)
     if path:
-        return _path_budgets(pm, host, budgets, tests, chunk)
+        return shaped(_path_budgets(pm, host, budgets, tests, chunk))
     order = nearby_order(np.asarray(cameras.eye))
-    tau = np.empty(K, np.float32)
-    cols = [np.empty(K, np.int32) for _ in range(3)]
+    tau = np.empty((K, B), np.float32)
+    cols = [np.empty((K, B), np.int32) for _ in range(3)]
     for s in range(0, K, chunk):
         idx = order[np.minimum(np.arange(s, s + chunk), K - 1)]  # pad by repeating the last
         part = jax.tree.map(lambda a: a[idx], host)
@@ -774,36 +792,41 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
         guess, alt = (np.asarray(g) for g in _core_guesses(d.core, rows, budgets[idx].astype(np.int32), tests,
                                                             cameras.orthographic, counts_of.base_faces))
         n = min(chunk, K - s)
-        t, c = _exact_from_guess(d.core, rows[:n], budgets[idx[:n]], guess[:n], alt[:n], tests, cameras.orthographic,
-                                 counts_of)
-        tau[idx[:n]] = t
+        # Every (camera, budget) pair its own probe row.
+        t, c = _exact_from_guess(d.core, np.repeat(rows[:n], B, axis=0), budgets[idx[:n]].ravel(),
+                                 guess[:n].ravel(), alt[:n].ravel(), tests, cameras.orthographic, counts_of)
+        tau[idx[:n]] = t.reshape(n, B)
         for col, v in zip(cols, c):
-            col[idx[:n]] = v
-    return dict(tau=tau, faces=cols[0], vertices=cols[1], executed_count=cols[2])
+            col[idx[:n]] = v.reshape(n, B)
+    return shaped(dict(tau=tau, faces=cols[0], vertices=cols[1], executed_count=cols[2]))
 
 
 # Along a path, every PATH_SAMPLE-th frame is guessed first (each from the
 # answer of the frame its thread did before, START times above, so usually
 # two traversals); the others start their single traversal PATH_START times
-# below the answer the sampled frames around them predict (log tau
-# interpolated along the path), where a traversal finds the answer at once.
+# below the smallest answer the sampled frames around them predict (log tau
+# interpolated along the path), where a traversal finds the answers at once.
 PATH_SAMPLE = 16
 PATH_START = 0.9
 
 
 def _path_budgets(pm, host, budgets, tests, chunk):
     """:func:`faces_for_budget_batch` of one path's frames in order (``host``
-    NumPy cameras, ``budgets`` int64 [K] at most F): guesses seeded by
-    sampled frames, then exact counts, the first two rounds' (at the guess
-    and one pattern below it, all frames) through the core's words."""
-    K = len(budgets)
+    NumPy cameras, ``budgets`` int64 [K, B] at most F; results [K, B]):
+    guesses seeded by sampled frames, then exact counts, the first two
+    rounds' (at the guess and one pattern below it, all frames) through the
+    core's words, one pass of the path per budget."""
+    K, B = budgets.shape
     d, counts_of = derived(pm), _Counts.of(pm)
     sampled = np.unique(np.r_[np.arange(0, K, PATH_SAMPLE), K - 1])
-    guess, alt = np.zeros(K, np.int32), np.zeros(K, np.int32)
+    guess, alt = np.zeros((K, B), np.int32), np.zeros((K, B), np.int32)
     guess[sampled], alt[sampled] = _guesses(d, counts_of, host, sampled, np.zeros(len(sampled), np.float32),
                                             budgets, tests, chunk)
-    # Sampled answers at 0 or inf predict nothing: those frames start as the core would.
-    g = guess[sampled].astype(np.int64)
+    # The smallest answer (the largest budget's) predicts where a frame's
+    # traversal starts; sampled answers at 0 or inf predict nothing: those
+    # frames start as the core would.
+    top = np.argmax(budgets[sampled], axis=1)
+    g = guess[sampled, top].astype(np.int64)
     finite = (g > 0) & (g <= _INF_BITS)
     start = np.zeros(K, np.float32)
     if finite.any():
@@ -815,15 +838,21 @@ def _path_budgets(pm, host, budgets, tests, chunk):
         guess[rest], alt[rest] = _guesses(d, counts_of, host, rest, start[rest], budgets, tests, chunk)
     rows = _core.host_camera_rows(host, np.zeros(K, np.float32), d.exponent)
 
+    # The (frame, budget) pairs budget by budget: each budget's K pairs are
+    # the path's frames in order.
     def along_path(bits):
-        at = rows.copy()
-        at[:, -1] = bits.astype(np.int32).view(np.float32)
-        return _word_counts(d, counts_of, at, tests, host.orthographic)
+        counted = np.empty((K * B, 3), np.int64)
+        for j in range(B):
+            at = rows.copy()
+            at[:, -1] = bits[j * K:(j + 1) * K].astype(np.int32).view(np.float32)
+            counted[j * K:(j + 1) * K] = _word_counts(d, counts_of, at, tests, host.orthographic)
+        return counted
 
-    tau, cols = _exact_from_guess(d.core, rows, budgets, guess, alt, tests, host.orthographic, counts_of,
-                                  along_path)
-    return dict(tau=tau, faces=cols[0].astype(np.int32), vertices=cols[1].astype(np.int32),
-                executed_count=cols[2].astype(np.int32))
+    tau, cols = _exact_from_guess(d.core, np.tile(rows, (B, 1)), budgets.T.ravel(), guess.T.ravel(),
+                                  alt.T.ravel(), tests, host.orthographic, counts_of, along_path)
+    return dict(tau=tau.reshape(B, K).T.copy(), faces=cols[0].reshape(B, K).T.astype(np.int32),
+                vertices=cols[1].reshape(B, K).T.astype(np.int32),
+                executed_count=cols[2].reshape(B, K).T.astype(np.int32))
 
 
 def _word_counts(d, counts_of, rows, tests, orthographic):
@@ -849,10 +878,13 @@ def _core_word_counts(tables, one_tables, rows, tests, orthographic):
 
 
 def _guesses(d, counts_of, host, frames, start, budgets, tests, chunk):
-    """The core's ``(guess, alt)`` of cameras ``host[frames]``, each traversal
-    starting at ``start`` (0: from the thread's last answer), ``chunk``
-    cameras per call (the last chunk padded by repeating its last camera)."""
-    guess, alt = np.empty(len(frames), np.int32), np.empty(len(frames), np.int32)
+    """The core's ``(guess, alt)`` (``int32 [len(frames), B]``) of cameras
+    ``host[frames]`` for their budgets ``budgets[frames]`` (``[K, B]``), each
+    traversal starting at ``start`` (0: from the thread's last answer),
+    ``chunk`` cameras per call (the last chunk padded by repeating its last
+    camera)."""
+    B = budgets.shape[1]
+    guess, alt = np.empty((len(frames), B), np.int32), np.empty((len(frames), B), np.int32)
     for s in range(0, len(frames), chunk):
         pick = np.minimum(np.arange(s, s + chunk), len(frames) - 1)
         part = jax.tree.map(lambda a: a[frames[pick]], host)

@@ -162,9 +162,130 @@ def test_guesses_are_the_same_at_every_simd_level(built):
         got = []
         for level in ("plain", "avx2", "avx512"):
             engines.simd(level)
-            got.append([np.asarray(g) for g in _refine._core_guesses(d.core, rows, np.full(10, 900, np.int32),
+            got.append([np.asarray(g) for g in _refine._core_guesses(d.core, rows, np.full((10, 1), 900, np.int32),
                                                                      pmjax.ALL_TESTS, False, counts_of.base_faces)])
     finally:
         engines.simd(was)
     for other in got[1:]:
         assert all(np.array_equal(a, b) for a, b in zip(got[0], other))
+
+
+def _columns(pm, cams, budgets):
+    """Per camera, every budget of ``budgets`` (a row per camera: its order
+    rotated by the camera's index, so that columns mix budgets)."""
+    return np.stack([np.roll(budgets, k) for k in range(camera_count_of(cams))])
+
+
+def camera_count_of(cams):
+    return len(np.asarray(cams.eye))
+
+
+def _column_of(got, cols):
+    """``run`` for _assert_same: the columns ``cols`` of ``got``, in turn."""
+    it = iter(cols)
+
+    def run(_):
+        j = next(it)
+        return {k: v[:, j] for k, v in got.items()}
+
+    return run
+
+
+def test_several_budgets_per_camera_equal_one_at_a_time(built):
+    """A ``[K, B]`` budget (one guess traversal per camera for its B budgets)
+    gives, column by column, the answers of the budgets one at a time, which
+    equal faces_for_budget's: budgets below the base mesh, at it, between,
+    at the finest view and beyond the full mesh, mixed across the columns."""
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _views(data, 6, seed=8)
+    budgets = _columns(pm, cams, np.array(_budgets(pm, cams)))
+    got = pmjax.faces_for_budget_batch(pm, cams, budgets, method="front")
+    assert all(v.shape == budgets.shape for v in got.values())
+    for j in range(budgets.shape[1]):
+        one = pmjax.faces_for_budget_batch(pm, cams, budgets[:, j], method="front")
+        for key in one:
+            assert got[key][:, j].tobytes() == one[key].tobytes(), (j, key)
+    # And against the dense sort, for a few columns.
+    _assert_same(pm, cams, [budgets[:, 0], budgets[:, 3]], _column_of(got, [0, 3]), front=False)
+    # One column is the [K] form; under jit, the same answers.
+    col = pmjax.faces_for_budget_batch(pm, cams, budgets[:, :1], method="front")
+    assert col["tau"].shape == (len(budgets), 1)
+    assert col["tau"][:, 0].tobytes() == got["tau"][:, 0].tobytes()
+
+
+@pytest.mark.slow
+def test_several_budgets_under_jit(built):
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _views(data, 2, seed=3)
+    budgets = np.array([[100, 900, 10 ** 6]] * 4, np.int32)
+    want = pmjax.faces_for_budget_batch(pm, cams, budgets, method="front")
+    got = jax.jit(lambda c, b: pmjax.faces_for_budget_batch(pm, c, b))(cams, budgets)
+    for key in want:
+        assert np.array_equal(np.asarray(got[key]), want[key]), key
+
+
+def test_budget_arrays_of_another_shape_are_refused(built):
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _views(data, 4, seed=3)  # 6 cameras
+    for bad in (np.zeros((6, 0), np.int64), np.zeros((5, 2), np.int64), np.zeros((6, 2, 1), np.int64),
+                np.array([[1, -1]] * 6)):
+        with pytest.raises(ValueError, match="budget"):
+            pmjax.faces_for_budget_batch(pm, cams, bad)
+
+
+def test_several_budgets_with_wrong_guesses_give_the_exact_answers(built, monkeypatch):
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _views(data, 4, seed=9)
+    budgets = _columns(pm, cams, np.array(_budgets(pm, cams)[1:5]))
+    want = pmjax.faces_for_budget_batch(pm, cams, budgets, method="front")
+    rng = np.random.default_rng(1)
+    original = _refine._core_guesses
+    for bad in (lambda g: g * 0, lambda g: g + rng.integers(-10 ** 6, 10 ** 6, g.shape),
+                lambda g: rng.integers(0, 0x7F800002, g.shape)):
+        monkeypatch.setattr(_refine, "_core_guesses", lambda *a, **k: tuple(
+            bad(np.asarray(g, np.int64)).astype(np.int32) for g in original(*a, **k)))
+        got = pmjax.faces_for_budget_batch(pm, cams, budgets, method="front")
+        for key in want:
+            assert want[key].tobytes() == got[key].tobytes(), key
+    monkeypatch.setattr(_refine, "_core_guesses", original)
+
+
+def _moved(data, scale, offset):
+    """``data`` scaled about the origin, then moved by ``offset`` model sizes."""
+    import dataclasses
+
+    f64 = lambda a: np.asarray(a, np.float64)  # noqa: E731
+    size = scale * float(np.ptp(data.vertices[: data.n_original_vertices], axis=0).max())
+    lengths = {k: (f64(getattr(data, k)) * scale).astype(np.float32) for k in ("radius", "delta", "mu")}
+    return dataclasses.replace(data, vertices=(f64(data.vertices) * scale + offset * size).astype(np.float32),
+                               **lengths), size
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scale,offset", [(1e-6, 3.0), (1e6, -5.0)])
+def test_batch_budgets_at_any_scale(built, scale, offset):
+    """The model and its cameras scaled and moved: the batch's answers (one
+    and several budgets per camera, as a batch and as a path) keep the
+    unscaled model's face counts and equal the dense sort at that scale."""
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 12)
+    moved, size = _moved(data, scale, offset)
+    pm_s = pmjax.ProgressiveMesh.from_data(moved)
+    f64 = lambda a: np.asarray(a, np.float64)  # noqa: E731
+    cams_s = pmjax.Camera(f64(cams.eye) * scale + offset * size, np.asarray(cams.rotation), np.asarray(cams.fov_y),
+                          f64(cams.near) * scale, f64(cams.far) * scale, f64(cams.ortho_height) * scale,
+                          np.asarray(cams.width), np.asarray(cams.height), cams.orthographic)
+    budgets = _columns(pm, cams, np.array(_budgets(pm, cams)[1:6]))
+    unit = pmjax.faces_for_budget_batch(pm, cams, budgets, method="front")
+    for path in (False, True):
+        got = pmjax.faces_for_budget_batch(pm_s, cams_s, budgets, method="front", path=path)
+        assert np.array_equal(got["faces"], unit["faces"]), path
+        for j in (0, 2):
+            one = pmjax.faces_for_budget_batch(pm_s, cams_s, budgets[:, j], method="front", path=path)
+            assert one["tau"].tobytes() == got["tau"][:, j].tobytes(), (path, j)
+    _assert_same(pm_s, cams_s, [budgets[:, 0], budgets[:, 4]], _column_of(got, [0, 4]))

@@ -183,3 +183,62 @@ def test_fat_camera_decisions_hold_with_a_tolerance_per_frame(built, name):
                         has = k >= 0
                         all_below[lo:hi][has] &= all_below[k[has]]
                 assert np.all(all_below[got == _core.FAT_WHOLE]), (start, f)
+
+
+def test_several_budgets_on_an_orbit_equal_one_at_a_time(built):
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _paths(data, 20, seed=5)["orbit"]
+    budgets = np.array(_budgets(pm, cams))[[1, 3, 5]]
+    got = pmjax.faces_for_budget_batch(pm, cams, np.tile(budgets, (20, 1)), path=True, method="front")
+    for j, b in enumerate(budgets):
+        _assert_same({k: v[:, j].copy() for k, v in got.items()},
+                     pmjax.faces_for_budget_batch(pm, cams, int(b), path=True, method="front"), j)
+
+
+@pytest.mark.slow
+def test_several_budgets_on_paths_equal_one_at_a_time(built):
+    """A ``[K, B]`` budget along an orbit, a fly-through into the model and a
+    jittered orbit (one guess traversal per frame for its budgets, each
+    budget's counts through the path engine): column by column the answers
+    of one budget at a time, on the path and as a batch."""
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    for name, cams in _paths(data, 20, seed=4).items():
+        budgets = np.array(_budgets(pm, cams))
+        mixed = np.stack([np.roll(budgets, k) for k in range(20)])  # budgets mixed across the columns
+        got = pmjax.faces_for_budget_batch(pm, cams, mixed, path=True, method="front")
+        for j in range(mixed.shape[1]):
+            for path in (True, False):
+                one = pmjax.faces_for_budget_batch(pm, cams, mixed[:, j], path=path, method="front")
+                _assert_same({k: v[:, j].copy() for k, v in got.items()}, one, (name, j, path))
+
+
+@pytest.mark.slow
+def test_several_budgets_on_a_path_equal_the_dense_sort(built):
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _paths(data, 20, seed=6)["fly"]
+    budgets = np.array(_budgets(pm, cams))
+    got = pmjax.faces_for_budget_batch(pm, cams, np.tile(budgets, (20, 1)), path=True, method="front")
+    for j, b in enumerate(budgets):
+        _assert_dense(pm, cams, int(b), {k: v[:, j] for k, v in got.items()})
+
+
+@pytest.mark.slow
+def test_several_budgets_with_wrong_path_guesses_give_the_exact_answers(built, monkeypatch):
+    """Guesses far off (the sampled frames' too, so the other frames start
+    their traversals at bad tolerances) still give the exact answers."""
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _paths(data, 20, seed=7)["jittered"]
+    budgets = np.tile(np.array(_budgets(pm, cams)[1:5]), (20, 1))
+    want = pmjax.faces_for_budget_batch(pm, cams, budgets, method="front")
+    rng = np.random.default_rng(2)
+    original = _refine._core_guesses
+    for bad in (lambda g: g * 0, lambda g: g * 0 + 0x7F800001, lambda g: g + rng.integers(-10 ** 6, 10 ** 6, g.shape),
+                lambda g: rng.integers(0, 0x7F800002, g.shape)):
+        monkeypatch.setattr(_refine, "_core_guesses", lambda *a, **k: tuple(
+            bad(np.asarray(g, np.int64)).astype(np.int32) for g in original(*a, **k)))
+        _assert_same(want, pmjax.faces_for_budget_batch(pm, cams, budgets, path=True, method="front"), "bad")
+    monkeypatch.setattr(_refine, "_core_guesses", original)

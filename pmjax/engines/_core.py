@@ -435,29 +435,31 @@ def _redo_overflowed(tables, cameras, tests, orthographic, overflow, counts, mas
 
 def budget_guesses(tables: CoreTables, cameras, budgets, tests, orthographic: bool, base_faces: int,
                    threads: int = 0):
-    """Per camera, a guess of the smallest float32 ``tau`` whose face count
-    is within its budget: one traversal at a tolerance below the answer and
-    the critical tolerances of the pcols that do not run there, estimated in
-    double (``pmjax/engines/core/budget.c``); exact counts confirm or correct it.
+    """Per camera and budget, a guess of the smallest float32 ``tau`` whose
+    face count is within the budget: one traversal per camera at a tolerance
+    below the smallest of its answers and the critical tolerances of the
+    pcols that do not run there, estimated in double
+    (``pmjax/engines/core/budget.c``); exact counts confirm or correct it.
 
     Args:
         cameras: ``float32 [K, CAMERA]`` (:func:`camera_rows`), the tolerance a
             first one to traverse at (the core lowers it where needed), or 0:
             one from the answers of the cameras before.
-        budgets: ``int32 [K]`` faces.
+        budgets: ``int32 [K, B]`` faces, B budgets per camera (one traversal
+            serves them all).
         base_faces: the coarsest mesh's faces.
 
     Returns:
-        ``(guess, guess_alt)`` ``int32 [K]``: float32 bit patterns, ``0x7F800001``
-        for ``tau = inf``; ``guess_alt`` takes the core's unsure decisions
-        as collapses, ``guess`` as "keep".
+        ``(guess, guess_alt)`` ``int32 [K, B]``: float32 bit patterns,
+        ``0x7F800001`` for ``tau = inf``; ``guess_alt`` takes the core's unsure
+        decisions as collapses, ``guess`` as "keep".
     """
-    K = cameras.shape[0]
+    K, B = budgets.shape
     # One pixel as XLA computes it (the dense engine's value), which the
     # screen test's switch points depend on to the last bit.
     units = _view_of_rows(cameras, orthographic)[:, 20]
-    return _call("pmx_budget_many", (_sds((K,), jnp.int32), _sds((K,), jnp.int32)), *_hierarchy_args(tables), cameras,
-                 units, budgets,
+    return _call("pmx_budget_many", (_sds((K, B), jnp.int32), _sds((K, B), jnp.int32)), *_hierarchy_args(tables),
+                 cameras, units, budgets,
                  flags=np.int32(flags_of(tests, orthographic)), n_roots=np.int64(tables.n_roots),
                  base_faces=np.int64(base_faces), threads=np.int64(threads))
 

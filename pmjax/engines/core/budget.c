@@ -1,5 +1,6 @@
-/* Face budgets of camera batches: per camera, a guess of the smallest
- * float32 tau whose face count is within the budget, from one traversal.
+/* Face budgets of camera batches: per camera and budget, a guess of the
+ * smallest float32 tau whose face count is within the budget, from one
+ * traversal per camera for all its budgets.
  *
  * A pcol runs at tau exactly when tau > eps(p), eps(p) = max(t_p, eps of its
  * children), t_p its own critical tolerance (docs/design.md). A traversal at
@@ -249,11 +250,12 @@ static int64_t bucket_of(float v, int32_t lo_bits)
 }
 
 /* Working memory of one thread beyond its scratch: the slots' eps (eps[-1]
- * valid, -inf) and own tolerances, the values and weights selected from,
+ * valid, -inf) and own tolerances, the values and weights selected from
+ * (val, wt: every slot's; sel, sel_wt: one bucket's, taken by a selection),
  * the buckets' weights. */
 typedef struct {
-    float *eps, *own, *val;
-    int32_t *wt;
+    float *eps, *own, *val, *sel;
+    int32_t *wt, *sel_wt;
     int64_t *bucket;
 } Budget;
 
@@ -272,16 +274,15 @@ static void flush_block(const PmxHierarchy *h, const PmxScratch *s, Budget *b, i
         b->own[b->wt[j]] = screen ? out[j] : INFINITY;
 }
 
-/* The answer from the n slots of a traversal at lo and their own
+/* The counts of a traversal at lo from its n slots and their own
  * tolerances: eps bottom-up over the slots that did not run (children sit
  * after their parents; a slot that ran at lo, and every pcol under it, runs
- * at every tau >= lo and counts as -inf), the kills of the values >= lo in
- * their buckets, then the value where the faces kept pass the budget. An
- * unsure own decision counts as a collapse where unsure_collapses. Returns
- * the answer's bit pattern, or -2 when the count at lo is within the budget;
- * *at_twice: the count at 2 lo. */
-static int64_t answer_at(const PmxScratch *s, Budget *b, int64_t n, float lo, int64_t budget, int64_t base_faces,
-                         int unsure_collapses, int64_t *at_twice)
+ * at every tau >= lo and counts as -inf), the values >= lo with their kills
+ * (b->val, b->wt; their number is returned) and their kills per bucket. An
+ * unsure own decision counts as a collapse where unsure_collapses.
+ * *total: the count at lo; *at_twice: the count at 2 lo. */
+static int64_t eps_pass(const PmxScratch *s, Budget *b, int64_t n, float lo, int64_t base_faces,
+                        int unsure_collapses, int64_t *total_out, int64_t *at_twice)
 {
     const float twice = 2 * lo;
     int64_t total2 = base_faces;
@@ -306,12 +307,21 @@ static int64_t answer_at(const PmxScratch *s, Budget *b, int64_t n, float lo, in
         total += kill, count += in;
         total2 += e >= twice ? kill : 0;
     }
+    *total_out = total;
     *at_twice = total2;
+    return count;
+}
+
+/* The answer for `budget` from an eps_pass at lo (count values, the count
+ * `total` at lo): its bit pattern, or -2 when the count at lo is within the
+ * budget. The bucket where the faces kept by the pcols above a value pass
+ * the budget; the values in it then give the answer: just above the
+ * largest eps whose pcols, with those above, keep too many faces. */
+static int64_t answer_of(Budget *b, int64_t count, float lo, int64_t total, int64_t budget, int64_t base_faces)
+{
     if (total <= budget)
         return -2;
-    /* The bucket where the faces kept by the pcols above a value pass the
-     * budget; the values in it then give the answer: just above the largest
-     * eps whose pcols, with those above, keep too many faces. */
+    const int32_t lo_bits = bits_of(lo);
     int64_t over = budget - base_faces, q = BUCKETS - 1;
     while (b->bucket[q] <= over) {
         over -= b->bucket[q];
@@ -320,25 +330,34 @@ static int64_t answer_at(const PmxScratch *s, Budget *b, int64_t n, float lo, in
     int64_t m = 0;
     for (int64_t j = 0; j < count; j++)
         if (bucket_of(b->val[j], lo_bits) == q)
-            b->val[m] = b->val[j], b->wt[m] = b->wt[j], m++;
-    const float v = crossing(b->val, b->wt, m, over);
+            b->sel[m] = b->val[j], b->sel_wt[m] = b->wt[j], m++;
+    const float v = crossing(b->sel, b->sel_wt, m, over);
     return v == INFINITY ? (int64_t)INF_BITS + 1 : (int64_t)bits_of(v) + 1;
 }
 
-/* One camera: the guessed answer's bit pattern (INF_BITS + 1: tau = inf),
- * from a traversal at `lo` (lowered while the count there is within the
- * budget), the screen test with one pixel `unit`, and in *alt the guess
- * with the unsure decisions taken as collapses; -1 on a table that is not a
- * forest. */
+/* One camera and its B budgets: each budget's guessed answer's bit pattern
+ * in guess (INF_BITS + 1: tau = inf), and in alt the guess with the unsure
+ * decisions taken as collapses, from one traversal at `lo` (lowered while
+ * the count there is within the largest budget, whose answer is the
+ * smallest), the screen test with one pixel `unit`. Returns the largest
+ * budget's guess, or -1 on a table that is not a forest. */
 static int64_t budget_one(const Kernels *kern, const PmxHierarchy *h, const float *camera, float unit, float lo,
-                          int flags, int64_t budget, int64_t base_faces, PmxScratch *s, Budget *b, int64_t *alt)
+                          int flags, const int32_t *budgets, int64_t B, int64_t base_faces, PmxScratch *s, Budget *b,
+                          int64_t *guess, int64_t *alt)
 {
     const int ortho = (flags & PMX_ORTHOGRAPHIC) != 0, screen = (flags & PMX_SCREEN) != 0;
     const OwnBlock own = own_block();
     float row[PMX_CAMERA], view[PMX_VIEW];
     memcpy(row, camera, sizeof row);
-    *alt = (int64_t)INF_BITS + 1;
-    if (budget < base_faces) /* even the coarsest mesh keeps more */
+    /* A budget below the coarsest mesh is never met: inf. The largest
+     * budget drives the traversal. */
+    int64_t top = -1, open = 0;
+    for (int64_t j = 0; j < B; j++) {
+        guess[j] = alt[j] = (int64_t)INF_BITS + 1;
+        if (budgets[j] >= base_faces)
+            top = budgets[j] > top ? budgets[j] : top, open++;
+    }
+    if (!open)
         return (int64_t)INF_BITS + 1;
     int64_t last_count = -1;
     for (;;) {
@@ -371,32 +390,47 @@ static int64_t budget_one(const Kernels *kern, const PmxHierarchy *h, const floa
             flush_block(h, s, b, k, view, unit, ortho, screen, own);
         /* An unsure decision (mostly a sphere on a frustum plane) is taken
          * as "keep"; the second guess takes it as a collapse. */
-        int64_t at_twice = 0;
-        const int64_t g = answer_at(s, b, n, lo, budget, base_faces, 0, &at_twice);
-        if (g != -2) {
-            int64_t unused;
-            const int64_t g_alt = m ? answer_at(s, b, n, lo, budget, base_faces, 1, &unused) : g;
-            *alt = g_alt == -2 ? g : g_alt;
-            return g;
-        }
-        *alt = 0;
-        if (lo == 0.0f)
-            return 0;
-        /* Within the budget at lo: the answer lies below. The counts at lo
-         * and 2 lo give the count's power of tau, extrapolated to the
-         * budget, times MARGIN; a count that does not change from 2 lo
-         * (or from the last lo) says the view is as fine as it gets: 0. */
+        int64_t total = 0, at_twice = 0;
+        int64_t count = eps_pass(s, b, n, lo, base_faces, 0, &total, &at_twice);
+        /* Lower lo while the largest budget's answer lies below it, unless
+         * the view is as fine as it gets (then the budgets met at lo have
+         * the guess 0): the counts at lo and 2 lo give the count's power of
+         * tau, extrapolated to the largest budget, times MARGIN; a count
+         * that does not change from 2 lo (or from the last lo) says the
+         * view is as fine as it gets. */
         const int64_t count_at_lo = base_faces + kept;
-        if (count_at_lo == last_count || at_twice == count_at_lo)
-            return 0;
-        const double a = (double)(count_at_lo - base_faces + 1), a2 = (double)(at_twice - base_faces + 1);
-        double power = a > a2 ? log(a / a2) / log(2.0) : 1.0;
-        power = power < 0.5 ? 0.5 : power > 4.0 ? 4.0 : power;
-        const double next = lo * MARGIN * pow(a / (double)(budget - base_faces + 1), 1.0 / power);
-        if (next < 1e-30)
-            return 0;
-        last_count = count_at_lo;
-        lo = (float)(next < lo * 0.9 ? next : lo * 0.9);
+        if (total <= top && lo != 0.0f && count_at_lo != last_count && at_twice != count_at_lo) {
+            const double a = (double)(count_at_lo - base_faces + 1), a2 = (double)(at_twice - base_faces + 1);
+            double power = a > a2 ? log(a / a2) / log(2.0) : 1.0;
+            power = power < 0.5 ? 0.5 : power > 4.0 ? 4.0 : power;
+            const double next = lo * MARGIN * pow(a / (double)(top - base_faces + 1), 1.0 / power);
+            if (next >= 1e-30) {
+                last_count = count_at_lo;
+                lo = (float)(next < lo * 0.9 ? next : lo * 0.9);
+                continue;
+            }
+        }
+        /* Each budget's answer from the same eps; those met at lo: 0. */
+        for (int64_t j = 0; j < B; j++)
+            if (budgets[j] >= base_faces) {
+                const int64_t g = answer_of(b, count, lo, total, budgets[j], base_faces);
+                guess[j] = g == -2 ? 0 : g;
+                alt[j] = g == -2 ? 0 : g;
+            }
+        if (m) {
+            int64_t total_alt = 0, unused = 0;
+            count = eps_pass(s, b, n, lo, base_faces, 1, &total_alt, &unused);
+            for (int64_t j = 0; j < B; j++)
+                if (budgets[j] >= base_faces && guess[j] != 0) {
+                    const int64_t g_alt = answer_of(b, count, lo, total_alt, budgets[j], base_faces);
+                    alt[j] = g_alt == -2 ? guess[j] : g_alt;
+                }
+        }
+        int64_t g_top = 0;
+        for (int64_t j = 0; j < B; j++)
+            if (budgets[j] == top)
+                g_top = guess[j];
+        return g_top;
     }
 }
 
@@ -405,7 +439,7 @@ typedef struct {
     const PmxHierarchy *h;
     const float *cameras, *units;
     const int32_t *budgets;
-    int64_t K, cursor, base_faces;
+    int64_t K, B, cursor, base_faces;
     int flags;
     float centre[3];
     int32_t *guess, *guess_alt;
@@ -416,25 +450,27 @@ static void batch_work(void *arg)
 {
     Batch *bt = arg;
     const PmxHierarchy *h = bt->h;
-    const int64_t room = h->n_pcols + PMX_SPARE;
+    const int64_t room = h->n_pcols + PMX_SPARE, B = bt->B;
     PmxScratch *s = pmx_scratch_take(h->n_pcols);
     float *eps_room = malloc(sizeof(float) * (size_t)(room + 1));
     Budget b = {eps_room ? eps_room + 1 : NULL, malloc(sizeof(float) * (size_t)room),
-                malloc(sizeof(float) * (size_t)room), malloc(sizeof(int32_t) * (size_t)room),
+                malloc(sizeof(float) * (size_t)room), malloc(sizeof(float) * (size_t)room),
+                malloc(sizeof(int32_t) * (size_t)room), malloc(sizeof(int32_t) * (size_t)room),
                 malloc(sizeof(int64_t) * BUCKETS)};
+    int64_t *g = malloc(sizeof(int64_t) * (size_t)(2 * B)), *alt = g ? g + B : NULL;
     if (eps_room)
         eps_room[0] = -INFINITY; /* eps[-1]: a child not visited */
-    if (!s || !scratch_slots(s) || !b.eps || !b.own || !b.val || !b.wt || !b.bucket) {
+    if (!s || !scratch_slots(s) || !b.eps || !b.own || !b.val || !b.sel || !b.wt || !b.sel_wt || !b.bucket || !g) {
         __atomic_store_n(&bt->status, PMX_NO_MEMORY, __ATOMIC_RELAXED);
         goto done;
     }
     const unsigned mode = subnormals_off();
     const Kernels *kern = pmx_kernels();
     /* The first tolerance of a camera: its row's, or where that is 0, the
-     * last answer of this thread times its eye's distance to the model's
-     * centre, over this eye's (the screen error falls as the distance
-     * grows), times START; a camera whose answer lies below it lowers it
-     * and traverses again. */
+     * last answer (of its largest budget) of this thread times its eye's
+     * distance to the model's centre, over this eye's (the screen error
+     * falls as the distance grows), times START; a camera whose answer lies
+     * below it lowers it and traverses again. */
     const int ortho = (bt->flags & PMX_ORTHOGRAPHIC) != 0;
     double scaled = -1.0;
     for (int64_t c; (c = __atomic_fetch_add(&bt->cursor, 1, __ATOMIC_RELAXED)) < bt->K;) {
@@ -446,34 +482,35 @@ static void batch_work(void *arg)
             lo = scaled > 0 ? (float)(ortho ? START * scaled : START * scaled / dist) : 1.0f;
         if (!(lo > 0.0f) || lo > 1e30f)
             lo = 1.0f;
-        int64_t alt = 0;
-        const int64_t g = budget_one(kern, h, camera, bt->units[c], lo, bt->flags, bt->budgets[c], bt->base_faces, s,
-                                     &b, &alt);
-        if (g < 0) {
+        const int64_t top = budget_one(kern, h, camera, bt->units[c], lo, bt->flags, bt->budgets + c * B, B,
+                                       bt->base_faces, s, &b, g, alt);
+        if (top < 0) {
             __atomic_store_n(&bt->status, PMX_BAD_TABLE, __ATOMIC_RELAXED);
             break;
         }
-        bt->guess[c] = (int32_t)(g > (int64_t)INF_BITS + 1 ? (int64_t)INF_BITS + 1 : g);
-        bt->guess_alt[c] = (int32_t)(alt > (int64_t)INF_BITS + 1 ? (int64_t)INF_BITS + 1 : alt);
-        if (g > 0 && g <= INF_BITS) {
+        for (int64_t j = 0; j < B; j++) {
+            bt->guess[c * B + j] = (int32_t)(g[j] > (int64_t)INF_BITS + 1 ? (int64_t)INF_BITS + 1 : g[j]);
+            bt->guess_alt[c * B + j] = (int32_t)(alt[j] > (int64_t)INF_BITS + 1 ? (int64_t)INF_BITS + 1 : alt[j]);
+        }
+        if (top > 0 && top <= INF_BITS) {
             float t;
-            const int32_t gb = (int32_t)g;
+            const int32_t gb = (int32_t)top;
             memcpy(&t, &gb, sizeof t);
             scaled = ortho ? t : t * dist;
         }
     }
     subnormals_back(mode);
 done:
-    free(eps_room), free(b.own), free(b.val), free(b.wt), free(b.bucket);
+    free(eps_room), free(b.own), free(b.val), free(b.sel), free(b.wt), free(b.sel_wt), free(b.bucket), free(g);
     if (s)
         pmx_scratch_give(s);
 }
 
 PmxStatus pmx_budget_many(const PmxHierarchy *h, const float *cameras, const float *units, int64_t K, int flags,
-                          const int32_t *budgets, int64_t base_faces, int32_t *guess, int32_t *guess_alt,
+                          const int32_t *budgets, int64_t B, int64_t base_faces, int32_t *guess, int32_t *guess_alt,
                           const PmxRunner *run)
 {
-    Batch bt = {h, cameras, units, budgets, K, 0, base_faces, flags, {0, 0, 0}, guess, guess_alt, PMX_OK};
+    Batch bt = {h, cameras, units, budgets, K, B, 0, base_faces, flags, {0, 0, 0}, guess, guess_alt, PMX_OK};
     /* The model's centre: the mean of the roots' centres. */
     double c[3] = {0, 0, 0};
     for (int64_t q = 0; q < h->n_roots; q++)

@@ -288,8 +288,8 @@ ffi::Error RefineMany(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> rows, ffi::Buf
 
 // ---- face budgets of camera batches -----------------------------------------
 // operands: rows, kills, order, cameras f32[K, PMX_CAMERA] (tau: a first tolerance, or 0), units f32[K]
-//           (one pixel), budgets s32[K]
-// results: guess s32[K], guess_alt s32[K] (float32 bit patterns; 0x7F800001: inf)
+//           (one pixel), budgets s32[K, B] (B budgets per camera)
+// results: guess s32[K, B], guess_alt s32[K, B] (float32 bit patterns; 0x7F800001: inf)
 ffi::Error BudgetMany(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> rows, ffi::Buffer<ffi::S32> kills,
                       ffi::Buffer<ffi::S32> order, ffi::Buffer<ffi::F32> cameras, ffi::Buffer<ffi::F32> units,
                       ffi::Buffer<ffi::S32> budgets, ffi::ResultBuffer<ffi::S32> guess,
@@ -303,12 +303,16 @@ ffi::Error BudgetMany(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> rows, ffi::Buf
                                        Shape(vd));
   const int64_t K = vd[0];
   PMX_CHECK(Expect("units", units.dimensions(), {K}));
-  PMX_CHECK(Expect("budgets", budgets.dimensions(), {K}));
-  PMX_CHECK(Expect("guess", guess->dimensions(), {K}));
-  PMX_CHECK(Expect("guess_alt", guess_alt->dimensions(), {K}));
+  auto bd = budgets.dimensions();
+  if (bd.size() != 2 || bd[0] != K || bd[1] < 1)
+    return ffi::Error::InvalidArgument("budgets must have shape [" + std::to_string(K) + ", B] with B >= 1, got " +
+                                       Shape(bd));
+  const int64_t B = bd[1];
+  PMX_CHECK(Expect("guess", guess->dimensions(), {K, B}));
+  PMX_CHECK(Expect("guess_alt", guess_alt->dimensions(), {K, B}));
   if (base_faces < 0) return ffi::Error::InvalidArgument("base_faces must be >= 0");
   PmxRunner runner = Runner(pool, threads);
-  PMX_CHECK(Status(pmx_budget_many(&h, cameras.typed_data(), units.typed_data(), K, flags, budgets.typed_data(),
+  PMX_CHECK(Status(pmx_budget_many(&h, cameras.typed_data(), units.typed_data(), K, flags, budgets.typed_data(), B,
                                    base_faces,
                                    guess->typed_data(), guess_alt->typed_data(), &runner),
                    "faces_for_budget"));

@@ -141,15 +141,16 @@ PmxStatus pmx_refine_many(const PmxHierarchy *h, const float *views, int64_t K, 
 
 /* Face budgets of K cameras (cameras [K, PMX_CAMERA], the tau column a first
  * tolerance to traverse at, 0: one from the answers before; units [K] each
- * camera's one pixel as the float32 predicate computes it; budgets [K];
- * base_faces: the coarsest mesh's faces): guess[k] the float32 bit pattern
- * of a guess of the smallest tau whose face count is within budgets[k]
- * (0x7F800001: tau = inf), from the critical tolerances of the pcols that do
- * not run at a tolerance below it, and guess_alt[k] the same with the
- * unsure decisions taken as collapses rather than "keep" (budget.c). The
- * caller makes them exact by counts. */
+ * camera's one pixel as the float32 predicate computes it; budgets [K, B],
+ * B budgets per camera; base_faces: the coarsest mesh's faces): guess[k, j]
+ * the float32 bit pattern of a guess of the smallest tau whose face count
+ * is within budgets[k, j] (0x7F800001: tau = inf), from the critical
+ * tolerances of the pcols that do not run at a tolerance below the smallest
+ * of the camera's answers (one traversal serves its B budgets), and
+ * guess_alt[k, j] the same with the unsure decisions taken as collapses
+ * rather than "keep" (budget.c). The caller makes them exact by counts. */
 PmxStatus pmx_budget_many(const PmxHierarchy *h, const float *cameras, const float *units, int64_t K, int flags,
-                          const int32_t *budgets, int64_t base_faces, int32_t *guess, int32_t *guess_alt,
+                          const int32_t *budgets, int64_t B, int64_t base_faces, int32_t *guess, int32_t *guess_alt,
                           const PmxRunner *run);
 
 /* Words of PMX_FRAMES consecutive frames of a path (views [W * PMX_FRAMES,
