@@ -295,6 +295,9 @@ def budgets(n: int, work: str, repeats: int = 3) -> list:
                   f"(budgets {values}) {rate['budget']:.0f} camera-values/s, budget / tau rate "
                   f"{row['ratio']:.2f} (start-up subtracted)", flush=True)
             rows.append(row)
+    return rows
+
+
 _STARTUP_CHILD = """
 import json, os, sys, threading, time
 t0 = time.perf_counter()
