@@ -901,6 +901,12 @@ def _core_guesses(tables, rows, budgets, tests, orthographic, base_faces):
     return _core.budget_guesses(tables, rows, budgets, tests, orthographic, base_faces)
 
 
+# Patterns probed next to a wrong guess in the second round of counts: the
+# guesses' misses are mostly one to three patterns (the own tolerances'
+# float32 terms rounded otherwise than the predicate's).
+NEAR = 3
+
+
 def _exact_from_guess(tables, rows, budgets, guess, alt, tests, orthographic, counts_of, along_path=None):
     """The exact answers from the guesses, by rounds of exact counts.
 
@@ -911,7 +917,8 @@ def _exact_from_guess(tables, rows, budgets, guess, alt, tests, orthographic, co
     are adjacent (``INF_BITS + 1``: ``tau = inf`` with the count at inf). The
     first round counts at the guess and just below it, the second at the
     other guess (``alt``, the core's unsure decisions taken the other way)
-    and just below it where that differs, else one step on; later rounds
+    and just below it where that differs, else at the :data:`NEAR` patterns
+    next to the bracket's known end; later rounds
     gallop from a virtual end (steps growing geometrically) or split the
     bracket. Each round is one batched call of exact counts over the cameras
     still open. With ``along_path`` (``bits [n] -> counts int64 [n, 3]``, all
@@ -959,9 +966,11 @@ def _exact_from_guess(tables, rows, budgets, guess, alt, tests, orthographic, co
         c = np.flatnonzero(open_)
         l, h, st = lo[c], hi[c], step[c]
         below, above = l < 0, h > _INF_BITS
-        # The second round probes once (most guesses are an ulp or two off);
-        # later ones, left to the few guesses far off, probe `m` points each.
-        m = 1 if rounds == 0 else 8
+        # The second round probes the NEAR patterns next to the known end
+        # (most guesses are one to three ulps off: one round settles them);
+        # later ones, left to the few guesses far off, probe `m` points each,
+        # galloping on from there.
+        m = NEAR if rounds == 0 else 8
         groups = []
         if rounds == 0:  # the other guess, where it differs and lies inside the bracket
             a = np.clip(alt[c].astype(np.int64), 0, _INF_BITS + 1)
@@ -969,11 +978,11 @@ def _exact_from_guess(tables, rows, budgets, guess, alt, tests, orthographic, co
             groups += [(c[other], a[other]), (c[other], a[other] - 1)]
             c, l, h, st, below, above = (x[~other] for x in (c, l, h, st, below, above))
         for j in range(m):
-            reach = st << j
+            reach = st * (j + 1) if rounds == 0 else st << j
             inner = l + (h - l) * (j + 1) // (m + 1)
             b = np.where(below, np.maximum(h - reach, 0), np.where(above, np.minimum(l + reach, _INF_BITS), inner))
             groups.append((c, b))
-        step[c] = np.where(below | above, st << m, st)
+        step[c] = np.where(below | above, st * (m + 1) if rounds == 0 else st << m, st)
         rounds += 1
     tau = np.where(hi > _INF_BITS, np.inf, hi.astype(np.int32).view(np.float32) if n else 0.0).astype(np.float32)
     counted = np.where((hi > _INF_BITS)[:, None], at_inf, at_hi)
