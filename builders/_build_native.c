@@ -522,7 +522,8 @@ void pmx_edge_keys(int64_t n_faces, const int32_t *faces, int64_t *keys) {
 }
 
 /* The distinct keys of sorted keys[0 .. n-1], with their ends and counts.
- * Returns how many. */
+ * Returns how many. unique may be keys itself: a run's key is written at or
+ * before the place it was read from. */
 int64_t pmx_key_runs(int64_t n, const int64_t *keys, int64_t *unique, int32_t *lo, int32_t *hi, int64_t *count) {
     int64_t m = 0;
     for (int64_t i = 0; i < n; i++) {

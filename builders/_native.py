@@ -164,16 +164,22 @@ class Mesh:
 
 def unique_edges(faces: np.ndarray):
     """:func:`builders._topology.unique_edges` of ``int32`` faces, the same
-    arrays: the keys made and counted in C around NumPy's sort."""
+    arrays: the keys made and counted in C around NumPy's sort. The
+    distinct keys overwrite the sorted ones in place and the other arrays
+    are allocated at the distinct count, so the step holds the ``3 F`` keys
+    and the results only."""
     faces = np.ascontiguousarray(faces, np.int32)
     keys = np.empty(3 * len(faces), np.int64)
     _LIB.pmx_edge_keys(len(faces), faces.ctypes.data, keys.ctypes.data)
     keys.sort()
-    unique, count = np.empty(len(keys), np.int64), np.empty(len(keys), np.int64)
-    lo, hi = np.empty(len(keys), np.int32), np.empty(len(keys), np.int32)
-    n = _LIB.pmx_key_runs(len(keys), keys.ctypes.data, unique.ctypes.data, lo.ctypes.data, hi.ctypes.data,
+    n = 1 + int(np.count_nonzero(keys[1:] != keys[:-1])) if len(keys) else 0
+    count = np.empty(n, np.int64)
+    lo, hi = np.empty(n, np.int32), np.empty(n, np.int32)
+    # A run's key is written at or before where it was read: in place is safe.
+    m = _LIB.pmx_key_runs(len(keys), keys.ctypes.data, keys.ctypes.data, lo.ctypes.data, hi.ctypes.data,
                           count.ctypes.data)
-    return lo[:n].copy(), hi[:n].copy(), count[:n].copy(), unique[:n].copy()
+    assert m == n
+    return lo, hi, count, keys[:n].copy()
 
 
 def carry_costs(old_keys: np.ndarray, old_x: np.ndarray, old_cost: np.ndarray, keys: np.ndarray):
@@ -198,7 +204,7 @@ def carry_costs(old_keys: np.ndarray, old_x: np.ndarray, old_cost: np.ndarray, k
                                    len(keys), keys.ctypes.data, x.ctypes.data, cost.ctypes.data, fresh.ctypes.data)
     if n_fresh < 0:
         return None
-    return x, cost, fresh[:n_fresh]
+    return x, cost, fresh[:n_fresh].copy()
 
 
 class Candidates:
@@ -324,17 +330,26 @@ def cheapest(cost: np.ndarray, k: int, kth: float):
     return pick[order]
 
 
-def scatter_add(columns: np.ndarray, index: np.ndarray, n: int, repeat: int) -> np.ndarray:
+def scatter_add(columns: np.ndarray, index: np.ndarray, n: int, repeat: int, out: np.ndarray | None = None):
     """:func:`builders._quadrics.scatter_add` of the ``(k, N)`` contiguous
     float64 ``columns``: ``out[index[i]] += columns[:, i // repeat]``, the
-    same sums in the same order, as ``(n, k)``."""
+    same sums in the same order, as ``(n, k)``.
+
+    Args:
+        out: contiguous ``float64[n, k]`` to add to (``None``: zeros). Sums
+            made in steps over consecutive parts of ``index`` into one ``out``
+            are the one step's sums, bit for bit.
+    """
     columns = np.ascontiguousarray(columns, np.float64)
     index = np.ascontiguousarray(index, np.int64)
     if len(index) and not (0 <= index.min() and index.max() < n):
         raise ValueError(f"scatter_add: an index is outside 0 .. {n - 1}")
     if len(index) > repeat * columns.shape[1]:
         raise ValueError("scatter_add: more indices than values")
-    out = np.zeros((n, len(columns)))
+    if out is None:
+        out = np.zeros((n, len(columns)))
+    elif not (out.shape == (n, len(columns)) and out.dtype == np.float64 and out.flags.c_contiguous):
+        raise ValueError(f"scatter_add: out must be a contiguous float64 ({n}, {len(columns)}) array")
     _LIB.pmx_scatter_add(len(index), index.ctypes.data, len(columns), columns.ctypes.data, columns.shape[1], repeat,
                          out.ctypes.data)
     return out
