@@ -48,6 +48,8 @@ def _load():
     lib.pmx_vertex_faces.argtypes = [_i64, _p, _p, _p]
     lib.pmx_edge_keys.restype = None
     lib.pmx_edge_keys.argtypes = [_i64, _p, _p]
+    lib.pmx_sort_keys.restype = ctypes.c_int
+    lib.pmx_sort_keys.argtypes = [_i64, _p, _p, _p]
     lib.pmx_key_runs.restype = _i64
     lib.pmx_key_runs.argtypes = [_i64, _p, _p, _p, _p, _p]
     lib.pmx_carry_costs.restype = _i64
@@ -171,7 +173,7 @@ def unique_edges(faces: np.ndarray):
     faces = np.ascontiguousarray(faces, np.int32)
     keys = np.empty(3 * len(faces), np.int64)
     _LIB.pmx_edge_keys(len(faces), faces.ctypes.data, keys.ctypes.data)
-    keys.sort()
+    sort_keys(keys)
     n = 1 + int(np.count_nonzero(keys[1:] != keys[:-1])) if len(keys) else 0
     count = np.empty(n, np.int64)
     lo, hi = np.empty(n, np.int32), np.empty(n, np.int32)
@@ -180,6 +182,23 @@ def unique_edges(faces: np.ndarray):
                           count.ctypes.data)
     assert m == n
     return lo, hi, count, keys[:n].copy()
+
+
+# Passes and digit width of the C radix sort of edge keys (its defines).
+RADIX_BITS, RADIX_PASSES = 12, 6
+
+
+def sort_keys(keys: np.ndarray) -> None:
+    """Sort ``int64`` edge keys (:func:`builders._topology.edge_keys`, ids
+    below 2**31) in place: NumPy's ``keys.sort()``, the same array, by a
+    radix sort in C (a few passes over the keys where NumPy's sort compares
+    them; it holds a second buffer of the keys' size meanwhile)."""
+    if not (keys.dtype == np.int64 and keys.flags.c_contiguous and keys.ndim == 1):
+        raise ValueError("sort_keys: keys must be contiguous 1-D int64")
+    tmp = np.empty_like(keys)
+    counts = np.empty(RADIX_PASSES << RADIX_BITS, np.int64)
+    if _LIB.pmx_sort_keys(len(keys), keys.ctypes.data, tmp.ctypes.data, counts.ctypes.data):
+        raise ValueError("sort_keys: a key is negative or holds an id of 2**31 or more (not an edge key)")
 
 
 def carry_costs(old_keys: np.ndarray, old_x: np.ndarray, old_cost: np.ndarray, keys: np.ndarray):
