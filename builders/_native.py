@@ -431,7 +431,8 @@ def climb_leaves(top: np.ndarray, parent: np.ndarray, lo: int, hi: int, pos: np.
     height = np.zeros(hi - lo)
     m = _LIB.pmx_climb_leaves(len(top), top.ctypes.data, parent.ctypes.data, lo, pos.ctypes.data,
                               normals.ctypes.data, moving.ctypes.data, owner.ctypes.data, height.ctypes.data)
-    return moving[:m], owner[:m], height
+    # Copies of the moved part, so that the arrays sized for every leaf go now.
+    return moving[:m].copy(), owner[:m].copy(), height
 
 
 def apply_batch(scratch: Scratch, faces, fid, a, b, first: int, V0: int, killer, quadric):
