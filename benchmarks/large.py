@@ -19,9 +19,15 @@ tau = 1 px along the standard orbit (24 frames, medians of time and faces
 after two warm-up frames), and ``Refinement.mesh()`` of each frame's
 refinement (median).
 
+``--stages MODEL`` instead builds one model with its main thread's steps
+labelled (edges, costs, the cheapest share, the batch choice, ...) and the
+process's RSS sampled every 2 ms: per step the peak RSS above the model's
+arrays (per input face) and the main thread's time in it.
+
 Usage::
 
     python benchmarks/large.py [--models dragon:0,dragon:1] [--json out.json]
+    python benchmarks/large.py --stages dragon:1
 """
 
 from __future__ import annotations
@@ -145,6 +151,68 @@ def one_model(spec: str, folder: str) -> dict:
                 refine_faces=int(statistics.median(faces)), mesh_ms=1e3 * statistics.median(mesh_times))
 
 
+# The builder's main-thread steps that --stages labels: (module, name, label).
+STAGES = (
+    ("qd", "vertex_quadrics", "initial quadrics (and, beside them, the attribute start)"),
+    ("native", "Scratch", "buffers of the C loops"),
+    ("build", "unique_edges", "edges, recounted every batch"),
+    ("build", "evaluate_metric", "costs of the first batch"),
+    ("build", "_cached_costs", "costs carried, fresh pairs placed"),
+    ("build", "_sorted_by_key", "cost cache"),
+    ("native", "Mesh", "faces around each vertex"),
+    ("build", "_cheapest", "the cheapest share"),
+    ("build", "_select_batch", "the batch choice (greedy, validity)"),
+    ("native", "apply_batch", "applying the batch"),
+)
+
+
+def stages(spec: str, folder: str) -> dict:
+    """Peak RSS and main-thread time per labelled step of one build."""
+    import threading
+
+    from pmjax.builders import _build
+
+    v, f = np.load(os.path.join(folder, "v.npy")), np.load(os.path.join(folder, "f.npy"))
+    page = os.sysconf("SC_PAGE_SIZE")
+
+    def rss():
+        with open("/proc/self/statm") as fh:
+            return int(fh.read().split()[1]) * page
+
+    label, peak, spent, done = ["other"], {}, {}, threading.Event()
+
+    def sample():
+        while not done.is_set():
+            r, at = rss(), label[0]
+            peak[at] = max(peak.get(at, 0), r)
+            time.sleep(0.002)
+
+    modules = dict(qd=_build.qd, native=_build.native, build=_build)
+    for module, name, text in STAGES:
+        def labelled(*args, _fn=getattr(modules[module], name), _text=text, **kwargs):
+            before, label[0] = label[0], _text
+            t = time.perf_counter()
+            try:
+                return _fn(*args, **kwargs)
+            finally:
+                spent[_text] = spent.get(_text, 0.0) + time.perf_counter() - t
+                label[0] = before
+        setattr(modules[module], name, labelled)
+    base = rss()
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    t = time.perf_counter()
+    _build.build_pm(v, f)
+    build_s = time.perf_counter() - t
+    done.set()
+    sampler.join()
+    F = len(f)
+    rows = [dict(step=text, peak_bytes_per_face=(peak.get(text, base) - base) / F, main_s=spent.get(text, 0.0))
+            for _, _, text in STAGES] + [dict(step="other", peak_bytes_per_face=(peak["other"] - base) / F,
+                                              main_s=build_s - sum(spent.values()))]
+    return dict(model=spec, faces=F, base_bytes_per_face=base / F, build_s=build_s, stages=rows)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--models", default="dragon:0,dragon:1")
@@ -152,7 +220,28 @@ def main(argv=None) -> int:
     ap.add_argument("--make", help=argparse.SUPPRESS)
     ap.add_argument("--folder", help=argparse.SUPPRESS)
     ap.add_argument("--json", help="also write the rows as JSON")
+    ap.add_argument("--stages", help="one model: peak RSS and main-thread time per step of its build")
+    ap.add_argument("--stages-of", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.stages_of:
+        print(json.dumps(stages(args.stages_of, args.folder)))
+        return 0
+    if args.stages:
+        print(machine())
+        with tempfile.TemporaryDirectory(prefix="pmjax-large-model-") as folder:
+            subprocess.run([sys.executable, __file__, "--make", args.stages, "--folder", folder], check=True,
+                           capture_output=True)
+            out = subprocess.run([sys.executable, __file__, "--stages-of", args.stages, "--folder", folder],
+                                 check=True, capture_output=True, text=True)
+        row = json.loads(out.stdout.strip().splitlines()[-1])
+        print(f"{row['model']}: {row['faces']:,d} faces, build {row['build_s']:.1f} s, before the build "
+              f"{row['base_bytes_per_face']:.0f} B/face (imports, the model's arrays)")
+        for stage in row["stages"]:
+            print(f"  {stage['step']:58s} peak {stage['peak_bytes_per_face']:5.0f} B/face above that, "
+                  f"main thread {stage['main_s']:6.2f} s")
+        if args.json:
+            write_json(args.json, dict(machine=machine(), **row))
+        return 0
     if args.make:
         print(json.dumps(dict(make_s=save_model(args.make, args.folder))))
         return 0
