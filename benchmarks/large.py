@@ -6,18 +6,28 @@ A model is ``NAME:LEVELS``: the shared mesh ``NAME`` (``dragon``,
 original mesh's median edge length (seeded), so that the hierarchy is not a
 replay of the subdivision. ``dragon:1`` has 3.5 M faces, ``dragon:2`` 14 M,
 ``terrain_gcanyon:4`` 20 M; ``dragon:0`` is the original, for comparison.
-Nothing is stored: each model is made in memory.
+Nothing is kept: each model is made by a subprocess into a temporary
+folder (``.npy``, float64 positions, int32 faces as the mesh loaders give
+them) and removed after its row.
 
-Each model in a fresh subprocess, same run: one build (time, and the peak
-RSS of making and building, per input face), then one fast-simplification
-run to 1 % of the faces; the ``.pmz`` sizes as version 1 and version 2;
-``pmjax.load`` of each (median of 3, alternating, structure known); and
-``pmjax.refine`` at tau = 1 px along the standard orbit (24 frames, medians
-of time and faces after two warm-up frames).
+Each model in a fresh subprocess, same run: it reads the model, then one
+build (time, and the peak RSS of the process: imports, the model's arrays
+and the build, per input face), then one fast-simplification run to 1 % of
+the faces; the ``.pmz`` sizes as version 1 and version 2; ``pmjax.load`` of
+each (median of 3, alternating, structure known); and ``pmjax.refine`` at
+tau = 1 px along the standard orbit (24 frames, medians of time and faces
+after two warm-up frames), and ``Refinement.mesh()`` of each frame's
+refinement (median).
+
+``--stages MODEL`` instead builds one model with its main thread's steps
+labelled (edges, costs, the cheapest share, the batch choice, ...) and the
+process's RSS sampled every 2 ms: per step the peak RSS above the model's
+arrays (per input face) and the main thread's time in it.
 
 Usage::
 
     python benchmarks/large.py [--models dragon:0,dragon:1] [--json out.json]
+    python benchmarks/large.py --stages dragon:1
 """
 
 from __future__ import annotations
@@ -25,6 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -71,15 +82,22 @@ def make(spec: str) -> tuple[np.ndarray, np.ndarray]:
     return v.astype(np.float32).astype(np.float64), f
 
 
-def one_model(spec: str) -> dict:
+def save_model(spec: str, folder: str) -> float:
+    """Make ``spec`` into ``folder`` (``v.npy``, ``f.npy``); seconds taken."""
+    t = time.perf_counter()
+    v, f = make(spec)
+    np.save(os.path.join(folder, "v.npy"), v)
+    np.save(os.path.join(folder, "f.npy"), f.astype(np.int32))
+    return time.perf_counter() - t
+
+
+def one_model(spec: str, folder: str) -> dict:
     import resource
 
     import pmjax
     from pmjax.builders import build_pm
 
-    t = time.perf_counter()
-    v, f = make(spec)
-    make_s = time.perf_counter() - t
+    v, f = np.load(os.path.join(folder, "v.npy")), np.load(os.path.join(folder, "f.npy"))
     t = time.perf_counter()
     pm = build_pm(v, f)
     build_s = time.perf_counter() - t
@@ -113,47 +131,147 @@ def one_model(spec: str) -> dict:
     frames = [jax.tree.map(lambda x, i=i: x[i], orbit) for i in range(24)]
     for cam in frames[:2]:
         int(pmjax.refine(mesh, cam, 1.0).n_faces)
-    times, faces = [], []
+    times, faces, mesh_times = [], [], []
     for cam in frames:
         t = time.perf_counter()
         r = pmjax.refine(mesh, cam, 1.0)
         n = int(r.n_faces)
         times.append(time.perf_counter() - t)
         faces.append(n)
-    for path in paths.values():
-        os.remove(path)
+        t = time.perf_counter()
+        out = r.mesh()
+        np.asarray(out[1])
+        mesh_times.append(time.perf_counter() - t)
+    shutil.rmtree(work)
     return dict(model=spec, faces=len(f), vertices=len(v), pcols=pm.n_pcols, batches=pm.n_batches,
-                make_s=make_s, build_s=build_s, fs_1pct_s=fs_s, peak_rss_bytes=peak,
+                build_s=build_s, fs_1pct_s=fs_s, peak_rss_bytes=peak,
                 peak_bytes_per_face=peak / len(f), v1_bytes=sizes[1], v2_bytes=sizes[2],
                 save_v1_s=save_s[1], save_v2_s=save_s[2], load_v1_s=statistics.median(loads[1]),
                 load_v2_s=statistics.median(loads[2]), refine_ms=1e3 * statistics.median(times),
-                refine_faces=int(statistics.median(faces)))
+                refine_faces=int(statistics.median(faces)), mesh_ms=1e3 * statistics.median(mesh_times))
+
+
+# The builder's main-thread steps that --stages labels: (module, name, label).
+STAGES = (
+    ("qd", "vertex_quadrics", "initial quadrics (and, beside them, the attribute start)"),
+    ("native", "Scratch", "buffers of the C loops"),
+    ("build", "unique_edges", "edges, recounted every batch"),
+    ("build", "evaluate_metric", "costs of the first batch"),
+    ("build", "_cached_costs", "costs carried, fresh pairs placed"),
+    ("build", "_sorted_by_key", "cost cache"),
+    ("native", "Mesh", "faces around each vertex"),
+    ("build", "_cheapest", "the cheapest share"),
+    ("build", "_select_batch", "the batch choice (greedy, validity)"),
+    ("native", "apply_batch", "applying the batch"),
+)
+
+
+def stages(spec: str, folder: str) -> dict:
+    """Peak RSS and main-thread time per labelled step of one build."""
+    import threading
+
+    from pmjax.builders import _build
+
+    v, f = np.load(os.path.join(folder, "v.npy")), np.load(os.path.join(folder, "f.npy"))
+    page = os.sysconf("SC_PAGE_SIZE")
+
+    def rss():
+        with open("/proc/self/statm") as fh:
+            return int(fh.read().split()[1]) * page
+
+    label, peak, spent, done = ["other"], {}, {}, threading.Event()
+
+    def sample():
+        while not done.is_set():
+            r, at = rss(), label[0]
+            peak[at] = max(peak.get(at, 0), r)
+            time.sleep(0.002)
+
+    modules = dict(qd=_build.qd, native=_build.native, build=_build)
+    for module, name, text in STAGES:
+        def labelled(*args, _fn=getattr(modules[module], name), _text=text, **kwargs):
+            before, label[0] = label[0], _text
+            t = time.perf_counter()
+            try:
+                return _fn(*args, **kwargs)
+            finally:
+                spent[_text] = spent.get(_text, 0.0) + time.perf_counter() - t
+                label[0] = before
+        setattr(modules[module], name, labelled)
+    base = rss()
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    t = time.perf_counter()
+    _build.build_pm(v, f)
+    build_s = time.perf_counter() - t
+    done.set()
+    sampler.join()
+    F = len(f)
+    rows = [dict(step=text, peak_bytes_per_face=(peak.get(text, base) - base) / F, main_s=spent.get(text, 0.0))
+            for _, _, text in STAGES] + [dict(step="other", peak_bytes_per_face=(peak["other"] - base) / F,
+                                              main_s=build_s - sum(spent.values()))]
+    return dict(model=spec, faces=F, base_bytes_per_face=base / F, build_s=build_s, stages=rows)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--models", default="dragon:0,dragon:1")
     ap.add_argument("--one", help=argparse.SUPPRESS)
+    ap.add_argument("--make", help=argparse.SUPPRESS)
+    ap.add_argument("--folder", help=argparse.SUPPRESS)
     ap.add_argument("--json", help="also write the rows as JSON")
+    ap.add_argument("--stages", help="one model: peak RSS and main-thread time per step of its build")
+    ap.add_argument("--stages-of", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.stages_of:
+        print(json.dumps(stages(args.stages_of, args.folder)))
+        return 0
+    if args.stages:
+        print(machine())
+        with tempfile.TemporaryDirectory(prefix="pmjax-large-model-") as folder:
+            subprocess.run([sys.executable, __file__, "--make", args.stages, "--folder", folder], check=True,
+                           capture_output=True)
+            out = subprocess.run([sys.executable, __file__, "--stages-of", args.stages, "--folder", folder],
+                                 check=True, capture_output=True, text=True)
+        row = json.loads(out.stdout.strip().splitlines()[-1])
+        print(f"{row['model']}: {row['faces']:,d} faces, build {row['build_s']:.1f} s, before the build "
+              f"{row['base_bytes_per_face']:.0f} B/face (imports, the model's arrays)")
+        for stage in row["stages"]:
+            print(f"  {stage['step']:58s} peak {stage['peak_bytes_per_face']:5.0f} B/face above that, "
+                  f"main thread {stage['main_s']:6.2f} s")
+        if args.json:
+            write_json(args.json, dict(machine=machine(), **row))
+        return 0
+    if args.make:
+        print(json.dumps(dict(make_s=save_model(args.make, args.folder))))
+        return 0
     if args.one:
-        print(json.dumps(one_model(args.one)))
+        print(json.dumps(one_model(args.one, args.folder)))
         return 0
     print(machine())
     rows = []
     for spec in args.models.split(","):
-        out = subprocess.run([sys.executable, __file__, "--one", spec], capture_output=True, text=True)
+        with tempfile.TemporaryDirectory(prefix="pmjax-large-model-") as folder:
+            made = subprocess.run([sys.executable, __file__, "--make", spec, "--folder", folder], capture_output=True,
+                                  text=True)
+            if made.returncode:
+                print(f"{spec}: making the model failed\n{made.stderr[-2000:]}", file=sys.stderr)
+                return 1
+            out = subprocess.run([sys.executable, __file__, "--one", spec, "--folder", folder], capture_output=True,
+                                 text=True)
         if out.returncode:
             print(f"{spec}: failed\n{out.stderr[-2000:]}", file=sys.stderr)
             return 1
         row = json.loads(out.stdout.strip().splitlines()[-1])
+        row["make_s"] = json.loads(made.stdout.strip().splitlines()[-1])["make_s"]
         rows.append(row)
         fs = f"{row['fs_1pct_s']:.1f} s ({row['build_s'] / row['fs_1pct_s']:.2f}x)" if row["fs_1pct_s"] else "-"
         print(f"{spec:12s} {row['faces']:>10,d} faces  build {row['build_s']:.1f} s, fast-simpl. {fs}  "
               f"peak {row['peak_rss_bytes'] / 1e9:.2f} GB ({row['peak_bytes_per_face']:.0f} B/face)  "
               f"pmz v1 {row['v1_bytes'] / 1e6:.1f} MB v2 {row['v2_bytes'] / 1e6:.1f} MB  "
               f"load v1 {row['load_v1_s']:.2f} s v2 {row['load_v2_s']:.2f} s  "
-              f"refine {row['refine_ms']:.1f} ms, {row['refine_faces']:,d} faces", flush=True)
+              f"refine {row['refine_ms']:.2f} ms, {row['refine_faces']:,d} faces, mesh() {row['mesh_ms']:.2f} ms",
+              flush=True)
     if args.json:
         write_json(args.json, dict(machine=machine(), rows=rows))
     return 0

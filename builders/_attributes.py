@@ -25,6 +25,7 @@ import numpy as np
 from pmjax._distance import point_triangle_distance
 
 from . import _native as native
+from . import _quadrics as quadrics
 from ._quadrics import face_cross
 from ._threads import split_rows
 from ._topology import unique_edges
@@ -34,14 +35,21 @@ def _angle(n1: np.ndarray, n2: np.ndarray) -> np.ndarray:
     return np.arccos(np.clip(np.einsum("ij,ij->i", n1, n2), -1.0, 1.0))
 
 
-def original_cone_angles(vertices, normals, faces) -> np.ndarray:
-    """Half-angle of the cone at each original vertex covering its face normals."""
-    fn = face_cross(vertices, faces)
-    fn /= np.maximum(np.linalg.norm(fn, axis=1), 1e-300)[:, None]
-    corner = faces.ravel()
-    ang = split_rows(lambda c, f: _angle(normals[c], fn[f]), corner, np.repeat(np.arange(len(faces)), 3))
+def original_cone_angles(vertices, normals, faces, chunk: int | None = None) -> np.ndarray:
+    """Half-angle of the cone at each original vertex covering its face normals.
+
+    Faces are taken ``chunk`` at a time (``None``:
+    ``builders._quadrics.CHUNK_FACES``; a max is the same in any order), so
+    the per-corner temporaries stay bounded at any model size."""
     out = np.zeros(len(vertices))
-    np.maximum.at(out, corner, ang)
+    chunk = chunk or quadrics.CHUNK_FACES
+    for lo in range(0, len(faces), max(chunk, 1)):
+        part = faces[lo:lo + chunk]
+        fn = face_cross(vertices, part)
+        fn /= np.maximum(np.linalg.norm(fn, axis=1), 1e-300)[:, None]
+        corner = part.ravel()
+        ang = split_rows(lambda c, f: _angle(normals[c], fn[f]), corner, np.repeat(np.arange(len(part)), 3))
+        np.maximum.at(out, corner, ang)
     return out
 
 

@@ -13,7 +13,6 @@ from scipy.spatial import cKDTree
 
 from pmjax._pmfile import METRICS, PMData, file_sha256  # noqa: F401 (re-exported)
 from pmjax._meshio import check_float32_precision
-from pmjax._normals import fitted_normals
 
 from . import _native as native
 from . import _quadrics as qd
@@ -21,6 +20,7 @@ from ._attributes import HierarchyAttributes
 from ._independent import domain_of_independent, select_independent
 from ._metrics import CACHEABLE, METRIC_NAMES, evaluate_metric
 from ._rows import any3, unit
+from ._shading import ShadingNormals
 from ._threads import split_pairs
 from ._topology import VertexFaces, contains_edge, edge_keys, unique_edges
 from ._validity import KnownInvalid, collapse_is_valid
@@ -34,6 +34,9 @@ from ._validity import KnownInvalid, collapse_is_valid
 # twice over.
 EAGER_VALIDITY = 20_000
 EAGER_INVALID_SHARE = 0.1
+
+# Batches the attribute thread may trail the batch choice by.
+LAG_BATCHES = 1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -117,9 +120,26 @@ class BuildOptions:
                 raise ValueError(f"{name} must be a whole number >= 0, got {value!r}")
 
 
-def vertex_normals(pos: np.ndarray, faces: np.ndarray, n: int) -> np.ndarray:
-    """Area-weighted unit vertex normals (zero where a vertex has no face)."""
-    return unit(qd.scatter_add(qd.face_cross(pos, faces), faces.ravel(), n, repeat=3))
+def vertex_normals(pos: np.ndarray, faces: np.ndarray, n: int, chunk: int | None = None) -> np.ndarray:
+    """Area-weighted unit vertex normals (zero where a vertex has no face).
+
+    Args:
+        pos: ``(V, 3)`` positions; faces: ``(F, 3)`` ids below ``n``.
+        chunk: faces summed per step where the C loops are built (``None``:
+            ``builders._quadrics.CHUNK_FACES``); the same sums in the same
+            order as one step.
+
+    Returns:
+        ``float64[n, 3]``.
+    """
+    if not native.available():
+        return unit(qd.scatter_add(qd.face_cross(pos, faces), faces.ravel(), n, repeat=3))
+    total = np.zeros((n, 3))
+    chunk = chunk or qd.CHUNK_FACES
+    for lo in range(0, len(faces), max(chunk, 1)):
+        part = faces[lo:lo + chunk]
+        native.scatter_add(qd.face_cross(pos, part).T, part.ravel(), n, repeat=3, out=total)
+    return unit(total)
 
 
 def build_pm(
@@ -147,24 +167,38 @@ def build_pm(
     t0 = time.perf_counter()
     v0 = np.asarray(vertices, np.float64)
     check_float32_precision(v0)
-    f0 = np.asarray(faces, np.int64)
+    f0 = np.asarray(faces)
     # The arrays should come from clean_mesh; say so rather than fail deep inside.
     if v0.ndim != 2 or v0.shape[1] != 3 or f0.ndim != 2 or f0.shape[1] != 3 or len(f0) == 0:
         raise ValueError(f"build_pm needs vertices (V, 3) and at least one face (F, 3), got {v0.shape} and "
                          f"{f0.shape}; clean the mesh with pmjax.clean_mesh first")
     V0, F = len(v0), len(f0)
+    # Vertex ids up to 2 V0 must fit int32 (every step reads int32 faces).
+    if not np.issubdtype(f0.dtype, np.integer) or 2 * V0 >= 2**31:
+        raise ValueError(f"build_pm needs integer faces and fewer than 2**30 vertices, got {f0.dtype} faces and "
+                         f"{V0} vertices")
+    if f0.dtype != np.int32:
+        if f0.min() < 0 or f0.max() >= V0:
+            raise ValueError(f"build_pm: a face vertex id is outside 0 .. {V0 - 1}; clean the mesh with "
+                             "pmjax.clean_mesh first")
+        f0 = f0.astype(np.int32)
     cap = 2 * V0  # every pcol consumes two vertices and makes one: P < V0
     pos = np.zeros((cap, 3))
     pos[:V0] = v0
     normals = np.zeros((cap, 3))
     diag = float(np.linalg.norm(np.ptp(v0, axis=0)))
     # Current faces in current vertex ids. Ids stay below 2 V0, so int32:
-    # half the memory traffic of int64 in every face gather.
-    cur = f0.astype(np.int32)
+    # half the memory traffic of int64 in every face gather. A batch makes
+    # new face arrays and never writes into the old ones, so the build
+    # starts from the input's own array.
+    cur = f0
     # The first batch's edges give the quadrics and the attributes their
     # border edges too.
     first_edges = unique_edges(cur)
     quadric = np.zeros((cap, 10))
+    # Whether every batch takes from all candidates (no cost limit): then
+    # the candidates within the limit need no index array.
+    no_limit = math.isinf(options.max_error) and options.max_error > 0
     # Doubled-area² under which a face counts as degenerate.
     min_area2 = (1e-12 * diag * diag) ** 2
 
@@ -185,7 +219,7 @@ def build_pm(
     # thread otherwise trails the last batch.
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="pmjax-attributes") as beside:
         jobs = [beside.submit(_start_attributes, pos, normals, f0, V0, first_edges)]
-        quadric[:V0] = qd.vertex_quadrics(v0, f0, V0, options.boundary_weight, first_edges)
+        qd.vertex_quadrics(v0, f0, V0, options.boundary_weight, first_edges, out=quadric[:V0])
         invalid_share = 0.0  # of the last validity checks
         known_invalid = KnownInvalid()
         # Buffers of the C loops, once for the whole build.
@@ -202,6 +236,9 @@ def build_pm(
             metric = options.metric_for_batch(batch)
 
             # Candidates: every edge, plus close vertex pairs that share no edge.
+            # Last batch's candidates go before the edges are recounted (the
+            # cost cache keeps what it needs).
+            a = b = ea = eb = ecount = is_edge = link_test = x = cost = None
             ea, eb, ecount, keys = first_edges or unique_edges(cur)
             first_edges = None
             a, b = ea, eb
@@ -215,24 +252,30 @@ def build_pm(
                     a = np.concatenate([ea, np.minimum(pa, pb)[new]])
                     b = np.concatenate([eb, np.maximum(pa, pb)[new]])
                     keys = np.concatenate([keys, pkeys[new]])
-            is_edge = np.arange(len(a)) < len(ea)
+            is_edge = np.zeros(len(a), bool)
+            is_edge[:len(ea)] = True
 
             # Cost and placement under this batch's metric. Memory-resident costs
             # depend only on the two endpoints, so pairs seen last batch (same ids,
             # hence same quadrics) keep theirs.
             if metric in CACHEABLE and cache is not None and cache[0] == metric:
+                # The cache list is emptied once its rows are carried.
                 x, cost = _cached_costs(cache, keys, metric, pos, cur, quadric, a, b, options.boundary_weight)
             else:
                 x, cost = evaluate_metric(metric, pos, cur, quadric, a, b, options.boundary_weight)
-            cache = (metric, *_sorted_by_key(keys, x, cost)) if metric in CACHEABLE else None
+            cache = None
+            cache = [metric, *_sorted_by_key(keys, x, cost)] if metric in CACHEABLE else None
 
             boundary_vertex = np.zeros(next_id, bool)
             boundary_vertex[ea[ecount == 1]] = True
             boundary_vertex[eb[ecount == 1]] = True
             link_test = is_edge & (not options.allow_topology_change)
-            within = np.flatnonzero(cost <= options.max_error)
-            if len(within) == 0:
-                break
+            within = None  # all of them
+            if not (no_limit and not np.isnan(cost).any()):
+                within = np.flatnonzero(cost <= options.max_error)
+                if len(within) == 0:
+                    break
+            n_within = len(cost) if within is None else len(within)
             # A batch takes from the cheapest share. When none of those is valid,
             # the dearer rest may still hold valid collapses: try all of them
             # before giving up (stopping there left the dragon at 2,891 faces).
@@ -240,7 +283,8 @@ def build_pm(
             # The C loops read the faces around each vertex, built once a batch.
             mesh = native.Mesh(cur, next_id, pos, scratch) if scratch is not None and not options.linear else None
             for share in shares:
-                elig = within[_cheapest(cost[within], max(1, int(math.ceil(share * len(within)))))]
+                n_take = max(1, int(math.ceil(share * n_within)))
+                elig = _cheapest(cost, n_take) if within is None else within[_cheapest(cost[within], n_take)]
                 eager = not options.linear and len(elig) <= EAGER_VALIDITY and invalid_share >= EAGER_INVALID_SHARE
                 skip = known_invalid.of(keys[elig]) if eager else None
                 chosen, invalid, invalid_share = _select_batch(
@@ -250,6 +294,7 @@ def build_pm(
                     known_invalid.add(keys[invalid])
                 if len(chosen):
                     break
+            mesh = None  # holds the faces before the batch
             if len(chosen) == 0:
                 break
 
@@ -285,6 +330,11 @@ def build_pm(
                 killer[fid[dead]] = (merged[dead] - V0).astype(np.int32)
                 cur, fid = cur[~dead], fid[~dead]
             # Normals and attributes of the new vertices, beside the next batch.
+            # Each waiting job holds its batch's faces, so the second thread
+            # may trail by at most LAG_BATCHES batches: the faces held stay
+            # a few copies at any pace of the two threads.
+            if len(jobs) > LAG_BATCHES:
+                jobs[-LAG_BATCHES].result()
             maybe_border = boundary_vertex[ca] | boundary_vertex[cb]
             jobs.append(beside.submit(_attribute_batch, jobs[0], pos, normals, cur, next_id, ca, cb, maybe_border))
             v1s.append(ca)
@@ -304,39 +354,55 @@ def build_pm(
         bar.refresh()
         bar.close()
 
+    base_faces = int(len(cur))
     P = next_id - V0
+    # The batch state goes before the hierarchy is put together: the
+    # quadrics alone are 80 bytes per vertex id.
+    quadric = scratch = mesh = cache = known_invalid = cur = fid = None
+    a = b = ea = eb = ecount = keys = is_edge = link_test = x = cost = None
+    boundary_vertex = within = elig = chosen = invalid = ca = cb = None
     v1 = np.concatenate(v1s).astype(np.int32) if v1s else np.zeros(0, np.int32)
     v2 = np.concatenate(v2s).astype(np.int32) if v2s else np.zeros(0, np.int32)
+    v1s = v2s = None
     batch_offsets = np.asarray(offsets, np.int64)
-    attrs = jobs[0].result().result(P)
+    state, shading = jobs[0].result()
+    attrs = {k: v.astype(np.float32) for k, v in state.result(P).items()}
+    shading_normals = shading.result(next_id)
+    jobs = state = shading = None
     header = dict(
         build=dict(
             dataclasses.asdict(options),
             seconds=round(time.perf_counter() - t0, 3),
-            base_faces=int(len(cur)),
+            base_faces=base_faces,
         ),
         source_sha256=source_sha256,
         bbox_diagonal=diag,
     )
     header["build"]["max_error"] = None if math.isinf(options.max_error) else options.max_error
+    vertices_out = pos[:next_id].astype(np.float32)
+    pos = None
+    normals_out = normals[:next_id].astype(np.float32)
+    normals = None
     data = PMData(
-        vertices=pos[:next_id].astype(np.float32),
-        normals=normals[:next_id].astype(np.float32),
+        vertices=vertices_out,
+        normals=normals_out,
         faces=f0.astype(np.int32),
         v1=v1,
         v2=v2,
-        radius=attrs["radius"].astype(np.float32),
-        alpha=attrs["alpha"].astype(np.float32),
-        delta=attrs["delta"].astype(np.float32),
-        mu=attrs["mu"].astype(np.float32),
+        radius=attrs["radius"],
+        alpha=attrs["alpha"],
+        delta=attrs["delta"],
+        mu=attrs["mu"],
         cost=np.concatenate(costs).astype(np.float64) if costs else np.zeros(0),
         metric=np.concatenate(metric_ids) if metric_ids else np.zeros(0, np.uint8),
         batch_offsets=batch_offsets,
         killer=killer,
         header=header,
+        # Fitted to the original surface, for drawing refinements: the
+        # normals of pmjax._normals.fitted_normals, made beside the build.
+        shading_normals=shading_normals,
     )
-    # Shading normals fitted to the original surface, for drawing refinements.
-    return dataclasses.replace(data, shading_normals=fitted_normals(data))
+    return data
 
 
 def _select_batch(a, b, x, link_test, elig, cur, n_vertices, pos, min_area2, boundary_vertex, linear, eager_skip,
@@ -417,10 +483,10 @@ def _select_batch_native(a, b, x, link_test, elig, min_area2, boundary_vertex, e
 
 
 def _start_attributes(pos, normals, faces, V0, edges):
-    """Normals of the original vertices, then their attribute state
-    (``edges``: :func:`unique_edges` of ``faces``)."""
+    """Normals of the original vertices, then their attribute state and
+    their shading normals (``edges``: :func:`unique_edges` of ``faces``)."""
     normals[:V0] = vertex_normals(pos[:V0], faces, V0)
-    return HierarchyAttributes(pos, normals, faces, V0, edges)
+    return HierarchyAttributes(pos, normals, faces, V0, edges), ShadingNormals(pos[:V0], faces, len(pos))
 
 
 def _attribute_batch(start, pos, normals, cur, first, ca, cb, maybe_border):
@@ -439,7 +505,9 @@ def _attribute_batch(start, pos, normals, cur, first, ca, cb, maybe_border):
         sl = np.linalg.norm(s, axis=1)
         vn[lonely] = np.where(sl[:, None] > 0, s / np.where(sl > 0, sl, 1)[:, None], [0.0, 0.0, 1.0])
     normals[new] = vn
-    start.result().add_batch(first, ca, cb, ring, maybe_border)
+    attributes, shading = start.result()
+    attributes.add_batch(first, ca, cb, ring, maybe_border)
+    shading.add_batch(first, ca, cb, ring)
 
 
 def _new_vertex_normals(pos, faces, first, k):
@@ -505,11 +573,15 @@ def _sorted_by_key(keys, x, cost):
 
 
 def _cached_costs(cache, keys, metric, pos, cur, quadric, a, b, boundary_weight):
-    """Costs from ``cache = (metric, keys, x, cost)`` where the pair is known."""
+    """Costs from ``cache = [metric, keys, x, cost]`` where the pair is known.
+    The list is emptied once its rows are carried, so that the fresh pairs
+    are placed without last batch's arrays held."""
     _, old_keys, old_x, old_cost = cache
     # Edges come in key order: a merge carries the known rows (C).
     carried = native.carry_costs(old_keys, old_x, old_cost, keys) if native.available() else None
     if carried is not None:
+        cache.clear()
+        old_keys = old_x = old_cost = None
         x, cost, fresh = carried
         if metric == "quadric":
             native.quadric_placement(quadric, pos, a, b, rows=fresh, x=x, cost=cost)

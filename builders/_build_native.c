@@ -521,8 +521,65 @@ void pmx_edge_keys(int64_t n_faces, const int32_t *faces, int64_t *keys) {
         }
 }
 
+/* Sort edge keys (min << 32 | max, ids below 2^31) ascending: a least
+ * significant digit radix sort, the same order as NumPy's sort of the keys
+ * (integers sort to one order) at a few passes over them. Digits of at most
+ * RADIX_BITS bits cover the bits the largest id uses in each half of the
+ * key; the other bits are zero in every key. tmp: n int64 of room; counts:
+ * RADIX_PASSES << RADIX_BITS int64 of room. The result is in keys; returns
+ * 0, or -1 (keys untouched) where a key is negative or an id reaches 2^31. */
+#define RADIX_BITS 12
+#define RADIX_PASSES 6
+int pmx_sort_keys(int64_t n, int64_t *keys, int64_t *tmp, int64_t *counts) {
+    /* The bits the ids use, in either half. */
+    uint64_t used = 0;
+    for (int64_t i = 0; i < n; i++) used |= ((uint64_t)keys[i] & 0xFFFFFFFFu) | ((uint64_t)keys[i] >> 32);
+    if (used >> 31) return -1;
+    int bits = 1;
+    while (bits < 32 && (used >> bits)) bits++;
+    int per_half = (bits + RADIX_BITS - 1) / RADIX_BITS;
+    int width = (bits + per_half - 1) / per_half;
+    int n_pass = 2 * per_half;
+    int shift[RADIX_PASSES];
+    for (int d = 0; d < per_half; d++) {
+        shift[d] = d * width;
+        shift[per_half + d] = 32 + d * width;
+    }
+    uint64_t mask = ((uint64_t)1 << width) - 1;
+    /* Every pass's digit histogram from one read of the keys. */
+    memset(counts, 0, sizeof(int64_t) * ((int64_t)n_pass << width));
+    for (int64_t i = 0; i < n; i++) {
+        uint64_t k = (uint64_t)keys[i];
+        for (int d = 0; d < n_pass; d++) counts[((int64_t)d << width) + ((k >> shift[d]) & mask)]++;
+    }
+    /* Each pass moves the keys, stably by its digit, to the other buffer;
+     * a digit the same in every key moves nothing. */
+    int64_t *src = keys, *dst = tmp;
+    for (int d = 0; d < n_pass; d++) {
+        int64_t *count = counts + ((int64_t)d << width);
+        int64_t start = 0, one_bucket = 0;
+        for (uint64_t b = 0; b <= mask; b++) {
+            int64_t c = count[b];
+            if (c == n) one_bucket = 1;
+            count[b] = start;
+            start += c;
+        }
+        if (one_bucket) continue;
+        for (int64_t i = 0; i < n; i++) {
+            uint64_t k = (uint64_t)src[i];
+            dst[count[(k >> shift[d]) & mask]++] = (int64_t)k;
+        }
+        int64_t *swap = src;
+        src = dst;
+        dst = swap;
+    }
+    if (src != keys) memcpy(keys, src, sizeof(int64_t) * n);
+    return 0;
+}
+
 /* The distinct keys of sorted keys[0 .. n-1], with their ends and counts.
- * Returns how many. */
+ * Returns how many. unique may be keys itself: a run's key is written at or
+ * before the place it was read from. */
 int64_t pmx_key_runs(int64_t n, const int64_t *keys, int64_t *unique, int32_t *lo, int32_t *hi, int64_t *count) {
     int64_t m = 0;
     for (int64_t i = 0; i < n; i++) {

@@ -48,6 +48,8 @@ def _load():
     lib.pmx_vertex_faces.argtypes = [_i64, _p, _p, _p]
     lib.pmx_edge_keys.restype = None
     lib.pmx_edge_keys.argtypes = [_i64, _p, _p]
+    lib.pmx_sort_keys.restype = ctypes.c_int
+    lib.pmx_sort_keys.argtypes = [_i64, _p, _p, _p]
     lib.pmx_key_runs.restype = _i64
     lib.pmx_key_runs.argtypes = [_i64, _p, _p, _p, _p, _p]
     lib.pmx_carry_costs.restype = _i64
@@ -164,16 +166,39 @@ class Mesh:
 
 def unique_edges(faces: np.ndarray):
     """:func:`builders._topology.unique_edges` of ``int32`` faces, the same
-    arrays: the keys made and counted in C around NumPy's sort."""
+    arrays: the keys made and counted in C around NumPy's sort. The
+    distinct keys overwrite the sorted ones in place and the other arrays
+    are allocated at the distinct count, so the step holds the ``3 F`` keys
+    and the results only."""
     faces = np.ascontiguousarray(faces, np.int32)
     keys = np.empty(3 * len(faces), np.int64)
     _LIB.pmx_edge_keys(len(faces), faces.ctypes.data, keys.ctypes.data)
-    keys.sort()
-    unique, count = np.empty(len(keys), np.int64), np.empty(len(keys), np.int64)
-    lo, hi = np.empty(len(keys), np.int32), np.empty(len(keys), np.int32)
-    n = _LIB.pmx_key_runs(len(keys), keys.ctypes.data, unique.ctypes.data, lo.ctypes.data, hi.ctypes.data,
+    sort_keys(keys)
+    n = 1 + int(np.count_nonzero(keys[1:] != keys[:-1])) if len(keys) else 0
+    count = np.empty(n, np.int64)
+    lo, hi = np.empty(n, np.int32), np.empty(n, np.int32)
+    # A run's key is written at or before where it was read: in place is safe.
+    m = _LIB.pmx_key_runs(len(keys), keys.ctypes.data, keys.ctypes.data, lo.ctypes.data, hi.ctypes.data,
                           count.ctypes.data)
-    return lo[:n].copy(), hi[:n].copy(), count[:n].copy(), unique[:n].copy()
+    assert m == n
+    return lo, hi, count, keys[:n].copy()
+
+
+# Passes and digit width of the C radix sort of edge keys (its defines).
+RADIX_BITS, RADIX_PASSES = 12, 6
+
+
+def sort_keys(keys: np.ndarray) -> None:
+    """Sort ``int64`` edge keys (:func:`builders._topology.edge_keys`, ids
+    below 2**31) in place: NumPy's ``keys.sort()``, the same array, by a
+    radix sort in C (a few passes over the keys where NumPy's sort compares
+    them; it holds a second buffer of the keys' size meanwhile)."""
+    if not (keys.dtype == np.int64 and keys.flags.c_contiguous and keys.ndim == 1):
+        raise ValueError("sort_keys: keys must be contiguous 1-D int64")
+    tmp = np.empty_like(keys)
+    counts = np.empty(RADIX_PASSES << RADIX_BITS, np.int64)
+    if _LIB.pmx_sort_keys(len(keys), keys.ctypes.data, tmp.ctypes.data, counts.ctypes.data):
+        raise ValueError("sort_keys: a key is negative or holds an id of 2**31 or more (not an edge key)")
 
 
 def carry_costs(old_keys: np.ndarray, old_x: np.ndarray, old_cost: np.ndarray, keys: np.ndarray):
@@ -198,7 +223,7 @@ def carry_costs(old_keys: np.ndarray, old_x: np.ndarray, old_cost: np.ndarray, k
                                    len(keys), keys.ctypes.data, x.ctypes.data, cost.ctypes.data, fresh.ctypes.data)
     if n_fresh < 0:
         return None
-    return x, cost, fresh[:n_fresh]
+    return x, cost, fresh[:n_fresh].copy()
 
 
 class Candidates:
@@ -324,17 +349,26 @@ def cheapest(cost: np.ndarray, k: int, kth: float):
     return pick[order]
 
 
-def scatter_add(columns: np.ndarray, index: np.ndarray, n: int, repeat: int) -> np.ndarray:
+def scatter_add(columns: np.ndarray, index: np.ndarray, n: int, repeat: int, out: np.ndarray | None = None):
     """:func:`builders._quadrics.scatter_add` of the ``(k, N)`` contiguous
     float64 ``columns``: ``out[index[i]] += columns[:, i // repeat]``, the
-    same sums in the same order, as ``(n, k)``."""
+    same sums in the same order, as ``(n, k)``.
+
+    Args:
+        out: contiguous ``float64[n, k]`` to add to (``None``: zeros). Sums
+            made in steps over consecutive parts of ``index`` into one ``out``
+            are the one step's sums, bit for bit.
+    """
     columns = np.ascontiguousarray(columns, np.float64)
     index = np.ascontiguousarray(index, np.int64)
     if len(index) and not (0 <= index.min() and index.max() < n):
         raise ValueError(f"scatter_add: an index is outside 0 .. {n - 1}")
     if len(index) > repeat * columns.shape[1]:
         raise ValueError("scatter_add: more indices than values")
-    out = np.zeros((n, len(columns)))
+    if out is None:
+        out = np.zeros((n, len(columns)))
+    elif not (out.shape == (n, len(columns)) and out.dtype == np.float64 and out.flags.c_contiguous):
+        raise ValueError(f"scatter_add: out must be a contiguous float64 ({n}, {len(columns)}) array")
     _LIB.pmx_scatter_add(len(index), index.ctypes.data, len(columns), columns.ctypes.data, columns.shape[1], repeat,
                          out.ctypes.data)
     return out
@@ -397,7 +431,8 @@ def climb_leaves(top: np.ndarray, parent: np.ndarray, lo: int, hi: int, pos: np.
     height = np.zeros(hi - lo)
     m = _LIB.pmx_climb_leaves(len(top), top.ctypes.data, parent.ctypes.data, lo, pos.ctypes.data,
                               normals.ctypes.data, moving.ctypes.data, owner.ctypes.data, height.ctypes.data)
-    return moving[:m], owner[:m], height
+    # Copies of the moved part, so that the arrays sized for every leaf go now.
+    return moving[:m].copy(), owner[:m].copy(), height
 
 
 def apply_batch(scratch: Scratch, faces, fid, a, b, first: int, V0: int, killer, quadric):

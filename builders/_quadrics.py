@@ -68,8 +68,14 @@ def face_geometry(pos: np.ndarray, faces: np.ndarray):
     return unit, 0.5 * length, cross
 
 
+# Faces per step of the initial quadrics: their temporaries (about 200
+# bytes per face) stay a few hundred MB at any model size.
+CHUNK_FACES = 1 << 20
+
+
 def vertex_quadrics(
-    pos: np.ndarray, faces: np.ndarray, n_vertices: int, boundary_weight: float = 1.0, edges=None
+    pos: np.ndarray, faces: np.ndarray, n_vertices: int, boundary_weight: float = 1.0, edges=None, *,
+    out: np.ndarray | None = None, chunk: int | None = None,
 ) -> np.ndarray:
     """Area-weighted face quadrics summed per vertex, plus boundary planes.
 
@@ -84,19 +90,38 @@ def vertex_quadrics(
         boundary_weight: 0 disables the boundary planes.
         edges: :func:`builders._topology.unique_edges` of ``faces`` if the
             caller has them (they give the border edges without a sort).
+        out: zeroed contiguous ``float64[n_vertices, 10]`` to fill (``None``:
+            a new one).
+        chunk: faces summed per step where the C loops are built (``None``:
+            :data:`CHUNK_FACES`); the same sums in the same order as one
+            step, since each vertex's rows are added in face order either way.
 
     Returns:
-        ``float64[n_vertices, 10]``.
+        ``float64[n_vertices, 10]`` (``out`` where given).
     """
-    unit, area, _ = face_geometry(pos, faces)
-    d = -np.einsum("ij,ij->i", unit, pos[faces[:, 0]])
-    kf = plane_quadrics(unit, d, area)
-    q = scatter_add(kf, faces.ravel(), n_vertices, repeat=3)
+    if out is None:
+        out = np.zeros((n_vertices, 10))
+    elif not (out.shape == (n_vertices, 10) and out.dtype == np.float64 and out.flags.c_contiguous):
+        raise ValueError(f"vertex_quadrics: out must be a contiguous float64 ({n_vertices}, 10) array")
+    step = (chunk or CHUNK_FACES) if native.available() else len(faces)
+    for lo in range(0, len(faces), max(step, 1)):
+        part = faces[lo:lo + step]
+        unit, area, _ = face_geometry(pos, part)
+        d = -np.einsum("ij,ij->i", unit, pos[part[:, 0]])
+        kf = plane_quadrics(unit, d, area)
+        unit = area = d = None
+        if native.available():
+            native.scatter_add(kf.T, part.ravel(), n_vertices, repeat=3, out=out)
+        else:
+            out += scatter_add(kf, part.ravel(), n_vertices, repeat=3)
+        kf = None
+    q = out
     if boundary_weight > 0:
         a, b, face = boundary_edges(faces, edges)
         if len(a):
             e = pos[b] - pos[a]
-            m = rows.cross(e, unit[face])
+            unit = face_geometry(pos, faces[face])[0]
+            m = rows.cross(e, unit)
             mlen = np.linalg.norm(m, axis=1)
             ok = mlen > 0
             m = m[ok] / mlen[ok, None]
@@ -104,7 +129,11 @@ def vertex_quadrics(
             kb = plane_quadrics(
                 m, -np.einsum("ij,ij->i", m, pos[a]), boundary_weight * np.einsum("ij,ij->i", e, e)
             )
-            q += scatter_add(np.concatenate([kb, kb]), np.concatenate([a, b]), n_vertices)
+            # Summed apart, then added, on the border vertices' rows only
+            # (elsewhere the sum would add +0, which changes no bit: the
+            # face sums start from +0 and so are never -0).
+            touched, slot = np.unique(np.concatenate([a, b]), return_inverse=True)
+            q[touched] += scatter_add(np.concatenate([kb, kb]), slot.ravel(), len(touched))
     return q
 
 

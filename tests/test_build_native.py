@@ -356,8 +356,8 @@ def test_uncovered_distance_is_the_numpy_distance():
 
 
 def test_edges_are_the_numpy_edges(first_batch):
-    """Keys made and counted in C around NumPy's sort: unique_edges' arrays,
-    dtypes included, on a real mesh and on an open fan with repeated edges."""
+    """Keys made, sorted and counted in C: unique_edges' arrays, dtypes
+    included, on a real mesh and on an open fan with repeated edges."""
     from pmjax.builders import _topology
 
     fan = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 1], [4, 2, 1], [4, 1, 2]], np.int32)
@@ -366,3 +366,30 @@ def test_edges_are_the_numpy_edges(first_batch):
         with native.use_native(False):
             want = _topology.unique_edges(faces)
         assert all(u.dtype == w.dtype and np.array_equal(u, w) for u, w in zip(got, want))
+
+
+@pytest.mark.parametrize("bits", [1, 11, 12, 13, 22, 25, 31])
+def test_key_sort_is_numpys(bits):
+    """The radix sort of edge keys against NumPy's sort, for ids of every
+    width up to 31 bits (one to three digits per half, digits the same in
+    every key skipped), with repeated keys; keys that are no edge keys of
+    int32 ids are refused, untouched."""
+    if not native.available():
+        pytest.skip("the C loops are not built")
+    rng = np.random.default_rng(bits)
+    ids = rng.integers(0, 1 << bits, (2, 30_011))
+    keys = (ids.min(0).astype(np.int64) << 32) | ids.max(0)
+    keys = np.concatenate([keys, keys[:500]])
+    got = keys.copy()
+    native.sort_keys(got)
+    assert got.tobytes() == np.sort(keys).tobytes()
+    same_low = (np.arange(100, dtype=np.int64) << 32) | (1 << bits) - 1
+    got = same_low[::-1].copy()
+    native.sort_keys(got)
+    assert got.tobytes() == same_low.tobytes()
+    for bad in ([3, -1, 2], [1, -(1 << 63)], [1 << 31], [5, (1 << 31) | (7 << 32)]):
+        bad = np.array(bad, np.int64)
+        kept = bad.copy()
+        with pytest.raises(ValueError, match="not an edge key"):
+            native.sort_keys(bad)
+        assert bad.tobytes() == kept.tobytes()
