@@ -33,7 +33,8 @@ MAGIC = "pmjax.progressive-mesh"
 VERSION = 2
 VERSIONS = (1, 2)
 # Header fields that describe one file's layout, not the hierarchy.
-LAYOUT_FIELDS = ("array_sha256", "chunks", "roots", "group_faces", "codec", "shading_normals", "batch_offsets")
+LAYOUT_FIELDS = ("array_sha256", "chunks", "roots", "group_faces", "codec", "shading_normals", "batch_offsets",
+                 "encoding")
 # Largest header.json read, bytes: it holds counts, build parameters and
 # checksums (a few KiB), so a larger one is damaged or forged.
 HEADER_LIMIT = 1 << 20
@@ -96,7 +97,7 @@ def save_pm(pm: PMData, path: str | os.PathLike, *, version: int = VERSION, code
             if version == 1:
                 _write_v1(fh, header, pm)
             else:
-                fields, chunks = _codec.encode(pm, codec)
+                fields, chunks = _codec.encode(pm, codec, _codec.ENCODING)
                 header.update(fields, chunks=[[name, len(data), raw] for name, data, raw in chunks])
                 text = json.dumps(header, indent=1, sort_keys=True).encode()
                 if len(text) > HEADER_LIMIT:
@@ -296,7 +297,7 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
     k = B if batches is None else int(batches)
     _check_batches(path, k, B, header["group_faces"])
     offsets = np.asarray(header["batch_offsets"], np.int64)
-    stream = _codec.new_stream(V0, P, offsets)
+    stream = _codec.new_stream(V0, P, offsets, header.get("encoding", 1))
     at = 12 + length
     names = [name for name, _, _ in layout]
     codec = header["codec"]
@@ -404,6 +405,10 @@ def _v2_layout(header: dict, path: str, V0: int, F: int, P: int, B: int) -> list
 
     if header.get("codec") not in ("zstd", "zlib"):
         bad(f"codec {header.get('codec')!r} is not zstd or zlib")
+    encoding = header.get("encoding", 1)
+    if isinstance(encoding, bool) or encoding not in _codec.ENCODINGS:
+        raise PMFormatError(f"{path}: header encoding={encoding!r} is not one this pmjax reads "
+                            f"({', '.join(map(str, _codec.ENCODINGS))}); a newer pmjax wrote it, or it is damaged")
     R = header.get("roots")
     if isinstance(R, bool) or not isinstance(R, int) or not 0 <= R <= V0 + P:
         bad(f"roots={R!r} is not a vertex count")

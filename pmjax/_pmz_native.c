@@ -1,7 +1,8 @@
 /* Decoding of a version 2 .pmz file's chunks (docs/format.md), as plain C
  * loops: a batch chunk in one pass (unplaning, the checks, leaf ranges,
- * positions from parents, face ranks and killers), the faces in file order
- * from the groups, the area-weighted normals, and float residuals.
+ * positions from parents, encoding 2's predictions, face ranks and
+ * killers), the faces in file order from the groups, the area-weighted
+ * normals, and float residuals.
  *
  * Each loop is a NumPy step of pmjax/_codec.py with its arithmetic in the
  * same order (no contraction), so a read with these loops gives the NumPy
@@ -76,16 +77,60 @@ void pmz_float_from_residual(int64_t n, const uint32_t *residual, const float *p
         out[i] = bits_float(unordered(unzigzag(residual[i]) + ordered(float_bits(prediction[i]))));
 }
 
+static float from_residual(uint32_t residual, float prediction) {
+    return bits_float(unordered(unzigzag(residual) + ordered(float_bits(prediction))));
+}
+
+/* _codec.unit_from_residual for one vector: the two components other than
+ * the guide's largest (first of equal magnitudes; never a NaN) against the
+ * guide's, then the largest against the unit length of those two, float64
+ * arithmetic in _codec._unit_component's order. r(k) is the residual of
+ * component k. */
+#define UNIT_FROM_RESIDUAL(r, guide, out)                                                                 \
+    do {                                                                                              \
+        float g0 = fabsf((guide)[0]), g1 = fabsf((guide)[1]), g2 = fabsf((guide)[2]);                   \
+        int k = g1 > g0 ? 1 : 0;                                                                      \
+        if (g2 > (k ? g1 : g0)) k = 2;                                                                \
+        int j1 = (k + 1) % 3, j2 = (k + 2) % 3;                                                       \
+        (out)[j1] = from_residual(r(j1), (guide)[j1]);                                                \
+        (out)[j2] = from_residual(r(j2), (guide)[j2]);                                                \
+        double x1 = (double)(out)[j1], x2 = (double)(out)[j2];                                        \
+        double sq = 1.0 - (x1 * x1 + x2 * x2);                                                        \
+        float pk = copysignf((float)(sq > 0 ? sqrt(sq) : 0.0), (guide)[k]);                           \
+        (out)[k] = from_residual(r(k), pk);                                                           \
+    } while (0)
+
+/* _codec.unit_from_residual: m unit vectors from uint32 residuals [m, 3]
+ * against guides float32 [m, 3]. */
+void pmz_unit_from_residual(int64_t m, const uint32_t *residual, const float *guide, float *out) {
+    for (int64_t i = 0; i < m; i++) {
+#define ROW(k) residual[3 * i + (k)]
+        UNIT_FROM_RESIDUAL(ROW, guide + 3 * i, out + 3 * i);
+#undef ROW
+    }
+}
+
+/* Element i of a byte-planed array of n 8-byte elements. */
+static uint64_t get64(const uint8_t *src, int64_t n, int64_t i) {
+    uint8_t b[8];
+    for (int k = 0; k < 8; k++) b[k] = src[k * n + i];
+    uint64_t u;
+    memcpy(&u, b, 8);
+    return u;
+}
+
 /* Batch chunk of pcols lo .. hi-1 (ids V0+lo .. V0+hi-1) into the reader's
- * state (_codec.read_batch): seen uint8[V], count and start int64[V],
- * vertices and normals float32[V, 3], v1 .. metric at [lo, hi), and this
+ * state (_codec.read_batch), arrays stored in encoding 1 or 2: seen
+ * uint8[V], count and start int64[V], vertices and normals float32[V, 3],
+ * parent int32[V] (-1 for roots), v1 .. metric at [lo, hi), and this
  * batch's face ranks int32[n_faces, 3] and killers int32[n_faces];
  * owner int32[V0] is scratch kept across the batches of a read (no entry
  * in [lo, hi) before the call). */
 int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, int64_t hi, int64_t n_faces,
-                       uint8_t *seen, int64_t *count, int64_t *start, float *vertices, float *normals, int32_t *v1,
-                       int32_t *v2, float *radius, float *alpha, float *delta, float *mu, double *cost,
-                       uint8_t *metric, int32_t *ranks, int32_t *killer, int32_t *owner, int64_t *info) {
+                       int64_t encoding, uint8_t *seen, int64_t *count, int64_t *start, float *vertices,
+                       float *normals, int32_t *parent, int32_t *v1, int32_t *v2, float *radius, float *alpha,
+                       float *delta, float *mu, double *cost, uint8_t *metric, int32_t *ranks, int32_t *killer,
+                       int32_t *owner, int64_t *info) {
     const int64_t n = hi - lo, first = V0 + lo;
     int32_t *a = v1 + lo, *d = v2 + lo;
     /* The children and the count under v1, then the checks on them before
@@ -130,14 +175,39 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
         count[d[i]] = count[u] - c1;
         start[a[i]] = start[u];
         start[d[i]] = start[u] + c1;
+        parent[a[i]] = parent[d[i]] = (int32_t)u;
     }
-    /* The attributes as stored. */
+    /* The attributes: as stored (encoding 1), or the radius against its
+     * parent's less their distance and the costs against the previous
+     * pcol's (_codec.radius_prediction, _codec.cost_decode). */
     const uint8_t *at = raw + 12 * n;
-    unplane(at, n, 4, (uint8_t *)(radius + lo));
+    if (encoding == 1) {
+        unplane(at, n, 4, (uint8_t *)(radius + lo));
+        unplane(at + 16 * n, n, 8, (uint8_t *)(cost + lo));
+    } else {
+        for (int64_t i = 0; i < n; i++) {
+            int64_t u = first + i, w = parent[u];
+            float p = 0.0f;
+            if (w >= 0) {
+                const float *x = vertices + 3 * u, *y = vertices + 3 * w;
+                double dx = (double)y[0] - (double)x[0], dy = (double)y[1] - (double)x[1],
+                       dz = (double)y[2] - (double)x[2];
+                double q = (double)radius[w - V0] - sqrt((dx * dx + dy * dy) + dz * dz);
+                p = q > 0 ? (float)q : 0.0f;
+            }
+            radius[lo + i] = from_residual(get32(at, n, i), p);
+        }
+        uint64_t prev = 0;
+        for (int64_t i = 0; i < n; i++) {
+            uint64_t z = get64(at + 16 * n, n, i);
+            prev += (z >> 1) ^ (0u - (z & 1u));
+            uint64_t b = prev ^ (((prev >> 63) - 1u) | 0x8000000000000000ull);
+            memcpy(cost + lo + i, &b, 8);
+        }
+    }
     unplane(at + 4 * n, n, 4, (uint8_t *)(alpha + lo));
     unplane(at + 8 * n, n, 4, (uint8_t *)(delta + lo));
     unplane(at + 12 * n, n, 4, (uint8_t *)(mu + lo));
-    unplane(at + 16 * n, n, 8, (uint8_t *)(cost + lo));
     unplane(at + 24 * n, n, 1, metric + lo);
     at += 25 * n;
     /* Children's positions from residuals against their parent's. */
@@ -150,14 +220,22 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
             }
         at += 12 * n;
     }
-    /* Normals of the children made by pcols, v1 children then v2 children. */
+    /* Normals of the children made by pcols, v1 children then v2 children:
+     * as stored (encoding 1), or against their parent's (encoding 2). */
     for (int side = 0; side < 2; side++) {
         const int32_t *child = side ? d : a;
         int64_t m = 0;
         for (int64_t i = 0; i < n; i++) m += child[i] >= V0;
         for (int64_t i = 0, j = 0; i < n; i++) {
             if (child[i] < V0) continue;
-            for (int k = 0; k < 3; k++) normals[3 * (int64_t)child[i] + k] = bits_float(get32(at, 3 * m, 3 * j + k));
+            float *out = normals + 3 * (int64_t)child[i];
+            if (encoding == 1) {
+                for (int k = 0; k < 3; k++) out[k] = bits_float(get32(at, 3 * m, 3 * j + k));
+            } else {
+#define STORED(k) get32(at, 3 * m, 3 * j + (k))
+                UNIT_FROM_RESIDUAL(STORED, normals + 3 * (first + i), out);
+#undef STORED
+            }
             j++;
         }
         at += 12 * m;

@@ -216,3 +216,82 @@ def test_a_rewritten_file_reads_unchanged(cow_file, tmp_path):
     rewrite(path, same, 3, lambda r: r)
     assert_same_pm(read_arrays(same)[0], pm)
     assert zlib.crc32(same.read_bytes()) == zlib.crc32(path.read_bytes())
+
+
+# --- encodings ------------------------------------------------------------------
+
+
+@needs_native
+def test_predictions_match_the_numpy_steps_and_invert_exactly(numpy_decoder):
+    # Unit vectors, their guides and the costs, with signed zeros, NaNs,
+    # infinities, ties between the guide's components and non-unit vectors.
+    rng = np.random.default_rng(11)
+    x = rng.normal(size=(600, 3))
+    x /= np.linalg.norm(x, axis=1)[:, None]
+    guide = (x + 0.05 * rng.normal(size=x.shape)).astype(np.float32)
+    x = x.astype(np.float32)
+    special = np.array([0.0, -0.0, np.nan, np.inf, -np.inf, 1e-45, 2.0, -0.7], np.float32)
+    x[:64] = special[rng.integers(0, 8, size=(64, 3))]
+    guide[64:128] = special[rng.integers(0, 8, size=(64, 3))]
+    guide[128:136] = [[0.5, -0.5, 0.5], [-0.6, 0.6, 0.1], [0, 0, 0], [-0.0, 0, -0.0], [1, 1, 1], [0.3, 0.3, -0.3],
+                      [np.nan, 0.9, 0.1], [0.1, np.nan, np.nan]]
+    cost = np.sort(rng.exponential(size=300)) * 10.0 ** rng.integers(-30, 30, size=300)
+    cost[::37] = [0.0, -0.0, np.inf, np.nan, -1.5, 1e-310, 0.5, 0.25, 1e300][:len(cost[::37])]
+    residual = _codec.unit_residual(x, guide)
+    random = rng.integers(0, 2**32, size=(200, 3), dtype=np.uint64).astype(np.uint32)
+    native = (_codec.unit_from_residual(residual, guide), _codec.unit_from_residual(random, guide[:200]))
+    with numpy_decoder():
+        plain = (_codec.unit_from_residual(residual, guide), _codec.unit_from_residual(random, guide[:200]))
+        assert same_bits(_codec.unit_residual(plain[1], guide[:200]), random)
+    for a, b in zip(native, plain):
+        assert same_bits(a, b)
+    assert same_bits(native[0], x)
+    assert same_bits(_codec.cost_decode(_codec.cost_code(cost)), cost)
+    # A unit vector's residuals are mostly 0 or one ulp each way (zigzag 0 .. 2).
+    assert np.mean(residual[200:] <= 2) > 0.3
+
+
+def write_encoding(pm, path, encoding, monkeypatch, codec="zstd"):
+    with monkeypatch.context() as m:
+        m.setattr(_codec, "ENCODING", encoding)
+        save_pm(pm, path, codec=codec)
+
+
+@needs_native
+def test_files_of_encoding_1_still_read_to_the_same_bits(built, tmp_path, numpy_decoder, monkeypatch):
+    # The chunks as version 2 wrote them before the predictions: no
+    # "encoding" in the header, the attributes and normals as stored.
+    pytest.importorskip("zstandard")
+    pm = built("cow.ply")
+    old, new = tmp_path / "old.pmz", tmp_path / "new.pmz"
+    write_encoding(pm, old, 1, monkeypatch)
+    save_pm(pm, new)
+    assert "encoding" not in header_of(old) and header_of(new)["encoding"] == _codec.ENCODING == 2
+    assert os.path.getsize(new) < os.path.getsize(old)
+    (native, fa), (plain, fb) = both_ways(numpy_decoder, lambda: read_arrays(old))
+    assert_same_pm(native, pm)
+    assert_same_pm(plain, pm)
+    assert fa == fb == read_arrays(new)[1]
+    for k in (1, pm.n_batches // 2, pm.n_batches):
+        (native, _), (plain, _) = both_ways(numpy_decoder, lambda: read_arrays(old, batches=k))
+        assert_same_pm(native, read_arrays(new, batches=k)[0])
+        assert_same_pm(plain, native)
+
+
+def header_of(path):
+    data = path.read_bytes()
+    return json.loads(data[12:12 + int.from_bytes(data[8:12], "little")])
+
+
+def test_an_unknown_encoding_is_refused(cow_file, tmp_path):
+    _, path = cow_file
+    data = path.read_bytes()
+    length = int.from_bytes(data[8:12], "little")
+    header = json.loads(data[12:12 + length])
+    for value in (3, "2", True):
+        header["encoding"] = value
+        text = json.dumps(header).encode()
+        bad = tmp_path / "bad.pmz"
+        bad.write_bytes(data[:8] + len(text).to_bytes(4, "little") + text + data[12 + length:])
+        with pytest.raises(PMFormatError, match=f"header encoding={value!r} is not one this pmjax reads"):
+            read_arrays(bad)
