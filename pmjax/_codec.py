@@ -27,8 +27,9 @@ Encoding 2 (the header's ``encoding``; files without it are encoding 1) also
 stores predictable values as differences from a prediction the reader makes
 from what it has already decoded: a made vertex's unit normal against its
 parent's normal, its largest component against the unit length of the other
-two; a pcol's radius against its parent's radius less their distance; the
-costs against the previous pcol's; a made vertex's shading normal like its
+two; a pcol's radius and cone half-angle against its parent's less their
+distance and the angle between their axes; the costs against the previous
+pcol's; a made vertex's shading normal like its
 normal, against its cone axis. Any prediction gives the same bits back, since
 the difference is stored: a poor one only costs bytes.
 """
@@ -264,6 +265,22 @@ def radius_prediction(radius_parent: np.ndarray, parent_xyz: np.ndarray, xyz: np
     return np.where(has_parent & (p > 0), p, 0.0).astype(np.float32)
 
 
+def alpha_prediction(alpha_parent: np.ndarray, parent_normal: np.ndarray, normal: np.ndarray,
+                     has_parent: np.ndarray) -> np.ndarray:
+    """float32 ``[n]``: a pcol's cone half-angle as its parent's less the
+    angle between their axes (the parent's cone holds the child's turned by
+    that angle, tightly for one of its two children), 0 where that is not
+    positive or there is no parent. The angle is taken from the chord ``c``
+    between the unit axes as ``c + c³/24`` (square roots only, so that every
+    reader computes the same bits). Arguments: the parent's half-angle
+    (float32 ``[n]``, radians), both axes (float32 ``[n, 3]``), and whether
+    the pcol's vertex has a parent (bool ``[n]``)."""
+    d = parent_normal.astype(np.float64) - normal.astype(np.float64)
+    c = np.sqrt((d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) + d[:, 2] * d[:, 2])
+    p = alpha_parent.astype(np.float64) - (c + c * c * c / 24.0)
+    return np.where(has_parent & (p > 0), p, 0.0).astype(np.float32)
+
+
 def _ordered64(x: np.ndarray) -> np.ndarray:
     b = np.ascontiguousarray(x, np.float64).view(np.uint64)
     return b ^ ((np.uint64(0) - (b >> np.uint64(63))) | np.uint64(1 << 63))
@@ -413,17 +430,19 @@ def encode(pm: PMData, codec: str, encoding: int = ENCODING) -> tuple[dict, list
         a, c = v1[lo:hi], v2[lo:hi]
         here = pm.vertices[V0 + lo:V0 + hi]
         if encoding == 1:
-            radius, cost = pm.radius[lo:hi], pm.cost[lo:hi]
+            radius, alpha, cost = pm.radius[lo:hi], pm.alpha[lo:hi], pm.cost[lo:hi]
             normals = [pm.normals[a[a >= V0]], pm.normals[c[c >= V0]]]
         else:
             w = parent[V0 + lo:V0 + hi]
             up = np.maximum(w, V0)
             radius = float_residual(pm.radius[lo:hi], radius_prediction(
-                pm.radius[up - V0] if P else pm.radius[lo:hi], pm.vertices[up], here, w >= 0))
+                pm.radius[up - V0], pm.vertices[up], here, w >= 0))
+            alpha = float_residual(pm.alpha[lo:hi], alpha_prediction(
+                pm.alpha[up - V0], pm.normals[up], pm.normals[V0 + lo:V0 + hi], w >= 0))
             cost = cost_code(pm.cost[lo:hi])
             normals = [unit_residual(pm.normals[x[x >= V0]], pm.normals[V0 + lo:V0 + hi][x >= V0]) for x in (a, c)]
         add(f"batch {b}", [pm.v1[lo:hi], pm.v2[lo:hi], count[a].astype(np.int32),
-                           radius, pm.alpha[lo:hi], pm.delta[lo:hi], pm.mu[lo:hi], cost, pm.metric[lo:hi],
+                           radius, alpha, pm.delta[lo:hi], pm.mu[lo:hi], cost, pm.metric[lo:hi],
                            float_residual(pm.vertices[a], here), float_residual(pm.vertices[c], here),
                            *normals, ranks_code(faces_of(b))])
     tail = [group.astype(group_dtype(B)),
@@ -585,12 +604,15 @@ def read_batch(s: Stream, raw: bytes, b: int, n_faces: int, pool=None) -> None:
     s.start[a], s.start[d] = s.start[u], s.start[u] + c1
     if s.encoding == 1:
         s.radius[lo:hi] = c.take(np.float32, (n,))
+        s.alpha[lo:hi] = c.take(np.float32, (n,))
     else:
         w = s.parent[u].astype(np.int64)
         up = np.maximum(w, V0)
         s.radius[lo:hi] = float_from_residual(c.take(np.uint32, (n,)), radius_prediction(
             s.radius[up - V0], s.vertices[up], s.vertices[u], w >= 0))
-    for name in ("alpha", "delta", "mu"):
+        s.alpha[lo:hi] = float_from_residual(c.take(np.uint32, (n,)), alpha_prediction(
+            s.alpha[up - V0], s.normals[up], s.normals[u], w >= 0))
+    for name in ("delta", "mu"):
         getattr(s, name)[lo:hi] = c.take(np.float32, (n,))
     s.cost[lo:hi] = c.take(np.float64, (n,)) if s.encoding == 1 else cost_decode(c.take(np.uint64, (n,)))
     s.metric[lo:hi] = c.take(np.uint8, (n,))

@@ -177,25 +177,33 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
         start[d[i]] = start[u] + c1;
         parent[a[i]] = parent[d[i]] = (int32_t)u;
     }
-    /* The attributes: as stored (encoding 1), or the radius against its
-     * parent's less their distance and the costs against the previous
-     * pcol's (_codec.radius_prediction, _codec.cost_decode). */
+    /* The attributes: as stored (encoding 1), or the radius and half-angle
+     * against their parent's less the distance and angle between them, and
+     * the costs against the previous pcol's (_codec.cost_decode). */
     const uint8_t *at = raw + 12 * n;
     if (encoding == 1) {
         unplane(at, n, 4, (uint8_t *)(radius + lo));
+        unplane(at + 4 * n, n, 4, (uint8_t *)(alpha + lo));
         unplane(at + 16 * n, n, 8, (uint8_t *)(cost + lo));
     } else {
+        /* _codec.radius_prediction and _codec.alpha_prediction. */
         for (int64_t i = 0; i < n; i++) {
             int64_t u = first + i, w = parent[u];
-            float p = 0.0f;
+            float pr = 0.0f, pa = 0.0f;
             if (w >= 0) {
                 const float *x = vertices + 3 * u, *y = vertices + 3 * w;
                 double dx = (double)y[0] - (double)x[0], dy = (double)y[1] - (double)x[1],
                        dz = (double)y[2] - (double)x[2];
                 double q = (double)radius[w - V0] - sqrt((dx * dx + dy * dy) + dz * dz);
-                p = q > 0 ? (float)q : 0.0f;
+                pr = q > 0 ? (float)q : 0.0f;
+                x = normals + 3 * u, y = normals + 3 * w;
+                dx = (double)y[0] - (double)x[0], dy = (double)y[1] - (double)x[1], dz = (double)y[2] - (double)x[2];
+                double c = sqrt((dx * dx + dy * dy) + dz * dz);
+                q = (double)alpha[w - V0] - (c + c * c * c / 24.0);
+                pa = q > 0 ? (float)q : 0.0f;
             }
-            radius[lo + i] = from_residual(get32(at, n, i), p);
+            radius[lo + i] = from_residual(get32(at, n, i), pr);
+            alpha[lo + i] = from_residual(get32(at + 4 * n, n, i), pa);
         }
         uint64_t prev = 0;
         for (int64_t i = 0; i < n; i++) {
@@ -205,7 +213,6 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
             memcpy(cost + lo + i, &b, 8);
         }
     }
-    unplane(at + 4 * n, n, 4, (uint8_t *)(alpha + lo));
     unplane(at + 8 * n, n, 4, (uint8_t *)(delta + lo));
     unplane(at + 12 * n, n, 4, (uint8_t *)(mu + lo));
     unplane(at + 24 * n, n, 1, metric + lo);
