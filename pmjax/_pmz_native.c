@@ -20,6 +20,16 @@
 #include <stdint.h>
 #include <string.h>
 
+/* Rows that the loops below read or write by a child's, parent's or rank's
+ * id are scattered over arrays larger than the caches: each loop asks for
+ * the rows of the element AHEAD places on while it works on this one. */
+#define AHEAD 16
+#if defined(__GNUC__)
+#define PREFETCH(p) __builtin_prefetch(p)
+#else
+#define PREFETCH(p) ((void)0)
+#endif
+
 /* Outcomes of pmz_read_batch (pmjax/_codec.py words each). */
 enum { OK = 0, SHORT = 1, BAD_V1 = 2, BAD_V2 = 3, CHILD_SEEN = 4, PARENT_UNSEEN = 5, BAD_COUNTS = 6,
        LEFT_OVER = 7, BAD_RANK = 8 };
@@ -169,6 +179,14 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
     /* Leaf ranges: the children split their parent's. */
     for (int64_t i = 0; i < n; i++) {
         int64_t u = first + i, c1 = (int32_t)get32(c1_planes, n, i);
+        if (i + AHEAD < n) {
+            PREFETCH(count + a[i + AHEAD]);
+            PREFETCH(count + d[i + AHEAD]);
+            PREFETCH(start + a[i + AHEAD]);
+            PREFETCH(start + d[i + AHEAD]);
+            PREFETCH(parent + a[i + AHEAD]);
+            PREFETCH(parent + d[i + AHEAD]);
+        }
         seen[a[i]] = seen[d[i]] = 1;
         seen[u] = 0;
         count[a[i]] = c1;
@@ -189,6 +207,13 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
         /* _codec.radius_prediction and _codec.alpha_prediction. */
         for (int64_t i = 0; i < n; i++) {
             int64_t u = first + i, w = parent[u];
+            if (i + AHEAD < n && parent[u + AHEAD] >= 0) {
+                int64_t ahead = parent[u + AHEAD];
+                PREFETCH(vertices + 3 * ahead);
+                PREFETCH(normals + 3 * ahead);
+                PREFETCH(radius + ahead - V0);
+                PREFETCH(alpha + ahead - V0);
+            }
             float pr = 0.0f, pa = 0.0f;
             if (w >= 0) {
                 const float *x = vertices + 3 * u, *y = vertices + 3 * w;
@@ -222,6 +247,7 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
         const int32_t *child = side ? d : a;
         for (int64_t i = 0; i < n; i++)
             for (int k = 0; k < 3; k++) {
+                if (k == 0 && i + AHEAD < n) PREFETCH(vertices + 3 * (int64_t)child[i + AHEAD]);
                 uint32_t p = ordered(float_bits(vertices[3 * (first + i) + k]));
                 vertices[3 * (int64_t)child[i] + k] = bits_float(unordered(unzigzag(get32(at, 3 * n, 3 * i + k)) + p));
             }
@@ -234,6 +260,7 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
         int64_t m = 0;
         for (int64_t i = 0; i < n; i++) m += child[i] >= V0;
         for (int64_t i = 0, j = 0; i < n; i++) {
+            if (i + AHEAD < n) PREFETCH(normals + 3 * (int64_t)child[i + AHEAD]);
             if (child[i] < V0) continue;
             float *out = normals + 3 * (int64_t)child[i];
             if (encoding == 1) {
@@ -266,6 +293,8 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
         for (int64_t r = start[first + i], end = r + count[first + i]; r < end; r++) owner[r] = (int32_t)(lo + i);
     for (int64_t f = 0; f < n_faces; f++) {
         int64_t cand[3];
+        if (f + AHEAD < n_faces)
+            for (int k = 0; k < 3; k++) PREFETCH(owner + ranks[3 * (f + AHEAD) + k]);
         for (int k = 0; k < 3; k++) {
             int64_t o = owner[ranks[3 * f + k]];
             cand[k] = o >= lo && o < hi ? o : -1;
