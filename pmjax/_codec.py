@@ -129,8 +129,8 @@ def decompress(data, codec: str, size: int) -> bytes:
         except ImportError as exc:
             raise ValueError("the file is zstd-compressed and the zstandard package is not installed "
                              "(pip install zstandard)") from exc
-        with zstandard.ZstdDecompressor().stream_reader(bytes(data) if isinstance(data, memoryview) else data,
-                                                        read_across_frames=False) as r:
+        # Read in place (bytes, or a memoryview of a chunk in a mapped file).
+        with zstandard.ZstdDecompressor().stream_reader(data, read_across_frames=False) as r:
             out = r.read(size + 1)
     elif codec == "zlib":
         d = zlib.decompressobj()

@@ -16,6 +16,7 @@ import hashlib
 import io
 import json
 import math
+import mmap
 import os
 import zipfile
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -223,7 +224,7 @@ def read_arrays(path, *, batches: int | None = None) -> tuple[PMData, str]:
             raise PMFormatError(f"{path}: no such file")
         with open(path, "rb") as fh:
             if fh.read(len(_codec.MAGIC2)) == _codec.MAGIC2:
-                return _read_v2(fh, source, batches)
+                return _read_v2(_Mapped(fh), source, batches)
     pm, fingerprint = _read_v1(path, source)
     if batches is None:
         return pm, fingerprint
@@ -272,6 +273,22 @@ def _done(fn, *args) -> Future:
     return future
 
 
+class _Mapped:
+    """A file opened for reading, read as slices of a read-only map of it:
+    version 2's chunks are hashed and expanded where the map holds them,
+    without the copy of the compressed bytes that ``read`` makes (the map
+    closes when the last slice is dropped)."""
+
+    def __init__(self, fh):
+        self.at = fh.tell()
+        self.view = memoryview(mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ))
+
+    def read(self, n: int) -> memoryview:
+        out = self.view[self.at:self.at + n]
+        self.at += len(out)
+        return out
+
+
 def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
     """Version 2 after its magic bytes: the header, then the chunks the read
     needs, each checked (SHA-256, size, content) before it is used."""
@@ -282,7 +299,7 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
     if length > HEADER_LIMIT:
         raise PMFormatError(f"{path}: header declares {length} bytes, more than the {HEADER_LIMIT} a header can "
                             "need; the file is damaged or forged")
-    text = fh.read(length)
+    text = bytes(fh.read(length))
     if len(text) < length:
         raise PMFormatError(f"{path}: truncated in its header ({len(text)} of {length} bytes)")
     try:
@@ -303,10 +320,10 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
     codec = header["codec"]
     tail = None
 
-    def expand(where: str, payload: bytes, raw: int):
+    def expand(where: str, payload, raw: int):
         # On the pool's thread: hashlib and the decompressors release the GIL.
         data = memoryview(payload)[_codec.SHA_BYTES:]
-        if _codec.chunk_sha(data) != payload[:_codec.SHA_BYTES]:
+        if _codec.chunk_sha(data) != bytes(payload[:_codec.SHA_BYTES]):
             raise PMFormatError(f"{where} fails its SHA-256: the file is damaged")
         try:
             return _codec.decompress(data, codec, raw)
