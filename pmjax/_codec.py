@@ -392,6 +392,23 @@ def encode(pm: PMData, codec: str, encoding: int = ENCODING) -> tuple[dict, list
         ``(fields, chunks)``: header fields (``roots``, ``group_faces``) and
         per chunk ``(name, compressed bytes, raw size)``, coarse to fine.
     """
+    fields, table = chunk_arrays(pm, encoding)
+    chunks = []
+    for name, parts in table:
+        raw = b"".join(planes(a) for _, a in parts)
+        chunks.append((name, compress(raw, codec), len(raw)))
+    fields["codec"] = codec
+    return fields, chunks
+
+
+def chunk_arrays(pm: PMData, encoding: int = ENCODING) -> tuple[dict, list]:
+    """The arrays each chunk of ``pm`` stores, before planing.
+
+    Returns:
+        ``(fields, table)``: header fields but ``codec``, and per chunk
+        ``(name, [(part, array), ...])`` coarse to fine, ``part`` naming
+        what the array holds (``"positions"``, ``"faces"``, ...).
+    """
     V0, P, B = pm.n_original_vertices, pm.n_pcols, pm.n_batches
     off = pm.batch_offsets
     v1, v2 = pm.v1.astype(np.int64), pm.v2.astype(np.int64)
@@ -413,16 +430,11 @@ def encode(pm: PMData, codec: str, encoding: int = ENCODING) -> tuple[dict, list
         if not np.array_equal(got, pm.killer[sel]):
             raise PMFormatError("killers are not the first pcols merging two corners of their faces")
 
-    chunks = []
-
-    def add(name, arrays):
-        raw = b"".join(planes(a) for a in arrays)
-        chunks.append((name, compress(raw, codec), len(raw)))
-
     created = roots >= V0
-    add("base", [np.diff(roots, prepend=0).astype(np.int32), count[roots].astype(np.int32),
-                 ordered(pm.vertices[roots]), pm.normals[roots[created]], ranks_code(faces_of(B))])
-    # Each made vertex's parent, for encoding 2's radius predictions.
+    table = [("base", [("roots", np.diff(roots, prepend=0).astype(np.int32)), ("counts", count[roots].astype(np.int32)),
+                       ("positions", ordered(pm.vertices[roots])), ("normals", pm.normals[roots[created]]),
+                       ("faces", ranks_code(faces_of(B)))])]
+    # Each made vertex's parent, for encoding 2's predictions.
     parent = np.full(V0 + P, -1, np.int64)
     parent[v1], parent[v2] = np.arange(V0, V0 + P), np.arange(V0, V0 + P)
     for b in range(B - 1, -1, -1):
@@ -441,26 +453,29 @@ def encode(pm: PMData, codec: str, encoding: int = ENCODING) -> tuple[dict, list
                 pm.alpha[up - V0], pm.normals[up], pm.normals[V0 + lo:V0 + hi], w >= 0))
             cost = cost_code(pm.cost[lo:hi])
             normals = [unit_residual(pm.normals[x[x >= V0]], pm.normals[V0 + lo:V0 + hi][x >= V0]) for x in (a, c)]
-        add(f"batch {b}", [pm.v1[lo:hi], pm.v2[lo:hi], count[a].astype(np.int32),
-                           radius, alpha, pm.delta[lo:hi], pm.mu[lo:hi], cost, pm.metric[lo:hi],
-                           float_residual(pm.vertices[a], here), float_residual(pm.vertices[c], here),
-                           *normals, ranks_code(faces_of(b))])
-    tail = [group.astype(group_dtype(B)),
-            float_residual(pm.normals[:V0], area_normals(pm.vertices[:V0], pm.faces, V0))]
+        table.append((f"batch {b}", [
+            ("v1, v2", pm.v1[lo:hi]), ("v1, v2", pm.v2[lo:hi]), ("counts", count[a].astype(np.int32)),
+            ("radius", radius), ("alpha", alpha), ("delta", pm.delta[lo:hi]), ("mu", pm.mu[lo:hi]), ("cost", cost),
+            ("metric", pm.metric[lo:hi]),
+            ("positions", float_residual(pm.vertices[a], here)), ("positions", float_residual(pm.vertices[c], here)),
+            *(("normals", x) for x in normals), ("faces", ranks_code(faces_of(b)))]))
+    tail = [("face groups", group.astype(group_dtype(B))),
+            ("original normals", float_residual(pm.normals[:V0], area_normals(pm.vertices[:V0], pm.faces, V0)))]
     if pm.shading_normals is not None:
         # An original vertex's shading normal is its area-weighted normal, a
         # created one's is near its cone axis: residuals against the normals.
         if encoding == 1:
-            tail.append(float_residual(pm.shading_normals, pm.normals))
+            tail.append(("shading normals", float_residual(pm.shading_normals, pm.normals)))
         else:
-            tail += [float_residual(pm.shading_normals[:V0], pm.normals[:V0]),
-                     unit_residual(pm.shading_normals[V0:], pm.normals[V0:])]
-    add("tail", tail)
-    fields = dict(roots=int(len(roots)), batch_offsets=[int(o) for o in off], group_faces=[int(bounds[g + 1] - bounds[g]) for g in range(B, -1, -1)],
-                  shading_normals=pm.shading_normals is not None, codec=codec)
+            tail += [("shading normals", float_residual(pm.shading_normals[:V0], pm.normals[:V0])),
+                     ("shading normals", unit_residual(pm.shading_normals[V0:], pm.normals[V0:]))]
+    table.append(("tail", tail))
+    fields = dict(roots=int(len(roots)), batch_offsets=[int(o) for o in off],
+                  group_faces=[int(bounds[g + 1] - bounds[g]) for g in range(B, -1, -1)],
+                  shading_normals=pm.shading_normals is not None)
     if encoding != 1:
         fields["encoding"] = encoding
-    return fields, chunks
+    return fields, table
 
 
 def group_dtype(B: int):
