@@ -23,18 +23,6 @@ def test_the_c_loops_are_built_where_required():
         pytest.skip("the .pmz decoder's C loops (pmjax._pmz_native) are not built")
 
 
-def same_bits(a, b):
-    """Equal dtype, shape and bytes (NaN payloads and signed zeros included)."""
-    return a.dtype == b.dtype and a.shape == b.shape and np.ascontiguousarray(a).tobytes() == \
-        np.ascontiguousarray(b).tobytes()
-
-
-def assert_same_pm(a, b):
-    assert set(a.arrays()) == set(b.arrays())
-    for name, x in a.arrays().items():
-        assert same_bits(x, getattr(b, name)), name
-
-
 @pytest.fixture
 def numpy_decoder(monkeypatch):
     """Run the NumPy steps inside ``with numpy_decoder():``."""
@@ -64,7 +52,7 @@ def both_ways(numpy_decoder, read):
     return native, plain
 
 
-def check_model(pm, tmp_path, numpy_decoder, codec="zstd"):
+def check_model(pm, tmp_path, numpy_decoder, assert_same_pm, codec="zstd"):
     if codec == "zstd":
         pytest.importorskip("zstandard")
     path = tmp_path / "m.pmz"
@@ -81,19 +69,19 @@ def check_model(pm, tmp_path, numpy_decoder, codec="zstd"):
 
 @needs_native
 @pytest.mark.parametrize("codec", ["zstd", "zlib"])
-def test_cow_decodes_to_the_same_bits_both_ways(built, tmp_path, numpy_decoder, codec):
-    check_model(built("cow.ply"), tmp_path, numpy_decoder, codec)
+def test_cow_decodes_to_the_same_bits_both_ways(built, tmp_path, numpy_decoder, codec, assert_same_pm):
+    check_model(built("cow.ply"), tmp_path, numpy_decoder, assert_same_pm, codec)
 
 
 @needs_native
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["bunny.ply", "terrain_gcanyon.ply", "dragon.ply"])
-def test_models_decode_to_the_same_bits_both_ways(built, tmp_path, numpy_decoder, name):
-    check_model(built(name), tmp_path, numpy_decoder)
+def test_models_decode_to_the_same_bits_both_ways(built, tmp_path, numpy_decoder, name, assert_same_pm):
+    check_model(built(name), tmp_path, numpy_decoder, assert_same_pm)
 
 
 @needs_native
-def test_area_normals_and_residuals_match_the_numpy_steps(numpy_decoder):
+def test_area_normals_and_residuals_match_the_numpy_steps(numpy_decoder, same_bits):
     rng = np.random.default_rng(7)
     vertices = (rng.normal(size=(300, 3)) * 10.0 ** rng.integers(-3, 4, size=(300, 1))).astype(np.float32)
     faces = rng.integers(0, 250, size=(900, 3)).astype(np.int32)
@@ -209,7 +197,7 @@ def test_damaged_batch_chunks_are_refused_in_the_same_words(cow_file, tmp_path, 
         assert native[0] is PMFormatError and words in native[1], (words, native)
 
 
-def test_a_rewritten_file_reads_unchanged(cow_file, tmp_path):
+def test_a_rewritten_file_reads_unchanged(cow_file, tmp_path, assert_same_pm):
     # The damage cases' rewriting alone changes nothing.
     pm, path = cow_file
     same = tmp_path / "same.pmz"
@@ -222,7 +210,7 @@ def test_a_rewritten_file_reads_unchanged(cow_file, tmp_path):
 
 
 @needs_native
-def test_predictions_match_the_numpy_steps_and_invert_exactly(numpy_decoder):
+def test_predictions_match_the_numpy_steps_and_invert_exactly(numpy_decoder, same_bits):
     # Unit vectors, their guides and the costs, with signed zeros, NaNs,
     # infinities, ties between the guide's components and non-unit vectors.
     rng = np.random.default_rng(11)
@@ -258,7 +246,7 @@ def write_encoding(pm, path, encoding, monkeypatch, codec="zstd"):
 
 
 @needs_native
-def test_files_of_encoding_1_still_read_to_the_same_bits(built, tmp_path, numpy_decoder, monkeypatch):
+def test_files_of_encoding_1_still_read_to_the_same_bits(built, tmp_path, numpy_decoder, monkeypatch, assert_same_pm):
     # The chunks as version 2 wrote them before the predictions: no
     # "encoding" in the header, the attributes and normals as stored.
     pytest.importorskip("zstandard")

@@ -15,18 +15,6 @@ from pmjax._replay import lod_mesh
 V1_FIXTURE = Path(__file__).parent / "data" / "cow_v1.pmz"
 
 
-def same_bits(a, b):
-    """Equal dtype, shape and bytes (NaN payloads and signed zeros included)."""
-    return a.dtype == b.dtype and a.shape == b.shape and np.ascontiguousarray(a).tobytes() == \
-        np.ascontiguousarray(b).tobytes()
-
-
-def assert_same_pm(a, b):
-    assert set(a.arrays()) == set(b.arrays())
-    for name, x in a.arrays().items():
-        assert same_bits(x, getattr(b, name)), name
-
-
 def chunk_table(path):
     """``[(name, start, end)]`` of a version 2 file's chunks (bytes)."""
     with open(path, "rb") as fh:
@@ -49,7 +37,7 @@ def cow(built, tmp_path_factory):
 
 
 @pytest.mark.parametrize("codec", ["zstd", "zlib"])
-def test_round_trip_is_bit_identical_and_smaller(built, tmp_path, codec):
+def test_round_trip_is_bit_identical_and_smaller(built, tmp_path, codec, assert_same_pm):
     if codec == "zstd":
         pytest.importorskip("zstandard")
     pm = built("cow.ply")
@@ -65,7 +53,7 @@ def test_round_trip_is_bit_identical_and_smaller(built, tmp_path, codec):
     assert read_arrays(v1)[1] == read_arrays(v2)[1]
 
 
-def test_version_1_fixture_reads_and_re_saves_exactly(tmp_path):
+def test_version_1_fixture_reads_and_re_saves_exactly(tmp_path, assert_same_pm):
     old = read_pm(V1_FIXTURE)
     assert old.header["version"] == 1
     path = tmp_path / "cow.pmz"
@@ -88,7 +76,7 @@ def oriented(vertices, faces):
     return sorted(out)
 
 
-def test_every_batch_boundary_gives_the_lod_there(cow):
+def test_every_batch_boundary_gives_the_lod_there(cow, same_bits):
     pm, path = cow
     B = pm.n_batches
     for k in range(B + 1):
@@ -127,7 +115,7 @@ def test_a_prefix_refines(cow):
         assert int(pmjax.refine(prefix, cam, 1e30).n_faces) == int(pmjax.refine(full, cam, 1e30).n_faces)
 
 
-def test_a_stream_is_read_to_the_batch_asked(cow):
+def test_a_stream_is_read_to_the_batch_asked(cow, assert_same_pm):
     pm, path = cow
     table = chunk_table(path)
     data = path.read_bytes()
@@ -141,7 +129,7 @@ def test_a_stream_is_read_to_the_batch_asked(cow):
         assert_same_pm(read_pm(fh), pm)
 
 
-def test_a_truncated_file_is_refused_or_read_as_its_whole_prefix(cow, tmp_path):
+def test_a_truncated_file_is_refused_or_read_as_its_whole_prefix(cow, tmp_path, assert_same_pm):
     pm, path = cow
     table = chunk_table(path)
     data = path.read_bytes()
@@ -163,7 +151,7 @@ def test_a_truncated_file_is_refused_or_read_as_its_whole_prefix(cow, tmp_path):
         read_pm(path, batches=99)
 
 
-def test_a_damaged_chunk_is_named(cow, tmp_path):
+def test_a_damaged_chunk_is_named(cow, tmp_path, assert_same_pm):
     pm, path = cow
     table = chunk_table(path)
     data = bytearray(path.read_bytes())
