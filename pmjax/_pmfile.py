@@ -224,7 +224,11 @@ def read_arrays(path, *, batches: int | None = None) -> tuple[PMData, str]:
             raise PMFormatError(f"{path}: no such file")
         with open(path, "rb") as fh:
             if fh.read(len(_codec.MAGIC2)) == _codec.MAGIC2:
-                return _read_v2(_Mapped(fh), source, batches)
+                try:
+                    reader = _Mapped(fh)
+                except (OSError, ValueError):  # a file that cannot be mapped is read
+                    reader = fh
+                return _read_v2(reader, source, batches)
     pm, fingerprint = _read_v1(path, source)
     if batches is None:
         return pm, fingerprint

@@ -247,8 +247,8 @@ def write_encoding(pm, path, encoding, monkeypatch, codec="zstd"):
 
 @needs_native
 def test_files_of_encoding_1_still_read_to_the_same_bits(built, tmp_path, numpy_decoder, monkeypatch, assert_same_pm):
-    # The chunks as version 2 wrote them before the predictions: no
-    # "encoding" in the header, the attributes and normals as stored.
+    # Encoding 1: no "encoding" in the header, the attributes and normals
+    # stored as they are.
     pytest.importorskip("zstandard")
     pm = built("cow.ply")
     old, new = tmp_path / "old.pmz", tmp_path / "new.pmz"

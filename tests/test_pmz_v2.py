@@ -204,3 +204,19 @@ def test_a_prefix_without_faces_is_refused_with_the_first_that_has_some(tmp_path
                                                 rf"batches={first} is the first prefix with faces"):
             read_pm(source, batches=0)
     assert read_pm(path, batches=first).n_batches == first
+
+
+def test_a_file_that_cannot_be_mapped_is_read(cow, monkeypatch, assert_same_pm):
+    # A path is read through a memory map where one can be made, else with read().
+    import mmap
+
+    pm, path = cow
+
+    def refuse(*args, **kwargs):
+        raise OSError("no map here")
+
+    mapped = read_pm(path)
+    monkeypatch.setattr(mmap, "mmap", refuse)
+    assert_same_pm(read_pm(path), mapped)
+    assert_same_pm(read_pm(path, batches=2), read_pm(io.BytesIO(path.read_bytes()), batches=2))
+    assert_same_pm(mapped, pm)
