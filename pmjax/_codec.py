@@ -42,6 +42,7 @@ import importlib.util
 import math
 import os
 import zlib
+from concurrent.futures import Future
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,6 +84,10 @@ def _load_native():
     lib.pmz_read_batch.argtypes = [_p, _i64, _i64, _i64, _i64, _i64, _i64] + [_p] * 18
     lib.pmz_unit_from_residual.restype = None
     lib.pmz_unit_from_residual.argtypes = [_i64, _p, _p, _p]
+    lib.pmz_float_from_planed.restype = None
+    lib.pmz_float_from_planed.argtypes = [_i64, _p, _p, _p]
+    lib.pmz_unit_from_planed.restype = None
+    lib.pmz_unit_from_planed.argtypes = [_i64, _p, _p, _p]
     lib.pmz_place_faces.restype = None
     lib.pmz_place_faces.argtypes = [_i64, _i64, _p, _i64, _p, _p, _p, _p, _p, _p]
     lib.pmz_area_normals.restype = None
@@ -205,6 +210,29 @@ def float_from_residual(r: np.ndarray, prediction: np.ndarray) -> np.ndarray:
         native.pmz_float_from_residual(r.size, _ptr(r), _ptr(prediction), _ptr(out))
         return out
     return unordered(unzigzag(r) + ordered(prediction))
+
+
+def float_from_planed(raw: memoryview, prediction: np.ndarray, out: np.ndarray) -> None:
+    """``out[...] = float_from_residual(r, prediction)`` for the uint32
+    residuals ``r`` that :func:`planes` made ``raw`` (``prediction`` and
+    ``out``: C-contiguous float32 of ``r``'s shape), in one pass where the C
+    loops are built."""
+    if native is not None:
+        b = np.frombuffer(raw, np.uint8, 4 * prediction.size)
+        native.pmz_float_from_planed(prediction.size, _ptr(b), _ptr(prediction), _ptr(out))
+    else:
+        out[...] = float_from_residual(unplanes(raw, np.uint32, prediction.shape), prediction)
+
+
+def unit_from_planed(raw: memoryview, guide: np.ndarray, out: np.ndarray) -> None:
+    """``out[...] = unit_from_residual(r, guide)`` for the uint32 residuals
+    ``r`` (``[m, 3]``) that :func:`planes` made ``raw``, in one pass where the
+    C loops are built."""
+    if native is not None:
+        b = np.frombuffer(raw, np.uint8, 4 * guide.size)
+        native.pmz_unit_from_planed(len(guide), _ptr(b), _ptr(guide), _ptr(out))
+    else:
+        out[...] = unit_from_residual(unplanes(raw, np.uint32, guide.shape), guide)
 
 
 def _unit_axis(guide: np.ndarray) -> np.ndarray:
@@ -514,6 +542,14 @@ class _Cursor:
         self.at += n
         return a
 
+    def planed(self, dtype, shape) -> memoryview:
+        """The next array's bytes, still byte-planed."""
+        n = math.prod(shape) * np.dtype(dtype).itemsize
+        if self.at + n > len(self.raw):
+            raise ValueError(f"its arrays need more than its {len(self.raw)} bytes")
+        self.at += n
+        return self.raw[self.at - n:self.at]
+
     def done(self) -> None:
         if self.at != len(self.raw):
             raise ValueError(f"{len(self.raw) - self.at} bytes are left over after its arrays")
@@ -698,21 +734,38 @@ def killers_of(s: Stream, names: list) -> None:
                              "two corners under one of its batch's pcols")
 
 
-def finish_full(s: Stream, raw: bytes, B: int, F: int, shading: bool) -> dict:
+def finish_full(s: Stream, raw: bytes, B: int, F: int, shading: bool, ready=None, pool=None) -> dict:
     """The full hierarchy's arrays from a stream that read every batch and
-    the tail (raises ``ValueError`` on bad content)."""
+    the tail (raises ``ValueError`` on bad content). ``ready(name, array)``,
+    if given, is called as each output array is final (its checksum can be
+    computed meanwhile); with ``pool`` (an executor) the created vertices'
+    shading normals are decoded beside the placing of the faces and the
+    area normals."""
     V0, P = s.V0, s.P
+    offsets = np.asarray(s.offsets, np.int64)
     c = _Cursor(raw)
     # Kept in its narrow dtype: NumPy's stable sort of small integers is a radix sort.
     group = c.take(group_dtype(B), (F,))
-    residual = c.take(np.uint32, (V0, 3))
+    residual = c.planed(np.uint32, (V0, 3))
     if shading and s.encoding == 1:
-        shading = c.take(np.uint32, (V0 + P, 3))
+        shading = (c.planed(np.uint32, (V0 + P, 3)),)
     elif shading:
-        shading = (c.take(np.uint32, (V0, 3)), c.take(np.uint32, (P, 3)))
+        shading = (c.planed(np.uint32, (V0, 3)), c.planed(np.uint32, (P, 3)))
     else:
         shading = None
     c.done()
+    normals = s.normals
+    shading_normals = None if shading is None else np.empty((V0 + P, 3), np.float32)
+    created = None
+    if shading is not None and len(shading) == 2:
+        # The created vertices' shading normals need only their cone axes,
+        # final since the batches: decoded into place now.
+        created = _beside(pool, unit_from_planed, shading[1], normals[V0:], shading_normals[V0:])
+    if ready is not None:
+        # Final once every batch is read: the tail adds faces and normals only.
+        for name in ("vertices", "v1", "v2", "radius", "alpha", "delta", "mu", "cost", "metric"):
+            ready(name, getattr(s, name))
+        ready("batch_offsets", offsets)
     # Rank -> original vertex id: each original vertex appeared exactly once.
     orig_of_rank = np.full(V0, -1, np.int64)
     orig_of_rank[s.start[:V0]] = np.arange(V0)
@@ -740,18 +793,33 @@ def finish_full(s: Stream, raw: bytes, B: int, F: int, shading: bool) -> dict:
             sel = by_group[bounds[g]:bounds[g + 1]]
             faces[sel] = orig_of_rank[s.face_ranks[i]]
             killer[sel] = s.killers[i]
-    normals = s.normals
-    normals[:V0] = float_from_residual(residual, area_normals(s.vertices[:V0], faces, V0))
-    if shading is None:
-        shading_normals = None
-    elif s.encoding == 1:
-        shading_normals = float_from_residual(shading, normals)
-    else:
-        shading_normals = np.concatenate([float_from_residual(shading[0], normals[:V0]),
-                                          unit_from_residual(shading[1], normals[V0:])])
+    if ready is not None:
+        ready("faces", faces)
+        ready("killer", killer)
+    float_from_planed(residual, area_normals(s.vertices[:V0], faces, V0), normals[:V0])
+    if ready is not None:
+        ready("normals", normals)
+    if shading is not None:
+        if created is None:
+            float_from_planed(shading[0], normals, shading_normals)
+        else:
+            float_from_planed(shading[0], normals[:V0], shading_normals[:V0])
+            created.result()
+        if ready is not None:
+            ready("shading_normals", shading_normals)
     return dict(vertices=s.vertices, normals=normals, faces=faces, v1=s.v1, v2=s.v2, radius=s.radius,
                 alpha=s.alpha, delta=s.delta, mu=s.mu, cost=s.cost, metric=s.metric,
-                batch_offsets=np.asarray(s.offsets, np.int64), killer=killer, shading_normals=shading_normals)
+                batch_offsets=offsets, killer=killer, shading_normals=shading_normals)
+
+
+def _beside(pool, fn, *args):
+    """``fn(*args)`` submitted to ``pool``, or run now without one (a
+    finished future either way: its ``result()`` is the value)."""
+    if pool is not None:
+        return pool.submit(fn, *args)
+    future = Future()
+    future.set_result(fn(*args))
+    return future
 
 
 def finish_prefix(s: Stream, k: int) -> dict:

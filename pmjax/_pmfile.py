@@ -378,29 +378,38 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
             _codec.killers_of(stream, names)
         except ValueError as exc:
             raise PMFormatError(f"{path}: {exc}; the file is damaged") from exc
-        if batches is None:
-            where, raw_bytes = tail
-            try:
-                arrays = _codec.finish_full(stream, raw_bytes, B, F, bool(header["shading_normals"]))
-            except ValueError as exc:
-                raise PMFormatError(f"{where} is damaged: {exc}") from exc
         if batches is not None:
             return _prefix_pm(_codec.finish_prefix(stream, k), header, k, B, path)
+        # Each array is hashed on the pool as soon as it is final, beside the
+        # rest of the decoding and beside the structure rules' check.
+        hashing = {}
+        where, raw_bytes = tail
+        try:
+            arrays = _codec.finish_full(stream, raw_bytes, B, F, bool(header["shading_normals"]),
+                                        lambda name, a: hashing.setdefault(name, pool.submit(_sha256, a)), pool)
+        except ValueError as exc:
+            raise PMFormatError(f"{where} is damaged: {exc}") from exc
         for name, shape in shapes.items():
             if arrays.get(name) is not None and arrays[name].shape != shape:
                 raise PMFormatError(f"{path}: array {name!r} decodes to shape {arrays[name].shape}, expected {shape}")
+        meta = {key: v for key, v in header.items() if key not in LAYOUT_FIELDS}
+        pm = PMData(**arrays, header=meta)
+        # The checksums' failures come first, as they name the damage.
+        rules = None
+        try:
+            validate_pm(pm, source=path)
+        except PMFormatError as exc:
+            rules = exc
         sums = header["array_sha256"]
-        present = {name: a for name, a in arrays.items() if a is not None}
-        digests = dict(zip(present, pool.map(_sha256, present.values())))
+        digests = {name: hashing[name].result() for name, a in arrays.items() if a is not None}
         for name, digest in digests.items():
             if digest != sums.get(name):
                 raise PMFormatError(f"{path}: checksum mismatch in array {name!r}")
         for name in sums:
             if name not in digests:
                 raise PMFormatError(f"{path}: array {name!r} is missing (the header has its checksum)")
-    meta = {key: v for key, v in header.items() if key not in LAYOUT_FIELDS}
-    pm = PMData(**arrays, header=meta)
-    validate_pm(pm, source=path)
+        if rules is not None:
+            raise rules
     return pm, content_fingerprint(digests)
 
 

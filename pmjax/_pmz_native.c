@@ -120,6 +120,21 @@ void pmz_unit_from_residual(int64_t m, const uint32_t *residual, const float *gu
     }
 }
 
+/* pmz_float_from_residual with the residuals still byte-planed (uint32
+ * planes of n elements): the unplaning folded into the decoding pass. */
+void pmz_float_from_planed(int64_t n, const uint8_t *planed, const float *prediction, float *out) {
+    for (int64_t i = 0; i < n; i++) out[i] = from_residual(get32(planed, n, i), prediction[i]);
+}
+
+/* pmz_unit_from_residual with the residuals [m, 3] still byte-planed. */
+void pmz_unit_from_planed(int64_t m, const uint8_t *planed, const float *guide, float *out) {
+    for (int64_t i = 0; i < m; i++) {
+#define ROW(k) get32(planed, 3 * m, 3 * i + (k))
+        UNIT_FROM_RESIDUAL(ROW, guide + 3 * i, out + 3 * i);
+#undef ROW
+    }
+}
+
 /* Element i of a byte-planed array of n 8-byte elements. */
 static uint64_t get64(const uint8_t *src, int64_t n, int64_t i) {
     uint8_t b[8];

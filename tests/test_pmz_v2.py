@@ -220,3 +220,49 @@ def test_a_file_that_cannot_be_mapped_is_read(cow, monkeypatch, assert_same_pm):
     assert_same_pm(read_pm(path), mapped)
     assert_same_pm(read_pm(path, batches=2), read_pm(io.BytesIO(path.read_bytes()), batches=2))
     assert_same_pm(mapped, pm)
+
+
+def _with_header(path, out, **changes):
+    """A copy of version 2 file ``path`` at ``out`` with header fields replaced."""
+    data = path.read_bytes()
+    length = int.from_bytes(data[8:12], "little")
+    header = {**json.loads(data[12:12 + length]), **changes}
+    text = json.dumps(header).encode()
+    out.write_bytes(data[:8] + len(text).to_bytes(4, "little") + text + data[12 + length:])
+    return header
+
+
+@pytest.mark.parametrize("name", ["vertices", "faces", "normals"])
+def test_decoded_arrays_are_checked_against_their_checksums(cow, tmp_path, name):
+    # The arrays final after the batches, after the faces' placing and after
+    # the normals' decoding are each checked.
+    _, path = cow
+    data = path.read_bytes()
+    sums = json.loads(data[12:12 + int.from_bytes(data[8:12], "little")])["array_sha256"]
+    bad = tmp_path / "sums.pmz"
+    _with_header(path, bad, array_sha256={**sums, name: "0" * 64})
+    with pytest.raises(PMFormatError, match=rf"sums.pmz: checksum mismatch in array '{name}'"):
+        read_pm(bad)
+
+
+def test_a_checksum_failure_is_named_before_a_broken_rule(cow, tmp_path, monkeypatch):
+    # Content that breaks a rule of validate_pm (an unknown metric id),
+    # written with the writer's checks off: refused by the rule, or by a
+    # checksum first when one fails as well.
+    pm, _ = cow
+    metric = np.array(pm.metric)
+    metric[0] = 250
+    broken = pmjax.PMData(**{**pm.arrays(), "metric": metric}, header=pm.header)
+    path = tmp_path / "rule.pmz"
+    with monkeypatch.context() as m:
+        m.setattr(pmjax._pmfile, "validate_pm", lambda *a, **k: None)
+        m.setattr(pmjax._pmfile, "check_structure", lambda *a, **k: None)
+        save_pm(broken, path)
+    with pytest.raises(PMFormatError, match=r"rule.pmz: unknown metric id \(first at index 0\)"):
+        read_pm(path)
+    data = path.read_bytes()
+    sums = json.loads(data[12:12 + int.from_bytes(data[8:12], "little")])["array_sha256"]
+    bad = tmp_path / "both.pmz"
+    _with_header(path, bad, array_sha256={**sums, "radius": "0" * 64})
+    with pytest.raises(PMFormatError, match=r"both.pmz: checksum mismatch in array 'radius'"):
+        read_pm(bad)
