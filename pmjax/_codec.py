@@ -42,7 +42,7 @@ import importlib.util
 import math
 import os
 import zlib
-from concurrent.futures import Future
+from concurrent.futures import Future, wait
 from dataclasses import dataclass
 
 import numpy as np
@@ -81,7 +81,9 @@ def _load_native():
     lib.pmz_float_from_residual.restype = None
     lib.pmz_float_from_residual.argtypes = [_i64, _p, _p, _p]
     lib.pmz_read_batch.restype = _i64
-    lib.pmz_read_batch.argtypes = [_p, _i64, _i64, _i64, _i64, _i64, _i64] + [_p] * 18
+    lib.pmz_read_batch.argtypes = [_p, _i64, _i64, _i64, _i64, _i64, _i64] + [_p] * 15
+    lib.pmz_batch_faces.restype = _i64
+    lib.pmz_batch_faces.argtypes = [_p, _i64, _i64, _i64, _i64, _p, _p, _p, _p, _p]
     lib.pmz_unit_from_residual.restype = None
     lib.pmz_unit_from_residual.argtypes = [_i64, _p, _p, _p]
     lib.pmz_float_from_planed.restype = None
@@ -617,9 +619,11 @@ def read_base(s: Stream, raw: bytes, R: int, n_faces: int) -> None:
 
 def read_batch(s: Stream, raw: bytes, b: int, n_faces: int, pool=None) -> None:
     """Decode batch ``b``'s chunk into ``s`` (raises ``ValueError`` on bad
-    content), by the C loops where they are built; otherwise by NumPy steps,
-    and then ``pool`` (an executor) finds its killers beside the caller, to
-    be resolved by :func:`killers_of`."""
+    content), by the C loops where they are built; otherwise by NumPy steps.
+    With ``pool`` (an executor) its killers (and, by the C loops, its face
+    ranks) are found beside the caller: its entry of ``s.killers`` is then a
+    future, resolved by :func:`settle` (which raises a bad rank's
+    ``ValueError``) or :func:`killers_of`."""
     V0 = s.V0
     lo, hi = int(s.offsets[b]), int(s.offsets[b + 1])
     n = hi - lo
@@ -627,7 +631,7 @@ def read_batch(s: Stream, raw: bytes, b: int, n_faces: int, pool=None) -> None:
     # a chunk without it fails either way, and the NumPy steps name the
     # failure without allocating for those counts.
     if native is not None and len(raw) >= 61 * n + 12 * n_faces:
-        _read_batch_native(s, raw, lo, hi, n_faces)
+        _read_batch_native(s, raw, lo, hi, n_faces, pool if n_faces >= FACES_BESIDE else None)
         return
     c = _Cursor(raw)
     a, d = c.take(np.int32, (n,)), c.take(np.int32, (n,))
@@ -698,37 +702,61 @@ _NATIVE_ERRORS = {
 }
 
 
-def _read_batch_native(s: Stream, raw, lo: int, hi: int, n_faces: int) -> None:
-    """:func:`read_batch` in one C pass: the same checks in the same order,
-    the same state and arrays."""
+# Fewest faces whose ranks and killers the C loops find on a pool's thread
+# (beside the next chunks' decoding): fewer cost less than the handing over.
+FACES_BESIDE = 1 << 12
+
+
+def _read_batch_native(s: Stream, raw, lo: int, hi: int, n_faces: int, pool=None) -> None:
+    """:func:`read_batch` in C: the same checks in the same order, the same
+    state and arrays. The face ranks and killers are found by a second pass,
+    on ``pool`` (an executor) if given: this batch's killers are then a
+    future whose ``result()`` raises ``ValueError`` for a bad rank, to be
+    resolved (by :func:`settle`) before a finer batch's failure is raised."""
     V0 = s.V0
     buf = np.frombuffer(raw, np.uint8)
-    ranks = np.empty((n_faces, 3), np.int32)
-    killer = np.empty(n_faces, np.int32)
     info = np.zeros(1, np.int64)
     if s.pointers is None:
         s.owner = np.full(V0, -1, np.int32)
         s.pointers = tuple(_ptr(a) for a in (s.seen, s.count, s.start, s.vertices, s.normals, s.parent, s.v1, s.v2,
                                              s.radius, s.alpha, s.delta, s.mu, s.cost, s.metric))
-    code = native.pmz_read_batch(_ptr(buf), len(buf), V0, lo, hi, n_faces, s.encoding, *s.pointers, _ptr(ranks),
-                                 _ptr(killer), _ptr(s.owner), _ptr(info))
+    code = native.pmz_read_batch(_ptr(buf), len(buf), V0, lo, hi, n_faces, s.encoding, *s.pointers, _ptr(info))
     if code == 1:
         raise ValueError(f"its arrays need more than its {len(buf)} bytes")
-    if code == 8:
-        raise ValueError(f"a face corner's rank is outside [0, {V0})")
     if code:
         raise ValueError(_NATIVE_ERRORS[code].format(int(info[0])))
+    ranks = np.empty((n_faces, 3), np.int32)
+    killer = np.empty(n_faces, np.int32)
+
+    def faces():
+        # buf, ranks and killer stay referenced by this closure until it returns.
+        if native.pmz_batch_faces(_ptr(buf) + len(buf) - 12 * n_faces, n_faces, V0, lo, hi, _ptr(s.start),
+                                  _ptr(s.count), _ptr(ranks), _ptr(killer), _ptr(s.owner)):
+            raise ValueError(f"a face corner's rank is outside [0, {V0})")
+        return killer
+
+    # The owner scratch serves one batch at a time: the previous batch's
+    # pass (run beside this one's first) ends before this one's starts.
+    if s.killers and not isinstance(s.killers[-1], np.ndarray):
+        wait([s.killers[-1]])
     s.face_ranks.append(ranks)
-    s.killers.append(killer)
+    s.killers.append(pool.submit(faces) if pool is not None else faces())
+
+
+def settle(s: Stream, i: int) -> None:
+    """Wait for face group ``i``'s killers if a pool is finding them (raises
+    the ``ValueError`` of a bad rank there)."""
+    if not isinstance(s.killers[i], np.ndarray):
+        s.killers[i] = s.killers[i].result()
 
 
 def killers_of(s: Stream, names: list) -> None:
     """Resolve the killers found beside the decoding (``names``: each face
     group's chunk, for messages); a face no pcol of its batch kills raises
     ``ValueError`` naming its chunk (the base mesh's faces have none)."""
-    for i, killer in enumerate(s.killers):
-        if not isinstance(killer, np.ndarray):
-            killer = s.killers[i] = killer.result()
+    for i in range(len(s.killers)):
+        settle(s, i)
+        killer = s.killers[i]
         if i and np.any(killer < 0):
             raise ValueError(f"chunk {names[i]!r}: face {int(np.flatnonzero(killer < 0)[0])} of the chunk has no "
                              "two corners under one of its batch's pcols")

@@ -323,6 +323,7 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
     names = [name for name, _, _ in layout]
     codec = header["codec"]
     tail = None
+    wheres = {}
 
     def expand(where: str, payload, raw: int):
         # On the pool's thread: hashlib and the decompressors release the GIL.
@@ -334,16 +335,33 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
         except ValueError as exc:
             raise PMFormatError(f"{where} is damaged: {exc}") from exc
 
+    def settle(i: int) -> None:
+        # Batch chunk i's face ranks and killers, found beside the next
+        # chunk's decoding: a bad rank there is chunk i's failure.
+        if 1 <= i <= B:
+            try:
+                _codec.settle(stream, i)
+            except ValueError as exc:
+                raise PMFormatError(f"{wheres[i]} is damaged: {exc}") from exc
+
     def decode(i: int, where: str, job) -> None:
         nonlocal tail
-        raw_bytes = job.result()
+        wheres[i] = where
+        failure = None
         try:
+            raw_bytes = job.result()
             if i == 0:
                 _codec.read_base(stream, raw_bytes, header["roots"], header["group_faces"][0])
             elif i <= B:
                 _codec.read_batch(stream, raw_bytes, B - i, header["group_faces"][i], pool)
+        except PMFormatError as exc:
+            failure = exc
         except ValueError as exc:
-            raise PMFormatError(f"{where} is damaged: {exc}") from exc
+            failure = PMFormatError(f"{where} is damaged: {exc}")
+            failure.__cause__ = exc
+        settle(i - 1)  # the previous chunk's failures come first
+        if failure is not None:
+            raise failure
         if i == B + 1:
             tail = (where, raw_bytes)
 
@@ -360,6 +378,7 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
             if len(payload) < _codec.SHA_BYTES + nbytes:
                 if pending is not None:
                     decode(*pending)
+                    settle(pending[0])
                 end = at + _codec.SHA_BYTES + nbytes
                 held = (f"its base mesh and {i - 1} coarsest batches are whole; pmjax.load(path, batches={i - 1}) "
                         "reads them") if i else "not even its base mesh is whole"
@@ -374,6 +393,7 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
             at += len(payload)
         if pending is not None:
             decode(*pending)
+            settle(pending[0])
         try:
             _codec.killers_of(stream, names)
         except ValueError as exc:

@@ -1,8 +1,9 @@
 /* Decoding of a version 2 .pmz file's chunks (docs/format.md), as plain C
  * loops: a batch chunk in one pass (unplaning, the checks, leaf ranges,
- * positions from parents, encoding 2's predictions, face ranks and
- * killers), the faces in file order from the groups, the area-weighted
- * normals, and float residuals.
+ * positions from parents, encoding 2's predictions) and its face ranks and
+ * killers in a second (which may run beside the next chunks' first), the
+ * faces in file order from the groups, the area-weighted normals, and float
+ * residuals.
  *
  * Each loop is a NumPy step of pmjax/_codec.py with its arithmetic in the
  * same order (no contraction), so a read with these loops gives the NumPy
@@ -147,15 +148,12 @@ static uint64_t get64(const uint8_t *src, int64_t n, int64_t i) {
 /* Batch chunk of pcols lo .. hi-1 (ids V0+lo .. V0+hi-1) into the reader's
  * state (_codec.read_batch), arrays stored in encoding 1 or 2: seen
  * uint8[V], count and start int64[V], vertices and normals float32[V, 3],
- * parent int32[V] (-1 for roots), v1 .. metric at [lo, hi), and this
- * batch's face ranks int32[n_faces, 3] and killers int32[n_faces];
- * owner int32[V0] is scratch kept across the batches of a read (no entry
- * in [lo, hi) before the call). */
+ * parent int32[V] (-1 for roots), v1 .. metric at [lo, hi); the chunk's
+ * size is checked whole, its face ranks left to pmz_batch_faces. */
 int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, int64_t hi, int64_t n_faces,
                        int64_t encoding, uint8_t *seen, int64_t *count, int64_t *start, float *vertices,
                        float *normals, int32_t *parent, int32_t *v1, int32_t *v2, float *radius, float *alpha,
-                       float *delta, float *mu, double *cost, uint8_t *metric, int32_t *ranks, int32_t *killer,
-                       int32_t *owner, int64_t *info) {
+                       float *delta, float *mu, double *cost, uint8_t *metric, int64_t *info) {
     const int64_t n = hi - lo, first = V0 + lo;
     int32_t *a = v1 + lo, *d = v2 + lo;
     /* The children and the count under v1, then the checks on them before
@@ -289,6 +287,19 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
         }
         at += 12 * m;
     }
+    return OK;
+}
+
+/* The face ranks and killers of the batch of pcols lo .. hi-1, from the
+ * byte-planed face codes that end its chunk (sizes checked by
+ * pmz_read_batch): ranks int32[n_faces, 3], killers int32[n_faces]. It
+ * reads only the start and count of the batch's own vertices, which no
+ * finer batch changes, so it may run beside the decoding of the next
+ * chunks; owner int32[V0] is scratch kept across the batches of a read (no
+ * entry in [lo, hi) before the call), so one batch's call at a time. */
+int64_t pmz_batch_faces(const uint8_t *at, int64_t n_faces, int64_t V0, int64_t lo, int64_t hi, const int64_t *start,
+                        const int64_t *count, int32_t *ranks, int32_t *killer, int32_t *owner) {
+    const int64_t n = hi - lo, first = V0 + lo;
     /* Face code -> corner ranks, each within [0, V0) (so int32). */
     int64_t r0 = 0;
     for (int64_t f = 0; f < n_faces; f++) {

@@ -1,6 +1,7 @@
 """The version 2 .pmz decoder's C loops (pmjax/_pmz_native.c) against its NumPy steps: the same arrays bit for
 bit, the same prefixes, and the same refusal, word for word, of every kind of damaged chunk."""
 
+import contextlib
 import json
 import os
 import zlib
@@ -100,6 +101,17 @@ def test_area_normals_and_residuals_match_the_numpy_steps(numpy_decoder, same_bi
         assert same_bits(a, b)
     assert not native[0][250:].any()
     assert same_bits(native[1][:8, 1], special)
+    # The same residuals still byte-planed, decoded in one pass.
+    planed = memoryview(_codec.planes(residual))
+    with np.errstate(invalid="ignore"):  # the special rows' guides are NaNs
+        guide = prediction / np.linalg.norm(prediction.astype(np.float64), axis=1, keepdims=True).astype(np.float32)
+    for use in (contextlib.nullcontext, numpy_decoder):
+        with use():
+            out, unit = np.empty_like(prediction), np.empty_like(prediction)
+            _codec.float_from_planed(planed, prediction, out)
+            _codec.unit_from_planed(planed, guide, unit)
+        assert same_bits(out, native[1])
+        assert same_bits(unit, _codec.unit_from_residual(residual, guide))
 
 
 # --- damaged chunks: the same message both ways --------------------------------
@@ -187,7 +199,11 @@ def far_corners(faces_at, V0):
 
 
 @needs_native
-def test_damaged_batch_chunks_are_refused_in_the_same_words(cow_file, tmp_path, numpy_decoder):
+@pytest.mark.parametrize("beside", [False, True], ids=["inline", "faces-beside"])
+def test_damaged_batch_chunks_are_refused_in_the_same_words(cow_file, tmp_path, numpy_decoder, monkeypatch, beside):
+    # Also with every batch's face ranks and killers found on the pool.
+    if beside:
+        monkeypatch.setattr(_codec, "FACES_BESIDE", 0)
     pm, path = cow_file
     for i, (chunk, change, words) in enumerate(damage_cases(pm)):
         bad = tmp_path / f"bad{i}.pmz"
@@ -195,6 +211,29 @@ def test_damaged_batch_chunks_are_refused_in_the_same_words(cow_file, tmp_path, 
         native, plain = both_ways(numpy_decoder, lambda: read_arrays(bad))
         assert native == plain, words
         assert native[0] is PMFormatError and words in native[1], (words, native)
+
+
+@needs_native
+def test_a_bad_rank_found_beside_is_named_before_the_next_chunks_damage(cow_file, tmp_path, monkeypatch):
+    # The ranks are checked on the pool while the next chunk is read: its
+    # damage (a failed SHA-256) must not hide the earlier chunk's.
+    monkeypatch.setattr(_codec, "FACES_BESIDE", 0)
+    pm, path = cow_file
+    chunk, change, words = next(case for case in damage_cases(pm) if "rank is outside" in case[2])
+    bad = tmp_path / "rank.pmz"
+    header = rewrite(path, bad, chunk, change)
+    data = bytearray(bad.read_bytes())
+    at = 12 + int.from_bytes(data[8:12], "little")
+    starts = []
+    for _, size, _ in header["chunks"]:
+        starts.append(at)
+        at += 32 + size
+    data[starts[chunk + 1] + 40] ^= 0x10  # the next chunk fails its SHA-256
+    bad.write_bytes(bytes(data))
+    name = header["chunks"][chunk][0]
+    with pytest.raises(PMFormatError, match=rf"chunk '{name}' \(bytes {starts[chunk]} to {starts[chunk + 1]}\) is "
+                                            rf"damaged: {words}"):
+        read_arrays(bad)
 
 
 def test_a_rewritten_file_reads_unchanged(cow_file, tmp_path, assert_same_pm):
