@@ -10,12 +10,15 @@ Three loads of each cached hierarchy, medians over repeats:
   is remembered, so the check is skipped).
 
 With ``--format FILE.pmz ...``: the file versions instead, per hierarchy,
-same run: sizes of version 1, version 2 and the source mesh (given as
-``FILE.pmz=MESH``); ``pmjax.load`` of each version, alternating,
-medians over repeats, with the structure check skipped (its content known)
-and run (forgotten first), and version 2 decoded by the NumPy steps instead of
-the C loops (structure known); and the coarse-first prefixes: the bytes needed
-for 1 % of the faces, and the faces a prefix of 10 % of the file holds.
+same run: sizes of version 1, version 2, version 2 with its chunks in
+encoding 1 (no predictions) and the source mesh (given as
+``FILE.pmz=MESH``); ``pmjax.load`` of each, alternating, medians over
+repeats, with the structure check skipped (its content known) and run
+(forgotten first), the processor time of the former (all threads), and
+version 2 decoded by the NumPy steps instead of the C
+loops (structure known); where version 2's bytes go (each part of each chunk
+compressed alone); and the coarse-first prefixes: the bytes needed for 1 % of
+the faces, and the faces a prefix of 10 % of the file holds.
 
 Usage::
 
@@ -106,15 +109,30 @@ def chunk_ends(path) -> tuple[list[int], list[int]]:
     return ends, list(np.cumsum(header["group_faces"]))
 
 
+def part_sizes(pm) -> dict:
+    """Compressed bytes of each part of version 2's chunks (``positions``,
+    ``faces``, ...), each part of each chunk compressed alone, summed over the
+    chunks, largest first."""
+    _, table = _codec.chunk_arrays(pm)
+    codec = "zstd" if _codec.zstd_available() else "zlib"
+    out = {}
+    for _, parts in table:
+        labels = dict.fromkeys(part for part, _ in parts)
+        for label in labels:
+            raw = b"".join(_codec.planes(a) for part, a in parts if part == label)
+            out[label] = out.get(label, 0) + len(_codec.compress(raw, codec))
+    return dict(sorted(out.items(), key=lambda kv: -kv[1]))
+
+
 def formats(args) -> int:
     print(machine())
     record = tempfile.mkdtemp(prefix="pmjax-known-")
     os.environ["PMJAX_KNOWN_STRUCTURES"] = record
     work = tempfile.mkdtemp(prefix="pmjax-format-")
     rows = []
-    print(f"{'model':10s} {'faces':>8s} {'v1 MB':>7s} {'v2 MB':>7s} {'mesh MB':>8s} {'save s':>7s} "
-          f"{'v1 load':>8s} {'v2 load':>8s} {'v2 NumPy':>9s} {'v1 first':>9s} {'v2 first':>9s} {'1% faces at':>12s} "
-          f"{'10% file holds':>15s}")
+    print(f"{'model':10s} {'faces':>8s} {'v1 MB':>7s} {'v2 MB':>7s} {'enc1 MB':>7s} {'mesh MB':>8s} {'save s':>7s} "
+          f"{'v1 load':>8s} {'v2 load':>8s} {'enc1 ld':>8s} {'v2 NumPy':>9s} {'v1 first':>9s} {'v2 first':>9s} "
+          f"{'1% faces at':>12s} {'10% file holds':>15s} {'v1 cpu':>7s} {'v2 cpu':>7s} {'enc1 cpu':>8s}")
     for item in args.format:
         given, _, source = item.partition("=")
         pm = pmjax.read_pm(given)
@@ -124,11 +142,23 @@ def formats(args) -> int:
         t = time.perf_counter()
         pmjax.save_pm(pm, v2)
         save = time.perf_counter() - t
+        enc1 = os.path.join(work, name + "-v2-encoding1.pmz")
+        encoding, _codec.ENCODING = _codec.ENCODING, 1
+        try:
+            pmjax.save_pm(pm, enc1)
+        finally:
+            _codec.ENCODING = encoding
+        parts = part_sizes(pm)
         pmjax.load(v1)  # JAX start-up and first-call costs outside the timings
-        times = {"v1": [], "v2": [], "v2 numpy": [], "v1 first": [], "v2 first": []}
+        times = {"v1": [], "v2": [], "v2 enc1": [], "v2 numpy": [], "v1 first": [], "v2 first": []}
+        # Processor time of the load, all threads: what it costs a machine
+        # whose cores are busy with other work (the wall time then follows it).
+        cpu = {"v1": [], "v2": [], "v2 enc1": []}
         for _ in range(args.repeats):  # alternating, so a slow phase of the machine hits each
-            for key, path in (("v1", v1), ("v2", v2)):
+            for key, path in (("v1", v1), ("v2", v2), ("v2 enc1", enc1)):
+                start = time.process_time()
                 times[key].append(median_time(lambda: pmjax.load(path), 1)[0])
+                cpu[key].append(time.process_time() - start)
             # Version 2 decoded by the NumPy steps (where the C loops are not built).
             native, _codec.native = _codec.native, None
             try:
@@ -139,6 +169,7 @@ def formats(args) -> int:
                 shutil.rmtree(record, ignore_errors=True)
                 times[key].append(median_time(lambda: pmjax.load(path), 1)[0])
         med = {k: float(np.median(v)) for k, v in times.items()}
+        med_cpu = {k: float(np.median(v)) for k, v in cpu.items()}
         ends, faces = chunk_ends(v2)
         F = len(pm.faces)
         size = os.path.getsize(v2)
@@ -146,17 +177,22 @@ def formats(args) -> int:
         first = next(i for i, f in enumerate(faces) if f >= 0.01 * F)
         within = [i for i in range(len(faces)) if ends[i] <= 0.10 * size]
         mesh = os.path.getsize(source) if source else None
-        row = dict(model=name, faces=F, v1_bytes=os.path.getsize(v1), v2_bytes=size, mesh_bytes=mesh, save_s=save,
+        row = dict(model=name, faces=F, v1_bytes=os.path.getsize(v1), v2_bytes=size,
+                   v2_encoding1_bytes=os.path.getsize(enc1), mesh_bytes=mesh, save_s=save, part_bytes=parts,
                    **{k.replace(" ", "_") + "_load_s": v for k, v in med.items()},
+                   **{k.replace(" ", "_") + "_load_cpu_s": v for k, v in med_cpu.items()},
                    one_percent_prefix_bytes=ends[first], one_percent_prefix_batches=first,
                    one_percent_prefix_faces=int(faces[first]),
                    ten_percent_prefix_faces=int(faces[within[-1]]) if within else 0,
                    ten_percent_prefix_batches=within[-1] if within else None)
         rows.append(row)
         mb = lambda b: f"{b / 1e6:7.2f}" if b else "      -"
-        print(f"{name:10s} {F:8d} {mb(row['v1_bytes'])} {mb(size)} {mb(mesh):>8s} {save:7.2f} "
-              f"{med['v1']:8.3f} {med['v2']:8.3f} {med['v2 numpy']:9.3f} {med['v1 first']:9.3f} {med['v2 first']:9.3f} "
-              f"{ends[first] / size:11.1%} {row['ten_percent_prefix_faces'] / F:14.1%}")
+        print(f"{name:10s} {F:8d} {mb(row['v1_bytes'])} {mb(size)} {mb(row['v2_encoding1_bytes'])} {mb(mesh):>8s} "
+              f"{save:7.2f} {med['v1']:8.3f} {med['v2']:8.3f} {med['v2 enc1']:8.3f} {med['v2 numpy']:9.3f} "
+              f"{med['v1 first']:9.3f} {med['v2 first']:9.3f} {ends[first] / size:11.1%} "
+              f"{row['ten_percent_prefix_faces'] / F:14.1%} {med_cpu['v1']:7.3f} {med_cpu['v2']:7.3f} "
+              f"{med_cpu['v2 enc1']:8.3f}")
+        print("  " + ", ".join(f"{part} {b / 1e6:.2f} MB" for part, b in parts.items()))
     shutil.rmtree(record, ignore_errors=True)
     shutil.rmtree(work, ignore_errors=True)
     if args.json:

@@ -22,6 +22,16 @@ near its parent), the original vertices' normals as the difference from the
 area-weighted normals recomputed from the faces, the shading normals as the
 difference from the normals, and each chunk's arrays
 byte-planed (byte ``k`` of every element together) before compression.
+
+Encoding 2 (the header's ``encoding``; files without it are encoding 1) also
+stores predictable values as differences from a prediction the reader makes
+from what it has already decoded: a made vertex's unit normal against its
+parent's normal, its largest component against the unit length of the other
+two; a pcol's radius and cone half-angle against its parent's less their
+distance and the angle between their axes; the costs against the previous
+pcol's; a made vertex's shading normal like its
+normal, against its cone axis. Any prediction gives the same bits back, since
+the difference is stored: a poor one only costs bytes.
 """
 
 from __future__ import annotations
@@ -32,6 +42,7 @@ import importlib.util
 import math
 import os
 import zlib
+from concurrent.futures import Future, wait
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,6 +56,10 @@ ZSTD_LEVEL = 12
 ZLIB_LEVEL = 6
 # Each chunk starts with the SHA-256 of its compressed bytes.
 SHA_BYTES = 32
+# The chunks' array encoding save_pm writes (the header's ``encoding``);
+# a reader takes every encoding in ENCODINGS, 1 where the header has none.
+ENCODING = 2
+ENCODINGS = (1, 2)
 
 
 _p = ctypes.c_void_p
@@ -66,7 +81,15 @@ def _load_native():
     lib.pmz_float_from_residual.restype = None
     lib.pmz_float_from_residual.argtypes = [_i64, _p, _p, _p]
     lib.pmz_read_batch.restype = _i64
-    lib.pmz_read_batch.argtypes = [_p, _i64, _i64, _i64, _i64, _i64] + [_p] * 17
+    lib.pmz_read_batch.argtypes = [_p, _i64, _i64, _i64, _i64, _i64, _i64] + [_p] * 15
+    lib.pmz_batch_faces.restype = _i64
+    lib.pmz_batch_faces.argtypes = [_p, _i64, _i64, _i64, _i64, _p, _p, _p, _p, _p]
+    lib.pmz_unit_from_residual.restype = None
+    lib.pmz_unit_from_residual.argtypes = [_i64, _p, _p, _p]
+    lib.pmz_float_from_planed.restype = None
+    lib.pmz_float_from_planed.argtypes = [_i64, _p, _p, _p]
+    lib.pmz_unit_from_planed.restype = None
+    lib.pmz_unit_from_planed.argtypes = [_i64, _p, _p, _p]
     lib.pmz_place_faces.restype = None
     lib.pmz_place_faces.argtypes = [_i64, _i64, _p, _i64, _p, _p, _p, _p, _p, _p]
     lib.pmz_area_normals.restype = None
@@ -113,8 +136,8 @@ def decompress(data, codec: str, size: int) -> bytes:
         except ImportError as exc:
             raise ValueError("the file is zstd-compressed and the zstandard package is not installed "
                              "(pip install zstandard)") from exc
-        with zstandard.ZstdDecompressor().stream_reader(bytes(data) if isinstance(data, memoryview) else data,
-                                                        read_across_frames=False) as r:
+        # Read in place (bytes, or a memoryview of a chunk in a mapped file).
+        with zstandard.ZstdDecompressor().stream_reader(data, read_across_frames=False) as r:
             out = r.read(size + 1)
     elif codec == "zlib":
         d = zlib.decompressobj()
@@ -189,6 +212,126 @@ def float_from_residual(r: np.ndarray, prediction: np.ndarray) -> np.ndarray:
         native.pmz_float_from_residual(r.size, _ptr(r), _ptr(prediction), _ptr(out))
         return out
     return unordered(unzigzag(r) + ordered(prediction))
+
+
+def float_from_planed(raw: memoryview, prediction: np.ndarray, out: np.ndarray) -> None:
+    """``out[...] = float_from_residual(r, prediction)`` for the uint32
+    residuals ``r`` that :func:`planes` made ``raw`` (``prediction`` and
+    ``out``: C-contiguous float32 of ``r``'s shape), in one pass where the C
+    loops are built."""
+    if native is not None:
+        b = np.frombuffer(raw, np.uint8, 4 * prediction.size)
+        native.pmz_float_from_planed(prediction.size, _ptr(b), _ptr(prediction), _ptr(out))
+    else:
+        out[...] = float_from_residual(unplanes(raw, np.uint32, prediction.shape), prediction)
+
+
+def unit_from_planed(raw: memoryview, guide: np.ndarray, out: np.ndarray) -> None:
+    """``out[...] = unit_from_residual(r, guide)`` for the uint32 residuals
+    ``r`` (``[m, 3]``) that :func:`planes` made ``raw``, in one pass where the
+    C loops are built."""
+    if native is not None:
+        b = np.frombuffer(raw, np.uint8, 4 * guide.size)
+        native.pmz_unit_from_planed(len(guide), _ptr(b), _ptr(guide), _ptr(out))
+    else:
+        out[...] = unit_from_residual(unplanes(raw, np.uint32, guide.shape), guide)
+
+
+def _unit_axis(guide: np.ndarray) -> np.ndarray:
+    """Per row of ``guide`` (float32 ``[m, 3]``), the first component of
+    largest magnitude (a NaN is never the largest, as in the C loop)."""
+    g = np.abs(guide)
+    k = np.where(g[:, 1] > g[:, 0], 1, 0)
+    return np.where(g[:, 2] > g[np.arange(len(g)), k], 2, k)
+
+
+def _unit_component(x1: np.ndarray, x2: np.ndarray, sign: np.ndarray) -> np.ndarray:
+    """float32 ``sqrt(1 - x1² - x2²)`` (0 where that is not positive) with
+    ``sign``'s sign: a unit vector's third component from the two others
+    (float64 arithmetic, in this order)."""
+    with np.errstate(invalid="ignore", over="ignore"):  # NaN and infinite components predict 0
+        x1, x2 = x1.astype(np.float64), x2.astype(np.float64)
+        s = 1.0 - (x1 * x1 + x2 * x2)
+        return np.copysign(np.sqrt(np.where(s > 0, s, 0.0)).astype(np.float32), sign)
+
+
+def unit_residual(x: np.ndarray, guide: np.ndarray) -> np.ndarray:
+    """uint32 ``[m, 3]`` residuals of unit (or zero) float32 vectors ``x``
+    against ``guide`` (float32 ``[m, 3]``, a nearby unit vector): the two
+    components other than the guide's largest against the guide's, the
+    largest against the unit length of those two (exact for any ``x``)."""
+    rows = np.arange(len(x))
+    k = _unit_axis(guide)
+    prediction = np.array(guide, np.float32)
+    prediction[rows, k] = _unit_component(x[rows, (k + 1) % 3], x[rows, (k + 2) % 3], guide[rows, k])
+    return float_residual(x, prediction)
+
+
+def unit_from_residual(r: np.ndarray, guide: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`unit_residual`: float32 ``[m, 3]``."""
+    if native is not None and r.dtype == np.uint32 and guide.dtype == np.float32 and r.shape == guide.shape:
+        r, guide = np.ascontiguousarray(r), np.ascontiguousarray(guide)
+        out = np.empty(r.shape, np.float32)
+        native.pmz_unit_from_residual(len(r), _ptr(r), _ptr(guide), _ptr(out))
+        return out
+    rows = np.arange(len(r))
+    k = _unit_axis(guide)
+    out = unordered(unzigzag(r) + ordered(guide))  # right but for component k
+    pk = _unit_component(out[rows, (k + 1) % 3], out[rows, (k + 2) % 3], guide[rows, k])
+    out[rows, k] = unordered(unzigzag(r[rows, k]) + ordered(pk))
+    return out
+
+
+def radius_prediction(radius_parent: np.ndarray, parent_xyz: np.ndarray, xyz: np.ndarray,
+                      has_parent: np.ndarray) -> np.ndarray:
+    """float32 ``[n]``: a pcol's radius as its parent's radius less the
+    distance between their vertices (the parent's sphere holds the child's
+    at that distance, tightly for one of its two children), 0 where that is
+    not positive or there is no parent. Arguments: the parent's radius
+    (float32 ``[n]``), both positions (float32 ``[n, 3]``, model units), and
+    whether the pcol's vertex has a parent (bool ``[n]``)."""
+    d = parent_xyz.astype(np.float64) - xyz.astype(np.float64)
+    p = radius_parent.astype(np.float64) - np.sqrt((d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) + d[:, 2] * d[:, 2])
+    return np.where(has_parent & (p > 0), p, 0.0).astype(np.float32)
+
+
+def alpha_prediction(alpha_parent: np.ndarray, parent_normal: np.ndarray, normal: np.ndarray,
+                     has_parent: np.ndarray) -> np.ndarray:
+    """float32 ``[n]``: a pcol's cone half-angle as its parent's less the
+    angle between their axes (the parent's cone holds the child's turned by
+    that angle, tightly for one of its two children), 0 where that is not
+    positive or there is no parent. The angle is taken from the chord ``c``
+    between the unit axes as ``c + c³/24`` (square roots only, so that every
+    reader computes the same bits). Arguments: the parent's half-angle
+    (float32 ``[n]``, radians), both axes (float32 ``[n, 3]``), and whether
+    the pcol's vertex has a parent (bool ``[n]``)."""
+    d = parent_normal.astype(np.float64) - normal.astype(np.float64)
+    c = np.sqrt((d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) + d[:, 2] * d[:, 2])
+    p = alpha_parent.astype(np.float64) - (c + c * c * c / 24.0)
+    return np.where(has_parent & (p > 0), p, 0.0).astype(np.float32)
+
+
+def _ordered64(x: np.ndarray) -> np.ndarray:
+    b = np.ascontiguousarray(x, np.float64).view(np.uint64)
+    return b ^ ((np.uint64(0) - (b >> np.uint64(63))) | np.uint64(1 << 63))
+
+
+def cost_code(cost: np.ndarray) -> np.ndarray:
+    """float64 costs ``[n]`` as uint64: the wrapped difference of each
+    cost's ordered image from the previous one's (0 before the first),
+    zigzagged (costs mostly rise with the pcol order)."""
+    u = _ordered64(cost)
+    d = (u - np.concatenate([np.zeros(1, np.uint64), u[:-1]])).view(np.int64)
+    return ((d << np.int64(1)) ^ (d >> np.int64(63))).view(np.uint64)
+
+
+def cost_decode(z: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`cost_code`: float64 ``[n]``."""
+    z = np.asarray(z, np.uint64)
+    d = (z >> np.uint64(1)) ^ (np.uint64(0) - (z & np.uint64(1)))
+    u = np.cumsum(d, dtype=np.uint64)
+    mask = ((u >> np.uint64(63)) - np.uint64(1)) | np.uint64(1 << 63)
+    return (u ^ mask).view(np.float64)
 
 
 def area_normals(vertices: np.ndarray, faces: np.ndarray, n: int) -> np.ndarray:
@@ -271,12 +414,30 @@ def rank_owner(ranks: np.ndarray, starts: np.ndarray, ids: np.ndarray) -> np.nda
 # --- writing -------------------------------------------------------------------
 
 
-def encode(pm: PMData, codec: str) -> tuple[dict, list[tuple[str, bytes, int]]]:
-    """Chunks of ``pm`` (already validated and structure-checked).
+def encode(pm: PMData, codec: str, encoding: int = ENCODING) -> tuple[dict, list[tuple[str, bytes, int]]]:
+    """Chunks of ``pm`` (already validated and structure-checked), arrays
+    stored in ``encoding`` (one of :data:`ENCODINGS`).
 
     Returns:
         ``(fields, chunks)``: header fields (``roots``, ``group_faces``) and
         per chunk ``(name, compressed bytes, raw size)``, coarse to fine.
+    """
+    fields, table = chunk_arrays(pm, encoding)
+    chunks = []
+    for name, parts in table:
+        raw = b"".join(planes(a) for _, a in parts)
+        chunks.append((name, compress(raw, codec), len(raw)))
+    fields["codec"] = codec
+    return fields, chunks
+
+
+def chunk_arrays(pm: PMData, encoding: int = ENCODING) -> tuple[dict, list]:
+    """The arrays each chunk of ``pm`` stores, before planing.
+
+    Returns:
+        ``(fields, table)``: header fields but ``codec``, and per chunk
+        ``(name, [(part, array), ...])`` coarse to fine, ``part`` naming
+        what the array holds (``"positions"``, ``"faces"``, ...).
     """
     V0, P, B = pm.n_original_vertices, pm.n_pcols, pm.n_batches
     off = pm.batch_offsets
@@ -299,34 +460,52 @@ def encode(pm: PMData, codec: str) -> tuple[dict, list[tuple[str, bytes, int]]]:
         if not np.array_equal(got, pm.killer[sel]):
             raise PMFormatError("killers are not the first pcols merging two corners of their faces")
 
-    chunks = []
-
-    def add(name, arrays):
-        raw = b"".join(planes(a) for a in arrays)
-        chunks.append((name, compress(raw, codec), len(raw)))
-
     created = roots >= V0
-    add("base", [np.diff(roots, prepend=0).astype(np.int32), count[roots].astype(np.int32),
-                 ordered(pm.vertices[roots]), pm.normals[roots[created]], ranks_code(faces_of(B))])
+    table = [("base", [("roots", np.diff(roots, prepend=0).astype(np.int32)), ("counts", count[roots].astype(np.int32)),
+                       ("positions", ordered(pm.vertices[roots])), ("normals", pm.normals[roots[created]]),
+                       ("faces", ranks_code(faces_of(B)))])]
+    # Each made vertex's parent, for encoding 2's predictions.
+    parent = np.full(V0 + P, -1, np.int64)
+    parent[v1], parent[v2] = np.arange(V0, V0 + P), np.arange(V0, V0 + P)
     for b in range(B - 1, -1, -1):
         lo, hi = int(off[b]), int(off[b + 1])
         a, c = v1[lo:hi], v2[lo:hi]
-        parent = pm.vertices[V0 + lo:V0 + hi]
-        add(f"batch {b}", [pm.v1[lo:hi], pm.v2[lo:hi], count[a].astype(np.int32),
-                           pm.radius[lo:hi], pm.alpha[lo:hi], pm.delta[lo:hi], pm.mu[lo:hi], pm.cost[lo:hi],
-                           pm.metric[lo:hi],
-                           float_residual(pm.vertices[a], parent), float_residual(pm.vertices[c], parent),
-                           pm.normals[a[a >= V0]], pm.normals[c[c >= V0]], ranks_code(faces_of(b))])
-    tail = [group.astype(group_dtype(B)),
-            float_residual(pm.normals[:V0], area_normals(pm.vertices[:V0], pm.faces, V0))]
+        here = pm.vertices[V0 + lo:V0 + hi]
+        if encoding == 1:
+            radius, alpha, cost = pm.radius[lo:hi], pm.alpha[lo:hi], pm.cost[lo:hi]
+            normals = [pm.normals[a[a >= V0]], pm.normals[c[c >= V0]]]
+        else:
+            w = parent[V0 + lo:V0 + hi]
+            up = np.maximum(w, V0)
+            radius = float_residual(pm.radius[lo:hi], radius_prediction(
+                pm.radius[up - V0], pm.vertices[up], here, w >= 0))
+            alpha = float_residual(pm.alpha[lo:hi], alpha_prediction(
+                pm.alpha[up - V0], pm.normals[up], pm.normals[V0 + lo:V0 + hi], w >= 0))
+            cost = cost_code(pm.cost[lo:hi])
+            normals = [unit_residual(pm.normals[x[x >= V0]], pm.normals[V0 + lo:V0 + hi][x >= V0]) for x in (a, c)]
+        table.append((f"batch {b}", [
+            ("v1, v2", pm.v1[lo:hi]), ("v1, v2", pm.v2[lo:hi]), ("counts", count[a].astype(np.int32)),
+            ("radius", radius), ("alpha", alpha), ("delta", pm.delta[lo:hi]), ("mu", pm.mu[lo:hi]), ("cost", cost),
+            ("metric", pm.metric[lo:hi]),
+            ("positions", float_residual(pm.vertices[a], here)), ("positions", float_residual(pm.vertices[c], here)),
+            *(("normals", x) for x in normals), ("faces", ranks_code(faces_of(b)))]))
+    tail = [("face groups", group.astype(group_dtype(B))),
+            ("original normals", float_residual(pm.normals[:V0], area_normals(pm.vertices[:V0], pm.faces, V0)))]
     if pm.shading_normals is not None:
         # An original vertex's shading normal is its area-weighted normal, a
         # created one's is near its cone axis: residuals against the normals.
-        tail.append(float_residual(pm.shading_normals, pm.normals))
-    add("tail", tail)
-    fields = dict(roots=int(len(roots)), batch_offsets=[int(o) for o in off], group_faces=[int(bounds[g + 1] - bounds[g]) for g in range(B, -1, -1)],
-                  shading_normals=pm.shading_normals is not None, codec=codec)
-    return fields, chunks
+        if encoding == 1:
+            tail.append(("shading normals", float_residual(pm.shading_normals, pm.normals)))
+        else:
+            tail += [("shading normals", float_residual(pm.shading_normals[:V0], pm.normals[:V0])),
+                     ("shading normals", unit_residual(pm.shading_normals[V0:], pm.normals[V0:]))]
+    table.append(("tail", tail))
+    fields = dict(roots=int(len(roots)), batch_offsets=[int(o) for o in off],
+                  group_faces=[int(bounds[g + 1] - bounds[g]) for g in range(B, -1, -1)],
+                  shading_normals=pm.shading_normals is not None)
+    if encoding != 1:
+        fields["encoding"] = encoding
+    return fields, table
 
 
 def group_dtype(B: int):
@@ -365,6 +544,14 @@ class _Cursor:
         self.at += n
         return a
 
+    def planed(self, dtype, shape) -> memoryview:
+        """The next array's bytes, still byte-planed."""
+        n = math.prod(shape) * np.dtype(dtype).itemsize
+        if self.at + n > len(self.raw):
+            raise ValueError(f"its arrays need more than its {len(self.raw)} bytes")
+        self.at += n
+        return self.raw[self.at - n:self.at]
+
     def done(self) -> None:
         if self.at != len(self.raw):
             raise ValueError(f"{len(self.raw) - self.at} bytes are left over after its arrays")
@@ -392,16 +579,18 @@ class Stream:
     metric: np.ndarray
     face_ranks: list  # per group read, coarse first: [n, 3] (int32 or int64)
     killers: list  # per group read: int32[n]
+    encoding: int = 1  # the chunks' array encoding (ENCODINGS)
+    parent: np.ndarray | None = None  # int32[V]: each read vertex's parent, -1 for roots
     owner: np.ndarray | None = None  # int32[V0]: the C decoder's rank -> pcol stamps
     pointers: tuple | None = None  # the C decoder's addresses of the arrays above (fixed for a read)
 
 
-def new_stream(V0: int, P: int, offsets: np.ndarray) -> Stream:
+def new_stream(V0: int, P: int, offsets: np.ndarray, encoding: int = 1) -> Stream:
     V = V0 + P
     return Stream(V0, P, offsets, np.zeros((V, 3), np.float32), np.zeros((V, 3), np.float32),
                   np.zeros(V, np.int64), np.zeros(V, np.int64), np.zeros(V, bool),
                   *(np.zeros(P, np.int32) for _ in range(2)), *(np.zeros(P, np.float32) for _ in range(4)),
-                  np.zeros(P, np.float64), np.zeros(P, np.uint8), [], [])
+                  np.zeros(P, np.float64), np.zeros(P, np.uint8), [], [], encoding, np.full(V, -1, np.int32))
 
 
 def read_base(s: Stream, raw: bytes, R: int, n_faces: int) -> None:
@@ -430,9 +619,11 @@ def read_base(s: Stream, raw: bytes, R: int, n_faces: int) -> None:
 
 def read_batch(s: Stream, raw: bytes, b: int, n_faces: int, pool=None) -> None:
     """Decode batch ``b``'s chunk into ``s`` (raises ``ValueError`` on bad
-    content), by the C loops where they are built; otherwise by NumPy steps,
-    and then ``pool`` (an executor) finds its killers beside the caller, to
-    be resolved by :func:`killers_of`."""
+    content), by the C loops where they are built; otherwise by NumPy steps.
+    With ``pool`` (an executor) its killers (and, by the C loops, its face
+    ranks) are found beside the caller: its entry of ``s.killers`` is then a
+    future, resolved by :func:`settle` (which raises a bad rank's
+    ``ValueError``) or :func:`killers_of`."""
     V0 = s.V0
     lo, hi = int(s.offsets[b]), int(s.offsets[b + 1])
     n = hi - lo
@@ -440,7 +631,7 @@ def read_batch(s: Stream, raw: bytes, b: int, n_faces: int, pool=None) -> None:
     # a chunk without it fails either way, and the NumPy steps name the
     # failure without allocating for those counts.
     if native is not None and len(raw) >= 61 * n + 12 * n_faces:
-        _read_batch_native(s, raw, lo, hi, n_faces)
+        _read_batch_native(s, raw, lo, hi, n_faces, pool if n_faces >= FACES_BESIDE else None)
         return
     c = _Cursor(raw)
     a, d = c.take(np.int32, (n,)), c.take(np.int32, (n,))
@@ -461,20 +652,34 @@ def read_batch(s: Stream, raw: bytes, b: int, n_faces: int, pool=None) -> None:
     if np.any(c1 < 1) or np.any(c2 < 1) or np.any((a < V0) & (c1 != 1)) or np.any((d < V0) & (c2 != 1)):
         raise ValueError("a pcol's leaf counts do not split its vertex's")
     s.v1[lo:hi], s.v2[lo:hi] = a, d
+    s.parent[a], s.parent[d] = u, u
     s.seen[both] = True
     s.seen[u] = False
     s.count[a], s.count[d] = c1, c2
     s.start[a], s.start[d] = s.start[u], s.start[u] + c1
-    for name in ("radius", "alpha", "delta", "mu"):
+    if s.encoding == 1:
+        s.radius[lo:hi] = c.take(np.float32, (n,))
+        s.alpha[lo:hi] = c.take(np.float32, (n,))
+    else:
+        w = s.parent[u].astype(np.int64)
+        up = np.maximum(w, V0)
+        s.radius[lo:hi] = float_from_residual(c.take(np.uint32, (n,)), radius_prediction(
+            s.radius[up - V0], s.vertices[up], s.vertices[u], w >= 0))
+        s.alpha[lo:hi] = float_from_residual(c.take(np.uint32, (n,)), alpha_prediction(
+            s.alpha[up - V0], s.normals[up], s.normals[u], w >= 0))
+    for name in ("delta", "mu"):
         getattr(s, name)[lo:hi] = c.take(np.float32, (n,))
-    s.cost[lo:hi] = c.take(np.float64, (n,))
+    s.cost[lo:hi] = c.take(np.float64, (n,)) if s.encoding == 1 else cost_decode(c.take(np.uint64, (n,)))
     s.metric[lo:hi] = c.take(np.uint8, (n,))
-    parent = s.vertices[u]
-    s.vertices[a] = float_from_residual(c.take(np.uint32, (n, 3)), parent)
-    s.vertices[d] = float_from_residual(c.take(np.uint32, (n, 3)), parent)
+    here = s.vertices[u]
+    s.vertices[a] = float_from_residual(c.take(np.uint32, (n, 3)), here)
+    s.vertices[d] = float_from_residual(c.take(np.uint32, (n, 3)), here)
     for idx in (a, d):
-        made = idx[idx >= V0]
-        s.normals[made] = c.take(np.float32, (len(made), 3))
+        made = idx >= V0
+        if s.encoding == 1:
+            s.normals[idx[made]] = c.take(np.float32, (int(made.sum()), 3))
+        else:
+            s.normals[idx[made]] = unit_from_residual(c.take(np.uint32, (int(made.sum()), 3)), s.normals[u[made]])
     ranks = ranks_decode(c.take(np.uint32, (n_faces, 3)))
     c.done()
     if np.any((ranks < 0) | (ranks >= V0)):
@@ -497,52 +702,98 @@ _NATIVE_ERRORS = {
 }
 
 
-def _read_batch_native(s: Stream, raw, lo: int, hi: int, n_faces: int) -> None:
-    """:func:`read_batch` in one C pass: the same checks in the same order,
-    the same state and arrays."""
+# Fewest faces whose ranks and killers the C loops find on a pool's thread
+# (beside the next chunks' decoding): fewer cost less than the handing over.
+FACES_BESIDE = 1 << 12
+
+
+def _read_batch_native(s: Stream, raw, lo: int, hi: int, n_faces: int, pool=None) -> None:
+    """:func:`read_batch` in C: the same checks in the same order, the same
+    state and arrays. The face ranks and killers are found by a second pass,
+    on ``pool`` (an executor) if given: this batch's killers are then a
+    future whose ``result()`` raises ``ValueError`` for a bad rank, to be
+    resolved (by :func:`settle`) before a finer batch's failure is raised."""
     V0 = s.V0
     buf = np.frombuffer(raw, np.uint8)
-    ranks = np.empty((n_faces, 3), np.int32)
-    killer = np.empty(n_faces, np.int32)
     info = np.zeros(1, np.int64)
     if s.pointers is None:
         s.owner = np.full(V0, -1, np.int32)
-        s.pointers = tuple(_ptr(a) for a in (s.seen, s.count, s.start, s.vertices, s.normals, s.v1, s.v2, s.radius,
-                                             s.alpha, s.delta, s.mu, s.cost, s.metric))
-    code = native.pmz_read_batch(_ptr(buf), len(buf), V0, lo, hi, n_faces, *s.pointers, _ptr(ranks), _ptr(killer),
-                                 _ptr(s.owner), _ptr(info))
+        s.pointers = tuple(_ptr(a) for a in (s.seen, s.count, s.start, s.vertices, s.normals, s.parent, s.v1, s.v2,
+                                             s.radius, s.alpha, s.delta, s.mu, s.cost, s.metric))
+    code = native.pmz_read_batch(_ptr(buf), len(buf), V0, lo, hi, n_faces, s.encoding, *s.pointers, _ptr(info))
     if code == 1:
         raise ValueError(f"its arrays need more than its {len(buf)} bytes")
-    if code == 8:
-        raise ValueError(f"a face corner's rank is outside [0, {V0})")
     if code:
         raise ValueError(_NATIVE_ERRORS[code].format(int(info[0])))
+    ranks = np.empty((n_faces, 3), np.int32)
+    killer = np.empty(n_faces, np.int32)
+
+    def faces():
+        # buf, ranks and killer stay referenced by this closure until it returns.
+        if native.pmz_batch_faces(_ptr(buf) + len(buf) - 12 * n_faces, n_faces, V0, lo, hi, _ptr(s.start),
+                                  _ptr(s.count), _ptr(ranks), _ptr(killer), _ptr(s.owner)):
+            raise ValueError(f"a face corner's rank is outside [0, {V0})")
+        return killer
+
+    # The owner scratch serves one batch at a time: the previous batch's
+    # pass (run beside this one's first) ends before this one's starts.
+    if s.killers and not isinstance(s.killers[-1], np.ndarray):
+        wait([s.killers[-1]])
     s.face_ranks.append(ranks)
-    s.killers.append(killer)
+    s.killers.append(pool.submit(faces) if pool is not None else faces())
+
+
+def settle(s: Stream, i: int) -> None:
+    """Wait for face group ``i``'s killers if a pool is finding them (raises
+    the ``ValueError`` of a bad rank there)."""
+    if not isinstance(s.killers[i], np.ndarray):
+        s.killers[i] = s.killers[i].result()
 
 
 def killers_of(s: Stream, names: list) -> None:
     """Resolve the killers found beside the decoding (``names``: each face
     group's chunk, for messages); a face no pcol of its batch kills raises
     ``ValueError`` naming its chunk (the base mesh's faces have none)."""
-    for i, killer in enumerate(s.killers):
-        if not isinstance(killer, np.ndarray):
-            killer = s.killers[i] = killer.result()
+    for i in range(len(s.killers)):
+        settle(s, i)
+        killer = s.killers[i]
         if i and np.any(killer < 0):
             raise ValueError(f"chunk {names[i]!r}: face {int(np.flatnonzero(killer < 0)[0])} of the chunk has no "
                              "two corners under one of its batch's pcols")
 
 
-def finish_full(s: Stream, raw: bytes, B: int, F: int, shading: bool) -> dict:
+def finish_full(s: Stream, raw: bytes, B: int, F: int, shading: bool, ready=None, pool=None) -> dict:
     """The full hierarchy's arrays from a stream that read every batch and
-    the tail (raises ``ValueError`` on bad content)."""
+    the tail (raises ``ValueError`` on bad content). ``ready(name, array)``,
+    if given, is called as each output array is final (its checksum can be
+    computed meanwhile); with ``pool`` (an executor) the created vertices'
+    shading normals are decoded beside the placing of the faces and the
+    area normals."""
     V0, P = s.V0, s.P
+    offsets = np.asarray(s.offsets, np.int64)
     c = _Cursor(raw)
     # Kept in its narrow dtype: NumPy's stable sort of small integers is a radix sort.
     group = c.take(group_dtype(B), (F,))
-    residual = c.take(np.uint32, (V0, 3))
-    shading = c.take(np.uint32, (V0 + P, 3)) if shading else None
+    residual = c.planed(np.uint32, (V0, 3))
+    if shading and s.encoding == 1:
+        shading = (c.planed(np.uint32, (V0 + P, 3)),)
+    elif shading:
+        shading = (c.planed(np.uint32, (V0, 3)), c.planed(np.uint32, (P, 3)))
+    else:
+        shading = None
     c.done()
+    normals = s.normals
+    shading_normals = None if shading is None else np.empty((V0 + P, 3), np.float32)
+    created = None
+    if shading is not None and len(shading) == 2:
+        # The created vertices' shading normals need only their cone axes,
+        # final since the batches: decoded into place now.
+        created = _beside(pool, unit_from_planed, shading[1], normals[V0:], shading_normals[V0:])
+    if ready is not None:
+        # Final once every batch is read: the tail adds faces and normals only.
+        for name in ("vertices", "v1", "v2", "radius", "alpha", "delta", "mu", "cost", "metric"):
+            ready(name, getattr(s, name))
+        ready("batch_offsets", offsets)
     # Rank -> original vertex id: each original vertex appeared exactly once.
     orig_of_rank = np.full(V0, -1, np.int64)
     orig_of_rank[s.start[:V0]] = np.arange(V0)
@@ -570,12 +821,33 @@ def finish_full(s: Stream, raw: bytes, B: int, F: int, shading: bool) -> dict:
             sel = by_group[bounds[g]:bounds[g + 1]]
             faces[sel] = orig_of_rank[s.face_ranks[i]]
             killer[sel] = s.killers[i]
-    normals = s.normals
-    normals[:V0] = float_from_residual(residual, area_normals(s.vertices[:V0], faces, V0))
-    shading_normals = None if shading is None else float_from_residual(shading, normals)
+    if ready is not None:
+        ready("faces", faces)
+        ready("killer", killer)
+    float_from_planed(residual, area_normals(s.vertices[:V0], faces, V0), normals[:V0])
+    if ready is not None:
+        ready("normals", normals)
+    if shading is not None:
+        if created is None:
+            float_from_planed(shading[0], normals, shading_normals)
+        else:
+            float_from_planed(shading[0], normals[:V0], shading_normals[:V0])
+            created.result()
+        if ready is not None:
+            ready("shading_normals", shading_normals)
     return dict(vertices=s.vertices, normals=normals, faces=faces, v1=s.v1, v2=s.v2, radius=s.radius,
                 alpha=s.alpha, delta=s.delta, mu=s.mu, cost=s.cost, metric=s.metric,
-                batch_offsets=np.asarray(s.offsets, np.int64), killer=killer, shading_normals=shading_normals)
+                batch_offsets=offsets, killer=killer, shading_normals=shading_normals)
+
+
+def _beside(pool, fn, *args):
+    """``fn(*args)`` submitted to ``pool``, or run now without one (a
+    finished future either way: its ``result()`` is the value)."""
+    if pool is not None:
+        return pool.submit(fn, *args)
+    future = Future()
+    future.set_result(fn(*args))
+    return future
 
 
 def finish_prefix(s: Stream, k: int) -> dict:

@@ -16,6 +16,7 @@ import hashlib
 import io
 import json
 import math
+import mmap
 import os
 import zipfile
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -33,7 +34,8 @@ MAGIC = "pmjax.progressive-mesh"
 VERSION = 2
 VERSIONS = (1, 2)
 # Header fields that describe one file's layout, not the hierarchy.
-LAYOUT_FIELDS = ("array_sha256", "chunks", "roots", "group_faces", "codec", "shading_normals", "batch_offsets")
+LAYOUT_FIELDS = ("array_sha256", "chunks", "roots", "group_faces", "codec", "shading_normals", "batch_offsets",
+                 "encoding")
 # Largest header.json read, bytes: it holds counts, build parameters and
 # checksums (a few KiB), so a larger one is damaged or forged.
 HEADER_LIMIT = 1 << 20
@@ -96,7 +98,7 @@ def save_pm(pm: PMData, path: str | os.PathLike, *, version: int = VERSION, code
             if version == 1:
                 _write_v1(fh, header, pm)
             else:
-                fields, chunks = _codec.encode(pm, codec)
+                fields, chunks = _codec.encode(pm, codec, _codec.ENCODING)
                 header.update(fields, chunks=[[name, len(data), raw] for name, data, raw in chunks])
                 text = json.dumps(header, indent=1, sort_keys=True).encode()
                 if len(text) > HEADER_LIMIT:
@@ -222,7 +224,11 @@ def read_arrays(path, *, batches: int | None = None) -> tuple[PMData, str]:
             raise PMFormatError(f"{path}: no such file")
         with open(path, "rb") as fh:
             if fh.read(len(_codec.MAGIC2)) == _codec.MAGIC2:
-                return _read_v2(fh, source, batches)
+                try:
+                    reader = _Mapped(fh)
+                except (OSError, ValueError):  # a file that cannot be mapped is read
+                    reader = fh
+                return _read_v2(reader, source, batches)
     pm, fingerprint = _read_v1(path, source)
     if batches is None:
         return pm, fingerprint
@@ -271,6 +277,22 @@ def _done(fn, *args) -> Future:
     return future
 
 
+class _Mapped:
+    """A file opened for reading, read as slices of a read-only map of it:
+    version 2's chunks are hashed and expanded where the map holds them,
+    without the copy of the compressed bytes that ``read`` makes (the map
+    closes when the last slice is dropped)."""
+
+    def __init__(self, fh):
+        self.at = fh.tell()
+        self.view = memoryview(mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ))
+
+    def read(self, n: int) -> memoryview:
+        out = self.view[self.at:self.at + n]
+        self.at += len(out)
+        return out
+
+
 def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
     """Version 2 after its magic bytes: the header, then the chunks the read
     needs, each checked (SHA-256, size, content) before it is used."""
@@ -281,7 +303,7 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
     if length > HEADER_LIMIT:
         raise PMFormatError(f"{path}: header declares {length} bytes, more than the {HEADER_LIMIT} a header can "
                             "need; the file is damaged or forged")
-    text = fh.read(length)
+    text = bytes(fh.read(length))
     if len(text) < length:
         raise PMFormatError(f"{path}: truncated in its header ({len(text)} of {length} bytes)")
     try:
@@ -296,32 +318,50 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
     k = B if batches is None else int(batches)
     _check_batches(path, k, B, header["group_faces"])
     offsets = np.asarray(header["batch_offsets"], np.int64)
-    stream = _codec.new_stream(V0, P, offsets)
+    stream = _codec.new_stream(V0, P, offsets, header.get("encoding", 1))
     at = 12 + length
     names = [name for name, _, _ in layout]
     codec = header["codec"]
     tail = None
+    wheres = {}
 
-    def expand(where: str, payload: bytes, raw: int):
+    def expand(where: str, payload, raw: int):
         # On the pool's thread: hashlib and the decompressors release the GIL.
         data = memoryview(payload)[_codec.SHA_BYTES:]
-        if _codec.chunk_sha(data) != payload[:_codec.SHA_BYTES]:
+        if _codec.chunk_sha(data) != bytes(payload[:_codec.SHA_BYTES]):
             raise PMFormatError(f"{where} fails its SHA-256: the file is damaged")
         try:
             return _codec.decompress(data, codec, raw)
         except ValueError as exc:
             raise PMFormatError(f"{where} is damaged: {exc}") from exc
 
+    def settle(i: int) -> None:
+        # Batch chunk i's face ranks and killers, found beside the next
+        # chunk's decoding: a bad rank there is chunk i's failure.
+        if 1 <= i <= B:
+            try:
+                _codec.settle(stream, i)
+            except ValueError as exc:
+                raise PMFormatError(f"{wheres[i]} is damaged: {exc}") from exc
+
     def decode(i: int, where: str, job) -> None:
         nonlocal tail
-        raw_bytes = job.result()
+        wheres[i] = where
+        failure = None
         try:
+            raw_bytes = job.result()
             if i == 0:
                 _codec.read_base(stream, raw_bytes, header["roots"], header["group_faces"][0])
             elif i <= B:
                 _codec.read_batch(stream, raw_bytes, B - i, header["group_faces"][i], pool)
+        except PMFormatError as exc:
+            failure = exc
         except ValueError as exc:
-            raise PMFormatError(f"{where} is damaged: {exc}") from exc
+            failure = PMFormatError(f"{where} is damaged: {exc}")
+            failure.__cause__ = exc
+        settle(i - 1)  # the previous chunk's failures come first
+        if failure is not None:
+            raise failure
         if i == B + 1:
             tail = (where, raw_bytes)
 
@@ -338,6 +378,7 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
             if len(payload) < _codec.SHA_BYTES + nbytes:
                 if pending is not None:
                     decode(*pending)
+                    settle(pending[0])
                 end = at + _codec.SHA_BYTES + nbytes
                 held = (f"its base mesh and {i - 1} coarsest batches are whole; pmjax.load(path, batches={i - 1}) "
                         "reads them") if i else "not even its base mesh is whole"
@@ -352,33 +393,43 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
             at += len(payload)
         if pending is not None:
             decode(*pending)
+            settle(pending[0])
         try:
             _codec.killers_of(stream, names)
         except ValueError as exc:
             raise PMFormatError(f"{path}: {exc}; the file is damaged") from exc
-        if batches is None:
-            where, raw_bytes = tail
-            try:
-                arrays = _codec.finish_full(stream, raw_bytes, B, F, bool(header["shading_normals"]))
-            except ValueError as exc:
-                raise PMFormatError(f"{where} is damaged: {exc}") from exc
         if batches is not None:
             return _prefix_pm(_codec.finish_prefix(stream, k), header, k, B, path)
+        # Each array is hashed on the pool as soon as it is final, beside the
+        # rest of the decoding and beside the structure rules' check.
+        hashing = {}
+        where, raw_bytes = tail
+        try:
+            arrays = _codec.finish_full(stream, raw_bytes, B, F, bool(header["shading_normals"]),
+                                        lambda name, a: hashing.setdefault(name, pool.submit(_sha256, a)), pool)
+        except ValueError as exc:
+            raise PMFormatError(f"{where} is damaged: {exc}") from exc
         for name, shape in shapes.items():
             if arrays.get(name) is not None and arrays[name].shape != shape:
                 raise PMFormatError(f"{path}: array {name!r} decodes to shape {arrays[name].shape}, expected {shape}")
+        meta = {key: v for key, v in header.items() if key not in LAYOUT_FIELDS}
+        pm = PMData(**arrays, header=meta)
+        # The checksums' failures come first, as they name the damage.
+        rules = None
+        try:
+            validate_pm(pm, source=path)
+        except PMFormatError as exc:
+            rules = exc
         sums = header["array_sha256"]
-        present = {name: a for name, a in arrays.items() if a is not None}
-        digests = dict(zip(present, pool.map(_sha256, present.values())))
+        digests = {name: hashing[name].result() for name, a in arrays.items() if a is not None}
         for name, digest in digests.items():
             if digest != sums.get(name):
                 raise PMFormatError(f"{path}: checksum mismatch in array {name!r}")
         for name in sums:
             if name not in digests:
                 raise PMFormatError(f"{path}: array {name!r} is missing (the header has its checksum)")
-    meta = {key: v for key, v in header.items() if key not in LAYOUT_FIELDS}
-    pm = PMData(**arrays, header=meta)
-    validate_pm(pm, source=path)
+        if rules is not None:
+            raise rules
     return pm, content_fingerprint(digests)
 
 
@@ -404,6 +455,10 @@ def _v2_layout(header: dict, path: str, V0: int, F: int, P: int, B: int) -> list
 
     if header.get("codec") not in ("zstd", "zlib"):
         bad(f"codec {header.get('codec')!r} is not zstd or zlib")
+    encoding = header.get("encoding", 1)
+    if isinstance(encoding, bool) or encoding not in _codec.ENCODINGS:
+        raise PMFormatError(f"{path}: header encoding={encoding!r} is not one this pmjax reads "
+                            f"({', '.join(map(str, _codec.ENCODINGS))}); a newer pmjax wrote it, or it is damaged")
     R = header.get("roots")
     if isinstance(R, bool) or not isinstance(R, int) or not 0 <= R <= V0 + P:
         bad(f"roots={R!r} is not a vertex count")

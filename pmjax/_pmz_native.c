@@ -1,7 +1,9 @@
 /* Decoding of a version 2 .pmz file's chunks (docs/format.md), as plain C
  * loops: a batch chunk in one pass (unplaning, the checks, leaf ranges,
- * positions from parents, face ranks and killers), the faces in file order
- * from the groups, the area-weighted normals, and float residuals.
+ * positions from parents, encoding 2's predictions) and its face ranks and
+ * killers in a second (which may run beside the next chunks' first), the
+ * faces in file order from the groups, the area-weighted normals, and float
+ * residuals.
  *
  * Each loop is a NumPy step of pmjax/_codec.py with its arithmetic in the
  * same order (no contraction), so a read with these loops gives the NumPy
@@ -18,6 +20,16 @@
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
+
+/* Rows that the loops below read or write by a child's, parent's or rank's
+ * id are scattered over arrays larger than the caches: each loop asks for
+ * the rows of the element AHEAD places on while it works on this one. */
+#define AHEAD 16
+#if defined(__GNUC__)
+#define PREFETCH(p) __builtin_prefetch(p)
+#else
+#define PREFETCH(p) ((void)0)
+#endif
 
 /* Outcomes of pmz_read_batch (pmjax/_codec.py words each). */
 enum { OK = 0, SHORT = 1, BAD_V1 = 2, BAD_V2 = 3, CHILD_SEEN = 4, PARENT_UNSEEN = 5, BAD_COUNTS = 6,
@@ -76,16 +88,72 @@ void pmz_float_from_residual(int64_t n, const uint32_t *residual, const float *p
         out[i] = bits_float(unordered(unzigzag(residual[i]) + ordered(float_bits(prediction[i]))));
 }
 
+static float from_residual(uint32_t residual, float prediction) {
+    return bits_float(unordered(unzigzag(residual) + ordered(float_bits(prediction))));
+}
+
+/* _codec.unit_from_residual for one vector: the two components other than
+ * the guide's largest (first of equal magnitudes; never a NaN) against the
+ * guide's, then the largest against the unit length of those two, float64
+ * arithmetic in _codec._unit_component's order. r(k) is the residual of
+ * component k. */
+#define UNIT_FROM_RESIDUAL(r, guide, out)                                                                 \
+    do {                                                                                              \
+        float g0 = fabsf((guide)[0]), g1 = fabsf((guide)[1]), g2 = fabsf((guide)[2]);                   \
+        int k = g1 > g0 ? 1 : 0;                                                                      \
+        if (g2 > (k ? g1 : g0)) k = 2;                                                                \
+        int j1 = (k + 1) % 3, j2 = (k + 2) % 3;                                                       \
+        (out)[j1] = from_residual(r(j1), (guide)[j1]);                                                \
+        (out)[j2] = from_residual(r(j2), (guide)[j2]);                                                \
+        double x1 = (double)(out)[j1], x2 = (double)(out)[j2];                                        \
+        double sq = 1.0 - (x1 * x1 + x2 * x2);                                                        \
+        float pk = copysignf((float)(sq > 0 ? sqrt(sq) : 0.0), (guide)[k]);                           \
+        (out)[k] = from_residual(r(k), pk);                                                           \
+    } while (0)
+
+/* _codec.unit_from_residual: m unit vectors from uint32 residuals [m, 3]
+ * against guides float32 [m, 3]. */
+void pmz_unit_from_residual(int64_t m, const uint32_t *residual, const float *guide, float *out) {
+    for (int64_t i = 0; i < m; i++) {
+#define ROW(k) residual[3 * i + (k)]
+        UNIT_FROM_RESIDUAL(ROW, guide + 3 * i, out + 3 * i);
+#undef ROW
+    }
+}
+
+/* pmz_float_from_residual with the residuals still byte-planed (uint32
+ * planes of n elements): the unplaning folded into the decoding pass. */
+void pmz_float_from_planed(int64_t n, const uint8_t *planed, const float *prediction, float *out) {
+    for (int64_t i = 0; i < n; i++) out[i] = from_residual(get32(planed, n, i), prediction[i]);
+}
+
+/* pmz_unit_from_residual with the residuals [m, 3] still byte-planed. */
+void pmz_unit_from_planed(int64_t m, const uint8_t *planed, const float *guide, float *out) {
+    for (int64_t i = 0; i < m; i++) {
+#define ROW(k) get32(planed, 3 * m, 3 * i + (k))
+        UNIT_FROM_RESIDUAL(ROW, guide + 3 * i, out + 3 * i);
+#undef ROW
+    }
+}
+
+/* Element i of a byte-planed array of n 8-byte elements. */
+static uint64_t get64(const uint8_t *src, int64_t n, int64_t i) {
+    uint8_t b[8];
+    for (int k = 0; k < 8; k++) b[k] = src[k * n + i];
+    uint64_t u;
+    memcpy(&u, b, 8);
+    return u;
+}
+
 /* Batch chunk of pcols lo .. hi-1 (ids V0+lo .. V0+hi-1) into the reader's
- * state (_codec.read_batch): seen uint8[V], count and start int64[V],
- * vertices and normals float32[V, 3], v1 .. metric at [lo, hi), and this
- * batch's face ranks int32[n_faces, 3] and killers int32[n_faces];
- * owner int32[V0] is scratch kept across the batches of a read (no entry
- * in [lo, hi) before the call). */
+ * state (_codec.read_batch), arrays stored in encoding 1 or 2: seen
+ * uint8[V], count and start int64[V], vertices and normals float32[V, 3],
+ * parent int32[V] (-1 for roots), v1 .. metric at [lo, hi); the chunk's
+ * size is checked whole, its face ranks left to pmz_batch_faces. */
 int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, int64_t hi, int64_t n_faces,
-                       uint8_t *seen, int64_t *count, int64_t *start, float *vertices, float *normals, int32_t *v1,
-                       int32_t *v2, float *radius, float *alpha, float *delta, float *mu, double *cost,
-                       uint8_t *metric, int32_t *ranks, int32_t *killer, int32_t *owner, int64_t *info) {
+                       int64_t encoding, uint8_t *seen, int64_t *count, int64_t *start, float *vertices,
+                       float *normals, int32_t *parent, int32_t *v1, int32_t *v2, float *radius, float *alpha,
+                       float *delta, float *mu, double *cost, uint8_t *metric, int64_t *info) {
     const int64_t n = hi - lo, first = V0 + lo;
     int32_t *a = v1 + lo, *d = v2 + lo;
     /* The children and the count under v1, then the checks on them before
@@ -124,20 +192,67 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
     /* Leaf ranges: the children split their parent's. */
     for (int64_t i = 0; i < n; i++) {
         int64_t u = first + i, c1 = (int32_t)get32(c1_planes, n, i);
+        if (i + AHEAD < n) {
+            PREFETCH(count + a[i + AHEAD]);
+            PREFETCH(count + d[i + AHEAD]);
+            PREFETCH(start + a[i + AHEAD]);
+            PREFETCH(start + d[i + AHEAD]);
+            PREFETCH(parent + a[i + AHEAD]);
+            PREFETCH(parent + d[i + AHEAD]);
+        }
         seen[a[i]] = seen[d[i]] = 1;
         seen[u] = 0;
         count[a[i]] = c1;
         count[d[i]] = count[u] - c1;
         start[a[i]] = start[u];
         start[d[i]] = start[u] + c1;
+        parent[a[i]] = parent[d[i]] = (int32_t)u;
     }
-    /* The attributes as stored. */
+    /* The attributes: as stored (encoding 1), or the radius and half-angle
+     * against their parent's less the distance and angle between them, and
+     * the costs against the previous pcol's (_codec.cost_decode). */
     const uint8_t *at = raw + 12 * n;
-    unplane(at, n, 4, (uint8_t *)(radius + lo));
-    unplane(at + 4 * n, n, 4, (uint8_t *)(alpha + lo));
+    if (encoding == 1) {
+        unplane(at, n, 4, (uint8_t *)(radius + lo));
+        unplane(at + 4 * n, n, 4, (uint8_t *)(alpha + lo));
+        unplane(at + 16 * n, n, 8, (uint8_t *)(cost + lo));
+    } else {
+        /* _codec.radius_prediction and _codec.alpha_prediction. */
+        for (int64_t i = 0; i < n; i++) {
+            int64_t u = first + i, w = parent[u];
+            if (i + AHEAD < n && parent[u + AHEAD] >= 0) {
+                int64_t ahead = parent[u + AHEAD];
+                PREFETCH(vertices + 3 * ahead);
+                PREFETCH(normals + 3 * ahead);
+                PREFETCH(radius + ahead - V0);
+                PREFETCH(alpha + ahead - V0);
+            }
+            float pr = 0.0f, pa = 0.0f;
+            if (w >= 0) {
+                const float *x = vertices + 3 * u, *y = vertices + 3 * w;
+                double dx = (double)y[0] - (double)x[0], dy = (double)y[1] - (double)x[1],
+                       dz = (double)y[2] - (double)x[2];
+                double q = (double)radius[w - V0] - sqrt((dx * dx + dy * dy) + dz * dz);
+                pr = q > 0 ? (float)q : 0.0f;
+                x = normals + 3 * u, y = normals + 3 * w;
+                dx = (double)y[0] - (double)x[0], dy = (double)y[1] - (double)x[1], dz = (double)y[2] - (double)x[2];
+                double c = sqrt((dx * dx + dy * dy) + dz * dz);
+                q = (double)alpha[w - V0] - (c + c * c * c / 24.0);
+                pa = q > 0 ? (float)q : 0.0f;
+            }
+            radius[lo + i] = from_residual(get32(at, n, i), pr);
+            alpha[lo + i] = from_residual(get32(at + 4 * n, n, i), pa);
+        }
+        uint64_t prev = 0;
+        for (int64_t i = 0; i < n; i++) {
+            uint64_t z = get64(at + 16 * n, n, i);
+            prev += (z >> 1) ^ (0u - (z & 1u));
+            uint64_t b = prev ^ (((prev >> 63) - 1u) | 0x8000000000000000ull);
+            memcpy(cost + lo + i, &b, 8);
+        }
+    }
     unplane(at + 8 * n, n, 4, (uint8_t *)(delta + lo));
     unplane(at + 12 * n, n, 4, (uint8_t *)(mu + lo));
-    unplane(at + 16 * n, n, 8, (uint8_t *)(cost + lo));
     unplane(at + 24 * n, n, 1, metric + lo);
     at += 25 * n;
     /* Children's positions from residuals against their parent's. */
@@ -145,23 +260,46 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
         const int32_t *child = side ? d : a;
         for (int64_t i = 0; i < n; i++)
             for (int k = 0; k < 3; k++) {
+                if (k == 0 && i + AHEAD < n) PREFETCH(vertices + 3 * (int64_t)child[i + AHEAD]);
                 uint32_t p = ordered(float_bits(vertices[3 * (first + i) + k]));
                 vertices[3 * (int64_t)child[i] + k] = bits_float(unordered(unzigzag(get32(at, 3 * n, 3 * i + k)) + p));
             }
         at += 12 * n;
     }
-    /* Normals of the children made by pcols, v1 children then v2 children. */
+    /* Normals of the children made by pcols, v1 children then v2 children:
+     * as stored (encoding 1), or against their parent's (encoding 2). */
     for (int side = 0; side < 2; side++) {
         const int32_t *child = side ? d : a;
         int64_t m = 0;
         for (int64_t i = 0; i < n; i++) m += child[i] >= V0;
         for (int64_t i = 0, j = 0; i < n; i++) {
+            if (i + AHEAD < n) PREFETCH(normals + 3 * (int64_t)child[i + AHEAD]);
             if (child[i] < V0) continue;
-            for (int k = 0; k < 3; k++) normals[3 * (int64_t)child[i] + k] = bits_float(get32(at, 3 * m, 3 * j + k));
+            float *out = normals + 3 * (int64_t)child[i];
+            if (encoding == 1) {
+                for (int k = 0; k < 3; k++) out[k] = bits_float(get32(at, 3 * m, 3 * j + k));
+            } else {
+#define STORED(k) get32(at, 3 * m, 3 * j + (k))
+                UNIT_FROM_RESIDUAL(STORED, normals + 3 * (first + i), out);
+#undef STORED
+            }
             j++;
         }
         at += 12 * m;
     }
+    return OK;
+}
+
+/* The face ranks and killers of the batch of pcols lo .. hi-1, from the
+ * byte-planed face codes that end its chunk (sizes checked by
+ * pmz_read_batch): ranks int32[n_faces, 3], killers int32[n_faces]. It
+ * reads only the start and count of the batch's own vertices, which no
+ * finer batch changes, so it may run beside the decoding of the next
+ * chunks; owner int32[V0] is scratch kept across the batches of a read (no
+ * entry in [lo, hi) before the call), so one batch's call at a time. */
+int64_t pmz_batch_faces(const uint8_t *at, int64_t n_faces, int64_t V0, int64_t lo, int64_t hi, const int64_t *start,
+                        const int64_t *count, int32_t *ranks, int32_t *killer, int32_t *owner) {
+    const int64_t n = hi - lo, first = V0 + lo;
     /* Face code -> corner ranks, each within [0, V0) (so int32). */
     int64_t r0 = 0;
     for (int64_t f = 0; f < n_faces; f++) {
@@ -181,6 +319,8 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
         for (int64_t r = start[first + i], end = r + count[first + i]; r < end; r++) owner[r] = (int32_t)(lo + i);
     for (int64_t f = 0; f < n_faces; f++) {
         int64_t cand[3];
+        if (f + AHEAD < n_faces)
+            for (int k = 0; k < 3; k++) PREFETCH(owner + ranks[3 * (f + AHEAD) + k]);
         for (int k = 0; k < 3; k++) {
             int64_t o = owner[ranks[3 * f + k]];
             cand[k] = o >= lo && o < hi ? o : -1;

@@ -137,3 +137,30 @@ def pytest_collection_modifyitems(config, items):
 def data_path():
     """``data_path(name)``: path of a model in ../shared/data (skips if absent)."""
     return _data_path
+
+
+def _same_bits(a, b) -> bool:
+    """Equal dtype, shape and bytes (NaN payloads and signed zeros included)."""
+    import numpy as np
+
+    return a.dtype == b.dtype and a.shape == b.shape and np.ascontiguousarray(a).tobytes() == \
+        np.ascontiguousarray(b).tobytes()
+
+
+def _assert_same_pm(a, b) -> None:
+    """Two progressive meshes with the same arrays, each bit for bit (names the first that differs)."""
+    assert set(a.arrays()) == set(b.arrays())
+    for name, x in a.arrays().items():
+        assert _same_bits(x, getattr(b, name)), name
+
+
+@pytest.fixture(scope="session")
+def same_bits():
+    """``same_bits(a, b)``: equal dtype, shape and bytes (NaN payloads and signed zeros included)."""
+    return _same_bits
+
+
+@pytest.fixture(scope="session")
+def assert_same_pm():
+    """``assert_same_pm(a, b)``: the same arrays, each bit for bit."""
+    return _assert_same_pm

@@ -1,6 +1,7 @@
 """The version 2 .pmz decoder's C loops (pmjax/_pmz_native.c) against its NumPy steps: the same arrays bit for
 bit, the same prefixes, and the same refusal, word for word, of every kind of damaged chunk."""
 
+import contextlib
 import json
 import os
 import zlib
@@ -21,18 +22,6 @@ def test_the_c_loops_are_built_where_required():
         assert _codec.native is not None, "pmjax._pmz_native is not built (python setup.py build_ext --inplace)"
     elif _codec.native is None:
         pytest.skip("the .pmz decoder's C loops (pmjax._pmz_native) are not built")
-
-
-def same_bits(a, b):
-    """Equal dtype, shape and bytes (NaN payloads and signed zeros included)."""
-    return a.dtype == b.dtype and a.shape == b.shape and np.ascontiguousarray(a).tobytes() == \
-        np.ascontiguousarray(b).tobytes()
-
-
-def assert_same_pm(a, b):
-    assert set(a.arrays()) == set(b.arrays())
-    for name, x in a.arrays().items():
-        assert same_bits(x, getattr(b, name)), name
 
 
 @pytest.fixture
@@ -64,7 +53,7 @@ def both_ways(numpy_decoder, read):
     return native, plain
 
 
-def check_model(pm, tmp_path, numpy_decoder, codec="zstd"):
+def check_model(pm, tmp_path, numpy_decoder, assert_same_pm, codec="zstd"):
     if codec == "zstd":
         pytest.importorskip("zstandard")
     path = tmp_path / "m.pmz"
@@ -81,19 +70,19 @@ def check_model(pm, tmp_path, numpy_decoder, codec="zstd"):
 
 @needs_native
 @pytest.mark.parametrize("codec", ["zstd", "zlib"])
-def test_cow_decodes_to_the_same_bits_both_ways(built, tmp_path, numpy_decoder, codec):
-    check_model(built("cow.ply"), tmp_path, numpy_decoder, codec)
+def test_cow_decodes_to_the_same_bits_both_ways(built, tmp_path, numpy_decoder, codec, assert_same_pm):
+    check_model(built("cow.ply"), tmp_path, numpy_decoder, assert_same_pm, codec)
 
 
 @needs_native
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["bunny.ply", "terrain_gcanyon.ply", "dragon.ply"])
-def test_models_decode_to_the_same_bits_both_ways(built, tmp_path, numpy_decoder, name):
-    check_model(built(name), tmp_path, numpy_decoder)
+def test_models_decode_to_the_same_bits_both_ways(built, tmp_path, numpy_decoder, name, assert_same_pm):
+    check_model(built(name), tmp_path, numpy_decoder, assert_same_pm)
 
 
 @needs_native
-def test_area_normals_and_residuals_match_the_numpy_steps(numpy_decoder):
+def test_area_normals_and_residuals_match_the_numpy_steps(numpy_decoder, same_bits):
     rng = np.random.default_rng(7)
     vertices = (rng.normal(size=(300, 3)) * 10.0 ** rng.integers(-3, 4, size=(300, 1))).astype(np.float32)
     faces = rng.integers(0, 250, size=(900, 3)).astype(np.int32)
@@ -112,6 +101,17 @@ def test_area_normals_and_residuals_match_the_numpy_steps(numpy_decoder):
         assert same_bits(a, b)
     assert not native[0][250:].any()
     assert same_bits(native[1][:8, 1], special)
+    # The same residuals still byte-planed, decoded in one pass.
+    planed = memoryview(_codec.planes(residual))
+    with np.errstate(invalid="ignore"):  # the special rows' guides are NaNs
+        guide = prediction / np.linalg.norm(prediction.astype(np.float64), axis=1, keepdims=True).astype(np.float32)
+    for use in (contextlib.nullcontext, numpy_decoder):
+        with use():
+            out, unit = np.empty_like(prediction), np.empty_like(prediction)
+            _codec.float_from_planed(planed, prediction, out)
+            _codec.unit_from_planed(planed, guide, unit)
+        assert same_bits(out, native[1])
+        assert same_bits(unit, _codec.unit_from_residual(residual, guide))
 
 
 # --- damaged chunks: the same message both ways --------------------------------
@@ -199,7 +199,11 @@ def far_corners(faces_at, V0):
 
 
 @needs_native
-def test_damaged_batch_chunks_are_refused_in_the_same_words(cow_file, tmp_path, numpy_decoder):
+@pytest.mark.parametrize("beside", [False, True], ids=["inline", "faces-beside"])
+def test_damaged_batch_chunks_are_refused_in_the_same_words(cow_file, tmp_path, numpy_decoder, monkeypatch, beside):
+    # Also with every batch's face ranks and killers found on the pool.
+    if beside:
+        monkeypatch.setattr(_codec, "FACES_BESIDE", 0)
     pm, path = cow_file
     for i, (chunk, change, words) in enumerate(damage_cases(pm)):
         bad = tmp_path / f"bad{i}.pmz"
@@ -209,10 +213,112 @@ def test_damaged_batch_chunks_are_refused_in_the_same_words(cow_file, tmp_path, 
         assert native[0] is PMFormatError and words in native[1], (words, native)
 
 
-def test_a_rewritten_file_reads_unchanged(cow_file, tmp_path):
+@needs_native
+def test_a_bad_rank_found_beside_is_named_before_the_next_chunks_damage(cow_file, tmp_path, monkeypatch):
+    # The ranks are checked on the pool while the next chunk is read: its
+    # damage (a failed SHA-256) must not hide the earlier chunk's.
+    monkeypatch.setattr(_codec, "FACES_BESIDE", 0)
+    pm, path = cow_file
+    chunk, change, words = next(case for case in damage_cases(pm) if "rank is outside" in case[2])
+    bad = tmp_path / "rank.pmz"
+    header = rewrite(path, bad, chunk, change)
+    data = bytearray(bad.read_bytes())
+    at = 12 + int.from_bytes(data[8:12], "little")
+    starts = []
+    for _, size, _ in header["chunks"]:
+        starts.append(at)
+        at += 32 + size
+    data[starts[chunk + 1] + 40] ^= 0x10  # the next chunk fails its SHA-256
+    bad.write_bytes(bytes(data))
+    name = header["chunks"][chunk][0]
+    with pytest.raises(PMFormatError, match=rf"chunk '{name}' \(bytes {starts[chunk]} to {starts[chunk + 1]}\) is "
+                                            rf"damaged: {words}"):
+        read_arrays(bad)
+
+
+def test_a_rewritten_file_reads_unchanged(cow_file, tmp_path, assert_same_pm):
     # The damage cases' rewriting alone changes nothing.
     pm, path = cow_file
     same = tmp_path / "same.pmz"
     rewrite(path, same, 3, lambda r: r)
     assert_same_pm(read_arrays(same)[0], pm)
     assert zlib.crc32(same.read_bytes()) == zlib.crc32(path.read_bytes())
+
+
+# --- encodings ------------------------------------------------------------------
+
+
+@needs_native
+def test_predictions_match_the_numpy_steps_and_invert_exactly(numpy_decoder, same_bits):
+    # Unit vectors, their guides and the costs, with signed zeros, NaNs,
+    # infinities, ties between the guide's components and non-unit vectors.
+    rng = np.random.default_rng(11)
+    x = rng.normal(size=(600, 3))
+    x /= np.linalg.norm(x, axis=1)[:, None]
+    guide = (x + 0.05 * rng.normal(size=x.shape)).astype(np.float32)
+    x = x.astype(np.float32)
+    special = np.array([0.0, -0.0, np.nan, np.inf, -np.inf, 1e-45, 2.0, -0.7], np.float32)
+    x[:64] = special[rng.integers(0, 8, size=(64, 3))]
+    guide[64:128] = special[rng.integers(0, 8, size=(64, 3))]
+    guide[128:136] = [[0.5, -0.5, 0.5], [-0.6, 0.6, 0.1], [0, 0, 0], [-0.0, 0, -0.0], [1, 1, 1], [0.3, 0.3, -0.3],
+                      [np.nan, 0.9, 0.1], [0.1, np.nan, np.nan]]
+    cost = np.sort(rng.exponential(size=300)) * 10.0 ** rng.integers(-30, 30, size=300)
+    cost[::37] = [0.0, -0.0, np.inf, np.nan, -1.5, 1e-310, 0.5, 0.25, 1e300][:len(cost[::37])]
+    residual = _codec.unit_residual(x, guide)
+    random = rng.integers(0, 2**32, size=(200, 3), dtype=np.uint64).astype(np.uint32)
+    native = (_codec.unit_from_residual(residual, guide), _codec.unit_from_residual(random, guide[:200]))
+    with numpy_decoder():
+        plain = (_codec.unit_from_residual(residual, guide), _codec.unit_from_residual(random, guide[:200]))
+        assert same_bits(_codec.unit_residual(plain[1], guide[:200]), random)
+    for a, b in zip(native, plain):
+        assert same_bits(a, b)
+    assert same_bits(native[0], x)
+    assert same_bits(_codec.cost_decode(_codec.cost_code(cost)), cost)
+    # A unit vector's residuals are mostly 0 or one ulp each way (zigzag 0 .. 2).
+    assert np.mean(residual[200:] <= 2) > 0.3
+
+
+def write_encoding(pm, path, encoding, monkeypatch, codec="zstd"):
+    with monkeypatch.context() as m:
+        m.setattr(_codec, "ENCODING", encoding)
+        save_pm(pm, path, codec=codec)
+
+
+@needs_native
+def test_files_of_encoding_1_still_read_to_the_same_bits(built, tmp_path, numpy_decoder, monkeypatch, assert_same_pm):
+    # Encoding 1: no "encoding" in the header, the attributes and normals
+    # stored as they are.
+    pytest.importorskip("zstandard")
+    pm = built("cow.ply")
+    old, new = tmp_path / "old.pmz", tmp_path / "new.pmz"
+    write_encoding(pm, old, 1, monkeypatch)
+    save_pm(pm, new)
+    assert "encoding" not in header_of(old) and header_of(new)["encoding"] == _codec.ENCODING == 2
+    assert os.path.getsize(new) < os.path.getsize(old)
+    (native, fa), (plain, fb) = both_ways(numpy_decoder, lambda: read_arrays(old))
+    assert_same_pm(native, pm)
+    assert_same_pm(plain, pm)
+    assert fa == fb == read_arrays(new)[1]
+    for k in (1, pm.n_batches // 2, pm.n_batches):
+        (native, _), (plain, _) = both_ways(numpy_decoder, lambda: read_arrays(old, batches=k))
+        assert_same_pm(native, read_arrays(new, batches=k)[0])
+        assert_same_pm(plain, native)
+
+
+def header_of(path):
+    data = path.read_bytes()
+    return json.loads(data[12:12 + int.from_bytes(data[8:12], "little")])
+
+
+def test_an_unknown_encoding_is_refused(cow_file, tmp_path):
+    _, path = cow_file
+    data = path.read_bytes()
+    length = int.from_bytes(data[8:12], "little")
+    header = json.loads(data[12:12 + length])
+    for value in (3, "2", True):
+        header["encoding"] = value
+        text = json.dumps(header).encode()
+        bad = tmp_path / "bad.pmz"
+        bad.write_bytes(data[:8] + len(text).to_bytes(4, "little") + text + data[12 + length:])
+        with pytest.raises(PMFormatError, match=f"header encoding={value!r} is not one this pmjax reads"):
+            read_arrays(bad)

@@ -15,18 +15,6 @@ from pmjax._replay import lod_mesh
 V1_FIXTURE = Path(__file__).parent / "data" / "cow_v1.pmz"
 
 
-def same_bits(a, b):
-    """Equal dtype, shape and bytes (NaN payloads and signed zeros included)."""
-    return a.dtype == b.dtype and a.shape == b.shape and np.ascontiguousarray(a).tobytes() == \
-        np.ascontiguousarray(b).tobytes()
-
-
-def assert_same_pm(a, b):
-    assert set(a.arrays()) == set(b.arrays())
-    for name, x in a.arrays().items():
-        assert same_bits(x, getattr(b, name)), name
-
-
 def chunk_table(path):
     """``[(name, start, end)]`` of a version 2 file's chunks (bytes)."""
     with open(path, "rb") as fh:
@@ -49,7 +37,7 @@ def cow(built, tmp_path_factory):
 
 
 @pytest.mark.parametrize("codec", ["zstd", "zlib"])
-def test_round_trip_is_bit_identical_and_smaller(built, tmp_path, codec):
+def test_round_trip_is_bit_identical_and_smaller(built, tmp_path, codec, assert_same_pm):
     if codec == "zstd":
         pytest.importorskip("zstandard")
     pm = built("cow.ply")
@@ -65,7 +53,7 @@ def test_round_trip_is_bit_identical_and_smaller(built, tmp_path, codec):
     assert read_arrays(v1)[1] == read_arrays(v2)[1]
 
 
-def test_version_1_fixture_reads_and_re_saves_exactly(tmp_path):
+def test_version_1_fixture_reads_and_re_saves_exactly(tmp_path, assert_same_pm):
     old = read_pm(V1_FIXTURE)
     assert old.header["version"] == 1
     path = tmp_path / "cow.pmz"
@@ -88,7 +76,7 @@ def oriented(vertices, faces):
     return sorted(out)
 
 
-def test_every_batch_boundary_gives_the_lod_there(cow):
+def test_every_batch_boundary_gives_the_lod_there(cow, same_bits):
     pm, path = cow
     B = pm.n_batches
     for k in range(B + 1):
@@ -127,7 +115,7 @@ def test_a_prefix_refines(cow):
         assert int(pmjax.refine(prefix, cam, 1e30).n_faces) == int(pmjax.refine(full, cam, 1e30).n_faces)
 
 
-def test_a_stream_is_read_to_the_batch_asked(cow):
+def test_a_stream_is_read_to_the_batch_asked(cow, assert_same_pm):
     pm, path = cow
     table = chunk_table(path)
     data = path.read_bytes()
@@ -141,7 +129,7 @@ def test_a_stream_is_read_to_the_batch_asked(cow):
         assert_same_pm(read_pm(fh), pm)
 
 
-def test_a_truncated_file_is_refused_or_read_as_its_whole_prefix(cow, tmp_path):
+def test_a_truncated_file_is_refused_or_read_as_its_whole_prefix(cow, tmp_path, assert_same_pm):
     pm, path = cow
     table = chunk_table(path)
     data = path.read_bytes()
@@ -163,7 +151,7 @@ def test_a_truncated_file_is_refused_or_read_as_its_whole_prefix(cow, tmp_path):
         read_pm(path, batches=99)
 
 
-def test_a_damaged_chunk_is_named(cow, tmp_path):
+def test_a_damaged_chunk_is_named(cow, tmp_path, assert_same_pm):
     pm, path = cow
     table = chunk_table(path)
     data = bytearray(path.read_bytes())
@@ -216,3 +204,65 @@ def test_a_prefix_without_faces_is_refused_with_the_first_that_has_some(tmp_path
                                                 rf"batches={first} is the first prefix with faces"):
             read_pm(source, batches=0)
     assert read_pm(path, batches=first).n_batches == first
+
+
+def test_a_file_that_cannot_be_mapped_is_read(cow, monkeypatch, assert_same_pm):
+    # A path is read through a memory map where one can be made, else with read().
+    import mmap
+
+    pm, path = cow
+
+    def refuse(*args, **kwargs):
+        raise OSError("no map here")
+
+    mapped = read_pm(path)
+    monkeypatch.setattr(mmap, "mmap", refuse)
+    assert_same_pm(read_pm(path), mapped)
+    assert_same_pm(read_pm(path, batches=2), read_pm(io.BytesIO(path.read_bytes()), batches=2))
+    assert_same_pm(mapped, pm)
+
+
+def _with_header(path, out, **changes):
+    """A copy of version 2 file ``path`` at ``out`` with header fields replaced."""
+    data = path.read_bytes()
+    length = int.from_bytes(data[8:12], "little")
+    header = {**json.loads(data[12:12 + length]), **changes}
+    text = json.dumps(header).encode()
+    out.write_bytes(data[:8] + len(text).to_bytes(4, "little") + text + data[12 + length:])
+    return header
+
+
+@pytest.mark.parametrize("name", ["vertices", "faces", "normals"])
+def test_decoded_arrays_are_checked_against_their_checksums(cow, tmp_path, name):
+    # The arrays final after the batches, after the faces' placing and after
+    # the normals' decoding are each checked.
+    _, path = cow
+    data = path.read_bytes()
+    sums = json.loads(data[12:12 + int.from_bytes(data[8:12], "little")])["array_sha256"]
+    bad = tmp_path / "sums.pmz"
+    _with_header(path, bad, array_sha256={**sums, name: "0" * 64})
+    with pytest.raises(PMFormatError, match=rf"sums.pmz: checksum mismatch in array '{name}'"):
+        read_pm(bad)
+
+
+def test_a_checksum_failure_is_named_before_a_broken_rule(cow, tmp_path, monkeypatch):
+    # Content that breaks a rule of validate_pm (an unknown metric id),
+    # written with the writer's checks off: refused by the rule, or by a
+    # checksum first when one fails as well.
+    pm, _ = cow
+    metric = np.array(pm.metric)
+    metric[0] = 250
+    broken = pmjax.PMData(**{**pm.arrays(), "metric": metric}, header=pm.header)
+    path = tmp_path / "rule.pmz"
+    with monkeypatch.context() as m:
+        m.setattr(pmjax._pmfile, "validate_pm", lambda *a, **k: None)
+        m.setattr(pmjax._pmfile, "check_structure", lambda *a, **k: None)
+        save_pm(broken, path)
+    with pytest.raises(PMFormatError, match=r"rule.pmz: unknown metric id \(first at index 0\)"):
+        read_pm(path)
+    data = path.read_bytes()
+    sums = json.loads(data[12:12 + int.from_bytes(data[8:12], "little")])["array_sha256"]
+    bad = tmp_path / "both.pmz"
+    _with_header(path, bad, array_sha256={**sums, "radius": "0" * 64})
+    with pytest.raises(PMFormatError, match=r"both.pmz: checksum mismatch in array 'radius'"):
+        read_pm(bad)
