@@ -148,6 +148,40 @@ def _vertex_areas(vertices, faces) -> np.ndarray:
     return area
 
 
+# Samples located at a time by _own_faces: its temporaries take about 2 kB per
+# sample (some 250 bytes for each face of a fan of about seven), so a block
+# stays near 30 MB whatever the mesh.
+SAMPLE_BLOCK = 1 << 14
+
+
+def _own_faces(vertices, corners, fan, first, size, positions):
+    """``(corners int[S, 3], barycentric float[S, 3])`` of the face each sample
+    lies on: of the ``size[s]`` faces ``fan[first[s]:first[s] + size[s]]`` of
+    its fan, the one its projection falls into most deeply (largest smallest
+    barycentric coordinate), the coordinates clamped to the face."""
+    # Each sample paired with each face of its fan.
+    group = np.concatenate([[0], np.cumsum(size)[:-1]])
+    pair = np.repeat(np.arange(len(size)), size)
+    face = fan[np.repeat(first - group, size) + np.arange(len(pair))]
+    # Barycentric coordinates of the projection on each face's plane.
+    tri = corners[face]
+    a = vertices[tri[:, 0]]
+    e0, e1, e2 = vertices[tri[:, 1]] - a, vertices[tri[:, 2]] - a, positions[pair] - a
+    d00, d01, d11 = (e0 * e0).sum(1), (e0 * e1).sum(1), (e1 * e1).sum(1)
+    d20, d21 = (e2 * e0).sum(1), (e2 * e1).sum(1)
+    det = d00 * d11 - d01 * d01
+    det = np.where(det > 0, det, 1.0)  # a degenerate face: coordinates of no use, rarely chosen
+    b1, b2 = (d11 * d20 - d01 * d21) / det, (d00 * d21 - d01 * d20) / det
+    bary = np.stack([1.0 - b1 - b2, b1, b2], axis=1)
+    # The deepest face of each sample (the first of equals).
+    depth = bary.min(axis=1)
+    deepest = np.flatnonzero(depth >= np.maximum.reduceat(depth, group)[pair])
+    own = deepest[np.unique(pair[deepest], return_index=True)[1]]
+    bary = np.clip(bary[own], 0.0, None)
+    bary /= np.maximum(bary.sum(axis=1, keepdims=True), np.finfo(float).tiny)
+    return tri[own], bary
+
+
 def _fit_batch(vertices, corners, ancestor, samples: _Samples, normals, lo: int, hi: int) -> np.ndarray:
     """``[hi - lo, 3]`` fitted unit normals of the vertices ``lo:hi`` created
     by one batch, in the mesh of live faces ``corners`` just after it
@@ -165,33 +199,17 @@ def _fit_batch(vertices, corners, ancestor, samples: _Samples, normals, lo: int,
     fan_size = np.bincount(slot_of, minlength=hi - lo)
     fan_start = np.concatenate([[0], np.cumsum(fan_size)])
     start = normals[lo:hi]
-    # Step 2: the samples standing under a created vertex with a fan, paired
-    # with each face of that fan.
+    # Step 2: the samples standing under a created vertex with a fan, and the
+    # face of that fan each lies on, a block of samples at a time (memory
+    # bounded by the block, not the mesh).
     sample = np.flatnonzero(ancestor >= lo)
     sample = sample[fan_size[ancestor[sample] - lo] > 0]
     if not len(sample):
         return start
-    size = fan_size[ancestor[sample] - lo]
-    group = np.concatenate([[0], np.cumsum(size)[:-1]])
-    pair = np.repeat(np.arange(len(sample)), size)
-    face = fan[np.repeat(fan_start[ancestor[sample] - lo] - group, size) + np.arange(len(pair))]
-    # Step 3: barycentric coordinates of each sample's projection on each
-    # face of its fan; the face it lies in most deeply is its own.
-    tri = corners[face]
-    a = vertices[tri[:, 0]]
-    e0, e1, e2 = vertices[tri[:, 1]] - a, vertices[tri[:, 2]] - a, samples.positions[sample[pair]] - a
-    d00, d01, d11 = (e0 * e0).sum(1), (e0 * e1).sum(1), (e1 * e1).sum(1)
-    d20, d21 = (e2 * e0).sum(1), (e2 * e1).sum(1)
-    det = d00 * d11 - d01 * d01
-    det = np.where(det > 0, det, 1.0)  # a degenerate face: coordinates of no use, rarely chosen
-    b1, b2 = (d11 * d20 - d01 * d21) / det, (d00 * d21 - d01 * d20) / det
-    bary = np.stack([1.0 - b1 - b2, b1, b2], axis=1)
-    depth = bary.min(axis=1)
-    deepest = np.flatnonzero(depth >= np.maximum.reduceat(depth, group)[pair])
-    own = deepest[np.unique(pair[deepest], return_index=True)[1]]
-    bary = np.clip(bary[own], 0.0, None)
-    bary /= np.maximum(bary.sum(axis=1, keepdims=True), np.finfo(float).tiny)
-    tri = tri[own]
+    parts = [_own_faces(vertices, corners, fan, fan_start[ancestor[block] - lo], fan_size[ancestor[block] - lo],
+                        samples.positions[block])
+             for block in np.array_split(sample, -(-len(sample) // SAMPLE_BLOCK))]
+    tri, bary = np.concatenate([t for t, _ in parts]), np.concatenate([b for _, b in parts])
     # Step 4: Jacobi sweeps of the weighted least squares over the created
     # vertices' normals, the other corners fixed.
     weight, target = samples.weights[sample], samples.normals[sample]
