@@ -34,7 +34,12 @@ def image_difference(rgb_a, depth_a, rgb_b, depth_b, threshold: int = DIFF_THRES
     model = (np.asarray(depth_a) > 0) | (np.asarray(depth_b) > 0)
     n = int(model.sum())
     diff = np.abs(a - b)
-    differing = int(((diff.max(axis=-1) > threshold) & model).sum())
+    # The largest channel difference, channel by channel: a reduction over a
+    # length-3 last axis costs some hundred times more.
+    largest = diff[..., 0]
+    for c in range(1, diff.shape[-1]):
+        largest = np.maximum(largest, diff[..., c])
+    differing = int(((largest > threshold) & model).sum())
     mse = float((diff[model].astype(np.float64) ** 2).mean()) if n else 0.0
     psnr = float("inf") if mse == 0 else 10 * np.log10(255.0**2 / mse)
     return dict(model_pixels=n, differing=differing, differing_share=differing / n if n else 0.0, mse=mse, psnr=psnr)

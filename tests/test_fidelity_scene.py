@@ -90,3 +90,22 @@ def test_camera_fidelity_keeps_the_original_across_calls_and_follows_a_new_one(c
     assert {k: x for k, x in first.items() if k not in drop} == {k: x for k, x in again.items() if k not in drop}
     assert other["differing"] == want["differing"] != first["differing"]
     assert other["mse"] == want["mse"]
+
+
+def test_image_difference_counts_as_the_channel_maximum():
+    """Differing pixels: the largest channel difference over the threshold,
+    on the model's pixels, for float and 8-bit renders."""
+    from pmjax.render import image_difference
+
+    rng = np.random.default_rng(5)
+    a = rng.random((40, 50, 3), dtype=np.float32) * 255
+    b = np.clip(a + rng.normal(0, 8, a.shape).astype(np.float32), 0, 255)
+    depth_a = np.where(rng.random((40, 50)) < 0.4, 1.0, 0.0).astype(np.float32)
+    depth_b = np.where(rng.random((40, 50)) < 0.4, 2.0, 0.0).astype(np.float32)
+    for x, y in ((a, b), (a.round().astype(np.uint8), b.round().astype(np.uint8))):
+        diff = np.abs(x.astype(np.float32) - y.astype(np.float32))
+        model = (depth_a > 0) | (depth_b > 0)
+        got = image_difference(x, depth_a, y, depth_b)
+        assert got["differing"] == int(((diff.max(axis=-1) > 8) & model).sum()) > 0
+        assert got["mse"] == float((diff[model].astype(np.float64) ** 2).mean())
+        assert got["model_pixels"] == int(model.sum())
