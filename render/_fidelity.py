@@ -177,7 +177,8 @@ class FidelityScene:
     for bit (same primitives, camera, light and background; a hidden mesh is
     not drawn; unlit, the shader reads no normal).
 
-    Use :meth:`of` (one per context and original, kept while both are).
+    Use :meth:`of`: one per OpenGL context, holding the last original drawn
+    in it (kept, with its buffers, until another original is drawn there).
 
     Args:
         renderer: the :class:`Renderer` drawing it.
