@@ -109,3 +109,32 @@ def test_image_difference_counts_as_the_channel_maximum():
         assert got["differing"] == int(((diff.max(axis=-1) > 8) & model).sum()) > 0
         assert got["mse"] == float((diff[model].astype(np.float64) ** 2).mean())
         assert got["model_pixels"] == int(model.sum())
+
+
+def test_renders_read_back_as_pyrender_reads_them(cow):
+    """The renderer's read of colour and depth equals pyrender's own, bit for
+    bit, for a perspective and an orthographic view with empty pixels."""
+    from pmjax.render import Renderer, original_arrays
+    from render._scene import build_scene
+
+    pm = pmjax.load(cow)
+    ov, of, on = original_arrays(pm)
+    cams = pmjax.standard_orbit(np.asarray(ov), 2, width=160, height=120)
+    with Renderer(160, 120, 1) as r:
+        gl = r._gl
+        assert "_read_main_framebuffer" in vars(gl._renderer)  # the elementwise read is installed
+        c = pmjax.index_camera(cams, 0)
+        extent = float(np.ptp(np.asarray(ov), axis=0).max())
+        ortho = pmjax.Camera(c.eye, c.rotation, c.fov_y, c.near, c.far, 1.5 * extent, 160, 120, orthographic=True)
+        for cam in (pmjax.index_camera(cams, 1), ortho):
+            scene, _ = build_scene(ov, of, cam, normals=on)
+            color, depth = gl.render(scene)
+            own = vars(gl._renderer).pop("_read_main_framebuffer")
+            try:
+                want_color, want_depth = gl.render(scene)
+            finally:
+                gl._renderer._read_main_framebuffer = own
+            assert np.array_equal(color, want_color)
+            assert depth.dtype == want_depth.dtype == np.float32
+            assert np.array_equal(depth.view(np.uint32), want_depth.view(np.uint32))
+            assert (depth == 0).any() and (depth > 0).any()
