@@ -115,7 +115,7 @@ def test_renders_read_back_as_pyrender_reads_them(cow):
     """The renderer's read of colour and depth equals pyrender's own, bit for
     bit, for a perspective and an orthographic view with empty pixels."""
     from pmjax.render import Renderer, original_arrays
-    from render._scene import build_scene
+    from pmjax.render._scene import build_scene
 
     pm = pmjax.load(cow)
     ov, of, on = original_arrays(pm)
