@@ -1,7 +1,7 @@
 """Image-space fidelity benchmark: refined vs original renders along the standard orbit.
 
 Usage: python benchmarks/render.py [--models bunny,dragon] [--frames 240] [--taus 0.5,1,2,4]
-       [--figures docs/figures] [--parts orbit,frontier,normals] [--supersample 2] [--plot PNG] [--json OUT]
+       [--figures docs/figures] [--parts orbit,frontier,normals,cost] [--supersample 2] [--plot PNG] [--json OUT]
 
 orbit: per model and tau, the median share of the model's pixels that differ
 from the original mesh's render (a pixel differs when a channel differs by >
@@ -22,6 +22,11 @@ refinement and one original render per frame): the subtree means
 (``pmjax.hierarchy_normals``) against the fitted ones (``pmjax.fitted_normals``,
 what the renderer draws): differing share, silhouette share and mean FLIP over
 the model's pixels, medians and means over the frames, at one tau.
+
+cost: what ``path_fidelity`` (``pmjax path --fidelity``) spends per frame,
+``fidelity_ms`` (every render and metric of a frame), without and with FLIP,
+the two alternated over repeats on the same frames: medians over the frames,
+then over the repeats, and their ratio.
 """
 
 from __future__ import annotations
@@ -42,7 +47,7 @@ from pmjax._camera import index_camera  # noqa: E402
 from pmjax.render import Renderer, image_difference, original_arrays, paper_figures, path_fidelity  # noqa: E402
 from pmjax.render import flip_difference, refined_arrays, silhouette_difference, vertex_normals  # noqa: E402
 
-PARTS = ("orbit", "frontier", "normals")
+PARTS = ("orbit", "frontier", "normals", "cost")
 
 
 def per_model(counts: str, names: list) -> list:
@@ -150,6 +155,26 @@ def normals(name, frames, tau, supersample=2):
     return rows
 
 
+def cost(name, frames, tau, repeats, supersample=2):
+    """``fidelity_ms`` of ``path_fidelity`` without and with FLIP on ``frames``
+    frames of the standard orbit at ``tau``, alternated ``repeats`` times:
+    medians over the frames, then over the repeats."""
+    pm = pmjax.load(pm_file(name))
+    cams = pmjax.standard_orbit(np.asarray(pm.vertices)[: pm.n_original_vertices], frames)
+    path_fidelity(pm, index_camera(cams, np.arange(2)), tau, supersample=supersample)  # contexts, normals, compiles
+    medians = {False: [], True: []}
+    for _ in range(repeats):
+        for flip in (False, True):
+            rows = path_fidelity(pm, cams, tau, supersample=supersample, flip=flip)
+            medians[flip].append(statistics.median(r["fidelity_ms"] for r in rows))
+    out = dict(model=name, frames=frames, tau=tau, repeats=repeats,
+               fidelity_ms=statistics.median(medians[False]), fidelity_flip_ms=statistics.median(medians[True]))
+    out["flip_ratio"] = out["fidelity_flip_ms"] / out["fidelity_ms"]
+    print(f"{name:8s} {frames:4d} frames tau {tau:g}: fidelity_ms median {out['fidelity_ms']:7.0f} without FLIP, "
+          f"{out['fidelity_flip_ms']:7.0f} with (x{out['flip_ratio']:.3f}; {repeats} repeats)", flush=True)
+    return [out]
+
+
 def pareto_plot(rows, path):
     """Faces drawn against FLIP over the model's pixels and against the
     differing share, per model, pmjax and the quadric (``frontier`` rows); PNG."""
@@ -195,6 +220,8 @@ def main():
                     help="face shares of the quadric baseline, or 'match': pmjax's median face share at each tau")
     ap.add_argument("--normals-frames", default="24", help="frames per model for the normals part")
     ap.add_argument("--normals-tau", type=float, default=1.0, help="tau of the normals part")
+    ap.add_argument("--cost-frames", default="24", help="frames per model for the cost part")
+    ap.add_argument("--cost-repeats", type=int, default=3, help="alternated repeats of the cost part")
     ap.add_argument("--supersample", type=int, default=2, metavar="S",
                     help="S x S samples per pixel in every render (default 2, as `pmjax path --fidelity`)")
     ap.add_argument("--plot", help="frontier part: write the faces-against-fidelity plot (PNG) here")
@@ -241,9 +268,14 @@ def main():
         print("\nShading normals (same refinements and frames for both):")
         for name, n in zip(names, per_model(args.normals_frames, names)):
             normals_rows += normals(name, n, args.normals_tau, args.supersample)
+    cost_rows = []
+    if "cost" in parts:
+        print("\nMeasuring cost per frame (path_fidelity, tau 1):")
+        for name, n in zip(names, per_model(args.cost_frames, names)):
+            cost_rows += cost(name, n, 1.0, args.cost_repeats, args.supersample)
     if args.json:
         write_json(args.json, dict(machine=machine(), supersample=args.supersample, rows=rows,
-                                   frontier=frontier_rows, normals=normals_rows))
+                                   frontier=frontier_rows, normals=normals_rows, cost=cost_rows))
 
 
 if __name__ == "__main__":

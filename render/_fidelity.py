@@ -9,7 +9,9 @@ import numpy as np
 from pmjax import ALL_TESTS, Camera, ProgressiveMesh, Tests, index_camera
 
 
+from ._gl import pyrender_module
 from ._offscreen import Renderer, original_arrays, path_geometry
+from ._scene import BACKGROUND, mesh_node_geometry, pyrender_camera
 
 # A pixel "differs" when some 8-bit channel differs by more than this.
 DIFF_THRESHOLD = 8
@@ -32,7 +34,12 @@ def image_difference(rgb_a, depth_a, rgb_b, depth_b, threshold: int = DIFF_THRES
     model = (np.asarray(depth_a) > 0) | (np.asarray(depth_b) > 0)
     n = int(model.sum())
     diff = np.abs(a - b)
-    differing = int(((diff.max(axis=-1) > threshold) & model).sum())
+    # The largest channel difference, channel by channel: a reduction over a
+    # length-3 last axis costs some hundred times more.
+    largest = diff[..., 0]
+    for c in range(1, diff.shape[-1]):
+        largest = np.maximum(largest, diff[..., c])
+    differing = int(((largest > threshold) & model).sum())
     mse = float((diff[model].astype(np.float64) ** 2).mean()) if n else 0.0
     psnr = float("inf") if mse == 0 else 10 * np.log10(255.0**2 / mse)
     return dict(model_pixels=n, differing=differing, differing_share=differing / n if n else 0.0, mse=mse, psnr=psnr)
@@ -119,6 +126,11 @@ def camera_fidelity(renderer, original, mesh, camera: Camera, *, flip: bool = Tr
     """One view's image metrics: ``mesh`` (a refinement's geometry) against
     the ``original`` mesh, both drawn lit and unlit from ``camera``.
 
+    The renders are those of :meth:`Renderer.render_mesh` and
+    :func:`silhouette_difference`, bit for bit; the original's GPU buffers
+    stay in the renderer's context from one call to the next while
+    ``original`` is the same tuple (:class:`FidelityScene`).
+
     Args:
         renderer: a :class:`Renderer` of ``camera``'s size.
         original, mesh: ``(vertices [V, 3], faces [F, 3], normals [V, 3])``
@@ -134,14 +146,15 @@ def camera_fidelity(renderer, original, mesh, camera: Camera, *, flip: bool = Tr
         ``(rgb, depth)`` is ``mesh``'s lit render. No OpenGL context is left
         current in the calling thread, so another thread may call next.
     """
-    v, f, n = mesh
-    ov, of, on = original
+    scene = FidelityScene.of(renderer, original)
     try:
+        scene.set_mesh(*mesh)
         t = time.perf_counter()
-        rgb, depth = renderer.render_mesh(v, f, camera, normals=n)
+        rgb, depth = scene.render(scene.mesh, camera)
         render_ms = 1e3 * (time.perf_counter() - t)
-        reference = renderer.render_mesh(ov, of, camera, normals=on)
-        silhouette = silhouette_difference(renderer, (ov, of), (v, f), camera)["differing_share"]
+        reference = scene.render(scene.original, camera)
+        silhouette = image_difference(*scene.render(scene.original, camera, light=False),
+                                      *scene.render(scene.mesh, camera, light=False))["differing_share"]
     finally:
         _release_context(renderer)
     row = image_difference(*reference, rgb, depth)
@@ -149,6 +162,84 @@ def camera_fidelity(renderer, original, mesh, camera: Camera, *, flip: bool = Tr
         row.update(flip_difference(*reference, rgb, depth))
     row.update(render_ms=render_ms, silhouette_share=silhouette)
     return row, (rgb, depth)
+
+
+_SCENES: dict = {}
+
+
+class FidelityScene:
+    """One pyrender scene holding the original mesh, the refined mesh of the
+    current view and that of the view before, of which each draw shows one,
+    lit or unlit: the meshes' GPU buffers are made once and stay in the
+    renderer's context (pyrender deletes the buffers of meshes missing from
+    the scene it draws), so the original is uploaded once, not four times a
+    frame. A draw equals :meth:`Renderer.render_mesh` of the same arrays bit
+    for bit (same primitives, camera, light and background; a hidden mesh is
+    not drawn; unlit, the shader reads no normal).
+
+    Use :meth:`of`: one per OpenGL context, holding the last original drawn
+    in it (kept, with its buffers, until another original is drawn there).
+
+    Args:
+        renderer: the :class:`Renderer` drawing it.
+        original: ``(vertices [V, 3], faces [F, 3], normals [V, 3])``.
+    """
+
+    def __init__(self, renderer, original):
+        self.renderer, self.original_arrays = renderer, original
+        self._pyrender = pyrender_module()
+        self.scene = self._pyrender.Scene(bg_color=BACKGROUND, ambient_light=(0.12, 0.12, 0.12))
+        self.original = self._add(*original)
+        self.mesh = self.previous = None
+        self._camera = self._light = None
+
+    @classmethod
+    def of(cls, renderer, original) -> "FidelityScene":
+        """The scene of ``renderer``'s context holding ``original`` (the same
+        tuple object), made if there is none."""
+        key = id(renderer._gl)
+        held = _SCENES.get(key)
+        if held is None or held.original_arrays is not original or held.renderer._gl is not renderer._gl:
+            held = _SCENES[key] = cls(renderer, original)
+        held.renderer = renderer
+        return held
+
+    def _add(self, vertices, faces, normals):
+        """A hidden mesh node of these arrays (None for no faces)."""
+        if not len(np.asarray(faces).reshape(-1, 3)):
+            return None
+        node = self.scene.add(mesh_node_geometry(vertices, faces, normals=normals), name="mesh")
+        node.mesh.is_visible = False
+        return node
+
+    def set_mesh(self, vertices, faces, normals) -> None:
+        """Make these arrays the current mesh; the current one becomes the
+        previous (:meth:`render` of :attr:`previous`), the previous leaves."""
+        if self.previous is not None:
+            self.scene.remove_node(self.previous)
+        self.previous, self.mesh = self.mesh, self._add(vertices, faces, normals)
+
+    def render(self, node, camera: Camera, *, light: bool = True):
+        """``(rgb, depth)`` of ``node`` alone (None: nothing) seen from
+        ``camera``, as :meth:`Renderer.render_scene` returns them."""
+        if (int(camera.width), int(camera.height)) != (self.renderer.width, self.renderer.height):
+            raise ValueError(f"camera is {int(camera.width)}x{int(camera.height)}, renderer "
+                             f"{self.renderer.width}x{self.renderer.height}")
+        for held in (self._camera, self._light):
+            if held is not None:
+                self.scene.remove_node(held)
+        pose = camera.pose()
+        self._camera = self.scene.add(pyrender_camera(camera), pose=pose, name="camera")
+        self._light = (self.scene.add(self._pyrender.DirectionalLight(color=np.ones(3), intensity=3.0), pose=pose,
+                                      name="light") if light else None)
+        shown = [n for n in (self.original, self.mesh, self.previous) if n is not None]
+        for n in shown:
+            n.mesh.is_visible = n is node
+        try:
+            return self.renderer.render_scene(self.scene)
+        finally:
+            for n in shown:
+                n.mesh.is_visible = False
 
 
 def _release_context(renderer) -> None:
@@ -205,7 +296,7 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
         flip_module()  # a missing package is named before any rendering
     first = index_camera(cameras, 0)
     original = original_arrays(pm)
-    rows, previous = [], None
+    rows = []
     with Renderer(int(first.width), int(first.height), supersample, float_color) as r:
         frames = path_geometry(pm, cameras, tau, tests=tests, geomorph=geomorph, coherent=coherent, progress=progress,
                                desc="fidelity")
@@ -213,11 +304,14 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
             t = time.perf_counter()
             row, (rgb, depth) = camera_fidelity(r, original, (v, f, n), cam, flip=flip)
             row.update(frame=i, faces=int(len(f)), popping_share=0.0, popping_mse=0.0)
-            if previous is not None:
-                pv, pf, pn = previous
-                pop = image_difference(*r.render_mesh(pv, pf, cam, normals=pn), rgb, depth)
+            if i:
+                # The previous frame's mesh, still in the scene camera_fidelity drew.
+                scene = FidelityScene.of(r, original)
+                try:
+                    pop = image_difference(*scene.render(scene.previous, cam), rgb, depth)
+                finally:
+                    _release_context(r)
                 row.update(popping_share=pop["differing_share"], popping_mse=pop["mse"])
-            previous = (v, f, n)
             row.update(fidelity_ms=1e3 * (time.perf_counter() - t))
             rows.append(row)
     return rows
