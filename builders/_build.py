@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 
 from pmjax._pmfile import METRICS, PMData, file_sha256  # noqa: F401 (re-exported)
 from pmjax._meshio import check_float32_precision
+from pmjax._normals import fitted_normals
 
 from . import _native as native
 from . import _quadrics as qd
@@ -20,7 +21,6 @@ from ._attributes import HierarchyAttributes
 from ._independent import domain_of_independent, select_independent
 from ._metrics import CACHEABLE, METRIC_NAMES, evaluate_metric
 from ._rows import any3, unit
-from ._shading import ShadingNormals
 from ._threads import split_pairs
 from ._topology import VertexFaces, contains_edge, edge_keys, unique_edges
 from ._validity import KnownInvalid, collapse_is_valid
@@ -357,7 +357,8 @@ def build_pm(
     base_faces = int(len(cur))
     P = next_id - V0
     # The batch state goes before the hierarchy is put together: the
-    # quadrics alone are 80 bytes per vertex id.
+    # quadrics alone are 80 bytes per vertex id, and the shading normals'
+    # fit below needs room of its own.
     quadric = scratch = mesh = cache = known_invalid = cur = fid = None
     a = b = ea = eb = ecount = keys = is_edge = link_test = x = cost = None
     boundary_vertex = within = elig = chosen = invalid = ca = cb = None
@@ -365,10 +366,8 @@ def build_pm(
     v2 = np.concatenate(v2s).astype(np.int32) if v2s else np.zeros(0, np.int32)
     v1s = v2s = None
     batch_offsets = np.asarray(offsets, np.int64)
-    state, shading = jobs[0].result()
-    attrs = {k: v.astype(np.float32) for k, v in state.result(P).items()}
-    shading_normals = shading.result(next_id)
-    jobs = state = shading = None
+    attrs = {k: v.astype(np.float32) for k, v in jobs[0].result().result(P).items()}
+    jobs = None
     header = dict(
         build=dict(
             dataclasses.asdict(options),
@@ -398,11 +397,11 @@ def build_pm(
         batch_offsets=batch_offsets,
         killer=killer,
         header=header,
-        # Fitted to the original surface, for drawing refinements: the
-        # normals of pmjax._normals.fitted_normals, made beside the build.
-        shading_normals=shading_normals,
     )
-    return data
+    # Shading normals fitted to the original surface, for drawing
+    # refinements: a least-squares fit over the finished hierarchy, after the
+    # build's own arrays are gone.
+    return dataclasses.replace(data, shading_normals=fitted_normals(data))
 
 
 def _select_batch(a, b, x, link_test, elig, cur, n_vertices, pos, min_area2, boundary_vertex, linear, eager_skip,
@@ -483,10 +482,10 @@ def _select_batch_native(a, b, x, link_test, elig, min_area2, boundary_vertex, e
 
 
 def _start_attributes(pos, normals, faces, V0, edges):
-    """Normals of the original vertices, then their attribute state and
-    their shading normals (``edges``: :func:`unique_edges` of ``faces``)."""
+    """Normals of the original vertices, then their attribute state
+    (``edges``: :func:`unique_edges` of ``faces``)."""
     normals[:V0] = vertex_normals(pos[:V0], faces, V0)
-    return HierarchyAttributes(pos, normals, faces, V0, edges), ShadingNormals(pos[:V0], faces, len(pos))
+    return HierarchyAttributes(pos, normals, faces, V0, edges)
 
 
 def _attribute_batch(start, pos, normals, cur, first, ca, cb, maybe_border):
@@ -505,9 +504,7 @@ def _attribute_batch(start, pos, normals, cur, first, ca, cb, maybe_border):
         sl = np.linalg.norm(s, axis=1)
         vn[lonely] = np.where(sl[:, None] > 0, s / np.where(sl > 0, sl, 1)[:, None], [0.0, 0.0, 1.0])
     normals[new] = vn
-    attributes, shading = start.result()
-    attributes.add_batch(first, ca, cb, ring, maybe_border)
-    shading.add_batch(first, ca, cb, ring)
+    start.result().add_batch(first, ca, cb, ring, maybe_border)
 
 
 def _new_vertex_normals(pos, faces, first, k):

@@ -129,33 +129,18 @@ def test_faces_of_any_integer_type(built, bunny):
     [
         ("bunny.ply", dict()),
         ("cow.ply", dict(batch_share=0.15, target_faces=300)),
-        ("terrain_gcanyon.ply", dict(metric="edge:2,quadric", target_vertices=500)),
     ],
 )
-def test_shading_normals_are_fitted_normals(data_path, name, options):
-    """The shading normals made beside the build, from each batch's faces
-    around its new vertices: ``fitted_normals`` of the finished hierarchy
-    (which walks every living face per batch), bit for bit, also where a
-    target stops the build inside a batch."""
+def test_shading_normals_are_fitted_normals(data_path, name, options, monkeypatch):
+    """The shading normals a build stores are ``fitted_normals`` of the
+    finished hierarchy, bit for bit, also where a target stops the build
+    inside a batch and where the initial sums are made in chunks."""
     from pmjax._normals import fitted_normals
 
+    monkeypatch.setattr(_quadrics, "CHUNK_FACES", 1000)
     v, f, _, _ = pmjax.load_clean_mesh(data_path(name))
     pm = build_pm(v, f, BuildOptions(**options))
     want = fitted_normals(pm)
     assert pm.shading_normals.dtype == want.dtype and pm.shading_normals.shape == want.shape
     assert pm.shading_normals.tobytes() == want.tobytes()
     assert np.abs(np.linalg.norm(want[pm.n_original_vertices:], axis=1) - 1).max() < 1e-6
-
-
-def test_shading_normals_in_chunks(data_path, monkeypatch):
-    """The area-weighted sums of the shading normals made 1,000 faces at a
-    time: fitted_normals' bits still."""
-    from pmjax._normals import _area_normal_sums, fitted_normals
-    from pmjax.builders._shading import area_normal_sums
-
-    v, f, _, _ = pmjax.load_clean_mesh(data_path("bunny.ply"))
-    for chunk in (1000, 4097):
-        assert area_normal_sums(v, f, chunk).tobytes() == _area_normal_sums(v, f.astype(np.int64)).tobytes()
-    monkeypatch.setattr(_quadrics, "CHUNK_FACES", 1000)
-    pm = build_pm(v, f, BuildOptions(target_faces=5000))
-    assert pm.shading_normals.tobytes() == fitted_normals(pm).tobytes()
