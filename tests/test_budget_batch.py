@@ -114,11 +114,18 @@ def test_wrong_guesses_still_give_the_exact_answer(built, monkeypatch):
 
 
 @pytest.mark.slow
-def test_under_jit(built):
+@pytest.mark.parametrize(
+    "per_side, budgets",
+    [
+        (4, [100, 900, 5000, 40, 2000, 10 ** 6]),  # one budget per camera
+        (2, [[100, 900, 10 ** 6]] * 4),  # several budgets per camera
+    ],
+)
+def test_under_jit(built, per_side, budgets):
     data = built("cow.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
-    cams = _views(data, 4, seed=3)
-    budgets = np.array([100, 900, 5000, 40, 2000, 10 ** 6], np.int32)
+    cams = _views(data, per_side, seed=3)
+    budgets = np.array(budgets, np.int32)
     want = pmjax.faces_for_budget_batch(pm, cams, budgets, method="front")
     got = jax.jit(lambda c, b: pmjax.faces_for_budget_batch(pm, c, b))(cams, budgets)
     for key in want:
@@ -212,18 +219,6 @@ def test_several_budgets_per_camera_equal_one_at_a_time(built):
     col = pmjax.faces_for_budget_batch(pm, cams, budgets[:, :1], method="front")
     assert col["tau"].shape == (len(budgets), 1)
     assert col["tau"][:, 0].tobytes() == got["tau"][:, 0].tobytes()
-
-
-@pytest.mark.slow
-def test_several_budgets_under_jit(built):
-    data = built("cow.ply")
-    pm = pmjax.ProgressiveMesh.from_data(data)
-    cams = _views(data, 2, seed=3)
-    budgets = np.array([[100, 900, 10 ** 6]] * 4, np.int32)
-    want = pmjax.faces_for_budget_batch(pm, cams, budgets, method="front")
-    got = jax.jit(lambda c, b: pmjax.faces_for_budget_batch(pm, c, b))(cams, budgets)
-    for key in want:
-        assert np.array_equal(np.asarray(got[key]), want[key]), key
 
 
 def test_budget_arrays_of_another_shape_are_refused(built):

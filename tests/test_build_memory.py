@@ -17,36 +17,29 @@ from pmjax.builders._build import vertex_normals
 pytestmark = pytest.mark.core
 
 
-def assert_same_bits(one, other):
-    for key, value in one.arrays().items():
-        got = getattr(other, key)
-        assert got.dtype == value.dtype and got.shape == value.shape, key
-        assert got.tobytes() == value.tobytes(), key
-
-
 @pytest.fixture(scope="module")
 def bunny(data_path):
     v, f, _, _ = pmjax.load_clean_mesh(data_path("bunny.ply"))
     return v, f
 
 
-def test_chunked_build_is_the_one_step_build(built, bunny, monkeypatch):
+def test_chunked_build_is_the_one_step_build(built, bunny, monkeypatch, assert_same_pm):
     """The bunny (open borders: the border planes' rows too) built with the
     initial sums in chunks of 1,000 faces, against one step (its 69,451
     faces are below the default chunk)."""
     v, f = bunny
     assert len(f) < _quadrics.CHUNK_FACES
     monkeypatch.setattr(_quadrics, "CHUNK_FACES", 1000)
-    assert_same_bits(built("bunny.ply"), build_pm(v, f))
+    assert_same_pm(built("bunny.ply"), build_pm(v, f))
 
 
-def test_chunked_build_with_options_is_the_one_step_build(data_path, monkeypatch):
+def test_chunked_build_with_options_is_the_one_step_build(data_path, monkeypatch, assert_same_pm):
     """Border weight and a metric schedule, chunks that do not divide the faces."""
     v, f, _, _ = pmjax.load_clean_mesh(data_path("terrain_gcanyon.ply"))
     options = BuildOptions(metric="edge:2,quadric", boundary_weight=2.5, target_faces=2000)
     one = build_pm(v, f, options)
     monkeypatch.setattr(_quadrics, "CHUNK_FACES", 997)
-    assert_same_bits(one, build_pm(v, f, options))
+    assert_same_pm(one, build_pm(v, f, options))
 
 
 @pytest.mark.parametrize("chunk", [101, 10_000])
@@ -106,13 +99,13 @@ def test_edges_come_in_their_own_arrays(bunny):
         assert g.base is None and g.shape == (len(want[3]),)
 
 
-def test_faces_of_any_integer_type(built, bunny):
+def test_faces_of_any_integer_type(built, bunny, assert_same_pm):
     """int64 and uint32 faces build the int32 faces' hierarchy; ids outside
     the vertices and non-integer faces are refused, naming the remedy."""
     v, f = bunny
     ref = built("bunny.ply")
-    assert_same_bits(ref, build_pm(v, f.astype(np.int64)))
-    assert_same_bits(ref, build_pm(v, f.astype(np.uint32)))
+    assert_same_pm(ref, build_pm(v, f.astype(np.int64)))
+    assert_same_pm(ref, build_pm(v, f.astype(np.uint32)))
     bad = f.astype(np.int64)
     bad[5, 1] = len(v)
     with pytest.raises(ValueError, match="outside 0 .. .*clean_mesh"):

@@ -15,23 +15,16 @@ from pmjax.builders import _native as native
 pytestmark = pytest.mark.core
 
 
-def assert_same_bits(one, other):
-    for key, value in one.arrays().items():
-        got = getattr(other, key)
-        assert got.dtype == value.dtype and got.shape == value.shape, key
-        assert got.tobytes() == value.tobytes(), key
-
-
 def numpy_build(v, f, options=BuildOptions()):
     with native.use_native(False):
         assert not native.available()
         return build_pm(v, f, options)
 
 
-def test_bunny_hierarchy_is_the_numpy_builders(built, data_path):
+def test_bunny_hierarchy_is_the_numpy_builders(built, data_path, assert_same_pm):
     v, f, _, _ = pmjax.load_clean_mesh(data_path("bunny.ply"))
     assert native.available()
-    assert_same_bits(built("bunny.ply"), numpy_build(v, f))
+    assert_same_pm(built("bunny.ply"), numpy_build(v, f))
 
 
 @pytest.mark.parametrize(
@@ -45,12 +38,12 @@ def test_bunny_hierarchy_is_the_numpy_builders(built, data_path):
     ],
 )
 @pytest.mark.slow
-def test_other_builds_are_the_numpy_builders(data_path, name, options):
+def test_other_builds_are_the_numpy_builders(data_path, name, options, assert_same_pm):
     """Targets, metric schedules (costs from NumPy with the C batch choice,
     quadrics rebuilt from the faces every batch), virtual pairs (no link
     test), open borders."""
     v, f, _, _ = pmjax.load_clean_mesh(data_path(f"{name}.ply"))
-    assert_same_bits(build_pm(v, f, BuildOptions(**options)), numpy_build(v, f, BuildOptions(**options)))
+    assert_same_pm(build_pm(v, f, BuildOptions(**options)), numpy_build(v, f, BuildOptions(**options)))
 
 
 @pytest.fixture(scope="module")
