@@ -664,6 +664,16 @@ PmxStatus pmx_mesh_stream_step(PmxMeshStream *s, const PmxStreamFrame *next)
     return PMX_OK;
 }
 
+PmxStatus pmx_mesh_stream_lane(PmxMeshStream *s, int frame)
+{
+    /* The lists of the frame held, read at another of its word's bits. */
+    if (!s->has_last || !s->last.ran16 || s->last.key < 0 || frame < 0 || frame >= FRAMES)
+        return PMX_BAD_SIZE;
+    PmxStreamFrame next = s->last;
+    next.frame = frame;
+    return pmx_mesh_stream_step(s, &next);
+}
+
 void pmx_mesh_stream_state(const PmxMeshStream *s, PmxStreamState *out)
 {
     out->face_vertex = s->face_vertex;
