@@ -770,10 +770,10 @@ class MeshStream:
         """
         if self._stream is not None:  # ranks in the core's bitmaps of the faces drawn and the ids used
             n_faces, n_used = self._counts[4], self._counts[6]
-            faces, ids = np.empty((n_faces, 3), np.int32), np.empty(n_used, np.int32)
-            positions = np.empty((n_used, 3), np.float32)
-            _core._pmx.mesh_stream_compact(self._stream, faces, ids, positions)
-            return positions, faces, ids
+            packed = np.frombuffer(_core._pmx.mesh_stream_compact(self._stream), np.int32)  # faces, ids, positions
+            ids = packed[3 * n_faces:3 * n_faces + n_used]
+            return packed[3 * n_faces + n_used:].view(np.float32).reshape(n_used, 3), packed[:3 * n_faces].reshape(
+                n_faces, 3), ids
         slots, ids, vids, positions = self.faces, self.face_ids, self.vertex_ids, self.vertex_positions
         live = np.flatnonzero(ids >= 0)
         faces = slots[live[np.argsort(ids[live])]]

@@ -1217,27 +1217,26 @@ PyObject* MeshStreamLane(PyObject*, PyObject* args) {
   return StreamState(h->stream);
 }
 
-// mesh_stream_compact(stream, faces, ids, positions)
-// The mesh held as Refinement.mesh() gives it, written: faces s32[faces, 3],
-// ids s32[used], positions f32[used, 3] (the counts of the last step).
+// mesh_stream_compact(stream) -> bytearray
+// The mesh held as Refinement.mesh() gives it, packed side by side (the
+// caller's to keep; NumPy views it without a copy): s32 faces [faces, 3],
+// s32 ids [used], f32 positions [used, 3] (the counts of the last step).
 PyObject* MeshStreamCompact(PyObject*, PyObject* args) {
-  PyObject *stream_o, *faces_o, *ids_o, *positions_o;
-  if (!PyArg_ParseTuple(args, "OOOO", &stream_o, &faces_o, &ids_o, &positions_o)) return nullptr;
+  PyObject* stream_o;
+  if (!PyArg_ParseTuple(args, "O", &stream_o)) return nullptr;
   auto* h = static_cast<StreamHandle*>(PyCapsule_GetPointer(stream_o, kStreamCapsule));
   if (!h) return nullptr;
-  HostArray faces, ids, positions;
-  if (!Take(faces_o, "faces", 'i', 4, true, false, &faces) || !Take(ids_o, "ids", 'i', 4, true, false, &ids) ||
-      !Take(positions_o, "positions", 'f', 4, true, false, &positions))
-    return nullptr;
   PmxStreamState st;
   pmx_mesh_stream_state(h->stream, &st);
-  if (!Raise(Expect("faces", faces.shape(), {st.n_faces, 3})) || !Raise(Expect("ids", ids.shape(), {st.n_used})) ||
-      !Raise(Expect("positions", positions.shape(), {st.n_used, 3})))
-    return nullptr;
+  PyObject* packed = PyByteArray_FromStringAndSize(nullptr, (Py_ssize_t)(12 * st.n_faces + 16 * st.n_used));
+  if (!packed) return nullptr;
+  auto* faces = reinterpret_cast<int32_t*>(PyByteArray_AS_STRING(packed));
+  int32_t* ids = faces + 3 * st.n_faces;
+  auto* positions = reinterpret_cast<float*>(ids + st.n_used);
   Py_BEGIN_ALLOW_THREADS;
-  pmx_mesh_stream_compact(h->stream, faces.data<int32_t>(), ids.data<int32_t>(), positions.data<float>());
+  pmx_mesh_stream_compact(h->stream, faces, ids, positions);
   Py_END_ALLOW_THREADS;
-  Py_RETURN_NONE;
+  return packed;
 }
 
 // mesh_stream_arrays(stream) -> (face_vertex, face_id, vertex_id, vertex_position, face_changes,
@@ -1291,8 +1290,8 @@ PyMethodDef methods[] = {
      "mesh_stream_lane(stream, frame) -> as mesh_stream_step: the stream to another frame (bit) of the word whose "
      "lists it holds."},
     {"mesh_stream_compact", MeshStreamCompact, METH_VARARGS,
-     "mesh_stream_compact(stream, faces, ids, positions): the mesh held as Refinement.mesh() gives it, written "
-     "into arrays of the last step's sizes."},
+     "mesh_stream_compact(stream) -> bytearray: the mesh held as Refinement.mesh() gives it, packed: s32 faces "
+     "[faces, 3], s32 ids [used], f32 positions [used, 3]."},
     {"mesh_stream_arrays", MeshStreamArrays, METH_VARARGS,
      "mesh_stream_arrays(stream) -> read-only memoryviews (face_vertex, face_id, vertex_id, vertex_position, "
      "face_changes, vertex_changes, changed_faces, changed_ids, changed_positions), valid until the generation "
