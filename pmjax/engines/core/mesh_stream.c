@@ -24,7 +24,8 @@
  * Memory: the slots of one frame's mesh (grown to the largest frame seen,
  * freed slots reused first), the change's slot lists, and maps over the
  * hierarchy (a slot per position and per original vertex, a slot per killed
- * face), whatever the path's length. */
+ * face, a bit and a slot per face and per vertex id), whatever the path's
+ * length. */
 #include <stdlib.h>
 
 #include "internal.h"
