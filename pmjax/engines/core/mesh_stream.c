@@ -397,11 +397,13 @@ void pmx_mesh_stream_free(PmxMeshStream *s)
 {
     if (!s)
         return;
-    void *arrays[] = {s->face_vertex, s->face_id, s->corner_start, s->corner_next, s->corner_prev, s->face_free,
-                      s->face_stamp, s->vertex_id, s->vertex_head, s->vertex_free, s->vertex_lo, s->vertex_hi, s->vertex_uses, s->vertex_rank, s->vertex_position,
+    void *arrays[] = {s->face_vertex, s->face_id, s->corner_start, s->corner_next, s->corner_prev,
+                      s->face_free, s->face_stamp, s->vertex_id, s->vertex_head, s->vertex_free,
+                      s->vertex_lo, s->vertex_hi, s->vertex_uses, s->vertex_rank, s->vertex_position,
                       s->vertex_stamp, s->face_changes, s->vertex_changes, s->slot_at, s->kill_slot,
-                      s->collapse, s->split, s->events, s->flipped, s->flipped_bits, s->face_bits, s->used_bits, s->face_slot_of,
-                      s->slot_of_id, s->changed_faces, s->changed_ids, s->changed_positions};
+                      s->collapse, s->split, s->events, s->flipped, s->flipped_bits, s->face_bits,
+                      s->used_bits, s->face_slot_of, s->slot_of_id, s->changed_faces, s->changed_ids,
+                      s->changed_positions};
     for (size_t i = 0; i < sizeof arrays / sizeof arrays[0]; i++)
         free(arrays[i]);
     free(s);
