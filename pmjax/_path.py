@@ -768,7 +768,7 @@ class MeshStream:
             ``(vertices float32[n, 3], faces int32[m, 3], vertex_ids int32[n])``:
             faces in increasing original face order, ``vertex_ids`` sorted.
         """
-        if self._stream is not None:  # the core's bitmaps of the faces drawn and the ids used, read in order
+        if self._stream is not None:  # ranks in the core's bitmaps of the faces drawn and the ids used
             n_faces, n_used = self._counts[4], self._counts[6]
             packed = np.frombuffer(_core._pmx.mesh_stream_compact(self._stream), np.int32)  # faces, ids, positions
             ids = packed[3 * n_faces:3 * n_faces + n_used]

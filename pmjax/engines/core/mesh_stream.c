@@ -24,8 +24,7 @@
  * Memory: the slots of one frame's mesh (grown to the largest frame seen,
  * freed slots reused first), the change's slot lists, and maps over the
  * hierarchy (a slot per position and per original vertex, a slot per killed
- * face, a bit and a slot per face and per vertex id), whatever the path's
- * length. */
+ * face, a bit per face and per vertex id), whatever the path's length. */
 #include <stdlib.h>
 
 #include "internal.h"
@@ -68,7 +67,7 @@ struct PmxMeshStream {
      * face uses (ranks in them are the rows of Refinement.mesh()), and their
      * words' prefix counts. */
     uint64_t *face_bits, *used_bits;
-    int32_t *face_slot_of, *slot_of_id; /* the slot of each face drawn, of each vertex id on the front */
+    int32_t *face_prefix, *used_prefix;
     int64_t n_used;
     uint16_t *flipped_bits;
     int64_t n_faces_live, n_vertices_live, generation;
@@ -185,7 +184,6 @@ PMX_INLINE void set_vertex(PmxMeshStream *s, int32_t slot, int32_t id, const flo
         flip_bit(s->used_bits, id);
     }
     s->vertex_id[slot] = id;
-    s->slot_of_id[id] = slot;
     s->vertex_lo[slot] = lo;
     s->vertex_hi[slot] = hi;
     memcpy(s->vertex_position + 3 * slot, position, 3 * sizeof(float));
@@ -281,7 +279,6 @@ static PmxStatus add_face(PmxMeshStream *s, const PmxFaceRecord *f, int32_t *at,
         link(s, 3 * slot + c, u);
     }
     s->face_id[slot] = f->face;
-    s->face_slot_of[f->face] = slot;
     flip_bit(s->face_bits, f->face);
     if (at)
         *at = slot;
@@ -402,7 +399,7 @@ void pmx_mesh_stream_free(PmxMeshStream *s)
                       s->vertex_lo, s->vertex_hi, s->vertex_uses, s->vertex_rank, s->vertex_position,
                       s->vertex_stamp, s->face_changes, s->vertex_changes, s->slot_at, s->kill_slot,
                       s->collapse, s->split, s->events, s->flipped, s->flipped_bits, s->face_bits,
-                      s->used_bits, s->face_slot_of, s->slot_of_id, s->changed_faces, s->changed_ids,
+                      s->used_bits, s->face_prefix, s->used_prefix, s->changed_faces, s->changed_ids,
                       s->changed_positions};
     for (size_t i = 0; i < sizeof arrays / sizeof arrays[0]; i++)
         free(arrays[i]);
@@ -425,9 +422,9 @@ PmxMeshStream *pmx_mesh_stream_new(const PmxStreamTables *t, PmxStatus *status)
     const size_t face_words = (size_t)t->n_faces / 64 + 1, used_words = (size_t)(V0 + P) / 64 + 1;
     s->face_bits = calloc(face_words, sizeof(uint64_t));
     s->used_bits = calloc(used_words, sizeof(uint64_t));
-    s->face_slot_of = malloc(face_words * 64 * sizeof(int32_t));
-    s->slot_of_id = malloc(used_words * 64 * sizeof(int32_t));
-    if (!s->slot_at || !s->kill_slot || !s->face_bits || !s->used_bits || !s->face_slot_of || !s->slot_of_id) {
+    s->face_prefix = malloc(face_words * sizeof(int32_t));
+    s->used_prefix = malloc(used_words * sizeof(int32_t));
+    if (!s->slot_at || !s->kill_slot || !s->face_bits || !s->used_bits || !s->face_prefix || !s->used_prefix) {
         pmx_mesh_stream_free(s);
         return NULL;
     }
@@ -703,33 +700,59 @@ void pmx_mesh_stream_state(const PmxMeshStream *s, PmxStreamState *out)
 
 /* The stream keeps a bit per face drawn and per vertex id used: a face's row
  * is the rank of its id among the faces drawn, a vertex's the rank of its id
- * among those used, as Refinement.mesh() orders them. So the set bits are
- * read in order, each finding its slot through the maps, and the rows are
- * written one after another: nothing is sorted, no rank is counted. */
+ * among those used, as Refinement.mesh() orders them. Nothing is sorted and
+ * nothing but the two bitmaps' words and the slots is read. */
+PMX_INLINE void compact_body(PmxMeshStream *s, int32_t *faces, int32_t *ids, float *positions)
+{
+    const uint64_t *const face_bits = s->face_bits, *const used_bits = s->used_bits;
+    int32_t *const face_prefix = s->face_prefix, *const used_prefix = s->used_prefix;
+    const int32_t *const face_id = s->face_id, *const face_vertex = s->face_vertex, *const vertex_id = s->vertex_id;
+    const int32_t *const uses = s->vertex_uses;
+    int32_t *const vertex_rank = s->vertex_rank;
+    prefix_counts(face_bits, s->t.n_faces / 64 + 1, face_prefix);
+    prefix_counts(used_bits, (s->t.n_original + s->t.n_pcols) / 64 + 1, used_prefix);
+    /* Each used vertex slot's row first: a face's corners then read their
+     * rows from one small array instead of ranking each corner's id. */
+    for (int64_t slot = 0; slot < s->n_vertex_slots; slot++) {
+        if (vertex_id[slot] < 0 || uses[slot] == 0)
+            continue;
+        const int64_t k = rank_of(used_bits, used_prefix, vertex_id[slot]);
+        vertex_rank[slot] = (int32_t)k;
+        ids[k] = vertex_id[slot];
+        memcpy(positions + 3 * k, s->vertex_position + 3 * slot, 3 * sizeof(float));
+    }
+    for (int64_t slot = 0; slot < s->n_face_slots; slot++) {
+        const int32_t face = face_id[slot];
+        if (face < 0)
+            continue;
+        int32_t *row = faces + 3 * rank_of(face_bits, face_prefix, face);
+        const int32_t *corner = face_vertex + 3 * slot;
+        row[0] = vertex_rank[corner[0]];
+        row[1] = vertex_rank[corner[1]];
+        row[2] = vertex_rank[corner[2]];
+    }
+}
+
+/* Popcount in one instruction where the processor has it. */
+static void compact_plain(PmxMeshStream *s, int32_t *faces, int32_t *ids, float *positions)
+{
+    compact_body(s, faces, ids, positions);
+}
+#if PMX_X86
+__attribute__((target("popcnt"))) static void compact_popcnt(PmxMeshStream *s, int32_t *faces, int32_t *ids,
+                                                             float *positions)
+{
+    compact_body(s, faces, ids, positions);
+}
+#endif
+
 void pmx_mesh_stream_compact(PmxMeshStream *s, int32_t *faces, int32_t *ids, float *positions)
 {
-    const int32_t *const face_vertex = s->face_vertex, *const face_slot_of = s->face_slot_of;
-    const int32_t *const slot_of_id = s->slot_of_id;
-    int32_t *const vertex_rank = s->vertex_rank;
-    /* The vertices used, in increasing id: each slot's row noted for the
-     * faces' corners. */
-    int32_t k = 0;
-    const int64_t used_words = (s->t.n_original + s->t.n_pcols) / 64 + 1;
-    for (int64_t w = 0; w < used_words; w++)
-        for (uint64_t bits = s->used_bits[w]; bits; bits &= bits - 1, k++) {
-            const int32_t id = (int32_t)(64 * w + __builtin_ctzll(bits)), slot = slot_of_id[id];
-            vertex_rank[slot] = k;
-            ids[k] = id;
-            memcpy(positions + 3 * (int64_t)k, s->vertex_position + 3 * (int64_t)slot, 3 * sizeof(float));
-        }
-    /* The faces drawn, in increasing id, their corners' rows. */
-    int32_t *row = faces;
-    const int64_t face_words = s->t.n_faces / 64 + 1;
-    for (int64_t w = 0; w < face_words; w++)
-        for (uint64_t bits = s->face_bits[w]; bits; bits &= bits - 1, row += 3) {
-            const int32_t *corner = face_vertex + 3 * (int64_t)face_slot_of[64 * w + __builtin_ctzll(bits)];
-            row[0] = vertex_rank[corner[0]];
-            row[1] = vertex_rank[corner[1]];
-            row[2] = vertex_rank[corner[2]];
-        }
+#if PMX_X86
+    if (__builtin_cpu_supports("popcnt")) {
+        compact_popcnt(s, faces, ids, positions);
+        return;
+    }
+#endif
+    compact_plain(s, faces, ids, positions);
 }
