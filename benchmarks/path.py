@@ -188,8 +188,7 @@ def mesh_path(name, frames, tau, repeats):
         changed.append(len(change.face_slots))
 
     def follow(with_mesh):
-        for r in pmjax.refine_path(pm, cams, tau):
-            stream.update(r)
+        for _ in pmjax.path_mesh_changes(pm, cams, tau, stream=stream):
             if with_mesh:
                 stream.mesh()
 
@@ -197,8 +196,8 @@ def mesh_path(name, frames, tau, repeats):
         "path_counts": lambda: pmjax.path_counts(pm, cams, tau),
         "refine_path": lambda: sum(1 for _ in pmjax.refine_path(pm, cams, tau)),
         "refine_path + mesh()": lambda: [r.mesh() for r in pmjax.refine_path(pm, cams, tau)],
-        "refine_path + change": lambda: follow(False),
-        "refine_path + change + compacted": lambda: follow(True),
+        "path_mesh_changes (refine_path + change)": lambda: follow(False),
+        "path_mesh_changes + compacted": lambda: follow(True),
         "change alone": lambda: [stream.update(r) for r in held],
         "mesh() alone": lambda: [r.mesh() for r in held],
         "compacted from the stream alone": lambda: [(stream.update(r), stream.mesh()) for r in held],
@@ -214,7 +213,7 @@ def mesh_path(name, frames, tau, repeats):
           f"(= {SRMESH_OVER_MESH.get(name, float('nan')):.3f} x refine_path + mesh())")
     base = ms["refine_path + mesh()"]
     for key, value in ms.items():
-        print(f"  {key:34s} {value:7.4f} ms per frame   {base / value:5.2f}x refine_path + mesh()   "
+        print(f"  {key:42s} {value:7.4f} ms per frame   {base / value:5.2f}x refine_path + mesh()   "
               f"{srmesh / value:5.2f}x SrMesh", flush=True)
     return row
 

@@ -31,6 +31,7 @@ and the frames are then refined as a path at the tolerances found.
 from __future__ import annotations
 
 import functools
+import itertools
 import time
 from typing import Iterator, NamedTuple
 
@@ -260,11 +261,34 @@ def _core_path_counts(pm, host, taus, tests, path_length, cols, ms, bar, timing)
         t = now
 
 
-def _core_path_frames(pm, host, taus, tests, path_length) -> Iterator[Refinement]:
+# Keys naming a block of words' lists for a MeshStream (its frames share them):
+# one count for every block, so that no two blocks' lists share a key.
+_BLOCK_KEYS = itertools.count(1)
+# The frames' bits of a word, one row per frame.
+_LANE_MASKS = (np.uint16(1) << np.arange(FRAMES, dtype=np.uint16))[:, None]
+
+
+def _frame_refinement(fields: dict) -> Refinement:
+    """A :class:`Refinement` of a path's frame from its fields: the frozen
+    dataclass's ``__init__`` sets each field through ``object.__setattr__``,
+    which costs a path more than its frame's traversal; the fields are set
+    at once instead (the same instance)."""
+    r = object.__new__(Refinement)
+    r.__dict__.update(fields)
+    return r
+
+
+def _core_path_frames(pm, host, taus, tests, path_length) -> Iterator[tuple[Refinement, tuple | None]]:
     """The frames of a path through the C core's words with their lists, a
     few words per call, the next call running while the frames of the last
     are read; the frames of a word whose unsure records did not fit are
-    refined alone."""
+    refined alone.
+
+    Yields:
+        ``(refinement, frame)``: ``frame`` the lists as a :class:`MeshStream`
+        steps to them (``(positions, ran, bit, slots, key)``, the key naming
+        the word's lists), ``None`` for a frame refined alone.
+    """
     tables, one_tables, order, real, spans, rows = _core_word_plan(pm, host, taus, path_length, WORDS_STREAMED)
     counts_of = _Counts.of(pm)
 
@@ -279,25 +303,30 @@ def _core_path_frames(pm, host, taus, tests, path_length) -> Iterator[Refinement
         # Dispatched before this block's frames are read: it runs meanwhile.
         running = call(spans[i + 1]) if i + 1 < len(spans) else None
         counts, overflow = np.asarray(counts_device), np.asarray(overflow)
-        pcols_host, ran_host = np.asarray(pcols), np.asarray(ran)
+        pcols_host, ran_host, positions_host = np.asarray(pcols), np.asarray(ran), np.asarray(positions)
         faces, vertices, executed = counts_of(counts[:, 1], counts[:, 2], np)
+        block = next(_BLOCK_KEYS) << 20
         for w in range(n):
             lanes = range((w0 + w) * FRAMES, (w0 + w + 1) * FRAMES)
             if overflow[w]:
                 for lane in lanes:
                     if real[lane]:
-                        yield refine(pm, jax.tree.map(lambda a: a[order[lane]], host), taus[order[lane]], tests)
+                        yield refine(pm, jax.tree.map(lambda a: a[order[lane]], host), taus[order[lane]], tests), None
                 continue
             m = int(counts[w * FRAMES, 0])  # the word's slots (every frame lists them)
-            visited, bits = pcols_host[w, :m], ran_host[w, :m]
+            visited, word_ran, at = pcols_host[w, :m], ran_host[w], positions_host[w]
+            bits = word_ran[:m]
+            # Every frame's executed bits at once, one row per frame.
+            executed_bits = (bits & _LANE_MASKS) != 0
+            key, slots = block | w, np.int32(m)
             for j, lane in enumerate(lanes):
                 if not real[lane]:
                     continue
                 k = w * FRAMES + j
-                yield Refinement(pm=pm, visited=visited, visited_executed=((bits >> j) & 1).astype(bool), dense=None,
-                                 n_faces=faces[k], n_vertices=vertices[k], n_executed=executed[k],
-                                 front_positions=positions, core_ran=ran, core_counts=counts_device,
-                                 core_item=np.int32(k), n_slots=np.int32(m))
+                yield _frame_refinement(dict(
+                    pm=pm, visited=visited, visited_executed=executed_bits[j], dense=None, n_faces=faces[k],
+                    n_vertices=vertices[k], n_executed=executed[k], front_positions=positions, core_ran=ran,
+                    core_counts=counts_device, core_item=np.int32(k), n_slots=slots)), (at, word_ran, j, m, key)
 
 
 def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, tests: Tests = ALL_TESTS,
@@ -337,13 +366,21 @@ def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, t
         for i in range(T):
             yield refine(pm, jax.tree.map(lambda a: a[i], cameras), taus[i], tests)
         return
+    for r, _ in _path_frames(pm, cameras, tau, budget, tests, coherent):
+        yield r
+
+
+def _path_frames(pm, cameras, tau, budget, tests, coherent):
+    """:func:`refine_path` of concrete cameras: ``(refinement, frame)`` per
+    frame, ``frame`` as :func:`_core_path_frames` gives it (``None`` where
+    the C core's words did not refine it)."""
     host, taus, budgets, shape = check_path(cameras, tau, budget)
     if budgets is not None:
         taus = _budget_taus(pm, host, budgets, tests)
     engine = select(pm, "front", batch=True) if coherent else "dense"
     if not coherent or engine == "dense":
         for i in range(len(taus)):
-            yield refine(pm, jax.tree.map(lambda a: a[i], host), taus[i], tests)
+            yield refine(pm, jax.tree.map(lambda a: a[i], host), taus[i], tests), None
         return
     if engine == "core":
         yield from _core_path_frames(pm, host, taus, tests, shape[-1])
@@ -360,7 +397,7 @@ def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, t
                 if k >= len(frames) or frames[k] < 0:
                     continue
                 yield Refinement(pm=pm, visited=ids, visited_executed=((bits >> lane) & 1).astype(bool), dense=None,
-                                 n_faces=faces[k], n_vertices=vertices[k], n_executed=executed[k])
+                                 n_faces=faces[k], n_vertices=vertices[k], n_executed=executed[k]), None
 
 
 def path_mesh_changes(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, tests: Tests = ALL_TESTS,
@@ -395,8 +432,10 @@ def path_mesh_changes(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=N
         stream = MeshStream(pm)
     elif stream.pm is not pm:
         raise ValueError("path_mesh_changes: stream is a MeshStream of another mesh; make one with MeshStream(pm)")
-    for r in refine_path(pm, cameras, tau, budget=budget, tests=tests):
-        yield r, stream.update(r)
+    check_camera_type(cameras, "refine_path", "cameras")
+    # The C core's frames step the stream by their word's lists directly.
+    for r, frame in _path_frames(pm, cameras, tau, budget, tests, True):
+        yield r, (stream.update(r) if frame is None or stream._stream is None else stream._step_frame(frame))
 
 
 def _traced_path_length(cameras) -> int:
@@ -605,7 +644,7 @@ class MeshStream:
         check_mesh(pm, "MeshStream")
         self.pm = pm
         self._last = None
-        self._block = (None, None, None)  # the last block's lists: (its object, positions, ran) on the host
+        self._block = (None,)  # the last block's lists: (its object, positions, ran on the host, key)
         d = derived(pm)
         if _core.enabled() and pm.n_pcols > 0:
             from .engines._front_mesh import stream_tables
@@ -615,27 +654,23 @@ class MeshStream:
             self._at = d.memo("mesh_stream_at", lambda: _positions_of(d.layout["order"]))
             self._stream = _core._pmx.mesh_stream_new(*tables, pm.n_original_vertices, pm.n_faces)
             self._generation = -1
-            self._step = _core._pmx.mesh_stream_step  # bound once: the per-frame call
-            self._serial = 0
+            self._step = _core._pmx.mesh_stream_step  # bound once: the per-frame calls
+            self._lane = _core._pmx.mesh_stream_lane
             self._counts = (0,) * 8
         else:
             self._stream = None
             self._numpy = _NumpyStream(pm)
 
-    # The views of the core's arrays, made again whenever it grows them.
-    def _views(self, generation):
+    def _held(self, which: int) -> np.ndarray:
+        """A view of the core's slots (0: faces' vertex slots, 1: face ids, 2:
+        vertex ids, 3: positions), made again whenever it has grown them."""
+        generation = self._counts[7]
         if generation != self._generation:
-            fv, fid, vid, vpos, fch, vch, rows, ids, positions = _core._pmx.mesh_stream_arrays(self._stream)
-            self._fv = np.frombuffer(fv, np.int32).reshape(-1, 3)
-            self._fid = np.frombuffer(fid, np.int32)
-            self._vid = np.frombuffer(vid, np.int32)
-            self._vpos = np.frombuffer(vpos, np.float32).reshape(-1, 3)
-            self._fch = np.frombuffer(fch, np.int32)
-            self._vch = np.frombuffer(vch, np.int32)
-            self._rows = np.frombuffer(rows, np.int32).reshape(-1, 3)
-            self._ids = np.frombuffer(ids, np.int32)
-            self._positions = np.frombuffer(positions, np.float32).reshape(-1, 3)
+            fv, fid, vid, vpos = _core._pmx.mesh_stream_arrays(self._stream)[:4]
+            self._arrays = (np.frombuffer(fv, np.int32).reshape(-1, 3), np.frombuffer(fid, np.int32),
+                            np.frombuffer(vid, np.int32), np.frombuffer(vpos, np.float32).reshape(-1, 3))
             self._generation = generation
+        return self._arrays[which]
 
     def _frame(self, r: Refinement):
         """The refinement's visited slots as the core's stream reads them:
@@ -644,12 +679,11 @@ class MeshStream:
         if r.core_ran is not None:
             ran = r.core_ran
             if ran is not self._block[0]:  # a new block of words (its frames come one after another)
-                self._block = (ran, np.asarray(r.front_positions), np.asarray(ran))
-                self._serial += 1
+                self._block = (ran, np.asarray(r.front_positions), np.asarray(ran), next(_BLOCK_KEYS) << 20)
             positions, bits = self._block[1], self._block[2]
             if bits.ndim == 2:
                 word, bit = divmod(int(r.core_item), _core.FRAMES)
-                return positions[word], bits[word], bit, int(r.n_slots), self._serial << 20 | word
+                return positions[word], bits[word], bit, int(r.n_slots), self._block[3] | word
             return positions, bits, 0, int(r.n_slots if r.n_slots is not None else len(bits)), -1
         # Other engines: every pcol that did not run, in breadth-first order.
         not_run = np.flatnonzero(~np.asarray(r.executed))
@@ -680,43 +714,52 @@ class MeshStream:
                              "give it concrete refinements (outside jax.jit)")
         if self._stream is None:
             return self._numpy.update(r)
-        frame = self._frame(r)
-        counts = self._step(self._stream, *frame)
+        return self._step_frame(self._frame(r))
+
+    def _step_frame(self, frame) -> MeshChange:
+        """The core's step to a frame's lists (``(positions, ran, bit, slots,
+        key)``, :meth:`_frame`), its change viewed in the bytearray the core
+        packs it in (``int32`` face slots, faces, vertex slots, ids, then
+        ``float32`` positions)."""
+        last = self._last
+        if last is not None and frame[4] >= 0 and frame[4] == last[4]:  # the word held: its lists not passed again
+            counts = self._lane(self._stream, frame[2])
+        else:
+            counts = self._step(self._stream, *frame)
         self._last, self._counts = frame, counts  # the core reads the last frame's lists at the next step
-        n_face_slots, n_vertex_slots, n_faces, n_vertices, _, _, _, generation = counts
-        self._views(generation)
-        # Copies: the core's change buffers are written again at the next step.
-        return MeshChange(self._fch[:n_faces].copy(), self._rows[:n_faces].copy(), self._vch[:n_vertices].copy(),
-                          self._ids[:n_vertices].copy(), self._positions[:n_vertices].copy(), n_face_slots,
-                          n_vertex_slots)
+        n_face_slots, n_vertex_slots, k, u = counts[:4]
+        packed = np.frombuffer(counts[8], np.int32)
+        return MeshChange(packed[:k], packed[k:4 * k].reshape(k, 3), packed[4 * k:4 * k + u],
+                          packed[4 * k + u:4 * k + 2 * u], packed[4 * k + 2 * u:].view(np.float32).reshape(u, 3),
+                          n_face_slots, n_vertex_slots)
 
     @property
     def faces(self) -> np.ndarray:
         """``int32 [n_face_slots, 3]`` every face slot's vertex slots (-1 rows: free)."""
         if self._stream is None:
             return self._numpy.faces[:self._numpy.n_face_slots].copy()
-        return self._fv[:self._counts[0]].copy() if self._last is not None else np.zeros((0, 3), np.int32)
+        return self._held(0)[:self._counts[0]].copy() if self._last is not None else np.zeros((0, 3), np.int32)
 
     @property
     def face_ids(self) -> np.ndarray:
         """``int32 [n_face_slots]`` the original face in each slot (-1: free)."""
         if self._stream is None:
             return self._numpy.face_ids[:self._numpy.n_face_slots].copy()
-        return self._fid[:self._counts[0]].copy() if self._last is not None else np.zeros(0, np.int32)
+        return self._held(1)[:self._counts[0]].copy() if self._last is not None else np.zeros(0, np.int32)
 
     @property
     def vertex_ids(self) -> np.ndarray:
         """``int32 [n_vertex_slots]`` the PM vertex in each slot (-1: free)."""
         if self._stream is None:
             return self._numpy.vertex_ids[:self._numpy.n_vertex_slots].copy()
-        return self._vid[:self._counts[1]].copy() if self._last is not None else np.zeros(0, np.int32)
+        return self._held(2)[:self._counts[1]].copy() if self._last is not None else np.zeros(0, np.int32)
 
     @property
     def vertex_positions(self) -> np.ndarray:
         """``float32 [n_vertex_slots, 3]`` each vertex slot's position (zero where free)."""
         if self._stream is None:
             return self._numpy.positions[:self._numpy.n_vertex_slots].copy()
-        return self._vpos[:self._counts[1]].copy() if self._last is not None else np.zeros((0, 3), np.float32)
+        return self._held(3)[:self._counts[1]].copy() if self._last is not None else np.zeros((0, 3), np.float32)
 
     def mesh(self):
         """The mesh held, compacted as :meth:`pmjax.Refinement.mesh` gives it.
@@ -727,10 +770,10 @@ class MeshStream:
         """
         if self._stream is not None:  # ranks in the core's bitmaps of the faces drawn and the ids used
             n_faces, n_used = self._counts[4], self._counts[6]
-            faces, ids = np.empty((n_faces, 3), np.int32), np.empty(n_used, np.int32)
-            positions = np.empty((n_used, 3), np.float32)
-            _core._pmx.mesh_stream_compact(self._stream, faces, ids, positions)
-            return positions, faces, ids
+            packed = np.frombuffer(_core._pmx.mesh_stream_compact(self._stream), np.int32)  # faces, ids, positions
+            ids = packed[3 * n_faces:3 * n_faces + n_used]
+            return packed[3 * n_faces + n_used:].view(np.float32).reshape(n_used, 3), packed[:3 * n_faces].reshape(
+                n_faces, 3), ids
         slots, ids, vids, positions = self.faces, self.face_ids, self.vertex_ids, self.vertex_positions
         live = np.flatnonzero(ids >= 0)
         faces = slots[live[np.argsort(ids[live])]]

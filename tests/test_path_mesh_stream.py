@@ -1,6 +1,8 @@
 """Drawable meshes along a path: each frame's change, applied to the last
 frame's slots, gives exactly that frame's Refinement.mesh()."""
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import numpy as np
@@ -156,6 +158,88 @@ def test_refine_path_changes_yields_each_frame_with_its_change(built):
         assert np.array_equal(np.asarray(r.executed), np.asarray(want.executed)), i
         replay.apply(change)
     assert_same_mesh(replay, stream, got[-1][0], "last")
+
+
+def follow_changes(pm, cams, tau, where=""):
+    """``path_mesh_changes`` frame by frame: each change replayed and the
+    stream's own mesh checked at that frame against ``refine`` of the frame
+    alone. Returns each frame's faces (rows of vertex ids)."""
+    stream, replay, faces = pmjax.MeshStream(pm), Replay(), []
+    alone = pmjax.refine_path(pm, cams, tau, coherent=False)
+    for i, ((r, change), want) in enumerate(zip(pmjax.path_mesh_changes(pm, cams, tau, stream=stream), alone)):
+        assert np.array_equal(np.asarray(r.executed), np.asarray(want.executed)), (where, i)
+        replay.apply(change)
+        assert_same_mesh(replay, stream, want, (where, i))
+        faces.append(replay.face_set())
+    assert len(faces) == len(cams.eye), where
+    return faces
+
+
+@pytest.mark.parametrize("name,n", [("cow.ply", 36), pytest.param("bunny.ply", 70, marks=pytest.mark.slow)])
+def test_path_mesh_changes_every_frame(built, name, n):
+    """Words of 16 frames in blocks of words: frames within a word, across
+    words (and blocks, on the bunny), cuts inside and at the edge of a word,
+    a tolerance changing each frame; the stream holds each frame's mesh as
+    it is given."""
+    data, pm = model(built, name)
+    cams = hand_held(data, n, seed=13, cuts=(16, 23, 64))
+    taus = np.geomspace(0.3, 6.0, n).astype(np.float32)
+    follow_changes(pm, cams, taus, f"{name} hand-held")
+
+
+def _moved(data, scale, offset):
+    """``data`` scaled about the origin, then moved by ``offset`` model sizes
+    (as tests/test_scale.py moves it)."""
+    f64 = lambda a: np.asarray(a, np.float64)  # noqa: E731
+    size = scale * float(np.ptp(data.vertices[: data.n_original_vertices], axis=0).max())
+    lengths = {k: (f64(getattr(data, k)) * scale).astype(np.float32) for k in ("radius", "delta", "mu")}
+    return dataclasses.replace(data, vertices=(f64(data.vertices) * scale + offset * size).astype(np.float32),
+                               **lengths)
+
+
+def _moved_cameras(data, scale, offset, n):
+    cams = hand_held(data, n, seed=17, cuts=(21,))
+    size = scale * float(np.ptp(data.vertices[: data.n_original_vertices], axis=0).max())
+    f64 = lambda a: np.asarray(a, np.float64)  # noqa: E731
+    return pmjax.Camera(f64(cams.eye) * scale + offset * size, np.asarray(cams.rotation), np.asarray(cams.fov_y),
+                        f64(cams.near) * scale, f64(cams.far) * scale, f64(cams.ortho_height) * scale,
+                        np.asarray(cams.width), np.asarray(cams.height), cams.orthographic)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scale,offset", [(1e-6, 3.0), (1e6, -2.0)])
+def test_path_mesh_changes_at_any_scale(built, scale, offset):
+    """The model scaled and moved, the cameras with it: frame by frame the
+    same faces as at unit scale, each frame's mesh that of refine alone."""
+    data, pm = model(built, "cow.ply")
+    unit = follow_changes(pm, _moved_cameras(data, 1.0, 0.0, 40), 1.0, "unit")
+    moved = pmjax.ProgressiveMesh.from_data(_moved(data, scale, offset))
+    got = follow_changes(moved, _moved_cameras(data, scale, offset, 40), 1.0, f"scale {scale}")
+    for i, (a, b) in enumerate(zip(unit, got)):
+        assert a == b, (scale, i)
+
+
+@pytest.mark.skipif(not _core.built(), reason="the C core is not built")
+def test_core_stream_lane_needs_a_word(built):
+    """The step to another frame of the word held is refused, nothing
+    changed, when the stream holds one camera's lists or the bit is not one
+    of the word's."""
+    data, pm = model(built, "cow.ply")
+    cams = pmjax.standard_orbit(originals(data), 20)
+    stream = pmjax.MeshStream(pm)
+    stream.update(pmjax.refine(pm, index_camera(cams, 0), 1.0))
+    before = stream.faces
+    with pytest.raises(ValueError, match="holds no word"):
+        _core._pmx.mesh_stream_lane(stream._stream, 1)
+    assert np.array_equal(stream.faces, before)
+    frames = list(pmjax.refine_path(pm, cams, 1.0))
+    stream, replay = pmjax.MeshStream(pm), Replay()
+    replay.apply(stream.update(frames[0]))
+    with pytest.raises(ValueError, match="not one of its 16 bits"):
+        _core._pmx.mesh_stream_lane(stream._stream, 16)
+    replay.apply(stream.update(frames[5]))  # the same word: the step by its bit alone, from frame 0's mesh
+    assert_same_mesh(replay, stream, frames[5], "frame 5")
+    follow(pm, frames[6:], stream, replay, where="after the refusals")
 
 
 def test_change_stream_without_the_core(built):

@@ -70,18 +70,30 @@ static inline __attribute__((always_inline)) void decide_lanes(const Frames *res
         decide_each_lane(fr, col, code, ortho, 0);
 }
 
-/* One pcol's row in every lane (the frames of a word), broadcast here at the
- * vector width of the decision that reads it; the frames' decisions as
- * masks (one bit per frame: WHOLE, YES, UNSURE), built at that width too. */
+/* One pcol's row under every lane's camera (the frames of a word): the row
+ * read once as scalars, which the decision broadcasts at its vector width;
+ * the frames' decisions as masks (one bit per frame: WHOLE, YES, UNSURE). */
+static inline __attribute__((always_inline)) void decide_row_each_lane(const Frames *restrict fr, const Pcol q,
+                                                                       int32_t *restrict code, const int ortho,
+                                                                       const int all_tests)
+{
+#pragma omp simd
+    for (int l = 0; l < BLOCK; l++) {
+        const Lane L = frame_at(fr, l);
+        code[l] = decide_one(&L, q, ortho, all_tests);
+    }
+}
 static inline __attribute__((always_inline)) void decide_row_lanes(const Frames *fr, const float *row, Lanes *masks,
                                                                    const int ortho)
 {
-    Columns col;
+    const Pcol q = {row[CX],     row[CY],    row[CZ],    row[NX],     row[NY],    row[NZ],
+                    row[RADIUS], row[SIN_A], row[COS_A], row[DELTA],  row[MU],    row[REACH],
+                    row[SPREAD], row[FACING], row[ERROR]};
     int32_t code[BLOCK];
-    for (int c = 0; c < ROW; c++)
-        for (int l = 0; l < BLOCK; l++)
-            col[c][l] = row[c];
-    decide_lanes(fr, col, code, ortho);
+    if (fr->fast)
+        decide_row_each_lane(fr, q, code, ortho, 1);
+    else
+        decide_row_each_lane(fr, q, code, ortho, 0);
     Lanes wh = 0, y = 0, u = 0;
     for (int l = 0; l < BLOCK; l++) {
         wh |= (Lanes)(((code[l] & WHOLE) != 0) << l);

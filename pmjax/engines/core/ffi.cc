@@ -1118,16 +1118,34 @@ PyObject* MeshStreamNew(PyObject*, PyObject* args) {
   return capsule;
 }
 
+// The stream's counts after a step and its change packed side by side in
+// one bytearray (the caller's to keep; NumPy views it without a copy):
+// s32 face slots [k], s32 faces [k, 3], s32 vertex slots [u], s32 ids [u],
+// f32 positions [u, 3].
 PyObject* StreamState(const PmxMeshStream* s) {
   PmxStreamState st;
   pmx_mesh_stream_state(s, &st);
-  return Py_BuildValue("(LLLLLLLL)", (long long)st.n_face_slots, (long long)st.n_vertex_slots,
-                       (long long)st.n_face_changes, (long long)st.n_vertex_changes, (long long)st.n_faces,
-                       (long long)st.n_vertices, (long long)st.n_used, (long long)st.generation);
+  const int64_t k = st.n_face_changes, u = st.n_vertex_changes;
+  PyObject* packed = PyByteArray_FromStringAndSize(nullptr, (Py_ssize_t)(4 * (4 * k + 5 * u)));
+  if (!packed) return nullptr;
+  char* at = PyByteArray_AS_STRING(packed);
+  const auto put = [&at](const void* p, int64_t bytes) {
+    if (bytes) memcpy(at, p, (size_t)bytes);
+    at += bytes;
+  };
+  put(st.face_changes, 4 * k);
+  put(st.changed_faces, 12 * k);
+  put(st.vertex_changes, 4 * u);
+  put(st.changed_ids, 4 * u);
+  put(st.changed_positions, 12 * u);
+  return Py_BuildValue("(LLLLLLLLN)", (long long)st.n_face_slots, (long long)st.n_vertex_slots, (long long)k,
+                       (long long)u, (long long)st.n_faces, (long long)st.n_vertices, (long long)st.n_used,
+                       (long long)st.generation, packed);
 }
 
 // mesh_stream_step(stream, positions, ran, frame, n, key)
-//   -> (face slots, vertex slots, faces changed, vertices changed, faces, vertices, vertices used, generation)
+//   -> (face slots, vertex slots, faces changed, vertices changed, faces, vertices, vertices used, generation,
+//       the change packed: StreamState)
 // The stream from the frame it holds to the next: its n visited slots'
 // positions s32[L] and ran bits (u8 [L], or a word's u16 [L] and the frame's
 // bit), key >= 0 naming lists that other frames share (a word), else -1.
@@ -1176,27 +1194,53 @@ PyObject* MeshStreamStep(PyObject*, PyObject* args) {
   return StreamState(h->stream);
 }
 
-// mesh_stream_compact(stream, faces, ids, positions)
-// The mesh held as Refinement.mesh() gives it, written: faces s32[faces, 3],
-// ids s32[used], positions f32[used, 3] (the counts of the last step).
-PyObject* MeshStreamCompact(PyObject*, PyObject* args) {
-  PyObject *stream_o, *faces_o, *ids_o, *positions_o;
-  if (!PyArg_ParseTuple(args, "OOOO", &stream_o, &faces_o, &ids_o, &positions_o)) return nullptr;
+// mesh_stream_lane(stream, frame) -> as mesh_stream_step
+// The stream to another frame (bit) of the word whose lists it holds: the
+// arrays of the last step, kept by the caller, are not passed again.
+PyObject* MeshStreamLane(PyObject*, PyObject* args) {
+  PyObject* stream_o;
+  int frame = 0;
+  if (!PyArg_ParseTuple(args, "Oi", &stream_o, &frame)) return nullptr;
   auto* h = static_cast<StreamHandle*>(PyCapsule_GetPointer(stream_o, kStreamCapsule));
   if (!h) return nullptr;
-  HostArray faces, ids, positions;
-  if (!Take(faces_o, "faces", 'i', 4, true, false, &faces) || !Take(ids_o, "ids", 'i', 4, true, false, &ids) ||
-      !Take(positions_o, "positions", 'f', 4, true, false, &positions))
+  PmxStatus status;
+  Py_BEGIN_ALLOW_THREADS;
+  status = pmx_mesh_stream_lane(h->stream, frame);
+  Py_END_ALLOW_THREADS;
+  if (status != PMX_OK) {
+    PyErr_Format(status == PMX_NO_MEMORY ? PyExc_MemoryError : PyExc_ValueError, "%s",
+                 status == PMX_BAD_SIZE
+                     ? "mesh_stream_lane: the stream holds no word's lists, or frame is not one of its 16 bits "
+                       "(the stream still holds the last frame)"
+                 : status == PMX_NO_MEMORY
+                     ? "mesh_stream_lane: out of memory for the stream's slots"
+                     : "mesh_stream_lane: the frame's changes are not those of a refinement of this hierarchy; "
+                       "the stream is broken (make a new one)");
     return nullptr;
+  }
+  return StreamState(h->stream);
+}
+
+// mesh_stream_compact(stream) -> bytearray
+// The mesh held as Refinement.mesh() gives it, packed side by side (the
+// caller's to keep; NumPy views it without a copy): s32 faces [faces, 3],
+// s32 ids [used], f32 positions [used, 3] (the counts of the last step).
+PyObject* MeshStreamCompact(PyObject*, PyObject* args) {
+  PyObject* stream_o;
+  if (!PyArg_ParseTuple(args, "O", &stream_o)) return nullptr;
+  auto* h = static_cast<StreamHandle*>(PyCapsule_GetPointer(stream_o, kStreamCapsule));
+  if (!h) return nullptr;
   PmxStreamState st;
   pmx_mesh_stream_state(h->stream, &st);
-  if (!Raise(Expect("faces", faces.shape(), {st.n_faces, 3})) || !Raise(Expect("ids", ids.shape(), {st.n_used})) ||
-      !Raise(Expect("positions", positions.shape(), {st.n_used, 3})))
-    return nullptr;
+  PyObject* packed = PyByteArray_FromStringAndSize(nullptr, (Py_ssize_t)(12 * st.n_faces + 16 * st.n_used));
+  if (!packed) return nullptr;
+  auto* faces = reinterpret_cast<int32_t*>(PyByteArray_AS_STRING(packed));
+  int32_t* ids = faces + 3 * st.n_faces;
+  auto* positions = reinterpret_cast<float*>(ids + st.n_used);
   Py_BEGIN_ALLOW_THREADS;
-  pmx_mesh_stream_compact(h->stream, faces.data<int32_t>(), ids.data<int32_t>(), positions.data<float>());
+  pmx_mesh_stream_compact(h->stream, faces, ids, positions);
   Py_END_ALLOW_THREADS;
-  Py_RETURN_NONE;
+  return packed;
 }
 
 // mesh_stream_arrays(stream) -> (face_vertex, face_id, vertex_id, vertex_position, face_changes,
@@ -1243,10 +1287,15 @@ PyMethodDef methods[] = {
      "n_original, n_faces) -> stream: a drawable front mesh at the fully collapsed mesh (mesh_stream.c)."},
     {"mesh_stream_step", MeshStreamStep, METH_VARARGS,
      "mesh_stream_step(stream, positions, ran, frame, n, key) -> "
-     "(face slots, vertex slots, faces changed, vertices changed, faces, vertices, vertices used, generation)."},
+     "(face slots, vertex slots, faces changed, vertices changed, faces, vertices, vertices used, generation, "
+     "change): the change a bytearray of s32 face slots [k], faces [k, 3], vertex slots [u], ids [u] and f32 "
+     "positions [u, 3]."},
+    {"mesh_stream_lane", MeshStreamLane, METH_VARARGS,
+     "mesh_stream_lane(stream, frame) -> as mesh_stream_step: the stream to another frame (bit) of the word whose "
+     "lists it holds."},
     {"mesh_stream_compact", MeshStreamCompact, METH_VARARGS,
-     "mesh_stream_compact(stream, faces, ids, positions): the mesh held as Refinement.mesh() gives it, written "
-     "into arrays of the last step's sizes."},
+     "mesh_stream_compact(stream) -> bytearray: the mesh held as Refinement.mesh() gives it, packed: s32 faces "
+     "[faces, 3], s32 ids [used], f32 positions [used, 3]."},
     {"mesh_stream_arrays", MeshStreamArrays, METH_VARARGS,
      "mesh_stream_arrays(stream) -> read-only memoryviews (face_vertex, face_id, vertex_id, vertex_position, "
      "face_changes, vertex_changes, changed_faces, changed_ids, changed_positions), valid until the generation "

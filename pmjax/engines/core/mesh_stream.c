@@ -24,7 +24,7 @@
  * Memory: the slots of one frame's mesh (grown to the largest frame seen,
  * freed slots reused first), the change's slot lists, and maps over the
  * hierarchy (a slot per position and per original vertex, a slot per killed
- * face, a byte per position), whatever the path's length. */
+ * face, a bit per face and per vertex id), whatever the path's length. */
 #include <stdlib.h>
 
 #include "internal.h"
@@ -38,7 +38,7 @@ struct PmxMeshStream {
     int64_t face_cap, n_face_slots, n_face_free;
     /* Vertex slots: id (-1 free), position, first corner, corners held, the
      * depth-first interval [lo, hi) of the original vertices below. */
-    int32_t *vertex_id, *vertex_head, *vertex_free, *vertex_lo, *vertex_hi, *vertex_uses;
+    int32_t *vertex_id, *vertex_head, *vertex_free, *vertex_lo, *vertex_hi, *vertex_uses, *vertex_rank;
     float *vertex_position;
     uint32_t *vertex_stamp;
     int64_t vertex_cap, n_vertex_slots, n_vertex_free;
@@ -51,10 +51,8 @@ struct PmxMeshStream {
     int started; /* a step has run: the next one starts a new change */
     /* Maps: the vertex slot at each index (positions, then P + original
      * vertex; -1 off the front), the face slot of each killed face (by its
-     * place in kill_data: a pcol's kill list side by side), a mark per
-     * position. */
+     * place in kill_data: a pcol's kill list side by side). */
     int32_t *slot_at, *kill_slot;
-    uint8_t *mark;
     /* The steps' collapses and splits (positions). */
     int32_t *collapse, *split;
     int64_t step_cap;
@@ -63,6 +61,7 @@ struct PmxMeshStream {
     PmxStreamFrame last;
     int has_last, broken;
     int64_t events_key, events_first[FRAMES + 1], events_cap, flipped_cap;
+    int64_t checked_key; /* the key of the last lists whose positions were checked */
     int32_t *events, *flipped;
     /* For the compacted mesh: a bit per face drawn and per vertex id some
      * face uses (ranks in them are the rows of Refinement.mesh()), and their
@@ -113,7 +112,8 @@ static int grow_vertices(PmxMeshStream *s, int64_t need)
         !grow((void **)&s->vertex_free, old, cap, 4) || !grow((void **)&s->vertex_position, 3 * old, 3 * cap, 4) ||
         !grow((void **)&s->vertex_stamp, old, cap, 4) || !grow((void **)&s->vertex_changes, old, cap, 4) ||
         !grow((void **)&s->vertex_lo, old, cap, 4) || !grow((void **)&s->vertex_hi, old, cap, 4) ||
-        !grow((void **)&s->vertex_uses, old, cap, 4) || !grow((void **)&s->changed_ids, old, cap, 4) ||
+        !grow((void **)&s->vertex_uses, old, cap, 4) || !grow((void **)&s->vertex_rank, old, cap, 4) ||
+        !grow((void **)&s->changed_ids, old, cap, 4) ||
         !grow((void **)&s->changed_positions, 3 * old, 3 * cap, 4))
         return 0;
     s->vertex_cap = cap;
@@ -394,11 +394,13 @@ void pmx_mesh_stream_free(PmxMeshStream *s)
 {
     if (!s)
         return;
-    void *arrays[] = {s->face_vertex, s->face_id, s->corner_start, s->corner_next, s->corner_prev, s->face_free,
-                      s->face_stamp, s->vertex_id, s->vertex_head, s->vertex_free, s->vertex_lo, s->vertex_hi, s->vertex_uses, s->vertex_position,
-                      s->vertex_stamp, s->face_changes, s->vertex_changes, s->slot_at, s->kill_slot, s->mark,
-                      s->collapse, s->split, s->events, s->flipped, s->flipped_bits, s->face_bits, s->used_bits, s->face_prefix,
-                      s->used_prefix, s->changed_faces, s->changed_ids, s->changed_positions};
+    void *arrays[] = {s->face_vertex, s->face_id, s->corner_start, s->corner_next, s->corner_prev,
+                      s->face_free, s->face_stamp, s->vertex_id, s->vertex_head, s->vertex_free,
+                      s->vertex_lo, s->vertex_hi, s->vertex_uses, s->vertex_rank, s->vertex_position,
+                      s->vertex_stamp, s->face_changes, s->vertex_changes, s->slot_at, s->kill_slot,
+                      s->collapse, s->split, s->events, s->flipped, s->flipped_bits, s->face_bits,
+                      s->used_bits, s->face_prefix, s->used_prefix, s->changed_faces, s->changed_ids,
+                      s->changed_positions};
     for (size_t i = 0; i < sizeof arrays / sizeof arrays[0]; i++)
         free(arrays[i]);
     free(s);
@@ -413,17 +415,16 @@ PmxMeshStream *pmx_mesh_stream_new(const PmxStreamTables *t, PmxStatus *status)
     s->t = *t;
     s->stamp = 1;
     s->events_key = -1;
+    s->checked_key = -1;
     const int64_t P = t->n_pcols, V0 = t->n_original;
     s->slot_at = malloc(sizeof(int32_t) * (size_t)(P + V0 + 1));
     s->kill_slot = malloc(sizeof(int32_t) * (size_t)(t->n_kill_data + 1));
-    s->mark = calloc((size_t)P + 1, 1);
     const size_t face_words = (size_t)t->n_faces / 64 + 1, used_words = (size_t)(V0 + P) / 64 + 1;
     s->face_bits = calloc(face_words, sizeof(uint64_t));
     s->used_bits = calloc(used_words, sizeof(uint64_t));
     s->face_prefix = malloc(face_words * sizeof(int32_t));
     s->used_prefix = malloc(used_words * sizeof(int32_t));
-    if (!s->slot_at || !s->kill_slot || !s->mark || !s->face_bits || !s->used_bits || !s->face_prefix ||
-        !s->used_prefix) {
+    if (!s->slot_at || !s->kill_slot || !s->face_bits || !s->used_bits || !s->face_prefix || !s->used_prefix) {
         pmx_mesh_stream_free(s);
         return NULL;
     }
@@ -471,12 +472,24 @@ static int increasing(const int32_t *positions, int64_t n, int64_t P)
     return ok;
 }
 
+/* increasing() of a frame's list, once per key: the frames of a word share
+ * their lists. */
+static int checked(PmxMeshStream *s, const PmxStreamFrame *f)
+{
+    if (f->key >= 0 && f->key == s->checked_key)
+        return 1;
+    if (!increasing(f->positions, f->n, s->t.n_pcols))
+        return 0;
+    s->checked_key = f->key;
+    return 1;
+}
+
 /* A word's flips: for each frame f > 0, the slots whose bit differs from
  * frame f - 1's, in slot order (events_first[f] .. events_first[f + 1]).
  * One pass over the word's slots serves its 16 frames. */
 static PmxStatus word_events(PmxMeshStream *s, const PmxStreamFrame *f)
 {
-    if (!increasing(f->positions, f->n, s->t.n_pcols))
+    if (!checked(s, f))
         return PMX_BAD_SIZE;
     int64_t n_flipped = 0;
     /* The slots that flip in some frame, with their frames' bits: most
@@ -550,29 +563,41 @@ static PmxStatus flips(PmxMeshStream *s, const PmxStreamFrame *last, const PmxSt
             }
         }
     } else {
-        /* Other lists: mark the last frame's pcols that did not run (1) and
-         * the next frame's (2); a pcol marked 1 alone collapses, 2 alone
-         * splits. */
-        if (!increasing(next->positions, next->n, s->t.n_pcols))
+        /* Other lists: both increase, so one merge of the two finds every
+         * pcol that did not run in one of them and ran in the other (a pcol
+         * a list leaves out ran there: it lies under a decided subtree). */
+        if (!checked(s, next))
             return PMX_BAD_SIZE;
-        uint8_t *const mark = s->mark;
-        const int64_t n_last = last ? last->n : 0;
-        for (int64_t i = 0; i < n_last; i++)
-            mark[last->positions[i]] |= (uint8_t)!ran_of(last, i);
-        for (int64_t i = 0; i < next->n; i++)
-            mark[next->positions[i]] |= (uint8_t)(!ran_of(next, i) << 1);
-        for (int64_t i = 0; i < n_last; i++) {
-            collapses[nc] = last->positions[i];
-            nc += mark[last->positions[i]] == 1;
+        const int64_t n_last = last ? last->n : 0, n_next = next->n;
+        const int32_t *const a = last ? last->positions : NULL, *const b = next->positions;
+        int64_t i = 0, j = 0;
+        while (i < n_last && j < n_next) {
+            const int32_t pa = a[i], pb = b[j];
+            if (pa == pb) {
+                const int ra = ran_of(last, i), rb = ran_of(next, j);
+                collapses[nc] = splits[ns] = pa;
+                nc += (!ra) & rb;
+                ns += ra & (!rb);
+                i++;
+                j++;
+            } else if (pa < pb) {
+                collapses[nc] = pa;
+                nc += !ran_of(last, i);
+                i++;
+            } else {
+                splits[ns] = pb;
+                ns += !ran_of(next, j);
+                j++;
+            }
         }
-        for (int64_t i = 0; i < next->n; i++) {
-            splits[ns] = next->positions[i];
-            ns += mark[next->positions[i]] == 2;
+        for (; i < n_last; i++) {
+            collapses[nc] = a[i];
+            nc += !ran_of(last, i);
         }
-        for (int64_t i = 0; i < n_last; i++)
-            mark[last->positions[i]] = 0;
-        for (int64_t i = 0; i < next->n; i++)
-            mark[next->positions[i]] = 0;
+        for (; j < n_next; j++) {
+            splits[ns] = b[j];
+            ns += !ran_of(next, j);
+        }
     }
     *n_collapses = nc;
     *n_splits = ns;
@@ -640,6 +665,16 @@ PmxStatus pmx_mesh_stream_step(PmxMeshStream *s, const PmxStreamFrame *next)
     return PMX_OK;
 }
 
+PmxStatus pmx_mesh_stream_lane(PmxMeshStream *s, int frame)
+{
+    /* The lists of the frame held, read at another of its word's bits. */
+    if (!s->has_last || !s->last.ran16 || s->last.key < 0 || frame < 0 || frame >= FRAMES)
+        return PMX_BAD_SIZE;
+    PmxStreamFrame next = s->last;
+    next.frame = frame;
+    return pmx_mesh_stream_step(s, &next);
+}
+
 void pmx_mesh_stream_state(const PmxMeshStream *s, PmxStreamState *out)
 {
     out->face_vertex = s->face_vertex;
@@ -672,22 +707,29 @@ PMX_INLINE void compact_body(PmxMeshStream *s, int32_t *faces, int32_t *ids, flo
     const uint64_t *const face_bits = s->face_bits, *const used_bits = s->used_bits;
     int32_t *const face_prefix = s->face_prefix, *const used_prefix = s->used_prefix;
     const int32_t *const face_id = s->face_id, *const face_vertex = s->face_vertex, *const vertex_id = s->vertex_id;
+    const int32_t *const uses = s->vertex_uses;
+    int32_t *const vertex_rank = s->vertex_rank;
     prefix_counts(face_bits, s->t.n_faces / 64 + 1, face_prefix);
     prefix_counts(used_bits, (s->t.n_original + s->t.n_pcols) / 64 + 1, used_prefix);
+    /* Each used vertex slot's row first: a face's corners then read their
+     * rows from one small array instead of ranking each corner's id. */
+    for (int64_t slot = 0; slot < s->n_vertex_slots; slot++) {
+        if (vertex_id[slot] < 0 || uses[slot] == 0)
+            continue;
+        const int64_t k = rank_of(used_bits, used_prefix, vertex_id[slot]);
+        vertex_rank[slot] = (int32_t)k;
+        ids[k] = vertex_id[slot];
+        memcpy(positions + 3 * k, s->vertex_position + 3 * slot, 3 * sizeof(float));
+    }
     for (int64_t slot = 0; slot < s->n_face_slots; slot++) {
         const int32_t face = face_id[slot];
         if (face < 0)
             continue;
         int32_t *row = faces + 3 * rank_of(face_bits, face_prefix, face);
-        for (int c = 0; c < 3; c++)
-            row[c] = (int32_t)rank_of(used_bits, used_prefix, vertex_id[face_vertex[3 * slot + c]]);
-    }
-    for (int64_t slot = 0; slot < s->n_vertex_slots; slot++) {
-        if (vertex_id[slot] < 0 || s->vertex_uses[slot] == 0)
-            continue;
-        const int64_t k = rank_of(used_bits, used_prefix, vertex_id[slot]);
-        ids[k] = vertex_id[slot];
-        memcpy(positions + 3 * k, s->vertex_position + 3 * slot, 3 * sizeof(float));
+        const int32_t *corner = face_vertex + 3 * slot;
+        row[0] = vertex_rank[corner[0]];
+        row[1] = vertex_rank[corner[1]];
+        row[2] = vertex_rank[corner[2]];
     }
 }
 

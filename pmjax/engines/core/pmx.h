@@ -270,6 +270,10 @@ void pmx_mesh_stream_free(PmxMeshStream *s);
  * inside [0, P); PMX_BAD_TABLE when its flips are not a refinement's (the
  * stream is then broken: every later step fails). */
 PmxStatus pmx_mesh_stream_step(PmxMeshStream *s, const PmxStreamFrame *next);
+/* pmx_mesh_stream_step to another frame of the word the stream holds (its
+ * lists, bit `frame`); PMX_BAD_SIZE (nothing changed) when the frame held
+ * is not a word's. */
+PmxStatus pmx_mesh_stream_lane(PmxMeshStream *s, int frame);
 void pmx_mesh_stream_state(const PmxMeshStream *s, PmxStreamState *out);
 /* The mesh held, compacted as Refinement.mesh() gives it: faces [n_faces, 3]
  * in increasing face id, ids and positions [n_used(, 3)] the vertices the
