@@ -232,6 +232,9 @@ def _fit_batch(coordinates, corners, ancestor, samples: _Samples, normals, lo: i
     # grouped by vertex; in a group the faces where it is corner 0, then
     # corner 1, then corner 2, each in mesh order (one sort of unique keys).
     touched = np.flatnonzero((corners[0] >= lo) | (corners[1] >= lo) | (corners[2] >= lo))
+    start = normals[:, lo:hi]
+    if not len(touched):
+        return start
     tri = corners[:, touched]
     keys = []
     for k in range(3):
@@ -241,7 +244,6 @@ def _fit_batch(coordinates, corners, ancestor, samples: _Samples, normals, lo: i
     fan = tri.take(keys % len(touched), axis=1)  # [3, fan faces] their corners
     fan_size = np.bincount(keys // (3 * len(touched)), minlength=hi - lo)
     fan_start = np.concatenate([[0], np.cumsum(fan_size)])
-    start = normals[:, lo:hi]
     # Step 2: the samples standing under a created vertex with a fan, and the
     # face of that fan each lies on, a block of samples at a time (memory
     # bounded by the block, not the mesh).
