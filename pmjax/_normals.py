@@ -56,12 +56,26 @@ def _hierarchy_arrays(pm):
 
 def _area_normal_sums(vertices, faces) -> np.ndarray:
     """``[V, 3]`` per vertex the sum of its faces' cross products (2·area·normal)."""
-    total = np.zeros_like(vertices)
-    if len(faces):
-        cross = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
-        for k in range(3):
-            np.add.at(total, faces[:, k], cross)
-    return total
+    return np.ascontiguousarray(_corner_sums(faces, _face_cross(np.ascontiguousarray(vertices.T), faces), len(vertices)).T)
+
+
+def _face_cross(coordinates, faces) -> np.ndarray:
+    """``[3, F]`` by axis each face's cross product of its edges from corner 0
+    (2·area·normal; the arithmetic of ``np.cross``), of the vertices
+    ``coordinates[3, V]``."""
+    a, b, c = ([coordinates[k][faces[:, j]] for k in range(3)] for j in range(3))
+    u = [b[k] - a[k] for k in range(3)]
+    v = [c[k] - a[k] for k in range(3)]
+    return np.stack([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]])
+
+
+def _corner_sums(faces, values, n: int) -> np.ndarray:
+    """``[C, n]`` per vertex the sum of ``values[C, F]`` over its faces, each
+    vertex's terms added in the order corner 0 of every face, then corner 1,
+    then corner 2 (the order of ``np.add.at`` corner by corner, so the same
+    bits)."""
+    at = faces.T.reshape(-1)
+    return np.stack([np.bincount(at, np.tile(row, 3), minlength=n) for row in values])
 
 
 def _consumed_by_batch(parent, offsets) -> list:
@@ -72,8 +86,9 @@ def _consumed_by_batch(parent, offsets) -> list:
     return [consumed[starts[b]:starts[b + 1]] for b in range(len(offsets) - 1)]
 
 
-def _unit(n: np.ndarray) -> np.ndarray:
-    length = np.linalg.norm(n, axis=1, keepdims=True)
+def _unit(n: np.ndarray, axis: int = 1) -> np.ndarray:
+    """``n`` divided by its lengths along ``axis`` (zero rows kept)."""
+    length = np.linalg.norm(n, axis=axis, keepdims=True)
     return n / np.where(length > 0, length, 1.0)
 
 
@@ -105,100 +120,130 @@ def fitted_normals(pm) -> np.ndarray:
         ``float32[V0 + P, 3]``, unit (zero for a vertex with no face area
         below it).
     """
+    return np.ascontiguousarray(_fitted_by_axis(pm).T, dtype=np.float32)
+
+
+def _fitted_by_axis(pm) -> np.ndarray:
+    """``float64[3, V0 + P]``: :func:`fitted_normals` by axis, before rounding."""
     V0, vertices, faces, parent, offsets = _hierarchy_arrays(pm)
-    total = _area_normal_sums(vertices, faces)
-    samples = _Samples(vertices[:V0], _unit(total[:V0]), _vertex_areas(vertices, faces)[:V0])
+    # Arrays by axis ([3, n], each axis a contiguous row): the per-sample
+    # arithmetic below is on one axis at a time.
+    coordinates = np.ascontiguousarray(vertices.T)
+    cross = _face_cross(coordinates, faces)
+    total = _corner_sums(faces, cross, len(vertices)).T  # [V, 3]
+    area = _corner_sums(faces, np.linalg.norm(cross, axis=0)[None] / 6.0, len(vertices))[0]
+    samples = _Samples(coordinates[:, :V0], np.ascontiguousarray(_unit(total[:V0]).T), area[:V0].copy())
+    vertices = cross = area = None  # memory: only what the batches need is kept
     consumed = _consumed_by_batch(parent, offsets)
     # rep[x]: the vertex that stands for x after the current batch (x itself
-    # until consumed); corners: the live faces' corners after the batch;
-    # ancestor[p]: the vertex standing for original vertex p.
-    rep = np.arange(len(vertices))
-    corners = faces
+    # until consumed); corners[k]: corner k of the live faces after the
+    # batch; ancestor[p]: the vertex standing for original vertex p.
+    rep = np.arange(coordinates.shape[1])
+    corners = np.ascontiguousarray(faces.T)
+    faces = None
     ancestor = np.arange(V0)
-    out = _unit(total)
+    out = np.ascontiguousarray(_unit(total).T)  # [3, V]
     for b in range(len(offsets) - 1):
         kids = consumed[b]
         np.add.at(total, V0 + parent[kids], total[kids])
         lo, hi = V0 + offsets[b], V0 + offsets[b + 1]
-        out[lo:hi] = _unit(total[lo:hi])
+        out[:, lo:hi] = _unit(total[lo:hi]).T
         rep[kids] = V0 + parent[kids]
         corners = rep[corners]
-        alive = (corners[:, 0] != corners[:, 1]) & (corners[:, 1] != corners[:, 2]) & (corners[:, 0] != corners[:, 2])
-        corners = corners[alive]
+        corners = corners[:, (corners[0] != corners[1]) & (corners[1] != corners[2]) & (corners[0] != corners[2])]
         ancestor = rep[ancestor]
-        out[lo:hi] = _fit_batch(vertices, corners, ancestor, samples, out, lo, hi)
-    return out.astype(np.float32)
+        out[:, lo:hi] = _fit_batch(coordinates, corners, ancestor, samples, out, lo, hi)
+    return out
 
 
 class _Samples(NamedTuple):
     """The original surface's samples: its vertices."""
 
-    positions: np.ndarray  # [V0, 3]
-    normals: np.ndarray  # [V0, 3], unit area-weighted vertex normals
+    positions: np.ndarray  # [3, V0], by axis
+    normals: np.ndarray  # [3, V0], unit area-weighted vertex normals by axis
     weights: np.ndarray  # [V0], a third of the area of each vertex's faces
 
 
-def _vertex_areas(vertices, faces) -> np.ndarray:
-    """``[V]`` a third of the area of each vertex's faces."""
-    area = np.zeros(len(vertices))
-    if len(faces):
-        cross = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
-        for k in range(3):
-            np.add.at(area, faces[:, k], np.linalg.norm(cross, axis=1) / 6.0)
-    return area
+# Rows of _face_geometry: what the barycentric coordinates on a face need of
+# the face alone.
+_A, _E0, _E1, _D00, _D01, _D11, _DET = 0, 3, 6, 9, 10, 11, 12
 
 
-# Samples located at a time by _own_faces: its temporaries take about 2 kB per
-# sample (some 250 bytes for each face of a fan of about seven), so a block
-# stays near 30 MB whatever the mesh.
+def _face_geometry(coordinates, tri) -> np.ndarray:
+    """``[13, T]`` of the faces ``tri[3, T]`` (vertices ``coordinates[3,
+    V]``): corner 0 (3 rows by axis), the edges from it to corners 1 and 2
+    (3 rows each), their dot products d00, d01, d11 (summed x, y, z in that
+    order) and the Gram determinant (1 for a degenerate face)."""
+    a, b, c = (coordinates.take(corner, axis=1) for corner in tri)
+    e0 = [b[k] - a[k] for k in range(3)]
+    e1 = [c[k] - a[k] for k in range(3)]
+    d00 = e0[0] * e0[0] + e0[1] * e0[1] + e0[2] * e0[2]
+    d01 = e0[0] * e1[0] + e0[1] * e1[1] + e0[2] * e1[2]
+    d11 = e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2]
+    det = d00 * d11 - d01 * d01
+    det = np.where(det > 0, det, 1.0)  # a degenerate face: coordinates of no use, rarely chosen
+    return np.stack(list(a) + e0 + e1 + [d00, d01, d11, det])
+
+
+# Samples located at a time by _own_faces: its temporaries take about 1.5 kB
+# per sample (some 220 bytes for each face of a fan of about seven), so a
+# block stays near 25 MB whatever the mesh.
 SAMPLE_BLOCK = 1 << 14
 
 
-def _own_faces(vertices, corners, fan, first, size, positions):
-    """``(corners int[S, 3], barycentric float[S, 3])`` of the face each sample
-    lies on: of the ``size[s]`` faces ``fan[first[s]:first[s] + size[s]]`` of
-    its fan, the one its projection falls into most deeply (largest smallest
-    barycentric coordinate), the coordinates clamped to the face."""
+def _own_faces(geometry, first, size, positions):
+    """``(face int[S], barycentric float[3, S])`` of the face each sample
+    lies on: of the ``size[s]`` faces ``first[s]:first[s] + size[s]`` of its
+    fan (columns of ``geometry``, :func:`_face_geometry`), the one its
+    projection (``positions[3, S]``) falls into most deeply (largest
+    smallest barycentric coordinate; the first of equals), the coordinates
+    clamped to the face."""
     # Each sample paired with each face of its fan.
     group = np.concatenate([[0], np.cumsum(size)[:-1]])
     pair = np.repeat(np.arange(len(size)), size)
-    face = fan[np.repeat(first - group, size) + np.arange(len(pair))]
-    # Barycentric coordinates of the projection on each face's plane.
-    tri = corners[face]
-    a = vertices[tri[:, 0]]
-    e0, e1, e2 = vertices[tri[:, 1]] - a, vertices[tri[:, 2]] - a, positions[pair] - a
-    d00, d01, d11 = (e0 * e0).sum(1), (e0 * e1).sum(1), (e1 * e1).sum(1)
-    d20, d21 = (e2 * e0).sum(1), (e2 * e1).sum(1)
-    det = d00 * d11 - d01 * d01
-    det = np.where(det > 0, det, 1.0)  # a degenerate face: coordinates of no use, rarely chosen
-    b1, b2 = (d11 * d20 - d01 * d21) / det, (d00 * d21 - d01 * d20) / det
-    bary = np.stack([1.0 - b1 - b2, b1, b2], axis=1)
-    # The deepest face of each sample (the first of equals).
-    depth = bary.min(axis=1)
-    deepest = np.flatnonzero(depth >= np.maximum.reduceat(depth, group)[pair])
-    own = deepest[np.unique(pair[deepest], return_index=True)[1]]
-    bary = np.clip(bary[own], 0.0, None)
-    bary /= np.maximum(bary.sum(axis=1, keepdims=True), np.finfo(float).tiny)
-    return tri[own], bary
+    face = np.repeat(first - group, size) + np.arange(len(pair))
+    g = geometry.take(face, axis=1)
+    # Barycentric coordinates of the projection on each face's plane, the
+    # dot products summed x, y, z in that order.
+    e2 = [np.repeat(positions[k], size) - g[_A + k] for k in range(3)]
+    d20 = e2[0] * g[_E0] + e2[1] * g[_E0 + 1] + e2[2] * g[_E0 + 2]
+    d21 = e2[0] * g[_E1] + e2[1] * g[_E1 + 1] + e2[2] * g[_E1 + 2]
+    b1 = (g[_D11] * d20 - g[_D01] * d21) / g[_DET]
+    b2 = (g[_D00] * d21 - g[_D01] * d20) / g[_DET]
+    b0 = 1.0 - b1 - b2
+    # The deepest face of each sample (the first of equals: pairs are in
+    # sample order, so the first pair of each sample among the deepest).
+    depth = np.minimum(np.minimum(b0, b1), b2)
+    deepest = np.flatnonzero(depth >= np.repeat(np.maximum.reduceat(depth, group), size))
+    owner = pair[deepest]
+    own = deepest[np.concatenate([[True], owner[1:] != owner[:-1]])]
+    bary = np.stack([np.clip(b[own], 0.0, None) for b in (b0, b1, b2)])
+    bary /= np.maximum(bary[0] + bary[1] + bary[2], np.finfo(float).tiny)
+    return face[own], bary
 
 
-def _fit_batch(vertices, corners, ancestor, samples: _Samples, normals, lo: int, hi: int) -> np.ndarray:
-    """``[hi - lo, 3]`` fitted unit normals of the vertices ``lo:hi`` created
-    by one batch, in the mesh of live faces ``corners`` just after it
-    (``normals``: every other vertex's, fixed; the batch's subtree means)."""
-    # Step 1: each created vertex's fan, as (vertex slot, face) pairs grouped by slot.
-    touched = np.flatnonzero((corners >= lo).any(axis=1))
-    slot_of, face_of = [], []
+def _fit_batch(coordinates, corners, ancestor, samples: _Samples, normals, lo: int, hi: int) -> np.ndarray:
+    """``[3, hi - lo]`` by axis the fitted unit normals of the vertices
+    ``lo:hi`` created by one batch, in the mesh of live faces ``corners[3,
+    F]`` just after it (``coordinates[3, V]``: the vertices' positions;
+    ``normals[3, V]``: every other vertex's, fixed; the batch's subtree
+    means)."""
+    # Step 1: each created vertex's fan: the live faces with it as a corner,
+    # grouped by vertex; in a group the faces where it is corner 0, then
+    # corner 1, then corner 2, each in mesh order (one sort of unique keys).
+    touched = np.flatnonzero((corners[0] >= lo) | (corners[1] >= lo) | (corners[2] >= lo))
+    start = normals[:, lo:hi]
+    if not len(touched):
+        return start
+    tri = corners[:, touched]
+    keys = []
     for k in range(3):
-        on = touched[corners[touched, k] >= lo]
-        slot_of.append(corners[on, k] - lo)
-        face_of.append(on)
-    slot_of, face_of = np.concatenate(slot_of), np.concatenate(face_of)
-    order = np.argsort(slot_of, kind="stable")
-    fan = face_of[order]
-    fan_size = np.bincount(slot_of, minlength=hi - lo)
+        on = np.flatnonzero(tri[k] >= lo)
+        keys.append(((tri[k, on] - lo) * 3 + k) * len(touched) + on)
+    keys = np.sort(np.concatenate(keys))
+    fan = tri.take(keys % len(touched), axis=1)  # [3, fan faces] their corners
+    fan_size = np.bincount(keys // (3 * len(touched)), minlength=hi - lo)
     fan_start = np.concatenate([[0], np.cumsum(fan_size)])
-    start = normals[lo:hi]
     # Step 2: the samples standing under a created vertex with a fan, and the
     # face of that fan each lies on, a block of samples at a time (memory
     # bounded by the block, not the mesh).
@@ -206,28 +251,36 @@ def _fit_batch(vertices, corners, ancestor, samples: _Samples, normals, lo: int,
     sample = sample[fan_size[ancestor[sample] - lo] > 0]
     if not len(sample):
         return start
-    parts = [_own_faces(vertices, corners, fan, fan_start[ancestor[block] - lo], fan_size[ancestor[block] - lo],
-                        samples.positions[block])
-             for block in np.array_split(sample, -(-len(sample) // SAMPLE_BLOCK))]
-    tri, bary = np.concatenate([t for t, _ in parts]), np.concatenate([b for _, b in parts])
-    # Step 4: Jacobi sweeps of the weighted least squares over the created
-    # vertices' normals, the other corners fixed.
-    weight, target = samples.weights[sample], samples.normals[sample]
-    created = tri >= lo
-    slot = np.where(created, tri - lo, 0)
-    diagonal = np.zeros(hi - lo)
-    for k in range(3):
-        on = created[:, k]
-        np.add.at(diagonal, slot[on, k], weight[on] * bary[on, k] ** 2)
-    fitted = start.copy()
+    geometry = _face_geometry(coordinates, fan)
+    parts = []
+    for block in np.array_split(sample, -(-len(sample) // SAMPLE_BLOCK)):
+        slot = ancestor[block] - lo
+        parts.append(_own_faces(geometry, fan_start[slot], fan_size[slot], samples.positions[:, block]))
+    geometry = None  # released before the sweeps' arrays
+    own = fan.take(np.concatenate([f for f, _ in parts]), axis=1)  # [3, S] the corners of each sample's face
+    bary = np.concatenate([b for _, b in parts], axis=1)  # [3, S]
+    parts = None
+    # Step 3: Jacobi sweeps of the weighted least squares over the created
+    # vertices' normals, the other corners fixed. A sample's terms go to
+    # the slots of its created corners, summed over the samples in order
+    # corner by corner.
+    weight, target = samples.weights[sample], samples.normals.take(sample, axis=1)
+    on = [np.flatnonzero(own[k] >= lo) for k in range(3)]
+    at = [own[k, on[k]] - lo for k in range(3)]
+    diagonal = np.bincount(np.concatenate(at), np.concatenate([weight[on[k]] * bary[k, on[k]] ** 2 for k in range(3)]),
+                           minlength=hi - lo)
+    share = [weight[on[k]] * bary[k, on[k]] for k in range(3)]
+    values = [normals.take(own[k], axis=1) for k in range(3)]  # [3, S] each, the created corners' set per sweep
+    solved = diagonal > 0
+    fitted = start
     for _ in range(FIT_SWEEPS):
-        values = np.where(created[..., None], fitted[slot], normals[tri])  # [S, 3 corners, 3]
-        residual = target - (bary[..., None] * values).sum(axis=1)
-        rhs = np.zeros((hi - lo, 3))
         for k in range(3):
-            on = created[:, k]
-            own = residual[on] + bary[on, k, None] * values[on, k]  # the residual without this corner
-            np.add.at(rhs, slot[on, k], (weight[on] * bary[on, k])[:, None] * own)
-        solved = diagonal > 0
-        fitted = np.where(solved[:, None], rhs / np.where(solved, diagonal, 1.0)[:, None], start)
-    return _unit(fitted)
+            values[k][:, on[k]] = fitted.take(at[k], axis=1)
+        terms = [bary[k] * values[k] for k in range(3)]
+        residual = target - (terms[0] + terms[1] + terms[2])
+        # Each term: the residual without this corner, weighted.
+        rhs = np.concatenate([share[k] * (residual.take(on[k], axis=1) + terms[k].take(on[k], axis=1))
+                              for k in range(3)], axis=1)
+        rhs = np.stack([np.bincount(np.concatenate(at), row, minlength=hi - lo) for row in rhs])
+        fitted = np.where(solved, rhs / np.where(solved, diagonal, 1.0), start)
+    return _unit(fitted, axis=0)

@@ -107,6 +107,131 @@ def test_fitted_normals_follow_their_rule(cow):
     assert np.abs(fitted[V0:] - pmjax.hierarchy_normals(pm)[V0:]).max() > 0.01
 
 
+def _reference_fitted_normals(data):
+    """:func:`pmjax.fitted_normals` in float64 (before rounding) the
+    straightforward way, the same arithmetic in the same order: every batch relabels all live faces and
+    all samples, locates every sample in one pass with ``[S, 3]`` arrays, and
+    sums with ``np.add.at``."""
+    V0 = data.n_original_vertices
+    v, f = data.vertices.astype(np.float64), data.faces.astype(np.int64)
+    parent = np.full(len(v), -1)
+    parent[data.v1], parent[data.v2] = np.arange(data.n_pcols), np.arange(data.n_pcols)
+    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    total, area = np.zeros_like(v), np.zeros(len(v))
+    for k in range(3):
+        np.add.at(total, f[:, k], cross)
+        np.add.at(area, f[:, k], np.linalg.norm(cross, axis=1) / 6.0)
+    unit = _unit_rows
+    target = unit(total[:V0])
+    rep, corners, ancestor, out = np.arange(len(v)), f, np.arange(V0), unit(total)
+    for b in range(data.n_batches):
+        lo, hi = V0 + int(data.batch_offsets[b]), V0 + int(data.batch_offsets[b + 1])
+        kids = np.flatnonzero((parent >= lo - V0) & (parent < hi - V0))
+        kids = kids[np.argsort(parent[kids], kind="stable")]
+        np.add.at(total, V0 + parent[kids], total[kids])
+        out[lo:hi] = start = unit(total[lo:hi])
+        rep[kids] = V0 + parent[kids]
+        corners = rep[corners]
+        corners = corners[(corners[:, 0] != corners[:, 1]) & (corners[:, 1] != corners[:, 2])
+                          & (corners[:, 0] != corners[:, 2])]
+        ancestor = rep[ancestor]
+        # Each created vertex's fan, grouped by vertex.
+        slot_of, face_of = [], []
+        for k in range(3):
+            on = np.flatnonzero(corners[:, k] >= lo)
+            slot_of.append(corners[on, k] - lo)
+            face_of.append(on)
+        slot_of, face_of = np.concatenate(slot_of), np.concatenate(face_of)
+        fan = face_of[np.argsort(slot_of, kind="stable")]
+        size = np.bincount(slot_of, minlength=hi - lo)
+        first = np.concatenate([[0], np.cumsum(size)])
+        sample = np.flatnonzero(ancestor >= lo)
+        sample = sample[size[ancestor[sample] - lo] > 0]
+        if not len(sample):
+            continue
+        # Every sample paired with every face of its fan.
+        n = size[ancestor[sample] - lo]
+        group = np.concatenate([[0], np.cumsum(n)[:-1]])
+        pair = np.repeat(np.arange(len(sample)), n)
+        face = fan[np.repeat(first[ancestor[sample] - lo] - group, n) + np.arange(len(pair))]
+        tri = corners[face]
+        a = v[tri[:, 0]]
+        e0, e1, e2 = v[tri[:, 1]] - a, v[tri[:, 2]] - a, v[sample][pair] - a
+        d00, d01, d11 = (e0 * e0).sum(1), (e0 * e1).sum(1), (e1 * e1).sum(1)
+        d20, d21 = (e2 * e0).sum(1), (e2 * e1).sum(1)
+        det = d00 * d11 - d01 * d01
+        det = np.where(det > 0, det, 1.0)
+        b1, b2 = (d11 * d20 - d01 * d21) / det, (d00 * d21 - d01 * d20) / det
+        bary = np.stack([1.0 - b1 - b2, b1, b2], axis=1)
+        depth = bary.min(axis=1)
+        deepest = np.flatnonzero(depth >= np.maximum.reduceat(depth, group)[pair])
+        own = deepest[np.unique(pair[deepest], return_index=True)[1]]
+        tri, bary = tri[own], np.clip(bary[own], 0.0, None)
+        bary /= np.maximum(bary.sum(axis=1, keepdims=True), np.finfo(float).tiny)
+        # Jacobi sweeps, the other corners fixed.
+        weight, goal = area[sample], target[sample]
+        created = tri >= lo
+        slot = np.where(created, tri - lo, 0)
+        diagonal = np.zeros(hi - lo)
+        for k in range(3):
+            on = created[:, k]
+            np.add.at(diagonal, slot[on, k], weight[on] * bary[on, k] ** 2)
+        fitted = start.copy()
+        for _ in range(pmjax._normals.FIT_SWEEPS):
+            values = np.where(created[..., None], fitted[slot], out[tri])
+            residual = goal - (bary[..., None] * values).sum(axis=1)
+            rhs = np.zeros((hi - lo, 3))
+            for k in range(3):
+                on = created[:, k]
+                np.add.at(rhs, slot[on, k], (weight[on] * bary[on, k])[:, None]
+                          * (residual[on] + bary[on, k, None] * values[on, k]))
+            solved = diagonal > 0
+            fitted = np.where(solved[:, None], rhs / np.where(solved, diagonal, 1.0)[:, None], start)
+        out[lo:hi] = unit(fitted)
+    return out
+
+
+def _unit_rows(n):
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return n / np.where(length > 0, length, 1.0)
+
+
+def _same_bits(a, b):
+    return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+def test_fitted_normals_equal_the_reference_bit_for_bit(cow, monkeypatch):
+    """The same bits as the straightforward computation, in float64 before
+    the rounding to float32 and after it: on the cow, on the cow with its
+    coordinates snapped to a coarse grid (degenerate faces, coincident
+    vertices, equally deep faces), and with samples located a few at a
+    time."""
+    import pmjax._normals
+
+    def same_as_reference(data):
+        expected = _reference_fitted_normals(data)
+        by_axis = pmjax._normals._fitted_by_axis(data)
+        return (_same_bits(np.ascontiguousarray(by_axis.T), expected)
+                and _same_bits(pmjax.fitted_normals(data), expected.astype(np.float32)))
+
+    assert same_as_reference(cow)
+    snapped = dataclasses.replace(cow, vertices=np.round(cow.vertices * 8.0) / 8.0)
+    assert not _same_bits(pmjax.fitted_normals(snapped), pmjax.fitted_normals(cow))
+    assert same_as_reference(snapped)
+    monkeypatch.setattr(pmjax._normals, "SAMPLE_BLOCK", 5)
+    assert same_as_reference(cow)
+    # The hierarchy normals (the fit's starting point) too.
+    V0 = cow.n_original_vertices
+    v, f = cow.vertices.astype(np.float64), cow.faces.astype(np.int64)
+    total = np.zeros_like(v)
+    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    for k in range(3):
+        np.add.at(total, f[:, k], cross)
+    for p in range(cow.n_pcols):
+        total[V0 + p] = total[V0 + p] + total[min(cow.v1[p], cow.v2[p])] + total[max(cow.v1[p], cow.v2[p])]
+    assert _same_bits(pmjax.hierarchy_normals(cow), _unit_rows(total).astype(np.float32))
+
+
 def test_build_stores_them_and_the_file_round_trips(cow, tmp_path):
     np.testing.assert_array_equal(cow.shading_normals, pmjax.fitted_normals(cow))
     path = tmp_path / "cow.pmz"
