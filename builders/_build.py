@@ -401,7 +401,10 @@ def build_pm(
     # Shading normals fitted to the original surface, for drawing
     # refinements: a least-squares fit over the finished hierarchy, after the
     # build's own arrays are gone.
-    return dataclasses.replace(data, shading_normals=fitted_normals(data))
+    shading_normals = fitted_normals(data)
+    # The build's time, as the header reports it, includes that fit.
+    header["build"]["seconds"] = round(time.perf_counter() - t0, 3)
+    return dataclasses.replace(data, shading_normals=shading_normals, header=header)
 
 
 def _select_batch(a, b, x, link_test, elig, cur, n_vertices, pos, min_area2, boundary_vertex, linear, eager_skip,
