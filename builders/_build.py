@@ -263,7 +263,7 @@ def build_pm(
                 x, cost = _cached_costs(cache, keys, metric, pos, cur, quadric, a, b, options.boundary_weight)
             else:
                 x, cost = evaluate_metric(metric, pos, cur, quadric, a, b, options.boundary_weight)
-            cache = None
+            cache = None  # last batch's rows go before this batch's are sorted
             cache = [metric, *_sorted_by_key(keys, x, cost)] if metric in CACHEABLE else None
 
             boundary_vertex = np.zeros(next_id, bool)
@@ -371,7 +371,7 @@ def build_pm(
     header = dict(
         build=dict(
             dataclasses.asdict(options),
-            seconds=round(time.perf_counter() - t0, 3),
+            seconds=None,  # set below, once the shading normals are fitted
             base_faces=base_faces,
         ),
         source_sha256=source_sha256,
