@@ -404,7 +404,7 @@ def build_pm(
     shading_normals = fitted_normals(data)
     # The build's time, as the header reports it, includes that fit.
     header["build"]["seconds"] = round(time.perf_counter() - t0, 3)
-    return dataclasses.replace(data, shading_normals=shading_normals, header=header)
+    return dataclasses.replace(data, shading_normals=shading_normals)
 
 
 def _select_batch(a, b, x, link_test, elig, cur, n_vertices, pos, min_area2, boundary_vertex, linear, eager_skip,

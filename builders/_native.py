@@ -166,7 +166,7 @@ class Mesh:
 
 def unique_edges(faces: np.ndarray):
     """:func:`builders._topology.unique_edges` of ``int32`` faces, the same
-    arrays: the keys made and counted in C around NumPy's sort. The
+    arrays: the keys made, radix-sorted (:func:`sort_keys`) and counted in C. The
     distinct keys overwrite the sorted ones in place and the other arrays
     are allocated at the distinct count, so the step holds the ``3 F`` keys
     and the results only."""

@@ -115,7 +115,6 @@ def vertex_quadrics(
         else:
             out += scatter_add(kf, part.ravel(), n_vertices, repeat=3)
         kf = None
-    q = out
     if boundary_weight > 0:
         a, b, face = boundary_edges(faces, edges)
         if len(a):
@@ -133,8 +132,8 @@ def vertex_quadrics(
             # (elsewhere the sum would add +0, which changes no bit: the
             # face sums start from +0 and so are never -0).
             touched, slot = np.unique(np.concatenate([a, b]), return_inverse=True)
-            q[touched] += scatter_add(np.concatenate([kb, kb]), slot.ravel(), len(touched))
-    return q
+            out[touched] += scatter_add(np.concatenate([kb, kb]), slot.ravel(), len(touched))
+    return out
 
 
 def scatter_add(values: np.ndarray, index: np.ndarray, n: int, repeat: int = 1) -> np.ndarray:

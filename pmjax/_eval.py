@@ -393,10 +393,10 @@ def run_part(task: dict):
             batches = []
     for idx, cams in batches:
         setting = (cams.orthographic, tests, method)
+        # Paths go through the coherent engine, frames in order; the other
+        # cameras in one batched call, its wall time shared by its cameras.
+        runs, rest = path_runs(table, idx) if method != "dense" else ([], np.arange(len(idx)))
         if budget is None:
-            # Paths through the coherent engine, frames in order; the other
-            # cameras in one batched call, its wall time shared by its cameras.
-            runs, rest = path_runs(table, idx) if method != "dense" else ([], np.arange(len(idx)))
             for run in runs:
                 rows, path = idx[run], index_camera(cams, run)
                 call = lambda c: path_counts(pm, c, task["tau"], tests=tests)
@@ -434,18 +434,17 @@ def run_part(task: dict):
         # time shared by its cameras and budgets; the other budgets' columns
         # wait for their parts in _TOGETHER.
         values_now = np.asarray(together["budgets"], np.int64)
-        runs, rest = path_runs(table, idx) if method != "dense" else ([], np.arange(len(idx)))
         for part, is_path in [(run, True) for run in runs] + ([(rest, False)] if len(rest) else []):
             rows, batch = idx[part], index_camera(cams, part)
             call = lambda c: faces_for_budget_batch(pm, c, np.broadcast_to(values_now, (camera_count(c),
                                                                                         len(values_now))),
                                                     tests=tests, chunk=task["batch_chunk"], method=method,
                                                     path=is_path)
-            size = -(-min(task["batch_chunk"], len(part)) // WORD) * WORD
             if is_path:  # the path's calls: its length decides their sizes
                 compile_ms += _warm(warm, ("budget_path", len(part), len(values_now)) + setting,
                                     lambda: call(batch))
             else:
+                size = -(-min(task["batch_chunk"], len(part)) // WORD) * WORD
                 first = index_camera(batch, np.minimum(np.arange(size), len(part) - 1))
                 compile_ms += _warm(warm, ("budget", size, len(values_now)) + setting, lambda: call(first))
             t = time.perf_counter()

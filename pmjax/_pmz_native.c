@@ -31,7 +31,7 @@
 #define PREFETCH(p) ((void)0)
 #endif
 
-/* Outcomes of pmz_read_batch (pmjax/_codec.py words each). */
+/* Outcomes of pmz_read_batch and pmz_batch_faces (pmjax/_codec.py words each). */
 enum { OK = 0, SHORT = 1, BAD_V1 = 2, BAD_V2 = 3, CHILD_SEEN = 4, PARENT_UNSEEN = 5, BAD_COUNTS = 6,
        LEFT_OVER = 7, BAD_RANK = 8 };
 
@@ -82,14 +82,15 @@ static float bits_float(uint32_t u) {
     return x;
 }
 
+/* One float32 from its uint32 residual against a prediction. */
+static float from_residual(uint32_t residual, float prediction) {
+    return bits_float(unordered(unzigzag(residual) + ordered(float_bits(prediction))));
+}
+
 /* _codec.float_from_residual: n float32 from uint32 residuals against predictions. */
 void pmz_float_from_residual(int64_t n, const uint32_t *residual, const float *prediction, float *out) {
     for (int64_t i = 0; i < n; i++)
-        out[i] = bits_float(unordered(unzigzag(residual[i]) + ordered(float_bits(prediction[i]))));
-}
-
-static float from_residual(uint32_t residual, float prediction) {
-    return bits_float(unordered(unzigzag(residual) + ordered(float_bits(prediction))));
+        out[i] = from_residual(residual[i], prediction[i]);
 }
 
 /* _codec.unit_from_residual for one vector: the two components other than
@@ -261,8 +262,7 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
         for (int64_t i = 0; i < n; i++)
             for (int k = 0; k < 3; k++) {
                 if (k == 0 && i + AHEAD < n) PREFETCH(vertices + 3 * (int64_t)child[i + AHEAD]);
-                uint32_t p = ordered(float_bits(vertices[3 * (first + i) + k]));
-                vertices[3 * (int64_t)child[i] + k] = bits_float(unordered(unzigzag(get32(at, 3 * n, 3 * i + k)) + p));
+                vertices[3 * (int64_t)child[i] + k] = from_residual(get32(at, 3 * n, 3 * i + k), vertices[3 * (first + i) + k]);
             }
         at += 12 * n;
     }

@@ -177,9 +177,10 @@ static inline __attribute__((always_inline)) int32_t decide_fat_one(const Fat *W
                          less(sa * sa * (dlo * dlo - r * r) - g2,
                               2 * sa * sa * (dhi2 * GROW_M + r * r) + mg_fat * mg_fat + mg_frame * mg_frame, slack)
                              .n;
-    /* Too coarse for every frame (at the largest kappa2): mu^2 >= kappa2 d^2 surely, or delta^2 (d^2 -
-     * h^2) >= kappa2 d^4 surely, with d^2 - h^2 = |v x n|^2 + d^2 (1 - |n|^2)
-     * and |v x n| moving by at most rho |n|. */
+    /* Too coarse for every frame (at the largest kappa2, kappa2_hi):
+     * mu^2 >= kappa2_hi d^2 surely, or delta^2 (d^2 - h^2) >= kappa2_hi d^4
+     * surely, with d^2 - h^2 = |v x n|^2 + d^2 (1 - |n|^2) and |v x n|
+     * moving by at most rho |n|. */
     const float wx = vy * nz - vz * ny, wy = vz * nx - vx * nz, wz = vx * ny - vy * nx;
     const float wlo = pos(sqrtf(wx * wx + wy * wy + wz * wz) - hshift), mw = v1 * n1 + hshift;
     const float nn = nx * nx + ny * ny + nz * nz;
