@@ -282,6 +282,18 @@ def unit_from_residual(r: np.ndarray, guide: np.ndarray) -> np.ndarray:
     return out
 
 
+def _parent_less(parent_value: np.ndarray, parent_vec: np.ndarray, vec: np.ndarray, has_parent: np.ndarray,
+                 measure) -> np.ndarray:
+    """float32 ``[n]``: ``parent_value - measure(c)`` with ``c`` the distance
+    between ``parent_vec`` and ``vec`` (float32 ``[n, 3]``; float64 sums in
+    x, y, z order, so that every reader computes the same bits), 0 where
+    that is not positive or there is no parent (``has_parent``, bool ``[n]``)."""
+    d = parent_vec.astype(np.float64) - vec.astype(np.float64)
+    c = np.sqrt((d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) + d[:, 2] * d[:, 2])
+    p = parent_value.astype(np.float64) - measure(c)
+    return np.where(has_parent & (p > 0), p, 0.0).astype(np.float32)
+
+
 def radius_prediction(radius_parent: np.ndarray, parent_xyz: np.ndarray, xyz: np.ndarray,
                       has_parent: np.ndarray) -> np.ndarray:
     """float32 ``[n]``: a pcol's radius as its parent's radius less the
@@ -290,9 +302,7 @@ def radius_prediction(radius_parent: np.ndarray, parent_xyz: np.ndarray, xyz: np
     not positive or there is no parent. Arguments: the parent's radius
     (float32 ``[n]``), both positions (float32 ``[n, 3]``, model units), and
     whether the pcol's vertex has a parent (bool ``[n]``)."""
-    d = parent_xyz.astype(np.float64) - xyz.astype(np.float64)
-    p = radius_parent.astype(np.float64) - np.sqrt((d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) + d[:, 2] * d[:, 2])
-    return np.where(has_parent & (p > 0), p, 0.0).astype(np.float32)
+    return _parent_less(radius_parent, parent_xyz, xyz, has_parent, lambda c: c)
 
 
 def alpha_prediction(alpha_parent: np.ndarray, parent_normal: np.ndarray, normal: np.ndarray,
@@ -305,10 +315,7 @@ def alpha_prediction(alpha_parent: np.ndarray, parent_normal: np.ndarray, normal
     reader computes the same bits). Arguments: the parent's half-angle
     (float32 ``[n]``, radians), both axes (float32 ``[n, 3]``), and whether
     the pcol's vertex has a parent (bool ``[n]``)."""
-    d = parent_normal.astype(np.float64) - normal.astype(np.float64)
-    c = np.sqrt((d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) + d[:, 2] * d[:, 2])
-    p = alpha_parent.astype(np.float64) - (c + c * c * c / 24.0)
-    return np.where(has_parent & (p > 0), p, 0.0).astype(np.float32)
+    return _parent_less(alpha_parent, parent_normal, normal, has_parent, lambda c: c + c * c * c / 24.0)
 
 
 def _ordered64(x: np.ndarray) -> np.ndarray:
@@ -840,14 +847,21 @@ def finish_full(s: Stream, raw: bytes, B: int, F: int, shading: bool, ready=None
                 batch_offsets=offsets, killer=killer, shading_normals=shading_normals)
 
 
-def _beside(pool, fn, *args):
-    """``fn(*args)`` submitted to ``pool``, or run now without one (a
-    finished future either way: its ``result()`` is the value)."""
-    if pool is not None:
-        return pool.submit(fn, *args)
+def finished(fn, *args) -> Future:
+    """``fn(*args)`` run now, as a finished future (its result or exception
+    delivered by ``result()``, like a pool's, so that failures are still
+    reported in file order)."""
     future = Future()
-    future.set_result(fn(*args))
+    try:
+        future.set_result(fn(*args))
+    except BaseException as exc:
+        future.set_exception(exc)
     return future
+
+
+def _beside(pool, fn, *args) -> Future:
+    """``fn(*args)`` submitted to ``pool``, or run now without one."""
+    return pool.submit(fn, *args) if pool is not None else finished(fn, *args)
 
 
 def finish_prefix(s: Stream, k: int) -> dict:

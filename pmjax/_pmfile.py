@@ -19,7 +19,7 @@ import math
 import mmap
 import os
 import zipfile
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -266,17 +266,6 @@ def _prefix_pm(arrays: dict, header: dict, k: int, B: int, source: str) -> tuple
     return pm, content_fingerprint(digests)
 
 
-def _done(fn, *args) -> Future:
-    """``fn(*args)`` run now, as a finished future (its result or exception
-    delivered when asked, like a pool's)."""
-    future = Future()
-    try:
-        future.set_result(fn(*args))
-    except BaseException as exc:  # delivered by result(), in file order
-        future.set_exception(exc)
-    return future
-
-
 class _Mapped:
     """A file opened for reading, read as slices of a read-only map of it:
     version 2's chunks are hashed and expanded where the map holds them,
@@ -386,7 +375,7 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
                                     f"{at + len(payload)}): {held}")
             where = f"{path}: chunk {name!r} (bytes {at} to {at + len(payload)})"
             job = (i, where, pool.submit(expand, where, payload, raw) if nbytes >= PIPELINE_BYTES
-                   else _done(expand, where, payload, raw))
+                   else _codec.finished(expand, where, payload, raw))
             if pending is not None:
                 decode(*pending)
             pending = job
