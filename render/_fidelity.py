@@ -9,9 +9,8 @@ import numpy as np
 from pmjax import ALL_TESTS, Camera, ProgressiveMesh, Tests, index_camera
 
 
-from ._gl import pyrender_module
 from ._offscreen import Renderer, original_arrays, path_geometry
-from ._scene import BACKGROUND, mesh_node_geometry, pyrender_camera
+from ._scene import mesh_node_geometry, new_scene, place_view
 
 # A pixel "differs" when some 8-bit channel differs by more than this.
 DIFF_THRESHOLD = 8
@@ -122,7 +121,8 @@ def silhouette_difference(renderer, mesh_a, mesh_b, camera: Camera) -> dict:
     return image_difference(*flat_a, *flat_b)
 
 
-def camera_fidelity(renderer, original, mesh, camera: Camera, *, flip: bool = True) -> tuple[dict, tuple]:
+def camera_fidelity(renderer, original, mesh, camera: Camera, *, flip: bool = True,
+                    popping: bool = False) -> tuple[dict, tuple]:
     """One view's image metrics: ``mesh`` (a refinement's geometry) against
     the ``original`` mesh, both drawn lit and unlit from ``camera``.
 
@@ -137,11 +137,16 @@ def camera_fidelity(renderer, original, mesh, camera: Camera, *, flip: bool = Tr
             each (:func:`original_arrays`, :func:`refined_arrays`).
         camera: one view.
         flip: also NVIDIA's FLIP against the original (:func:`flip_difference`).
+        popping: also compare with the mesh of the previous call on this
+            context and original, drawn from ``camera`` (0 when there is none).
 
     Returns:
         ``(row, (rgb, depth))``: ``row`` holds ``differing_share``, ``psnr``,
         ``silhouette_share`` (:func:`silhouette_difference`), ``flip_mean`` and
-        ``flip_model_mean`` (with ``flip``), ``render_ms`` (drawing ``mesh``,
+        ``flip_model_mean`` (with ``flip``), ``popping_share`` and
+        ``popping_mse`` (with ``popping``: the ``differing_share`` and ``mse``
+        of :func:`image_difference` of the previous mesh's render against
+        this one's), ``render_ms`` (drawing ``mesh``,
         milliseconds) and the other keys of :func:`image_difference`;
         ``(rgb, depth)`` is ``mesh``'s lit render. No OpenGL context is left
         current in the calling thread, so another thread may call next.
@@ -155,12 +160,16 @@ def camera_fidelity(renderer, original, mesh, camera: Camera, *, flip: bool = Tr
         reference = scene.render(scene.original, camera)
         silhouette = image_difference(*scene.render(scene.original, camera, light=False),
                                       *scene.render(scene.mesh, camera, light=False))["differing_share"]
+        before = scene.render(scene.previous, camera) if popping and scene.previous is not None else None
     finally:
         _release_context(renderer)
     row = image_difference(*reference, rgb, depth)
     if flip:
         row.update(flip_difference(*reference, rgb, depth))
     row.update(render_ms=render_ms, silhouette_share=silhouette)
+    if popping:
+        pop = image_difference(*before, rgb, depth) if before is not None else dict(differing_share=0.0, mse=0.0)
+        row.update(popping_share=pop["differing_share"], popping_mse=pop["mse"])
     return row, (rgb, depth)
 
 
@@ -187,8 +196,8 @@ class FidelityScene:
 
     def __init__(self, renderer, original):
         self.renderer, self.original_arrays = renderer, original
-        self._pyrender = pyrender_module()
-        self.scene = self._pyrender.Scene(bg_color=BACKGROUND, ambient_light=(0.12, 0.12, 0.12))
+        self.context = renderer._gl
+        self.scene = new_scene()
         self.original = self._add(*original)
         self.mesh = self.previous = None
         self._camera = self._light = None
@@ -196,10 +205,11 @@ class FidelityScene:
     @classmethod
     def of(cls, renderer, original) -> "FidelityScene":
         """The scene of ``renderer``'s context holding ``original`` (the same
-        tuple object), made if there is none."""
+        tuple object), made if there is none. Renderer handles of one size
+        share a context (:class:`Renderer`), and so this scene."""
         key = id(renderer._gl)
         held = _SCENES.get(key)
-        if held is None or held.original_arrays is not original or held.renderer._gl is not renderer._gl:
+        if held is None or held.original_arrays is not original or held.context is not renderer._gl:
             held = _SCENES[key] = cls(renderer, original)
         held.renderer = renderer
         return held
@@ -225,13 +235,7 @@ class FidelityScene:
         if (int(camera.width), int(camera.height)) != (self.renderer.width, self.renderer.height):
             raise ValueError(f"camera is {int(camera.width)}x{int(camera.height)}, renderer "
                              f"{self.renderer.width}x{self.renderer.height}")
-        for held in (self._camera, self._light):
-            if held is not None:
-                self.scene.remove_node(held)
-        pose = camera.pose()
-        self._camera = self.scene.add(pyrender_camera(camera), pose=pose, name="camera")
-        self._light = (self.scene.add(self._pyrender.DirectionalLight(color=np.ones(3), intensity=3.0), pose=pose,
-                                      name="light") if light else None)
+        self._camera, self._light = place_view(self.scene, camera, (self._camera, self._light), light=light)
         shown = [n for n in (self.original, self.mesh, self.previous) if n is not None]
         for n in shown:
             n.mesh.is_visible = n is node
@@ -302,16 +306,12 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
                                desc="fidelity")
         for i, (cam, v, f, _, n) in enumerate(frames):
             t = time.perf_counter()
-            row, (rgb, depth) = camera_fidelity(r, original, (v, f, n), cam, flip=flip)
-            row.update(frame=i, faces=int(len(f)), popping_share=0.0, popping_mse=0.0)
-            if i:
-                # The previous frame's mesh, still in the scene camera_fidelity drew.
-                scene = FidelityScene.of(r, original)
-                try:
-                    pop = image_difference(*scene.render(scene.previous, cam), rgb, depth)
-                finally:
-                    _release_context(r)
-                row.update(popping_share=pop["differing_share"], popping_mse=pop["mse"])
+            # Popping against the previous frame's mesh, still in the scene
+            # camera_fidelity draws (none before the first frame).
+            row, _ = camera_fidelity(r, original, (v, f, n), cam, flip=flip, popping=i > 0)
+            row.update(frame=i, faces=int(len(f)))
+            if not i:
+                row.update(popping_share=0.0, popping_mse=0.0)
             row.update(fidelity_ms=1e3 * (time.perf_counter() - t))
             rows.append(row)
     return rows

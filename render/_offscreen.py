@@ -14,8 +14,8 @@ from pmjax._atomic import atomic_folder, atomic_path, check_output_path
 
 
 from ._gl import RenderError, pyrender_module
-from ._scene import (BACKGROUND, BASE_COLOR, batch_levels, build_scene, face_levels, frustum_past_model, lines_mesh,
-                     pyrender_camera)
+from ._scene import (BASE_COLOR, batch_levels, build_scene, face_levels, frustum_past_model, lines_mesh, new_scene,
+                     place_view)
 from ._video import Mp4Writer
 
 
@@ -391,8 +391,7 @@ class StreamScene:
 
     def __init__(self, renderer: "Renderer", pm: ProgressiveMesh):
         self.renderer, self.pm = renderer, pm
-        self._pyrender = pyrender_module()
-        self.scene = self._pyrender.Scene(bg_color=BACKGROUND, ambient_light=(0.12, 0.12, 0.12))
+        self.scene = new_scene()
         self.mesh = SlotMesh(pm, self.scene)
         self.stream = self.mesh.stream
         self._camera = self._light = self._lines = None
@@ -410,14 +409,9 @@ class StreamScene:
         ``camera``); ``lines``: optional ``[2n, 3]`` segments drawn red."""
         view = camera if view is None else view
         self.mesh.before_draw(self.renderer._gl._platform.make_current)
-        pose = view.pose()
-        for name in ("_camera", "_light", "_lines"):
-            node = getattr(self, name)
-            if node is not None:
-                self.scene.remove_node(node)
-        self._camera = self.scene.add(pyrender_camera(view), pose=pose, name="camera")
-        self._light = self.scene.add(self._pyrender.DirectionalLight(color=np.ones(3), intensity=3.0), pose=pose,
-                                     name="light")
+        if self._lines is not None:
+            self.scene.remove_node(self._lines)
+        self._camera, self._light = place_view(self.scene, view, (self._camera, self._light))
         self._lines = self.scene.add(lines_mesh(lines), name="frustum") if lines is not None else None
         out = self.renderer.render_scene(self.scene)
         self.mesh.after_draw()

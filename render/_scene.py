@@ -14,6 +14,7 @@ BASE_COLOR = (0.72, 0.74, 0.78, 1.0)
 EDGE_COLOR = (0.05, 0.05, 0.08, 1.0)
 FRUSTUM_COLOR = (0.95, 0.15, 0.1, 1.0)
 BACKGROUND = (1.0, 1.0, 1.0, 1.0)
+AMBIENT = (0.12, 0.12, 0.12)
 
 
 def vertex_normals(vertices, faces) -> np.ndarray:
@@ -131,6 +132,30 @@ def frustum_past_model(pm: ProgressiveMesh, camera: Camera) -> np.ndarray:
     return frustum_lines(camera, reach)
 
 
+def new_scene():
+    """An empty ``pyrender.Scene`` with the project's background and ambient light."""
+    return pyrender_module().Scene(bg_color=BACKGROUND, ambient_light=AMBIENT)
+
+
+def place_view(scene, camera: Camera, held=(), *, light: bool = True) -> tuple:
+    """Put ``camera`` in ``scene`` with (``light``) one directional light at
+    the eye, after removing the nodes ``held`` (a previous view's; None
+    entries skipped), so one scene can be drawn from view after view.
+
+    Returns:
+        ``(camera node, light node or None)``.
+    """
+    pyrender = pyrender_module()
+    for node in held:
+        if node is not None:
+            scene.remove_node(node)
+    pose = camera.pose()
+    camera_node = scene.add(pyrender_camera(camera), pose=pose, name="camera")
+    light_node = (scene.add(pyrender.DirectionalLight(color=np.ones(3), intensity=3.0), pose=pose, name="light")
+                  if light else None)
+    return camera_node, light_node
+
+
 def build_scene(vertices, faces, camera: Camera, *, levels=None, n_batches=1, wireframe=False, extra_lines=None,
                 light=True, normals=None):
     """Scene with the mesh, an optional wireframe overlay, optional line
@@ -139,15 +164,11 @@ def build_scene(vertices, faces, camera: Camera, *, levels=None, n_batches=1, wi
     Returns:
         ``(scene, mesh_nodes)``; ``mesh_nodes`` can be swapped for a new refinement.
     """
-    pyrender = pyrender_module()
-    scene = pyrender.Scene(bg_color=BACKGROUND, ambient_light=(0.12, 0.12, 0.12))
+    scene = new_scene()
     nodes = add_mesh(scene, vertices, faces, levels=levels, n_batches=n_batches, wireframe=wireframe, normals=normals)
     if extra_lines is not None and len(extra_lines):
         scene.add(lines_mesh(extra_lines), name="frustum")
-    pose = camera.pose()
-    scene.add(pyrender_camera(camera), pose=pose, name="camera")
-    if light:
-        scene.add(pyrender.DirectionalLight(color=np.ones(3), intensity=3.0), pose=pose, name="light")
+    place_view(scene, camera, light=light)
     return scene, nodes
 
 

@@ -138,3 +138,26 @@ def test_renders_read_back_as_pyrender_reads_them(cow):
             assert depth.dtype == want_depth.dtype == np.float32
             assert np.array_equal(depth.view(np.uint32), want_depth.view(np.uint32))
             assert (depth == 0).any() and (depth > 0).any()
+
+
+def test_fidelity_scene_outlives_a_closed_renderer_handle(cow):
+    """Renderer handles of one size share a context: a new handle after the
+    first is closed finds the same scene (the original is not uploaded
+    again), and its rows equal the first handle's."""
+    from pmjax.render import Renderer, camera_fidelity, original_arrays, refined_arrays
+    from pmjax.render._fidelity import FidelityScene
+
+    pm = pmjax.load(cow)
+    cam = pmjax.index_camera(pmjax.standard_orbit(np.asarray(pm.vertices)[: pm.n_original_vertices], 3,
+                                                  width=96, height=72), 2)
+    original = original_arrays(pm)
+    v, f, _, n = refined_arrays(pm, pmjax.refine(pm, cam, 2.0))
+    with Renderer(96, 72, 2, True) as r:
+        first, _ = camera_fidelity(r, original, (v, f, n), cam, flip=False)
+        scene = FidelityScene.of(r, original)
+    with Renderer(96, 72, 2, True) as r2:
+        again, _ = camera_fidelity(r2, original, (v, f, n), cam, flip=False, popping=True)
+        assert FidelityScene.of(r2, original) is scene
+    assert again.pop("popping_share") == 0.0 and again.pop("popping_mse") == 0.0  # the same mesh as before
+    first.pop("render_ms"), again.pop("render_ms")
+    assert first == again
