@@ -1,0 +1,524 @@
+/* The least-squares fit of the shading normals (pmjax.fitted_normals) as
+ * plain C loops: the original surface's sums, then batch by batch up the
+ * hierarchy the subtree means, the live faces relabelled, each created
+ * vertex's fan, the samples located on their fans and the Jacobi sweeps.
+ *
+ * Each loop is a NumPy step of pmjax/_normals.py with its arithmetic in the
+ * same order (no contraction): sums of a vertex's terms in the order the
+ * NumPy step adds them, dot products and squared lengths summed x, y, z in
+ * that order. So the fit gives the NumPy fit's normals bit for bit
+ * (tests/test_shading_normals.py). Every pointer is a C-contiguous array of
+ * the dtype named; the caller has checked the ids (faces below V0, children
+ * below their parents' batch).
+ */
+
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <float.h>
+#include <math.h>
+#include <pthread.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* Outcomes of pmn_fitted_normals. */
+enum { OK = 0, NO_MEMORY = 1 };
+
+/* Positions are read as float32 or float64 (both exact in double). */
+typedef struct {
+    const float *f32;
+    const double *f64;
+} Coords;
+
+static inline double coord(Coords c, int64_t v, int k) {
+    return c.f32 ? (double)c.f32[3 * v + k] : c.f64[3 * v + k];
+}
+
+/* n / |n| in place (a zero or non-finite length divides by 1), the squares
+ * summed x, y, z in that order (np.linalg.norm along an axis of three). */
+static void unit3(double *n) {
+    double length = sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    double scale = length > 0 ? length : 1.0;
+    for (int k = 0; k < 3; k++) n[k] /= scale;
+}
+
+/* Face f's cross product of its edges from corner 0 (_face_cross). */
+static void face_cross(Coords c, const int32_t *faces, int64_t f, double *out) {
+    int32_t a = faces[3 * f], b = faces[3 * f + 1], d = faces[3 * f + 2];
+    double u[3], v[3];
+    for (int k = 0; k < 3; k++) {
+        u[k] = coord(c, b, k) - coord(c, a, k);
+        v[k] = coord(c, d, k) - coord(c, a, k);
+    }
+    out[0] = u[1] * v[2] - u[2] * v[1];
+    out[1] = u[2] * v[0] - u[0] * v[2];
+    out[2] = u[0] * v[1] - u[1] * v[0];
+}
+
+/* What locating a sample needs of one fan face (_face_geometry). */
+typedef struct {
+    double a[3], e0[3], e1[3], d00, d01, d11, det;
+} Geometry;
+
+static void face_geometry(Coords c, const int32_t *tri, Geometry *g) {
+    for (int k = 0; k < 3; k++) {
+        g->a[k] = coord(c, tri[0], k);
+        g->e0[k] = coord(c, tri[1], k) - g->a[k];
+        g->e1[k] = coord(c, tri[2], k) - g->a[k];
+    }
+    g->d00 = g->e0[0] * g->e0[0] + g->e0[1] * g->e0[1] + g->e0[2] * g->e0[2];
+    g->d01 = g->e0[0] * g->e1[0] + g->e0[1] * g->e1[1] + g->e0[2] * g->e1[2];
+    g->d11 = g->e1[0] * g->e1[0] + g->e1[1] * g->e1[1] + g->e1[2] * g->e1[2];
+    double det = g->d00 * g->d11 - g->d01 * g->d01;
+    g->det = det > 0 ? det : 1.0; /* a degenerate face: coordinates of no use */
+}
+
+/* Barycentric coordinates of point p's projection on face g's plane. */
+static void barycentric(const Geometry *g, const double *p, double *b) {
+    double e2[3] = {p[0] - g->a[0], p[1] - g->a[1], p[2] - g->a[2]};
+    double d20 = e2[0] * g->e0[0] + e2[1] * g->e0[1] + e2[2] * g->e0[2];
+    double d21 = e2[0] * g->e1[0] + e2[1] * g->e1[1] + e2[2] * g->e1[2];
+    b[1] = (g->d11 * d20 - g->d01 * d21) / g->det;
+    b[2] = (g->d00 * d21 - g->d01 * d20) / g->det;
+    b[0] = 1.0 - b[1] - b[2];
+}
+
+static inline double smallest(const double *b) {
+    double m = b[0] <= b[1] ? b[0] : b[1];
+    return m <= b[2] ? m : b[2];
+}
+
+/* Work split over threads: fn(ctx, first, end) for parts of 0 .. n, cut
+ * where the running sum of weight (NULL: one per item) passes each share.
+ * Every part writes only its own items' outputs, so the results are the
+ * same bits for any number of threads. */
+typedef void (*Part)(void *ctx, int64_t first, int64_t end);
+
+typedef struct {
+    Part fn;
+    void *ctx;
+    int64_t first, end;
+} Job;
+
+static void *run_job(void *arg) {
+    Job *job = arg;
+    job->fn(job->ctx, job->first, job->end);
+    return NULL;
+}
+
+#define MAX_THREADS 8
+/* Below this many items a second thread costs more than it saves. */
+#define MIN_SPLIT 4096
+
+static void split(int threads, Part fn, void *ctx, int64_t n, const int64_t *weight) {
+    if (threads > MAX_THREADS) threads = MAX_THREADS;
+    if (threads < 2 || n < MIN_SPLIT) {
+        fn(ctx, 0, n);
+        return;
+    }
+    /* Cuts: equal shares of the total weight (weight: prefix sums, n + 1). */
+    Job jobs[MAX_THREADS];
+    pthread_t ids[MAX_THREADS];
+    int64_t cut = 0;
+    for (int t = 0; t < threads; t++) {
+        int64_t end = n;
+        if (t + 1 < threads) {
+            if (weight) {
+                int64_t goal = weight[0] + (weight[n] - weight[0]) / threads * (t + 1);
+                end = cut;
+                while (end < n && weight[end] < goal) end++;
+            } else {
+                end = n / threads * (t + 1);
+            }
+        }
+        jobs[t] = (Job){fn, ctx, cut, end};
+        cut = end;
+    }
+    int started = 1;
+    for (; started < threads; started++)
+        if (pthread_create(&ids[started], NULL, run_job, &jobs[started])) break;
+    /* A thread that could not start: its part runs here. */
+    for (int t = started; t < threads; t++) run_job(&jobs[t]);
+    run_job(&jobs[0]);
+    for (int t = 1; t < started; t++) pthread_join(ids[t], NULL);
+}
+
+/* A sample's term for one slot: sample s's corner k, in the order of the
+ * NumPy fit's sums (corner by corner, then by original vertex). */
+typedef struct {
+    int64_t key; /* k * V0 + p */
+    int64_t s;
+} Term;
+
+static int by_key(const void *x, const void *y) {
+    int64_t a = ((const Term *)x)->key, b = ((const Term *)y)->key;
+    return (a > b) - (a < b);
+}
+
+/* One batch: the created vertices lo .. hi-1 (k_new slots) in the mesh of
+ * the live faces tri (n, corners relabelled, in mesh order). */
+typedef struct {
+    Coords c;
+    int64_t V0, lo, k_new, sweeps;
+    const int32_t *tri;
+    const double *weight;     /* [V0] a third of each original vertex's faces' area */
+    const int32_t *leaf;      /* [V0] the originals in leaf order */
+    const int32_t *leaf_first; /* [V] the first of each vertex's leaves in leaf order */
+    const int32_t *leaf_count; /* [V] how many leaves each vertex has */
+    double *out;              /* [V, 3] originals' unit vertex normals, the rest fitted so far */
+    const int64_t *fan_start; /* [k_new + 1] */
+    const int32_t *fan;       /* live face ids, grouped by slot */
+    int64_t longest;          /* the largest fan */
+    const int64_t *sample_start; /* [k_new + 1] each slot's samples */
+    int32_t *sample;          /* [S] original vertex of each sample */
+    int32_t *own;             /* [S, 3] corners of the face each sample lies on */
+    double *bary;             /* [S, 3] its clamped barycentric coordinates */
+    double *residual;         /* [S, 3] */
+    const int64_t *term_start; /* [k_new + 1] */
+    Term *term;               /* the terms of each slot, sorted */
+    double *diagonal, *fitted; /* [k_new], [k_new, 3] */
+    int failed;
+} Batch;
+
+/* Samples of slots first .. end-1 located on their fans: the face whose
+ * projection the sample falls into most deeply (the first of equals), the
+ * coordinates clamped to the face (_own_faces). */
+static void locate(void *arg, int64_t first, int64_t end) {
+    Batch *bt = arg;
+    Geometry *geometry = malloc((size_t)(bt->longest > 0 ? bt->longest : 1) * sizeof *geometry);
+    if (!geometry) {
+        bt->failed = 1;
+        return;
+    }
+    for (int64_t u = first; u < end; u++) {
+        int64_t s = bt->sample_start[u], stop = bt->sample_start[u + 1];
+        if (s == stop) continue;
+        int64_t f0 = bt->fan_start[u], size = bt->fan_start[u + 1] - f0;
+        for (int64_t j = 0; j < size; j++) face_geometry(bt->c, bt->tri + 3 * (int64_t)bt->fan[f0 + j], &geometry[j]);
+        const int32_t *leaves = bt->leaf + bt->leaf_first[bt->lo + u];
+        for (int64_t i = 0; s < stop; s++, i++) {
+            int64_t p = leaves[i];
+            double pos[3] = {coord(bt->c, p, 0), coord(bt->c, p, 1), coord(bt->c, p, 2)};
+            double best[3], b[3];
+            int64_t pick = 0;
+            barycentric(&geometry[0], pos, best);
+            double depth = smallest(best);
+            for (int64_t j = 1; j < size; j++) {
+                barycentric(&geometry[j], pos, b);
+                double d = smallest(b);
+                if (d > depth) {
+                    depth = d;
+                    pick = j;
+                    memcpy(best, b, sizeof best);
+                }
+            }
+            for (int k = 0; k < 3; k++) best[k] = best[k] > 0 ? best[k] : 0.0;
+            double sum = best[0] + best[1] + best[2];
+            if (sum < DBL_MIN) sum = DBL_MIN; /* np.maximum(sum, tiny) */
+            const int32_t *face = bt->tri + 3 * (int64_t)bt->fan[f0 + pick];
+            bt->sample[s] = (int32_t)p;
+            for (int k = 0; k < 3; k++) {
+                bt->own[3 * s + k] = face[k];
+                bt->bary[3 * s + k] = best[k] / sum;
+            }
+        }
+    }
+    free(geometry);
+}
+
+/* Slots first .. end-1: their terms sorted into the sums' order, and the
+ * diagonal of the least squares, w b², summed in that order. */
+static void sort_terms(void *arg, int64_t first, int64_t end) {
+    Batch *bt = arg;
+    for (int64_t u = first; u < end; u++) {
+        Term *t = bt->term + bt->term_start[u];
+        int64_t n = bt->term_start[u + 1] - bt->term_start[u];
+        if (n > 16) {
+            qsort(t, (size_t)n, sizeof *t, by_key);
+        } else {
+            for (int64_t i = 1; i < n; i++)
+                for (int64_t j = i; j > 0 && t[j - 1].key > t[j].key; j--) {
+                    Term swap = t[j];
+                    t[j] = t[j - 1];
+                    t[j - 1] = swap;
+                }
+        }
+        double diagonal = 0.0;
+        for (int64_t i = 0; i < n; i++) {
+            int64_t k = t[i].key / bt->V0;
+            double w = bt->weight[bt->sample[t[i].s]], b = bt->bary[3 * t[i].s + k];
+            diagonal += w * (b * b);
+        }
+        bt->diagonal[u] = diagonal;
+    }
+}
+
+/* Samples first .. end-1: target minus the interpolated normal, with every
+ * corner's current value (fixed, or the created slots' last sweep). */
+static void residuals(void *arg, int64_t first, int64_t end) {
+    Batch *bt = arg;
+    for (int64_t s = first; s < end; s++) {
+        const double *target = bt->out + 3 * (int64_t)bt->sample[s];
+        double t[3][3];
+        for (int k = 0; k < 3; k++) {
+            int64_t c = bt->own[3 * s + k];
+            const double *value = c >= bt->lo ? bt->fitted + 3 * (c - bt->lo) : bt->out + 3 * c;
+            for (int x = 0; x < 3; x++) t[k][x] = bt->bary[3 * s + k] * value[x];
+        }
+        for (int x = 0; x < 3; x++) bt->residual[3 * s + x] = target[x] - (t[0][x] + t[1][x] + t[2][x]);
+    }
+}
+
+/* Slots first .. end-1: one Jacobi step, each term the residual without
+ * this corner, weighted; a slot without terms keeps its start. */
+static void solve(void *arg, int64_t first, int64_t end) {
+    Batch *bt = arg;
+    for (int64_t u = first; u < end; u++) {
+        double *fitted = bt->fitted + 3 * u, rhs[3] = {0.0, 0.0, 0.0};
+        for (int64_t i = bt->term_start[u]; i < bt->term_start[u + 1]; i++) {
+            const Term *t = &bt->term[i];
+            int64_t k = t->key / bt->V0;
+            double b = bt->bary[3 * t->s + k], share = bt->weight[bt->sample[t->s]] * b;
+            for (int x = 0; x < 3; x++) rhs[x] += share * (bt->residual[3 * t->s + x] + b * fitted[x]);
+        }
+        const double *start = bt->out + 3 * (bt->lo + u);
+        for (int x = 0; x < 3; x++) fitted[x] = bt->diagonal[u] > 0 ? rhs[x] / bt->diagonal[u] : start[x];
+    }
+}
+
+/* The fit of one batch's created vertices (_fit_batch), their subtree
+ * means in out on entry, the fitted unit normals on return. fan_start:
+ * [k_new + 1], entry u + 1 the fan size of slot u; touched: the n_touched
+ * live faces with a created corner, in mesh order. Returns OK or
+ * NO_MEMORY. */
+static int fit_batch(Batch *bt, const int32_t *touched, int64_t n_touched, int64_t *fan_start, int threads) {
+    int64_t k_new = bt->k_new, lo = bt->lo, V0 = bt->V0;
+    int rc = NO_MEMORY;
+    int32_t *fan = NULL, *sample = NULL, *own = NULL;
+    int64_t *sample_start = NULL, *term_start = NULL, *cursor = NULL;
+    double *bary = NULL, *residual = NULL, *diagonal = NULL, *fitted = NULL;
+    Term *term = NULL;
+    if (!n_touched) return OK;
+    /* Step 1: each created vertex's fan: the live faces with it as a corner,
+     * grouped by vertex; in a group the faces where it is corner 0, then
+     * corner 1, then corner 2, each in mesh order (a counting sort). */
+    bt->longest = 0;
+    for (int64_t u = 0; u < k_new; u++) {
+        if (fan_start[u + 1] > bt->longest) bt->longest = fan_start[u + 1];
+        fan_start[u + 1] += fan_start[u];
+    }
+    fan = malloc((size_t)fan_start[k_new] * sizeof *fan);
+    cursor = malloc((size_t)(k_new + 1) * sizeof *cursor);
+    sample_start = malloc((size_t)(k_new + 1) * sizeof *sample_start);
+    term_start = calloc((size_t)(k_new + 1), sizeof *term_start);
+    if (!fan || !cursor || !sample_start || !term_start) goto done;
+    memcpy(cursor, fan_start, (size_t)k_new * sizeof *cursor);
+    for (int k = 0; k < 3; k++)
+        for (int64_t i = 0; i < n_touched; i++) {
+            int32_t c = bt->tri[3 * (int64_t)touched[i] + k];
+            if (c >= lo) fan[cursor[c - lo]++] = touched[i];
+        }
+    bt->fan_start = fan_start;
+    bt->fan = fan;
+    /* Step 2: the samples: the originals standing under a created vertex
+     * with a fan (its leaves), grouped by vertex, each located on the face
+     * of that fan it lies on. */
+    sample_start[0] = 0;
+    for (int64_t u = 0; u < k_new; u++)
+        sample_start[u + 1] = sample_start[u] + (fan_start[u + 1] > fan_start[u] ? bt->leaf_count[lo + u] : 0);
+    int64_t S = sample_start[k_new];
+    if (!S) {
+        rc = OK;
+        goto done;
+    }
+    sample = malloc((size_t)S * sizeof *sample);
+    own = malloc((size_t)S * 3 * sizeof *own);
+    bary = malloc((size_t)S * 3 * sizeof *bary);
+    if (!sample || !own || !bary) goto done;
+    bt->sample_start = sample_start;
+    bt->sample = sample;
+    bt->own = own;
+    bt->bary = bary;
+    bt->failed = 0;
+    split(threads, locate, bt, k_new, sample_start);
+    if (bt->failed) goto done;
+    /* Step 3: Jacobi sweeps of the weighted least squares over the created
+     * vertices' normals, the other corners fixed. A sample's terms go to
+     * the slots of its created corners, each slot's summed in the NumPy
+     * fit's order: corner by corner, then by original vertex. */
+    for (int64_t s = 0; s < S; s++)
+        for (int k = 0; k < 3; k++)
+            if (own[3 * s + k] >= lo) term_start[own[3 * s + k] - lo + 1]++;
+    for (int64_t u = 0; u < k_new; u++) term_start[u + 1] += term_start[u];
+    term = malloc((size_t)(term_start[k_new] > 0 ? term_start[k_new] : 1) * sizeof *term);
+    diagonal = malloc((size_t)k_new * sizeof *diagonal);
+    fitted = malloc((size_t)k_new * 3 * sizeof *fitted);
+    residual = malloc((size_t)S * 3 * sizeof *residual);
+    if (!term || !diagonal || !fitted || !residual) goto done;
+    memcpy(cursor, term_start, (size_t)k_new * sizeof *cursor);
+    for (int64_t s = 0; s < S; s++)
+        for (int k = 0; k < 3; k++)
+            if (own[3 * s + k] >= lo) term[cursor[own[3 * s + k] - lo]++] = (Term){k * V0 + sample[s], s};
+    bt->term_start = term_start;
+    bt->term = term;
+    bt->diagonal = diagonal;
+    bt->fitted = fitted;
+    bt->residual = residual;
+    split(threads, sort_terms, bt, k_new, term_start);
+    memcpy(fitted, bt->out + 3 * lo, (size_t)k_new * 3 * sizeof *fitted);
+    for (int64_t sweep = 0; sweep < bt->sweeps; sweep++) {
+        split(threads, residuals, bt, S, NULL);
+        split(threads, solve, bt, k_new, term_start);
+    }
+    for (int64_t u = 0; u < k_new; u++) {
+        unit3(fitted + 3 * u);
+        memcpy(bt->out + 3 * (lo + u), fitted + 3 * u, 3 * sizeof(double));
+    }
+    rc = OK;
+done:
+    free(fan);
+    free(cursor);
+    free(sample_start);
+    free(term_start);
+    free(sample);
+    free(own);
+    free(bary);
+    free(term);
+    free(diagonal);
+    free(fitted);
+    free(residual);
+    return rc;
+}
+
+/* pmjax.fitted_normals into out ([V, 3] float64, before the rounding to
+ * float32). coords: [V, 3] float32 (coords_f64 = 0) or float64; faces:
+ * [F, 3] original faces (ids below V0); pcol i (vertex V0 + i) consumes
+ * kid_lo[i] < kid_hi[i], each vertex consumed once and made before the
+ * pcol's batch; batch b makes pcols offsets[b] .. offsets[b+1]-1; threads:
+ * how many share the work (the same bits for any). Returns OK or
+ * NO_MEMORY. */
+int64_t pmn_fitted_normals(int64_t V0, int64_t V, const void *coords, int64_t coords_f64, int64_t F,
+                           const int32_t *faces, const int64_t *kid_lo, const int64_t *kid_hi, int64_t B,
+                           const int64_t *offsets, int64_t sweeps, int64_t threads, double *out) {
+    Coords c = {coords_f64 ? NULL : (const float *)coords, coords_f64 ? (const double *)coords : NULL};
+    int64_t P = V - V0;
+    int rc = NO_MEMORY;
+    double *total = calloc((size_t)V * 3, sizeof *total);
+    double *weight = calloc((size_t)(V0 > 0 ? V0 : 1), sizeof *weight);
+    int32_t *rep = malloc((size_t)(V > 0 ? V : 1) * sizeof *rep);
+    int32_t *leaf = malloc((size_t)(V0 > 0 ? V0 : 1) * sizeof *leaf);
+    int32_t *leaf_first = malloc((size_t)(V > 0 ? V : 1) * sizeof *leaf_first);
+    int32_t *leaf_count = malloc((size_t)(V > 0 ? V : 1) * sizeof *leaf_count);
+    int32_t *tri = malloc((size_t)(F > 0 ? F : 1) * 3 * sizeof *tri);
+    int32_t *touched = malloc((size_t)(F > 0 ? F : 1) * sizeof *touched);
+    int64_t *fan_start = NULL;
+    if (!total || !weight || !rep || !leaf || !leaf_first || !leaf_count || !tri || !touched) goto done;
+    /* The original surface: per vertex the sum of its faces' cross products
+     * and a third of their area, each vertex's terms added corner 0 of
+     * every face, then corner 1, then corner 2 (_corner_sums). */
+    for (int k = 0; k < 3; k++)
+        for (int64_t f = 0; f < F; f++) {
+            double cross[3];
+            face_cross(c, faces, f, cross);
+            int64_t v = faces[3 * f + k];
+            for (int x = 0; x < 3; x++) total[3 * v + x] += cross[x];
+            weight[v] += sqrt(cross[0] * cross[0] + cross[1] * cross[1] + cross[2] * cross[2]) / 6.0;
+        }
+    /* Every vertex's unit sum: the originals' vertex normals (the samples'
+     * targets, and kept), zero for the created ones until their batch. */
+    for (int64_t v = 0; v < V; v++) {
+        memcpy(out + 3 * v, total + 3 * v, 3 * sizeof(double));
+        unit3(out + 3 * v);
+    }
+    /* The originals in leaf order: every vertex's leaves (the originals it
+     * stands for) a run, its first child's then its second's. Counts up the
+     * hierarchy, then runs handed down from the roots (the vertices no pcol
+     * consumes; rep marks the consumed ones meanwhile). */
+    for (int64_t v = 0; v < V; v++) {
+        leaf_count[v] = v < V0;
+        rep[v] = 0;
+    }
+    for (int64_t i = 0; i < P; i++) {
+        leaf_count[V0 + i] = leaf_count[kid_lo[i]] + leaf_count[kid_hi[i]];
+        rep[kid_lo[i]] = rep[kid_hi[i]] = 1;
+    }
+    int64_t run = 0;
+    for (int64_t v = 0; v < V; v++)
+        if (!rep[v]) {
+            leaf_first[v] = (int32_t)run;
+            run += leaf_count[v];
+        }
+    for (int64_t i = P - 1; i >= 0; i--) {
+        leaf_first[kid_lo[i]] = leaf_first[V0 + i];
+        leaf_first[kid_hi[i]] = leaf_first[V0 + i] + leaf_count[kid_lo[i]];
+    }
+    for (int64_t p = 0; p < V0; p++) leaf[leaf_first[p]] = (int32_t)p;
+    /* rep[x]: the vertex standing for x after the current batch. */
+    for (int64_t v = 0; v < V; v++) rep[v] = (int32_t)v;
+    memcpy(tri, faces, (size_t)F * 3 * sizeof *tri);
+    int64_t n = F;
+    Batch bt = {.c = c, .V0 = V0, .sweeps = sweeps, .tri = tri, .weight = weight, .leaf = leaf,
+                .leaf_first = leaf_first, .leaf_count = leaf_count, .out = out};
+    for (int64_t b = 0; b < B; b++) {
+        int64_t lo = V0 + offsets[b], k_new = offsets[b + 1] - offsets[b];
+        /* The batch's subtree means: a created vertex sums its two
+         * children's sums, the smaller id first; its start is their unit. */
+        for (int64_t i = offsets[b]; i < offsets[b + 1]; i++) {
+            double *t = total + 3 * (V0 + i);
+            for (int x = 0; x < 3; x++) {
+                t[x] += total[3 * kid_lo[i] + x];
+                t[x] += total[3 * kid_hi[i] + x];
+            }
+            memcpy(out + 3 * (V0 + i), t, 3 * sizeof(double));
+            unit3(out + 3 * (V0 + i));
+            rep[kid_lo[i]] = rep[kid_hi[i]] = (int32_t)(V0 + i);
+        }
+        /* The mesh just after the batch: corners relabelled, faces two of
+         * whose corners meet dropped, the rest kept in order; the faces
+         * with a created corner noted, and each created vertex's count. */
+        fan_start = calloc((size_t)(k_new + 1), sizeof *fan_start);
+        if (!fan_start) goto done;
+        int64_t m = 0, n_touched = 0;
+        for (int64_t f = 0; f < n; f++) {
+            int32_t x = rep[tri[3 * f]], y = rep[tri[3 * f + 1]], z = rep[tri[3 * f + 2]];
+            if (x != y && y != z && x != z) {
+                tri[3 * m] = x;
+                tri[3 * m + 1] = y;
+                tri[3 * m + 2] = z;
+                if (x >= lo || y >= lo || z >= lo) {
+                    touched[n_touched++] = (int32_t)m;
+                    if (x >= lo) fan_start[x - lo + 1]++;
+                    if (y >= lo) fan_start[y - lo + 1]++;
+                    if (z >= lo) fan_start[z - lo + 1]++;
+                }
+                m++;
+            }
+        }
+        n = m;
+        bt.lo = lo;
+        bt.k_new = k_new;
+        int status = fit_batch(&bt, touched, n_touched, fan_start, (int)threads);
+        free(fan_start);
+        fan_start = NULL;
+        if (status != OK) goto done;
+    }
+    rc = OK;
+done:
+    free(total);
+    free(weight);
+    free(rep);
+    free(leaf);
+    free(leaf_first);
+    free(leaf_count);
+    free(tri);
+    free(touched);
+    free(fan_start);
+    return rc;
+}
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_normals_native",
+                                    "The shading normals' least-squares fit as C loops (called through ctypes).", -1,
+                                    NULL};
+
+PyMODINIT_FUNC PyInit__normals_native(void) { return PyModule_Create(&module); }
