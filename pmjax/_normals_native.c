@@ -144,11 +144,13 @@ static void split(int threads, Part fn, void *ctx, int64_t n, const int64_t *wei
     for (int t = 1; t < started; t++) pthread_join(ids[t], NULL);
 }
 
-/* A sample's term for one slot: sample s's corner k, in the order of the
- * NumPy fit's sums (corner by corner, then by original vertex). */
+
+/* A sample's term for one slot: its corner k, in the order of the NumPy
+ * fit's sums (corner by corner, then by original vertex). */
 typedef struct {
     int64_t key; /* k * V0 + p */
-    int64_t s;
+    int32_t at;  /* the sample's leaf position */
+    int32_t k;
 } Term;
 
 static int by_key(const void *x, const void *y) {
@@ -156,50 +158,58 @@ static int by_key(const void *x, const void *y) {
     return (a > b) - (a < b);
 }
 
-/* One batch: the created vertices lo .. hi-1 (k_new slots) in the mesh of
- * the live faces tri (n, corners relabelled, in mesh order). */
+/* The fit's state. Per original vertex, in leaf order (position L holds
+ * original leaf[L]): a vertex's leaves are a run of positions, so a
+ * batch's samples are runs and their arrays are read in order. */
 typedef struct {
     Coords c;
-    int64_t V0, lo, k_new, sweeps;
-    const int32_t *tri;
-    const double *weight;     /* [V0] a third of each original vertex's faces' area */
-    const int32_t *leaf;      /* [V0] the originals in leaf order */
-    const int32_t *leaf_first; /* [V] the first of each vertex's leaves in leaf order */
-    const int32_t *leaf_count; /* [V] how many leaves each vertex has */
-    double *out;              /* [V, 3] originals' unit vertex normals, the rest fitted so far */
-    const int64_t *fan_start; /* [k_new + 1] */
-    const int32_t *fan;       /* live face ids, grouped by slot */
-    int64_t longest;          /* the largest fan */
-    const int64_t *sample_start; /* [k_new + 1] each slot's samples */
-    int32_t *sample;          /* [S] original vertex of each sample */
-    int32_t *own;             /* [S, 3] corners of the face each sample lies on */
-    double *bary;             /* [S, 3] its clamped barycentric coordinates */
-    double *residual;         /* [S, 3] */
+    int64_t V0, sweeps;
+    double *out;               /* [V, 3] originals' unit vertex normals, the rest fitted so far */
+    const int32_t *leaf;       /* [V0] original at each leaf position */
+    const int32_t *leaf_first; /* [V] each vertex's first leaf position */
+    const int32_t *leaf_count; /* [V] and how many leaves it has */
+    const double *position;    /* [V0, 3] the samples' positions */
+    const double *target;      /* [V0, 3] their unit vertex normals */
+    const double *weight;      /* [V0] a third of the area of their faces */
+    int32_t *own;              /* [V0, 3] corners of the face each sample lies on */
+    double *bary;              /* [V0, 3] its clamped barycentric coordinates */
+    double *residual;          /* [V0, 3] */
+    /* The current batch: created vertices lo .. lo + k_new - 1 (slots). */
+    int64_t lo, k_new;
+    const int32_t *tri;        /* live faces, corners relabelled */
+    const int64_t *fan_start;  /* [k_new + 1] */
+    const int32_t *fan;        /* live face ids, grouped by slot */
+    int64_t longest;           /* the largest fan */
+    const int64_t *samples;    /* [k_new + 1] running count of the slots' samples */
     const int64_t *term_start; /* [k_new + 1] */
-    Term *term;               /* the terms of each slot, sorted */
+    Term *term;                /* the terms of each slot, sorted */
     double *diagonal, *fitted; /* [k_new], [k_new, 3] */
     int failed;
-} Batch;
+} Fit;
+
+/* The samples of slot u (with a fan): leaf positions first .. first+n-1. */
+static inline int64_t slot_samples(const Fit *fit, int64_t u, int64_t *first) {
+    *first = fit->leaf_first[fit->lo + u];
+    return fit->samples[u + 1] - fit->samples[u];
+}
 
 /* Samples of slots first .. end-1 located on their fans: the face whose
  * projection the sample falls into most deeply (the first of equals), the
  * coordinates clamped to the face (_own_faces). */
 static void locate(void *arg, int64_t first, int64_t end) {
-    Batch *bt = arg;
-    Geometry *geometry = malloc((size_t)(bt->longest > 0 ? bt->longest : 1) * sizeof *geometry);
+    Fit *fit = arg;
+    Geometry *geometry = malloc((size_t)(fit->longest > 0 ? fit->longest : 1) * sizeof *geometry);
     if (!geometry) {
-        bt->failed = 1;
+        fit->failed = 1;
         return;
     }
     for (int64_t u = first; u < end; u++) {
-        int64_t s = bt->sample_start[u], stop = bt->sample_start[u + 1];
-        if (s == stop) continue;
-        int64_t f0 = bt->fan_start[u], size = bt->fan_start[u + 1] - f0;
-        for (int64_t j = 0; j < size; j++) face_geometry(bt->c, bt->tri + 3 * (int64_t)bt->fan[f0 + j], &geometry[j]);
-        const int32_t *leaves = bt->leaf + bt->leaf_first[bt->lo + u];
-        for (int64_t i = 0; s < stop; s++, i++) {
-            int64_t p = leaves[i];
-            double pos[3] = {coord(bt->c, p, 0), coord(bt->c, p, 1), coord(bt->c, p, 2)};
+        int64_t at, n = slot_samples(fit, u, &at);
+        if (!n) continue;
+        int64_t f0 = fit->fan_start[u], size = fit->fan_start[u + 1] - f0;
+        for (int64_t j = 0; j < size; j++) face_geometry(fit->c, fit->tri + 3 * (int64_t)fit->fan[f0 + j], &geometry[j]);
+        for (int64_t s = at; s < at + n; s++) {
+            const double *pos = fit->position + 3 * s;
             double best[3], b[3];
             int64_t pick = 0;
             barycentric(&geometry[0], pos, best);
@@ -216,11 +226,10 @@ static void locate(void *arg, int64_t first, int64_t end) {
             for (int k = 0; k < 3; k++) best[k] = best[k] > 0 ? best[k] : 0.0;
             double sum = best[0] + best[1] + best[2];
             if (sum < DBL_MIN) sum = DBL_MIN; /* np.maximum(sum, tiny) */
-            const int32_t *face = bt->tri + 3 * (int64_t)bt->fan[f0 + pick];
-            bt->sample[s] = (int32_t)p;
+            const int32_t *face = fit->tri + 3 * (int64_t)fit->fan[f0 + pick];
             for (int k = 0; k < 3; k++) {
-                bt->own[3 * s + k] = face[k];
-                bt->bary[3 * s + k] = best[k] / sum;
+                fit->own[3 * s + k] = face[k];
+                fit->bary[3 * s + k] = best[k] / sum;
             }
         }
     }
@@ -230,10 +239,10 @@ static void locate(void *arg, int64_t first, int64_t end) {
 /* Slots first .. end-1: their terms sorted into the sums' order, and the
  * diagonal of the least squares, w b², summed in that order. */
 static void sort_terms(void *arg, int64_t first, int64_t end) {
-    Batch *bt = arg;
+    Fit *fit = arg;
     for (int64_t u = first; u < end; u++) {
-        Term *t = bt->term + bt->term_start[u];
-        int64_t n = bt->term_start[u + 1] - bt->term_start[u];
+        Term *t = fit->term + fit->term_start[u];
+        int64_t n = fit->term_start[u + 1] - fit->term_start[u];
         if (n > 16) {
             qsort(t, (size_t)n, sizeof *t, by_key);
         } else {
@@ -246,45 +255,67 @@ static void sort_terms(void *arg, int64_t first, int64_t end) {
         }
         double diagonal = 0.0;
         for (int64_t i = 0; i < n; i++) {
-            int64_t k = t[i].key / bt->V0;
-            double w = bt->weight[bt->sample[t[i].s]], b = bt->bary[3 * t[i].s + k];
+            double w = fit->weight[t[i].at], b = fit->bary[3 * (int64_t)t[i].at + t[i].k];
             diagonal += w * (b * b);
         }
-        bt->diagonal[u] = diagonal;
+        fit->diagonal[u] = diagonal;
     }
 }
 
-/* Samples first .. end-1: target minus the interpolated normal, with every
- * corner's current value (fixed, or the created slots' last sweep). */
+/* Samples of slots first .. end-1: target minus the interpolated normal,
+ * with every corner's current value (fixed, or the created slots' last
+ * sweep). */
 static void residuals(void *arg, int64_t first, int64_t end) {
-    Batch *bt = arg;
-    for (int64_t s = first; s < end; s++) {
-        const double *target = bt->out + 3 * (int64_t)bt->sample[s];
-        double t[3][3];
-        for (int k = 0; k < 3; k++) {
-            int64_t c = bt->own[3 * s + k];
-            const double *value = c >= bt->lo ? bt->fitted + 3 * (c - bt->lo) : bt->out + 3 * c;
-            for (int x = 0; x < 3; x++) t[k][x] = bt->bary[3 * s + k] * value[x];
+    Fit *fit = arg;
+    for (int64_t u = first; u < end; u++) {
+        int64_t at, n = slot_samples(fit, u, &at);
+        for (int64_t s = at; s < at + n; s++) {
+            double t[3][3];
+            for (int k = 0; k < 3; k++) {
+                int64_t c = fit->own[3 * s + k];
+                const double *value = c >= fit->lo ? fit->fitted + 3 * (c - fit->lo) : fit->out + 3 * c;
+                for (int x = 0; x < 3; x++) t[k][x] = fit->bary[3 * s + k] * value[x];
+            }
+            for (int x = 0; x < 3; x++)
+                fit->residual[3 * s + x] = fit->target[3 * s + x] - (t[0][x] + t[1][x] + t[2][x]);
         }
-        for (int x = 0; x < 3; x++) bt->residual[3 * s + x] = target[x] - (t[0][x] + t[1][x] + t[2][x]);
     }
 }
 
 /* Slots first .. end-1: one Jacobi step, each term the residual without
  * this corner, weighted; a slot without terms keeps its start. */
 static void solve(void *arg, int64_t first, int64_t end) {
-    Batch *bt = arg;
+    Fit *fit = arg;
     for (int64_t u = first; u < end; u++) {
-        double *fitted = bt->fitted + 3 * u, rhs[3] = {0.0, 0.0, 0.0};
-        for (int64_t i = bt->term_start[u]; i < bt->term_start[u + 1]; i++) {
-            const Term *t = &bt->term[i];
-            int64_t k = t->key / bt->V0;
-            double b = bt->bary[3 * t->s + k], share = bt->weight[bt->sample[t->s]] * b;
-            for (int x = 0; x < 3; x++) rhs[x] += share * (bt->residual[3 * t->s + x] + b * fitted[x]);
+        double *fitted = fit->fitted + 3 * u, rhs[3] = {0.0, 0.0, 0.0};
+        for (int64_t i = fit->term_start[u]; i < fit->term_start[u + 1]; i++) {
+            const Term *t = &fit->term[i];
+            const double *residual = fit->residual + 3 * (int64_t)t->at;
+            double b = fit->bary[3 * (int64_t)t->at + t->k], share = fit->weight[t->at] * b;
+            for (int x = 0; x < 3; x++) rhs[x] += share * (residual[x] + b * fitted[x]);
         }
-        const double *start = bt->out + 3 * (bt->lo + u);
-        for (int x = 0; x < 3; x++) fitted[x] = bt->diagonal[u] > 0 ? rhs[x] / bt->diagonal[u] : start[x];
+        const double *start = fit->out + 3 * (fit->lo + u);
+        for (int x = 0; x < 3; x++) fitted[x] = fit->diagonal[u] > 0 ? rhs[x] / fit->diagonal[u] : start[x];
     }
+}
+
+/* A batch's scratch arrays, kept from batch to batch (grown as needed):
+ * the first batches are the largest, so later ones map no new pages. */
+typedef struct {
+    void *buf;
+    size_t bytes;
+} Buffer;
+
+enum { FAN_START, FAN, CURSOR, SAMPLES, TERM_START, TERM, DIAGONAL, FITTED, N_BUFFERS };
+
+static void *room(Buffer *b, size_t bytes) {
+    if (bytes > b->bytes) {
+        free(b->buf);
+        b->bytes = bytes + bytes / 4;
+        b->buf = malloc(b->bytes);
+        if (!b->buf) b->bytes = 0;
+    }
+    return b->buf;
 }
 
 /* The fit of one batch's created vertices (_fit_batch), their subtree
@@ -292,103 +323,83 @@ static void solve(void *arg, int64_t first, int64_t end) {
  * [k_new + 1], entry u + 1 the fan size of slot u; touched: the n_touched
  * live faces with a created corner, in mesh order. Returns OK or
  * NO_MEMORY. */
-static int fit_batch(Batch *bt, const int32_t *touched, int64_t n_touched, int64_t *fan_start, int threads) {
-    int64_t k_new = bt->k_new, lo = bt->lo, V0 = bt->V0;
-    int rc = NO_MEMORY;
-    int32_t *fan = NULL, *sample = NULL, *own = NULL;
-    int64_t *sample_start = NULL, *term_start = NULL, *cursor = NULL;
-    double *bary = NULL, *residual = NULL, *diagonal = NULL, *fitted = NULL;
-    Term *term = NULL;
+static int fit_batch(Fit *fit, const int32_t *touched, int64_t n_touched, int64_t *fan_start, Buffer *scratch,
+                     int threads) {
+    int64_t k_new = fit->k_new, lo = fit->lo, V0 = fit->V0;
     if (!n_touched) return OK;
     /* Step 1: each created vertex's fan: the live faces with it as a corner,
      * grouped by vertex; in a group the faces where it is corner 0, then
      * corner 1, then corner 2, each in mesh order (a counting sort). */
-    bt->longest = 0;
+    fit->longest = 0;
     for (int64_t u = 0; u < k_new; u++) {
-        if (fan_start[u + 1] > bt->longest) bt->longest = fan_start[u + 1];
+        if (fan_start[u + 1] > fit->longest) fit->longest = fan_start[u + 1];
         fan_start[u + 1] += fan_start[u];
     }
-    fan = malloc((size_t)fan_start[k_new] * sizeof *fan);
-    cursor = malloc((size_t)(k_new + 1) * sizeof *cursor);
-    sample_start = malloc((size_t)(k_new + 1) * sizeof *sample_start);
-    term_start = calloc((size_t)(k_new + 1), sizeof *term_start);
-    if (!fan || !cursor || !sample_start || !term_start) goto done;
+    size_t slots = (size_t)(k_new + 1) * sizeof(int64_t);
+    int32_t *fan = room(&scratch[FAN], (size_t)fan_start[k_new] * sizeof *fan);
+    int64_t *cursor = room(&scratch[CURSOR], slots);
+    int64_t *samples = room(&scratch[SAMPLES], slots);
+    int64_t *term_start = room(&scratch[TERM_START], slots);
+    if (!fan || !cursor || !samples || !term_start) return NO_MEMORY;
+    memset(term_start, 0, slots);
     memcpy(cursor, fan_start, (size_t)k_new * sizeof *cursor);
     for (int k = 0; k < 3; k++)
         for (int64_t i = 0; i < n_touched; i++) {
-            int32_t c = bt->tri[3 * (int64_t)touched[i] + k];
+            int32_t c = fit->tri[3 * (int64_t)touched[i] + k];
             if (c >= lo) fan[cursor[c - lo]++] = touched[i];
         }
-    bt->fan_start = fan_start;
-    bt->fan = fan;
+    fit->fan_start = fan_start;
+    fit->fan = fan;
     /* Step 2: the samples: the originals standing under a created vertex
-     * with a fan (its leaves), grouped by vertex, each located on the face
-     * of that fan it lies on. */
-    sample_start[0] = 0;
+     * with a fan (its leaves), each located on the face of that fan it
+     * lies on. */
+    samples[0] = 0;
     for (int64_t u = 0; u < k_new; u++)
-        sample_start[u + 1] = sample_start[u] + (fan_start[u + 1] > fan_start[u] ? bt->leaf_count[lo + u] : 0);
-    int64_t S = sample_start[k_new];
-    if (!S) {
-        rc = OK;
-        goto done;
-    }
-    sample = malloc((size_t)S * sizeof *sample);
-    own = malloc((size_t)S * 3 * sizeof *own);
-    bary = malloc((size_t)S * 3 * sizeof *bary);
-    if (!sample || !own || !bary) goto done;
-    bt->sample_start = sample_start;
-    bt->sample = sample;
-    bt->own = own;
-    bt->bary = bary;
-    bt->failed = 0;
-    split(threads, locate, bt, k_new, sample_start);
-    if (bt->failed) goto done;
+        samples[u + 1] = samples[u] + (fan_start[u + 1] > fan_start[u] ? fit->leaf_count[lo + u] : 0);
+    if (!samples[k_new]) return OK;
+    fit->samples = samples;
+    fit->failed = 0;
+    split(threads, locate, fit, k_new, samples);
+    if (fit->failed) return NO_MEMORY;
     /* Step 3: Jacobi sweeps of the weighted least squares over the created
      * vertices' normals, the other corners fixed. A sample's terms go to
      * the slots of its created corners, each slot's summed in the NumPy
      * fit's order: corner by corner, then by original vertex. */
-    for (int64_t s = 0; s < S; s++)
-        for (int k = 0; k < 3; k++)
-            if (own[3 * s + k] >= lo) term_start[own[3 * s + k] - lo + 1]++;
+    for (int64_t u = 0; u < k_new; u++) {
+        int64_t at, n = slot_samples(fit, u, &at);
+        for (int64_t s = at; s < at + n; s++)
+            for (int k = 0; k < 3; k++)
+                if (fit->own[3 * s + k] >= lo) term_start[fit->own[3 * s + k] - lo + 1]++;
+    }
     for (int64_t u = 0; u < k_new; u++) term_start[u + 1] += term_start[u];
-    term = malloc((size_t)(term_start[k_new] > 0 ? term_start[k_new] : 1) * sizeof *term);
-    diagonal = malloc((size_t)k_new * sizeof *diagonal);
-    fitted = malloc((size_t)k_new * 3 * sizeof *fitted);
-    residual = malloc((size_t)S * 3 * sizeof *residual);
-    if (!term || !diagonal || !fitted || !residual) goto done;
+    Term *term = room(&scratch[TERM], (size_t)(term_start[k_new] > 0 ? term_start[k_new] : 1) * sizeof *term);
+    double *diagonal = room(&scratch[DIAGONAL], (size_t)k_new * sizeof *diagonal);
+    double *fitted = room(&scratch[FITTED], (size_t)k_new * 3 * sizeof *fitted);
+    if (!term || !diagonal || !fitted) return NO_MEMORY;
     memcpy(cursor, term_start, (size_t)k_new * sizeof *cursor);
-    for (int64_t s = 0; s < S; s++)
-        for (int k = 0; k < 3; k++)
-            if (own[3 * s + k] >= lo) term[cursor[own[3 * s + k] - lo]++] = (Term){k * V0 + sample[s], s};
-    bt->term_start = term_start;
-    bt->term = term;
-    bt->diagonal = diagonal;
-    bt->fitted = fitted;
-    bt->residual = residual;
-    split(threads, sort_terms, bt, k_new, term_start);
-    memcpy(fitted, bt->out + 3 * lo, (size_t)k_new * 3 * sizeof *fitted);
-    for (int64_t sweep = 0; sweep < bt->sweeps; sweep++) {
-        split(threads, residuals, bt, S, NULL);
-        split(threads, solve, bt, k_new, term_start);
+    for (int64_t u = 0; u < k_new; u++) {
+        int64_t at, n = slot_samples(fit, u, &at);
+        for (int64_t s = at; s < at + n; s++)
+            for (int k = 0; k < 3; k++) {
+                int64_t c = fit->own[3 * s + k];
+                if (c >= lo) term[cursor[c - lo]++] = (Term){k * V0 + fit->leaf[s], (int32_t)s, k};
+            }
+    }
+    fit->term_start = term_start;
+    fit->term = term;
+    fit->diagonal = diagonal;
+    fit->fitted = fitted;
+    split(threads, sort_terms, fit, k_new, term_start);
+    memcpy(fitted, fit->out + 3 * lo, (size_t)k_new * 3 * sizeof *fitted);
+    for (int64_t sweep = 0; sweep < fit->sweeps; sweep++) {
+        split(threads, residuals, fit, k_new, samples);
+        split(threads, solve, fit, k_new, term_start);
     }
     for (int64_t u = 0; u < k_new; u++) {
         unit3(fitted + 3 * u);
-        memcpy(bt->out + 3 * (lo + u), fitted + 3 * u, 3 * sizeof(double));
+        memcpy(fit->out + 3 * (lo + u), fitted + 3 * u, 3 * sizeof(double));
     }
-    rc = OK;
-done:
-    free(fan);
-    free(cursor);
-    free(sample_start);
-    free(term_start);
-    free(sample);
-    free(own);
-    free(bary);
-    free(term);
-    free(diagonal);
-    free(fitted);
-    free(residual);
-    return rc;
+    return OK;
 }
 
 /* pmjax.fitted_normals into out ([V, 3] float64, before the rounding to
@@ -402,18 +413,26 @@ int64_t pmn_fitted_normals(int64_t V0, int64_t V, const void *coords, int64_t co
                            const int32_t *faces, const int64_t *kid_lo, const int64_t *kid_hi, int64_t B,
                            const int64_t *offsets, int64_t sweeps, int64_t threads, double *out) {
     Coords c = {coords_f64 ? NULL : (const float *)coords, coords_f64 ? (const double *)coords : NULL};
-    int64_t P = V - V0;
+    int64_t P = V - V0, W0 = V0 > 0 ? V0 : 1;
     int rc = NO_MEMORY;
     double *total = calloc((size_t)V * 3, sizeof *total);
-    double *weight = calloc((size_t)(V0 > 0 ? V0 : 1), sizeof *weight);
+    double *area = calloc((size_t)W0, sizeof *area);
     int32_t *rep = malloc((size_t)(V > 0 ? V : 1) * sizeof *rep);
-    int32_t *leaf = malloc((size_t)(V0 > 0 ? V0 : 1) * sizeof *leaf);
+    int32_t *leaf = malloc((size_t)W0 * sizeof *leaf);
     int32_t *leaf_first = malloc((size_t)(V > 0 ? V : 1) * sizeof *leaf_first);
     int32_t *leaf_count = malloc((size_t)(V > 0 ? V : 1) * sizeof *leaf_count);
+    double *position = malloc((size_t)W0 * 3 * sizeof *position);
+    double *target = malloc((size_t)W0 * 3 * sizeof *target);
+    double *weight = malloc((size_t)W0 * sizeof *weight);
+    int32_t *own = malloc((size_t)W0 * 3 * sizeof *own);
+    double *bary = malloc((size_t)W0 * 3 * sizeof *bary);
+    double *residual = malloc((size_t)W0 * 3 * sizeof *residual);
     int32_t *tri = malloc((size_t)(F > 0 ? F : 1) * 3 * sizeof *tri);
     int32_t *touched = malloc((size_t)(F > 0 ? F : 1) * sizeof *touched);
-    int64_t *fan_start = NULL;
-    if (!total || !weight || !rep || !leaf || !leaf_first || !leaf_count || !tri || !touched) goto done;
+    Buffer scratch[N_BUFFERS] = {{0}};
+    if (!total || !area || !rep || !leaf || !leaf_first || !leaf_count || !position || !target || !weight || !own
+        || !bary || !residual || !tri || !touched)
+        goto done;
     /* The original surface: per vertex the sum of its faces' cross products
      * and a third of their area, each vertex's terms added corner 0 of
      * every face, then corner 1, then corner 2 (_corner_sums). */
@@ -423,7 +442,7 @@ int64_t pmn_fitted_normals(int64_t V0, int64_t V, const void *coords, int64_t co
             face_cross(c, faces, f, cross);
             int64_t v = faces[3 * f + k];
             for (int x = 0; x < 3; x++) total[3 * v + x] += cross[x];
-            weight[v] += sqrt(cross[0] * cross[0] + cross[1] * cross[1] + cross[2] * cross[2]) / 6.0;
+            area[v] += sqrt(cross[0] * cross[0] + cross[1] * cross[1] + cross[2] * cross[2]) / 6.0;
         }
     /* Every vertex's unit sum: the originals' vertex normals (the samples'
      * targets, and kept), zero for the created ones until their batch. */
@@ -454,12 +473,24 @@ int64_t pmn_fitted_normals(int64_t V0, int64_t V, const void *coords, int64_t co
         leaf_first[kid_hi[i]] = leaf_first[V0 + i] + leaf_count[kid_lo[i]];
     }
     for (int64_t p = 0; p < V0; p++) leaf[leaf_first[p]] = (int32_t)p;
+    /* The samples' data in leaf order. */
+    for (int64_t s = 0; s < V0; s++) {
+        int64_t p = leaf[s];
+        for (int x = 0; x < 3; x++) {
+            position[3 * s + x] = coord(c, p, x);
+            target[3 * s + x] = out[3 * p + x];
+        }
+        weight[s] = area[p];
+    }
+    free(area);
+    area = NULL;
     /* rep[x]: the vertex standing for x after the current batch. */
     for (int64_t v = 0; v < V; v++) rep[v] = (int32_t)v;
     memcpy(tri, faces, (size_t)F * 3 * sizeof *tri);
     int64_t n = F;
-    Batch bt = {.c = c, .V0 = V0, .sweeps = sweeps, .tri = tri, .weight = weight, .leaf = leaf,
-                .leaf_first = leaf_first, .leaf_count = leaf_count, .out = out};
+    Fit fit = {.c = c, .V0 = V0, .sweeps = sweeps, .out = out, .leaf = leaf, .leaf_first = leaf_first,
+               .leaf_count = leaf_count, .position = position, .target = target, .weight = weight, .own = own,
+               .bary = bary, .residual = residual, .tri = tri};
     for (int64_t b = 0; b < B; b++) {
         int64_t lo = V0 + offsets[b], k_new = offsets[b + 1] - offsets[b];
         /* The batch's subtree means: a created vertex sums its two
@@ -477,8 +508,9 @@ int64_t pmn_fitted_normals(int64_t V0, int64_t V, const void *coords, int64_t co
         /* The mesh just after the batch: corners relabelled, faces two of
          * whose corners meet dropped, the rest kept in order; the faces
          * with a created corner noted, and each created vertex's count. */
-        fan_start = calloc((size_t)(k_new + 1), sizeof *fan_start);
+        int64_t *fan_start = room(&scratch[FAN_START], (size_t)(k_new + 1) * sizeof *fan_start);
         if (!fan_start) goto done;
+        memset(fan_start, 0, (size_t)(k_new + 1) * sizeof *fan_start);
         int64_t m = 0, n_touched = 0;
         for (int64_t f = 0; f < n; f++) {
             int32_t x = rep[tri[3 * f]], y = rep[tri[3 * f + 1]], z = rep[tri[3 * f + 2]];
@@ -496,24 +528,27 @@ int64_t pmn_fitted_normals(int64_t V0, int64_t V, const void *coords, int64_t co
             }
         }
         n = m;
-        bt.lo = lo;
-        bt.k_new = k_new;
-        int status = fit_batch(&bt, touched, n_touched, fan_start, (int)threads);
-        free(fan_start);
-        fan_start = NULL;
-        if (status != OK) goto done;
+        fit.lo = lo;
+        fit.k_new = k_new;
+        if (fit_batch(&fit, touched, n_touched, fan_start, scratch, (int)threads) != OK) goto done;
     }
     rc = OK;
 done:
     free(total);
-    free(weight);
+    free(area);
     free(rep);
     free(leaf);
     free(leaf_first);
     free(leaf_count);
+    free(position);
+    free(target);
+    free(weight);
+    free(own);
+    free(bary);
+    free(residual);
     free(tri);
     free(touched);
-    free(fan_start);
+    for (int i = 0; i < N_BUFFERS; i++) free(scratch[i].buf);
     return rc;
 }
 
