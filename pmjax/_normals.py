@@ -114,7 +114,12 @@ def fitted_normals(pm) -> np.ndarray:
     mean), then normalized. Interpolation across faces averages neighbouring
     vertex normals; the fit undoes that averaging where the original
     surface turns. Computed batch by batch up the hierarchy (children before
-    parents), vectorized per batch. The cone axes are not involved.
+    parents): by C loops on up to two threads where the extension
+    ``pmjax._normals_native`` is built, else by NumPy vectorized per batch,
+    the same bits either way (each sum taken in one stated order: a
+    vertex's face terms corner 0 of every face, then corner 1, then corner
+    2; a slot's sample terms corner by corner, then by original vertex).
+    The cone axes are not involved.
 
     Args:
         pm: a :class:`pmjax.PMData` or :class:`pmjax.ProgressiveMesh`.
@@ -138,32 +143,34 @@ def _load_native():
     lib = ctypes.CDLL(spec.origin)
     lib.pmn_fitted_normals.restype = ctypes.c_int64
     i64, ptr = ctypes.c_int64, ctypes.c_void_p
-    lib.pmn_fitted_normals.argtypes = [i64, i64, ptr, i64, i64, ptr, ptr, ptr, i64, ptr, i64, i64, ptr]
+    lib.pmn_fitted_normals.argtypes = [i64, i64, ptr, i64, i64, ptr, ptr, ptr, i64, ptr, i64, i64, i64, ptr]
     return lib
 
 
 # Tests set it to None to compare the NumPy steps with the C loops.
 native = _load_native()
 # Threads of the C loops (their parts write disjoint outputs: the same bits
-# for any number).
+# for any number), and the fewest slots or samples a step splits over them
+# (below, a second thread costs more than it saves).
 FIT_THREADS = min(os.cpu_count() or 1, 2)
+FIT_MIN_SPLIT = 4096
 
 
 def _fitted_by_axis(pm) -> np.ndarray:
     """``float64[3, V0 + P]``: :func:`fitted_normals` by axis, before rounding
     (the C loops where they are built and the hierarchy's ids fit them, else
     NumPy: the same bits)."""
-    if native is not None:
-        fitted = _fitted_native(pm)
-        if fitted is not None:
-            return fitted.T
-    return _fitted_numpy(pm)
+    fitted = _fitted_native(pm)
+    return _fitted_numpy(pm) if fitted is None else fitted.T
 
 
 def _fitted_native(pm) -> np.ndarray | None:
     """``float64[V0 + P, 3]``: the fit by the C loops, or ``None`` where the
     hierarchy's ids are outside what they take (faces on original vertices,
-    each pcol consuming two vertices made before its batch, int32 ids)."""
+    each pcol consuming two vertices made before its batch, int32 ids) or
+    they are not built."""
+    if native is None:
+        return None
     V0 = int(pm.n_original_vertices)
     vertices = np.asarray(pm.vertices)
     if vertices.dtype != np.float32:
@@ -197,7 +204,8 @@ def _fitted_native(pm) -> np.ndarray | None:
     out = np.empty((V, 3))
     if native.pmn_fitted_normals(V0, V, vertices.ctypes.data, int(vertices.dtype == np.float64), len(faces),
                                  faces.ctypes.data, kid_lo.ctypes.data, kid_hi.ctypes.data, len(offsets) - 1,
-                                 offsets.ctypes.data, FIT_SWEEPS, FIT_THREADS, out.ctypes.data):
+                                 offsets.ctypes.data, FIT_SWEEPS, FIT_THREADS, FIT_MIN_SPLIT,
+                                 out.ctypes.data):
         raise MemoryError("fitted_normals: out of memory in the fit's C loops")
     return out
 

@@ -74,21 +74,6 @@ static void face_geometry(Coords c, const int32_t *tri, Geometry *g) {
     g->det = det > 0 ? det : 1.0; /* a degenerate face: coordinates of no use */
 }
 
-/* Barycentric coordinates of point p's projection on face g's plane. */
-static void barycentric(const Geometry *g, const double *p, double *b) {
-    double e2[3] = {p[0] - g->a[0], p[1] - g->a[1], p[2] - g->a[2]};
-    double d20 = e2[0] * g->e0[0] + e2[1] * g->e0[1] + e2[2] * g->e0[2];
-    double d21 = e2[0] * g->e1[0] + e2[1] * g->e1[1] + e2[2] * g->e1[2];
-    b[1] = (g->d11 * d20 - g->d01 * d21) / g->det;
-    b[2] = (g->d00 * d21 - g->d01 * d20) / g->det;
-    b[0] = 1.0 - b[1] - b[2];
-}
-
-static inline double smallest(const double *b) {
-    double m = b[0] <= b[1] ? b[0] : b[1];
-    return m <= b[2] ? m : b[2];
-}
-
 /* Work split over threads: fn(ctx, first, end) for parts of 0 .. n, cut
  * where the running sum of weight (NULL: one per item) passes each share.
  * Every part writes only its own items' outputs, so the results are the
@@ -108,12 +93,11 @@ static void *run_job(void *arg) {
 }
 
 #define MAX_THREADS 8
-/* Below this many items a second thread costs more than it saves. */
-#define MIN_SPLIT 4096
 
-static void split(int threads, Part fn, void *ctx, int64_t n, const int64_t *weight) {
+/* Work of n items below min_split runs on the calling thread alone. */
+static void split(int threads, int64_t min_split, Part fn, void *ctx, int64_t n, const int64_t *weight) {
     if (threads > MAX_THREADS) threads = MAX_THREADS;
-    if (threads < 2 || n < MIN_SPLIT) {
+    if (threads < 2 || n < min_split) {
         fn(ctx, 0, n);
         return;
     }
@@ -153,9 +137,43 @@ typedef struct {
     int32_t k;
 } Term;
 
-static int by_key(const void *x, const void *y) {
-    int64_t a = ((const Term *)x)->key, b = ((const Term *)y)->key;
-    return (a > b) - (a < b);
+/* Terms t[0 .. n-1] in increasing key (keys are distinct): quicksort on
+ * the median of three, the smaller side first, short runs by insertion. */
+static void sort_by_key(Term *t, int64_t n) {
+    while (n > 16) {
+        int64_t mid = n / 2;
+        Term *a = &t[0], *b = &t[mid], *c = &t[n - 1], swap;
+        if (b->key < a->key) swap = *a, *a = *b, *b = swap;
+        if (c->key < b->key) {
+            swap = *b, *b = *c, *c = swap;
+            if (b->key < a->key) swap = *a, *a = *b, *b = swap;
+        }
+        int64_t pivot = t[mid].key, i = 0, j = n - 1;
+        while (i <= j) {
+            while (t[i].key < pivot) i++;
+            while (t[j].key > pivot) j--;
+            if (i <= j) {
+                swap = t[i], t[i] = t[j], t[j] = swap;
+                i++;
+                j--;
+            }
+        }
+        /* t[0 .. j] <= pivot <= t[i .. n-1]. */
+        if (j + 1 < n - i) {
+            sort_by_key(t, j + 1);
+            t += i;
+            n -= i;
+        } else {
+            sort_by_key(t + i, n - i);
+            n = j + 1;
+        }
+    }
+    for (int64_t i = 1; i < n; i++)
+        for (int64_t j = i; j > 0 && t[j - 1].key > t[j].key; j--) {
+            Term swap = t[j];
+            t[j] = t[j - 1];
+            t[j - 1] = swap;
+        }
 }
 
 /* The fit's state. Per original vertex, in leaf order (position L holds
@@ -164,11 +182,13 @@ static int by_key(const void *x, const void *y) {
 typedef struct {
     Coords c;
     int64_t V0, sweeps;
+    int threads;        /* how many share each step's parts */
+    int64_t min_split;  /* below this many slots or samples, one */
     double *out;               /* [V, 3] originals' unit vertex normals, the rest fitted so far */
     const int32_t *leaf;       /* [V0] original at each leaf position */
     const int32_t *leaf_first; /* [V] each vertex's first leaf position */
     const int32_t *leaf_count; /* [V] and how many leaves it has */
-    const double *position;    /* [V0, 3] the samples' positions */
+    const double *position;    /* [3, V0] the samples' positions, by axis */
     const double *target;      /* [V0, 3] their unit vertex normals */
     const double *weight;      /* [V0] a third of the area of their faces */
     int32_t *own;              /* [V0, 3] corners of the face each sample lies on */
@@ -193,6 +213,53 @@ static inline int64_t slot_samples(const Fit *fit, int64_t u, int64_t *first) {
     return fit->samples[u + 1] - fit->samples[u];
 }
 
+/* Samples located a tile at a time: every face of the fan tried on a tile
+ * of samples (a loop the compiler can run on vector lanes). */
+#define TILE 256
+
+/* Barycentric coordinates b0, b1, b2 of the projection of (x, y, z) on
+ * face g's plane, and the smallest of them (_own_faces: the dot products
+ * summed x, y, z in that order). */
+static inline double on_face(const Geometry *g, double x, double y, double z, double *b0, double *b1, double *b2) {
+    double e0 = x - g->a[0], e1 = y - g->a[1], e2 = z - g->a[2];
+    double d20 = e0 * g->e0[0] + e1 * g->e0[1] + e2 * g->e0[2];
+    double d21 = e0 * g->e1[0] + e1 * g->e1[1] + e2 * g->e1[2];
+    *b1 = (g->d11 * d20 - g->d01 * d21) / g->det;
+    *b2 = (g->d00 * d21 - g->d01 * d20) / g->det;
+    *b0 = 1.0 - *b1 - *b2;
+    double m = *b0 <= *b1 ? *b0 : *b1;
+    return m <= *b2 ? m : *b2;
+}
+
+/* For the samples x, y, z[0 .. n-1] (n <= TILE), the deepest of the fan's
+ * size faces: pick and the coordinates on it, the first of equals (faces
+ * tried in fan order, a later one taken only if strictly deeper). Plain
+ * IEEE operations (no contraction), so any vector width gives the scalar
+ * loop's bits; built for AVX2 too where the CPU has it. */
+#if defined(__GNUC__) && !defined(__clang__) && (defined(__x86_64__) || defined(__i386__))
+__attribute__((target_clones("avx2", "default")))
+#endif
+static void deepest(const Geometry *geometry, int64_t size, const double *restrict x, const double *restrict y,
+                    const double *restrict z, int64_t n, int64_t *restrict pick, double *restrict c0,
+                    double *restrict c1, double *restrict c2, double *restrict depth) {
+    for (int64_t s = 0; s < n; s++) {
+        depth[s] = on_face(&geometry[0], x[s], y[s], z[s], &c0[s], &c1[s], &c2[s]);
+        pick[s] = 0;
+    }
+    for (int64_t j = 1; j < size; j++) {
+        const Geometry g = geometry[j];
+        for (int64_t s = 0; s < n; s++) {
+            double b0, b1, b2, d = on_face(&g, x[s], y[s], z[s], &b0, &b1, &b2);
+            int better = d > depth[s];
+            depth[s] = better ? d : depth[s];
+            pick[s] = better ? j : pick[s];
+            c0[s] = better ? b0 : c0[s];
+            c1[s] = better ? b1 : c1[s];
+            c2[s] = better ? b2 : c2[s];
+        }
+    }
+}
+
 /* Samples of slots first .. end-1 located on their fans: the face whose
  * projection the sample falls into most deeply (the first of equals), the
  * coordinates clamped to the face (_own_faces). */
@@ -203,33 +270,28 @@ static void locate(void *arg, int64_t first, int64_t end) {
         fit->failed = 1;
         return;
     }
+    int64_t pick[TILE];
+    double c[3][TILE], depth[TILE];
+    const double *px = fit->position, *py = px + fit->V0, *pz = py + fit->V0;
     for (int64_t u = first; u < end; u++) {
         int64_t at, n = slot_samples(fit, u, &at);
         if (!n) continue;
         int64_t f0 = fit->fan_start[u], size = fit->fan_start[u + 1] - f0;
         for (int64_t j = 0; j < size; j++) face_geometry(fit->c, fit->tri + 3 * (int64_t)fit->fan[f0 + j], &geometry[j]);
-        for (int64_t s = at; s < at + n; s++) {
-            const double *pos = fit->position + 3 * s;
-            double best[3], b[3];
-            int64_t pick = 0;
-            barycentric(&geometry[0], pos, best);
-            double depth = smallest(best);
-            for (int64_t j = 1; j < size; j++) {
-                barycentric(&geometry[j], pos, b);
-                double d = smallest(b);
-                if (d > depth) {
-                    depth = d;
-                    pick = j;
-                    memcpy(best, b, sizeof best);
+        for (int64_t t0 = at; t0 < at + n; t0 += TILE) {
+            int64_t m = at + n - t0 < TILE ? at + n - t0 : TILE;
+            deepest(geometry, size, px + t0, py + t0, pz + t0, m, pick, c[0], c[1], c[2], depth);
+            for (int64_t i = 0; i < m; i++) {
+                int64_t s = t0 + i;
+                double best[3];
+                for (int k = 0; k < 3; k++) best[k] = c[k][i] > 0 ? c[k][i] : 0.0;
+                double sum = best[0] + best[1] + best[2];
+                if (sum < DBL_MIN) sum = DBL_MIN; /* np.maximum(sum, tiny) */
+                const int32_t *face = fit->tri + 3 * (int64_t)fit->fan[f0 + pick[i]];
+                for (int k = 0; k < 3; k++) {
+                    fit->own[3 * s + k] = face[k];
+                    fit->bary[3 * s + k] = best[k] / sum;
                 }
-            }
-            for (int k = 0; k < 3; k++) best[k] = best[k] > 0 ? best[k] : 0.0;
-            double sum = best[0] + best[1] + best[2];
-            if (sum < DBL_MIN) sum = DBL_MIN; /* np.maximum(sum, tiny) */
-            const int32_t *face = fit->tri + 3 * (int64_t)fit->fan[f0 + pick];
-            for (int k = 0; k < 3; k++) {
-                fit->own[3 * s + k] = face[k];
-                fit->bary[3 * s + k] = best[k] / sum;
             }
         }
     }
@@ -243,16 +305,7 @@ static void sort_terms(void *arg, int64_t first, int64_t end) {
     for (int64_t u = first; u < end; u++) {
         Term *t = fit->term + fit->term_start[u];
         int64_t n = fit->term_start[u + 1] - fit->term_start[u];
-        if (n > 16) {
-            qsort(t, (size_t)n, sizeof *t, by_key);
-        } else {
-            for (int64_t i = 1; i < n; i++)
-                for (int64_t j = i; j > 0 && t[j - 1].key > t[j].key; j--) {
-                    Term swap = t[j];
-                    t[j] = t[j - 1];
-                    t[j - 1] = swap;
-                }
-        }
+        sort_by_key(t, n);
         double diagonal = 0.0;
         for (int64_t i = 0; i < n; i++) {
             double w = fit->weight[t[i].at], b = fit->bary[3 * (int64_t)t[i].at + t[i].k];
@@ -323,8 +376,9 @@ static void *room(Buffer *b, size_t bytes) {
  * [k_new + 1], entry u + 1 the fan size of slot u; touched: the n_touched
  * live faces with a created corner, in mesh order. Returns OK or
  * NO_MEMORY. */
-static int fit_batch(Fit *fit, const int32_t *touched, int64_t n_touched, int64_t *fan_start, Buffer *scratch,
-                     int threads) {
+static int fit_batch(Fit *fit, const int32_t *touched, int64_t n_touched, int64_t *fan_start, Buffer *scratch) {
+    int threads = fit->threads;
+    int64_t min_split = fit->min_split;
     int64_t k_new = fit->k_new, lo = fit->lo, V0 = fit->V0;
     if (!n_touched) return OK;
     /* Step 1: each created vertex's fan: the live faces with it as a corner,
@@ -359,7 +413,7 @@ static int fit_batch(Fit *fit, const int32_t *touched, int64_t n_touched, int64_
     if (!samples[k_new]) return OK;
     fit->samples = samples;
     fit->failed = 0;
-    split(threads, locate, fit, k_new, samples);
+    split(threads, min_split, locate, fit, k_new, samples);
     if (fit->failed) return NO_MEMORY;
     /* Step 3: Jacobi sweeps of the weighted least squares over the created
      * vertices' normals, the other corners fixed. A sample's terms go to
@@ -389,11 +443,11 @@ static int fit_batch(Fit *fit, const int32_t *touched, int64_t n_touched, int64_
     fit->term = term;
     fit->diagonal = diagonal;
     fit->fitted = fitted;
-    split(threads, sort_terms, fit, k_new, term_start);
+    split(threads, min_split, sort_terms, fit, k_new, term_start);
     memcpy(fitted, fit->out + 3 * lo, (size_t)k_new * 3 * sizeof *fitted);
     for (int64_t sweep = 0; sweep < fit->sweeps; sweep++) {
-        split(threads, residuals, fit, k_new, samples);
-        split(threads, solve, fit, k_new, term_start);
+        split(threads, min_split, residuals, fit, k_new, samples);
+        split(threads, min_split, solve, fit, k_new, term_start);
     }
     for (int64_t u = 0; u < k_new; u++) {
         unit3(fitted + 3 * u);
@@ -407,11 +461,12 @@ static int fit_batch(Fit *fit, const int32_t *touched, int64_t n_touched, int64_
  * [F, 3] original faces (ids below V0); pcol i (vertex V0 + i) consumes
  * kid_lo[i] < kid_hi[i], each vertex consumed once and made before the
  * pcol's batch; batch b makes pcols offsets[b] .. offsets[b+1]-1; threads:
- * how many share the work (the same bits for any). Returns OK or
- * NO_MEMORY. */
+ * how many share the work (the same bits for any), a step of fewer than
+ * min_split slots or samples on one. Returns OK or NO_MEMORY. */
 int64_t pmn_fitted_normals(int64_t V0, int64_t V, const void *coords, int64_t coords_f64, int64_t F,
                            const int32_t *faces, const int64_t *kid_lo, const int64_t *kid_hi, int64_t B,
-                           const int64_t *offsets, int64_t sweeps, int64_t threads, double *out) {
+                           const int64_t *offsets, int64_t sweeps, int64_t threads, int64_t min_split,
+                           double *out) {
     Coords c = {coords_f64 ? NULL : (const float *)coords, coords_f64 ? (const double *)coords : NULL};
     int64_t P = V - V0, W0 = V0 > 0 ? V0 : 1;
     int rc = NO_MEMORY;
@@ -477,7 +532,7 @@ int64_t pmn_fitted_normals(int64_t V0, int64_t V, const void *coords, int64_t co
     for (int64_t s = 0; s < V0; s++) {
         int64_t p = leaf[s];
         for (int x = 0; x < 3; x++) {
-            position[3 * s + x] = coord(c, p, x);
+            position[x * V0 + s] = coord(c, p, x);
             target[3 * s + x] = out[3 * p + x];
         }
         weight[s] = area[p];
@@ -488,7 +543,7 @@ int64_t pmn_fitted_normals(int64_t V0, int64_t V, const void *coords, int64_t co
     for (int64_t v = 0; v < V; v++) rep[v] = (int32_t)v;
     memcpy(tri, faces, (size_t)F * 3 * sizeof *tri);
     int64_t n = F;
-    Fit fit = {.c = c, .V0 = V0, .sweeps = sweeps, .out = out, .leaf = leaf, .leaf_first = leaf_first,
+    Fit fit = {.c = c, .V0 = V0, .sweeps = sweeps, .threads = (int)threads, .min_split = min_split, .out = out, .leaf = leaf, .leaf_first = leaf_first,
                .leaf_count = leaf_count, .position = position, .target = target, .weight = weight, .own = own,
                .bary = bary, .residual = residual, .tri = tri};
     for (int64_t b = 0; b < B; b++) {
@@ -530,7 +585,7 @@ int64_t pmn_fitted_normals(int64_t V0, int64_t V, const void *coords, int64_t co
         n = m;
         fit.lo = lo;
         fit.k_new = k_new;
-        if (fit_batch(&fit, touched, n_touched, fan_start, scratch, (int)threads) != OK) goto done;
+        if (fit_batch(&fit, touched, n_touched, fan_start, scratch) != OK) goto done;
     }
     rc = OK;
 done:
