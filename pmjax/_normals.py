@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import ctypes
-import importlib.util
 import os
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
+
+from ._clib import open_library
 
 if TYPE_CHECKING:  # the builder imports this module without JAX
     from ._model import ProgressiveMesh
@@ -135,12 +136,9 @@ def _load_native():
     """The fit's C loops (``pmjax/_normals_native.c``) as a ctypes library,
     or ``None`` where the extension is not built or ``PMJAX_NATIVE=0`` is set
     (the NumPy steps then run: the same bits)."""
-    if os.environ.get("PMJAX_NATIVE", "1") == "0":
+    lib = open_library("pmjax._normals_native")
+    if lib is None:
         return None
-    spec = importlib.util.find_spec("pmjax._normals_native")
-    if spec is None or not spec.origin:
-        return None
-    lib = ctypes.CDLL(spec.origin)
     lib.pmn_fitted_normals.restype = ctypes.c_int64
     i64, ptr = ctypes.c_int64, ctypes.c_void_p
     lib.pmn_fitted_normals.argtypes = [i64, i64, ptr, i64, i64, ptr, ptr, ptr, i64, ptr, i64, i64, i64, ptr]
