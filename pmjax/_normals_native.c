@@ -7,7 +7,12 @@
  * same order (no contraction): sums of a vertex's terms in the order the
  * NumPy step adds them, dot products and squared lengths summed x, y, z in
  * that order. So the fit gives the NumPy fit's normals bit for bit
- * (tests/test_shading_normals.py). Every pointer is a C-contiguous array of
+ * (tests/test_shading_normals.py). Unlike NumPy, a batch's samples are
+ * taken vertex by vertex from the leaf order (a vertex's originals are one
+ * run of it), not by a pass over every original vertex, and each created
+ * vertex's terms are sorted into the order NumPy sums them in; the steps
+ * over vertices or samples are split over threads, each part writing its
+ * own outputs. Every pointer is a C-contiguous array of
  * the dtype named; the caller has checked the ids (faces below V0, children
  * below their parents' batch).
  */
