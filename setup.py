@@ -1,15 +1,17 @@
 """Build of the compiled parts: the front engine's C core (as XLA FFI targets),
-the builder's C loops and the .pmz version 2 decoder's loops.
+the builder's C loops, the .pmz version 2 decoder's loops and the shading
+normals' fit.
 
-Everything else is in pyproject.toml. All three are optional: where they
+Everything else is in pyproject.toml. All four are optional: where they
 cannot be compiled (no C compiler), pmjax installs without them, refinement
 runs on the dense engine (and the front engine as JAX kernels), the
-builder chooses its batches with NumPy (the same hierarchies, slower) and
-the .pmz reader decodes with NumPy (the same arrays, slower).
+builder chooses its batches with NumPy (the same hierarchies, slower), the
+.pmz reader decodes with NumPy (the same arrays, slower) and the shading
+normals are fitted with NumPy (the same bits, slower).
 ``pmjax info --engines`` says which are active; CI sets PMJAX_REQUIRE_CORE=1,
 under which a missing core fails the tests.
 
-PMJAX_SANITIZE=address,undefined builds all three with those sanitizers
+PMJAX_SANITIZE=address,undefined builds all four with those sanitizers
 (docs/front.md: how to run the tests under them).
 """
 
@@ -91,6 +93,18 @@ def main():
                 sources=["pmjax/_pmz_native.c"],
                 extra_compile_args=["-O3", "-std=c99", "-ffp-contract=off", "-Wall"] + SANITIZE_FLAGS,
                 extra_link_args=SANITIZE_FLAGS,
+                optional=True,
+            ),
+            # The shading normals' fit (pmjax/_normals_native.c): the NumPy
+            # fit's arithmetic in its order, so no contraction either; its
+            # parts on two threads. No FP exceptions are enabled, so its
+            # selects may be evaluated on vector lanes (the same bits).
+            Extension(
+                "pmjax._normals_native",
+                sources=["pmjax/_normals_native.c"],
+                extra_compile_args=["-O3", "-std=c99", "-ffp-contract=off", "-fno-trapping-math", "-fno-math-errno",
+                                    "-Wall", "-pthread"] + SANITIZE_FLAGS,
+                extra_link_args=["-pthread"] + SANITIZE_FLAGS,
                 optional=True,
             ),
         ],

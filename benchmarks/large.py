@@ -163,6 +163,7 @@ STAGES = (
     ("build", "_cheapest", "the cheapest share"),
     ("build", "_select_batch", "the batch choice (greedy, validity)"),
     ("native", "apply_batch", "applying the batch"),
+    ("build", "fitted_normals", "the shading normals' fit, after the batches"),
 )
 
 

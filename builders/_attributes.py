@@ -42,9 +42,7 @@ def original_cone_angles(vertices, normals, faces, chunk: int | None = None) -> 
     ``builders._quadrics.CHUNK_FACES``; a max is the same in any order), so
     the per-corner temporaries stay bounded at any model size."""
     out = np.zeros(len(vertices))
-    chunk = chunk or quadrics.CHUNK_FACES
-    for lo in range(0, len(faces), max(chunk, 1)):
-        part = faces[lo:lo + chunk]
+    for part in quadrics.face_parts(faces, chunk):
         fn = face_cross(vertices, part)
         fn /= np.maximum(np.linalg.norm(fn, axis=1), 1e-300)[:, None]
         corner = part.ravel()

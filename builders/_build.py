@@ -132,13 +132,9 @@ def vertex_normals(pos: np.ndarray, faces: np.ndarray, n: int, chunk: int | None
     Returns:
         ``float64[n, 3]``.
     """
-    if not native.available():
-        return unit(qd.scatter_add(qd.face_cross(pos, faces), faces.ravel(), n, repeat=3))
     total = np.zeros((n, 3))
-    chunk = chunk or qd.CHUNK_FACES
-    for lo in range(0, len(faces), max(chunk, 1)):
-        part = faces[lo:lo + chunk]
-        native.scatter_add(qd.face_cross(pos, part).T, part.ravel(), n, repeat=3, out=total)
+    for part in qd.face_parts(faces, chunk, sums=True):
+        qd.scatter_add(qd.face_cross(pos, part), part.ravel(), n, repeat=3, out=total)
     return unit(total)
 
 

@@ -15,10 +15,10 @@ optional extension ``pmjax.builders._build_native``; where it is missing, or
 from __future__ import annotations
 
 import ctypes
-import importlib.util
-import os
 
 import numpy as np
+
+from pmjax._clib import open_library
 
 from ._threads import split_range
 
@@ -27,17 +27,6 @@ DEAD, TAKEN, INVALID, UNCHECKED = 0, 1, 2, 3
 
 _p = ctypes.c_void_p
 _i64 = ctypes.c_int64
-
-
-def open_library(module: str):
-    """The compiled extension ``module`` (a dotted name) as a ctypes library,
-    or ``None`` where it is not built or ``PMJAX_NATIVE=0`` is set."""
-    if os.environ.get("PMJAX_NATIVE", "1") == "0":
-        return None
-    spec = importlib.util.find_spec(module)
-    if spec is None or not spec.origin:
-        return None
-    return ctypes.CDLL(spec.origin)
 
 
 def _load():

@@ -103,17 +103,12 @@ def vertex_quadrics(
         out = np.zeros((n_vertices, 10))
     elif not (out.shape == (n_vertices, 10) and out.dtype == np.float64 and out.flags.c_contiguous):
         raise ValueError(f"vertex_quadrics: out must be a contiguous float64 ({n_vertices}, 10) array")
-    step = (chunk or CHUNK_FACES) if native.available() else len(faces)
-    for lo in range(0, len(faces), max(step, 1)):
-        part = faces[lo:lo + step]
+    for part in face_parts(faces, chunk, sums=True):
         unit, area, _ = face_geometry(pos, part)
         d = -np.einsum("ij,ij->i", unit, pos[part[:, 0]])
         kf = plane_quadrics(unit, d, area)
         unit = area = d = None
-        if native.available():
-            native.scatter_add(kf.T, part.ravel(), n_vertices, repeat=3, out=out)
-        else:
-            out += scatter_add(kf, part.ravel(), n_vertices, repeat=3)
+        scatter_add(kf, part.ravel(), n_vertices, repeat=3, out=out)
         kf = None
     if boundary_weight > 0:
         a, b, face = boundary_edges(faces, edges)
@@ -136,20 +131,47 @@ def vertex_quadrics(
     return out
 
 
-def scatter_add(values: np.ndarray, index: np.ndarray, n: int, repeat: int = 1) -> np.ndarray:
+def face_parts(faces: np.ndarray, chunk: int | None = None, sums: bool = False):
+    """Consecutive parts of ``faces``, ``chunk`` at a time (``None``:
+    :data:`CHUNK_FACES`), so that per-face temporaries stay bounded.
+
+    ``sums``: the parts feed :func:`scatter_add` into one ``out``; the C
+    loops add each vertex's rows in face order whatever the parts, NumPy's
+    bincount sums a part apart, so without the C loops it is one part (the
+    same bits as one step either way).
+    """
+    step = len(faces) if sums and not native.available() else (chunk or CHUNK_FACES)
+    for lo in range(0, len(faces), max(step, 1)):
+        yield faces[lo:lo + step]
+
+
+def scatter_add(values: np.ndarray, index: np.ndarray, n: int, repeat: int = 1,
+                out: np.ndarray | None = None) -> np.ndarray:
     """``out[index[i]] += values[i // repeat]`` for ``(N, k)`` values.
 
     bincount per column is much faster than np.add.at for wide arrays;
     columns are made contiguous and repeated one at a time (a 2-D repeat and
     strided column reads cost several times more), same sums bit for bit.
+
+    Args:
+        out: contiguous ``float64[n, k]`` to add to (``None``: zeros). The
+            C loops add to it row by row, so consecutive parts of the index
+            summed into one ``out`` (:func:`face_parts`) give the one step's
+            bits; NumPy sums a step apart and adds it (the same bits for
+            one step into zeros: its sums are never -0).
     """
     columns = np.ascontiguousarray(values.T)
     if native.available() and columns.dtype == np.float64:
         # One pass over the rows instead of one bincount per column.
-        return native.scatter_add(columns, index, n, repeat)
+        return native.scatter_add(columns, index, n, repeat, out=out)
     if repeat > 1:
-        return np.stack([np.bincount(index, np.repeat(c, repeat), minlength=n) for c in columns], 1)
-    return np.stack([np.bincount(index, c, minlength=n) for c in columns], 1)
+        sums = np.stack([np.bincount(index, np.repeat(c, repeat), minlength=n) for c in columns], 1)
+    else:
+        sums = np.stack([np.bincount(index, c, minlength=n) for c in columns], 1)
+    if out is None:
+        return sums
+    out += sums
+    return out
 
 
 def boundary_edges(faces: np.ndarray, edges=None):

@@ -38,15 +38,14 @@ from __future__ import annotations
 
 import ctypes
 import hashlib
-import importlib.util
 import math
-import os
 import zlib
 from concurrent.futures import Future, wait
 from dataclasses import dataclass
 
 import numpy as np
 
+from ._clib import open_library
 from ._pmdata import PMData, PMFormatError
 
 MAGIC2 = b"\x89PMZ\r\n\x1a\n"
@@ -70,12 +69,9 @@ def _load_native():
     """The decoder's C loops (``pmjax/_pmz_native.c``) as a ctypes library,
     or ``None`` where the extension is not built or ``PMJAX_NATIVE=0`` is set
     (the NumPy steps then run: the same arrays, bit for bit)."""
-    if os.environ.get("PMJAX_NATIVE", "1") == "0":
+    lib = open_library("pmjax._pmz_native")
+    if lib is None:
         return None
-    spec = importlib.util.find_spec("pmjax._pmz_native")
-    if spec is None or not spec.origin:
-        return None
-    lib = ctypes.CDLL(spec.origin)
     lib.pmz_unplane.restype = None
     lib.pmz_unplane.argtypes = [_p, _i64, _i64, _p]
     lib.pmz_float_from_residual.restype = None

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import ctypes
+import os
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
+
+from ._clib import open_library
 
 if TYPE_CHECKING:  # the builder imports this module without JAX
     from ._model import ProgressiveMesh
@@ -111,7 +115,12 @@ def fitted_normals(pm) -> np.ndarray:
     mean), then normalized. Interpolation across faces averages neighbouring
     vertex normals; the fit undoes that averaging where the original
     surface turns. Computed batch by batch up the hierarchy (children before
-    parents), vectorized per batch. The cone axes are not involved.
+    parents): by C loops on up to two threads where the extension
+    ``pmjax._normals_native`` is built, else by NumPy vectorized per batch,
+    the same bits either way (each sum taken in one stated order: a
+    vertex's face terms corner 0 of every face, then corner 1, then corner
+    2; a slot's sample terms corner by corner, then by original vertex).
+    The cone axes are not involved.
 
     Args:
         pm: a :class:`pmjax.PMData` or :class:`pmjax.ProgressiveMesh`.
@@ -123,8 +132,84 @@ def fitted_normals(pm) -> np.ndarray:
     return np.ascontiguousarray(_fitted_by_axis(pm).T, dtype=np.float32)
 
 
+def _load_native():
+    """The fit's C loops (``pmjax/_normals_native.c``) as a ctypes library,
+    or ``None`` where the extension is not built or ``PMJAX_NATIVE=0`` is set
+    (the NumPy steps then run: the same bits)."""
+    lib = open_library("pmjax._normals_native")
+    if lib is None:
+        return None
+    lib.pmn_fitted_normals.restype = ctypes.c_int64
+    i64, ptr = ctypes.c_int64, ctypes.c_void_p
+    lib.pmn_fitted_normals.argtypes = [i64, i64, ptr, i64, i64, ptr, ptr, ptr, i64, ptr, i64, i64, i64, ptr]
+    return lib
+
+
+# Tests set it to None to compare the NumPy steps with the C loops.
+native = _load_native()
+# Threads of the C loops (their parts write disjoint outputs: the same bits
+# for any number), and the fewest slots or samples a step splits over them
+# (below, a second thread costs more than it saves).
+FIT_THREADS = min(os.cpu_count() or 1, 2)
+FIT_MIN_SPLIT = 4096
+
+
 def _fitted_by_axis(pm) -> np.ndarray:
-    """``float64[3, V0 + P]``: :func:`fitted_normals` by axis, before rounding."""
+    """``float64[3, V0 + P]``: :func:`fitted_normals` by axis, before rounding
+    (the C loops where they are built and the hierarchy's ids fit them, else
+    NumPy: the same bits)."""
+    fitted = _fitted_native(pm)
+    return _fitted_numpy(pm) if fitted is None else fitted.T
+
+
+def _fitted_native(pm) -> np.ndarray | None:
+    """``float64[V0 + P, 3]``: the fit by the C loops, or ``None`` where the
+    hierarchy's ids are outside what they take (faces on original vertices,
+    each pcol consuming two vertices made before its batch, int32 ids) or
+    they are not built."""
+    if native is None:
+        return None
+    V0 = int(pm.n_original_vertices)
+    vertices = np.asarray(pm.vertices)
+    if vertices.dtype != np.float32:
+        vertices = vertices.astype(np.float64)
+    vertices = np.ascontiguousarray(vertices)
+    faces = np.ascontiguousarray(pm.faces, np.int32)
+    offsets = np.ascontiguousarray(pm.batch_offsets, np.int64)
+    V = len(vertices)
+    # Each pcol's children, the smaller id first (the order the subtree
+    # means add them in).
+    if hasattr(pm, "v1"):
+        v1, v2 = np.asarray(pm.v1, np.int64), np.asarray(pm.v2, np.int64)
+    else:
+        parent = np.asarray(pm.parent, np.int64)
+        order = np.argsort(parent, kind="stable")
+        consumed = order[parent[order] >= 0]
+        if len(consumed) != 2 * (V - V0) or (parent[consumed] != np.repeat(np.arange(V - V0), 2)).any():
+            return None
+        v1, v2 = consumed[0::2], consumed[1::2]
+    kid_lo, kid_hi = np.minimum(v1, v2), np.maximum(v1, v2)
+    P = V - V0
+    made = np.repeat(V0 + offsets[:-1], np.diff(offsets)) if len(offsets) else np.zeros(0, np.int64)
+    if not (V < 2**31 and vertices.shape == (V, 3) and faces.ndim == 2 and faces.shape[1] == 3
+            and len(kid_lo) == P and len(offsets) >= 1 and offsets[0] == 0 and offsets[-1] == P
+            and (np.diff(offsets) >= 0).all() and (not len(faces) or 0 <= faces.min() and faces.max() < V0)
+            and (not P or 0 <= kid_lo.min() and (kid_lo < kid_hi).all() and (kid_hi < made).all())):
+        return None
+    if P and np.bincount(np.concatenate([kid_lo, kid_hi]), minlength=V).max() > 1:
+        return None  # a vertex consumed twice
+    kid_lo, kid_hi = np.ascontiguousarray(kid_lo), np.ascontiguousarray(kid_hi)
+    out = np.empty((V, 3))
+    if native.pmn_fitted_normals(V0, V, vertices.ctypes.data, int(vertices.dtype == np.float64), len(faces),
+                                 faces.ctypes.data, kid_lo.ctypes.data, kid_hi.ctypes.data, len(offsets) - 1,
+                                 offsets.ctypes.data, FIT_SWEEPS, FIT_THREADS, FIT_MIN_SPLIT,
+                                 out.ctypes.data):
+        raise MemoryError("fitted_normals: out of memory in the fit's C loops")
+    return out
+
+
+def _fitted_numpy(pm) -> np.ndarray:
+    """``float64[3, V0 + P]``: the fit by NumPy, batch by batch."""
     V0, vertices, faces, parent, offsets = _hierarchy_arrays(pm)
     # Arrays by axis ([3, n], each axis a contiguous row): the per-sample
     # arithmetic below is on one axis at a time.
@@ -132,7 +217,10 @@ def _fitted_by_axis(pm) -> np.ndarray:
     cross = _face_cross(coordinates, faces)
     total = _corner_sums(faces, cross, len(vertices)).T  # [V, 3]
     area = _corner_sums(faces, np.linalg.norm(cross, axis=0)[None] / 6.0, len(vertices))[0]
-    samples = _Samples(coordinates[:, :V0], np.ascontiguousarray(_unit(total[:V0]).T), area[:V0].copy())
+    # Every vertex's unit sum: the originals' vertex normals (kept, and the
+    # samples' targets), the created ones' replaced batch by batch.
+    out = np.ascontiguousarray(_unit(total).T)  # [3, V]
+    samples = _Samples(coordinates[:, :V0], out[:, :V0], area[:V0].copy())
     vertices = cross = area = None  # memory: only what the batches need is kept
     consumed = _consumed_by_batch(parent, offsets)
     # rep[x]: the vertex that stands for x after the current batch (x itself
@@ -142,7 +230,6 @@ def _fitted_by_axis(pm) -> np.ndarray:
     corners = np.ascontiguousarray(faces.T)
     faces = None
     ancestor = np.arange(V0)
-    out = np.ascontiguousarray(_unit(total).T)  # [3, V]
     for b in range(len(offsets) - 1):
         kids = consumed[b]
         np.add.at(total, V0 + parent[kids], total[kids])

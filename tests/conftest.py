@@ -114,12 +114,15 @@ def _missing_compiled_parts() -> list[str]:
         missing.append("the builder's C loops (pmjax.builders._build_native)")
     if importlib.util.find_spec("pmjax._pmz_native") is None:
         missing.append("the .pmz version 2 decoder's C loops (pmjax._pmz_native)")
+    if importlib.util.find_spec("pmjax._normals_native") is None:
+        missing.append("the shading normals' fit as C loops (pmjax._normals_native)")
     return missing
 
 
 def pytest_collection_modifyitems(config, items):
     """Tests of the compiled parts (marker ``core``: the front engine's C
-    core, the builder's C loops, the .pmz decoder's C loops) skip where they are not built, but under
+    core, the builder's C loops, the .pmz decoder's C loops, the shading
+    normals' fit) skip where they are not built, but under
     PMJAX_REQUIRE_CORE=1 (CI sets it) a part that does not compile or load is
     an error: CI cannot go green without them."""
     missing = _missing_compiled_parts()

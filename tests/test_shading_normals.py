@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import zipfile
 
 import numpy as np
@@ -200,12 +201,28 @@ def _same_bits(a, b):
     return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
 
 
-def test_fitted_normals_equal_the_reference_bit_for_bit(cow, monkeypatch):
+@pytest.fixture(params=["C loops", "NumPy"])
+def fit_path(request, monkeypatch):
+    """The fit by its C loops (``pmjax/_normals_native.c``, where built) or
+    by its NumPy steps."""
+    import pmjax._normals
+
+    if request.param == "NumPy":
+        monkeypatch.setattr(pmjax._normals, "native", None)
+    elif pmjax._normals.native is None:
+        if os.environ.get("PMJAX_REQUIRE_CORE") == "1":
+            pytest.fail("pmjax._normals_native is not built (python setup.py build_ext --inplace)")
+        pytest.skip("the fit's C loops (pmjax._normals_native) are not built")
+    return request.param
+
+
+def test_fitted_normals_equal_the_reference_bit_for_bit(cow, monkeypatch, fit_path):
     """The same bits as the straightforward computation, in float64 before
-    the rounding to float32 and after it: on the cow, on the cow with its
-    coordinates snapped to a coarse grid (degenerate faces, coincident
-    vertices, equally deep faces), and with samples located a few at a
-    time."""
+    the rounding to float32 and after it, by the C loops and by NumPy: on
+    the cow, on the cow with its coordinates snapped to a coarse grid
+    (degenerate faces, coincident vertices, equally deep faces), with
+    samples located a few at a time (NumPy), and with every step of the C
+    loops split over one, two and three threads."""
     import pmjax._normals
 
     def same_as_reference(data):
@@ -214,12 +231,20 @@ def test_fitted_normals_equal_the_reference_bit_for_bit(cow, monkeypatch):
         return (_same_bits(np.ascontiguousarray(by_axis.T), expected)
                 and _same_bits(pmjax.fitted_normals(data), expected.astype(np.float32)))
 
+    # The C loops take these hierarchies (they do not hand them to NumPy).
+    assert (pmjax._normals._fitted_native(cow) is None) == (fit_path == "NumPy")
     assert same_as_reference(cow)
     snapped = dataclasses.replace(cow, vertices=np.round(cow.vertices * 8.0) / 8.0)
     assert not _same_bits(pmjax.fitted_normals(snapped), pmjax.fitted_normals(cow))
     assert same_as_reference(snapped)
     monkeypatch.setattr(pmjax._normals, "SAMPLE_BLOCK", 5)
-    assert same_as_reference(cow)
+    monkeypatch.setattr(pmjax._normals, "FIT_MIN_SPLIT", 1)
+    for threads in (1, 2, 3):
+        monkeypatch.setattr(pmjax._normals, "FIT_THREADS", threads)
+        assert same_as_reference(cow)
+    # The positions as float64 (the C loops read them so, not as float32).
+    wide = dataclasses.replace(cow, vertices=cow.vertices.astype(np.float64) + 1e-9)
+    assert same_as_reference(wide)
     # The hierarchy normals (the fit's starting point) too.
     V0 = cow.n_original_vertices
     v, f = cow.vertices.astype(np.float64), cow.faces.astype(np.int64)

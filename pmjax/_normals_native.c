@@ -1,0 +1,619 @@
+/* The least-squares fit of the shading normals (pmjax.fitted_normals) as
+ * plain C loops: the original surface's sums, then batch by batch up the
+ * hierarchy the subtree means, the live faces relabelled, each created
+ * vertex's fan, the samples located on their fans and the Jacobi sweeps.
+ *
+ * Each loop is a NumPy step of pmjax/_normals.py with its arithmetic in the
+ * same order (no contraction): sums of a vertex's terms in the order the
+ * NumPy step adds them, dot products and squared lengths summed x, y, z in
+ * that order. So the fit gives the NumPy fit's normals bit for bit
+ * (tests/test_shading_normals.py). Unlike NumPy, a batch's samples are
+ * taken vertex by vertex from the leaf order (a vertex's originals are one
+ * run of it), not by a pass over every original vertex, and each created
+ * vertex's terms are sorted into the order NumPy sums them in; the steps
+ * over vertices or samples are split over threads, each part writing its
+ * own outputs. Every pointer is a C-contiguous array of
+ * the dtype named; the caller has checked the ids (faces below V0, children
+ * below their parents' batch).
+ */
+
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <float.h>
+#include <math.h>
+#include <pthread.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* Outcomes of pmn_fitted_normals. */
+enum { OK = 0, NO_MEMORY = 1 };
+
+/* Positions are read as float32 or float64 (both exact in double). */
+typedef struct {
+    const float *f32;
+    const double *f64;
+} Coords;
+
+static inline double coord(Coords c, int64_t v, int k) {
+    return c.f32 ? (double)c.f32[3 * v + k] : c.f64[3 * v + k];
+}
+
+/* n / |n| in place (a zero or non-finite length divides by 1), the squares
+ * summed x, y, z in that order (np.linalg.norm along an axis of three). */
+static void unit3(double *n) {
+    double length = sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    double scale = length > 0 ? length : 1.0;
+    for (int k = 0; k < 3; k++) n[k] /= scale;
+}
+
+/* Face f's cross product of its edges from corner 0 (_face_cross). */
+static void face_cross(Coords c, const int32_t *faces, int64_t f, double *out) {
+    int32_t a = faces[3 * f], b = faces[3 * f + 1], d = faces[3 * f + 2];
+    double u[3], v[3];
+    for (int k = 0; k < 3; k++) {
+        u[k] = coord(c, b, k) - coord(c, a, k);
+        v[k] = coord(c, d, k) - coord(c, a, k);
+    }
+    out[0] = u[1] * v[2] - u[2] * v[1];
+    out[1] = u[2] * v[0] - u[0] * v[2];
+    out[2] = u[0] * v[1] - u[1] * v[0];
+}
+
+/* What locating a sample needs of one fan face (_face_geometry). */
+typedef struct {
+    double a[3], e0[3], e1[3], d00, d01, d11, det;
+} Geometry;
+
+static void face_geometry(Coords c, const int32_t *tri, Geometry *g) {
+    for (int k = 0; k < 3; k++) {
+        g->a[k] = coord(c, tri[0], k);
+        g->e0[k] = coord(c, tri[1], k) - g->a[k];
+        g->e1[k] = coord(c, tri[2], k) - g->a[k];
+    }
+    g->d00 = g->e0[0] * g->e0[0] + g->e0[1] * g->e0[1] + g->e0[2] * g->e0[2];
+    g->d01 = g->e0[0] * g->e1[0] + g->e0[1] * g->e1[1] + g->e0[2] * g->e1[2];
+    g->d11 = g->e1[0] * g->e1[0] + g->e1[1] * g->e1[1] + g->e1[2] * g->e1[2];
+    double det = g->d00 * g->d11 - g->d01 * g->d01;
+    g->det = det > 0 ? det : 1.0; /* a degenerate face: coordinates of no use */
+}
+
+/* Work split over threads: fn(ctx, first, end) for parts of 0 .. n, cut
+ * where the running sum of weight (NULL: one per item) passes each share.
+ * Every part writes only its own items' outputs, so the results are the
+ * same bits for any number of threads. */
+typedef void (*Part)(void *ctx, int64_t first, int64_t end);
+
+typedef struct {
+    Part fn;
+    void *ctx;
+    int64_t first, end;
+} Job;
+
+static void *run_job(void *arg) {
+    Job *job = arg;
+    job->fn(job->ctx, job->first, job->end);
+    return NULL;
+}
+
+#define MAX_THREADS 8
+
+/* Work of n items below min_split runs on the calling thread alone. */
+static void split(int threads, int64_t min_split, Part fn, void *ctx, int64_t n, const int64_t *weight) {
+    if (threads > MAX_THREADS) threads = MAX_THREADS;
+    if (threads < 2 || n < min_split) {
+        fn(ctx, 0, n);
+        return;
+    }
+    /* Cuts: equal shares of the total weight (weight: prefix sums, n + 1). */
+    Job jobs[MAX_THREADS];
+    pthread_t ids[MAX_THREADS];
+    int64_t cut = 0;
+    for (int t = 0; t < threads; t++) {
+        int64_t end = n;
+        if (t + 1 < threads) {
+            if (weight) {
+                int64_t goal = weight[0] + (weight[n] - weight[0]) / threads * (t + 1);
+                end = cut;
+                while (end < n && weight[end] < goal) end++;
+            } else {
+                end = n / threads * (t + 1);
+            }
+        }
+        jobs[t] = (Job){fn, ctx, cut, end};
+        cut = end;
+    }
+    int started = 1;
+    for (; started < threads; started++)
+        if (pthread_create(&ids[started], NULL, run_job, &jobs[started])) break;
+    /* A thread that could not start: its part runs here. */
+    for (int t = started; t < threads; t++) run_job(&jobs[t]);
+    run_job(&jobs[0]);
+    for (int t = 1; t < started; t++) pthread_join(ids[t], NULL);
+}
+
+
+/* A sample's term for one slot: its corner k, in the order of the NumPy
+ * fit's sums (corner by corner, then by original vertex). */
+typedef struct {
+    int64_t key; /* k * V0 + p */
+    int32_t at;  /* the sample's leaf position */
+    int32_t k;
+} Term;
+
+/* Terms t[0 .. n-1] in increasing key (keys are distinct): quicksort on
+ * the median of three, the smaller side first, short runs by insertion. */
+static void sort_by_key(Term *t, int64_t n) {
+    while (n > 16) {
+        int64_t mid = n / 2;
+        Term *a = &t[0], *b = &t[mid], *c = &t[n - 1], swap;
+        if (b->key < a->key) swap = *a, *a = *b, *b = swap;
+        if (c->key < b->key) {
+            swap = *b, *b = *c, *c = swap;
+            if (b->key < a->key) swap = *a, *a = *b, *b = swap;
+        }
+        int64_t pivot = t[mid].key, i = 0, j = n - 1;
+        while (i <= j) {
+            while (t[i].key < pivot) i++;
+            while (t[j].key > pivot) j--;
+            if (i <= j) {
+                swap = t[i], t[i] = t[j], t[j] = swap;
+                i++;
+                j--;
+            }
+        }
+        /* t[0 .. j] <= pivot <= t[i .. n-1]. */
+        if (j + 1 < n - i) {
+            sort_by_key(t, j + 1);
+            t += i;
+            n -= i;
+        } else {
+            sort_by_key(t + i, n - i);
+            n = j + 1;
+        }
+    }
+    for (int64_t i = 1; i < n; i++)
+        for (int64_t j = i; j > 0 && t[j - 1].key > t[j].key; j--) {
+            Term swap = t[j];
+            t[j] = t[j - 1];
+            t[j - 1] = swap;
+        }
+}
+
+/* The fit's state. Per original vertex, in leaf order (position L holds
+ * original leaf[L]): a vertex's leaves are a run of positions, so a
+ * batch's samples are runs and their arrays are read in order. */
+typedef struct {
+    Coords c;
+    int64_t V0, sweeps;
+    int threads;        /* how many share each step's parts */
+    int64_t min_split;  /* below this many slots or samples, one */
+    double *out;               /* [V, 3] originals' unit vertex normals, the rest fitted so far */
+    const int32_t *leaf;       /* [V0] original at each leaf position */
+    const int32_t *leaf_first; /* [V] each vertex's first leaf position */
+    const int32_t *leaf_count; /* [V] and how many leaves it has */
+    const double *position;    /* [3, V0] the samples' positions, by axis */
+    const double *target;      /* [V0, 3] their unit vertex normals */
+    const double *weight;      /* [V0] a third of the area of their faces */
+    int32_t *own;              /* [V0, 3] corners of the face each sample lies on */
+    double *bary;              /* [V0, 3] its clamped barycentric coordinates */
+    double *residual;          /* [V0, 3] */
+    /* The current batch: created vertices lo .. lo + k_new - 1 (slots). */
+    int64_t lo, k_new;
+    const int32_t *tri;        /* live faces, corners relabelled */
+    const int64_t *fan_start;  /* [k_new + 1] */
+    const int32_t *fan;        /* live face ids, grouped by slot */
+    int64_t longest;           /* the largest fan */
+    const int64_t *samples;    /* [k_new + 1] running count of the slots' samples */
+    const int64_t *term_start; /* [k_new + 1] */
+    Term *term;                /* the terms of each slot, sorted */
+    double *diagonal, *fitted; /* [k_new], [k_new, 3] */
+    int failed;
+} Fit;
+
+/* The samples of slot u (with a fan): leaf positions first .. first+n-1. */
+static inline int64_t slot_samples(const Fit *fit, int64_t u, int64_t *first) {
+    *first = fit->leaf_first[fit->lo + u];
+    return fit->samples[u + 1] - fit->samples[u];
+}
+
+/* Samples located a tile at a time: every face of the fan tried on a tile
+ * of samples (a loop the compiler can run on vector lanes). */
+#define TILE 256
+
+/* Barycentric coordinates b0, b1, b2 of the projection of (x, y, z) on
+ * face g's plane, and the smallest of them (_own_faces: the dot products
+ * summed x, y, z in that order). */
+static inline double on_face(const Geometry *g, double x, double y, double z, double *b0, double *b1, double *b2) {
+    double e0 = x - g->a[0], e1 = y - g->a[1], e2 = z - g->a[2];
+    double d20 = e0 * g->e0[0] + e1 * g->e0[1] + e2 * g->e0[2];
+    double d21 = e0 * g->e1[0] + e1 * g->e1[1] + e2 * g->e1[2];
+    *b1 = (g->d11 * d20 - g->d01 * d21) / g->det;
+    *b2 = (g->d00 * d21 - g->d01 * d20) / g->det;
+    *b0 = 1.0 - *b1 - *b2;
+    double m = *b0 <= *b1 ? *b0 : *b1;
+    return m <= *b2 ? m : *b2;
+}
+
+/* For the samples x, y, z[0 .. n-1] (n <= TILE), the deepest of the fan's
+ * size faces: pick and the coordinates on it, the first of equals (faces
+ * tried in fan order, a later one taken only if strictly deeper). Plain
+ * IEEE operations (no contraction), so any vector width gives the scalar
+ * loop's bits; built for AVX2 too where the CPU has it. */
+#if defined(__GNUC__) && !defined(__clang__) && (defined(__x86_64__) || defined(__i386__))
+__attribute__((target_clones("avx2", "default")))
+#endif
+static void deepest(const Geometry *geometry, int64_t size, const double *restrict x, const double *restrict y,
+                    const double *restrict z, int64_t n, int64_t *restrict pick, double *restrict c0,
+                    double *restrict c1, double *restrict c2, double *restrict depth) {
+    for (int64_t s = 0; s < n; s++) {
+        depth[s] = on_face(&geometry[0], x[s], y[s], z[s], &c0[s], &c1[s], &c2[s]);
+        pick[s] = 0;
+    }
+    for (int64_t j = 1; j < size; j++) {
+        const Geometry g = geometry[j];
+        for (int64_t s = 0; s < n; s++) {
+            double b0, b1, b2, d = on_face(&g, x[s], y[s], z[s], &b0, &b1, &b2);
+            int better = d > depth[s];
+            depth[s] = better ? d : depth[s];
+            pick[s] = better ? j : pick[s];
+            c0[s] = better ? b0 : c0[s];
+            c1[s] = better ? b1 : c1[s];
+            c2[s] = better ? b2 : c2[s];
+        }
+    }
+}
+
+/* Samples of slots first .. end-1 located on their fans: the face whose
+ * projection the sample falls into most deeply (the first of equals), the
+ * coordinates clamped to the face (_own_faces). */
+static void locate(void *arg, int64_t first, int64_t end) {
+    Fit *fit = arg;
+    Geometry *geometry = malloc((size_t)(fit->longest > 0 ? fit->longest : 1) * sizeof *geometry);
+    if (!geometry) {
+        fit->failed = 1;
+        return;
+    }
+    int64_t pick[TILE];
+    double c[3][TILE], depth[TILE];
+    const double *px = fit->position, *py = px + fit->V0, *pz = py + fit->V0;
+    for (int64_t u = first; u < end; u++) {
+        int64_t at, n = slot_samples(fit, u, &at);
+        if (!n) continue;
+        int64_t f0 = fit->fan_start[u], size = fit->fan_start[u + 1] - f0;
+        for (int64_t j = 0; j < size; j++) face_geometry(fit->c, fit->tri + 3 * (int64_t)fit->fan[f0 + j], &geometry[j]);
+        for (int64_t t0 = at; t0 < at + n; t0 += TILE) {
+            int64_t m = at + n - t0 < TILE ? at + n - t0 : TILE;
+            deepest(geometry, size, px + t0, py + t0, pz + t0, m, pick, c[0], c[1], c[2], depth);
+            for (int64_t i = 0; i < m; i++) {
+                int64_t s = t0 + i;
+                double best[3];
+                for (int k = 0; k < 3; k++) best[k] = c[k][i] > 0 ? c[k][i] : 0.0;
+                double sum = best[0] + best[1] + best[2];
+                if (sum < DBL_MIN) sum = DBL_MIN; /* np.maximum(sum, tiny) */
+                const int32_t *face = fit->tri + 3 * (int64_t)fit->fan[f0 + pick[i]];
+                for (int k = 0; k < 3; k++) {
+                    fit->own[3 * s + k] = face[k];
+                    fit->bary[3 * s + k] = best[k] / sum;
+                }
+            }
+        }
+    }
+    free(geometry);
+}
+
+/* Slots first .. end-1: their terms sorted into the sums' order, and the
+ * diagonal of the least squares, w b², summed in that order. */
+static void sort_terms(void *arg, int64_t first, int64_t end) {
+    Fit *fit = arg;
+    for (int64_t u = first; u < end; u++) {
+        Term *t = fit->term + fit->term_start[u];
+        int64_t n = fit->term_start[u + 1] - fit->term_start[u];
+        sort_by_key(t, n);
+        double diagonal = 0.0;
+        for (int64_t i = 0; i < n; i++) {
+            double w = fit->weight[t[i].at], b = fit->bary[3 * (int64_t)t[i].at + t[i].k];
+            diagonal += w * (b * b);
+        }
+        fit->diagonal[u] = diagonal;
+    }
+}
+
+/* Samples of slots first .. end-1: target minus the interpolated normal,
+ * with every corner's current value (fixed, or the created slots' last
+ * sweep). */
+static void residuals(void *arg, int64_t first, int64_t end) {
+    Fit *fit = arg;
+    for (int64_t u = first; u < end; u++) {
+        int64_t at, n = slot_samples(fit, u, &at);
+        for (int64_t s = at; s < at + n; s++) {
+            double t[3][3];
+            for (int k = 0; k < 3; k++) {
+                int64_t c = fit->own[3 * s + k];
+                const double *value = c >= fit->lo ? fit->fitted + 3 * (c - fit->lo) : fit->out + 3 * c;
+                for (int x = 0; x < 3; x++) t[k][x] = fit->bary[3 * s + k] * value[x];
+            }
+            for (int x = 0; x < 3; x++)
+                fit->residual[3 * s + x] = fit->target[3 * s + x] - (t[0][x] + t[1][x] + t[2][x]);
+        }
+    }
+}
+
+/* Slots first .. end-1: one Jacobi step, each term the residual without
+ * this corner, weighted; a slot without terms keeps its start. */
+static void solve(void *arg, int64_t first, int64_t end) {
+    Fit *fit = arg;
+    for (int64_t u = first; u < end; u++) {
+        double *fitted = fit->fitted + 3 * u, rhs[3] = {0.0, 0.0, 0.0};
+        for (int64_t i = fit->term_start[u]; i < fit->term_start[u + 1]; i++) {
+            const Term *t = &fit->term[i];
+            const double *residual = fit->residual + 3 * (int64_t)t->at;
+            double b = fit->bary[3 * (int64_t)t->at + t->k], share = fit->weight[t->at] * b;
+            for (int x = 0; x < 3; x++) rhs[x] += share * (residual[x] + b * fitted[x]);
+        }
+        const double *start = fit->out + 3 * (fit->lo + u);
+        for (int x = 0; x < 3; x++) fitted[x] = fit->diagonal[u] > 0 ? rhs[x] / fit->diagonal[u] : start[x];
+    }
+}
+
+/* A batch's scratch arrays, kept from batch to batch (grown as needed):
+ * the first batches are the largest, so later ones map no new pages. */
+typedef struct {
+    void *buf;
+    size_t bytes;
+} Buffer;
+
+enum { FAN_START, FAN, CURSOR, SAMPLES, TERM_START, TERM, DIAGONAL, FITTED, N_BUFFERS };
+
+static void *room(Buffer *b, size_t bytes) {
+    if (bytes > b->bytes) {
+        free(b->buf);
+        b->bytes = bytes + bytes / 4;
+        b->buf = malloc(b->bytes);
+        if (!b->buf) b->bytes = 0;
+    }
+    return b->buf;
+}
+
+/* The fit of one batch's created vertices (_fit_batch), their subtree
+ * means in out on entry, the fitted unit normals on return. fan_start:
+ * [k_new + 1], entry u + 1 the fan size of slot u; touched: the n_touched
+ * live faces with a created corner, in mesh order. Returns OK or
+ * NO_MEMORY. */
+static int fit_batch(Fit *fit, const int32_t *touched, int64_t n_touched, int64_t *fan_start, Buffer *scratch) {
+    int threads = fit->threads;
+    int64_t min_split = fit->min_split;
+    int64_t k_new = fit->k_new, lo = fit->lo, V0 = fit->V0;
+    if (!n_touched) return OK;
+    /* Step 1: each created vertex's fan: the live faces with it as a corner,
+     * grouped by vertex; in a group the faces where it is corner 0, then
+     * corner 1, then corner 2, each in mesh order (a counting sort). */
+    fit->longest = 0;
+    for (int64_t u = 0; u < k_new; u++) {
+        if (fan_start[u + 1] > fit->longest) fit->longest = fan_start[u + 1];
+        fan_start[u + 1] += fan_start[u];
+    }
+    size_t slots = (size_t)(k_new + 1) * sizeof(int64_t);
+    int32_t *fan = room(&scratch[FAN], (size_t)fan_start[k_new] * sizeof *fan);
+    int64_t *cursor = room(&scratch[CURSOR], slots);
+    int64_t *samples = room(&scratch[SAMPLES], slots);
+    int64_t *term_start = room(&scratch[TERM_START], slots);
+    if (!fan || !cursor || !samples || !term_start) return NO_MEMORY;
+    memset(term_start, 0, slots);
+    memcpy(cursor, fan_start, (size_t)k_new * sizeof *cursor);
+    for (int k = 0; k < 3; k++)
+        for (int64_t i = 0; i < n_touched; i++) {
+            int32_t c = fit->tri[3 * (int64_t)touched[i] + k];
+            if (c >= lo) fan[cursor[c - lo]++] = touched[i];
+        }
+    fit->fan_start = fan_start;
+    fit->fan = fan;
+    /* Step 2: the samples: the originals standing under a created vertex
+     * with a fan (its leaves), each located on the face of that fan it
+     * lies on. */
+    samples[0] = 0;
+    for (int64_t u = 0; u < k_new; u++)
+        samples[u + 1] = samples[u] + (fan_start[u + 1] > fan_start[u] ? fit->leaf_count[lo + u] : 0);
+    if (!samples[k_new]) return OK;
+    fit->samples = samples;
+    fit->failed = 0;
+    split(threads, min_split, locate, fit, k_new, samples);
+    if (fit->failed) return NO_MEMORY;
+    /* Step 3: Jacobi sweeps of the weighted least squares over the created
+     * vertices' normals, the other corners fixed. A sample's terms go to
+     * the slots of its created corners, each slot's summed in the NumPy
+     * fit's order: corner by corner, then by original vertex. */
+    for (int64_t u = 0; u < k_new; u++) {
+        int64_t at, n = slot_samples(fit, u, &at);
+        for (int64_t s = at; s < at + n; s++)
+            for (int k = 0; k < 3; k++)
+                if (fit->own[3 * s + k] >= lo) term_start[fit->own[3 * s + k] - lo + 1]++;
+    }
+    for (int64_t u = 0; u < k_new; u++) term_start[u + 1] += term_start[u];
+    Term *term = room(&scratch[TERM], (size_t)(term_start[k_new] > 0 ? term_start[k_new] : 1) * sizeof *term);
+    double *diagonal = room(&scratch[DIAGONAL], (size_t)k_new * sizeof *diagonal);
+    double *fitted = room(&scratch[FITTED], (size_t)k_new * 3 * sizeof *fitted);
+    if (!term || !diagonal || !fitted) return NO_MEMORY;
+    memcpy(cursor, term_start, (size_t)k_new * sizeof *cursor);
+    for (int64_t u = 0; u < k_new; u++) {
+        int64_t at, n = slot_samples(fit, u, &at);
+        for (int64_t s = at; s < at + n; s++)
+            for (int k = 0; k < 3; k++) {
+                int64_t c = fit->own[3 * s + k];
+                if (c >= lo) term[cursor[c - lo]++] = (Term){k * V0 + fit->leaf[s], (int32_t)s, k};
+            }
+    }
+    fit->term_start = term_start;
+    fit->term = term;
+    fit->diagonal = diagonal;
+    fit->fitted = fitted;
+    split(threads, min_split, sort_terms, fit, k_new, term_start);
+    memcpy(fitted, fit->out + 3 * lo, (size_t)k_new * 3 * sizeof *fitted);
+    for (int64_t sweep = 0; sweep < fit->sweeps; sweep++) {
+        split(threads, min_split, residuals, fit, k_new, samples);
+        split(threads, min_split, solve, fit, k_new, term_start);
+    }
+    for (int64_t u = 0; u < k_new; u++) {
+        unit3(fitted + 3 * u);
+        memcpy(fit->out + 3 * (lo + u), fitted + 3 * u, 3 * sizeof(double));
+    }
+    return OK;
+}
+
+/* pmjax.fitted_normals into out ([V, 3] float64, before the rounding to
+ * float32). coords: [V, 3] float32 (coords_f64 = 0) or float64; faces:
+ * [F, 3] original faces (ids below V0); pcol i (vertex V0 + i) consumes
+ * kid_lo[i] < kid_hi[i], each vertex consumed once and made before the
+ * pcol's batch; batch b makes pcols offsets[b] .. offsets[b+1]-1; threads:
+ * how many share the work (the same bits for any), a step of fewer than
+ * min_split slots or samples on one. Returns OK or NO_MEMORY. */
+int64_t pmn_fitted_normals(int64_t V0, int64_t V, const void *coords, int64_t coords_f64, int64_t F,
+                           const int32_t *faces, const int64_t *kid_lo, const int64_t *kid_hi, int64_t B,
+                           const int64_t *offsets, int64_t sweeps, int64_t threads, int64_t min_split,
+                           double *out) {
+    Coords c = {coords_f64 ? NULL : (const float *)coords, coords_f64 ? (const double *)coords : NULL};
+    int64_t P = V - V0, W0 = V0 > 0 ? V0 : 1;
+    int rc = NO_MEMORY;
+    double *total = calloc((size_t)V * 3, sizeof *total);
+    double *area = calloc((size_t)W0, sizeof *area);
+    int32_t *rep = malloc((size_t)(V > 0 ? V : 1) * sizeof *rep);
+    int32_t *leaf = malloc((size_t)W0 * sizeof *leaf);
+    int32_t *leaf_first = malloc((size_t)(V > 0 ? V : 1) * sizeof *leaf_first);
+    int32_t *leaf_count = malloc((size_t)(V > 0 ? V : 1) * sizeof *leaf_count);
+    double *position = malloc((size_t)W0 * 3 * sizeof *position);
+    double *target = malloc((size_t)W0 * 3 * sizeof *target);
+    double *weight = malloc((size_t)W0 * sizeof *weight);
+    int32_t *own = malloc((size_t)W0 * 3 * sizeof *own);
+    double *bary = malloc((size_t)W0 * 3 * sizeof *bary);
+    double *residual = malloc((size_t)W0 * 3 * sizeof *residual);
+    int32_t *tri = malloc((size_t)(F > 0 ? F : 1) * 3 * sizeof *tri);
+    int32_t *touched = malloc((size_t)(F > 0 ? F : 1) * sizeof *touched);
+    Buffer scratch[N_BUFFERS] = {{0}};
+    if (!total || !area || !rep || !leaf || !leaf_first || !leaf_count || !position || !target || !weight || !own
+        || !bary || !residual || !tri || !touched)
+        goto done;
+    /* The original surface: per vertex the sum of its faces' cross products
+     * and a third of their area, each vertex's terms added corner 0 of
+     * every face, then corner 1, then corner 2 (_corner_sums). */
+    for (int k = 0; k < 3; k++)
+        for (int64_t f = 0; f < F; f++) {
+            double cross[3];
+            face_cross(c, faces, f, cross);
+            int64_t v = faces[3 * f + k];
+            for (int x = 0; x < 3; x++) total[3 * v + x] += cross[x];
+            area[v] += sqrt(cross[0] * cross[0] + cross[1] * cross[1] + cross[2] * cross[2]) / 6.0;
+        }
+    /* Every vertex's unit sum: the originals' vertex normals (the samples'
+     * targets, and kept), zero for the created ones until their batch. */
+    for (int64_t v = 0; v < V; v++) {
+        memcpy(out + 3 * v, total + 3 * v, 3 * sizeof(double));
+        unit3(out + 3 * v);
+    }
+    /* The originals in leaf order: every vertex's leaves (the originals it
+     * stands for) a run, its first child's then its second's. Counts up the
+     * hierarchy, then runs handed down from the roots (the vertices no pcol
+     * consumes; rep marks the consumed ones meanwhile). */
+    for (int64_t v = 0; v < V; v++) {
+        leaf_count[v] = v < V0;
+        rep[v] = 0;
+    }
+    for (int64_t i = 0; i < P; i++) {
+        leaf_count[V0 + i] = leaf_count[kid_lo[i]] + leaf_count[kid_hi[i]];
+        rep[kid_lo[i]] = rep[kid_hi[i]] = 1;
+    }
+    int64_t run = 0;
+    for (int64_t v = 0; v < V; v++)
+        if (!rep[v]) {
+            leaf_first[v] = (int32_t)run;
+            run += leaf_count[v];
+        }
+    for (int64_t i = P - 1; i >= 0; i--) {
+        leaf_first[kid_lo[i]] = leaf_first[V0 + i];
+        leaf_first[kid_hi[i]] = leaf_first[V0 + i] + leaf_count[kid_lo[i]];
+    }
+    for (int64_t p = 0; p < V0; p++) leaf[leaf_first[p]] = (int32_t)p;
+    /* The samples' data in leaf order. */
+    for (int64_t s = 0; s < V0; s++) {
+        int64_t p = leaf[s];
+        for (int x = 0; x < 3; x++) {
+            position[x * V0 + s] = coord(c, p, x);
+            target[3 * s + x] = out[3 * p + x];
+        }
+        weight[s] = area[p];
+    }
+    free(area);
+    area = NULL;
+    /* rep[x]: the vertex standing for x after the current batch. */
+    for (int64_t v = 0; v < V; v++) rep[v] = (int32_t)v;
+    memcpy(tri, faces, (size_t)F * 3 * sizeof *tri);
+    int64_t n = F;
+    Fit fit = {.c = c, .V0 = V0, .sweeps = sweeps, .threads = (int)threads, .min_split = min_split, .out = out, .leaf = leaf, .leaf_first = leaf_first,
+               .leaf_count = leaf_count, .position = position, .target = target, .weight = weight, .own = own,
+               .bary = bary, .residual = residual, .tri = tri};
+    for (int64_t b = 0; b < B; b++) {
+        int64_t lo = V0 + offsets[b], k_new = offsets[b + 1] - offsets[b];
+        /* The batch's subtree means: a created vertex sums its two
+         * children's sums, the smaller id first; its start is their unit. */
+        for (int64_t i = offsets[b]; i < offsets[b + 1]; i++) {
+            double *t = total + 3 * (V0 + i);
+            for (int x = 0; x < 3; x++) {
+                t[x] += total[3 * kid_lo[i] + x];
+                t[x] += total[3 * kid_hi[i] + x];
+            }
+            memcpy(out + 3 * (V0 + i), t, 3 * sizeof(double));
+            unit3(out + 3 * (V0 + i));
+            rep[kid_lo[i]] = rep[kid_hi[i]] = (int32_t)(V0 + i);
+        }
+        /* The mesh just after the batch: corners relabelled, faces two of
+         * whose corners meet dropped, the rest kept in order; the faces
+         * with a created corner noted, and each created vertex's count. */
+        int64_t *fan_start = room(&scratch[FAN_START], (size_t)(k_new + 1) * sizeof *fan_start);
+        if (!fan_start) goto done;
+        memset(fan_start, 0, (size_t)(k_new + 1) * sizeof *fan_start);
+        int64_t m = 0, n_touched = 0;
+        for (int64_t f = 0; f < n; f++) {
+            int32_t x = rep[tri[3 * f]], y = rep[tri[3 * f + 1]], z = rep[tri[3 * f + 2]];
+            if (x != y && y != z && x != z) {
+                tri[3 * m] = x;
+                tri[3 * m + 1] = y;
+                tri[3 * m + 2] = z;
+                if (x >= lo || y >= lo || z >= lo) {
+                    touched[n_touched++] = (int32_t)m;
+                    if (x >= lo) fan_start[x - lo + 1]++;
+                    if (y >= lo) fan_start[y - lo + 1]++;
+                    if (z >= lo) fan_start[z - lo + 1]++;
+                }
+                m++;
+            }
+        }
+        n = m;
+        fit.lo = lo;
+        fit.k_new = k_new;
+        if (fit_batch(&fit, touched, n_touched, fan_start, scratch) != OK) goto done;
+    }
+    rc = OK;
+done:
+    free(total);
+    free(area);
+    free(rep);
+    free(leaf);
+    free(leaf_first);
+    free(leaf_count);
+    free(position);
+    free(target);
+    free(weight);
+    free(own);
+    free(bary);
+    free(residual);
+    free(tri);
+    free(touched);
+    for (int i = 0; i < N_BUFFERS; i++) free(scratch[i].buf);
+    return rc;
+}
+
+static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_normals_native",
+                                    "The shading normals' least-squares fit as C loops (called through ctypes).", -1,
+                                    NULL};
+
+PyMODINIT_FUNC PyInit__normals_native(void) { return PyModule_Create(&module); }
