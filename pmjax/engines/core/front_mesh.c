@@ -11,15 +11,16 @@
  * holds the corner's position. */
 #include "internal.h"
 
-PMX_INLINE void set_bit(uint64_t *bits, int64_t i) { bits[i >> 6] |= (uint64_t)1 << (i & 63); }
-
 /* The refined mesh from the pcols that did not run:
  * drawn faces are the base faces and those pcols' kill lists; each corner's
  * representative is the front vertex whose depth-first interval holds the
  * corner's position. Every order and index comes from a rank in a bitmap
  * (faces, front starts, vertex ids), so that besides those small bitmaps a
  * pcol that did not run costs one record and its kill data, and nothing reads
- * an array over all faces or vertices at random.
+ * an array over all faces or vertices at random. Each bitmap has a summary
+ * of its words set (set_marked), so that where few are set its ranks are
+ * counted and it is cleared over those words only: a coarse mesh costs what
+ * it draws, not the model's size.
  *
  * ran (or bit `frame` of ran_frames), positions: whether each of a
  * refinement's n visited slots ran, and their positions, the index of the
@@ -33,9 +34,11 @@ PMX_INLINE void set_bit(uint64_t *bits, int64_t i) { bits[i >> 6] |= (uint64_t)1
  *
  * Scratch (scratch_mesh): mark [P] bytes (by breadth-first position),
  * start_bits [V0/64+1], face_bits [F/64+1], vertex_bits [(V0+P)/64+1] words
- * (zero on entry and on return); start_prefix, face_prefix, vertex_prefix
- * int32 as their bitmaps; front [V0 + 1] (the vertices not kept are written
- * one slot past the front), sorted [V0]; drawn [F]; front_index [V0]. */
+ * and their summaries start_sum, face_sum, vertex_sum (a word per 64; all
+ * zero on entry and on return); start_prefix, face_prefix, vertex_prefix
+ * int32 as their bitmaps, start_block as start_sum; front [V0 + 1] (the
+ * vertices not kept are written one slot past the front), sorted [V0];
+ * drawn [F]; front_index [V0]. */
 PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran, const uint16_t *ran_frames,
                                      int frame, const int32_t *positions, int64_t n, int64_t n_faces_drawn,
                                      int32_t *faces, int32_t *ids, float *vertex_positions, int64_t id_capacity,
@@ -54,7 +57,9 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
     int32_t *const face_prefix = s->face_prefix, *const vertex_prefix = s->vertex_prefix;
     int32_t *const front_index = s->front_index;
     uint8_t *const mark = s->mark;
+    int32_t *const start_block = s->start_block;
     uint64_t *const start_bits = s->start_bits, *const face_bits = s->face_bits, *const vertex_bits = s->vertex_bits;
+    uint64_t *const start_sum = s->start_sum, *const face_sum = s->face_sum, *const vertex_sum = s->vertex_sum;
     PmxFrontVertex *const front = s->front, *const sorted = s->sorted;
     PmxFaceRecord *const drawn = s->drawn;
     const int64_t start_words = V0 / 64 + 1, face_words = n_faces_total / 64 + 1;
@@ -74,6 +79,10 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
         n_not_run += not_ran;
         mark[at] = not_ran;
     }
+    /* The bitmaps' summaries are kept where few bits will be set: the front
+     * is at most two vertices per pcol that did not run and the tops. */
+    const int start_dense = marked_dense(2 * n_not_run + n_tops, start_words);
+    const int face_dense = marked_dense(n_faces_drawn, face_words);
     /* The front and the drawn faces. Below each pcol that did not run: its
      * vertices that are original or whose own pcol ran, and its kill list. */
     int64_t n_front = 0, n_drawn = 0;
@@ -93,11 +102,11 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
             f->vertex = r->vertex[j];
             memcpy(f->position, r->position[j], sizeof f->position);
             n_front += kept;
-            start_bits[r->start[j] >> 6] |= (uint64_t)kept << (r->start[j] & 63);
+            set_marked(start_bits, start_sum, r->start[j], (uint64_t)kept, start_dense);
         }
         for (int32_t j = 0; j < r->kill_count; j++) {
             drawn[n_drawn] = kill_data[r->kill_first + j];
-            set_bit(face_bits, drawn[n_drawn].face);
+            set_marked(face_bits, face_sum, drawn[n_drawn].face, 1, face_dense);
             n_drawn++;
         }
     }
@@ -105,13 +114,14 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
     for (int64_t i = 0; i < n_tops; i++)
         if (top_at[i] < 0 || !mark[top_at[i]]) {
             front[n_front++] = tops[i];
-            set_bit(start_bits, tops[i].start);
+            set_marked(start_bits, start_sum, tops[i].start, 1, start_dense);
         }
     for (int64_t i = 0; i < n_base; i++)
-        set_bit(face_bits, base[i].face);
+        set_marked(face_bits, face_sum, base[i].face, 1, face_dense);
     const int64_t total = n_drawn + n_base;
     /* The front in depth-first order: each vertex goes to the rank of its start. */
-    prefix_counts(start_bits, start_words, start_prefix);
+    prefix_marked(start_bits, start_sum, start_words, start_dense, start_prefix, start_block);
+    const int vertex_dense = marked_dense(n_front, vertex_words);
     for (int64_t i = 0; i < n_front; i++)
         sorted[rank_of(start_bits, start_prefix, front[i].start)] = front[i];
     /* Each drawn face at its rank; each corner first the rank of the front
@@ -120,12 +130,14 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
     PmxStatus status = total == n_faces_drawn ? PMX_OK : PMX_FACES_DIFFER;
     if (status == PMX_OK) {
         memset(front_index, 0xff, sizeof(int32_t) * (size_t)n_front);
-        prefix_counts(face_bits, face_words, face_prefix);
+        prefix_marked(face_bits, face_sum, face_words, face_dense, face_prefix, NULL);
         for (int64_t i = 0; i < total; i++) {
             const PmxFaceRecord *f = i < n_drawn ? drawn + i : base + (i - n_drawn);
             int32_t *row = faces + 3 * rank_of(face_bits, face_prefix, f->face);
             for (int c = 0; c < 3; c++) {
-                int32_t k = (int32_t)rank_of(start_bits, start_prefix, f->start[c]);
+                int32_t k = (int32_t)(start_dense ? rank_of(start_bits, start_prefix, f->start[c])
+                                                  : rank_at_or_before(start_bits, start_sum, start_prefix,
+                                                                      start_block, f->start[c]));
                 row[c] = k;
                 front_index[k] = 0;
             }
@@ -135,10 +147,10 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
         int64_t n_used = 0;
         for (int64_t k = 0; k < n_front; k++)
             if (front_index[k] == 0) {
-                set_bit(vertex_bits, sorted[k].vertex);
+                set_marked(vertex_bits, vertex_sum, sorted[k].vertex, 1, vertex_dense);
                 n_used++;
             }
-        prefix_counts(vertex_bits, vertex_words, vertex_prefix);
+        prefix_marked(vertex_bits, vertex_sum, vertex_words, vertex_dense, vertex_prefix, NULL);
         /* The outputs' room is checked before anything is written there. */
         for (int64_t k = 0; k < n_front && n_used <= id_capacity; k++)
             if (front_index[k] == 0) {
@@ -157,9 +169,9 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
     /* Leave the scratch as found. */
     for (int64_t i = 0; i < n_not_run; i++)
         mark[not_run_at[i]] = 0;
-    memset(start_bits, 0, sizeof(uint64_t) * (size_t)start_words);
-    memset(face_bits, 0, sizeof(uint64_t) * (size_t)face_words);
-    memset(vertex_bits, 0, sizeof(uint64_t) * (size_t)vertex_words);
+    clear_marked(start_bits, start_sum, start_words, start_dense);
+    clear_marked(face_bits, face_sum, face_words, face_dense);
+    clear_marked(vertex_bits, vertex_sum, vertex_words, vertex_dense);
     *n_ids = n_id_count;
     return status;
 }

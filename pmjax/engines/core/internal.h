@@ -85,8 +85,8 @@ void load_fat(Fat *W, const float *fat, const Frames *fr, int n_frames);
 /* A call's working memory (scratch.c), in parts allocated when first
  * needed: the slots of a traversal (capacity n_pcols, with PMX_SPARE room
  * where the loops store whole vectors), a word's frame masks, the unsure
- * records' chains, the front mesh's bitmaps and lists. mark and the bitmaps
- * are zero between calls. */
+ * records' chains, the front mesh's bitmaps and lists. mark, the bitmaps and
+ * their summaries are zero between calls. */
 struct PmxScratch {
     int64_t n_pcols;
     /* slots */
@@ -96,8 +96,8 @@ struct PmxScratch {
     Lanes *visit, *whole, *yes, *ran_frames, *unsure_lanes;
     /* front mesh, for n_original vertices and n_faces faces */
     int64_t n_original, n_faces;
-    int32_t *not_run_at, *start_prefix, *face_prefix, *vertex_prefix, *front_index;
-    uint64_t *start_bits, *face_bits, *vertex_bits;
+    int32_t *not_run_at, *start_prefix, *face_prefix, *vertex_prefix, *start_block, *front_index;
+    uint64_t *start_bits, *face_bits, *vertex_bits, *start_sum, *face_sum, *vertex_sum;
     PmxFrontVertex *front, *sorted;
     PmxFaceRecord *drawn;
     struct PmxScratch *next; /* in the pool */
@@ -204,6 +204,82 @@ PMX_INLINE void prefix_counts(const uint64_t *bits, int64_t words, int32_t *pref
     for (int64_t w = 0; w < words; w++) {
         prefix[w] = total;
         total += __builtin_popcountll(bits[w]);
+    }
+}
+
+/* A bitmap with a summary, so that a pass costs the words a call set rather
+ * than the bitmap's size: bit w of sum is set with any bit of word w (sum
+ * has words / 64 + 1 words). Where at most n bits will be set and n is not
+ * below words / MARKED_DENSE, a pass over every word (streamed, no jump
+ * per word) costs less, and is proportional to n: the bitmap is then used
+ * without its summary ("dense"). */
+#ifndef MARKED_DENSE
+#define MARKED_DENSE 16
+#endif
+
+PMX_INLINE int marked_dense(int64_t n, int64_t words) { return n * MARKED_DENSE >= words; }
+
+/* Bit i set, and its word marked unless dense. */
+PMX_INLINE void set_marked(uint64_t *bits, uint64_t *sum, int64_t i, uint64_t on, int dense)
+{
+    bits[i >> 6] |= on << (i & 63);
+    if (!dense)
+        sum[i >> 12] |= on << ((i >> 6) & 63);
+}
+
+/* Dense: prefix[w] for every word (rank_of then holds for any bit). Else
+ * prefix[w] for the marked words w and block[b] the set bits before word
+ * 64 b (block may be NULL; rank_of holds for set bits, rank_at_or_before
+ * for any). */
+PMX_INLINE void prefix_marked(const uint64_t *bits, const uint64_t *sum, int64_t words, int dense, int32_t *prefix,
+                              int32_t *block)
+{
+    if (dense) {
+        prefix_counts(bits, words, prefix);
+        return;
+    }
+    int32_t total = 0;
+    for (int64_t b = 0; b < words / 64 + 1; b++) {
+        if (block)
+            block[b] = total;
+        for (uint64_t m = sum[b]; m; m &= m - 1) {
+            const int64_t w = 64 * b + __builtin_ctzll(m);
+            prefix[w] = total;
+            total += __builtin_popcountll(bits[w]);
+        }
+    }
+}
+
+/* Rank of the last set bit at or before i (there is one) among the set bits
+ * of a bitmap with a summary whose prefix and block cover the marked words
+ * only: in i's word, else in the last marked word before it in its block,
+ * else the block's count. */
+PMX_INLINE int64_t rank_at_or_before(const uint64_t *bits, const uint64_t *sum, const int32_t *prefix,
+                                     const int32_t *block, int64_t i)
+{
+    const int64_t w = i >> 6;
+    const uint64_t below = bits[w] & ((((uint64_t)2) << (i & 63)) - 1);
+    if (below)
+        return prefix[w] + __builtin_popcountll(below) - 1;
+    const uint64_t before = sum[w >> 6] & ((((uint64_t)1) << (w & 63)) - 1);
+    if (!before)
+        return block[w >> 6] - 1;
+    const int64_t p = (w & ~(int64_t)63) + 63 - __builtin_clzll(before);
+    return prefix[p] + __builtin_popcountll(bits[p]) - 1;
+}
+
+/* The bitmap and its summary back to zero: every word where dense, else the
+ * marked words. */
+PMX_INLINE void clear_marked(uint64_t *bits, uint64_t *sum, int64_t words, int dense)
+{
+    if (dense) {
+        memset(bits, 0, sizeof(uint64_t) * (size_t)words);
+        return;
+    }
+    for (int64_t b = 0; b < words / 64 + 1; b++) {
+        for (uint64_t m = sum[b]; m; m &= m - 1)
+            bits[64 * b + __builtin_ctzll(m)] = 0;
+        sum[b] = 0;
     }
 }
 

@@ -22,20 +22,21 @@ static void free_parts(PmxScratch *s)
 {
     void *parts[] = {s->ids, s->kid, s->kill, s->pcols, s->unsure, s->parent, s->chain, s->state, s->ran, s->mark,
                      s->visit, s->whole, s->yes, s->ran_frames, s->unsure_lanes, s->not_run_at, s->start_prefix,
-                     s->face_prefix, s->vertex_prefix, s->front_index, s->start_bits, s->face_bits, s->vertex_bits,
-                     s->front, s->sorted, s->drawn};
+                     s->face_prefix, s->vertex_prefix, s->start_block, s->front_index, s->start_bits, s->face_bits,
+                     s->vertex_bits, s->start_sum, s->face_sum, s->vertex_sum, s->front, s->sorted, s->drawn};
     for (size_t i = 0; i < sizeof parts / sizeof parts[0]; i++)
         free(parts[i]);
 }
 
 static void free_mesh(PmxScratch *s)
 {
-    void *parts[] = {s->not_run_at, s->start_prefix, s->face_prefix, s->vertex_prefix, s->front_index,
-                     s->start_bits, s->face_bits, s->vertex_bits, s->front, s->sorted, s->drawn};
+    void *parts[] = {s->not_run_at, s->start_prefix, s->face_prefix, s->vertex_prefix, s->start_block,
+                     s->front_index, s->start_bits, s->face_bits, s->vertex_bits, s->start_sum, s->face_sum,
+                     s->vertex_sum, s->front, s->sorted, s->drawn};
     for (size_t i = 0; i < sizeof parts / sizeof parts[0]; i++)
         free(parts[i]);
-    s->not_run_at = s->start_prefix = s->face_prefix = s->vertex_prefix = s->front_index = NULL;
-    s->start_bits = s->face_bits = s->vertex_bits = NULL;
+    s->not_run_at = s->start_prefix = s->face_prefix = s->vertex_prefix = s->start_block = s->front_index = NULL;
+    s->start_bits = s->face_bits = s->vertex_bits = s->start_sum = s->face_sum = s->vertex_sum = NULL;
     s->front = s->sorted = NULL;
     s->drawn = NULL;
 }
@@ -94,19 +95,25 @@ int scratch_mesh(PmxScratch *s, int64_t n_original, int64_t n_faces)
     free_mesh(s);
     const int64_t V0 = n_original, P = s->n_pcols;
     s->n_original = V0, s->n_faces = n_faces;
+    const int64_t start_words = V0 / 64 + 1, face_words = n_faces / 64 + 1, vertex_words = (V0 + P) / 64 + 1;
     s->not_run_at = zeros(P, sizeof(int32_t));
-    s->start_bits = zeros(V0 / 64 + 1, sizeof(uint64_t));
-    s->face_bits = zeros(n_faces / 64 + 1, sizeof(uint64_t));
-    s->vertex_bits = zeros((V0 + P) / 64 + 1, sizeof(uint64_t));
-    s->start_prefix = zeros(V0 / 64 + 1, sizeof(int32_t));
-    s->face_prefix = zeros(n_faces / 64 + 1, sizeof(int32_t));
-    s->vertex_prefix = zeros((V0 + P) / 64 + 1, sizeof(int32_t));
+    s->start_bits = zeros(start_words, sizeof(uint64_t));
+    s->face_bits = zeros(face_words, sizeof(uint64_t));
+    s->vertex_bits = zeros(vertex_words, sizeof(uint64_t));
+    s->start_sum = zeros(start_words / 64 + 1, sizeof(uint64_t));
+    s->face_sum = zeros(face_words / 64 + 1, sizeof(uint64_t));
+    s->vertex_sum = zeros(vertex_words / 64 + 1, sizeof(uint64_t));
+    s->start_prefix = zeros(start_words, sizeof(int32_t));
+    s->face_prefix = zeros(face_words, sizeof(int32_t));
+    s->vertex_prefix = zeros(vertex_words, sizeof(int32_t));
+    s->start_block = zeros(start_words / 64 + 1, sizeof(int32_t));
     s->sorted = zeros(V0, sizeof(PmxFrontVertex));
     s->drawn = zeros(n_faces, sizeof(PmxFaceRecord));
     s->front_index = zeros(V0, sizeof(int32_t));
     s->front = zeros(V0 + 1, sizeof(PmxFrontVertex)); /* one slot past the front */
-    if (!(s->not_run_at && s->start_bits && s->face_bits && s->vertex_bits && s->start_prefix && s->face_prefix &&
-          s->vertex_prefix && s->sorted && s->drawn && s->front_index && s->front)) {
+    if (!(s->not_run_at && s->start_bits && s->face_bits && s->vertex_bits && s->start_sum && s->face_sum &&
+          s->vertex_sum && s->start_prefix && s->face_prefix && s->vertex_prefix && s->start_block && s->sorted &&
+          s->drawn && s->front_index && s->front)) {
         free_mesh(s);
         return 0;
     }
