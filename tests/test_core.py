@@ -331,7 +331,7 @@ def test_fat_camera_decisions_hold_for_every_frame(built, name):
     where it says "no", no frame's predicate collapses the pcol; where it
     settles tests ("inside": the frustum test, "screen": the frustum and
     orientation tests), no frame's predicate with only those tests on
-    collapses the pcol. Along an orbit it decides most pcols; with a
+    collapses the pcol, nor does their subtree bound hold for any frame. Along an orbit it decides most pcols; with a
     tolerance of 0 (not a usual view) it decides none, nor does a fat camera
     that is not finite."""
     data = built(name)
@@ -354,6 +354,9 @@ def test_fat_camera_decisions_hold_for_every_frame(built, name):
                                        (Tests(frustum=False, screen=False), (_core.FAT_SCREEN,))):
                     by = np.asarray(pmjax.collapse_mask(pm.attributes, cam, jnp.float32(tau), tests))
                     assert not np.any(by[np.isin(got, settled)]), (label, tau, f, tests)
+                    # Nor do those tests' subtree bounds hold there (the frames leave them out).
+                    code = decide_every_pcol(pm, cam, tau, tests)
+                    assert not np.any(code[np.isin(got, settled)] & _core.WHOLE), (label, tau, f, tests)
                 # Every pcol of the subtree collapses: batch by batch (children
                 # come from earlier batches).
                 all_below = want.copy()
