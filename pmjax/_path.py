@@ -666,7 +666,7 @@ class MeshStream:
         vertex ids, 3: positions), made again whenever it has grown them."""
         generation = self._counts[7]
         if generation != self._generation:
-            fv, fid, vid, vpos = _core._pmx.mesh_stream_arrays(self._stream)[:4]
+            fv, fid, vid, vpos = _core._pmx.mesh_stream_arrays(self._stream)
             self._arrays = (np.frombuffer(fv, np.int32).reshape(-1, 3), np.frombuffer(fid, np.int32),
                             np.frombuffer(vid, np.int32), np.frombuffer(vpos, np.float32).reshape(-1, 3))
             self._generation = generation

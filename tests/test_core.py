@@ -16,6 +16,7 @@ import pytest
 import pmjax
 from pmjax import engines
 from pmjax._camera import index_camera, stack_cameras
+from pmjax._predicate import Tests
 from pmjax._units import camera_in_model_units
 from pmjax._view import View
 from pmjax.engines import _core
@@ -327,9 +328,12 @@ def core_views(word, taus, exponent=0):
 def test_fat_camera_decisions_hold_for_every_frame(built, name):
     """Over every pcol, for words of frames: where the fat camera says
     "whole", every frame's subtree collapses under the float32 predicate;
-    where it says "no", no frame's predicate collapses the pcol. Along an
-    orbit it decides most pcols; with a tolerance of 0 (not a usual view) it
-    decides none, nor does a fat camera that is not finite."""
+    where it says "no", no frame's predicate collapses the pcol; where it
+    settles tests ("inside": the frustum test, "screen": the frustum and
+    orientation tests), no frame's predicate with only those tests on
+    collapses the pcol, nor does their subtree bound hold for any frame. Along an orbit it decides most pcols; with a
+    tolerance of 0 (not a usual view) it decides none, nor does a fat camera
+    that is not finite."""
     data = built(name)
     pm = pmjax.ProgressiveMesh.from_data(data)
     kids, table = derived(pm).children, derived(pm).jax.table
@@ -346,6 +350,13 @@ def test_fat_camera_decisions_hold_for_every_frame(built, name):
                 cam = index_camera(word, f)
                 want = np.asarray(pmjax.collapse_mask(pm.attributes, cam, jnp.float32(tau), pmjax.ALL_TESTS))
                 assert not np.any(want[got == _core.FAT_NO]), (label, tau, f)
+                for tests, settled in ((Tests(orientation=False, screen=False), (_core.FAT_INSIDE, _core.FAT_SCREEN)),
+                                       (Tests(frustum=False, screen=False), (_core.FAT_SCREEN,))):
+                    by = np.asarray(pmjax.collapse_mask(pm.attributes, cam, jnp.float32(tau), tests))
+                    assert not np.any(by[np.isin(got, settled)]), (label, tau, f, tests)
+                    # Nor do those tests' subtree bounds hold there (the frames leave them out).
+                    code = decide_every_pcol(pm, cam, tau, tests)
+                    assert not np.any(code[np.isin(got, settled)] & _core.WHOLE), (label, tau, f, tests)
                 # Every pcol of the subtree collapses: batch by batch (children
                 # come from earlier batches).
                 all_below = want.copy()
@@ -355,7 +366,8 @@ def test_fat_camera_decisions_hold_for_every_frame(built, name):
                         all_below[lo:hi][has] &= all_below[k[has]]
                 assert np.all(all_below[got == _core.FAT_WHOLE]), (label, tau, f)
             if label.startswith("orbit") and tau == 1.0:
-                assert np.mean(got == 1) > 0.3 and np.any(got == 2), (label, np.bincount(got, minlength=3))
+                assert np.mean(got == 1) > 0.3 and np.any(got == 2), (label, np.bincount(got, minlength=5))
+                assert np.any(np.isin(got, (_core.FAT_INSIDE, _core.FAT_SCREEN))), label
                 nan = jnp.full(_core.FAT, jnp.nan, jnp.float32)
                 unused = _core.decide_fat_all(table, views, nan, _core.flags_of(pmjax.ALL_TESTS, False))
                 assert not np.any(np.asarray(unused)), label

@@ -629,9 +629,10 @@ def front_mesh_eager(tables, ran, positions, counts, item: int, n_original: int,
 
 # A pcol's own decision in the core (certify.h): keep, collapse, unsure; |
 # WHOLE where its bound decides everything below it. Fat-camera passes:
-# open, every frame's subtree collapses, no frame collapses it.
+# open, every frame's subtree collapses, no frame collapses it, only the
+# screen test left to the frames, the frustum test settled for them.
 NO, YES, UNSURE, WHOLE = 0, 1, 2, 4
-FAT_OPEN, FAT_WHOLE, FAT_NO = 0, 1, 2
+FAT_OPEN, FAT_WHOLE, FAT_NO, FAT_SCREEN, FAT_INSIDE = 0, 1, 2, 3, 4
 
 
 @functools.partial(jax.jit, static_argnames=("orthographic",))
@@ -659,6 +660,8 @@ def fat_cameras(view_values):
 @functools.partial(jax.jit, static_argnames=("flags",))
 def decide_fat_all(rows, view_values, fat, flags: int):
     """``uint8 [P]``: every pcol under the fat camera of ``[F, 22]`` view
-    constants (``FAT_OPEN``, ``FAT_WHOLE``, ``FAT_NO``)."""
+    constants (``FAT_OPEN``, ``FAT_WHOLE``, ``FAT_NO``, ``FAT_SCREEN``: only
+    the screen test left to the frames, ``FAT_INSIDE``: the frustum test
+    settled)."""
     return _call("pmx_decide_fat_all", _sds((rows.shape[0],), jnp.uint8), rows, view_values, fat,
                  flags=np.int32(flags))

@@ -197,15 +197,21 @@ static inline _Bool bound_small(float d_lo, float d_hi, float spread, float e2, 
  * (pmjax/_predicate.py view_collapse_mask), certified. Returns the own
  * decision (YES, NO, UNSURE) | WHOLE. No branches: the loops that call it, over
  * the pcols of a block or over the frames of a word, are vectorized. With
- * all_tests (a constant), the view is a fast_view. */
+ * all_tests (a constant), the view is a fast_view. settled (a constant,
+ * SETTLED_FRUSTUM | SETTLED_ORIENTATION) names tests known to keep the pcol
+ * under this frame (the fat camera's FAT_INSIDE, FAT_SCREEN): their own
+ * decisions are "no", and their bounds, which would collapse the pcol itself
+ * (its reach and cone hold its own sphere and cone), cannot hold, so neither
+ * is evaluated (the same bits). */
 static inline __attribute__((always_inline)) int32_t decide_one(const Lane *L, const Pcol q, const int ortho,
-                                                                const int all_tests)
+                                                                const int all_tests, const int settled)
 {
     const float R0 = L->R0, R1 = L->R1, R2 = L->R2, U0 = L->U0, U1 = L->U1, U2 = L->U2;
     const float F0 = L->F0, F1 = L->F1, F2 = L->F2;
     const float k0 = L->k0, k1 = L->k1, k2 = L->k2, k3 = L->k3, k4 = L->k4, k5 = L->k5, k6 = L->k6, k7 = L->k7;
     const float kappa2 = L->kappa2, kabs = L->kabs, kfac = L->kfac, kpad = L->kpad;
-    const _Bool frustum = all_tests | L->frustum, orientation = all_tests | L->orientation;
+    const _Bool frustum = (!(settled & SETTLED_FRUSTUM)) & (all_tests | L->frustum);
+    const _Bool orientation = (!(settled & SETTLED_ORIENTATION)) & (all_tests | L->orientation);
     const _Bool screen = all_tests | L->screen;
     const _Bool kinf = !all_tests & (kappa2 == INFINITY);
     const int exact_zero = (!all_tests) | ortho;

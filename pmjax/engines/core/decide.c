@@ -49,51 +49,46 @@ static inline Lane frame_at(const Frames *fr, int l)
     return L;
 }
 
-/* Lane l: pcol col[.][l] under camera l; all_tests a constant (decide_one). */
+/* Lane l: pcol col[.][l] (by_row: the one row q for every lane, the frames
+ * of a word) under camera l; by_row, ortho and settled are constants
+ * (decide_one). */
 static inline __attribute__((always_inline)) void decide_each_lane(const Frames *restrict fr,
-                                                                   float (*restrict col)[BLOCK],
-                                                                   int32_t *restrict code, const int ortho,
-                                                                   const int all_tests)
+                                                                   float (*restrict col)[BLOCK], const Pcol q,
+                                                                   const int by_row, int32_t *restrict code,
+                                                                   const int ortho, const int settled)
 {
+    if (fr->fast) {
 #pragma omp simd
-    for (int l = 0; l < BLOCK; l++) {
-        const Lane L = frame_at(fr, l);
-        code[l] = decide_one(&L, pcol_at(col, l), ortho, all_tests);
+        for (int l = 0; l < BLOCK; l++) {
+            const Lane L = frame_at(fr, l);
+            code[l] = decide_one(&L, by_row ? q : pcol_at(col, l), ortho, 1, settled);
+        }
+    } else {
+#pragma omp simd
+        for (int l = 0; l < BLOCK; l++) {
+            const Lane L = frame_at(fr, l);
+            code[l] = decide_one(&L, by_row ? q : pcol_at(col, l), ortho, 0, settled);
+        }
     }
 }
 static inline __attribute__((always_inline)) void decide_lanes(const Frames *restrict fr, float (*restrict col)[BLOCK],
                                                                int32_t *restrict code, const int ortho)
 {
-    if (fr->fast)
-        decide_each_lane(fr, col, code, ortho, 1);
-    else
-        decide_each_lane(fr, col, code, ortho, 0);
+    const Pcol unused = {0};
+    decide_each_lane(fr, col, unused, 0, code, ortho, 0);
 }
 
 /* One pcol's row under every lane's camera (the frames of a word): the row
  * read once as scalars, which the decision broadcasts at its vector width;
  * the frames' decisions as masks (one bit per frame: WHOLE, YES, UNSURE). */
-static inline __attribute__((always_inline)) void decide_row_each_lane(const Frames *restrict fr, const Pcol q,
-                                                                       int32_t *restrict code, const int ortho,
-                                                                       const int all_tests)
-{
-#pragma omp simd
-    for (int l = 0; l < BLOCK; l++) {
-        const Lane L = frame_at(fr, l);
-        code[l] = decide_one(&L, q, ortho, all_tests);
-    }
-}
 static inline __attribute__((always_inline)) void decide_row_lanes(const Frames *fr, const float *row, Lanes *masks,
-                                                                   const int ortho)
+                                                                   const int ortho, const int settled)
 {
     const Pcol q = {row[CX],     row[CY],    row[CZ],    row[NX],     row[NY],    row[NZ],
                     row[RADIUS], row[SIN_A], row[COS_A], row[DELTA],  row[MU],    row[REACH],
                     row[SPREAD], row[FACING], row[ERROR]};
     int32_t code[BLOCK];
-    if (fr->fast)
-        decide_row_each_lane(fr, q, code, ortho, 1);
-    else
-        decide_row_each_lane(fr, q, code, ortho, 0);
+    decide_each_lane(fr, NULL, q, 1, code, ortho, settled);
     Lanes wh = 0, y = 0, u = 0;
     for (int l = 0; l < BLOCK; l++) {
         wh |= (Lanes)(((code[l] & WHOLE) != 0) << l);
@@ -101,6 +96,18 @@ static inline __attribute__((always_inline)) void decide_row_lanes(const Frames 
         u |= (Lanes)(((code[l] & 3) == UNSURE) << l);
     }
     masks[0] = wh, masks[1] = y, masks[2] = u;
+}
+
+/* A word's row under its frames (perspective, the fat camera applying) with
+ * the tests the fat camera settled (fat_code FAT_INSIDE or FAT_SCREEN) left
+ * out. */
+static inline __attribute__((always_inline)) void decide_row_settled(const Frames *fr, const float *row,
+                                                                     int32_t fat_code, Lanes *masks)
+{
+    if (fat_code == FAT_SCREEN)
+        decide_row_lanes(fr, row, masks, 0, SETTLED_FRUSTUM | SETTLED_ORIENTATION);
+    else
+        decide_row_lanes(fr, row, masks, 0, SETTLED_FRUSTUM);
 }
 
 /* The level wrappers: the loops above at each level's vector width. */
@@ -114,11 +121,15 @@ void decide_orthographic_plain(const Frames *fr, Columns col, int32_t *code)
 }
 void decide_row_perspective_plain(const Frames *fr, const float *row, Lanes *masks)
 {
-    decide_row_lanes(fr, row, masks, 0);
+    decide_row_lanes(fr, row, masks, 0, 0);
 }
 void decide_row_orthographic_plain(const Frames *fr, const float *row, Lanes *masks)
 {
-    decide_row_lanes(fr, row, masks, 1);
+    decide_row_lanes(fr, row, masks, 1, 0);
+}
+void decide_row_settled_plain(const Frames *fr, const float *row, int32_t fat_code, Lanes *masks)
+{
+    decide_row_settled(fr, row, fat_code, masks);
 }
 #if PMX_X86
 PMX_TARGET_AVX2 void decide_perspective_avx2(const Frames *fr, Columns col, int32_t *code)
@@ -131,11 +142,15 @@ PMX_TARGET_AVX2 void decide_orthographic_avx2(const Frames *fr, Columns col, int
 }
 PMX_TARGET_AVX2 void decide_row_perspective_avx2(const Frames *fr, const float *row, Lanes *masks)
 {
-    decide_row_lanes(fr, row, masks, 0);
+    decide_row_lanes(fr, row, masks, 0, 0);
 }
 PMX_TARGET_AVX2 void decide_row_orthographic_avx2(const Frames *fr, const float *row, Lanes *masks)
 {
-    decide_row_lanes(fr, row, masks, 1);
+    decide_row_lanes(fr, row, masks, 1, 0);
+}
+PMX_TARGET_AVX2 void decide_row_settled_avx2(const Frames *fr, const float *row, int32_t fat_code, Lanes *masks)
+{
+    decide_row_settled(fr, row, fat_code, masks);
 }
 PMX_TARGET_AVX512 void decide_perspective_avx512(const Frames *fr, Columns col, int32_t *code)
 {
@@ -147,11 +162,15 @@ PMX_TARGET_AVX512 void decide_orthographic_avx512(const Frames *fr, Columns col,
 }
 PMX_TARGET_AVX512 void decide_row_perspective_avx512(const Frames *fr, const float *row, Lanes *masks)
 {
-    decide_row_lanes(fr, row, masks, 0);
+    decide_row_lanes(fr, row, masks, 0, 0);
 }
 PMX_TARGET_AVX512 void decide_row_orthographic_avx512(const Frames *fr, const float *row, Lanes *masks)
 {
-    decide_row_lanes(fr, row, masks, 1);
+    decide_row_lanes(fr, row, masks, 1, 0);
+}
+PMX_TARGET_AVX512 void decide_row_settled_avx512(const Frames *fr, const float *row, int32_t fat_code, Lanes *masks)
+{
+    decide_row_settled(fr, row, fat_code, masks);
 }
 #endif
 

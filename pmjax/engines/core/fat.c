@@ -38,8 +38,10 @@
  * magnitudes take the largest.
  *
  * Otherwise (about one slot in six along the dragon's orbit) the frames are
- * decided one by one. Either way every frame gets the bits of its own
- * refinement. */
+ * decided one by one, less the tests settled for all of them: FAT_INSIDE
+ * where every frame's frustum test surely keeps the pcol, FAT_SCREEN where
+ * its orientation test does too (the bounds of FAT_NO's first two parts).
+ * Either way every frame gets the bits of its own refinement. */
 #include "certify.h"
 
 /* Layout of a fat camera (PMX_FAT floats). */
@@ -97,9 +99,9 @@ void load_fat(Fat *W, const float *fat, const Frames *fr, int n_frames)
  * roundings from d, which is within a few ulps of the exact distance). */
 #define GROW_M (1.0f + 0x1p-18f)
 
-/* One pcol under every frame of the fat camera W: FAT_WHOLE, FAT_NO or
- * FAT_OPEN (decide the frames one by one). No branches (vectorized over the
- * pcols of a block). */
+/* One pcol under every frame of the fat camera W: FAT_WHOLE, FAT_NO, or the
+ * tests left to the frames (FAT_SCREEN, FAT_INSIDE, FAT_OPEN). No branches
+ * (vectorized over the pcols of a block). */
 static inline __attribute__((always_inline)) int32_t decide_fat_one(const Fat *W, const Pcol q)
 {
     const float rho = W->rho, eps = W->eps, tau = W->tau, kappa2 = W->kappa2, kfac = W->kfac, kpad = W->kpad;
@@ -191,8 +193,10 @@ static inline __attribute__((always_inline)) int32_t decide_fat_one(const Fat *W
                  2 * kappa2_hi * far_d2 * far_d2 * GROW_M,
              slack)
             .n;
-    const _Bool keep = guard & inside & toward & coarse;
-    return whole ? FAT_WHOLE : (keep ? FAT_NO : FAT_OPEN);
+    /* Otherwise the tests settled for every frame (FAT_INSIDE, FAT_SCREEN)
+     * are left out of the frames' own decisions. */
+    const _Bool seen = guard & inside;
+    return whole ? FAT_WHOLE : !seen ? FAT_OPEN : !toward ? FAT_INSIDE : coarse ? FAT_NO : FAT_SCREEN;
 }
 
 /* The level wrappers of the fat pass over a block. */
@@ -209,7 +213,8 @@ PMX_TARGET_AVX512 void decide_fat_avx512(const Fat *W, Columns col, int32_t *cod
 #endif
 
 /* Every pcol under the fat camera of views [n_frames, PMX_VIEW] (FAT_WHOLE,
- * FAT_NO or FAT_OPEN; all FAT_OPEN where the fat camera does not apply), for
+ * FAT_NO, FAT_SCREEN, FAT_INSIDE or FAT_OPEN; all FAT_OPEN where the fat
+ * camera does not apply), for
  * tests that compare it with every frame's float32 predicate. */
 void pmx_decide_fat_all(const float *rows, int64_t n_pcols, const float *views, int n_frames, int flags,
                         const float *fat, uint8_t *out)

@@ -1143,6 +1143,17 @@ PyObject* StreamState(const PmxMeshStream* s) {
                        (long long)st.generation, packed);
 }
 
+// A failed step's exception (returns nullptr): MemoryError for memory, else
+// ValueError, bad_size naming what PMX_BAD_SIZE means for the caller `who`.
+PyObject* StreamError(const char* who, PmxStatus status, const char* bad_size) {
+  PyErr_Format(status == PMX_NO_MEMORY ? PyExc_MemoryError : PyExc_ValueError, "%s: %s", who,
+               status == PMX_BAD_SIZE    ? bad_size
+               : status == PMX_NO_MEMORY ? "out of memory for the stream's slots"
+                                         : "the frame's changes are not those of a refinement of this hierarchy; "
+                                           "the stream is broken (make a new one)");
+  return nullptr;
+}
+
 // mesh_stream_step(stream, positions, ran, frame, n, key)
 //   -> (face slots, vertex slots, faces changed, vertices changed, faces, vertices, vertices used, generation,
 //       the change packed: StreamState)
@@ -1180,17 +1191,10 @@ PyObject* MeshStreamStep(PyObject*, PyObject* args) {
   Py_BEGIN_ALLOW_THREADS;
   status = pmx_mesh_stream_step(h->stream, &next);
   Py_END_ALLOW_THREADS;
-  if (status != PMX_OK) {
-    PyErr_SetString(status == PMX_NO_MEMORY ? PyExc_MemoryError : PyExc_ValueError,
-                    status == PMX_BAD_SIZE
-                        ? "mesh_stream_step: the frame's positions do not increase inside the hierarchy "
-                          "(the stream still holds the last frame)"
-                    : status == PMX_NO_MEMORY
-                        ? "mesh_stream_step: out of memory for the stream's slots"
-                        : "mesh_stream_step: the frame's changes are not those of a refinement of this "
-                          "hierarchy; the stream is broken (make a new one)");
-    return nullptr;
-  }
+  if (status != PMX_OK)
+    return StreamError("mesh_stream_step", status,
+                       "the frame's positions do not increase inside the hierarchy (the stream still holds the "
+                       "last frame)");
   return StreamState(h->stream);
 }
 
@@ -1207,17 +1211,10 @@ PyObject* MeshStreamLane(PyObject*, PyObject* args) {
   Py_BEGIN_ALLOW_THREADS;
   status = pmx_mesh_stream_lane(h->stream, frame);
   Py_END_ALLOW_THREADS;
-  if (status != PMX_OK) {
-    PyErr_Format(status == PMX_NO_MEMORY ? PyExc_MemoryError : PyExc_ValueError, "%s",
-                 status == PMX_BAD_SIZE
-                     ? "mesh_stream_lane: the stream holds no word's lists, or frame is not one of its 16 bits "
-                       "(the stream still holds the last frame)"
-                 : status == PMX_NO_MEMORY
-                     ? "mesh_stream_lane: out of memory for the stream's slots"
-                     : "mesh_stream_lane: the frame's changes are not those of a refinement of this hierarchy; "
-                       "the stream is broken (make a new one)");
-    return nullptr;
-  }
+  if (status != PMX_OK)
+    return StreamError("mesh_stream_lane", status,
+                       "the stream holds no word's lists, or frame is not one of its 16 bits (the stream still "
+                       "holds the last frame)");
   return StreamState(h->stream);
 }
 
@@ -1243,9 +1240,8 @@ PyObject* MeshStreamCompact(PyObject*, PyObject* args) {
   return packed;
 }
 
-// mesh_stream_arrays(stream) -> (face_vertex, face_id, vertex_id, vertex_position, face_changes,
-//                                vertex_changes, changed_faces, changed_ids, changed_positions): read-only memoryviews of the stream's arrays at their
-// capacities, valid until a step grows them (the state's generation changes).
+// mesh_stream_arrays(stream) -> (face_vertex, face_id, vertex_id, vertex_position): read-only memoryviews
+// of the stream's slots at their capacities, valid until a step grows them (the state's generation changes).
 PyObject* MeshStreamArrays(PyObject*, PyObject* args) {
   PyObject* stream_o;
   if (!PyArg_ParseTuple(args, "O", &stream_o)) return nullptr;
@@ -1258,11 +1254,8 @@ PyObject* MeshStreamArrays(PyObject*, PyObject* args) {
     return PyMemoryView_FromMemory(const_cast<char*>(p ? static_cast<const char*>(p) : empty),
                                    p ? (Py_ssize_t)bytes : 0, PyBUF_READ);
   };
-  return Py_BuildValue("(NNNNNNNNN)", view(st.face_vertex, 12 * st.face_cap), view(st.face_id, 4 * st.face_cap),
-                       view(st.vertex_id, 4 * st.vertex_cap), view(st.vertex_position, 12 * st.vertex_cap),
-                       view(st.face_changes, 4 * st.face_cap), view(st.vertex_changes, 4 * st.vertex_cap),
-                       view(st.changed_faces, 12 * st.face_cap), view(st.changed_ids, 4 * st.vertex_cap),
-                       view(st.changed_positions, 12 * st.vertex_cap));
+  return Py_BuildValue("(NNNN)", view(st.face_vertex, 12 * st.face_cap), view(st.face_id, 4 * st.face_cap),
+                       view(st.vertex_id, 4 * st.vertex_cap), view(st.vertex_position, 12 * st.vertex_cap));
 }
 
 PyMethodDef methods[] = {
@@ -1297,9 +1290,8 @@ PyMethodDef methods[] = {
      "mesh_stream_compact(stream) -> bytearray: the mesh held as Refinement.mesh() gives it, packed: s32 faces "
      "[faces, 3], s32 ids [used], f32 positions [used, 3]."},
     {"mesh_stream_arrays", MeshStreamArrays, METH_VARARGS,
-     "mesh_stream_arrays(stream) -> read-only memoryviews (face_vertex, face_id, vertex_id, vertex_position, "
-     "face_changes, vertex_changes, changed_faces, changed_ids, changed_positions), valid until the generation "
-     "changes."},
+     "mesh_stream_arrays(stream) -> read-only memoryviews (face_vertex, face_id, vertex_id, vertex_position) "
+     "of the slots, valid until the generation changes."},
     {nullptr, nullptr, 0, nullptr}};
 
 PyModuleDef module = {PyModuleDef_HEAD_INIT, "_pmx", "The front engine's C core as XLA FFI targets (pmx.h).", -1,

@@ -31,8 +31,12 @@ enum { EYE = 0, RIGHT = 3, UP = 6, FORWARD = 9, K = 12, ONE_PIXEL = 20, KAPPA2 =
  * bound decided everything below it. */
 enum { NO = 0, YES = 1, UNSURE = 2, WHOLE = 4 };
 
-/* Decisions of the fat pass. */
-enum { FAT_OPEN = 0, FAT_WHOLE = 1, FAT_NO = 2 };
+/* Decisions of the fat pass. FAT_INSIDE: every frame's frustum test surely
+ * keeps the pcol; FAT_SCREEN: its orientation test too (only the screen test
+ * is left to the frames). */
+enum { FAT_OPEN = 0, FAT_WHOLE = 1, FAT_NO = 2, FAT_SCREEN = 3, FAT_INSIDE = 4 };
+/* The tests a frame's decision may leave out (decide_one's settled). */
+enum { SETTLED_FRUSTUM = 1, SETTLED_ORIENTATION = 2 };
 
 #define BLOCK 16
 #define FRAMES PMX_FRAMES
@@ -124,6 +128,7 @@ typedef struct {
     void (*decide_orthographic)(const Frames *fr, Columns col, int32_t *code);
     void (*decide_row_perspective)(const Frames *fr, const float *row, Lanes *masks);
     void (*decide_row_orthographic)(const Frames *fr, const float *row, Lanes *masks);
+    void (*decide_row_settled)(const Frames *fr, const float *row, int32_t fat_code, Lanes *masks);
     void (*decide_fat)(const Fat *W, Columns col, int32_t *code);
     void (*gather)(const float *const *rows, Columns col);
     PushBlock push_block;
@@ -147,6 +152,7 @@ const Kernels *pmx_kernels_at(int level, int *used);
     void decide_orthographic_##suffix(const Frames *fr, Columns col, int32_t *code);                         \
     void decide_row_perspective_##suffix(const Frames *fr, const float *row, Lanes *masks);                  \
     void decide_row_orthographic_##suffix(const Frames *fr, const float *row, Lanes *masks);                 \
+    void decide_row_settled_##suffix(const Frames *fr, const float *row, int32_t fat_code, Lanes *masks);    \
     void decide_fat_##suffix(const Fat *W, Columns col, int32_t *code);                                      \
     void gather_##suffix(const float *const *rows, Columns col);                                            \
     void resolve_word_##suffix(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids,    \

@@ -52,10 +52,14 @@ static int64_t traverse_word(const Kernels *kern, const PmxHierarchy *h, const f
                 __builtin_prefetch(table + (int64_t)ids[i + AHEAD] * ROW);
             const float *row = table + (int64_t)ids[i] * ROW;
             const int32_t fc = use_fat ? fat_code[i - i0] : FAT_OPEN;
-            decided_at_once += fc != FAT_OPEN;
+            decided_at_once += (fc == FAT_WHOLE) | (fc == FAT_NO);
             Lanes masks[3] = {fc == FAT_WHOLE ? (Lanes)0xFFFF : 0, 0, 0};
-            if (fc == FAT_OPEN) /* the pcol under every frame of the word, one by one */
+            /* The pcol under every frame of the word, one by one, less the
+             * tests the fat camera settled for all of them. */
+            if (fc == FAT_OPEN)
                 decide_row(&fr, row, masks);
+            else if (fc != FAT_WHOLE && fc != FAT_NO)
+                kern->decide_row_settled(&fr, row, fc, masks);
             const Lanes wh = masks[0], y = masks[1], u = masks[2];
             const Lanes v = visit[i], open = v & (Lanes)~wh;
             whole[i] = v & wh;
