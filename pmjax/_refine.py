@@ -786,18 +786,16 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
     tau = np.empty((K, B), np.float32)
     cols = [np.empty((K, B), np.int32) for _ in range(3)]
     for s in range(0, K, chunk):
-        idx = order[np.minimum(np.arange(s, s + chunk), K - 1)]  # pad by repeating the last
-        part = jax.tree.map(lambda a: a[idx], host)
-        rows = _core.host_camera_rows(part, np.zeros(chunk, np.float32), d.exponent)
-        guess, alt = (np.asarray(g) for g in _core_guesses(d.core, rows, budgets[idx].astype(np.int32), tests,
-                                                            cameras.orthographic, counts_of.base_faces))
-        n = min(chunk, K - s)
+        idx = order[s:s + chunk]
+        n = len(idx)
+        guess, alt = _guesses(d, counts_of, host, idx, np.zeros(n, np.float32), budgets, tests, chunk)
+        rows = _core.host_camera_rows(jax.tree.map(lambda a: a[idx], host), np.zeros(n, np.float32), d.exponent)
         # Every (camera, budget) pair its own probe row.
-        t, c = _exact_from_guess(d.core, np.repeat(rows[:n], B, axis=0), budgets[idx[:n]].ravel(),
-                                 guess[:n].ravel(), alt[:n].ravel(), tests, cameras.orthographic, counts_of)
-        tau[idx[:n]] = t.reshape(n, B)
+        t, c = _exact_from_guess(d.core, np.repeat(rows, B, axis=0), budgets[idx].ravel(), guess.ravel(),
+                                 alt.ravel(), tests, cameras.orthographic, counts_of)
+        tau[idx] = t.reshape(n, B)
         for col, v in zip(cols, c):
-            col[idx[:n]] = v.reshape(n, B)
+            col[idx] = v.reshape(n, B)
     return shaped(dict(tau=tau, faces=cols[0], vertices=cols[1], executed_count=cols[2]))
 
 
@@ -843,9 +841,8 @@ def _path_budgets(pm, host, budgets, tests, chunk):
     def along_path(bits):
         counted = np.empty((K * B, 3), np.int64)
         for j in range(B):
-            at = rows.copy()
-            at[:, -1] = bits[j * K:(j + 1) * K].astype(np.int32).view(np.float32)
-            counted[j * K:(j + 1) * K] = _word_counts(d, counts_of, at, tests, host.orthographic)
+            taus = bits[j * K:(j + 1) * K].astype(np.int32).view(np.float32)
+            counted[j * K:(j + 1) * K] = _word_counts(pm, host, taus, tests)
         return counted
 
     tau, cols = _exact_from_guess(d.core, np.tile(rows, (B, 1)), budgets.T.ravel(), guess.T.ravel(),
@@ -855,26 +852,15 @@ def _path_budgets(pm, host, budgets, tests, chunk):
                 executed_count=cols[2].reshape(B, K).T.astype(np.int32))
 
 
-def _word_counts(d, counts_of, rows, tests, orthographic):
+def _word_counts(pm, host, taus, tests):
     """Exact ``(faces, vertices, executed)`` (``int64 [K, 3]``) of the frames
-    ``rows`` (``float32 [K, CAMERA]``, a path in order, each with its own
-    tolerance) through the core's words: the path padded to whole words by
-    its last frame, whole blocks of words per call, then the rest in powers
-    of two words (few compiled sizes)."""
-    K, F = len(rows), _core.FRAMES
-    words = -(-K // F)
-    order = np.minimum(np.arange(words * F), K - 1)
-    out = np.empty((K, 3), np.int64)
-    for start, n in _core.word_spans(words, _core.WORDS_PER_CALL):
-        lanes = order[start * F:(start + n) * F]
-        counts = np.asarray(_core_word_counts(d.core_words, d.core, rows[lanes], tests, orthographic))
-        out[lanes] = np.stack(counts_of(counts[:, 1], counts[:, 2], np), 1)  # a repeated frame: the same counts
-    return out
+    ``host`` (a path in order) each at its own tolerance ``taus``
+    (``float32 [K]``), through the path engine's words."""
+    from ._path import _core_path_counts
 
-
-@functools.partial(jax.jit, static_argnames=("tests", "orthographic"))
-def _core_word_counts(tables, one_tables, rows, tests, orthographic):
-    return _core.refine_words(tables, one_tables, rows, tests, orthographic, False)[0]
+    cols = [np.zeros(len(taus), np.int32) for _ in range(3)]
+    _core_path_counts(pm, host, taus, tests, len(taus), cols, np.zeros(len(taus)), lambda it, total, unit: it, False)
+    return np.stack(cols, 1).astype(np.int64)
 
 
 def _guesses(d, counts_of, host, frames, start, budgets, tests, chunk):
