@@ -833,7 +833,15 @@ def _path_budgets(pm, host, budgets, tests, chunk):
         start = np.where(np.isfinite(predicted), predicted, 0.0).astype(np.float32)
     rest = np.setdiff1d(np.arange(K), sampled)
     if len(rest):
-        guess[rest], alt[rest] = _guesses(d, counts_of, host, rest, start[rest], budgets, tests, chunk)
+        # The other frames guessed word by word along the path, each at its
+        # start (a frame without one at inf: a traversal that stops at the
+        # roots, its guess unused); those whose answers lie below it, or
+        # that have no start, are guessed alone.
+        guess[rest], alt[rest] = (x[rest] for x in _word_guesses(d, counts_of, host, np.where(
+            start > 0, start, np.float32(np.inf)), budgets, tests))
+        alone = rest[~(start[rest] > 0) | (guess[rest] < 0).any(axis=1)]
+        if len(alone):
+            guess[alone], alt[alone] = _guesses(d, counts_of, host, alone, start[alone], budgets, tests, chunk)
     rows = _core.host_camera_rows(host, np.zeros(K, np.float32), d.exponent)
 
     # The (frame, budget) pairs budget by budget: each budget's K pairs are
@@ -882,9 +890,30 @@ def _guesses(d, counts_of, host, frames, start, budgets, tests, chunk):
     return guess, alt
 
 
-@functools.partial(jax.jit, static_argnames=("tests", "orthographic", "base_faces"))
-def _core_guesses(tables, rows, budgets, tests, orthographic, base_faces):
-    return _core.budget_guesses(tables, rows, budgets, tests, orthographic, base_faces)
+def _word_guesses(d, counts_of, host, start, budgets, tests):
+    """The core's ``(guess, alt)`` (``int32 [K, B]``) of a path's frames
+    ``host`` in order for their budgets (``[K, B]``), each word of frames
+    traversed once at the frames' own tolerances ``start`` (``float32
+    [K]``, > 0), -1 for a frame whose answers lie below its tolerance: the
+    path padded to whole words by its last frame, whole blocks of words per
+    call, then the rest in powers of two words."""
+    from ._path import _word_padded
+
+    K, B = budgets.shape
+    order = _word_padded(K, K, _core.FRAMES)
+    rows = _core.host_camera_rows(host, start, d.exponent)
+    guess, alt = np.empty((K, B), np.int32), np.empty((K, B), np.int32)
+    for w0, n in _core.word_spans(len(order) // _core.FRAMES, _core.WORDS_PER_CALL):
+        lanes = order[w0 * _core.FRAMES:(w0 + n) * _core.FRAMES]
+        got = _core_guesses(d.core_words, rows[lanes], budgets[lanes].astype(np.int32), tests, host.orthographic,
+                            counts_of.base_faces, words=True)
+        guess[lanes], alt[lanes] = (np.asarray(x) for x in got)  # a repeated frame: the same guesses
+    return guess, alt
+
+
+@functools.partial(jax.jit, static_argnames=("tests", "orthographic", "base_faces", "words"))
+def _core_guesses(tables, rows, budgets, tests, orthographic, base_faces, words=False):
+    return _core.budget_guesses(tables, rows, budgets, tests, orthographic, base_faces, words=words)
 
 
 # Patterns probed next to a wrong guess in the second round of counts: the

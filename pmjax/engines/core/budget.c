@@ -335,6 +335,97 @@ static int64_t answer_of(Budget *b, int64_t count, float lo, int64_t total, int6
     return v == INFINITY ? (int64_t)INF_BITS + 1 : (int64_t)bits_of(v) + 1;
 }
 
+/* The guesses of one camera from its traversal at lo (n slots in s: ids,
+ * kid, state, kill, ran; m of them unsure; the pcols that did not run keep
+ * `kept` faces) for its B budgets, the largest `top`: each budget's guessed
+ * answer's bit pattern in guess, and in alt the guess with the unsure
+ * decisions taken as collapses. Returns 1, or 0 where the largest budget's
+ * answer lies below lo and a lower tolerance may find it: *next_lo is then
+ * the tolerance to traverse at next. last_count: the count at the
+ * tolerance traversed before (-1: none). */
+static int answers_at(const PmxHierarchy *h, PmxScratch *s, Budget *b, int64_t n, int64_t m, int64_t kept, float lo,
+                      const float *view, float unit, int flags, OwnBlock own, const int32_t *budgets, int64_t B,
+                      int64_t top, int64_t base_faces, int64_t last_count, float *next_lo, int64_t *guess,
+                      int64_t *alt)
+{
+    const int ortho = (flags & PMX_ORTHOGRAPHIC) != 0, screen = (flags & PMX_SCREEN) != 0;
+    /* Own tolerances of the slots that did not run and whose own decision
+     * is not a sure collapse, a block of positions at a time. */
+    int64_t k = 0;
+    for (int64_t i = 0; i < n; i++) {
+        b->own[i] = -INFINITY;
+        b->wt[k] = (int32_t)i;
+        k += !s->ran[i] & ((s->state[i] & 3) != YES);
+        if (k == LANES) {
+            flush_block(h, s, b, k, view, unit, ortho, screen, own);
+            k = 0;
+        }
+    }
+    if (k)
+        flush_block(h, s, b, k, view, unit, ortho, screen, own);
+    /* An unsure decision (mostly a sphere on a frustum plane) is taken as
+     * "keep"; the second guess takes it as a collapse. */
+    int64_t total = 0, at_twice = 0;
+    int64_t count = eps_pass(s, b, n, lo, base_faces, 0, &total, &at_twice);
+    /* The largest budget's answer lies below lo unless the view is as fine
+     * as it gets (then the budgets met at lo have the guess 0): the counts
+     * at lo and 2 lo give the count's power of tau, extrapolated to the
+     * largest budget, times MARGIN; a count that does not change from 2 lo
+     * (or from the last lo) says the view is as fine as it gets. */
+    const int64_t count_at_lo = base_faces + kept;
+    if (total <= top && lo != 0.0f && count_at_lo != last_count && at_twice != count_at_lo) {
+        const double a = (double)(count_at_lo - base_faces + 1), a2 = (double)(at_twice - base_faces + 1);
+        double power = a > a2 ? log(a / a2) / log(2.0) : 1.0;
+        power = power < 0.5 ? 0.5 : power > 4.0 ? 4.0 : power;
+        const double next = lo * MARGIN * pow(a / (double)(top - base_faces + 1), 1.0 / power);
+        if (next >= 1e-30) {
+            *next_lo = (float)(next < lo * 0.9 ? next : lo * 0.9);
+            return 0;
+        }
+    }
+    /* Each budget's answer from the same eps; those met at lo: 0. */
+    for (int64_t j = 0; j < B; j++)
+        if (budgets[j] >= base_faces) {
+            const int64_t g = answer_of(b, count, lo, total, budgets[j], base_faces);
+            guess[j] = g == -2 ? 0 : g;
+            alt[j] = g == -2 ? 0 : g;
+        }
+    if (m) {
+        int64_t total_alt = 0, unused = 0;
+        count = eps_pass(s, b, n, lo, base_faces, 1, &total_alt, &unused);
+        for (int64_t j = 0; j < B; j++)
+            if (budgets[j] >= base_faces && guess[j] != 0) {
+                const int64_t g_alt = answer_of(b, count, lo, total_alt, budgets[j], base_faces);
+                alt[j] = g_alt == -2 ? guess[j] : g_alt;
+            }
+    }
+    return 1;
+}
+
+/* The budgets a camera can meet (those at or above the coarsest mesh's
+ * faces; the others are never met: inf in guess and alt) and the largest
+ * of them, or -1 when there is none. */
+static int64_t largest_budget(const int32_t *budgets, int64_t B, int64_t base_faces, int64_t *guess, int64_t *alt)
+{
+    int64_t top = -1;
+    for (int64_t j = 0; j < B; j++) {
+        guess[j] = alt[j] = (int64_t)INF_BITS + 1;
+        if (budgets[j] >= base_faces)
+            top = budgets[j] > top ? budgets[j] : top;
+    }
+    return top;
+}
+
+/* The guess of the largest budget (`top`) among B. */
+static int64_t top_guess(const int32_t *budgets, int64_t B, int64_t top, const int64_t *guess)
+{
+    int64_t g_top = 0;
+    for (int64_t j = 0; j < B; j++)
+        if (budgets[j] == top)
+            g_top = guess[j];
+    return g_top;
+}
+
 /* One camera and its B budgets: each budget's guessed answer's bit pattern
  * in guess (INF_BITS + 1: tau = inf), and in alt the guess with the unsure
  * decisions taken as collapses, from one traversal at `lo` (lowered while
@@ -345,19 +436,14 @@ static int64_t budget_one(const Kernels *kern, const PmxHierarchy *h, const floa
                           int flags, const int32_t *budgets, int64_t B, int64_t base_faces, PmxScratch *s, Budget *b,
                           int64_t *guess, int64_t *alt)
 {
-    const int ortho = (flags & PMX_ORTHOGRAPHIC) != 0, screen = (flags & PMX_SCREEN) != 0;
+    const int ortho = (flags & PMX_ORTHOGRAPHIC) != 0;
     const OwnBlock own = own_block();
     float row[PMX_CAMERA], view[PMX_VIEW];
     memcpy(row, camera, sizeof row);
     /* A budget below the coarsest mesh is never met: inf. The largest
      * budget drives the traversal. */
-    int64_t top = -1, open = 0;
-    for (int64_t j = 0; j < B; j++) {
-        guess[j] = alt[j] = (int64_t)INF_BITS + 1;
-        if (budgets[j] >= base_faces)
-            top = budgets[j] > top ? budgets[j] : top, open++;
-    }
-    if (!open)
+    const int64_t top = largest_budget(budgets, B, base_faces, guess, alt);
+    if (top < 0)
         return (int64_t)INF_BITS + 1;
     int64_t last_count = -1;
     for (;;) {
@@ -374,67 +460,17 @@ static int64_t budget_one(const Kernels *kern, const PmxHierarchy *h, const floa
          * the answer lies below lo. */
         int64_t not_run = 0, kept = 0;
         kern->resolve(h, n, s->ids, s->kid, s->state, s->kill, s->ran, NULL, &not_run, &kept);
-        /* Own tolerances of the slots that did not run and whose own
-         * decision is not a sure collapse, a block of positions at a time. */
-        int64_t k = 0;
-        for (int64_t i = 0; i < n; i++) {
-            b->own[i] = -INFINITY;
-            b->wt[k] = (int32_t)i;
-            k += !s->ran[i] & ((s->state[i] & 3) != YES);
-            if (k == LANES) {
-                flush_block(h, s, b, k, view, unit, ortho, screen, own);
-                k = 0;
-            }
-        }
-        if (k)
-            flush_block(h, s, b, k, view, unit, ortho, screen, own);
-        /* An unsure decision (mostly a sphere on a frustum plane) is taken
-         * as "keep"; the second guess takes it as a collapse. */
-        int64_t total = 0, at_twice = 0;
-        int64_t count = eps_pass(s, b, n, lo, base_faces, 0, &total, &at_twice);
-        /* Lower lo while the largest budget's answer lies below it, unless
-         * the view is as fine as it gets (then the budgets met at lo have
-         * the guess 0): the counts at lo and 2 lo give the count's power of
-         * tau, extrapolated to the largest budget, times MARGIN; a count
-         * that does not change from 2 lo (or from the last lo) says the
-         * view is as fine as it gets. */
-        const int64_t count_at_lo = base_faces + kept;
-        if (total <= top && lo != 0.0f && count_at_lo != last_count && at_twice != count_at_lo) {
-            const double a = (double)(count_at_lo - base_faces + 1), a2 = (double)(at_twice - base_faces + 1);
-            double power = a > a2 ? log(a / a2) / log(2.0) : 1.0;
-            power = power < 0.5 ? 0.5 : power > 4.0 ? 4.0 : power;
-            const double next = lo * MARGIN * pow(a / (double)(top - base_faces + 1), 1.0 / power);
-            if (next >= 1e-30) {
-                last_count = count_at_lo;
-                lo = (float)(next < lo * 0.9 ? next : lo * 0.9);
-                continue;
-            }
-        }
-        /* Each budget's answer from the same eps; those met at lo: 0. */
-        for (int64_t j = 0; j < B; j++)
-            if (budgets[j] >= base_faces) {
-                const int64_t g = answer_of(b, count, lo, total, budgets[j], base_faces);
-                guess[j] = g == -2 ? 0 : g;
-                alt[j] = g == -2 ? 0 : g;
-            }
-        if (m) {
-            int64_t total_alt = 0, unused = 0;
-            count = eps_pass(s, b, n, lo, base_faces, 1, &total_alt, &unused);
-            for (int64_t j = 0; j < B; j++)
-                if (budgets[j] >= base_faces && guess[j] != 0) {
-                    const int64_t g_alt = answer_of(b, count, lo, total_alt, budgets[j], base_faces);
-                    alt[j] = g_alt == -2 ? guess[j] : g_alt;
-                }
-        }
-        int64_t g_top = 0;
-        for (int64_t j = 0; j < B; j++)
-            if (budgets[j] == top)
-                g_top = guess[j];
-        return g_top;
+        float next = lo;
+        if (answers_at(h, s, b, n, m, kept, lo, view, unit, flags, own, budgets, B, top, base_faces, last_count,
+                       &next, guess, alt))
+            return top_guess(budgets, B, top, guess);
+        last_count = base_faces + kept;
+        lo = next;
     }
 }
 
-/* A batch shared by its threads (cursor), as in traverse.c. */
+/* A batch shared by its threads (cursor), as in traverse.c: cameras, or
+ * words of FRAMES consecutive frames of a path. */
 typedef struct {
     const PmxHierarchy *h;
     const float *cameras, *units;
@@ -446,23 +482,64 @@ typedef struct {
     PmxStatus status;
 } Batch;
 
+/* A thread's working memory: its scratch (with a word's frame masks where
+ * `words`), the Budget arrays, the unsure frames of a word's slots and one
+ * camera's guesses (g, alt: B each); 0 when out of memory (what was taken
+ * is given back by budget_give). */
+typedef struct {
+    PmxScratch *s;
+    Budget b;
+    float *eps_room;
+    Lanes *unsure_at;
+    int64_t *g, *alt;
+} Work;
+
+static int budget_take(Work *k, const PmxHierarchy *h, int64_t B, int words)
+{
+    const int64_t room = h->n_pcols + PMX_SPARE;
+    k->s = pmx_scratch_take(h->n_pcols);
+    k->eps_room = malloc(sizeof(float) * (size_t)(room + 1));
+    k->b = (Budget){k->eps_room ? k->eps_room + 1 : NULL, malloc(sizeof(float) * (size_t)room),
+                    malloc(sizeof(float) * (size_t)room), malloc(sizeof(float) * (size_t)room),
+                    malloc(sizeof(int32_t) * (size_t)room), malloc(sizeof(int32_t) * (size_t)room),
+                    malloc(sizeof(int64_t) * BUCKETS)};
+    k->unsure_at = words ? malloc(sizeof(Lanes) * (size_t)room) : NULL;
+    k->g = malloc(sizeof(int64_t) * (size_t)(2 * B));
+    k->alt = k->g ? k->g + B : NULL;
+    if (k->eps_room)
+        k->eps_room[0] = -INFINITY; /* eps[-1]: a child not visited */
+    const Budget *b = &k->b;
+    return k->s && scratch_slots(k->s) && (!words || (scratch_words(k->s) && k->unsure_at)) && b->eps && b->own &&
+           b->val && b->sel && b->wt && b->sel_wt && b->bucket && k->g;
+}
+
+static void budget_give(Work *k)
+{
+    free(k->eps_room), free(k->b.own), free(k->b.val), free(k->b.sel), free(k->b.wt), free(k->b.sel_wt);
+    free(k->b.bucket), free(k->unsure_at), free(k->g);
+    if (k->s)
+        pmx_scratch_give(k->s);
+}
+
+/* Camera c's guesses into the batch's outputs (INF_BITS + 1 at most). */
+static void put_guesses(Batch *bt, int64_t c, const int64_t *g, const int64_t *alt)
+{
+    for (int64_t j = 0; j < bt->B; j++) {
+        bt->guess[c * bt->B + j] = (int32_t)(g[j] > (int64_t)INF_BITS + 1 ? (int64_t)INF_BITS + 1 : g[j]);
+        bt->guess_alt[c * bt->B + j] = (int32_t)(alt[j] > (int64_t)INF_BITS + 1 ? (int64_t)INF_BITS + 1 : alt[j]);
+    }
+}
+
 static void batch_work(void *arg)
 {
     Batch *bt = arg;
     const PmxHierarchy *h = bt->h;
-    const int64_t room = h->n_pcols + PMX_SPARE, B = bt->B;
-    PmxScratch *s = pmx_scratch_take(h->n_pcols);
-    float *eps_room = malloc(sizeof(float) * (size_t)(room + 1));
-    Budget b = {eps_room ? eps_room + 1 : NULL, malloc(sizeof(float) * (size_t)room),
-                malloc(sizeof(float) * (size_t)room), malloc(sizeof(float) * (size_t)room),
-                malloc(sizeof(int32_t) * (size_t)room), malloc(sizeof(int32_t) * (size_t)room),
-                malloc(sizeof(int64_t) * BUCKETS)};
-    int64_t *g = malloc(sizeof(int64_t) * (size_t)(2 * B)), *alt = g ? g + B : NULL;
-    if (eps_room)
-        eps_room[0] = -INFINITY; /* eps[-1]: a child not visited */
-    if (!s || !scratch_slots(s) || !b.eps || !b.own || !b.val || !b.sel || !b.wt || !b.sel_wt || !b.bucket || !g) {
+    const int64_t B = bt->B;
+    Work k;
+    if (!budget_take(&k, h, B, 0)) {
         __atomic_store_n(&bt->status, PMX_NO_MEMORY, __ATOMIC_RELAXED);
-        goto done;
+        budget_give(&k);
+        return;
     }
     const unsigned mode = subnormals_off();
     const Kernels *kern = pmx_kernels();
@@ -483,15 +560,12 @@ static void batch_work(void *arg)
         if (!(lo > 0.0f) || lo > 1e30f)
             lo = 1.0f;
         const int64_t top = budget_one(kern, h, camera, bt->units[c], lo, bt->flags, bt->budgets + c * B, B,
-                                       bt->base_faces, s, &b, g, alt);
+                                       bt->base_faces, k.s, &k.b, k.g, k.alt);
         if (top < 0) {
             __atomic_store_n(&bt->status, PMX_BAD_TABLE, __ATOMIC_RELAXED);
             break;
         }
-        for (int64_t j = 0; j < B; j++) {
-            bt->guess[c * B + j] = (int32_t)(g[j] > (int64_t)INF_BITS + 1 ? (int64_t)INF_BITS + 1 : g[j]);
-            bt->guess_alt[c * B + j] = (int32_t)(alt[j] > (int64_t)INF_BITS + 1 ? (int64_t)INF_BITS + 1 : alt[j]);
-        }
+        put_guesses(bt, c, k.g, k.alt);
         if (top > 0 && top <= INF_BITS) {
             float t;
             const int32_t gb = (int32_t)top;
@@ -500,16 +574,89 @@ static void batch_work(void *arg)
         }
     }
     subnormals_back(mode);
-done:
-    free(eps_room), free(b.own), free(b.val), free(b.sel), free(b.wt), free(b.sel_wt), free(b.bucket), free(g);
-    if (s)
-        pmx_scratch_give(s);
+    budget_give(&k);
+}
+
+/* The guesses of a word's frames: the word traversed once at each frame's
+ * own tolerance lo (its row's; most pcols decided for all the frames at
+ * once under the fat camera, words.c), then per frame the slots' states
+ * and ran bits as one camera's traversal would give them and the answers
+ * from them as for one camera (answers_at). A frame whose largest budget's
+ * answer lies below its lo gets -1 (a guess left to its own traversal). */
+static void words_work(void *arg)
+{
+    Batch *bt = arg;
+    const PmxHierarchy *h = bt->h;
+    const int64_t B = bt->B;
+    Work k;
+    if (!budget_take(&k, h, B, 1)) {
+        __atomic_store_n(&bt->status, PMX_NO_MEMORY, __ATOMIC_RELAXED);
+        budget_give(&k);
+        return;
+    }
+    PmxScratch *s = k.s;
+    const unsigned mode = subnormals_off();
+    const Kernels *kern = pmx_kernels();
+    const OwnBlock own = own_block();
+    const int ortho = (bt->flags & PMX_ORTHOGRAPHIC) != 0;
+    for (int64_t w; (w = __atomic_fetch_add(&bt->cursor, 1, __ATOMIC_RELAXED)) < bt->K / FRAMES;) {
+        const float *cameras = bt->cameras + w * FRAMES * PMX_CAMERA;
+        float views[FRAMES * PMX_VIEW], fat[PMX_FAT];
+        for (int l = 0; l < FRAMES; l++)
+            pmx_view_of(cameras + l * PMX_CAMERA, ortho, views + l * PMX_VIEW);
+        const int have_fat = pmx_fat_cameras(views, 1, FRAMES, fat) == PMX_OK;
+        /* The word's traversal and per frame the faces the pcols that did
+         * not run keep (unsure decisions as "keep"). */
+        int64_t m = 0, at_once = 0;
+        const int64_t n = traverse_word(kern, h, views, FRAMES, bt->flags, have_fat ? fat : NULL, s->ids, s->kid,
+                                        s->visit, s->whole, s->yes, s->unsure, s->unsure_lanes, &m, &at_once);
+        if (n < 0) {
+            __atomic_store_n(&bt->status, PMX_BAD_TABLE, __ATOMIC_RELAXED);
+            break;
+        }
+        PmxCounts counts[FRAMES];
+        kern->resolve_word(h->kills, h->order, n, s->ids, s->kid, s->visit, s->whole, s->yes, s->ran_frames, NULL,
+                           counts);
+        /* Each slot's unsure frames and faces killed. */
+        memset(k.unsure_at, 0, sizeof(Lanes) * (size_t)n);
+        for (int64_t q = 0; q < m; q++)
+            k.unsure_at[s->unsure[q]] |= s->unsure_lanes[q];
+        for (int64_t i = 0; i < n; i++)
+            s->kill[i] = h->kills[s->ids[i]];
+        for (int l = 0; l < FRAMES; l++) {
+            const int64_t c = w * FRAMES + l;
+            const int32_t *budgets = bt->budgets + c * B;
+            const int64_t top = largest_budget(budgets, B, bt->base_faces, k.g, k.alt);
+            if (top >= 0) {
+                /* Frame l's slots as its own traversal leaves them: a slot
+                 * it did not visit, or whose bound decided it, ran. */
+                int64_t m_l = 0;
+                for (int64_t i = 0; i < n; i++) {
+                    const int yes = (s->yes[i] >> l) & 1, unsure = (k.unsure_at[i] >> l) & 1;
+                    s->ran[i] = (uint8_t)((s->ran_frames[i] >> l) & 1);
+                    s->state[i] = (uint8_t)(yes ? YES : unsure ? UNSURE : NO);
+                    m_l += unsure;
+                }
+                float next = 0;
+                if (!answers_at(h, s, &k.b, n, m_l, counts[l].kept, cameras[l * PMX_CAMERA + PMX_CAMERA - 1],
+                                views + l * PMX_VIEW, bt->units[c], bt->flags, own, budgets, B, top,
+                                bt->base_faces, -1, &next, k.g, k.alt))
+                    for (int64_t j = 0; j < B; j++)
+                        k.g[j] = k.alt[j] = -1;
+            }
+            put_guesses(bt, c, k.g, k.alt);
+        }
+    }
+    subnormals_back(mode);
+    budget_give(&k);
 }
 
 PmxStatus pmx_budget_many(const PmxHierarchy *h, const float *cameras, const float *units, int64_t K, int flags,
                           const int32_t *budgets, int64_t B, int64_t base_faces, int32_t *guess, int32_t *guess_alt,
-                          const PmxRunner *run)
+                          int words, const PmxRunner *run)
 {
+    if (words && K % FRAMES)
+        return PMX_BAD_SIZE;
     Batch bt = {h, cameras, units, budgets, K, B, 0, base_faces, flags, {0, 0, 0}, guess, guess_alt, PMX_OK};
     /* The model's centre: the mean of the roots' centres. */
     double c[3] = {0, 0, 0};
@@ -518,6 +665,6 @@ PmxStatus pmx_budget_many(const PmxHierarchy *h, const float *cameras, const flo
             c[a] += h->rows[q * ROW + CX + a];
     for (int a = 0; a < 3; a++)
         bt.centre[a] = (float)(h->n_roots ? c[a] / (double)h->n_roots : 0.0);
-    run_shared(run, batch_work, &bt);
+    run_shared(run, words ? words_work : batch_work, &bt);
     return bt.status;
 }
