@@ -307,7 +307,7 @@ def test_frames_left_to_their_own_traversal_still_get_the_exact_answers(built, m
     data = built("cow.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
     cams = _paths(data, 36, seed=10)["fly"]
-    budgets = np.tile(np.array(_budgets(pm, cams)[1:6]), (36, 1))
+    budgets = np.tile(np.array(_budgets(pm, cams)[1:5]), (36, 1))
     seen = []
     original = _refine._word_guesses
     monkeypatch.setattr(_refine, "PATH_START", 4.0)
