@@ -713,10 +713,12 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
         chunk: cameras per call, rounded up to a multiple of 32.
         method: ``"auto"``, ``"front"`` or ``"dense"`` (as :func:`faces_for_budget`).
         path: the cameras are the frames of one path, in order (an orbit, a
-            fly-through): each frame's guess starts from the guesses of sampled
-            frames around it, and the first exact counts run through the
-            coherent path engine (:func:`pmjax.path_counts`, per-frame
-            tolerances). The same answers; only the cost differs.
+            fly-through): every 16th frame is guessed alone, the frames
+            between word by word inside the coherent path engine, starting
+            below the answers the sampled frames around them predict, and
+            the first exact counts run through it too
+            (:func:`pmjax.path_counts`, per-frame tolerances). The same
+            answers; only the cost differs.
 
     Returns:
         dict ``tau`` (``float32``, pixels; ``0`` when even the finest view
@@ -801,9 +803,10 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
 
 # Along a path, every PATH_SAMPLE-th frame is guessed first (each from the
 # answer of the frame its thread did before, START times above, so usually
-# two traversals); the others start their single traversal PATH_START times
-# below the smallest answer the sampled frames around them predict (log tau
-# interpolated along the path), where a traversal finds the answers at once.
+# two traversals); the others are guessed word by word, each frame's traversal
+# at PATH_START times the smallest answer the sampled frames around it
+# predict (log tau interpolated along the path), where it finds the answers
+# at once.
 PATH_SAMPLE = 16
 PATH_START = 0.9
 
@@ -811,7 +814,8 @@ PATH_START = 0.9
 def _path_budgets(pm, host, budgets, tests, chunk):
     """:func:`faces_for_budget_batch` of one path's frames in order (``host``
     NumPy cameras, ``budgets`` int64 [K, B] at most F; results [K, B]):
-    guesses seeded by sampled frames, then exact counts, the first two
+    guesses of sampled frames, then of the others word by word, then exact
+    counts, the first two
     rounds' (at the guess and one pattern below it, all frames) through the
     core's words, one pass of the path per budget."""
     K, B = budgets.shape

@@ -15,7 +15,12 @@
  * them, which an evaluation with other roundings (or an unsure frustum or
  * orientation decision) can move: the result is a guess, which the caller
  * turns into the exact answer by exact counts at it and just below it
- * (pmjax/_refine.py). */
+ * (pmjax/_refine.py).
+ *
+ * Along a path the frames of a word (words.c) are traversed together, each
+ * at its own lo, most pcols decided for all of them under the fat camera;
+ * every frame's eps is then folded at once (a slot's 16 frames in one
+ * vector) and each frame's answers come from its own lane as above. */
 #include <float.h>
 #include <stdlib.h>
 
@@ -102,6 +107,9 @@ static float own_tolerance(const float *row, const float *view, float unit, int 
 
 /* Pcols a block of the vectorized pass takes. */
 #define LANES 256
+/* Slots between a row's prefetch and its use by a word's pairs (about one
+ * block of LANES pairs; one camera's pass looks FRAMES times farther). */
+#define AHEAD_ROWS 16
 
 /* own_tolerance of the pcols at positions pos[0..n) (n <= LANES) into out,
  * each under its view view[j] with one pixel unit[j], as loops over the
@@ -423,6 +431,10 @@ static int answers_at(const PmxHierarchy *h, PmxScratch *s, Budget *b, int64_t n
      * is not a sure collapse, a block of positions at a time. */
     int64_t k = 0;
     for (int64_t i = 0; i < n; i++) {
+        /* The rows a block ahead, so that they arrive in time (the
+         * traversal's reads of them left the cache). */
+        if (i + AHEAD_ROWS * FRAMES < n)
+            __builtin_prefetch(h->rows + (int64_t)s->ids[i + AHEAD_ROWS * FRAMES] * ROW);
         b->own[i] = -INFINITY;
         b->wt[k] = (int32_t)i;
         k += !s->ran[i] & ((s->state[i] & 3) != YES);
@@ -701,6 +713,10 @@ static void lanes_own(const PmxHierarchy *h, const PmxScratch *s, int64_t n, con
     const float *view[LANES];
     int64_t k = 0;
     for (int64_t i = 0; i < n; i++) {
+        /* The rows a block of pairs ahead, so that they arrive in time (the
+         * traversal's reads of them left the cache). */
+        if (i + AHEAD_ROWS < n)
+            __builtin_prefetch(h->rows + (int64_t)s->ids[i + AHEAD_ROWS] * ROW);
         for (int l = 0; l < FRAMES; l++)
             eps[i * FRAMES + l] = -INFINITY;
         for (uint32_t need = (Lanes) ~(s->ran_frames[i] | s->yes[i]); need; need &= need - 1) {
