@@ -853,8 +853,9 @@ def _path_budgets(pm, host, budgets, tests, chunk):
     def along_path(bits):
         counted = np.empty((K * B, 3), np.int64)
         for j in range(B):
-            taus = bits[j * K:(j + 1) * K].astype(np.int32).view(np.float32)
-            counted[j * K:(j + 1) * K] = _word_counts(pm, host, taus, tests)
+            at = rows.copy()
+            at[:, -1] = bits[j * K:(j + 1) * K].astype(np.int32).view(np.float32)
+            counted[j * K:(j + 1) * K] = _word_counts(d, counts_of, at, tests, host.orthographic)
         return counted
 
     tau, cols = _exact_from_guess(d.core, np.tile(rows, (B, 1)), budgets.T.ravel(), guess.T.ravel(),
@@ -864,15 +865,26 @@ def _path_budgets(pm, host, budgets, tests, chunk):
                 executed_count=cols[2].reshape(B, K).T.astype(np.int32))
 
 
-def _word_counts(pm, host, taus, tests):
+def _word_counts(d, counts_of, rows, tests, orthographic):
     """Exact ``(faces, vertices, executed)`` (``int64 [K, 3]``) of the frames
-    ``host`` (a path in order) each at its own tolerance ``taus``
-    (``float32 [K]``), through the path engine's words."""
-    from ._path import _core_path_counts
+    ``rows`` (``float32 [K, CAMERA]``, a path in order, each with its own
+    tolerance) through the core's words: the path padded to whole words by
+    its last frame, whole blocks of words per call, then the rest in powers
+    of two words (few compiled sizes)."""
+    K, F = len(rows), _core.FRAMES
+    words = -(-K // F)
+    order = np.minimum(np.arange(words * F), K - 1)
+    out = np.empty((K, 3), np.int64)
+    for start, n in _core.word_spans(words, _core.WORDS_PER_CALL):
+        lanes = order[start * F:(start + n) * F]
+        counts = np.asarray(_core_word_counts(d.core_words, d.core, rows[lanes], tests, orthographic))
+        out[lanes] = np.stack(counts_of(counts[:, 1], counts[:, 2], np), 1)  # a repeated frame: the same counts
+    return out
 
-    cols = [np.zeros(len(taus), np.int32) for _ in range(3)]
-    _core_path_counts(pm, host, taus, tests, len(taus), cols, np.zeros(len(taus)), lambda it, total, unit: it, False)
-    return np.stack(cols, 1).astype(np.int64)
+
+@functools.partial(jax.jit, static_argnames=("tests", "orthographic"))
+def _core_word_counts(tables, one_tables, rows, tests, orthographic):
+    return _core.refine_words(tables, one_tables, rows, tests, orthographic, False)[0]
 
 
 def _guesses(d, counts_of, host, frames, start, budgets, tests, chunk):
@@ -901,13 +913,12 @@ def _word_guesses(d, counts_of, host, start, budgets, tests):
     [K]``, > 0), -1 for a frame whose answers lie below its tolerance: the
     path padded to whole words by its last frame, whole blocks of words per
     call, then the rest in powers of two words."""
-    from ._path import _word_padded
-
     K, B = budgets.shape
-    order = _word_padded(K, K, _core.FRAMES)
+    words = -(-K // _core.FRAMES)
+    order = np.minimum(np.arange(words * _core.FRAMES), K - 1)
     rows = _core.host_camera_rows(host, start, d.exponent)
     guess, alt = np.empty((K, B), np.int32), np.empty((K, B), np.int32)
-    for w0, n in _core.word_spans(len(order) // _core.FRAMES, _core.WORDS_PER_CALL):
+    for w0, n in _core.word_spans(words, _core.WORDS_PER_CALL):
         lanes = order[w0 * _core.FRAMES:(w0 + n) * _core.FRAMES]
         got = _core_guesses(d.core_words, rows[lanes], budgets[lanes].astype(np.int32), tests, host.orthographic,
                             counts_of.base_faces, words=True)
