@@ -713,10 +713,12 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
         chunk: cameras per call, rounded up to a multiple of 32.
         method: ``"auto"``, ``"front"`` or ``"dense"`` (as :func:`faces_for_budget`).
         path: the cameras are the frames of one path, in order (an orbit, a
-            fly-through): each frame's guess starts from the guesses of sampled
-            frames around it, and the first exact counts run through the
-            coherent path engine (:func:`pmjax.path_counts`, per-frame
-            tolerances). The same answers; only the cost differs.
+            fly-through): every 16th frame is guessed alone, the frames
+            between word by word inside the coherent path engine, starting
+            below the answers the sampled frames around them predict, and
+            the first exact counts run through it too
+            (:func:`pmjax.path_counts`, per-frame tolerances). The same
+            answers; only the cost differs.
 
     Returns:
         dict ``tau`` (``float32``, pixels; ``0`` when even the finest view
@@ -786,26 +788,25 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
     tau = np.empty((K, B), np.float32)
     cols = [np.empty((K, B), np.int32) for _ in range(3)]
     for s in range(0, K, chunk):
-        idx = order[np.minimum(np.arange(s, s + chunk), K - 1)]  # pad by repeating the last
-        part = jax.tree.map(lambda a: a[idx], host)
-        rows = _core.host_camera_rows(part, np.zeros(chunk, np.float32), d.exponent)
-        guess, alt = (np.asarray(g) for g in _core_guesses(d.core, rows, budgets[idx].astype(np.int32), tests,
-                                                            cameras.orthographic, counts_of.base_faces))
-        n = min(chunk, K - s)
+        idx = order[s:s + chunk]
+        n = len(idx)
+        guess, alt = _guesses(d, counts_of, host, idx, np.zeros(n, np.float32), budgets, tests, chunk)
+        rows = _core.host_camera_rows(jax.tree.map(lambda a: a[idx], host), np.zeros(n, np.float32), d.exponent)
         # Every (camera, budget) pair its own probe row.
-        t, c = _exact_from_guess(d.core, np.repeat(rows[:n], B, axis=0), budgets[idx[:n]].ravel(),
-                                 guess[:n].ravel(), alt[:n].ravel(), tests, cameras.orthographic, counts_of)
-        tau[idx[:n]] = t.reshape(n, B)
+        t, c = _exact_from_guess(d.core, np.repeat(rows, B, axis=0), budgets[idx].ravel(), guess.ravel(),
+                                 alt.ravel(), tests, cameras.orthographic, counts_of)
+        tau[idx] = t.reshape(n, B)
         for col, v in zip(cols, c):
-            col[idx[:n]] = v.reshape(n, B)
+            col[idx] = v.reshape(n, B)
     return shaped(dict(tau=tau, faces=cols[0], vertices=cols[1], executed_count=cols[2]))
 
 
 # Along a path, every PATH_SAMPLE-th frame is guessed first (each from the
 # answer of the frame its thread did before, START times above, so usually
-# two traversals); the others start their single traversal PATH_START times
-# below the smallest answer the sampled frames around them predict (log tau
-# interpolated along the path), where a traversal finds the answers at once.
+# two traversals); the others are guessed word by word, each frame's traversal
+# at PATH_START times the smallest answer the sampled frames around it
+# predict (log tau interpolated along the path), where it finds the answers
+# at once.
 PATH_SAMPLE = 16
 PATH_START = 0.9
 
@@ -813,7 +814,8 @@ PATH_START = 0.9
 def _path_budgets(pm, host, budgets, tests, chunk):
     """:func:`faces_for_budget_batch` of one path's frames in order (``host``
     NumPy cameras, ``budgets`` int64 [K, B] at most F; results [K, B]):
-    guesses seeded by sampled frames, then exact counts, the first two
+    guesses of sampled frames, then of the others word by word, then exact
+    counts, the first two
     rounds' (at the guess and one pattern below it, all frames) through the
     core's words, one pass of the path per budget."""
     K, B = budgets.shape
@@ -835,7 +837,15 @@ def _path_budgets(pm, host, budgets, tests, chunk):
         start = np.where(np.isfinite(predicted), predicted, 0.0).astype(np.float32)
     rest = np.setdiff1d(np.arange(K), sampled)
     if len(rest):
-        guess[rest], alt[rest] = _guesses(d, counts_of, host, rest, start[rest], budgets, tests, chunk)
+        # The other frames guessed word by word along the path, each at its
+        # start (a frame without one at inf: a traversal that stops at the
+        # roots, its guess unused); those whose answers lie below it, or
+        # that have no start, are guessed alone.
+        guess[rest], alt[rest] = (x[rest] for x in _word_guesses(d, counts_of, host, np.where(
+            start > 0, start, np.float32(np.inf)), budgets, tests))
+        alone = rest[~(start[rest] > 0) | (guess[rest] < 0).any(axis=1)]
+        if len(alone):
+            guess[alone], alt[alone] = _guesses(d, counts_of, host, alone, start[alone], budgets, tests, chunk)
     rows = _core.host_camera_rows(host, np.zeros(K, np.float32), d.exponent)
 
     # The (frame, budget) pairs budget by budget: each budget's K pairs are
@@ -896,9 +906,29 @@ def _guesses(d, counts_of, host, frames, start, budgets, tests, chunk):
     return guess, alt
 
 
-@functools.partial(jax.jit, static_argnames=("tests", "orthographic", "base_faces"))
-def _core_guesses(tables, rows, budgets, tests, orthographic, base_faces):
-    return _core.budget_guesses(tables, rows, budgets, tests, orthographic, base_faces)
+def _word_guesses(d, counts_of, host, start, budgets, tests):
+    """The core's ``(guess, alt)`` (``int32 [K, B]``) of a path's frames
+    ``host`` in order for their budgets (``[K, B]``), each word of frames
+    traversed once at the frames' own tolerances ``start`` (``float32
+    [K]``, > 0), -1 for a frame whose answers lie below its tolerance: the
+    path padded to whole words by its last frame, whole blocks of words per
+    call, then the rest in powers of two words."""
+    K, B = budgets.shape
+    words = -(-K // _core.FRAMES)
+    order = np.minimum(np.arange(words * _core.FRAMES), K - 1)
+    rows = _core.host_camera_rows(host, start, d.exponent)
+    guess, alt = np.empty((K, B), np.int32), np.empty((K, B), np.int32)
+    for w0, n in _core.word_spans(words, _core.WORDS_PER_CALL):
+        lanes = order[w0 * _core.FRAMES:(w0 + n) * _core.FRAMES]
+        got = _core_guesses(d.core_words, rows[lanes], budgets[lanes].astype(np.int32), tests, host.orthographic,
+                            counts_of.base_faces, words=True)
+        guess[lanes], alt[lanes] = (np.asarray(x) for x in got)  # a repeated frame: the same guesses
+    return guess, alt
+
+
+@functools.partial(jax.jit, static_argnames=("tests", "orthographic", "base_faces", "words"))
+def _core_guesses(tables, rows, budgets, tests, orthographic, base_faces, words=False):
+    return _core.budget_guesses(tables, rows, budgets, tests, orthographic, base_faces, words=words)
 
 
 # Patterns probed next to a wrong guess in the second round of counts: the

@@ -7,13 +7,16 @@ critical tolerances, and the counts of a refine at the answer.
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 import pytest
 
 import pmjax
 from pmjax import _refine
 from pmjax._camera import index_camera, stack_cameras
+from pmjax._predicate import ALL_TESTS
 from pmjax.engines import _dense
+from pmjax.engines._tables import derived
 
 pytestmark = pytest.mark.core
 
@@ -242,3 +245,73 @@ def test_several_budgets_with_wrong_path_guesses_give_the_exact_answers(built, m
             bad(np.asarray(g, np.int64)).astype(np.int32) for g in original(*a, **k)))
         _assert_same(want, pmjax.faces_for_budget_batch(pm, cams, budgets, path=True, method="front"), "bad")
     monkeypatch.setattr(_refine, "_core_guesses", original)
+
+
+def _assert_one_at_a_time(pm, cams, budgets, got):
+    """``got`` (a path's ``[K, B]`` answers) against ``faces_for_budget`` of
+    each frame and budget alone, and the counts of a refine at the answer."""
+    for k in range(budgets.shape[0]):
+        cam = index_camera(cams, k)
+        for j in range(budgets.shape[1]):
+            tau, faces = pmjax.faces_for_budget(pm, cam, int(budgets[k, j]), method="front")
+            assert np.float32(got["tau"][k, j]).tobytes() == np.float32(tau).tobytes(), (k, j)
+            assert got["faces"][k, j] == int(faces), (k, j)
+            r = pmjax.refine(pm, cam, got["tau"][k, j], method="front")
+            assert (got["vertices"][k, j], got["executed_count"][k, j]) == (int(r.n_vertices),
+                                                                           int(r.n_executed)), (k, j)
+
+
+@pytest.mark.parametrize("kind", ["orbit", "fly"])
+def test_word_guessed_paths_equal_faces_for_budget_per_frame(built, kind):
+    """An orbit and a fly-through into the model of 40 frames (three words,
+    sampled frames between them), several budgets per frame (below the base
+    mesh, at it, between, above the full mesh): every answer is
+    faces_for_budget's for that frame alone."""
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _paths(data, 40, seed=8)[kind]
+    budgets = np.tile(np.array(_budgets(pm, cams)), (40, 1))
+    got = pmjax.faces_for_budget_batch(pm, cams, budgets, path=True, method="front")
+    _assert_one_at_a_time(pm, cams, budgets, got)
+
+
+@pytest.mark.parametrize("kind", ["orbit", "fly"])
+def test_word_guesses_equal_one_camera_guesses(built, kind):
+    """A word's frames traversed together at their own tolerances guess what
+    each frame's own traversal at that tolerance guesses; a frame whose
+    answers lie below its tolerance gets -1 where its own traversal would
+    have to go lower."""
+    data = built("bunny.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _paths(data, 48, seed=9)[kind]
+    host = jax.tree.map(np.asarray, cams)
+    d, counts_of = derived(pm), _refine._Counts.of(pm)
+    budgets = np.tile(np.array(_budgets(pm, cams)[2:5]), (48, 1)).astype(np.int64)
+    frames = np.arange(48)
+    first, _ = _refine._guesses(d, counts_of, host, frames, np.zeros(48, np.float32), budgets, ALL_TESTS, 64)
+    answer = first[:, np.argmax(budgets[0])].view(np.float32)
+    # Below the answers (a traversal finds them at once), and above them on
+    # every third frame (where the answers lie below: -1).
+    start = np.where(frames % 3 == 0, 2 * answer, 0.9 * answer).astype(np.float32)
+    words = _refine._word_guesses(d, counts_of, host, start, budgets, ALL_TESTS)
+    alone = _refine._guesses(d, counts_of, host, frames, start, budgets, ALL_TESTS, 64)
+    left = (words[0] == -1).all(axis=1)
+    assert left[frames % 3 == 0].any() and not left[frames % 3 != 0].any()
+    for w, a in zip(words, alone):
+        np.testing.assert_array_equal(w[~left], a[~left])
+
+
+def test_frames_left_to_their_own_traversal_still_get_the_exact_answers(built, monkeypatch):
+    """With every frame's start above its answers, the word guesses give -1
+    and the frames are guessed alone: the answers stay faces_for_budget's."""
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _paths(data, 36, seed=10)["fly"]
+    budgets = np.tile(np.array(_budgets(pm, cams)[1:5]), (36, 1))
+    seen = []
+    original = _refine._word_guesses
+    monkeypatch.setattr(_refine, "PATH_START", 4.0)
+    monkeypatch.setattr(_refine, "_word_guesses", lambda *a: seen.append(original(*a)) or seen[-1])
+    got = pmjax.faces_for_budget_batch(pm, cams, budgets, path=True, method="front")
+    assert seen and any((g < 0).any() for g, _ in seen)
+    _assert_one_at_a_time(pm, cams, budgets, got)

@@ -434,7 +434,7 @@ def _redo_overflowed(tables, cameras, tests, orthographic, overflow, counts, mas
 
 
 def budget_guesses(tables: CoreTables, cameras, budgets, tests, orthographic: bool, base_faces: int,
-                   threads: int = 0):
+                   threads: int = 0, words: bool = False):
     """Per camera and budget, a guess of the smallest float32 ``tau`` whose
     face count is within the budget: one traversal per camera at a tolerance
     below the smallest of its answers and the critical tolerances of the
@@ -448,6 +448,12 @@ def budget_guesses(tables: CoreTables, cameras, budgets, tests, orthographic: bo
         budgets: ``int32 [K, B]`` faces, B budgets per camera (one traversal
             serves them all).
         base_faces: the coarsest mesh's faces.
+        words: the cameras are a path's frames in words of FRAMES (K a
+            multiple of FRAMES; ``tables`` with bounds over whole subtrees,
+            ``Derived.core_words``), each with a tolerance > 0 to traverse
+            at: each word is traversed once for its frames, and a frame
+            whose answers lie below its tolerance gets -1 (left to a
+            traversal of its own).
 
     Returns:
         ``(guess, guess_alt)`` ``int32 [K, B]``: float32 bit patterns,
@@ -461,7 +467,7 @@ def budget_guesses(tables: CoreTables, cameras, budgets, tests, orthographic: bo
     return _call("pmx_budget_many", (_sds((K, B), jnp.int32), _sds((K, B), jnp.int32)), *_hierarchy_args(tables),
                  cameras, units, budgets,
                  flags=np.int32(flags_of(tests, orthographic)), n_roots=np.int64(tables.n_roots),
-                 base_faces=np.int64(base_faces), threads=np.int64(threads))
+                 base_faces=np.int64(base_faces), threads=np.int64(threads), words=np.int32(words))
 
 
 # -- words of a path -------------------------------------------------------------------

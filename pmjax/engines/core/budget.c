@@ -15,7 +15,12 @@
  * them, which an evaluation with other roundings (or an unsure frustum or
  * orientation decision) can move: the result is a guess, which the caller
  * turns into the exact answer by exact counts at it and just below it
- * (pmjax/_refine.py). */
+ * (pmjax/_refine.py).
+ *
+ * Along a path the frames of a word (words.c) are traversed together, each
+ * at its own lo, most pcols decided for all of them under the fat camera;
+ * every frame's eps is then folded at once (a slot's 16 frames in one
+ * vector) and each frame's answers come from its own lane as above. */
 #include <float.h>
 #include <stdlib.h>
 
@@ -102,21 +107,25 @@ static float own_tolerance(const float *row, const float *view, float unit, int 
 
 /* Pcols a block of the vectorized pass takes. */
 #define LANES 256
+/* Slots between a row's prefetch and its use by a word's pairs (about one
+ * block of LANES pairs; one camera's pass looks FRAMES times farther). */
+#define AHEAD_ROWS 16
 
 /* own_tolerance of the pcols at positions pos[0..n) (n <= LANES) into out,
- * as loops over the block's columns that the compiler vectorizes: the
- * closed form and the float32 test around it; a pcol whose switch lies
- * farther (rare) takes the scalar steps. */
-PMX_INLINE void own_block_body(const float *rows, const int32_t *pos, int64_t n, const float *view, float unit,
-                               int ortho, float *out)
+ * each under its view view[j] with one pixel unit[j], as loops over the
+ * block's columns that the compiler vectorizes: the closed form and the
+ * float32 test around it; a pcol whose switch lies farther (rare) takes
+ * the scalar steps. */
+PMX_INLINE void own_block_body(const float *rows, const int32_t *pos, int64_t n, const float *const *view,
+                               const float *unit, int ortho, float *out)
 {
     float mu2[LANES], normal2[LANES], s[LANES], f[LANES], fu[LANES];
     int32_t ok[LANES], never[LANES];
-    const float ex = view[EYE], ey = view[EYE + 1], ez = view[EYE + 2];
-    const float fx = view[FORWARD], fy = view[FORWARD + 1], fz = view[FORWARD + 2];
     /* The screen test's terms, in the predicate's order of operations. */
     for (int64_t j = 0; j < n; j++) {
-        const float *row = rows + (int64_t)pos[j] * ROW;
+        const float *row = rows + (int64_t)pos[j] * ROW, *v = view[j];
+        const float ex = v[EYE], ey = v[EYE + 1], ez = v[EYE + 2], fx = v[FORWARD], fy = v[FORWARD + 1];
+        const float fz = v[FORWARD + 2];
         const float m = row[MU], d = row[DELTA], delta2 = d * d;
         mu2[j] = m * m;
         if (ortho) {
@@ -134,7 +143,7 @@ PMX_INLINE void own_block_body(const float *rows, const int32_t *pos, int64_t n,
     for (int64_t j = 0; j < n; j++) {
         const double ds = s[j], nn = normal2[j] > 0 ? normal2[j] : 0.0f;
         const double x = (double)mu2[j] / ds > nn / (ds * ds) ? (double)mu2[j] / ds : nn / (ds * ds);
-        double t = sqrt(x) / unit;
+        double t = sqrt(x) / unit[j];
         t = t <= FLT_MAX ? t : FLT_MAX;
         const float tf = (float)t;
         memcpy(&f[j], &tf, sizeof tf);
@@ -145,12 +154,12 @@ PMX_INLINE void own_block_body(const float *rows, const int32_t *pos, int64_t n,
         const int32_t bm2 = b0 - 2 > 0 ? b0 - 2 : 0, bm1 = b0 - 1 > 0 ? b0 - 1 : 0, bp1 = b0 + 1, bp2 = b0 + 2;
         float tm2, tm1, tp1, tp2;
         memcpy(&tm2, &bm2, 4), memcpy(&tm1, &bm1, 4), memcpy(&tp1, &bp1, 4), memcpy(&tp2, &bp2, 4);
-        const float m = mu2[j], q = normal2[j], sj = s[j];
-        const float k0 = unit * tm2, k1 = unit * tm1, k2 = unit * f[j], k3 = unit * tp1, k4 = unit * tp2;
+        const float m = mu2[j], q = normal2[j], sj = s[j], u = unit[j];
+        const float k0 = u * tm2, k1 = u * tm1, k2 = u * f[j], k3 = u * tp1, k4 = u * tp2;
         const float l0 = k0 * k0 * sj, l1 = k1 * k1 * sj, l2 = k2 * k2 * sj, l3 = k3 * k3 * sj, l4 = k4 * k4 * sj;
         const int s0 = (m < l0) & (q < l0 * sj), s1 = (m < l1) & (q < l1 * sj), s2 = (m < l2) & (q < l2 * sj);
         const int s3 = (m < l3) & (q < l3 * sj), s4 = (m < l4) & (q < l4 * sj);
-        const float ki = unit * INFINITY, li = ki * ki * sj;
+        const float ki = u * INFINITY, li = ki * ki * sj;
         never[j] = !((m < li) & (q < li * sj));
         /* The last pattern not small before one that is (the test is
          * monotone in tau: at most one such pair). */
@@ -165,30 +174,30 @@ PMX_INLINE void own_block_body(const float *rows, const int32_t *pos, int64_t n,
         else if (ok[j])
             out[j] = fu[j];
         else
-            out[j] = own_tolerance(rows + (int64_t)pos[j] * ROW, view, unit, ortho);
+            out[j] = own_tolerance(rows + (int64_t)pos[j] * ROW, view[j], unit[j], ortho);
 }
 
-static void own_block_plain(const float *rows, const int32_t *pos, int64_t n, const float *view, float unit, int ortho,
-                            float *out)
+static void own_block_plain(const float *rows, const int32_t *pos, int64_t n, const float *const *view,
+                            const float *unit, int ortho, float *out)
 {
     own_block_body(rows, pos, n, view, unit, ortho, out);
 }
 
 #if PMX_X86
-PMX_TARGET_AVX2 static void own_block_avx2(const float *rows, const int32_t *pos, int64_t n, const float *view,
-                                           float unit, int ortho, float *out)
+PMX_TARGET_AVX2 static void own_block_avx2(const float *rows, const int32_t *pos, int64_t n, const float *const *view,
+                                           const float *unit, int ortho, float *out)
 {
     own_block_body(rows, pos, n, view, unit, ortho, out);
 }
 
-PMX_TARGET_AVX512 static void own_block_avx512(const float *rows, const int32_t *pos, int64_t n, const float *view,
-                                               float unit, int ortho, float *out)
+PMX_TARGET_AVX512 static void own_block_avx512(const float *rows, const int32_t *pos, int64_t n,
+                                               const float *const *view, const float *unit, int ortho, float *out)
 {
     own_block_body(rows, pos, n, view, unit, ortho, out);
 }
 #endif
 
-typedef void (*OwnBlock)(const float *, const int32_t *, int64_t, const float *, float, int, float *);
+typedef void (*OwnBlock)(const float *, const int32_t *, int64_t, const float *const *, const float *, int, float *);
 
 /* The block kernel of the SIMD level in use (the same bits at every level:
  * fmaf, sqrtf and the division are exactly rounded). */
@@ -242,6 +251,8 @@ static float crossing(float *val, int32_t *wt, int64_t n, int64_t over)
 /* Buckets of the values above lo: 128 per octave (the top 7 bits of the
  * mantissa), 16 octaves, the last holding everything above. */
 #define BUCKETS 2048
+/* Spare entries past them (a power of two). */
+#define SPREAD 8
 
 static int64_t bucket_of(float v, int32_t lo_bits)
 {
@@ -265,14 +276,46 @@ static void flush_block(const PmxHierarchy *h, const PmxScratch *s, Budget *b, i
                         float unit, int ortho, int screen, OwnBlock own)
 {
     int32_t pos[LANES];
-    float out[LANES];
+    float out[LANES], units[LANES];
+    const float *views[LANES];
     for (int64_t j = 0; j < m; j++)
-        pos[j] = s->ids[b->wt[j]];
+        pos[j] = s->ids[b->wt[j]], views[j] = view, units[j] = unit;
     if (screen)
-        own(h->rows, pos, m, view, unit, ortho, out);
+        own(h->rows, pos, m, views, units, ortho, out);
     for (int64_t j = 0; j < m; j++)
         b->own[b->wt[j]] = screen ? out[j] : INFINITY;
 }
+
+/* The tally of a traversal at lo: the values >= lo with their kills
+ * (b->val, b->wt; count of them), their kills per bucket (b->bucket), the
+ * counts at lo and at twice lo. The first bucket, which takes the values
+ * at lo and the slots below it one after another, is summed in `zero`,
+ * the adds it would take spread over spare entries past the buckets (a
+ * chain of adds to one entry waits on each store). */
+typedef struct {
+    int64_t count, total, total2, zero;
+} Tally;
+
+static Tally tally_start(Budget *b, int64_t base_faces)
+{
+    memset(b->bucket, 0, sizeof(int64_t) * (BUCKETS + SPREAD));
+    return (Tally){0, base_faces, base_faces, 0};
+}
+
+/* Slot i's eps e (kills `kill`) into the tally t. */
+PMX_INLINE void tally(Budget *b, Tally *t, int64_t i, float e, int32_t kill, float lo, int32_t lo_bits)
+{
+    const int in = e >= lo;
+    kill = in ? kill : 0;
+    b->val[t->count] = e, b->wt[t->count] = kill;
+    const int64_t q = in ? bucket_of(e, lo_bits) : 0;
+    t->zero += q ? 0 : kill;
+    b->bucket[q ? q : BUCKETS + (i & (SPREAD - 1))] += kill;
+    t->total += kill, t->count += in;
+    t->total2 += e >= 2 * lo ? kill : 0;
+}
+
+static void tally_end(Budget *b, const Tally *t) { b->bucket[0] = t->zero; }
 
 /* The counts of a traversal at lo from its n slots and their own
  * tolerances: eps bottom-up over the slots that did not run (children sit
@@ -284,12 +327,9 @@ static void flush_block(const PmxHierarchy *h, const PmxScratch *s, Budget *b, i
 static int64_t eps_pass(const PmxScratch *s, Budget *b, int64_t n, float lo, int64_t base_faces,
                         int unsure_collapses, int64_t *total_out, int64_t *at_twice)
 {
-    const float twice = 2 * lo;
-    int64_t total2 = base_faces;
     const int32_t lo_bits = bits_of(lo);
-    memset(b->bucket, 0, sizeof(int64_t) * BUCKETS);
+    Tally t = tally_start(b, base_faces);
     /* Branch-free: a child not visited reads eps[-1] = -inf. */
-    int64_t total = base_faces, count = 0;
     for (int64_t i = n - 1; i >= 0; i--) {
         const int st = s->state[i] & 3;
         const float own_e = st == YES || (st == UNSURE && unsure_collapses) ? -INFINITY : b->own[i];
@@ -300,16 +340,12 @@ static int64_t eps_pass(const PmxScratch *s, Budget *b, int64_t n, float lo, int
         e = e1 > e ? e1 : e;
         e = s->ran[i] ? -INFINITY : e;
         b->eps[i] = e;
-        const int in = e >= lo;
-        const int32_t kill = in ? s->kill[i] : 0;
-        b->val[count] = e, b->wt[count] = kill;
-        b->bucket[in ? bucket_of(e, lo_bits) : 0] += kill;
-        total += kill, count += in;
-        total2 += e >= twice ? kill : 0;
+        tally(b, &t, i, e, s->kill[i], lo, lo_bits);
     }
-    *total_out = total;
-    *at_twice = total2;
-    return count;
+    tally_end(b, &t);
+    *total_out = t.total;
+    *at_twice = t.total2;
+    return t.count;
 }
 
 /* The answer for `budget` from an eps_pass at lo (count values, the count
@@ -335,6 +371,112 @@ static int64_t answer_of(Budget *b, int64_t count, float lo, int64_t total, int6
     return v == INFINITY ? (int64_t)INF_BITS + 1 : (int64_t)bits_of(v) + 1;
 }
 
+/* The guesses of one camera from the tally of its traversal at lo (count
+ * values, the counts total at lo and at_twice at 2 lo; the pcols that did
+ * not run keep `kept` faces) for its B budgets, the largest `top`: each
+ * budget's guessed answer's bit pattern in guess, and in alt the guess with
+ * the m unsure decisions taken as collapses (a second eps_pass over the n
+ * slots in s). Returns 1, or 0 where the largest budget's answer lies below
+ * lo and a lower tolerance may find it: *next_lo is then the tolerance to
+ * traverse at next. last_count: the count at the tolerance traversed before
+ * (-1: none). */
+static int answers_from(PmxScratch *s, Budget *b, int64_t n, int64_t m, int64_t count, int64_t total,
+                        int64_t at_twice, int64_t kept, float lo, const int32_t *budgets, int64_t B, int64_t top,
+                        int64_t base_faces, int64_t last_count, float *next_lo, int64_t *guess, int64_t *alt)
+{
+    /* The largest budget's answer lies below lo unless the view is as fine
+     * as it gets (then the budgets met at lo have the guess 0): the counts
+     * at lo and 2 lo give the count's power of tau, extrapolated to the
+     * largest budget, times MARGIN; a count that does not change from 2 lo
+     * (or from the last lo) says the view is as fine as it gets. */
+    const int64_t count_at_lo = base_faces + kept;
+    if (total <= top && lo != 0.0f && count_at_lo != last_count && at_twice != count_at_lo) {
+        const double a = (double)(count_at_lo - base_faces + 1), a2 = (double)(at_twice - base_faces + 1);
+        double power = a > a2 ? log(a / a2) / log(2.0) : 1.0;
+        power = power < 0.5 ? 0.5 : power > 4.0 ? 4.0 : power;
+        const double next = lo * MARGIN * pow(a / (double)(top - base_faces + 1), 1.0 / power);
+        if (next >= 1e-30) {
+            *next_lo = (float)(next < lo * 0.9 ? next : lo * 0.9);
+            return 0;
+        }
+    }
+    /* Each budget's answer from the same eps; those met at lo: 0. */
+    for (int64_t j = 0; j < B; j++)
+        if (budgets[j] >= base_faces) {
+            const int64_t g = answer_of(b, count, lo, total, budgets[j], base_faces);
+            guess[j] = g == -2 ? 0 : g;
+            alt[j] = g == -2 ? 0 : g;
+        }
+    if (m) {
+        int64_t total_alt = 0, unused = 0;
+        count = eps_pass(s, b, n, lo, base_faces, 1, &total_alt, &unused);
+        for (int64_t j = 0; j < B; j++)
+            if (budgets[j] >= base_faces && guess[j] != 0) {
+                const int64_t g_alt = answer_of(b, count, lo, total_alt, budgets[j], base_faces);
+                alt[j] = g_alt == -2 ? guess[j] : g_alt;
+            }
+    }
+    return 1;
+}
+
+/* answers_from of one camera's traversal at lo (n slots in s: ids, kid,
+ * state, kill, ran; m of them unsure), its own tolerances computed here. */
+static int answers_at(const PmxHierarchy *h, PmxScratch *s, Budget *b, int64_t n, int64_t m, int64_t kept, float lo,
+                      const float *view, float unit, int flags, OwnBlock own, const int32_t *budgets, int64_t B,
+                      int64_t top, int64_t base_faces, int64_t last_count, float *next_lo, int64_t *guess,
+                      int64_t *alt)
+{
+    const int ortho = (flags & PMX_ORTHOGRAPHIC) != 0, screen = (flags & PMX_SCREEN) != 0;
+    /* Own tolerances of the slots that did not run and whose own decision
+     * is not a sure collapse, a block of positions at a time. */
+    int64_t k = 0;
+    for (int64_t i = 0; i < n; i++) {
+        /* The rows a block ahead, so that they arrive in time (the
+         * traversal's reads of them left the cache). */
+        if (i + AHEAD_ROWS * FRAMES < n)
+            __builtin_prefetch(h->rows + (int64_t)s->ids[i + AHEAD_ROWS * FRAMES] * ROW);
+        b->own[i] = -INFINITY;
+        b->wt[k] = (int32_t)i;
+        k += !s->ran[i] & ((s->state[i] & 3) != YES);
+        if (k == LANES) {
+            flush_block(h, s, b, k, view, unit, ortho, screen, own);
+            k = 0;
+        }
+    }
+    if (k)
+        flush_block(h, s, b, k, view, unit, ortho, screen, own);
+    /* An unsure decision (mostly a sphere on a frustum plane) is taken as
+     * "keep"; the second guess takes it as a collapse. */
+    int64_t total = 0, at_twice = 0;
+    const int64_t count = eps_pass(s, b, n, lo, base_faces, 0, &total, &at_twice);
+    return answers_from(s, b, n, m, count, total, at_twice, kept, lo, budgets, B, top, base_faces, last_count,
+                        next_lo, guess, alt);
+}
+
+/* The budgets a camera can meet (those at or above the coarsest mesh's
+ * faces; the others are never met: inf in guess and alt) and the largest
+ * of them, or -1 when there is none. */
+static int64_t largest_budget(const int32_t *budgets, int64_t B, int64_t base_faces, int64_t *guess, int64_t *alt)
+{
+    int64_t top = -1;
+    for (int64_t j = 0; j < B; j++) {
+        guess[j] = alt[j] = (int64_t)INF_BITS + 1;
+        if (budgets[j] >= base_faces)
+            top = budgets[j] > top ? budgets[j] : top;
+    }
+    return top;
+}
+
+/* The guess of the largest budget (`top`) among B. */
+static int64_t top_guess(const int32_t *budgets, int64_t B, int64_t top, const int64_t *guess)
+{
+    int64_t g_top = 0;
+    for (int64_t j = 0; j < B; j++)
+        if (budgets[j] == top)
+            g_top = guess[j];
+    return g_top;
+}
+
 /* One camera and its B budgets: each budget's guessed answer's bit pattern
  * in guess (INF_BITS + 1: tau = inf), and in alt the guess with the unsure
  * decisions taken as collapses, from one traversal at `lo` (lowered while
@@ -345,19 +487,14 @@ static int64_t budget_one(const Kernels *kern, const PmxHierarchy *h, const floa
                           int flags, const int32_t *budgets, int64_t B, int64_t base_faces, PmxScratch *s, Budget *b,
                           int64_t *guess, int64_t *alt)
 {
-    const int ortho = (flags & PMX_ORTHOGRAPHIC) != 0, screen = (flags & PMX_SCREEN) != 0;
+    const int ortho = (flags & PMX_ORTHOGRAPHIC) != 0;
     const OwnBlock own = own_block();
     float row[PMX_CAMERA], view[PMX_VIEW];
     memcpy(row, camera, sizeof row);
     /* A budget below the coarsest mesh is never met: inf. The largest
      * budget drives the traversal. */
-    int64_t top = -1, open = 0;
-    for (int64_t j = 0; j < B; j++) {
-        guess[j] = alt[j] = (int64_t)INF_BITS + 1;
-        if (budgets[j] >= base_faces)
-            top = budgets[j] > top ? budgets[j] : top, open++;
-    }
-    if (!open)
+    const int64_t top = largest_budget(budgets, B, base_faces, guess, alt);
+    if (top < 0)
         return (int64_t)INF_BITS + 1;
     int64_t last_count = -1;
     for (;;) {
@@ -374,67 +511,17 @@ static int64_t budget_one(const Kernels *kern, const PmxHierarchy *h, const floa
          * the answer lies below lo. */
         int64_t not_run = 0, kept = 0;
         kern->resolve(h, n, s->ids, s->kid, s->state, s->kill, s->ran, NULL, &not_run, &kept);
-        /* Own tolerances of the slots that did not run and whose own
-         * decision is not a sure collapse, a block of positions at a time. */
-        int64_t k = 0;
-        for (int64_t i = 0; i < n; i++) {
-            b->own[i] = -INFINITY;
-            b->wt[k] = (int32_t)i;
-            k += !s->ran[i] & ((s->state[i] & 3) != YES);
-            if (k == LANES) {
-                flush_block(h, s, b, k, view, unit, ortho, screen, own);
-                k = 0;
-            }
-        }
-        if (k)
-            flush_block(h, s, b, k, view, unit, ortho, screen, own);
-        /* An unsure decision (mostly a sphere on a frustum plane) is taken
-         * as "keep"; the second guess takes it as a collapse. */
-        int64_t total = 0, at_twice = 0;
-        int64_t count = eps_pass(s, b, n, lo, base_faces, 0, &total, &at_twice);
-        /* Lower lo while the largest budget's answer lies below it, unless
-         * the view is as fine as it gets (then the budgets met at lo have
-         * the guess 0): the counts at lo and 2 lo give the count's power of
-         * tau, extrapolated to the largest budget, times MARGIN; a count
-         * that does not change from 2 lo (or from the last lo) says the
-         * view is as fine as it gets. */
-        const int64_t count_at_lo = base_faces + kept;
-        if (total <= top && lo != 0.0f && count_at_lo != last_count && at_twice != count_at_lo) {
-            const double a = (double)(count_at_lo - base_faces + 1), a2 = (double)(at_twice - base_faces + 1);
-            double power = a > a2 ? log(a / a2) / log(2.0) : 1.0;
-            power = power < 0.5 ? 0.5 : power > 4.0 ? 4.0 : power;
-            const double next = lo * MARGIN * pow(a / (double)(top - base_faces + 1), 1.0 / power);
-            if (next >= 1e-30) {
-                last_count = count_at_lo;
-                lo = (float)(next < lo * 0.9 ? next : lo * 0.9);
-                continue;
-            }
-        }
-        /* Each budget's answer from the same eps; those met at lo: 0. */
-        for (int64_t j = 0; j < B; j++)
-            if (budgets[j] >= base_faces) {
-                const int64_t g = answer_of(b, count, lo, total, budgets[j], base_faces);
-                guess[j] = g == -2 ? 0 : g;
-                alt[j] = g == -2 ? 0 : g;
-            }
-        if (m) {
-            int64_t total_alt = 0, unused = 0;
-            count = eps_pass(s, b, n, lo, base_faces, 1, &total_alt, &unused);
-            for (int64_t j = 0; j < B; j++)
-                if (budgets[j] >= base_faces && guess[j] != 0) {
-                    const int64_t g_alt = answer_of(b, count, lo, total_alt, budgets[j], base_faces);
-                    alt[j] = g_alt == -2 ? guess[j] : g_alt;
-                }
-        }
-        int64_t g_top = 0;
-        for (int64_t j = 0; j < B; j++)
-            if (budgets[j] == top)
-                g_top = guess[j];
-        return g_top;
+        float next = lo;
+        if (answers_at(h, s, b, n, m, kept, lo, view, unit, flags, own, budgets, B, top, base_faces, last_count,
+                       &next, guess, alt))
+            return top_guess(budgets, B, top, guess);
+        last_count = base_faces + kept;
+        lo = next;
     }
 }
 
-/* A batch shared by its threads (cursor), as in traverse.c. */
+/* A batch shared by its threads (cursor), as in traverse.c: cameras, or
+ * words of FRAMES consecutive frames of a path. */
 typedef struct {
     const PmxHierarchy *h;
     const float *cameras, *units;
@@ -446,23 +533,69 @@ typedef struct {
     PmxStatus status;
 } Batch;
 
+/* A thread's working memory: its scratch (with a word's frame masks where
+ * `words`), the Budget arrays, the unsure frames of a word's slots and one
+ * camera's guesses (g, alt: B each); 0 when out of memory (what was taken
+ * is given back by budget_give). */
+typedef struct {
+    PmxScratch *s;
+    Budget b;
+    float *eps_room, *lanes_room;
+    Lanes *unsure_at;
+    int64_t *g, *alt;
+} Work;
+
+static int budget_take(Work *k, const PmxHierarchy *h, int64_t B, int words)
+{
+    const int64_t room = h->n_pcols + PMX_SPARE;
+    k->s = pmx_scratch_take(h->n_pcols);
+    k->eps_room = malloc(sizeof(float) * (size_t)(room + 1));
+    k->b = (Budget){k->eps_room ? k->eps_room + 1 : NULL, malloc(sizeof(float) * (size_t)room),
+                    malloc(sizeof(float) * (size_t)room), malloc(sizeof(float) * (size_t)room),
+                    malloc(sizeof(int32_t) * (size_t)room), malloc(sizeof(int32_t) * (size_t)room),
+                    malloc(sizeof(int64_t) * (BUCKETS + SPREAD))};
+    k->unsure_at = words ? malloc(sizeof(Lanes) * (size_t)room) : NULL;
+    k->lanes_room = words ? malloc(sizeof(float) * FRAMES * (size_t)(room + 1)) : NULL;
+    if (k->lanes_room)
+        for (int l = 0; l < FRAMES; l++)
+            k->lanes_room[l] = -INFINITY; /* a child not visited */
+    k->g = malloc(sizeof(int64_t) * (size_t)(2 * B));
+    k->alt = k->g ? k->g + B : NULL;
+    if (k->eps_room)
+        k->eps_room[0] = -INFINITY; /* eps[-1]: a child not visited */
+    const Budget *b = &k->b;
+    return k->s && scratch_slots(k->s) && (!words || (scratch_words(k->s) && k->unsure_at && k->lanes_room)) &&
+           b->eps && b->own &&
+           b->val && b->sel && b->wt && b->sel_wt && b->bucket && k->g;
+}
+
+static void budget_give(Work *k)
+{
+    free(k->eps_room), free(k->b.own), free(k->b.val), free(k->b.sel), free(k->b.wt), free(k->b.sel_wt);
+    free(k->b.bucket), free(k->unsure_at), free(k->lanes_room), free(k->g);
+    if (k->s)
+        pmx_scratch_give(k->s);
+}
+
+/* Camera c's guesses into the batch's outputs (INF_BITS + 1 at most). */
+static void put_guesses(Batch *bt, int64_t c, const int64_t *g, const int64_t *alt)
+{
+    for (int64_t j = 0; j < bt->B; j++) {
+        bt->guess[c * bt->B + j] = (int32_t)(g[j] > (int64_t)INF_BITS + 1 ? (int64_t)INF_BITS + 1 : g[j]);
+        bt->guess_alt[c * bt->B + j] = (int32_t)(alt[j] > (int64_t)INF_BITS + 1 ? (int64_t)INF_BITS + 1 : alt[j]);
+    }
+}
+
 static void batch_work(void *arg)
 {
     Batch *bt = arg;
     const PmxHierarchy *h = bt->h;
-    const int64_t room = h->n_pcols + PMX_SPARE, B = bt->B;
-    PmxScratch *s = pmx_scratch_take(h->n_pcols);
-    float *eps_room = malloc(sizeof(float) * (size_t)(room + 1));
-    Budget b = {eps_room ? eps_room + 1 : NULL, malloc(sizeof(float) * (size_t)room),
-                malloc(sizeof(float) * (size_t)room), malloc(sizeof(float) * (size_t)room),
-                malloc(sizeof(int32_t) * (size_t)room), malloc(sizeof(int32_t) * (size_t)room),
-                malloc(sizeof(int64_t) * BUCKETS)};
-    int64_t *g = malloc(sizeof(int64_t) * (size_t)(2 * B)), *alt = g ? g + B : NULL;
-    if (eps_room)
-        eps_room[0] = -INFINITY; /* eps[-1]: a child not visited */
-    if (!s || !scratch_slots(s) || !b.eps || !b.own || !b.val || !b.sel || !b.wt || !b.sel_wt || !b.bucket || !g) {
+    const int64_t B = bt->B;
+    Work k;
+    if (!budget_take(&k, h, B, 0)) {
         __atomic_store_n(&bt->status, PMX_NO_MEMORY, __ATOMIC_RELAXED);
-        goto done;
+        budget_give(&k);
+        return;
     }
     const unsigned mode = subnormals_off();
     const Kernels *kern = pmx_kernels();
@@ -483,15 +616,12 @@ static void batch_work(void *arg)
         if (!(lo > 0.0f) || lo > 1e30f)
             lo = 1.0f;
         const int64_t top = budget_one(kern, h, camera, bt->units[c], lo, bt->flags, bt->budgets + c * B, B,
-                                       bt->base_faces, s, &b, g, alt);
+                                       bt->base_faces, k.s, &k.b, k.g, k.alt);
         if (top < 0) {
             __atomic_store_n(&bt->status, PMX_BAD_TABLE, __ATOMIC_RELAXED);
             break;
         }
-        for (int64_t j = 0; j < B; j++) {
-            bt->guess[c * B + j] = (int32_t)(g[j] > (int64_t)INF_BITS + 1 ? (int64_t)INF_BITS + 1 : g[j]);
-            bt->guess_alt[c * B + j] = (int32_t)(alt[j] > (int64_t)INF_BITS + 1 ? (int64_t)INF_BITS + 1 : alt[j]);
-        }
+        put_guesses(bt, c, k.g, k.alt);
         if (top > 0 && top <= INF_BITS) {
             float t;
             const int32_t gb = (int32_t)top;
@@ -500,16 +630,209 @@ static void batch_work(void *arg)
         }
     }
     subnormals_back(mode);
-done:
-    free(eps_room), free(b.own), free(b.val), free(b.sel), free(b.wt), free(b.sel_wt), free(b.bucket), free(g);
-    if (s)
-        pmx_scratch_give(s);
+    budget_give(&k);
+}
+
+/* Every frame's eps of a word's n slots at once, bottom-up (eps[i * FRAMES
+ * + l] for frame l of slot i, row -1 all -inf): on entry each slot's own
+ * part (-inf where its own decision is a sure collapse), then the larger
+ * of it and the children's, -inf where the frame ran the slot. */
+PMX_INLINE void lanes_up_body(float *eps, int64_t n, const int32_t *kid, const Lanes *ran)
+{
+    for (int64_t i = n - 1; i >= 0; i--) {
+        float *e = eps + i * FRAMES;
+        const float *e0 = eps + (int64_t)kid[2 * i] * FRAMES, *e1 = eps + (int64_t)kid[2 * i + 1] * FRAMES;
+        const uint32_t r = ran[i];
+#pragma omp simd
+        for (int l = 0; l < FRAMES; l++) {
+            float x = e[l] > e0[l] ? e[l] : e0[l];
+            x = x > e1[l] ? x : e1[l];
+            e[l] = (r >> l) & 1 ? -INFINITY : x;
+        }
+    }
+}
+
+static void lanes_up_plain(float *eps, int64_t n, const int32_t *kid, const Lanes *ran)
+{
+    lanes_up_body(eps, n, kid, ran);
+}
+#if PMX_X86
+PMX_TARGET_AVX2 static void lanes_up_avx2(float *eps, int64_t n, const int32_t *kid, const Lanes *ran)
+{
+    lanes_up_body(eps, n, kid, ran);
+}
+PMX_TARGET_AVX512 static void lanes_up_avx512(float *eps, int64_t n, const int32_t *kid, const Lanes *ran)
+{
+    lanes_up_body(eps, n, kid, ran);
+}
+#endif
+
+typedef void (*LanesUp)(float *, int64_t, const int32_t *, const Lanes *);
+
+static LanesUp lanes_up(void)
+{
+    int level = 0;
+    (void)pmx_kernels_at(-1, &level);
+#if PMX_X86
+    if (level == PMX_SIMD_AVX512)
+        return lanes_up_avx512;
+    if (level == PMX_SIMD_AVX2)
+        return lanes_up_avx2;
+#endif
+    return lanes_up_plain;
+}
+
+/* Own tolerances of k (slot, frame) pairs (positions pos, views view, one
+ * pixel unit) into eps[at[j]], raised to the frame's lo (inf with the
+ * screen test off). */
+static void lanes_flush(const PmxHierarchy *h, const int32_t *pos, const int64_t *at, const float *const *view,
+                        const float *unit, int64_t k, int ortho, int screen, OwnBlock own, const float *lo, float *eps)
+{
+    float out[LANES];
+    if (screen)
+        own(h->rows, pos, k, view, unit, ortho, out);
+    for (int64_t j = 0; j < k; j++) {
+        const float o = screen ? out[j] : INFINITY, floor = lo[at[j] % FRAMES];
+        eps[at[j]] = o > floor ? o : floor;
+    }
+}
+
+/* The own part of every frame's eps of a word's n slots into eps (layout
+ * of lanes_up): -inf where the frame ran the slot or its own decision is a
+ * sure collapse, else the larger of the own tolerance under the frame's
+ * view and the frame's lo (a "keep" at lo puts the switch at lo or above;
+ * an unsure decision is read so too: the frames with one take the
+ * one-camera pass). The (slot, frame) pairs a block of LANES at a time. */
+static void lanes_own(const PmxHierarchy *h, const PmxScratch *s, int64_t n, const float *views, const float *units,
+                      const float *lo, int flags, OwnBlock own, float *eps)
+{
+    const int ortho = (flags & PMX_ORTHOGRAPHIC) != 0, screen = (flags & PMX_SCREEN) != 0;
+    int32_t pos[LANES];
+    int64_t at[LANES];
+    float unit[LANES];
+    const float *view[LANES];
+    int64_t k = 0;
+    for (int64_t i = 0; i < n; i++) {
+        /* The rows a block of pairs ahead, so that they arrive in time (the
+         * traversal's reads of them left the cache). */
+        if (i + AHEAD_ROWS < n)
+            __builtin_prefetch(h->rows + (int64_t)s->ids[i + AHEAD_ROWS] * ROW);
+        for (int l = 0; l < FRAMES; l++)
+            eps[i * FRAMES + l] = -INFINITY;
+        for (uint32_t need = (Lanes) ~(s->ran_frames[i] | s->yes[i]); need; need &= need - 1) {
+            const int l = __builtin_ctz(need);
+            pos[k] = s->ids[i], at[k] = i * FRAMES + l;
+            view[k] = views + l * PMX_VIEW, unit[k] = units[l];
+            if (++k == LANES) {
+                lanes_flush(h, pos, at, view, unit, k, ortho, screen, own, lo, eps);
+                k = 0;
+            }
+        }
+    }
+    if (k)
+        lanes_flush(h, pos, at, view, unit, k, ortho, screen, own, lo, eps);
+}
+
+/* The guesses of a word's frames: the word traversed once at each frame's
+ * own tolerance lo (its row's; most pcols decided for all the frames at
+ * once under the fat camera, words.c), every frame's eps folded bottom-up
+ * at once (lanes_own, lanes_up), then per frame the tally of its eps and
+ * the answers from it as for one camera (answers_from); a frame with an
+ * unsure decision takes the one-camera pass over its slots' states
+ * (answers_at), for its second guess. A frame whose largest budget's answer
+ * lies below its lo gets -1 (a guess left to its own traversal). */
+static void words_work(void *arg)
+{
+    Batch *bt = arg;
+    const PmxHierarchy *h = bt->h;
+    const int64_t B = bt->B;
+    Work k;
+    if (!budget_take(&k, h, B, 1)) {
+        __atomic_store_n(&bt->status, PMX_NO_MEMORY, __ATOMIC_RELAXED);
+        budget_give(&k);
+        return;
+    }
+    PmxScratch *s = k.s;
+    const unsigned mode = subnormals_off();
+    const Kernels *kern = pmx_kernels();
+    const OwnBlock own = own_block();
+    const LanesUp up = lanes_up();
+    const int ortho = (bt->flags & PMX_ORTHOGRAPHIC) != 0;
+    float *eps = k.lanes_room + FRAMES; /* row -1: -inf */
+    for (int64_t w; (w = __atomic_fetch_add(&bt->cursor, 1, __ATOMIC_RELAXED)) < bt->K / FRAMES;) {
+        const float *cameras = bt->cameras + w * FRAMES * PMX_CAMERA;
+        const float *units = bt->units + w * FRAMES;
+        float views[FRAMES * PMX_VIEW], fat[PMX_FAT], lo[FRAMES];
+        for (int l = 0; l < FRAMES; l++) {
+            pmx_view_of(cameras + l * PMX_CAMERA, ortho, views + l * PMX_VIEW);
+            lo[l] = cameras[l * PMX_CAMERA + PMX_CAMERA - 1];
+        }
+        const int have_fat = pmx_fat_cameras(views, 1, FRAMES, fat) == PMX_OK;
+        /* The word's traversal and per frame the faces the pcols that did
+         * not run keep (unsure decisions as "keep"). */
+        int64_t m = 0, at_once = 0;
+        const int64_t n = traverse_word(kern, h, views, FRAMES, bt->flags, have_fat ? fat : NULL, s->ids, s->kid,
+                                        s->visit, s->whole, s->yes, s->unsure, s->unsure_lanes, &m, &at_once);
+        if (n < 0) {
+            __atomic_store_n(&bt->status, PMX_BAD_TABLE, __ATOMIC_RELAXED);
+            break;
+        }
+        PmxCounts counts[FRAMES];
+        kern->resolve_word(h->kills, h->order, n, s->ids, s->kid, s->visit, s->whole, s->yes, s->ran_frames, NULL,
+                           counts);
+        /* Each slot's unsure frames and faces killed; every frame's eps. */
+        memset(k.unsure_at, 0, sizeof(Lanes) * (size_t)n);
+        Lanes unsure_frames = 0;
+        for (int64_t q = 0; q < m; q++)
+            k.unsure_at[s->unsure[q]] |= s->unsure_lanes[q], unsure_frames |= s->unsure_lanes[q];
+        for (int64_t i = 0; i < n; i++)
+            s->kill[i] = h->kills[s->ids[i]];
+        lanes_own(h, s, n, views, units, lo, bt->flags, own, eps);
+        up(eps, n, s->kid, s->ran_frames);
+        for (int l = 0; l < FRAMES; l++) {
+            const int64_t c = w * FRAMES + l;
+            const int32_t *budgets = bt->budgets + c * B;
+            const int64_t top = largest_budget(budgets, B, bt->base_faces, k.g, k.alt);
+            int found = 1;
+            float next = 0;
+            if (top >= 0 && !((unsure_frames >> l) & 1)) {
+                /* The frame's tally from its lane of eps. */
+                const int32_t lo_bits = bits_of(lo[l]);
+                Tally t = tally_start(&k.b, bt->base_faces);
+                for (int64_t i = 0; i < n; i++)
+                    tally(&k.b, &t, i, eps[i * FRAMES + l], s->kill[i], lo[l], lo_bits);
+                tally_end(&k.b, &t);
+                found = answers_from(s, &k.b, n, 0, t.count, t.total, t.total2, counts[l].kept, lo[l], budgets, B,
+                                     top, bt->base_faces, -1, &next, k.g, k.alt);
+            } else if (top >= 0) {
+                /* Frame l's slots as its own traversal leaves them: a slot
+                 * it did not visit, or whose bound decided it, ran. */
+                int64_t m_l = 0;
+                for (int64_t i = 0; i < n; i++) {
+                    const int yes = (s->yes[i] >> l) & 1, unsure = (k.unsure_at[i] >> l) & 1;
+                    s->ran[i] = (uint8_t)((s->ran_frames[i] >> l) & 1);
+                    s->state[i] = (uint8_t)(yes ? YES : unsure ? UNSURE : NO);
+                    m_l += unsure;
+                }
+                found = answers_at(h, s, &k.b, n, m_l, counts[l].kept, lo[l], views + l * PMX_VIEW, units[l],
+                                   bt->flags, own, budgets, B, top, bt->base_faces, -1, &next, k.g, k.alt);
+            }
+            if (!found)
+                for (int64_t j = 0; j < B; j++)
+                    k.g[j] = k.alt[j] = -1;
+            put_guesses(bt, c, k.g, k.alt);
+        }
+    }
+    subnormals_back(mode);
+    budget_give(&k);
 }
 
 PmxStatus pmx_budget_many(const PmxHierarchy *h, const float *cameras, const float *units, int64_t K, int flags,
                           const int32_t *budgets, int64_t B, int64_t base_faces, int32_t *guess, int32_t *guess_alt,
-                          const PmxRunner *run)
+                          int words, const PmxRunner *run)
 {
+    if (words && K % FRAMES)
+        return PMX_BAD_SIZE;
     Batch bt = {h, cameras, units, budgets, K, B, 0, base_faces, flags, {0, 0, 0}, guess, guess_alt, PMX_OK};
     /* The model's centre: the mean of the roots' centres. */
     double c[3] = {0, 0, 0};
@@ -518,6 +841,6 @@ PmxStatus pmx_budget_many(const PmxHierarchy *h, const float *cameras, const flo
             c[a] += h->rows[q * ROW + CX + a];
     for (int a = 0; a < 3; a++)
         bt.centre[a] = (float)(h->n_roots ? c[a] / (double)h->n_roots : 0.0);
-    run_shared(run, batch_work, &bt);
+    run_shared(run, words ? words_work : batch_work, &bt);
     return bt.status;
 }

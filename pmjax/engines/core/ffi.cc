@@ -289,12 +289,14 @@ ffi::Error RefineMany(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> rows, ffi::Buf
 // ---- face budgets of camera batches -----------------------------------------
 // operands: rows, kills, order, cameras f32[K, PMX_CAMERA] (tau: a first tolerance, or 0), units f32[K]
 //           (one pixel), budgets s32[K, B] (B budgets per camera)
-// results: guess s32[K, B], guess_alt s32[K, B] (float32 bit patterns; 0x7F800001: inf)
+// results: guess s32[K, B], guess_alt s32[K, B] (float32 bit patterns; 0x7F800001: inf; -1: a word's frame
+//          left to its own traversal)
+// words: 1 when the cameras are words of 16 frames of a path (K a multiple of 16)
 ffi::Error BudgetMany(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> rows, ffi::Buffer<ffi::S32> kills,
                       ffi::Buffer<ffi::S32> order, ffi::Buffer<ffi::F32> cameras, ffi::Buffer<ffi::F32> units,
                       ffi::Buffer<ffi::S32> budgets, ffi::ResultBuffer<ffi::S32> guess,
                       ffi::ResultBuffer<ffi::S32> guess_alt, int32_t flags, int64_t n_roots, int64_t base_faces,
-                      int64_t threads) {
+                      int64_t threads, int32_t words) {
   PmxHierarchy h;
   PMX_CHECK(Hierarchy(rows, kills, order, n_roots, &h));
   auto vd = cameras.dimensions();
@@ -313,8 +315,7 @@ ffi::Error BudgetMany(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> rows, ffi::Buf
   if (base_faces < 0) return ffi::Error::InvalidArgument("base_faces must be >= 0");
   PmxRunner runner = Runner(pool, threads);
   PMX_CHECK(Status(pmx_budget_many(&h, cameras.typed_data(), units.typed_data(), K, flags, budgets.typed_data(), B,
-                                   base_faces,
-                                   guess->typed_data(), guess_alt->typed_data(), &runner),
+                                   base_faces, guess->typed_data(), guess_alt->typed_data(), words, &runner),
                    "faces_for_budget"));
   return ffi::Error::Success();
 }
@@ -667,7 +668,8 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxBudgetMany, BudgetMany,
                                   .Attr<int32_t>("flags")
                                   .Attr<int64_t>("n_roots")
                                   .Attr<int64_t>("base_faces")
-                                  .Attr<int64_t>("threads"));
+                                  .Attr<int64_t>("threads")
+                                  .Attr<int32_t>("words"));
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxRefineWords, RefineWords,
                               ffi::Ffi::Bind()

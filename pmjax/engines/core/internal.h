@@ -337,6 +337,12 @@ void record_write(int32_t *rec, int64_t item, int64_t count, const int32_t *chai
  * does not fit. */
 int64_t records_reserve(PmxRecords *records, int64_t size);
 
+/* One word of a path traversed for its frames (words.c), for the words' face
+ * budgets too (budget.c). */
+int64_t traverse_word(const Kernels *kern, const PmxHierarchy *h, const float *views, int n_frames, int flags,
+                      const float *fat, int32_t *ids, int32_t *kid, Lanes *visit, Lanes *whole, Lanes *yes,
+                      int32_t *unsure_slots, Lanes *unsure_lanes, int64_t *n_unsure, int64_t *at_once);
+
 /* Single-camera traversal (traverse.c), for the words' overflow-free paths too. */
 int64_t traverse(const Kernels *kern, const PmxHierarchy *h, const Frames *w, int32_t *ids, int32_t *kid,
                  uint8_t *state, int32_t *kill, int32_t *parent, int32_t *unsure, int64_t *n_unsure);

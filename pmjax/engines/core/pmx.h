@@ -148,10 +148,15 @@ PmxStatus pmx_refine_many(const PmxHierarchy *h, const float *views, int64_t K, 
  * tolerances of the pcols that do not run at a tolerance below the smallest
  * of the camera's answers (one traversal serves its B budgets), and
  * guess_alt[k, j] the same with the unsure decisions taken as collapses
- * rather than "keep" (budget.c). The caller makes them exact by counts. */
+ * rather than "keep" (budget.c). The caller makes them exact by counts.
+ * words: the cameras are words of PMX_FRAMES consecutive frames of a path
+ * (tables with bounds over whole subtrees, K a multiple of PMX_FRAMES,
+ * PMX_BAD_SIZE otherwise), each frame's tolerance > 0 where to traverse:
+ * each word traversed once for its frames, and a frame whose answers lie
+ * below its tolerance gets -1 in guess and guess_alt. */
 PmxStatus pmx_budget_many(const PmxHierarchy *h, const float *cameras, const float *units, int64_t K, int flags,
                           const int32_t *budgets, int64_t B, int64_t base_faces, int32_t *guess, int32_t *guess_alt,
-                          const PmxRunner *run);
+                          int words, const PmxRunner *run);
 
 /* Words of PMX_FRAMES consecutive frames of a path (views [W * PMX_FRAMES,
  * PMX_VIEW]; a word's spare frames repeat one of its own): each word

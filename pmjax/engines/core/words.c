@@ -18,9 +18,9 @@
  * are not a forest); the slots with unsure frames go to unsure_slots[] with
  * the frames in unsure_lanes[] (*n_unsure of them), *at_once counts the
  * slots the fat camera decided. */
-static int64_t traverse_word(const Kernels *kern, const PmxHierarchy *h, const float *views, int n_frames, int flags,
-                             const float *fat, int32_t *ids, int32_t *kid, Lanes *visit, Lanes *whole, Lanes *yes,
-                             int32_t *unsure_slots, Lanes *unsure_lanes, int64_t *n_unsure, int64_t *at_once)
+int64_t traverse_word(const Kernels *kern, const PmxHierarchy *h, const float *views, int n_frames, int flags,
+                      const float *fat, int32_t *ids, int32_t *kid, Lanes *visit, Lanes *whole, Lanes *yes,
+                      int32_t *unsure_slots, Lanes *unsure_lanes, int64_t *n_unsure, int64_t *at_once)
 {
     Frames fr;
     load_frames(&fr, views, n_frames, flags);
