@@ -1,7 +1,7 @@
 """Image-space fidelity benchmark: refined vs original renders along the standard orbit.
 
 Usage: python benchmarks/render.py [--models bunny,dragon] [--frames 240] [--taus 0.5,1,2,4]
-       [--figures docs/figures] [--parts orbit,frontier,normals,cost] [--supersample 2] [--plot PNG] [--json OUT]
+       [--figures docs/figures] [--parts orbit,frontier,normals,cost,fit] [--supersample 2] [--plot PNG] [--json OUT]
 
 orbit: per model and tau, the median share of the model's pixels that differ
 from the original mesh's render (a pixel differs when a channel differs by >
@@ -27,6 +27,10 @@ cost: what ``path_fidelity`` (``pmjax path --fidelity``) spends per frame,
 ``fidelity_ms`` (every render and metric of a frame), without and with FLIP,
 the two alternated over repeats on the same frames: medians over the frames,
 then over the repeats, and their ratio.
+
+fit: what ``pmjax.fitted_normals`` costs, its C loops (two threads) against the
+NumPy steps (one thread, the same bits), alternated in one process on the
+loaded hierarchy (``--fit-repeats`` each): medians and their ratio.
 """
 
 from __future__ import annotations
@@ -47,7 +51,7 @@ from pmjax._camera import index_camera  # noqa: E402
 from pmjax.render import Renderer, image_difference, original_arrays, paper_figures, path_fidelity  # noqa: E402
 from pmjax.render import flip_difference, refined_arrays, silhouette_difference, vertex_normals  # noqa: E402
 
-PARTS = ("orbit", "frontier", "normals", "cost")
+PARTS = ("orbit", "frontier", "normals", "cost", "fit")
 
 
 def per_model(counts: str, names: list) -> list:
@@ -155,6 +159,31 @@ def normals(name, frames, tau, supersample=2):
     return rows
 
 
+def fit(name, repeats):
+    """Seconds of ``pmjax.fitted_normals`` on ``name``'s hierarchy, C loops
+    and NumPy alternated ``repeats`` times: medians and their ratio."""
+    from pmjax import _normals
+
+    data = pmjax.read_pm(pm_file(name))
+    native = _normals.native
+    times = {"C": [], "NumPy": []}
+    try:
+        for _ in range(repeats):
+            for way in times:
+                _normals.native = native if way == "C" else None
+                t = time.perf_counter()
+                pmjax.fitted_normals(data)
+                times[way].append(time.perf_counter() - t)
+    finally:
+        _normals.native = native
+    row = dict(model=name, c_s=statistics.median(times["C"]) if native is not None else float("nan"),
+               numpy_s=statistics.median(times["NumPy"]))
+    row["ratio"] = row["numpy_s"] / row["c_s"]
+    print(f"{name:8s} fitted_normals: C {row['c_s']:.3f} s, NumPy {row['numpy_s']:.3f} s, "
+          f"C {row['ratio']:.2f}x faster (medians of {repeats})", flush=True)
+    return [row]
+
+
 def cost(name, frames, tau, repeats, supersample=2):
     """``fidelity_ms`` of ``path_fidelity`` without and with FLIP on ``frames``
     frames of the standard orbit at ``tau``, alternated ``repeats`` times:
@@ -222,6 +251,7 @@ def main():
     ap.add_argument("--normals-tau", type=float, default=1.0, help="tau of the normals part")
     ap.add_argument("--cost-frames", default="24", help="frames per model for the cost part")
     ap.add_argument("--cost-repeats", type=int, default=3, help="alternated repeats of the cost part")
+    ap.add_argument("--fit-repeats", type=int, default=5, help="alternated repeats of the fit part")
     ap.add_argument("--supersample", type=int, default=2, metavar="S",
                     help="S x S samples per pixel in every render (default 2, as `pmjax path --fidelity`)")
     ap.add_argument("--plot", help="frontier part: write the faces-against-fidelity plot (PNG) here")
@@ -273,9 +303,14 @@ def main():
         print("\nMeasuring cost per frame (path_fidelity, tau 1):")
         for name, n in zip(names, per_model(args.cost_frames, names)):
             cost_rows += cost(name, n, 1.0, args.cost_repeats, args.supersample)
+    fit_rows = []
+    if "fit" in parts:
+        print("\nThe shading normals' fit:")
+        for name in names:
+            fit_rows += fit(name, args.fit_repeats)
     if args.json:
         write_json(args.json, dict(machine=machine(), supersample=args.supersample, rows=rows,
-                                   frontier=frontier_rows, normals=normals_rows, cost=cost_rows))
+                                   frontier=frontier_rows, normals=normals_rows, cost=cost_rows, fit=fit_rows))
 
 
 if __name__ == "__main__":
