@@ -143,15 +143,28 @@ def engine_lines() -> list[str]:
     return [f"  {name:5s} {text}" for name, text in engine_info().items()]
 
 
+def compiled_loops() -> dict:
+    """Whether each optional ctypes extension is active here (else its NumPy
+    steps run: the same results, slower)."""
+    from pmjax import _codec, _normals
+    from pmjax.builders import _native
+
+    return {"builder": _native.available(), "pmz decoder": _codec.native is not None,
+            "shading normals' fit": _normals.native is not None}
+
+
 def cmd_info(args) -> int:
     from pmjax import engine_info, read_pm
 
     if args.engines:
+        loops = compiled_loops()
         if args.json:
-            print(json.dumps(engine_info(), indent=1))
+            print(json.dumps(dict(engine_info(), compiled_loops=loops), indent=1))
         else:
             print("engines:")
             print("\n".join(engine_lines()))
+            print("compiled loops (else NumPy, the same results):")
+            print("\n".join(f"  {name}: {'C' if on else 'NumPy'}" for name, on in loops.items()))
         if args.pm is None:
             return 0
     if args.pm is None:

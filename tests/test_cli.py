@@ -59,6 +59,22 @@ def test_version(capsys):
     assert [line.split()[0] for line in lines[2:]] == list(pmjax.engine_info())
 
 
+def test_info_engines_names_the_compiled_loops(capsys, monkeypatch):
+    """`info --engines` says, per optional ctypes extension, whether its C
+    loops or the NumPy steps run here."""
+    import json
+
+    from pmjax import _codec, _normals
+
+    assert main(["info", "--engines", "--json"]) == 0
+    loops = json.loads(capsys.readouterr().out)["compiled_loops"]
+    assert loops["pmz decoder"] == (_codec.native is not None)
+    assert loops["shading normals' fit"] == (_normals.native is not None)
+    monkeypatch.setattr(_normals, "native", None)
+    assert main(["info", "--engines"]) == 0
+    assert "  shading normals' fit: NumPy" in capsys.readouterr().out.splitlines()
+
+
 def test_messages_name_the_flags_and_the_remedy(tmp_path, capsys):
     out = str(tmp_path / "c.json")
     assert main(["camera", "look-at", "--eye", "1", "2", "3", "--target", "1", "2", "3", "-o", out]) == 2
