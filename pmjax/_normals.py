@@ -150,14 +150,19 @@ native = _load_native()
 # Threads of the C loops (their parts write disjoint outputs: the same bits
 # for any number), and the fewest slots or samples a step splits over them
 # (below, a second thread costs more than it saves).
-FIT_THREADS = min(os.cpu_count() or 1, 2)
+FIT_THREADS = min(len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1, 2)
 FIT_MIN_SPLIT = 4096
 
 
 def _fitted_by_axis(pm) -> np.ndarray:
     """``float64[3, V0 + P]``: :func:`fitted_normals` by axis, before rounding
     (the C loops where they are built and the hierarchy's ids fit them, else
-    NumPy: the same bits)."""
+    NumPy: the same bits). Raises ``ValueError`` on a position that is NaN or
+    infinite (no fit is defined there)."""
+    vertices = np.asarray(pm.vertices)
+    if not np.isfinite(vertices).all():
+        bad = int(np.flatnonzero(~np.isfinite(vertices).all(axis=1))[0])
+        raise ValueError(f"fitted_normals: vertex {bad} has a position that is not finite ({vertices[bad].tolist()})")
     fitted = _fitted_native(pm)
     return _fitted_numpy(pm) if fitted is None else fitted.T
 
@@ -174,9 +179,13 @@ def _fitted_native(pm) -> np.ndarray | None:
     if vertices.dtype != np.float32:
         vertices = vertices.astype(np.float64)
     vertices = np.ascontiguousarray(vertices)
-    faces = np.ascontiguousarray(pm.faces, np.int32)
+    faces = np.asarray(pm.faces)
     offsets = np.ascontiguousarray(pm.batch_offsets, np.int64)
     V = len(vertices)
+    # The C loops take int32 ids: ranges are checked on the ids as given.
+    if len(faces) >= 2**31 or (len(faces) and not (0 <= faces.min() and faces.max() < V0)):
+        return None
+    faces = np.ascontiguousarray(faces, np.int32)
     # Each pcol's children, the smaller id first (the order the subtree
     # means add them in).
     if hasattr(pm, "v1"):
@@ -190,11 +199,12 @@ def _fitted_native(pm) -> np.ndarray | None:
         v1, v2 = consumed[0::2], consumed[1::2]
     kid_lo, kid_hi = np.minimum(v1, v2), np.maximum(v1, v2)
     P = V - V0
-    made = np.repeat(V0 + offsets[:-1], np.diff(offsets)) if len(offsets) else np.zeros(0, np.int64)
     if not (V < 2**31 and vertices.shape == (V, 3) and faces.ndim == 2 and faces.shape[1] == 3
             and len(kid_lo) == P and len(offsets) >= 1 and offsets[0] == 0 and offsets[-1] == P
-            and (np.diff(offsets) >= 0).all() and (not len(faces) or 0 <= faces.min() and faces.max() < V0)
-            and (not P or 0 <= kid_lo.min() and (kid_lo < kid_hi).all() and (kid_hi < made).all())):
+            and (np.diff(offsets) >= 0).all()):
+        return None
+    made = np.repeat(V0 + offsets[:-1], np.diff(offsets))
+    if P and not (0 <= kid_lo.min() and (kid_lo < kid_hi).all() and (kid_hi < made).all()):
         return None
     if P and np.bincount(np.concatenate([kid_lo, kid_hi]), minlength=V).max() > 1:
         return None  # a vertex consumed twice

@@ -40,7 +40,7 @@ static inline double coord(Coords c, int64_t v, int k) {
     return c.f32 ? (double)c.f32[3 * v + k] : c.f64[3 * v + k];
 }
 
-/* n / |n| in place (a zero or non-finite length divides by 1), the squares
+/* n / |n| in place (a length that is not positive, zero or NaN, divides by 1), the squares
  * summed x, y, z in that order (np.linalg.norm along an axis of three). */
 static void unit3(double *n) {
     double length = sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);

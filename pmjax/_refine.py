@@ -840,9 +840,11 @@ def _path_budgets(pm, host, budgets, tests, chunk):
         # The other frames guessed word by word along the path, each at its
         # start (a frame without one at inf: a traversal that stops at the
         # roots, its guess unused); those whose answers lie below it, or
-        # that have no start, are guessed alone.
-        guess[rest], alt[rest] = (x[rest] for x in _word_guesses(d, counts_of, host, np.where(
-            start > 0, start, np.float32(np.inf)), budgets, tests))
+        # that have no start, are guessed alone (all of them, without a word
+        # traversal, where no frame has a start).
+        if (start[rest] > 0).any():
+            guess[rest], alt[rest] = (x[rest] for x in _word_guesses(d, counts_of, host, np.where(
+                start > 0, start, np.float32(np.inf)), budgets, tests))
         alone = rest[~(start[rest] > 0) | (guess[rest] < 0).any(axis=1)]
         if len(alone):
             guess[alone], alt[alone] = _guesses(d, counts_of, host, alone, start[alone], budgets, tests, chunk)

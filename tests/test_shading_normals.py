@@ -257,6 +257,32 @@ def test_fitted_normals_equal_the_reference_bit_for_bit(cow, monkeypatch, fit_pa
     assert _same_bits(pmjax.hierarchy_normals(cow), _unit_rows(total).astype(np.float32))
 
 
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_a_position_that_is_not_finite_is_refused(cow, fit_path, bad):
+    """No fit is defined at a NaN or infinite position: both ways refuse it,
+    naming the vertex, instead of returning NaN normals or failing elsewhere."""
+    vertices = cow.vertices.copy()
+    vertices[17, 1] = bad
+    with pytest.raises(ValueError, match="vertex 17 has a position that is not finite"):
+        pmjax.fitted_normals(dataclasses.replace(cow, vertices=vertices))
+
+
+def test_faces_outside_int32_go_to_numpy_with_its_bits(cow):
+    """Face ids the C loops cannot take as given (int64 beyond int32, which a
+    cast would wrap into range) leave the fit to NumPy: no C call on wrapped
+    ids, NumPy's bits for a hierarchy it takes."""
+    import pmjax._normals
+
+    if pmjax._normals.native is None:
+        pytest.skip("the fit's C loops (pmjax._normals_native) are not built")
+    wrapped = np.asarray(cow.faces, np.int64).copy()
+    wrapped[0, 0] += 2**32  # wraps to the same id as int32
+    assert pmjax._normals._fitted_native(dataclasses.replace(cow, faces=wrapped)) is None
+    wide = np.asarray(cow.faces, np.int64)
+    assert _same_bits(pmjax._normals._fitted_native(dataclasses.replace(cow, faces=wide)),
+                      pmjax._normals._fitted_native(cow))
+
+
 def test_build_stores_them_and_the_file_round_trips(cow, tmp_path):
     np.testing.assert_array_equal(cow.shading_normals, pmjax.fitted_normals(cow))
     path = tmp_path / "cow.pmz"

@@ -37,10 +37,10 @@
  * pcol surely too coarse at the largest is too coarse for every frame; the
  * magnitudes take the largest.
  *
- * Otherwise (about one slot in six along the dragon's orbit) the frames are
- * decided one by one, less the tests settled for all of them: FAT_INSIDE
- * where every frame's frustum test surely keeps the pcol, FAT_SCREEN where
- * its orientation test does too (the bounds of FAT_NO's first two parts).
+ * Otherwise the frames are decided one by one, less the tests settled for
+ * all of them: FAT_INSIDE where every frame's frustum test surely keeps the
+ * pcol, FAT_SCREEN where its orientation test does too (the bounds of
+ * FAT_NO's first two parts).
  * Either way every frame gets the bits of its own refinement. */
 #include "certify.h"
 
