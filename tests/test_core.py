@@ -331,7 +331,8 @@ def test_fat_camera_decisions_hold_for_every_frame(built, name):
     where it says "no", no frame's predicate collapses the pcol; where it
     settles tests ("inside": the frustum test, "screen": the frustum and
     orientation tests), no frame's predicate with only those tests on
-    collapses the pcol, nor does their subtree bound hold for any frame. Along an orbit it decides most pcols; with a
+    collapses the pcol, nor does their subtree bound hold for any frame.
+    Along an orbit it decides most pcols and settles tests of others; with a
     tolerance of 0 (not a usual view) it decides none, nor does a fat camera
     that is not finite."""
     data = built(name)
@@ -367,7 +368,12 @@ def test_fat_camera_decisions_hold_for_every_frame(built, name):
                 assert np.all(all_below[got == _core.FAT_WHOLE]), (label, tau, f)
             if label.startswith("orbit") and tau == 1.0:
                 assert np.mean(got == 1) > 0.3 and np.any(got == 2), (label, np.bincount(got, minlength=5))
-                assert np.any(np.isin(got, (_core.FAT_INSIDE, _core.FAT_SCREEN))), label
+                # Both settled codes occur, so both ways of leaving tests out
+                # are exercised (on the terrain, whose surface faces the orbit's
+                # eyes, the orientation test is settled wherever the frustum is).
+                counts = np.bincount(got, minlength=5)
+                assert counts[_core.FAT_SCREEN] > 0, (label, counts)
+                assert counts[_core.FAT_INSIDE] > 0 or name.startswith("terrain"), (label, counts)
                 nan = jnp.full(_core.FAT, jnp.nan, jnp.float32)
                 unused = _core.decide_fat_all(table, views, nan, _core.flags_of(pmjax.ALL_TESTS, False))
                 assert not np.any(np.asarray(unused)), label
