@@ -275,15 +275,21 @@ typedef struct {
 static void flush_block(const PmxHierarchy *h, const PmxScratch *s, Budget *b, int64_t m, const float *view,
                         float unit, int ortho, int screen, OwnBlock own)
 {
-    int32_t pos[LANES];
-    float out[LANES], units[LANES];
-    const float *views[LANES];
+    /* Lanes past m are never read; zeroed so that no compiler sees them unset. */
+    int32_t pos[LANES] = {0};
+    float out[LANES], units[LANES] = {0};
+    const float *views[LANES] = {0};
+    /* Without the screen test every own tolerance is infinite. */
+    if (!screen) {
+        for (int64_t j = 0; j < m; j++)
+            b->own[b->wt[j]] = INFINITY;
+        return;
+    }
     for (int64_t j = 0; j < m; j++)
         pos[j] = s->ids[b->wt[j]], views[j] = view, units[j] = unit;
-    if (screen)
-        own(h->rows, pos, m, views, units, ortho, out);
+    own(h->rows, pos, m, views, units, ortho, out);
     for (int64_t j = 0; j < m; j++)
-        b->own[b->wt[j]] = screen ? out[j] : INFINITY;
+        b->own[b->wt[j]] = out[j];
 }
 
 /* The tally of a traversal at lo: the values >= lo with their kills
