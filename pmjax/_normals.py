@@ -82,10 +82,16 @@ def _corner_sums(faces, values, n: int) -> np.ndarray:
     return np.stack([np.bincount(at, np.tile(row, 3), minlength=n) for row in values])
 
 
+def _consumed(parent) -> np.ndarray:
+    """The consumed vertices in the order of the pcols consuming them (a
+    pcol's two, the smaller id first)."""
+    order = np.argsort(parent, kind="stable")
+    return order[parent[order] >= 0]
+
+
 def _consumed_by_batch(parent, offsets) -> list:
     """Per batch, the vertices its pcols consume (``parent`` in the batch)."""
-    order = np.argsort(parent, kind="stable")
-    consumed = order[parent[order] >= 0]
+    consumed = _consumed(parent)
     starts = np.searchsorted(parent[consumed], offsets)
     return [consumed[starts[b]:starts[b + 1]] for b in range(len(offsets) - 1)]
 
@@ -192,8 +198,7 @@ def _fitted_native(pm) -> np.ndarray | None:
         v1, v2 = np.asarray(pm.v1, np.int64), np.asarray(pm.v2, np.int64)
     else:
         parent = np.asarray(pm.parent, np.int64)
-        order = np.argsort(parent, kind="stable")
-        consumed = order[parent[order] >= 0]
+        consumed = _consumed(parent)
         if len(consumed) != 2 * (V - V0) or (parent[consumed] != np.repeat(np.arange(V - V0), 2)).any():
             return None
         v1, v2 = consumed[0::2], consumed[1::2]

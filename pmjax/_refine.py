@@ -867,20 +867,26 @@ def _path_budgets(pm, host, budgets, tests, chunk):
                 executed_count=cols[2].reshape(B, K).T.astype(np.int32))
 
 
+def _word_calls(K: int):
+    """The frames of a path of ``K`` frames per call of the core's words:
+    the path padded to whole words by its last frame, whole blocks of words
+    per call, then the rest in powers of two words (few compiled sizes).
+    A repeated frame gets the same results as the frame itself."""
+    F = _core.FRAMES
+    words = -(-K // F)
+    order = np.minimum(np.arange(words * F), K - 1)
+    for start, n in _core.word_spans(words, _core.WORDS_PER_CALL):
+        yield order[start * F:(start + n) * F]
+
+
 def _word_counts(d, counts_of, rows, tests, orthographic):
     """Exact ``(faces, vertices, executed)`` (``int64 [K, 3]``) of the frames
     ``rows`` (``float32 [K, CAMERA]``, a path in order, each with its own
-    tolerance) through the core's words: the path padded to whole words by
-    its last frame, whole blocks of words per call, then the rest in powers
-    of two words (few compiled sizes)."""
-    K, F = len(rows), _core.FRAMES
-    words = -(-K // F)
-    order = np.minimum(np.arange(words * F), K - 1)
-    out = np.empty((K, 3), np.int64)
-    for start, n in _core.word_spans(words, _core.WORDS_PER_CALL):
-        lanes = order[start * F:(start + n) * F]
+    tolerance) through the core's words (:func:`_word_calls`)."""
+    out = np.empty((len(rows), 3), np.int64)
+    for lanes in _word_calls(len(rows)):
         counts = np.asarray(_core_word_counts(d.core_words, d.core, rows[lanes], tests, orthographic))
-        out[lanes] = np.stack(counts_of(counts[:, 1], counts[:, 2], np), 1)  # a repeated frame: the same counts
+        out[lanes] = np.stack(counts_of(counts[:, 1], counts[:, 2], np), 1)
     return out
 
 
@@ -912,19 +918,15 @@ def _word_guesses(d, counts_of, host, start, budgets, tests):
     """The core's ``(guess, alt)`` (``int32 [K, B]``) of a path's frames
     ``host`` in order for their budgets (``[K, B]``), each word of frames
     traversed once at the frames' own tolerances ``start`` (``float32
-    [K]``, > 0), -1 for a frame whose answers lie below its tolerance: the
-    path padded to whole words by its last frame, whole blocks of words per
-    call, then the rest in powers of two words."""
+    [K]``, > 0), -1 for a frame whose answers lie below its tolerance; the
+    calls as :func:`_word_calls` makes them."""
     K, B = budgets.shape
-    words = -(-K // _core.FRAMES)
-    order = np.minimum(np.arange(words * _core.FRAMES), K - 1)
     rows = _core.host_camera_rows(host, start, d.exponent)
     guess, alt = np.empty((K, B), np.int32), np.empty((K, B), np.int32)
-    for w0, n in _core.word_spans(words, _core.WORDS_PER_CALL):
-        lanes = order[w0 * _core.FRAMES:(w0 + n) * _core.FRAMES]
+    for lanes in _word_calls(K):
         got = _core_guesses(d.core_words, rows[lanes], budgets[lanes].astype(np.int32), tests, host.orthographic,
                             counts_of.base_faces, words=True)
-        guess[lanes], alt[lanes] = (np.asarray(x) for x in got)  # a repeated frame: the same guesses
+        guess[lanes], alt[lanes] = (np.asarray(x) for x in got)
     return guess, alt
 
 

@@ -199,19 +199,27 @@ PMX_TARGET_AVX512 static void own_block_avx512(const float *rows, const int32_t 
 
 typedef void (*OwnBlock)(const float *, const int32_t *, int64_t, const float *const *, const float *, int, float *);
 
+#if PMX_X86
+/* The SIMD level in use (PMX_SIMD_PLAIN, AVX2 or AVX512: the index of a
+ * kernel in this file's tables of three). */
+static int simd_level(void)
+{
+    int level = PMX_SIMD_PLAIN;
+    (void)pmx_kernels_at(-1, &level);
+    return level;
+}
+#endif
+
 /* The block kernel of the SIMD level in use (the same bits at every level:
  * fmaf, sqrtf and the division are exactly rounded). */
 static OwnBlock own_block(void)
 {
-    int level = 0;
-    (void)pmx_kernels_at(-1, &level);
 #if PMX_X86
-    if (level == PMX_SIMD_AVX512)
-        return own_block_avx512;
-    if (level == PMX_SIMD_AVX2)
-        return own_block_avx2;
-#endif
+    static const OwnBlock at_level[] = {own_block_plain, own_block_avx2, own_block_avx512};
+    return at_level[simd_level()];
+#else
     return own_block_plain;
+#endif
 }
 
 /* The largest value v of val[0..n) with the weights of the values >= v
@@ -677,15 +685,12 @@ typedef void (*LanesUp)(float *, int64_t, const int32_t *, const Lanes *);
 
 static LanesUp lanes_up(void)
 {
-    int level = 0;
-    (void)pmx_kernels_at(-1, &level);
 #if PMX_X86
-    if (level == PMX_SIMD_AVX512)
-        return lanes_up_avx512;
-    if (level == PMX_SIMD_AVX2)
-        return lanes_up_avx2;
-#endif
+    static const LanesUp at_level[] = {lanes_up_plain, lanes_up_avx2, lanes_up_avx512};
+    return at_level[simd_level()];
+#else
     return lanes_up_plain;
+#endif
 }
 
 /* Own tolerances of k (slot, frame) pairs (positions pos, views view, one
