@@ -600,17 +600,25 @@ static void put_guesses(Batch *bt, int64_t c, const int64_t *g, const int64_t *a
     }
 }
 
+/* A thread's working memory for bt (with the word arrays when `words`);
+ * 0, with bt's status set and nothing held, when it cannot be had. */
+static int work_start(Batch *bt, Work *k, int words)
+{
+    if (budget_take(k, bt->h, bt->B, words))
+        return 1;
+    __atomic_store_n(&bt->status, PMX_NO_MEMORY, __ATOMIC_RELAXED);
+    budget_give(k);
+    return 0;
+}
+
 static void batch_work(void *arg)
 {
     Batch *bt = arg;
     const PmxHierarchy *h = bt->h;
     const int64_t B = bt->B;
     Work k;
-    if (!budget_take(&k, h, B, 0)) {
-        __atomic_store_n(&bt->status, PMX_NO_MEMORY, __ATOMIC_RELAXED);
-        budget_give(&k);
+    if (!work_start(bt, &k, 0))
         return;
-    }
     const unsigned mode = subnormals_off();
     const Kernels *kern = pmx_kernels();
     /* The first tolerance of a camera: its row's, or where that is 0, the
@@ -758,11 +766,8 @@ static void words_work(void *arg)
     const PmxHierarchy *h = bt->h;
     const int64_t B = bt->B;
     Work k;
-    if (!budget_take(&k, h, B, 1)) {
-        __atomic_store_n(&bt->status, PMX_NO_MEMORY, __ATOMIC_RELAXED);
-        budget_give(&k);
+    if (!work_start(bt, &k, 1))
         return;
-    }
     PmxScratch *s = k.s;
     const unsigned mode = subnormals_off();
     const Kernels *kern = pmx_kernels();
