@@ -112,3 +112,26 @@ def test_the_builder_has_no_absolute_tolerance(cow_data):
         for name in ("vertices", "radius", "delta", "mu"):
             np.testing.assert_array_equal(getattr(scaled, name).astype(np.float64),
                                           getattr(unit, name).astype(np.float64) * scale, err_msg=name)
+
+
+@pytest.mark.slow
+def test_path_budgets_and_shading_normals_do_not_depend_on_scale_or_offset(cow_data):
+    """Budgets along a path (guessed word by word) give the same faces at every
+    scale and offset, and the same tolerances bit for bit at a power-of-two
+    scale; the fitted shading normals are the same bits at a power-of-two
+    scale and within float32 rounding of the moved positions elsewhere."""
+    budgets = np.tile([[400, 1500, 3000]], (40, 1))
+    unit = ProgressiveMesh.from_data(cow_data)
+    want = pmjax.faces_for_budget_batch(unit, _cameras(cow_data, 1.0, 0.0, n=40), budgets, path=True)
+    normals = pmjax.fitted_normals(cow_data)
+    for scale, offset in ((2.0 ** -40, 0.0), (2.0 ** 40, 0.0), (1e-6, 0.0), (1e6, 2.0)):
+        moved = _moved(cow_data, scale, offset)
+        got = pmjax.faces_for_budget_batch(ProgressiveMesh.from_data(moved), _cameras(cow_data, scale, offset, n=40),
+                                           budgets, path=True)
+        np.testing.assert_array_equal(got["faces"], want["faces"], err_msg=f"scale {scale}, offset {offset}")
+        fitted = pmjax.fitted_normals(moved)
+        if offset == 0.0 and np.log2(scale) == round(np.log2(scale)):
+            np.testing.assert_array_equal(got["tau"], want["tau"])
+            np.testing.assert_array_equal(fitted, normals)
+        else:
+            np.testing.assert_allclose(fitted, normals, atol=1e-2)
