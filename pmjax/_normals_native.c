@@ -272,7 +272,9 @@ static void locate(void *arg, int64_t first, int64_t end) {
     Fit *fit = arg;
     Geometry *geometry = malloc((size_t)(fit->longest > 0 ? fit->longest : 1) * sizeof *geometry);
     if (!geometry) {
-        fit->failed = 1;
+        /* Any thread may fail: the flag is stored atomically, and read after
+         * the threads are joined. */
+        __atomic_store_n(&fit->failed, 1, __ATOMIC_RELAXED);
         return;
     }
     int64_t pick[TILE];
