@@ -286,6 +286,7 @@ def test_batch_budgets_at_any_scale(built, scale, offset):
     _assert_same(pm_s, cams_s, [budgets[:, 0], budgets[:, 4]], _column_of(got, [0, 4]))
 
 
+@pytest.mark.slow
 def test_counts_in_several_calls_equal_refines(built, monkeypatch):
     """Exact counts of more probes than one call takes: calls of 32 times a
     power of 4 that cover the probes once each, the last padded by fewer than
@@ -313,6 +314,7 @@ def test_counts_in_several_calls_equal_refines(built, monkeypatch):
         assert (got[0][q], got[1][q], got[2][q]) == (int(r.n_faces), int(r.n_vertices), int(r.n_executed)), q
 
 
+@pytest.mark.slow
 def test_chunks_pooled_for_the_counts_give_the_same_answers(built, monkeypatch):
     """The exact counts of several chunks run together: small chunks, pooled
     two by two or all at once, give the answers of one chunk for all
@@ -334,6 +336,7 @@ def test_chunks_pooled_for_the_counts_give_the_same_answers(built, monkeypatch):
             assert one["faces"][k, j] == faces, (k, j)
 
 
+@pytest.mark.slow
 def test_budgets_between_tied_switch_tolerances(data_path):
     """A mirrored cow seen from its plane of symmetry: mirrored pcols switch
     at the same tolerance, so the count drops by both at once. A budget
