@@ -787,11 +787,13 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
     order = nearby_order(np.asarray(cameras.eye))
     tau = np.empty((K, B), np.float32)
     cols = [np.empty((K, B), np.int32) for _ in range(3)]
-    # The guesses chunk by chunk; the exact counts of POOLED chunks at once,
-    # so that each round of counts (most of them left to a few cameras after
-    # the first) is one set of calls for all of them, not one per chunk.
-    for s in range(0, K, chunk * POOLED):
-        idx = order[s:s + chunk * POOLED]
+    # The guesses chunk by chunk; the exact counts of whole chunks up to
+    # POOLED cameras at once, so that each round of counts (most of them left
+    # to a few cameras after the first) is one set of calls for all of them,
+    # not one per chunk.
+    pool = chunk * max(1, POOLED // chunk)
+    for s in range(0, K, pool):
+        idx = order[s:s + pool]
         n = len(idx)
         guess, alt = _guesses(d, counts_of, host, idx, np.zeros(n, np.float32), budgets, tests, chunk)
         rows = _core.host_camera_rows(jax.tree.map(lambda a: a[idx], host), np.zeros(n, np.float32), d.exponent)
@@ -804,9 +806,9 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
     return shaped(dict(tau=tau, faces=cols[0], vertices=cols[1], executed_count=cols[2]))
 
 
-# Chunks of cameras whose exact counts run together in faces_for_budget_batch
-# (their probe rows, B per camera, are held at once).
-POOLED = 16
+# Cameras whose exact counts run together in faces_for_budget_batch, in whole
+# chunks (at least one): their probe rows, B per camera, are held at once.
+POOLED = 4096
 
 
 # Along a path, every PATH_SAMPLE-th frame is guessed first (each from the

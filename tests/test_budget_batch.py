@@ -316,15 +316,15 @@ def test_counts_in_several_calls_equal_refines(built, monkeypatch):
 
 @pytest.mark.slow
 def test_chunks_pooled_for_the_counts_give_the_same_answers(built, monkeypatch):
-    """The exact counts of several chunks run together: small chunks, pooled
-    two by two or all at once, give the answers of one chunk for all
-    cameras, which are faces_for_budget's."""
+    """The exact counts of several chunks run together: small chunks, each
+    alone, pooled two by two or all at once, give the answers of one chunk
+    for all cameras, which are faces_for_budget's."""
     data = built("cow.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
     cams = _views(data, 70, seed=12)  # 72 cameras: 3 chunks of 32, pooled 2 + 1
     budgets = _columns(pm, cams, np.array(_budgets(pm, cams)))[:, :4]
     one = pmjax.faces_for_budget_batch(pm, cams, budgets, method="front", chunk=96)
-    for pooled in (2, 16):
+    for pooled in (16, 64, 4096):
         monkeypatch.setattr(_refine, "POOLED", pooled)
         got = pmjax.faces_for_budget_batch(pm, cams, budgets, method="front", chunk=32)
         for key in one:
