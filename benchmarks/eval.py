@@ -2,6 +2,7 @@
 
 Usage: python benchmarks/eval.py [--parts stream,dask,cache,models,paths,budgets,startup,fidelity]
        [--cameras 1000000] [--dask-cameras 20000] [--path-frames 7680] [--budget-cameras 2048]
+       [--budget-models bunny,dragon] [--budget-sets random,orbit]
        [--startup-cameras 100000] [--startup-repeats 3] [--fidelity-cameras 8] [--json out.json]
 
 - stream: random views of the bunny streamed to Parquet by ``pmjax eval`` (a
@@ -261,16 +262,17 @@ def paths(frames: int, work: str, model: str = "dragon", repeats: int = 3) -> di
     return row
 
 
-def budgets(n: int, work: str, repeats: int = 3) -> list:
+def budgets(n: int, work: str, repeats: int = 3, models: tuple = ("bunny", "dragon"),
+            sets: tuple = ("random", "orbit")) -> list:
     from pmjax._camera_table import orbit_rows, random_rows
 
     taus = [0.5, 1.0, 2.0]
     rows = []
-    for model in ("bunny", "dragon"):
+    for model in models:
         path = pm_file(model)
         pm, data = pmjax.load(path), pmjax.read_pm(path)
         v0 = data.vertices[: data.n_original_vertices]
-        for spec in (f"random:{n}:7", f"orbit:{n}"):
+        for spec in [s for s in (f"random:{n}:7", f"orbit:{n}") if s.split(":")[0] in sets]:
             table = random_rows(v0, 7, 0, n) if spec.startswith("random") else orbit_rows(v0, n, 0, n)
             cams = table.camera()
             values = [int(np.median(pmjax.refine_batch(pm, cams, t)["faces"])) for t in taus]
@@ -430,6 +432,8 @@ def main():
     ap.add_argument("--dask-cameras", type=int, default=20_000)
     ap.add_argument("--path-frames", type=int, default=7680)
     ap.add_argument("--budget-cameras", type=int, default=2048)
+    ap.add_argument("--budget-models", default="bunny,dragon", help="budgets: the models, comma-separated")
+    ap.add_argument("--budget-sets", default="random,orbit", help="budgets: the camera sets (random, orbit)")
     ap.add_argument("--startup-cameras", type=int, default=100_000)
     ap.add_argument("--startup-repeats", type=int, default=3)
     ap.add_argument("--fidelity-cameras", type=int, default=8)
@@ -450,7 +454,8 @@ def main():
         if "paths" in parts:
             report["paths"] = paths(args.path_frames, work)
         if "budgets" in parts:
-            report["budgets"] = budgets(args.budget_cameras, work)
+            report["budgets"] = budgets(args.budget_cameras, work, models=tuple(args.budget_models.split(",")),
+                                        sets=tuple(args.budget_sets.split(",")))
         if "startup" in parts:
             report["startup"] = startup(args.startup_cameras, work, args.startup_repeats)
         if "fidelity" in parts:

@@ -787,8 +787,13 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
     order = nearby_order(np.asarray(cameras.eye))
     tau = np.empty((K, B), np.float32)
     cols = [np.empty((K, B), np.int32) for _ in range(3)]
-    for s in range(0, K, chunk):
-        idx = order[s:s + chunk]
+    # The guesses chunk by chunk; the exact counts of whole chunks up to
+    # POOLED cameras at once, so that each round of counts (most of them left
+    # to a few cameras after the first) is one set of calls for all of them,
+    # not one per chunk.
+    pool = chunk * max(1, POOLED // chunk)
+    for s in range(0, K, pool):
+        idx = order[s:s + pool]
         n = len(idx)
         guess, alt = _guesses(d, counts_of, host, idx, np.zeros(n, np.float32), budgets, tests, chunk)
         rows = _core.host_camera_rows(jax.tree.map(lambda a: a[idx], host), np.zeros(n, np.float32), d.exponent)
@@ -799,6 +804,11 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
         for col, v in zip(cols, c):
             col[idx] = v.reshape(n, B)
     return shaped(dict(tau=tau, faces=cols[0], vertices=cols[1], executed_count=cols[2]))
+
+
+# Cameras whose exact counts run together in faces_for_budget_batch, in whole
+# chunks (at least one): their probe rows, B per camera, are held at once.
+POOLED = 4096
 
 
 # Along a path, every PATH_SAMPLE-th frame is guessed first (each from the
@@ -1023,19 +1033,39 @@ def _exact_from_guess(tables, rows, budgets, guess, alt, tests, orthographic, co
     return tau, (counted[:, 0], counted[:, 1], counted[:, 2])
 
 
+# Probe rows per call of exact counts at most (32 times a power of 4).
+MOST_PROBES = 2048
+
+
+def _count_calls(m: int):
+    """The ``(start, size)`` of the calls that count ``m`` probes: sizes 32
+    times a power of 4 up to :data:`MOST_PROBES` (few compiled sizes), as
+    many of the largest as fit, then of the next, and so on; the last call
+    padded to 32. A padding row costs a traversal of the roots (at ``tau =
+    inf`` several times one at a finite tolerance), so filling calls beats
+    padding them."""
+    calls, start, size = [], 0, MOST_PROBES
+    while start < m:
+        while size > WORD and m - start < size:
+            size //= 4
+        calls.append((start, size))
+        start += size
+    return calls
+
+
 def _counts_at(tables, rows, cams, bits, tests, orthographic, counts_of):
     """Exact counts of cameras ``rows[cams]`` at ``tau`` of bit patterns
-    ``bits``: one batched call, padded to 32 times a power of 4 (few compiled
-    sizes) by rows at ``tau = inf``, whose traversal stops at the roots."""
+    ``bits``: batched calls (:func:`_count_calls`), the last one padded by
+    rows at ``tau = inf``, whose traversal stops at the roots."""
     m = len(cams)
-    size = WORD
-    while size < m:
-        size *= 4
-    probe = np.empty((size, rows.shape[1]), np.float32)
-    probe[:m] = rows[cams]
-    probe[m:] = rows[cams[0]]
-    probe[:m, -1] = bits.astype(np.int32).view(np.float32)
-    probe[m:, -1] = np.inf
-    counts = np.asarray(_core_many(tables, probe, tests, orthographic, False)[0])[:m]
-    faces, vertices, executed = counts_of(counts[:, 1], counts[:, 2], np)
+    out = np.empty((m, 2), np.int64)
+    for start, size in _count_calls(m):
+        k = min(size, m - start)
+        probe = np.empty((size, rows.shape[1]), np.float32)
+        probe[:k] = rows[cams[start:start + k]]
+        probe[k:] = rows[cams[start]]
+        probe[:k, -1] = bits[start:start + k].astype(np.int32).view(np.float32)
+        probe[k:, -1] = np.inf
+        out[start:start + k] = np.asarray(_core_many(tables, probe, tests, orthographic, False)[0])[:k, 1:3]
+    faces, vertices, executed = counts_of(out[:, 0], out[:, 1], np)
     return faces.astype(np.int64), vertices.astype(np.int64), executed.astype(np.int64)

@@ -284,3 +284,88 @@ def test_batch_budgets_at_any_scale(built, scale, offset):
             one = pmjax.faces_for_budget_batch(pm_s, cams_s, budgets[:, j], method="front", path=path)
             assert one["tau"].tobytes() == got["tau"][:, j].tobytes(), (path, j)
     _assert_same(pm_s, cams_s, [budgets[:, 0], budgets[:, 4]], _column_of(got, [0, 4]))
+
+
+@pytest.mark.slow
+def test_counts_in_several_calls_equal_refines(built, monkeypatch):
+    """Exact counts of more probes than one call takes: calls of 32 times a
+    power of 4 that cover the probes once each, the last padded by fewer than
+    32 rows, with each probe's counts those of a refine at its tolerance."""
+    for m in (1, 31, 32, 33, 160, 2047, 2048, 2049, 10 ** 4 + 3):
+        calls = _refine._count_calls(m)
+        assert [s for s, _ in calls] == list(np.cumsum([0] + [n for _, n in calls])[:-1]), m
+        assert all(n in (32, 128, 512, 2048) for _, n in calls), m
+        assert 0 <= sum(n for _, n in calls) - m < 32, m
+    monkeypatch.setattr(_refine, "MOST_PROBES", 128)
+    assert [n for _, n in _refine._count_calls(300)] == [128, 128, 32, 32]
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _views(data, 8, seed=4)  # 10 cameras
+    d, counts_of = _refine.derived(pm), _refine._Counts.of(pm)
+    rows = _refine._core.host_camera_rows(jax.tree.map(np.asarray, cams), np.zeros(10, np.float32), d.exponent)
+    rng = np.random.default_rng(3)
+    which = rng.integers(0, 10, 300)
+    taus = np.float32(10.0) ** rng.uniform(-2, 1.5, 300).astype(np.float32)
+    taus[:5] = [0, np.inf, 0, 1, np.inf]
+    got = _refine._counts_at(d.core, rows, which, taus.view(np.int32).astype(np.int64), pmjax.ALL_TESTS, False,
+                             counts_of)
+    for q in range(0, 300, 3):
+        r = pmjax.refine(pm, index_camera(cams, int(which[q])), taus[q])
+        assert (got[0][q], got[1][q], got[2][q]) == (int(r.n_faces), int(r.n_vertices), int(r.n_executed)), q
+
+
+@pytest.mark.slow
+def test_chunks_pooled_for_the_counts_give_the_same_answers(built, monkeypatch):
+    """The exact counts of several chunks run together: small chunks, each
+    alone, pooled two by two or all at once, give the answers of one chunk
+    for all cameras, which are faces_for_budget's."""
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _views(data, 70, seed=12)  # 72 cameras: 3 chunks of 32, pooled 2 + 1
+    budgets = _columns(pm, cams, np.array(_budgets(pm, cams)))[:, :4]
+    one = pmjax.faces_for_budget_batch(pm, cams, budgets, method="front", chunk=96)
+    for pooled in (16, 64, 4096):
+        monkeypatch.setattr(_refine, "POOLED", pooled)
+        got = pmjax.faces_for_budget_batch(pm, cams, budgets, method="front", chunk=32)
+        for key in one:
+            assert one[key].tobytes() == got[key].tobytes(), (pooled, key)
+    for k in range(0, 72, 7):
+        for j in range(budgets.shape[1]):
+            tau, faces = pmjax.faces_for_budget(pm, index_camera(cams, k), int(budgets[k, j]), method="front")
+            assert np.float32(one["tau"][k, j]).tobytes() == np.float32(tau).tobytes(), (k, j)
+            assert one["faces"][k, j] == faces, (k, j)
+
+
+@pytest.mark.slow
+def test_budgets_between_tied_switch_tolerances(data_path):
+    """A mirrored cow seen from its plane of symmetry: mirrored pcols switch
+    at the same tolerance, so the count drops by both at once. A budget
+    between the counts on either side of such a tie is met just above it
+    (the next float32), as faces_for_budget finds it."""
+    v, f, _, _ = pmjax.load_clean_mesh(data_path("cow.ply"))
+    v = (v - v.mean(0)).astype(np.float32)
+    v[:, 0] -= v[:, 0].min() - 0.05 * np.ptp(v[:, 0])  # x > 0: the mirror image apart
+    from pmjax.builders import BuildOptions, build_pm
+
+    mirrored = np.concatenate([v, v * np.array([-1, 1, 1], np.float32)])
+    pm = pmjax.ProgressiveMesh.from_data(build_pm(mirrored, np.concatenate([f, f[:, ::-1] + len(v)]),
+                                                  BuildOptions()))
+    r = float(np.linalg.norm(np.ptp(mirrored, 0)))
+    eyes = [[0, 0.2 * r, 1.5 * r], [0, -0.5 * r, 0.6 * r], [0, 0.1 * r, 8 * r]]
+    cams = stack_cameras([pmjax.look_at(np.array(e, np.float32), np.zeros(3, np.float32)) for e in eyes])
+    budgets, above = [], []
+    for k in range(len(eyes)):
+        eps = np.asarray(pmjax.critical_tolerances(pm, index_camera(cams, k)))
+        value, count = np.unique(eps[np.isfinite(eps) & (eps > 0)], return_counts=True)
+        tied = value[count > 1][::max(1, int(np.sum(count > 1)) // 4)][:4]
+        assert len(tied) == 4, k
+        up = np.nextafter(tied, np.float32(np.inf)).astype(np.float32)
+        faces_up, faces_at = (np.array([int(pmjax.refine(pm, index_camera(cams, k), t).n_faces) for t in taus])
+                              for taus in (up, tied))
+        assert np.all(faces_at >= faces_up + 2), k  # both pcols of the tie at once
+        budgets.append(faces_up + 1)
+        above.append(up)
+    budgets = np.array(budgets)
+    got = pmjax.faces_for_budget_batch(pm, cams, budgets, method="front")
+    assert got["tau"].tobytes() == np.array(above, np.float32).tobytes()
+    _assert_same(pm, cams, [budgets[:, j] for j in range(4)], _column_of(got, range(4)))

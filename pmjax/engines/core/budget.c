@@ -491,6 +491,28 @@ static int64_t top_guess(const int32_t *budgets, int64_t B, int64_t top, const i
     return g_top;
 }
 
+/* The count's power of tau assumed where only one count is known: low, so
+ * that the extrapolation lands below the answer rather than above it (where
+ * the camera would traverse again); the fine views' counts grow about as
+ * the square of 1 / tau. */
+#define POWER 1.0
+
+/* The next tolerance of a camera whose count at lo, count_at_lo, is within
+ * its largest budget `top`: the count extrapolated to top as a power of tau
+ * (from the count at the last, higher tolerance last_lo, else POWER), times
+ * MARGIN, at most 0.9 lo. */
+static double lower(float lo, int64_t count_at_lo, float last_lo, int64_t last_count, int64_t top,
+                    int64_t base_faces)
+{
+    const double a = (double)(count_at_lo - base_faces + 1);
+    double power = POWER;
+    if (last_count >= 0 && last_count < count_at_lo && last_lo > lo)
+        power = log(a / (double)(last_count - base_faces + 1)) / log((double)last_lo / lo);
+    power = power < 0.5 ? 0.5 : power > 4.0 ? 4.0 : power;
+    const double next = lo * MARGIN * pow(a / (double)(top - base_faces + 1), 1.0 / power);
+    return next < lo * 0.9 ? next : lo * 0.9;
+}
+
 /* One camera and its B budgets: each budget's guessed answer's bit pattern
  * in guess (INF_BITS + 1: tau = inf), and in alt the guess with the unsure
  * decisions taken as collapses, from one traversal at `lo` (lowered while
@@ -511,6 +533,7 @@ static int64_t budget_one(const Kernels *kern, const PmxHierarchy *h, const floa
     if (top < 0)
         return (int64_t)INF_BITS + 1;
     int64_t last_count = -1;
+    float last_lo = 0.0f;
     for (;;) {
         /* Traverse at lo. */
         row[PMX_CAMERA - 1] = lo;
@@ -525,11 +548,22 @@ static int64_t budget_one(const Kernels *kern, const PmxHierarchy *h, const floa
          * the answer lies below lo. */
         int64_t not_run = 0, kept = 0;
         kern->resolve(h, n, s->ids, s->kid, s->state, s->kill, s->ran, NULL, &not_run, &kept);
+        /* Within the largest budget, and the count still changing: lower lo
+         * from the counts alone, without the own tolerances of this front. */
+        const int64_t count_at_lo = base_faces + kept;
+        if (count_at_lo <= top && lo != 0.0f && count_at_lo != last_count) {
+            const double next_lo = lower(lo, count_at_lo, last_lo, last_count, top, base_faces);
+            if (next_lo >= 1e-30) {
+                last_count = count_at_lo, last_lo = lo;
+                lo = (float)next_lo;
+                continue;
+            }
+        }
         float next = lo;
         if (answers_at(h, s, b, n, m, kept, lo, view, unit, flags, own, budgets, B, top, base_faces, last_count,
                        &next, guess, alt))
             return top_guess(budgets, B, top, guess);
-        last_count = base_faces + kept;
+        last_count = count_at_lo, last_lo = lo;
         lo = next;
     }
 }
