@@ -699,26 +699,31 @@ void pmx_mesh_stream_state(const PmxMeshStream *s, PmxStreamState *out)
  * is the rank of its id among the faces drawn, a vertex's the rank of its id
  * among those used, as Refinement.mesh() orders them. Nothing is sorted and
  * nothing but the two bitmaps' words and the slots is read. */
-PMX_INLINE void compact_body(PmxMeshStream *s, int32_t *faces, int32_t *ids, float *positions)
+PMX_INLINE void compact_body(PmxMeshStream *s, int32_t *restrict faces, int32_t *restrict ids,
+                             float *restrict positions)
 {
+    /* The stream's arrays and counts in locals: the rows written cannot
+     * change them, so nothing is read again after each store. */
     const uint64_t *const face_bits = s->face_bits, *const used_bits = s->used_bits;
     int32_t *const face_prefix = s->face_prefix, *const used_prefix = s->used_prefix;
     const int32_t *const face_id = s->face_id, *const face_vertex = s->face_vertex, *const vertex_id = s->vertex_id;
     const int32_t *const uses = s->vertex_uses;
-    int32_t *const vertex_rank = s->vertex_rank;
+    const float *const vertex_position = s->vertex_position;
+    int32_t *restrict const vertex_rank = s->vertex_rank;
+    const int64_t n_vertex_slots = s->n_vertex_slots, n_face_slots = s->n_face_slots;
     prefix_counts(face_bits, s->t.n_faces / 64 + 1, face_prefix);
     prefix_counts(used_bits, (s->t.n_original + s->t.n_pcols) / 64 + 1, used_prefix);
     /* Each used vertex slot's row first: a face's corners then read their
      * rows from one small array instead of ranking each corner's id. */
-    for (int64_t slot = 0; slot < s->n_vertex_slots; slot++) {
+    for (int64_t slot = 0; slot < n_vertex_slots; slot++) {
         if (vertex_id[slot] < 0 || uses[slot] == 0)
             continue;
         const int64_t k = rank_of(used_bits, used_prefix, vertex_id[slot]);
         vertex_rank[slot] = (int32_t)k;
         ids[k] = vertex_id[slot];
-        memcpy(positions + 3 * k, s->vertex_position + 3 * slot, 3 * sizeof(float));
+        memcpy(positions + 3 * k, vertex_position + 3 * slot, 3 * sizeof(float));
     }
-    for (int64_t slot = 0; slot < s->n_face_slots; slot++) {
+    for (int64_t slot = 0; slot < n_face_slots; slot++) {
         const int32_t face = face_id[slot];
         if (face < 0)
             continue;
