@@ -271,10 +271,11 @@ _LANE_MASKS = (np.uint16(1) << np.arange(FRAMES, dtype=np.uint16))[:, None]
 def _frame_refinement(fields: dict) -> Refinement:
     """A :class:`Refinement` of a path's frame from its fields: the frozen
     dataclass's ``__init__`` sets each field through ``object.__setattr__``,
-    which costs a path more than its frame's traversal; the fields are set
-    at once instead (the same instance)."""
+    which costs a path more than its frame's traversal; ``fields`` (a new
+    dict, the instance's from here on) becomes its attributes at once
+    instead (the same instance)."""
     r = object.__new__(Refinement)
-    r.__dict__.update(fields)
+    object.__setattr__(r, "__dict__", fields)
     return r
 
 
@@ -306,7 +307,10 @@ def _core_path_frames(pm, host, taus, tests, path_length) -> Iterator[tuple[Refi
         counts, overflow = np.asarray(counts_device), np.asarray(overflow)
         pcols_host, ran_host, positions_host = np.asarray(pcols), np.asarray(ran), np.asarray(positions)
         faces, vertices, executed = counts_of(counts[:, 1], counts[:, 2], np)
-        items = np.arange(n * FRAMES, dtype=np.int32)  # each frame's item in the block's counts
+        # Each frame's counts and item in the block's counts as lists of
+        # NumPy scalars (one pass each; a frame then reads them by index).
+        faces, vertices, executed = list(faces), list(vertices), list(executed)
+        items = list(np.arange(n * FRAMES, dtype=np.int32))
         block = next(_BLOCK_KEYS) << 20
         for w in range(n):
             lanes = range((w0 + w) * FRAMES, (w0 + w + 1) * FRAMES)
@@ -325,10 +329,11 @@ def _core_path_frames(pm, host, taus, tests, path_length) -> Iterator[tuple[Refi
                 if not real_lanes[lane]:
                     continue
                 k = w * FRAMES + j
-                yield _frame_refinement(dict(
-                    pm=pm, visited=visited, visited_executed=executed_bits[j], dense=None, n_faces=faces[k],
-                    n_vertices=vertices[k], n_executed=executed[k], front_positions=positions, core_ran=ran,
-                    core_counts=counts_device, core_item=items[k], n_slots=slots)), (at, word_ran, j, m, key)
+                yield _frame_refinement({
+                    "pm": pm, "visited": visited, "visited_executed": executed_bits[j], "dense": None,
+                    "n_faces": faces[k], "n_vertices": vertices[k], "n_executed": executed[k],
+                    "front_positions": positions, "core_ran": ran, "core_counts": counts_device, "core_item": items[k],
+                    "n_slots": slots}), (at, word_ran, j, m, key)
 
 
 def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, tests: Tests = ALL_TESTS,

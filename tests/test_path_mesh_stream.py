@@ -191,6 +191,30 @@ def test_change_stream_frames_in_any_order(built):
     follow(pm, shuffled(), where="shuffled")
 
 
+def test_compacted_mesh_after_frames_not_compacted(built):
+    """mesh() after any number of frames it was not asked for (the rows of
+    the last compaction merged with the changes since; after the finest and
+    the coarsest meshes in turn, more changes than rows: ranked afresh),
+    and twice for one frame: always the last frame's mesh."""
+    data, pm = model(built, "cow.ply")
+    n = 64
+    cams = hand_held(data, n, seed=29, cuts=(15, 40))
+    taus = np.geomspace(0.1, 20, n).astype(np.float32)
+    taus[[10, 12, 30, 50]] = 0.0
+    taus[[11, 13, 31, 51]] = np.inf
+    frames = list(pmjax.refine_path(pm, cams, taus))
+    stream, i = pmjax.MeshStream(pm), -1
+    for gap in (1, 1, 2, 5, 1, 3, 8, 1, 1, 2, 15, 1, 4, 19):
+        for _ in range(gap):
+            i += 1
+            stream.update(frames[i] if i % 9 else pmjax.refine(pm, index_camera(cams, i), taus[i], method="dense"))
+        want = frames[i].mesh()
+        for _ in range(1 + (gap == 2)):
+            got = stream.mesh()
+            assert all(np.array_equal(a, b) for a, b in zip(got, want)), i
+    assert i == n - 1
+
+
 def test_refine_path_changes_yields_each_frame_with_its_change(built):
     data, pm = model(built, "cow.ply")
     cams = hand_held(data, 36, seed=5, cuts=(17,))
