@@ -24,9 +24,10 @@
  * Memory: the slots of one frame's mesh (grown to the largest frame seen,
  * freed slots reused first), the change's slot lists, and maps over the
  * hierarchy (a slot per position and per original vertex, a slot per killed
- * face, a bit per face and per vertex id), whatever the path's length; once
- * a compaction ran, its rows (two buffers of an id and a slot per slot) and
- * the log of changes since (at most twice the rows and 1024 more). */
+ * face, a bit per face and per vertex id), whatever the path's length; for
+ * the compaction, its rows (two buffers of an id and a slot per slot) and,
+ * once one ran, the log of changes since (at most twice the rows and 1024
+ * more). */
 #include <stdlib.h>
 
 #include "internal.h"
