@@ -271,10 +271,11 @@ _LANE_MASKS = (np.uint16(1) << np.arange(FRAMES, dtype=np.uint16))[:, None]
 def _frame_refinement(fields: dict) -> Refinement:
     """A :class:`Refinement` of a path's frame from its fields: the frozen
     dataclass's ``__init__`` sets each field through ``object.__setattr__``,
-    which costs a path more than its frame's traversal; the fields are set
-    at once instead (the same instance)."""
+    which costs a path more than its frame's traversal; ``fields`` (a new
+    dict, the instance's from here on) becomes its attributes at once
+    instead (the same instance)."""
     r = object.__new__(Refinement)
-    r.__dict__.update(fields)
+    object.__setattr__(r, "__dict__", fields)
     return r
 
 
@@ -298,6 +299,7 @@ def _core_path_frames(pm, host, taus, tests, path_length) -> Iterator[tuple[Refi
                                  host.orthographic, True, RECORD_ROOM)
 
     running = call(spans[0]) if spans else None
+    real_lanes = real.tolist()  # Python bools: read once per frame
     for i in range(len(spans)):
         (w0, n), (counts_device, _, (pcols, ran, positions), overflow) = running
         # Dispatched before this block's frames are read: it runs meanwhile.
@@ -305,12 +307,16 @@ def _core_path_frames(pm, host, taus, tests, path_length) -> Iterator[tuple[Refi
         counts, overflow = np.asarray(counts_device), np.asarray(overflow)
         pcols_host, ran_host, positions_host = np.asarray(pcols), np.asarray(ran), np.asarray(positions)
         faces, vertices, executed = counts_of(counts[:, 1], counts[:, 2], np)
+        # Each frame's counts and item in the block's counts as lists of
+        # NumPy scalars (one pass each; a frame then reads them by index).
+        faces, vertices, executed = list(faces), list(vertices), list(executed)
+        items = list(np.arange(n * FRAMES, dtype=np.int32))
         block = next(_BLOCK_KEYS) << 20
         for w in range(n):
             lanes = range((w0 + w) * FRAMES, (w0 + w + 1) * FRAMES)
             if overflow[w]:
                 for lane in lanes:
-                    if real[lane]:
+                    if real_lanes[lane]:
                         yield refine(pm, jax.tree.map(lambda a: a[order[lane]], host), taus[order[lane]], tests), None
                 continue
             m = int(counts[w * FRAMES, 0])  # the word's slots (every frame lists them)
@@ -320,13 +326,14 @@ def _core_path_frames(pm, host, taus, tests, path_length) -> Iterator[tuple[Refi
             executed_bits = (bits & _LANE_MASKS) != 0
             key, slots = block | w, np.int32(m)
             for j, lane in enumerate(lanes):
-                if not real[lane]:
+                if not real_lanes[lane]:
                     continue
                 k = w * FRAMES + j
-                yield _frame_refinement(dict(
-                    pm=pm, visited=visited, visited_executed=executed_bits[j], dense=None, n_faces=faces[k],
-                    n_vertices=vertices[k], n_executed=executed[k], front_positions=positions, core_ran=ran,
-                    core_counts=counts_device, core_item=np.int32(k), n_slots=slots)), (at, word_ran, j, m, key)
+                yield _frame_refinement({
+                    "pm": pm, "visited": visited, "visited_executed": executed_bits[j], "dense": None,
+                    "n_faces": faces[k], "n_vertices": vertices[k], "n_executed": executed[k],
+                    "front_positions": positions, "core_ran": ran, "core_counts": counts_device, "core_item": items[k],
+                    "n_slots": slots}), (at, word_ran, j, m, key)
 
 
 def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, tests: Tests = ALL_TESTS,
@@ -434,8 +441,9 @@ def path_mesh_changes(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=N
         raise ValueError("path_mesh_changes: stream is a MeshStream of another mesh; make one with MeshStream(pm)")
     check_camera_type(cameras, "refine_path", "cameras")
     # The C core's frames step the stream by their word's lists directly.
+    update, step = stream.update, (stream._step_frame if stream._stream is not None else None)
     for r, frame in _path_frames(pm, cameras, tau, budget, tests, True):
-        yield r, (stream.update(r) if frame is None or stream._stream is None else stream._step_frame(frame))
+        yield r, (update(r) if frame is None or step is None else step(frame))
 
 
 def _traced_path_length(cameras) -> int:
@@ -728,10 +736,12 @@ class MeshStream:
             counts = self._step(self._stream, *frame)
         self._last, self._counts = frame, counts  # the core reads the last frame's lists at the next step
         n_face_slots, n_vertex_slots, k, u = counts[:4]
-        packed = np.frombuffer(counts[8], np.int32)
-        return MeshChange(packed[:k], packed[k:4 * k].reshape(k, 3), packed[4 * k:4 * k + u],
-                          packed[4 * k + u:4 * k + 2 * u], packed[4 * k + 2 * u:].view(np.float32).reshape(u, 3),
-                          n_face_slots, n_vertex_slots)
+        packed = counts[8]
+        # Each field an array over its bytes (one constructor call each, no
+        # intermediate views); they keep the buffer alive, it is the change's.
+        return MeshChange(_array((k,), _INT32, packed), _array((k, 3), _INT32, packed, 4 * k),
+                          _array((u,), _INT32, packed, 16 * k), _array((u,), _INT32, packed, 16 * k + 4 * u),
+                          _array((u, 3), _FLOAT32, packed, 16 * k + 8 * u), n_face_slots, n_vertex_slots)
 
     @property
     def faces(self) -> np.ndarray:
@@ -766,14 +776,14 @@ class MeshStream:
 
         Returns:
             ``(vertices float32[n, 3], faces int32[m, 3], vertex_ids int32[n])``:
-            faces in increasing original face order, ``vertex_ids`` sorted.
+            faces in increasing original face order, ``vertex_ids`` sorted;
+            new arrays, the caller's (later updates do not change them).
         """
         if self._stream is not None:  # ranks in the core's bitmaps of the faces drawn and the ids used
             n_faces, n_used = self._counts[4], self._counts[6]
-            packed = np.frombuffer(_core._pmx.mesh_stream_compact(self._stream), np.int32)  # faces, ids, positions
-            ids = packed[3 * n_faces:3 * n_faces + n_used]
-            return packed[3 * n_faces + n_used:].view(np.float32).reshape(n_used, 3), packed[:3 * n_faces].reshape(
-                n_faces, 3), ids
+            packed = _core._pmx.mesh_stream_compact(self._stream)  # a new buffer: faces, ids, positions
+            return (_array((n_used, 3), _FLOAT32, packed, 12 * n_faces + 4 * n_used),
+                    _array((n_faces, 3), _INT32, packed), _array((n_used,), _INT32, packed, 12 * n_faces))
         slots, ids, vids, positions = self.faces, self.face_ids, self.vertex_ids, self.vertex_positions
         live = np.flatnonzero(ids >= 0)
         faces = slots[live[np.argsort(ids[live])]]
@@ -782,6 +792,10 @@ class MeshStream:
         rank = np.zeros(len(vids), np.int32)
         rank[by_id] = np.arange(len(by_id), dtype=np.int32)
         return positions[by_id], rank[faces], vids[by_id]
+
+
+# Arrays over a buffer the core packed (shape, dtype, buffer, byte offset).
+_array, _INT32, _FLOAT32 = np.ndarray, np.dtype(np.int32), np.dtype(np.float32)
 
 
 def _positions_of(order: np.ndarray) -> np.ndarray:

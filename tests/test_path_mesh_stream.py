@@ -1,6 +1,7 @@
 """Drawable meshes along a path: each frame's change, applied to the last
 frame's slots, gives exactly that frame's Refinement.mesh()."""
 
+import contextlib
 import dataclasses
 
 import equinox as eqx
@@ -145,6 +146,73 @@ def test_change_stream_through_tau_and_image_size_changes(built):
         yield from pmjax.refine_path(pm, cams, 1.0)
 
     follow(pm, frames(), where="tau, size, engines")
+
+
+@pytest.mark.parametrize("core", [True, False])
+def test_change_stream_empty_then_same_frame_twice(built, core):
+    """A stream given nothing holds an empty mesh; a frame given twice
+    changes nothing the second time; the arrays mesh() returned stay as
+    they were when later frames come (they are the caller's)."""
+    data, pm = model(built, "cow.ply")
+    cams = pmjax.standard_orbit(originals(data), 20)
+    frames = list(pmjax.refine_path(pm, cams, 1.0))
+    with engines.without_core() if not core else contextlib.nullcontext():
+        stream = pmjax.MeshStream(pm)
+        v, f, ids = stream.mesh()
+        assert (v.shape, v.dtype, f.shape, f.dtype, ids.shape, ids.dtype) == (
+            (0, 3), np.float32, (0, 3), np.int32, (0,), np.int32)
+        replay = Replay()
+        replay.apply(stream.update(frames[7]))
+        held = stream.mesh()
+        kept = tuple(a.copy() for a in held)
+        again = stream.update(frames[7])
+        assert len(again.face_slots) == len(again.vertex_slots) == 0
+        replay.apply(again)
+        assert_same_mesh(replay, stream, frames[7], "the same frame twice")
+        follow(pm, frames[8:], stream, replay, where="after it")
+        for a, b in zip(held, kept):
+            assert np.array_equal(a, b)
+
+
+def test_change_stream_frames_in_any_order(built):
+    """A path's frames given one by one in a shuffled order, with single
+    views of another engine among them: each mesh is that frame's."""
+    data, pm = model(built, "cow.ply")
+    cams = hand_held(data, 32, seed=19, cuts=(8, 20))
+    frames = list(pmjax.refine_path(pm, cams, 1.5))
+    order = np.random.default_rng(23).permutation(len(frames))
+
+    def shuffled():
+        for n, i in enumerate(order):
+            yield frames[i]
+            if n % 7 == 3:
+                yield pmjax.refine(pm, index_camera(cams, int(i)), 1.5, method="dense")
+
+    follow(pm, shuffled(), where="shuffled")
+
+
+def test_compacted_mesh_after_frames_not_compacted(built):
+    """mesh() after any number of frames it was not asked for (the rows of
+    the last compaction merged with the changes since; after the finest and
+    the coarsest meshes in turn, more changes than rows: ranked afresh),
+    and twice for one frame: always the last frame's mesh."""
+    data, pm = model(built, "cow.ply")
+    n = 64
+    cams = hand_held(data, n, seed=29, cuts=(15, 40))
+    taus = np.geomspace(0.1, 20, n).astype(np.float32)
+    taus[[10, 12, 30, 50]] = 0.0
+    taus[[11, 13, 31, 51]] = np.inf
+    frames = list(pmjax.refine_path(pm, cams, taus))
+    stream, i = pmjax.MeshStream(pm), -1
+    for gap in (1, 1, 2, 5, 1, 3, 8, 1, 1, 2, 15, 1, 4, 19):
+        for _ in range(gap):
+            i += 1
+            stream.update(frames[i] if i % 9 else pmjax.refine(pm, index_camera(cams, i), taus[i], method="dense"))
+        want = frames[i].mesh()
+        for _ in range(1 + (gap == 2)):
+            got = stream.mesh()
+            assert all(np.array_equal(a, b) for a, b in zip(got, want)), i
+    assert i == n - 1
 
 
 def test_refine_path_changes_yields_each_frame_with_its_change(built):

@@ -1236,9 +1236,17 @@ PyObject* MeshStreamCompact(PyObject*, PyObject* args) {
   auto* faces = reinterpret_cast<int32_t*>(PyByteArray_AS_STRING(packed));
   int32_t* ids = faces + 3 * st.n_faces;
   auto* positions = reinterpret_cast<float*>(ids + st.n_used);
+  PmxStatus status;
   Py_BEGIN_ALLOW_THREADS;
-  pmx_mesh_stream_compact(h->stream, faces, ids, positions);
+  status = pmx_mesh_stream_compact(h->stream, faces, ids, positions);
   Py_END_ALLOW_THREADS;
+  if (status != PMX_OK) {
+    Py_DECREF(packed);
+    PyErr_SetString(status == PMX_NO_MEMORY ? PyExc_MemoryError : PyExc_ValueError,
+                    status == PMX_NO_MEMORY ? "mesh_stream_compact: out of memory to sort the changes"
+                                            : "mesh_stream_compact: the stream's rows do not match its mesh");
+    return nullptr;
+  }
   return packed;
 }
 

@@ -24,10 +24,20 @@
  * Memory: the slots of one frame's mesh (grown to the largest frame seen,
  * freed slots reused first), the change's slot lists, and maps over the
  * hierarchy (a slot per position and per original vertex, a slot per killed
- * face, a bit per face and per vertex id), whatever the path's length. */
+ * face, a bit per face and per vertex id), whatever the path's length; for
+ * the compaction, its rows (two buffers of an id and a slot per slot) and,
+ * once one ran, the log of changes since (at most twice the rows and 1024
+ * more). */
 #include <stdlib.h>
 
 #include "internal.h"
+
+/* A row of the compacted mesh as the stream keeps it between compactions
+ * (a face drawn or a vertex id used: its id and slot), or an entry of the
+ * log of changes since (slot -1: the id went). */
+typedef struct {
+    int32_t id, slot;
+} IdSlot;
 
 struct PmxMeshStream {
     PmxStreamTables t;
@@ -71,6 +81,12 @@ struct PmxMeshStream {
     int64_t n_used;
     uint16_t *flipped_bits;
     int64_t n_faces_live, n_vertices_live, generation;
+    /* Once a compaction ran: its rows in increasing id (two buffers each:
+     * the last and the next), and the log of faces drawn or gone and of
+     * vertex ids used or unused since, in the order they came. */
+    IdSlot *face_rows[2], *vertex_rows[2], *face_log, *vertex_log, *sorted;
+    int64_t n_face_rows, n_vertex_rows, n_face_log, n_vertex_log, face_log_cap, vertex_log_cap, sorted_cap;
+    int rows_at, rows_kept;
 };
 
 /* An array grown to `cap` elements of `size` bytes, the new part zeroed. */
@@ -95,7 +111,9 @@ static int grow_faces(PmxMeshStream *s, int64_t need)
         !grow((void **)&s->corner_next, 3 * old, 3 * cap, 4) ||
         !grow((void **)&s->corner_prev, 3 * old, 3 * cap, 4) || !grow((void **)&s->face_free, old, cap, 4) ||
         !grow((void **)&s->face_stamp, old, cap, 4) || !grow((void **)&s->face_changes, old, cap, 4) ||
-        !grow((void **)&s->changed_faces, 3 * old, 3 * cap, 4))
+        !grow((void **)&s->changed_faces, 3 * old, 3 * cap, 4) ||
+        !grow((void **)&s->face_rows[0], old, cap, sizeof(IdSlot)) ||
+        !grow((void **)&s->face_rows[1], old, cap, sizeof(IdSlot)))
         return 0;
     s->face_cap = cap;
     s->generation++;
@@ -114,7 +132,9 @@ static int grow_vertices(PmxMeshStream *s, int64_t need)
         !grow((void **)&s->vertex_lo, old, cap, 4) || !grow((void **)&s->vertex_hi, old, cap, 4) ||
         !grow((void **)&s->vertex_uses, old, cap, 4) || !grow((void **)&s->vertex_rank, old, cap, 4) ||
         !grow((void **)&s->changed_ids, old, cap, 4) ||
-        !grow((void **)&s->changed_positions, 3 * old, 3 * cap, 4))
+        !grow((void **)&s->changed_positions, 3 * old, 3 * cap, 4) ||
+        !grow((void **)&s->vertex_rows[0], old, cap, sizeof(IdSlot)) ||
+        !grow((void **)&s->vertex_rows[1], old, cap, sizeof(IdSlot)))
         return 0;
     s->vertex_cap = cap;
     s->generation++;
@@ -139,6 +159,39 @@ PMX_INLINE void touch_vertex(PmxMeshStream *s, int32_t slot)
 
 PMX_INLINE void flip_bit(uint64_t *bits, int64_t i) { bits[i >> 6] ^= (uint64_t)1 << (i & 63); }
 
+/* A change since the last compaction, logged while its rows are kept: a
+ * log of twice the rows (and 1024 more), or no memory for it, stops
+ * keeping them, and the next compaction ranks afresh. */
+static void log_change(PmxMeshStream *s, IdSlot **log, int64_t *n, int64_t *cap, int64_t rows, int32_t id,
+                       int32_t slot)
+{
+    if (*n >= 2 * rows + 1024) { /* ranking afresh costs less than merging this log */
+        s->rows_kept = 0;
+        return;
+    }
+    if (*n == *cap) {
+        const int64_t more = *cap ? 2 * *cap : 1024;
+        if (!grow((void **)log, *cap, more, sizeof(IdSlot))) {
+            s->rows_kept = 0;
+            return;
+        }
+        *cap = more;
+    }
+    (*log)[(*n)++] = (IdSlot){id, slot};
+}
+
+PMX_INLINE void log_face(PmxMeshStream *s, int32_t id, int32_t slot)
+{
+    if (s->rows_kept)
+        log_change(s, &s->face_log, &s->n_face_log, &s->face_log_cap, s->n_face_rows, id, slot);
+}
+
+PMX_INLINE void log_vertex(PmxMeshStream *s, int32_t id, int32_t slot)
+{
+    if (s->rows_kept)
+        log_change(s, &s->vertex_log, &s->n_vertex_log, &s->vertex_log_cap, s->n_vertex_rows, id, slot);
+}
+
 /* Vertex slot v holds one corner more (delta 1) or less (-1): its id is
  * used by some face exactly while it holds corners. */
 PMX_INLINE void use(PmxMeshStream *s, int32_t v, int32_t delta)
@@ -147,6 +200,7 @@ PMX_INLINE void use(PmxMeshStream *s, int32_t v, int32_t delta)
     s->vertex_uses[v] = before + delta;
     if ((before == 0) != (before + delta == 0)) {
         flip_bit(s->used_bits, s->vertex_id[v]);
+        log_vertex(s, s->vertex_id[v], delta > 0 ? v : -1);
         s->n_used += delta > 0 ? 1 : -1;
     }
 }
@@ -182,6 +236,8 @@ PMX_INLINE void set_vertex(PmxMeshStream *s, int32_t slot, int32_t id, const flo
     if (s->vertex_uses[slot] > 0) { /* a used id changes */
         flip_bit(s->used_bits, s->vertex_id[slot]);
         flip_bit(s->used_bits, id);
+        log_vertex(s, s->vertex_id[slot], -1);
+        log_vertex(s, id, slot);
     }
     s->vertex_id[slot] = id;
     s->vertex_lo[slot] = lo;
@@ -280,6 +336,7 @@ static PmxStatus add_face(PmxMeshStream *s, const PmxFaceRecord *f, int32_t *at,
     }
     s->face_id[slot] = f->face;
     flip_bit(s->face_bits, f->face);
+    log_face(s, f->face, slot);
     if (at)
         *at = slot;
     touch_face(s, slot);
@@ -298,6 +355,7 @@ static PmxStatus remove_face(PmxMeshStream *s, int32_t *at)
         s->face_vertex[3 * slot + c] = -1;
     }
     flip_bit(s->face_bits, s->face_id[slot]);
+    log_face(s, s->face_id[slot], -1);
     s->face_id[slot] = -1;
     s->face_free[s->n_face_free++] = slot;
     touch_face(s, slot);
@@ -399,7 +457,8 @@ void pmx_mesh_stream_free(PmxMeshStream *s)
                       s->vertex_lo, s->vertex_hi, s->vertex_uses, s->vertex_rank, s->vertex_position,
                       s->vertex_stamp, s->face_changes, s->vertex_changes, s->slot_at, s->kill_slot,
                       s->collapse, s->split, s->events, s->flipped, s->flipped_bits, s->face_bits,
-                      s->used_bits, s->face_prefix, s->used_prefix, s->changed_faces, s->changed_ids,
+                      s->used_bits, s->face_prefix, s->used_prefix, s->face_rows[0], s->face_rows[1], s->vertex_rows[0],
+                      s->vertex_rows[1], s->face_log, s->vertex_log, s->sorted, s->changed_faces, s->changed_ids,
                       s->changed_positions};
     for (size_t i = 0; i < sizeof arrays / sizeof arrays[0]; i++)
         free(arrays[i]);
@@ -697,59 +756,162 @@ void pmx_mesh_stream_state(const PmxMeshStream *s, PmxStreamState *out)
 
 /* The stream keeps a bit per face drawn and per vertex id used: a face's row
  * is the rank of its id among the faces drawn, a vertex's the rank of its id
- * among those used, as Refinement.mesh() orders them. Nothing is sorted and
- * nothing but the two bitmaps' words and the slots is read. */
-PMX_INLINE void compact_body(PmxMeshStream *s, int32_t *faces, int32_t *ids, float *positions)
+ * among those used, as Refinement.mesh() orders them. The first compaction
+ * (or one after a long log) ranks every slot in the two bitmaps' words and
+ * keeps the rows (id and slot, in increasing id); the next ones merge the
+ * rows kept with the log of changes since, so that they read the mesh's
+ * rows in order and the changes, not the bitmaps. */
+PMX_INLINE void rank_rows(PmxMeshStream *s, IdSlot *restrict face_rows, IdSlot *restrict vertex_rows)
 {
+    /* The stream's arrays and counts in locals: the rows written cannot
+     * change them, so nothing is read again after each store. */
     const uint64_t *const face_bits = s->face_bits, *const used_bits = s->used_bits;
     int32_t *const face_prefix = s->face_prefix, *const used_prefix = s->used_prefix;
-    const int32_t *const face_id = s->face_id, *const face_vertex = s->face_vertex, *const vertex_id = s->vertex_id;
-    const int32_t *const uses = s->vertex_uses;
-    int32_t *const vertex_rank = s->vertex_rank;
+    const int32_t *const face_id = s->face_id, *const vertex_id = s->vertex_id, *const uses = s->vertex_uses;
+    const int64_t n_vertex_slots = s->n_vertex_slots, n_face_slots = s->n_face_slots;
     prefix_counts(face_bits, s->t.n_faces / 64 + 1, face_prefix);
     prefix_counts(used_bits, (s->t.n_original + s->t.n_pcols) / 64 + 1, used_prefix);
-    /* Each used vertex slot's row first: a face's corners then read their
-     * rows from one small array instead of ranking each corner's id. */
-    for (int64_t slot = 0; slot < s->n_vertex_slots; slot++) {
-        if (vertex_id[slot] < 0 || uses[slot] == 0)
-            continue;
-        const int64_t k = rank_of(used_bits, used_prefix, vertex_id[slot]);
-        vertex_rank[slot] = (int32_t)k;
-        ids[k] = vertex_id[slot];
-        memcpy(positions + 3 * k, s->vertex_position + 3 * slot, 3 * sizeof(float));
-    }
-    for (int64_t slot = 0; slot < s->n_face_slots; slot++) {
-        const int32_t face = face_id[slot];
-        if (face < 0)
-            continue;
-        int32_t *row = faces + 3 * rank_of(face_bits, face_prefix, face);
-        const int32_t *corner = face_vertex + 3 * slot;
-        row[0] = vertex_rank[corner[0]];
-        row[1] = vertex_rank[corner[1]];
-        row[2] = vertex_rank[corner[2]];
-    }
+    for (int64_t slot = 0; slot < n_vertex_slots; slot++)
+        if (vertex_id[slot] >= 0 && uses[slot] > 0)
+            vertex_rows[rank_of(used_bits, used_prefix, vertex_id[slot])] = (IdSlot){vertex_id[slot], (int32_t)slot};
+    for (int64_t slot = 0; slot < n_face_slots; slot++)
+        if (face_id[slot] >= 0)
+            face_rows[rank_of(face_bits, face_prefix, face_id[slot])] = (IdSlot){face_id[slot], (int32_t)slot};
 }
 
 /* Popcount in one instruction where the processor has it. */
-static void compact_plain(PmxMeshStream *s, int32_t *faces, int32_t *ids, float *positions)
+static void rank_rows_plain(PmxMeshStream *s, IdSlot *face_rows, IdSlot *vertex_rows)
 {
-    compact_body(s, faces, ids, positions);
+    rank_rows(s, face_rows, vertex_rows);
 }
 #if PMX_X86
-__attribute__((target("popcnt"))) static void compact_popcnt(PmxMeshStream *s, int32_t *faces, int32_t *ids,
-                                                             float *positions)
+__attribute__((target("popcnt"))) static void rank_rows_popcnt(PmxMeshStream *s, IdSlot *face_rows,
+                                                               IdSlot *vertex_rows)
 {
-    compact_body(s, faces, ids, positions);
+    rank_rows(s, face_rows, vertex_rows);
 }
 #endif
 
-void pmx_mesh_stream_compact(PmxMeshStream *s, int32_t *faces, int32_t *ids, float *positions)
+/* The log's n entries in increasing id, entries of one id in the order
+ * they came (a stable radix sort on byte digits, as many as max_id has,
+ * through s->sorted, whose room the caller made: a log is a few hundred
+ * entries, so small digits cost least); returns the sorted entries (the
+ * log or s->sorted). */
+static IdSlot *sort_log(PmxMeshStream *s, IdSlot *log, int64_t n, int32_t max_id)
 {
-#if PMX_X86
-    if (__builtin_cpu_supports("popcnt")) {
-        compact_popcnt(s, faces, ids, positions);
-        return;
+    enum { DIGIT = 8, BUCKETS = 1 << DIGIT };
+    IdSlot *from = log, *to = s->sorted;
+    for (int shift = 0; n > 1 && (shift == 0 || (max_id >> shift) > 0); shift += DIGIT) {
+        int32_t count[BUCKETS + 1] = {0};
+        for (int64_t k = 0; k < n; k++)
+            count[((from[k].id >> shift) & (BUCKETS - 1)) + 1]++;
+        for (int b = 0; b < BUCKETS; b++)
+            count[b + 1] += count[b];
+        for (int64_t k = 0; k < n; k++)
+            to[count[(from[k].id >> shift) & (BUCKETS - 1)]++] = from[k];
+        IdSlot *t = from;
+        from = to;
+        to = t;
     }
+    return from;
+}
+
+/* The next rows (at most cap): the last ones (n_last, increasing id)
+ * merged with the sorted log's ids, an id's row now (its last entry, which
+ * drew it) where its bit is set, none where it is not. Their count; -1
+ * where the log does not match the bits (more rows than cap, or an id set
+ * whose last entry is not a slot). */
+static int64_t merge_log(const IdSlot *last, int64_t n_last, const IdSlot *log, int64_t n_log,
+                         const uint64_t *bits, IdSlot *rows, int64_t cap)
+{
+    int64_t i = 0, n = 0;
+    for (int64_t k = 0; k < n_log; k++) {
+        const int32_t id = log[k].id;
+        if (k + 1 < n_log && log[k + 1].id == id)
+            continue; /* a later entry of the id: its slot now */
+        int64_t j = i; /* the last rows below the id: kept */
+        while (j < n_last && last[j].id < id)
+            j++;
+        if (n + j - i > cap)
+            return -1;
+        memcpy(rows + n, last + i, (size_t)(j - i) * sizeof *rows);
+        n += j - i;
+        i = j + (j < n_last && last[j].id == id);
+        if ((bits[id >> 6] >> (id & 63)) & 1) {
+            if (n == cap || log[k].slot < 0)
+                return -1;
+            rows[n++] = log[k];
+        }
+    }
+    if (n + n_last - i > cap)
+        return -1;
+    memcpy(rows + n, last + i, (size_t)(n_last - i) * sizeof *rows);
+    return n + n_last - i;
+}
+
+PmxStatus pmx_mesh_stream_compact(PmxMeshStream *s, int32_t *restrict faces, int32_t *restrict ids,
+                                  float *restrict positions)
+{
+    /* The next rows in the buffers not holding the last ones. */
+    const int next = !s->rows_at;
+    IdSlot *const face_rows = s->face_rows[next], *const vertex_rows = s->vertex_rows[next];
+    if (s->rows_kept) {
+        /* Room to sort the longer log first: a failure changes nothing. */
+        const int64_t need = s->n_face_log > s->n_vertex_log ? s->n_face_log : s->n_vertex_log;
+        if (need > s->sorted_cap) {
+            if (!grow((void **)&s->sorted, s->sorted_cap, need, sizeof(IdSlot)))
+                return PMX_NO_MEMORY;
+            s->sorted_cap = need;
+        }
+        const IdSlot *log = sort_log(s, s->vertex_log, s->n_vertex_log,
+                                     (int32_t)(s->t.n_original + s->t.n_pcols));
+        s->n_vertex_rows = merge_log(s->vertex_rows[s->rows_at], s->n_vertex_rows, log, s->n_vertex_log,
+                                     s->used_bits, vertex_rows, s->vertex_cap);
+        log = sort_log(s, s->face_log, s->n_face_log, (int32_t)s->t.n_faces);
+        s->n_face_rows = merge_log(s->face_rows[s->rows_at], s->n_face_rows, log, s->n_face_log, s->face_bits,
+                                   face_rows, s->face_cap);
+    } else {
+#if PMX_X86
+        if (__builtin_cpu_supports("popcnt"))
+            rank_rows_popcnt(s, face_rows, vertex_rows);
+        else
 #endif
-    compact_plain(s, faces, ids, positions);
+            rank_rows_plain(s, face_rows, vertex_rows);
+        s->n_face_rows = s->n_faces_live;
+        s->n_vertex_rows = s->n_used;
+    }
+    s->n_face_log = s->n_vertex_log = 0;
+    s->rows_at = next;
+    /* As many rows as the output holds (the faces drawn, the ids used):
+     * else the log missed a change (the next compaction starts afresh). */
+    s->rows_kept = s->n_face_rows == s->n_faces_live && s->n_vertex_rows == s->n_used;
+    if (!s->rows_kept)
+        return PMX_BAD_TABLE;
+    /* The rows out: each vertex's id and position, its slot's row noted
+     * (a face's corners then read their rows from one small array), then
+     * each face's corners' rows. The slots lie anywhere: each is requested
+     * a few rows early, so that the misses overlap. */
+    const float *const vertex_position = s->vertex_position;
+    const int32_t *const face_vertex = s->face_vertex;
+    int32_t *restrict const rank = s->vertex_rank;
+    enum { FACES_AHEAD = 16, VERTICES_AHEAD = 16 };
+    const int64_t n_vertices = s->n_vertex_rows;
+    for (int64_t k = 0; k < n_vertices; k++) {
+        if (k + VERTICES_AHEAD < n_vertices)
+            __builtin_prefetch(vertex_position + 3 * (int64_t)vertex_rows[k + VERTICES_AHEAD].slot);
+        const int32_t slot = vertex_rows[k].slot;
+        ids[k] = vertex_rows[k].id;
+        memcpy(positions + 3 * k, vertex_position + 3 * (int64_t)slot, 3 * sizeof(float));
+        rank[slot] = (int32_t)k;
+    }
+    const int64_t n_faces = s->n_face_rows;
+    for (int64_t k = 0; k < n_faces; k++) {
+        if (k + FACES_AHEAD < n_faces)
+            __builtin_prefetch(face_vertex + 3 * (int64_t)face_rows[k + FACES_AHEAD].slot);
+        const int32_t *corner = face_vertex + 3 * (int64_t)face_rows[k].slot;
+        faces[3 * k] = rank[corner[0]];
+        faces[3 * k + 1] = rank[corner[1]];
+        faces[3 * k + 2] = rank[corner[2]];
+    }
+    return PMX_OK;
 }
