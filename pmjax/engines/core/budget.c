@@ -624,9 +624,10 @@ typedef struct {
 } Batch;
 
 /* A thread's working memory: its scratch (with a word's frame masks where
- * `words`), the Budget arrays, the unsure frames of a word's slots, their
- * frames' own parts of eps (own_room, where `words`) and one camera's guesses (g, alt: B each); 0 when out of memory (what was taken
- * is given back by budget_give). */
+ * `words`), the Budget arrays, the unsure frames of a word's slots and the
+ * own parts of eps of the frames with one (own_room, frame by frame, where
+ * `words`), and one camera's guesses (g, alt: B each); 0 when out of memory
+ * (what was taken is given back by budget_give). */
 typedef struct {
     PmxScratch *s;
     Budget b;
@@ -655,7 +656,8 @@ static int budget_take(Work *k, const PmxHierarchy *h, int64_t B, int words)
     if (k->eps_room)
         k->eps_room[0] = -INFINITY; /* eps[-1]: a child not visited */
     const Budget *b = &k->b;
-    return k->s && scratch_slots(k->s) && (!words || (scratch_words(k->s) && k->unsure_at && k->lanes_room && k->own_room)) &&
+    return k->s && scratch_slots(k->s) &&
+           (!words || (scratch_words(k->s) && k->unsure_at && k->lanes_room && k->own_room)) &&
            b->eps && b->own &&
            b->val && b->sel && b->wt && b->sel_wt && b->bucket && k->g;
 }
@@ -907,9 +909,16 @@ static void words_work(void *arg)
         WordViews wv;
         word_views(views, units, &wv);
         lanes_own(h, s, n, &wv, lo, bt->flags, own, eps);
-        /* The own parts kept for the frames with unsure decisions. */
-        if (unsure_frames)
-            memcpy(own_part, eps, sizeof(float) * FRAMES * (size_t)n);
+        /* The own parts of the frames with unsure decisions kept, frame by
+         * frame (their second guesses fold them again). */
+        int64_t kept_at[FRAMES] = {0};
+        int64_t r = 0;
+        for (int l = 0; l < FRAMES; l++)
+            if ((unsure_frames >> l) & 1) {
+                kept_at[l] = r++ * n;
+                for (int64_t i = 0; i < n; i++)
+                    own_part[kept_at[l] + i] = eps[i * FRAMES + l];
+            }
         up(eps, n, s->kid, s->ran_frames);
         for (int l = 0; l < FRAMES; l++) {
             const int64_t c = w * FRAMES + l;
@@ -934,7 +943,7 @@ static void words_work(void *arg)
                         const int yes = (s->yes[i] >> l) & 1, unsure = (k.unsure_at[i] >> l) & 1;
                         s->ran[i] = (uint8_t)((s->ran_frames[i] >> l) & 1);
                         s->state[i] = (uint8_t)(yes ? YES : unsure ? UNSURE : NO);
-                        k.b.own[i] = own_part[i * FRAMES + l];
+                        k.b.own[i] = own_part[kept_at[l] + i];
                         m_l += unsure;
                     }
                 found = answers_from(s, &k.b, n, m_l, t.count, t.total, t.total2, counts[l].kept, lo[l], budgets, B,
