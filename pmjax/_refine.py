@@ -713,7 +713,7 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
         chunk: cameras per call, rounded up to a multiple of 32.
         method: ``"auto"``, ``"front"`` or ``"dense"`` (as :func:`faces_for_budget`).
         path: the cameras are the frames of one path, in order (an orbit, a
-            fly-through): every 16th frame is guessed alone, the frames
+            fly-through): every 32nd frame is guessed alone, the frames
             between word by word inside the coherent path engine, starting
             below the answers the sampled frames around them predict, and
             the first exact counts run through it too
