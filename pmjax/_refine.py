@@ -713,7 +713,7 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
         chunk: cameras per call, rounded up to a multiple of 32.
         method: ``"auto"``, ``"front"`` or ``"dense"`` (as :func:`faces_for_budget`).
         path: the cameras are the frames of one path, in order (an orbit, a
-            fly-through): every 16th frame is guessed alone, the frames
+            fly-through): every 32nd frame is guessed alone, the frames
             between word by word inside the coherent path engine, starting
             below the answers the sampled frames around them predict, and
             the first exact counts run through it too
@@ -815,10 +815,21 @@ POOLED = 4096
 # answer of the frame its thread did before, START times above, so usually
 # two traversals); the others are guessed word by word, each frame's traversal
 # at PATH_START times the smallest answer the sampled frames around it
-# predict (log tau interpolated along the path), where it finds the answers
-# at once.
-PATH_SAMPLE = 16
+# predict (log tau interpolated along the path, held past the last sampled
+# frame), where it finds the answers at once.
+PATH_SAMPLE = 32
 PATH_START = 0.9
+
+
+def _padded_chunk(n: int, chunk: int) -> int:
+    """Cameras per call for ``n`` single-camera guesses along a path: the
+    smallest ``WORD * 2**k`` that holds them (few compiled sizes, and a
+    call pads with repeats of its last camera, each a whole guess), at
+    most ``chunk``."""
+    size = WORD
+    while size < n:
+        size *= 2
+    return min(size, chunk)
 
 
 def _path_budgets(pm, host, budgets, tests, chunk):
@@ -830,10 +841,10 @@ def _path_budgets(pm, host, budgets, tests, chunk):
     core's words, one pass of the path per budget."""
     K, B = budgets.shape
     d, counts_of = derived(pm), _Counts.of(pm)
-    sampled = np.unique(np.r_[np.arange(0, K, PATH_SAMPLE), K - 1])
+    sampled = np.arange(0, K, PATH_SAMPLE)
     guess, alt = np.zeros((K, B), np.int32), np.zeros((K, B), np.int32)
     guess[sampled], alt[sampled] = _guesses(d, counts_of, host, sampled, np.zeros(len(sampled), np.float32),
-                                            budgets, tests, chunk)
+                                            budgets, tests, _padded_chunk(len(sampled), chunk))
     # The smallest answer (the largest budget's) predicts where a frame's
     # traversal starts; sampled answers at 0 or inf predict nothing: those
     # frames start as the core would.
@@ -857,7 +868,8 @@ def _path_budgets(pm, host, budgets, tests, chunk):
                 start > 0, start, np.float32(np.inf)), budgets, tests))
         alone = rest[~(start[rest] > 0) | (guess[rest] < 0).any(axis=1)]
         if len(alone):
-            guess[alone], alt[alone] = _guesses(d, counts_of, host, alone, start[alone], budgets, tests, chunk)
+            guess[alone], alt[alone] = _guesses(d, counts_of, host, alone, start[alone], budgets, tests,
+                                                _padded_chunk(len(alone), chunk))
     rows = _core.host_camera_rows(host, np.zeros(K, np.float32), d.exponent)
 
     # The (frame, budget) pairs budget by budget: each budget's K pairs are

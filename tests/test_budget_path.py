@@ -315,3 +315,24 @@ def test_frames_left_to_their_own_traversal_still_get_the_exact_answers(built, m
     got = pmjax.faces_for_budget_batch(pm, cams, budgets, path=True, method="front")
     assert seen and any((g < 0).any() for g, _ in seen)
     _assert_one_at_a_time(pm, cams, budgets, got)
+
+
+def test_frames_past_the_last_sampled_frame_get_the_exact_answers(built, monkeypatch):
+    """Only every PATH_SAMPLE-th frame is guessed alone first (not the last
+    frame); the frames after the last sampled one, here closing in on the
+    model, start where that frame predicts: their answers stay
+    faces_for_budget's."""
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    v0 = data.vertices[: data.n_original_vertices]
+    c, r = v0.mean(0), float(np.linalg.norm(np.ptp(v0, 0)))
+    cams = pmjax.fly_through([(c + [2 * r, 0.3 * r, 0], c), (c + [1.5 * r, 0.2 * r, 0], c),
+                              (c + [0.3 * r, 0.1 * r, 0.1 * r], c)], 44)
+    budgets = np.tile(np.array(_budgets(pm, cams)[2:5]), (44, 1))
+    calls = []
+    original = _refine._guesses
+    monkeypatch.setattr(_refine, "_guesses", lambda d, c_, h, frames, *a: calls.append(frames.copy()) or
+                        original(d, c_, h, frames, *a))
+    got = pmjax.faces_for_budget_batch(pm, cams, budgets, path=True, method="front")
+    np.testing.assert_array_equal(calls[0], np.arange(0, 44, _refine.PATH_SAMPLE))
+    _assert_one_at_a_time(pm, cams, budgets, got)

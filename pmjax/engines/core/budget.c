@@ -111,35 +111,16 @@ static float own_tolerance(const float *row, const float *view, float unit, int 
  * block of LANES pairs; one camera's pass looks FRAMES times farther). */
 #define AHEAD_ROWS 16
 
-/* own_tolerance of the pcols at positions pos[0..n) (n <= LANES) into out,
- * each under its view view[j] with one pixel unit[j], as loops over the
- * block's columns that the compiler vectorizes: the closed form and the
- * float32 test around it; a pcol whose switch lies farther (rare) takes
- * the scalar steps. */
-PMX_INLINE void own_block_body(const float *rows, const int32_t *pos, int64_t n, const float *const *view,
-                               const float *unit, int ortho, float *out)
+/* The switches of n <= LANES pairs from their screen test's terms (mu2,
+ * normal2, s) and one pixel unit, as loops the compiler vectorizes: the
+ * closed form (in double) and the float32 test at it and at the two
+ * patterns on either side (the switch is the pattern not small whose next
+ * one is) into out; 0 in settled[j] where the switch lies farther (rare:
+ * the caller takes own_tolerance's scalar steps). */
+PMX_INLINE void own_switch(const float *mu2, const float *normal2, const float *s, const float *unit, int64_t n,
+                           float *out, int32_t *settled)
 {
-    float mu2[LANES], normal2[LANES], s[LANES], f[LANES], fu[LANES];
-    int32_t ok[LANES], never[LANES];
-    /* The screen test's terms, in the predicate's order of operations. */
-    for (int64_t j = 0; j < n; j++) {
-        const float *row = rows + (int64_t)pos[j] * ROW, *v = view[j];
-        const float ex = v[EYE], ey = v[EYE + 1], ez = v[EYE + 2], fx = v[FORWARD], fy = v[FORWARD + 1];
-        const float fz = v[FORWARD + 2];
-        const float m = row[MU], d = row[DELTA], delta2 = d * d;
-        mu2[j] = m * m;
-        if (ortho) {
-            const float h = fmaf(row[NZ], fz, fmaf(row[NY], fy, row[NX] * fx));
-            s[j] = 1.0f, normal2[j] = delta2 * fmaf(-h, h, 1.0f);
-        } else {
-            const float vx = row[CX] - ex, vy = row[CY] - ey, vz = row[CZ] - ez;
-            const float d2 = fmaf(vz, vz, fmaf(vy, vy, vx * vx)), h = fmaf(vz, row[NZ], fmaf(vy, row[NY], vx * row[NX]));
-            s[j] = d2, normal2[j] = delta2 * fmaf(-h, h, d2);
-        }
-    }
-    /* The closed form (in double) and the float32 test at it and at the two
-     * patterns on either side: the switch is the pattern not small whose
-     * next one is. */
+    float f[LANES];
     for (int64_t j = 0; j < n; j++) {
         const double ds = s[j], nn = normal2[j] > 0 ? normal2[j] : 0.0f;
         const double x = (double)mu2[j] / ds > nn / (ds * ds) ? (double)mu2[j] / ds : nn / (ds * ds);
@@ -160,20 +141,51 @@ PMX_INLINE void own_block_body(const float *rows, const int32_t *pos, int64_t n,
         const int s0 = (m < l0) & (q < l0 * sj), s1 = (m < l1) & (q < l1 * sj), s2 = (m < l2) & (q < l2 * sj);
         const int s3 = (m < l3) & (q < l3 * sj), s4 = (m < l4) & (q < l4 * sj);
         const float ki = u * INFINITY, li = ki * ki * sj;
-        never[j] = !((m < li) & (q < li * sj));
+        const int never = !((m < li) & (q < li * sj));
         /* The last pattern not small before one that is (the test is
          * monotone in tau: at most one such pair). */
         const int e3 = (1 - s3) & s4, e2 = (1 - s2) & s3, e1 = (1 - s1) & s2, e0 = (1 - s0) & s1 & (b0 >= 2);
         const int32_t bt = e3 ? bp1 : e2 ? b0 : e1 ? bm1 : bm2;
-        ok[j] = e3 | e2 | e1 | e0;
-        memcpy(&fu[j], &bt, sizeof bt);
+        float fu;
+        memcpy(&fu, &bt, sizeof bt);
+        settled[j] = never | e3 | e2 | e1 | e0;
+        out[j] = never ? INFINITY : fu;
     }
+}
+
+/* The screen test's terms of a pcol's row under a view, in the
+ * predicate's order of operations (ex..fz: the view's eye and forward). */
+PMX_INLINE void screen_terms(const float *row, float ex, float ey, float ez, float fx, float fy, float fz, int ortho,
+                             float *mu2, float *normal2, float *s)
+{
+    const float m = row[MU], d = row[DELTA], delta2 = d * d;
+    *mu2 = m * m;
+    if (ortho) {
+        const float h = fmaf(row[NZ], fz, fmaf(row[NY], fy, row[NX] * fx));
+        *s = 1.0f, *normal2 = delta2 * fmaf(-h, h, 1.0f);
+    } else {
+        const float vx = row[CX] - ex, vy = row[CY] - ey, vz = row[CZ] - ez;
+        const float d2 = fmaf(vz, vz, fmaf(vy, vy, vx * vx)), h = fmaf(vz, row[NZ], fmaf(vy, row[NY], vx * row[NX]));
+        *s = d2, *normal2 = delta2 * fmaf(-h, h, d2);
+    }
+}
+
+/* own_tolerance of the pcols at positions pos[0..n) (n <= LANES) into out,
+ * each under its view view[j] with one pixel unit[j]: the terms, then
+ * own_switch; a pcol whose switch lies farther takes the scalar steps. */
+PMX_INLINE void own_block_body(const float *rows, const int32_t *pos, int64_t n, const float *const *view,
+                               const float *unit, int ortho, float *out)
+{
+    float mu2[LANES], normal2[LANES], s[LANES];
+    int32_t settled[LANES];
+    for (int64_t j = 0; j < n; j++) {
+        const float *v = view[j];
+        screen_terms(rows + (int64_t)pos[j] * ROW, v[EYE], v[EYE + 1], v[EYE + 2], v[FORWARD], v[FORWARD + 1],
+                     v[FORWARD + 2], ortho, &mu2[j], &normal2[j], &s[j]);
+    }
+    own_switch(mu2, normal2, s, unit, n, out, settled);
     for (int64_t j = 0; j < n; j++)
-        if (never[j])
-            out[j] = INFINITY;
-        else if (ok[j])
-            out[j] = fu[j];
-        else
+        if (!settled[j])
             out[j] = own_tolerance(rows + (int64_t)pos[j] * ROW, view[j], unit[j], ortho);
 }
 
@@ -199,6 +211,59 @@ PMX_TARGET_AVX512 static void own_block_avx512(const float *rows, const int32_t 
 
 typedef void (*OwnBlock)(const float *, const int32_t *, int64_t, const float *const *, const float *, int, float *);
 
+/* A word's frames as the own tolerances read them: their eyes, forwards
+ * and one pixel units, one array per quantity (a frame per entry). */
+typedef struct {
+    float ex[FRAMES], ey[FRAMES], ez[FRAMES], fx[FRAMES], fy[FRAMES], fz[FRAMES];
+    float unit[LANES]; /* frame j % FRAMES's unit at j: a block's pairs */
+    const float *views;
+} WordViews;
+
+/* own_tolerance of k <= LANES / FRAMES pcols (rows at positions pos[0..k))
+ * under each of a word's FRAMES frames into out (pcol q's frame l at
+ * q * FRAMES + l): own_block's values, each row read once for its frames. */
+PMX_INLINE void own_slots_body(const float *rows, const int32_t *pos, int64_t k, const WordViews *w, int ortho,
+                               float *out)
+{
+    float mu2[LANES], normal2[LANES], s[LANES];
+    int32_t settled[LANES];
+    for (int64_t q = 0; q < k; q++) {
+        const float *row = rows + (int64_t)pos[q] * ROW;
+        float *m = mu2 + q * FRAMES, *nn = normal2 + q * FRAMES, *sq = s + q * FRAMES;
+#pragma omp simd
+        for (int l = 0; l < FRAMES; l++)
+            screen_terms(row, w->ex[l], w->ey[l], w->ez[l], w->fx[l], w->fy[l], w->fz[l], ortho, &m[l], &nn[l],
+                         &sq[l]);
+    }
+    own_switch(mu2, normal2, s, w->unit, k * FRAMES, out, settled);
+    for (int64_t j = 0; j < k * FRAMES; j++)
+        if (!settled[j])
+            out[j] = own_tolerance(rows + (int64_t)pos[j / FRAMES] * ROW, w->views + (j % FRAMES) * PMX_VIEW,
+                                   w->unit[j], ortho);
+}
+
+static void own_slots_plain(const float *rows, const int32_t *pos, int64_t k, const WordViews *w, int ortho,
+                            float *out)
+{
+    own_slots_body(rows, pos, k, w, ortho, out);
+}
+
+#if PMX_X86
+PMX_TARGET_AVX2 static void own_slots_avx2(const float *rows, const int32_t *pos, int64_t k, const WordViews *w,
+                                           int ortho, float *out)
+{
+    own_slots_body(rows, pos, k, w, ortho, out);
+}
+
+PMX_TARGET_AVX512 static void own_slots_avx512(const float *rows, const int32_t *pos, int64_t k, const WordViews *w,
+                                               int ortho, float *out)
+{
+    own_slots_body(rows, pos, k, w, ortho, out);
+}
+#endif
+
+typedef void (*OwnSlots)(const float *, const int32_t *, int64_t, const WordViews *, int, float *);
+
 #if PMX_X86
 /* The SIMD level in use (PMX_SIMD_PLAIN, AVX2 or AVX512: the index of a
  * kernel in this file's tables of three). */
@@ -219,6 +284,17 @@ static OwnBlock own_block(void)
     return at_level[simd_level()];
 #else
     return own_block_plain;
+#endif
+}
+
+/* The slot kernel of the SIMD level in use (own_block's bits). */
+static OwnSlots own_slots(void)
+{
+#if PMX_X86
+    static const OwnSlots at_level[] = {own_slots_plain, own_slots_avx2, own_slots_avx512};
+    return at_level[simd_level()];
+#else
+    return own_slots_plain;
 #endif
 }
 
@@ -582,13 +658,14 @@ typedef struct {
 } Batch;
 
 /* A thread's working memory: its scratch (with a word's frame masks where
- * `words`), the Budget arrays, the unsure frames of a word's slots and one
- * camera's guesses (g, alt: B each); 0 when out of memory (what was taken
- * is given back by budget_give). */
+ * `words`), the Budget arrays, the unsure frames of a word's slots and the
+ * own parts of eps of the frames with one (own_room, frame by frame, where
+ * `words`), and one camera's guesses (g, alt: B each); 0 when out of memory
+ * (what was taken is given back by budget_give). */
 typedef struct {
     PmxScratch *s;
     Budget b;
-    float *eps_room, *lanes_room;
+    float *eps_room, *lanes_room, *own_room;
     Lanes *unsure_at;
     int64_t *g, *alt;
 } Work;
@@ -604,6 +681,7 @@ static int budget_take(Work *k, const PmxHierarchy *h, int64_t B, int words)
                     malloc(sizeof(int64_t) * (BUCKETS + SPREAD))};
     k->unsure_at = words ? malloc(sizeof(Lanes) * (size_t)room) : NULL;
     k->lanes_room = words ? malloc(sizeof(float) * FRAMES * (size_t)(room + 1)) : NULL;
+    k->own_room = words ? malloc(sizeof(float) * FRAMES * (size_t)room) : NULL;
     if (k->lanes_room)
         for (int l = 0; l < FRAMES; l++)
             k->lanes_room[l] = -INFINITY; /* a child not visited */
@@ -612,7 +690,8 @@ static int budget_take(Work *k, const PmxHierarchy *h, int64_t B, int words)
     if (k->eps_room)
         k->eps_room[0] = -INFINITY; /* eps[-1]: a child not visited */
     const Budget *b = &k->b;
-    return k->s && scratch_slots(k->s) && (!words || (scratch_words(k->s) && k->unsure_at && k->lanes_room)) &&
+    return k->s && scratch_slots(k->s) &&
+           (!words || (scratch_words(k->s) && k->unsure_at && k->lanes_room && k->own_room)) &&
            b->eps && b->own &&
            b->val && b->sel && b->wt && b->sel_wt && b->bucket && k->g;
 }
@@ -620,7 +699,7 @@ static int budget_take(Work *k, const PmxHierarchy *h, int64_t B, int words)
 static void budget_give(Work *k)
 {
     free(k->eps_room), free(k->b.own), free(k->b.val), free(k->b.sel), free(k->b.wt), free(k->b.sel_wt);
-    free(k->b.bucket), free(k->unsure_at), free(k->lanes_room), free(k->g);
+    free(k->b.bucket), free(k->unsure_at), free(k->lanes_room), free(k->own_room), free(k->g);
     if (k->s)
         pmx_scratch_give(k->s);
 }
@@ -735,18 +814,27 @@ static LanesUp lanes_up(void)
 #endif
 }
 
-/* Own tolerances of k (slot, frame) pairs (positions pos, views view, one
- * pixel unit) into eps[at[j]], raised to the frame's lo (inf with the
- * screen test off). */
-static void lanes_flush(const PmxHierarchy *h, const int32_t *pos, const int64_t *at, const float *const *view,
-                        const float *unit, int64_t k, int ortho, int screen, OwnBlock own, const float *lo, float *eps)
+/* Slots whose own tolerances a block of the word pass takes (each with
+ * all its frames: the block's pairs follow the eps layout). */
+#define SLOTS_PER_BLOCK (LANES / FRAMES)
+
+/* The own part of every frame's eps of k slots (slot[0..k) at positions
+ * pos) into eps: the own tolerance under the frame's view raised to the
+ * frame's lo (inf with the screen test off) where the frame needs it
+ * (need[q] bit l), else -inf. */
+static void lanes_flush(const PmxHierarchy *h, const int32_t *pos, const int64_t *slot, const Lanes *need, int64_t k,
+                        const WordViews *w, int ortho, int screen, OwnSlots own, const float *lo, float *eps)
 {
     float out[LANES];
     if (screen)
-        own(h->rows, pos, k, view, unit, ortho, out);
-    for (int64_t j = 0; j < k; j++) {
-        const float o = screen ? out[j] : INFINITY, floor = lo[at[j] % FRAMES];
-        eps[at[j]] = o > floor ? o : floor;
+        own(h->rows, pos, k, w, ortho, out);
+    for (int64_t q = 0; q < k; q++) {
+        float *e = eps + slot[q] * FRAMES;
+        const float *o = out + q * FRAMES;
+        for (int l = 0; l < FRAMES; l++) {
+            const float x = screen ? o[l] : INFINITY, v = x > lo[l] ? x : lo[l];
+            e[l] = (need[q] >> l) & 1 ? v : -INFINITY;
+        }
     }
 }
 
@@ -754,36 +842,50 @@ static void lanes_flush(const PmxHierarchy *h, const int32_t *pos, const int64_t
  * of lanes_up): -inf where the frame ran the slot or its own decision is a
  * sure collapse, else the larger of the own tolerance under the frame's
  * view and the frame's lo (a "keep" at lo puts the switch at lo or above;
- * an unsure decision is read so too: the frames with one take the
- * one-camera pass). The (slot, frame) pairs a block of LANES at a time. */
-static void lanes_own(const PmxHierarchy *h, const PmxScratch *s, int64_t n, const float *views, const float *units,
-                      const float *lo, int flags, OwnBlock own, float *eps)
+ * an unsure decision is read so too: the second guess of a frame with one
+ * reads it as a collapse). A slot that some frame needs takes all its
+ * frames at once (the frames that do not need it computed and dropped:
+ * cheaper than a list of pairs), SLOTS_PER_BLOCK slots a block. */
+static void lanes_own(const PmxHierarchy *h, const PmxScratch *s, int64_t n, const WordViews *w, const float *lo,
+                      int flags, OwnSlots own, float *eps)
 {
     const int ortho = (flags & PMX_ORTHOGRAPHIC) != 0, screen = (flags & PMX_SCREEN) != 0;
-    int32_t pos[LANES];
-    int64_t at[LANES];
-    float unit[LANES];
-    const float *view[LANES];
+    int32_t pos[SLOTS_PER_BLOCK];
+    int64_t slot[SLOTS_PER_BLOCK];
+    Lanes need[SLOTS_PER_BLOCK];
     int64_t k = 0;
     for (int64_t i = 0; i < n; i++) {
-        /* The rows a block of pairs ahead, so that they arrive in time (the
+        /* The rows a block of slots ahead, so that they arrive in time (the
          * traversal's reads of them left the cache). */
         if (i + AHEAD_ROWS < n)
             __builtin_prefetch(h->rows + (int64_t)s->ids[i + AHEAD_ROWS] * ROW);
-        for (int l = 0; l < FRAMES; l++)
-            eps[i * FRAMES + l] = -INFINITY;
-        for (uint32_t need = (Lanes) ~(s->ran_frames[i] | s->yes[i]); need; need &= need - 1) {
-            const int l = __builtin_ctz(need);
-            pos[k] = s->ids[i], at[k] = i * FRAMES + l;
-            view[k] = views + l * PMX_VIEW, unit[k] = units[l];
-            if (++k == LANES) {
-                lanes_flush(h, pos, at, view, unit, k, ortho, screen, own, lo, eps);
-                k = 0;
-            }
+        const Lanes wanted = (Lanes) ~(s->ran_frames[i] | s->yes[i]);
+        if (!wanted) {
+            for (int l = 0; l < FRAMES; l++)
+                eps[i * FRAMES + l] = -INFINITY;
+            continue;
+        }
+        pos[k] = s->ids[i], slot[k] = i, need[k] = wanted;
+        if (++k == SLOTS_PER_BLOCK) {
+            lanes_flush(h, pos, slot, need, k, w, ortho, screen, own, lo, eps);
+            k = 0;
         }
     }
     if (k)
-        lanes_flush(h, pos, at, view, unit, k, ortho, screen, own, lo, eps);
+        lanes_flush(h, pos, slot, need, k, w, ortho, screen, own, lo, eps);
+}
+
+/* A word's frames (views, one pixel units) as the own tolerances read them. */
+static void word_views(const float *views, const float *units, WordViews *w)
+{
+    for (int l = 0; l < FRAMES; l++) {
+        const float *v = views + l * PMX_VIEW;
+        w->ex[l] = v[EYE], w->ey[l] = v[EYE + 1], w->ez[l] = v[EYE + 2];
+        w->fx[l] = v[FORWARD], w->fy[l] = v[FORWARD + 1], w->fz[l] = v[FORWARD + 2];
+    }
+    for (int j = 0; j < LANES; j++)
+        w->unit[j] = units[j % FRAMES];
+    w->views = views;
 }
 
 /* The guesses of a word's frames: the word traversed once at each frame's
@@ -805,10 +907,11 @@ static void words_work(void *arg)
     PmxScratch *s = k.s;
     const unsigned mode = subnormals_off();
     const Kernels *kern = pmx_kernels();
-    const OwnBlock own = own_block();
     const LanesUp up = lanes_up();
+    const OwnSlots own = own_slots();
     const int ortho = (bt->flags & PMX_ORTHOGRAPHIC) != 0;
     float *eps = k.lanes_room + FRAMES; /* row -1: -inf */
+    float *own_part = k.own_room;
     for (int64_t w; (w = __atomic_fetch_add(&bt->cursor, 1, __ATOMIC_RELAXED)) < bt->K / FRAMES;) {
         const float *cameras = bt->cameras + w * FRAMES * PMX_CAMERA;
         const float *units = bt->units + w * FRAMES;
@@ -837,7 +940,19 @@ static void words_work(void *arg)
             k.unsure_at[s->unsure[q]] |= s->unsure_lanes[q], unsure_frames |= s->unsure_lanes[q];
         for (int64_t i = 0; i < n; i++)
             s->kill[i] = h->kills[s->ids[i]];
-        lanes_own(h, s, n, views, units, lo, bt->flags, own, eps);
+        WordViews wv;
+        word_views(views, units, &wv);
+        lanes_own(h, s, n, &wv, lo, bt->flags, own, eps);
+        /* The own parts of the frames with unsure decisions kept, frame by
+         * frame (their second guesses fold them again). */
+        int64_t kept_at[FRAMES] = {0};
+        int64_t r = 0;
+        for (int l = 0; l < FRAMES; l++)
+            if ((unsure_frames >> l) & 1) {
+                kept_at[l] = r++ * n;
+                for (int64_t i = 0; i < n; i++)
+                    own_part[kept_at[l] + i] = eps[i * FRAMES + l];
+            }
         up(eps, n, s->kid, s->ran_frames);
         for (int l = 0; l < FRAMES; l++) {
             const int64_t c = w * FRAMES + l;
@@ -845,27 +960,28 @@ static void words_work(void *arg)
             const int64_t top = largest_budget(budgets, B, bt->base_faces, k.g, k.alt);
             int found = 1;
             float next = 0;
-            if (top >= 0 && !((unsure_frames >> l) & 1)) {
+            if (top >= 0) {
                 /* The frame's tally from its lane of eps. */
                 const int32_t lo_bits = bits_of(lo[l]);
                 Tally t = tally_start(&k.b, bt->base_faces);
                 for (int64_t i = 0; i < n; i++)
                     tally(&k.b, &t, i, eps[i * FRAMES + l], s->kill[i], lo[l], lo_bits);
                 tally_end(&k.b, &t);
-                found = answers_from(s, &k.b, n, 0, t.count, t.total, t.total2, counts[l].kept, lo[l], budgets, B,
-                                     top, bt->base_faces, -1, &next, k.g, k.alt);
-            } else if (top >= 0) {
-                /* Frame l's slots as its own traversal leaves them: a slot
-                 * it did not visit, or whose bound decided it, ran. */
+                /* A frame with unsure decisions: its slots as its own
+                 * traversal leaves them (a slot it did not visit, or whose
+                 * bound decided it, ran) and their own parts, for the
+                 * second guess's eps (unsure decisions as collapses). */
                 int64_t m_l = 0;
-                for (int64_t i = 0; i < n; i++) {
-                    const int yes = (s->yes[i] >> l) & 1, unsure = (k.unsure_at[i] >> l) & 1;
-                    s->ran[i] = (uint8_t)((s->ran_frames[i] >> l) & 1);
-                    s->state[i] = (uint8_t)(yes ? YES : unsure ? UNSURE : NO);
-                    m_l += unsure;
-                }
-                found = answers_at(h, s, &k.b, n, m_l, counts[l].kept, lo[l], views + l * PMX_VIEW, units[l],
-                                   bt->flags, own, budgets, B, top, bt->base_faces, -1, &next, k.g, k.alt);
+                if ((unsure_frames >> l) & 1)
+                    for (int64_t i = 0; i < n; i++) {
+                        const int yes = (s->yes[i] >> l) & 1, unsure = (k.unsure_at[i] >> l) & 1;
+                        s->ran[i] = (uint8_t)((s->ran_frames[i] >> l) & 1);
+                        s->state[i] = (uint8_t)(yes ? YES : unsure ? UNSURE : NO);
+                        k.b.own[i] = own_part[kept_at[l] + i];
+                        m_l += unsure;
+                    }
+                found = answers_from(s, &k.b, n, m_l, t.count, t.total, t.total2, counts[l].kept, lo[l], budgets, B,
+                                     top, bt->base_faces, -1, &next, k.g, k.alt);
             }
             if (!found)
                 for (int64_t j = 0; j < B; j++)
