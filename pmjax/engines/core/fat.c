@@ -172,11 +172,21 @@ static inline __attribute__((always_inline)) int32_t decide_fat_one(const Fat *W
      * g = h - ca r is surely negative, or g^2 <= sa^2 t2 surely (h = v . n
      * moves by at most rho |n| <= rho n1, t2 = d^2 - r^2). */
     const float hshift = rho * n1 * GROW;
-    const float glo = hv - hshift - ca * r, ghi = hv + hshift - ca * r;
-    const float mg_fat = mhv + hshift + fabsf(ca) * ar, mg_frame = dhi * n1 * GROW_M + fabsf(ca) * ar;
+    /* Along a path h is tighter: with e = a + t ab + delta (t in [0, 1],
+     * |delta| <= capsule), h = (c - a) . n - t (ab . n) - delta . n, whose
+     * range over t is exact; the tighter end of either range bounds h. */
+    const float ha = ox * nx + oy * ny + oz * nz, hab = W->abx * nx + W->aby * ny + W->abz * nz;
+    const float cshift = W->capsule * n1 * GROW;
+    const float mha = fabsf(ox * nx) + fabsf(oy * ny) + fabsf(oz * nz) + fabsf(W->abx * nx) + fabsf(W->aby * ny) +
+                      fabsf(W->abz * nz) + cshift;
+    const float hlo_path = ha - pos(hab) - cshift, hhi_path = ha + pos(-hab) + cshift;
+    const float hlo = hv - hshift > hlo_path ? hv - hshift : hlo_path;
+    const float hhi = hv + hshift < hhi_path ? hv + hshift : hhi_path;
+    const float glo = hlo - ca * r, ghi = hhi - ca * r;
+    const float mg_fat = mhv + hshift + mha + fabsf(ca) * ar, mg_frame = dhi * n1 * GROW_M + fabsf(ca) * ar;
     const float g2 = glo * glo > ghi * ghi ? glo * glo : ghi * ghi;
     const _Bool toward = (ca <= 0.0f) | less(ghi, mg_fat + mg_frame, slack).y |
-                         less(sa * sa * (dlo * dlo - r * r) - g2,
+                         less(sa * sa * (near_d * near_d - r * r) - g2,
                               2 * sa * sa * (dhi2 * GROW_M + r * r) + mg_fat * mg_fat + mg_frame * mg_frame, slack)
                              .n;
     /* Too coarse for every frame (at the largest kappa2, kappa2_hi):
