@@ -12,8 +12,10 @@
  *  - every frame's eye lies within a capsule (a segment a + [0, 1] ab, the
  *    path's chord, grown by its radius), so every distance from a frame's eye
  *    is at least the distance from the segment less the radius, and at most
- *    the distance from its farther end plus the radius (tighter than the
- *    ball for the distance tests along a path);
+ *    the distance from its farther end plus the radius, and every frame's
+ *    v . n (v the eye vector) lies in the segment's exact range of it
+ *    widened by the radius |n| (tighter than the ball for the distance tests
+ *    and the orientation test along a path);
  *  - in camera coordinates a point c of frame f is R_f (c - p) + t_f for a
  *    pivot p (the point the frames look at, where there is one); with
  *    |R_f - R| <= eps (spectral norm) and |t_f - t| <= tau, it lies within
@@ -170,7 +172,8 @@ static inline __attribute__((always_inline)) int32_t decide_fat_one(const Fat *W
                          less(z * k1 + k3 - fabsf(y) + r * k5 - shift * k5 * GROW_M, mf, slack).n;
     /* Not facing away from any frame: the cone's cosine is not positive, or
      * g = h - ca r is surely negative, or g^2 <= sa^2 t2 surely (h = v . n
-     * moves by at most rho |n| <= rho n1, t2 = d^2 - r^2). */
+     * moves by at most rho |n| <= rho n1, t2 = d^2 - r^2 at least the
+     * nearest distance's square less r^2). */
     const float hshift = rho * n1 * GROW;
     /* Along a path h is tighter: with e = a + t ab + delta (t in [0, 1],
      * |delta| <= capsule), h = (c - a) . n - t (ab . n) - delta . n, whose
