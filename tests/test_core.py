@@ -374,6 +374,11 @@ def test_fat_camera_decisions_hold_for_every_frame(built, name):
                 counts = np.bincount(got, minlength=5)
                 assert counts[_core.FAT_SCREEN] > 0, (label, counts)
                 assert counts[_core.FAT_INSIDE] > 0 or name.startswith("terrain"), (label, counts)
+                if name == "bunny.ply":
+                    # The chord's range of v . n settles the orientation test
+                    # on most pcols near the silhouette: fewer are left open
+                    # on it than have it settled and the screen test open.
+                    assert counts[_core.FAT_INSIDE] < counts[_core.FAT_SCREEN], (label, counts)
                 nan = jnp.full(_core.FAT, jnp.nan, jnp.float32)
                 unused = _core.decide_fat_all(table, views, nan, _core.flags_of(pmjax.ALL_TESTS, False))
                 assert not np.any(np.asarray(unused)), label

@@ -12,8 +12,10 @@
  *  - every frame's eye lies within a capsule (a segment a + [0, 1] ab, the
  *    path's chord, grown by its radius), so every distance from a frame's eye
  *    is at least the distance from the segment less the radius, and at most
- *    the distance from its farther end plus the radius (tighter than the
- *    ball for the distance tests along a path);
+ *    the distance from its farther end plus the radius, and every frame's
+ *    v . n (v the eye vector) lies in the segment's exact range of it
+ *    widened by the radius |n| (tighter than the ball for the distance tests
+ *    and the orientation test along a path);
  *  - in camera coordinates a point c of frame f is R_f (c - p) + t_f for a
  *    pivot p (the point the frames look at, where there is one); with
  *    |R_f - R| <= eps (spectral norm) and |t_f - t| <= tau, it lies within
@@ -170,13 +172,24 @@ static inline __attribute__((always_inline)) int32_t decide_fat_one(const Fat *W
                          less(z * k1 + k3 - fabsf(y) + r * k5 - shift * k5 * GROW_M, mf, slack).n;
     /* Not facing away from any frame: the cone's cosine is not positive, or
      * g = h - ca r is surely negative, or g^2 <= sa^2 t2 surely (h = v . n
-     * moves by at most rho |n| <= rho n1, t2 = d^2 - r^2). */
+     * moves by at most rho |n| <= rho n1, t2 = d^2 - r^2 at least the
+     * nearest distance's square less r^2). */
     const float hshift = rho * n1 * GROW;
-    const float glo = hv - hshift - ca * r, ghi = hv + hshift - ca * r;
-    const float mg_fat = mhv + hshift + fabsf(ca) * ar, mg_frame = dhi * n1 * GROW_M + fabsf(ca) * ar;
+    /* Along a path h is tighter: with e = a + t ab + delta (t in [0, 1],
+     * |delta| <= capsule), h = (c - a) . n - t (ab . n) - delta . n, whose
+     * range over t is exact; the tighter end of either range bounds h. */
+    const float ha = ox * nx + oy * ny + oz * nz, hab = W->abx * nx + W->aby * ny + W->abz * nz;
+    const float cshift = W->capsule * n1 * GROW;
+    const float mha = fabsf(ox * nx) + fabsf(oy * ny) + fabsf(oz * nz) + fabsf(W->abx * nx) + fabsf(W->aby * ny) +
+                      fabsf(W->abz * nz) + cshift;
+    const float hlo_path = ha - pos(hab) - cshift, hhi_path = ha + pos(-hab) + cshift;
+    const float hlo = hv - hshift > hlo_path ? hv - hshift : hlo_path;
+    const float hhi = hv + hshift < hhi_path ? hv + hshift : hhi_path;
+    const float glo = hlo - ca * r, ghi = hhi - ca * r;
+    const float mg_fat = mhv + hshift + mha + fabsf(ca) * ar, mg_frame = dhi * n1 * GROW_M + fabsf(ca) * ar;
     const float g2 = glo * glo > ghi * ghi ? glo * glo : ghi * ghi;
     const _Bool toward = (ca <= 0.0f) | less(ghi, mg_fat + mg_frame, slack).y |
-                         less(sa * sa * (dlo * dlo - r * r) - g2,
+                         less(sa * sa * (near_d * near_d - r * r) - g2,
                               2 * sa * sa * (dhi2 * GROW_M + r * r) + mg_fat * mg_fat + mg_frame * mg_frame, slack)
                              .n;
     /* Too coarse for every frame (at the largest kappa2, kappa2_hi):
