@@ -779,7 +779,7 @@ class MeshStream:
             faces in increasing original face order, ``vertex_ids`` sorted;
             new arrays, the caller's (later updates do not change them).
         """
-        if self._stream is not None:  # ranks in the core's bitmaps of the faces drawn and the ids used
+        if self._stream is not None:  # the core's kept rows, merged with the changes since
             n_faces, n_used = self._counts[4], self._counts[6]
             packed = _core._pmx.mesh_stream_compact(self._stream)  # a new buffer: faces, ids, positions
             return (_array((n_used, 3), _FLOAT32, packed, 12 * n_faces + 4 * n_used),

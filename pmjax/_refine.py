@@ -710,7 +710,8 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
             guess traversal per camera (several budgets of the same cameras
             cost little more than the largest alone).
         tests: :class:`Tests`.
-        chunk: cameras per call, rounded up to a multiple of 32.
+        chunk: cameras per guess call, rounded up to a multiple of 32 (the
+            exact counts of whole chunks, up to 4,096 cameras, run together).
         method: ``"auto"``, ``"front"`` or ``"dense"`` (as :func:`faces_for_budget`).
         path: the cameras are the frames of one path, in order (an orbit, a
             fly-through): every 32nd frame is guessed alone, the frames
@@ -1053,9 +1054,10 @@ def _count_calls(m: int):
     """The ``(start, size)`` of the calls that count ``m`` probes: sizes 32
     times a power of 4 up to :data:`MOST_PROBES` (few compiled sizes), as
     many of the largest as fit, then of the next, and so on; the last call
-    padded to 32. A padding row costs a traversal of the roots (at ``tau =
-    inf`` several times one at a finite tolerance), so filling calls beats
-    padding them."""
+    padded to 32. A padding row still costs a traversal of the roots, so
+    calls are filled with probes rather than padded."""
+    q = MOST_PROBES // WORD  # the sizes step by 4 from MOST_PROBES down to WORD
+    assert MOST_PROBES == q * WORD and q & (q - 1) == 0 and q.bit_length() % 2 == 1, MOST_PROBES
     calls, start, size = [], 0, MOST_PROBES
     while start < m:
         while size > WORD and m - start < size:

@@ -844,8 +844,9 @@ static void lanes_flush(const PmxHierarchy *h, const int32_t *pos, const int64_t
  * view and the frame's lo (a "keep" at lo puts the switch at lo or above;
  * an unsure decision is read so too: the second guess of a frame with one
  * reads it as a collapse). A slot that some frame needs takes all its
- * frames at once (the frames that do not need it computed and dropped:
- * cheaper than a list of pairs), SLOTS_PER_BLOCK slots a block. */
+ * frames at once (the frames that do not need it computed and dropped, so
+ * that a slot's row is read once and no list of pairs is kept),
+ * SLOTS_PER_BLOCK slots a block. */
 static void lanes_own(const PmxHierarchy *h, const PmxScratch *s, int64_t n, const WordViews *w, const float *lo,
                       int flags, OwnSlots own, float *eps)
 {
@@ -893,8 +894,9 @@ static void word_views(const float *views, const float *units, WordViews *w)
  * once under the fat camera, words.c), every frame's eps folded bottom-up
  * at once (lanes_own, lanes_up), then per frame the tally of its eps and
  * the answers from it as for one camera (answers_from); a frame with an
- * unsure decision takes the one-camera pass over its slots' states
- * (answers_at), for its second guess. A frame whose largest budget's answer
+ * unsure decision reads it as a "keep" at lo for its first guess, and for
+ * its second folds its own lane again (kept from before the fold) with its
+ * unsure decisions as collapses. A frame whose largest budget's answer
  * lies below its lo gets -1 (a guess left to its own traversal). */
 static void words_work(void *arg)
 {

@@ -1244,7 +1244,7 @@ PyObject* MeshStreamCompact(PyObject*, PyObject* args) {
     Py_DECREF(packed);
     PyErr_SetString(status == PMX_NO_MEMORY ? PyExc_MemoryError : PyExc_ValueError,
                     status == PMX_NO_MEMORY ? "mesh_stream_compact: out of memory to sort the changes"
-                                            : "mesh_stream_compact: the stream's rows do not match its mesh");
+                                            : "mesh_stream_compact: the stream is broken (a failed step); start a new MeshStream");
     return nullptr;
   }
   return packed;

@@ -165,7 +165,7 @@ PMX_INLINE void flip_bit(uint64_t *bits, int64_t i) { bits[i >> 6] ^= (uint64_t)
 static void log_change(PmxMeshStream *s, IdSlot **log, int64_t *n, int64_t *cap, int64_t rows, int32_t id,
                        int32_t slot)
 {
-    if (*n >= 2 * rows + 1024) { /* ranking afresh costs less than merging this log */
+    if (*n >= 2 * rows + 1024) { /* past the log's bound: the next compaction ranks */
         s->rows_kept = 0;
         return;
     }
@@ -794,14 +794,14 @@ __attribute__((target("popcnt"))) static void rank_rows_popcnt(PmxMeshStream *s,
 
 /* The log's n entries in increasing id, entries of one id in the order
  * they came (a stable radix sort on byte digits, as many as max_id has,
- * through s->sorted, whose room the caller made: a log is a few hundred
- * entries, so small digits cost least); returns the sorted entries (the
- * log or s->sorted). */
+ * through s->sorted, whose room the caller made; byte digits keep the
+ * counts in a small table); returns the sorted entries (the log or
+ * s->sorted). */
 static IdSlot *sort_log(PmxMeshStream *s, IdSlot *log, int64_t n, int32_t max_id)
 {
     enum { DIGIT = 8, BUCKETS = 1 << DIGIT };
     IdSlot *from = log, *to = s->sorted;
-    for (int shift = 0; n > 1 && (shift == 0 || (max_id >> shift) > 0); shift += DIGIT) {
+    for (int shift = 0; n > 1 && shift < 32 && (shift == 0 || ((uint32_t)max_id >> shift) > 0); shift += DIGIT) {
         int32_t count[BUCKETS + 1] = {0};
         for (int64_t k = 0; k < n; k++)
             count[((from[k].id >> shift) & (BUCKETS - 1)) + 1]++;
@@ -852,9 +852,12 @@ static int64_t merge_log(const IdSlot *last, int64_t n_last, const IdSlot *log, 
 PmxStatus pmx_mesh_stream_compact(PmxMeshStream *s, int32_t *restrict faces, int32_t *restrict ids,
                                   float *restrict positions)
 {
+    if (s->broken)
+        return PMX_BAD_TABLE;
     /* The next rows in the buffers not holding the last ones. */
     const int next = !s->rows_at;
     IdSlot *const face_rows = s->face_rows[next], *const vertex_rows = s->vertex_rows[next];
+    int merged = 0;
     if (s->rows_kept) {
         /* Room to sort the longer log first: a failure changes nothing. */
         const int64_t need = s->n_face_log > s->n_vertex_log ? s->n_face_log : s->n_vertex_log;
@@ -870,7 +873,11 @@ PmxStatus pmx_mesh_stream_compact(PmxMeshStream *s, int32_t *restrict faces, int
         log = sort_log(s, s->face_log, s->n_face_log, (int32_t)s->t.n_faces);
         s->n_face_rows = merge_log(s->face_rows[s->rows_at], s->n_face_rows, log, s->n_face_log, s->face_bits,
                                    face_rows, s->face_cap);
-    } else {
+        merged = s->n_face_rows == s->n_faces_live && s->n_vertex_rows == s->n_used;
+    }
+    /* No rows kept, or a merge that does not give as many rows as the
+     * output holds (the faces drawn, the ids used): ranked afresh. */
+    if (!merged) {
 #if PMX_X86
         if (__builtin_cpu_supports("popcnt"))
             rank_rows_popcnt(s, face_rows, vertex_rows);
@@ -882,11 +889,7 @@ PmxStatus pmx_mesh_stream_compact(PmxMeshStream *s, int32_t *restrict faces, int
     }
     s->n_face_log = s->n_vertex_log = 0;
     s->rows_at = next;
-    /* As many rows as the output holds (the faces drawn, the ids used):
-     * else the log missed a change (the next compaction starts afresh). */
-    s->rows_kept = s->n_face_rows == s->n_faces_live && s->n_vertex_rows == s->n_used;
-    if (!s->rows_kept)
-        return PMX_BAD_TABLE;
+    s->rows_kept = 1;
     /* The rows out: each vertex's id and position, its slot's row noted
      * (a face's corners then read their rows from one small array), then
      * each face's corners' rows. The slots lie anywhere: each is requested

@@ -284,9 +284,9 @@ void pmx_mesh_stream_state(const PmxMeshStream *s, PmxStreamState *out);
  * in increasing face id, ids and positions [n_used(, 3)] the vertices the
  * faces use in increasing id. The stream keeps the rows (ids and slots)
  * for the next compaction, which merges the changes logged since into
- * them. PMX_NO_MEMORY (nothing written, the stream as it was) or
- * PMX_BAD_TABLE (the rows do not match the mesh: nothing written, the next
- * compaction ranks afresh) on failure. */
+ * them (a merge that does not give the mesh's counts is replaced by a
+ * ranking afresh). PMX_NO_MEMORY (nothing written, the stream as it was)
+ * or PMX_BAD_TABLE (the stream is broken: nothing written) on failure. */
 PmxStatus pmx_mesh_stream_compact(PmxMeshStream *s, int32_t *faces, int32_t *ids, float *positions);
 
 /* The view constants (PMX_VIEW floats) of a camera (PMX_CAMERA floats), and
