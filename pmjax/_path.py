@@ -642,7 +642,9 @@ class MeshStream:
     with the last by ids (same results, cost of the whole mesh).
 
     A host-side object: :meth:`update` takes concrete refinements (not
-    under ``jax.jit``), as a viewer or a renderer holds them.
+    under ``jax.jit``), as a viewer or a renderer holds them. One thread at a
+    time: the C core's calls release the GIL and a stream has no lock, so
+    threads that share a stream must take turns (a lock of their own).
 
     Args:
         pm: the :class:`ProgressiveMesh` whose refinements it is given.

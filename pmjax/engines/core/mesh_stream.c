@@ -170,7 +170,8 @@ static void log_change(PmxMeshStream *s, IdSlot **log, int64_t *n, int64_t *cap,
         return;
     }
     if (*n == *cap) {
-        const int64_t more = *cap ? 2 * *cap : 1024;
+        /* Doubled, but never past the log's bound. */
+        const int64_t bound = 2 * rows + 1024, more = *cap ? (2 * *cap < bound ? 2 * *cap : bound) : 1024;
         if (!grow((void **)log, *cap, more, sizeof(IdSlot))) {
             s->rows_kept = 0;
             return;
