@@ -72,22 +72,32 @@ static float down(float x)
     return x;
 }
 
+/* The screen test's terms of a pcol's row under a view, in the
+ * predicate's order of operations (ex..fz: the view's eye and forward). */
+PMX_INLINE void screen_terms(const float *row, float ex, float ey, float ez, float fx, float fy, float fz, int ortho,
+                             float *mu2, float *normal2, float *s)
+{
+    const float m = row[MU], d = row[DELTA], delta2 = d * d;
+    *mu2 = m * m;
+    if (ortho) {
+        const float h = fmaf(row[NZ], fz, fmaf(row[NY], fy, row[NX] * fx));
+        *s = 1.0f, *normal2 = delta2 * fmaf(-h, h, 1.0f);
+    } else {
+        const float vx = row[CX] - ex, vy = row[CY] - ey, vz = row[CZ] - ez;
+        const float d2 = fmaf(vz, vz, fmaf(vy, vy, vx * vx)), h = fmaf(vz, row[NZ], fmaf(vy, row[NY], vx * row[NX]));
+        *s = d2, *normal2 = delta2 * fmaf(-h, h, d2);
+    }
+}
+
 /* The largest float32 tau at which the pcol of `row` is not small on screen
  * under `view` with one pixel `unit` (+inf when it never is): the screen
  * test's terms in float32 in the predicate's order of operations, the
  * closed form, then corrected by a few steps of the float32 test itself. */
 static float own_tolerance(const float *row, const float *view, float unit, int ortho)
 {
-    float s, normal2;
-    const float mu2 = row[MU] * row[MU], delta2 = row[DELTA] * row[DELTA];
-    if (ortho) {
-        const float h = fmaf(row[NZ], view[FORWARD + 2], fmaf(row[NY], view[FORWARD + 1], row[NX] * view[FORWARD]));
-        s = 1.0f, normal2 = delta2 * fmaf(-h, h, 1.0f);
-    } else {
-        const float vx = row[CX] - view[EYE], vy = row[CY] - view[EYE + 1], vz = row[CZ] - view[EYE + 2];
-        const float d2 = fmaf(vz, vz, fmaf(vy, vy, vx * vx)), h = fmaf(vz, row[NZ], fmaf(vy, row[NY], vx * row[NX]));
-        s = d2, normal2 = delta2 * fmaf(-h, h, d2);
-    }
+    float mu2, normal2, s;
+    screen_terms(row, view[EYE], view[EYE + 1], view[EYE + 2], view[FORWARD], view[FORWARD + 1], view[FORWARD + 2],
+                 ortho, &mu2, &normal2, &s);
     if (!small_at(mu2, normal2, s, unit, INFINITY))
         return INFINITY;
     /* small <=> mu^2 < (unit tau)^2 s and normal^2 < (unit tau)^2 s^2 */
@@ -150,23 +160,6 @@ PMX_INLINE void own_switch(const float *mu2, const float *normal2, const float *
         memcpy(&fu, &bt, sizeof bt);
         settled[j] = never | e3 | e2 | e1 | e0;
         out[j] = never ? INFINITY : fu;
-    }
-}
-
-/* The screen test's terms of a pcol's row under a view, in the
- * predicate's order of operations (ex..fz: the view's eye and forward). */
-PMX_INLINE void screen_terms(const float *row, float ex, float ey, float ez, float fx, float fy, float fz, int ortho,
-                             float *mu2, float *normal2, float *s)
-{
-    const float m = row[MU], d = row[DELTA], delta2 = d * d;
-    *mu2 = m * m;
-    if (ortho) {
-        const float h = fmaf(row[NZ], fz, fmaf(row[NY], fy, row[NX] * fx));
-        *s = 1.0f, *normal2 = delta2 * fmaf(-h, h, 1.0f);
-    } else {
-        const float vx = row[CX] - ex, vy = row[CY] - ey, vz = row[CZ] - ez;
-        const float d2 = fmaf(vz, vz, fmaf(vy, vy, vx * vx)), h = fmaf(vz, row[NZ], fmaf(vy, row[NY], vx * row[NX]));
-        *s = d2, *normal2 = delta2 * fmaf(-h, h, d2);
     }
 }
 
@@ -461,6 +454,15 @@ static int64_t answer_of(Budget *b, int64_t count, float lo, int64_t total, int6
     return v == INFINITY ? (int64_t)INF_BITS + 1 : (int64_t)bits_of(v) + 1;
 }
 
+/* The tolerance at which a count that is `a` (faces above the base, plus
+ * one) at lo reaches the largest budget `top`, the count taken as a power
+ * of tau (clamped to [0.5, 4]), times MARGIN. */
+static double extrapolated(float lo, double a, double power, int64_t top, int64_t base_faces)
+{
+    power = power < 0.5 ? 0.5 : power > 4.0 ? 4.0 : power;
+    return lo * MARGIN * pow(a / (double)(top - base_faces + 1), 1.0 / power);
+}
+
 /* The guesses of one camera from the tally of its traversal at lo (count
  * values, the counts total at lo and at_twice at 2 lo; the pcols that did
  * not run keep `kept` faces) for its B budgets, the largest `top`: each
@@ -482,9 +484,7 @@ static int answers_from(PmxScratch *s, Budget *b, int64_t n, int64_t m, int64_t 
     const int64_t count_at_lo = base_faces + kept;
     if (total <= top && lo != 0.0f && count_at_lo != last_count && at_twice != count_at_lo) {
         const double a = (double)(count_at_lo - base_faces + 1), a2 = (double)(at_twice - base_faces + 1);
-        double power = a > a2 ? log(a / a2) / log(2.0) : 1.0;
-        power = power < 0.5 ? 0.5 : power > 4.0 ? 4.0 : power;
-        const double next = lo * MARGIN * pow(a / (double)(top - base_faces + 1), 1.0 / power);
+        const double next = extrapolated(lo, a, a > a2 ? log(a / a2) / log(2.0) : 1.0, top, base_faces);
         if (next >= 1e-30) {
             *next_lo = (float)(next < lo * 0.9 ? next : lo * 0.9);
             return 0;
@@ -584,8 +584,7 @@ static double lower(float lo, int64_t count_at_lo, float last_lo, int64_t last_c
     double power = POWER;
     if (last_count >= 0 && last_count < count_at_lo && last_lo > lo)
         power = log(a / (double)(last_count - base_faces + 1)) / log((double)last_lo / lo);
-    power = power < 0.5 ? 0.5 : power > 4.0 ? 4.0 : power;
-    const double next = lo * MARGIN * pow(a / (double)(top - base_faces + 1), 1.0 / power);
+    const double next = extrapolated(lo, a, power, top, base_faces);
     return next < lo * 0.9 ? next : lo * 0.9;
 }
 
