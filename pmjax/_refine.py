@@ -717,7 +717,7 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
             fly-through): every 32nd frame is guessed alone, the frames
             between word by word inside the coherent path engine, starting
             below the answers the sampled frames around them predict, and
-            the first exact counts run through it too
+            the exact counts run through it too
             (:func:`pmjax.path_counts`, per-frame tolerances). The same
             answers; only the cost differs.
 
@@ -837,9 +837,10 @@ def _path_budgets(pm, host, budgets, tests, chunk):
     """:func:`faces_for_budget_batch` of one path's frames in order (``host``
     NumPy cameras, ``budgets`` int64 [K, B] at most F; results [K, B]):
     guesses of sampled frames, then of the others word by word, then exact
-    counts, the first two
-    rounds' (at the guess and one pattern below it, all frames) through the
-    core's words, one pass of the path per budget."""
+    counts through the core's words: the first two rounds' (at the guess and
+    one pattern below it, all frames) one pass of the path per budget, the
+    later rounds' (the guesses that were off) budget by budget in the path's
+    order."""
     K, B = budgets.shape
     d, counts_of = derived(pm), _Counts.of(pm)
     sampled = np.arange(0, K, PATH_SAMPLE)
@@ -883,8 +884,21 @@ def _path_budgets(pm, host, budgets, tests, chunk):
             counted[j * K:(j + 1) * K] = _word_counts(d, counts_of, at, tests, host.orthographic)
         return counted
 
+    # The later rounds' probes (a few per guess that missed) through the
+    # core's words too, budget by budget and in the path's order, so that a
+    # word's frames lie near each other on the path.
+    def probes_along_path(cams, bits):
+        frame = cams % K
+        order = np.lexsort((bits, frame, cams // K))
+        at = rows[frame[order]]
+        at[:, -1] = bits[order].astype(np.int32).view(np.float32)
+        counted = np.empty((len(cams), 3), np.int64)
+        counted[order] = _word_counts(d, counts_of, at, tests, host.orthographic)
+        return counted
+
     tau, cols = _exact_from_guess(d.core, np.tile(rows, (B, 1)), budgets.T.ravel(), guess.T.ravel(),
-                                  alt.T.ravel(), tests, host.orthographic, counts_of, along_path)
+                                  alt.T.ravel(), tests, host.orthographic, counts_of, along_path,
+                                  probes_along_path)
     return dict(tau=tau.reshape(B, K).T.copy(), faces=cols[0].reshape(B, K).T.astype(np.int32),
                 vertices=cols[1].reshape(B, K).T.astype(np.int32),
                 executed_count=cols[2].reshape(B, K).T.astype(np.int32))
@@ -964,7 +978,8 @@ def _core_guesses(tables, rows, budgets, tests, orthographic, base_faces, words=
 NEAR = 3
 
 
-def _exact_from_guess(tables, rows, budgets, guess, alt, tests, orthographic, counts_of, along_path=None):
+def _exact_from_guess(tables, rows, budgets, guess, alt, tests, orthographic, counts_of, along_path=None,
+                      probes=None):
     """The exact answers from the guesses, by rounds of exact counts.
 
     Over the float32 bit patterns ``b`` of ``tau`` (``0 .. INF_BITS``; a
@@ -980,7 +995,8 @@ def _exact_from_guess(tables, rows, budgets, guess, alt, tests, orthographic, co
     bracket. Each round is one batched call of exact counts over the cameras
     still open. With ``along_path`` (``bits [n] -> counts int64 [n, 3]``, all
     the cameras as a path at those patterns) the first round's two sets of
-    counts come from it instead.
+    counts come from it instead, and with ``probes`` (``cams [m], bits [m]
+    -> counts int64 [m, 3]``) the later rounds' counts.
     """
     n = len(budgets)
     lo = np.full(n, -1, np.int64)
@@ -1004,6 +1020,8 @@ def _exact_from_guess(tables, rows, budgets, guess, alt, tests, orthographic, co
                 at[c] = b
                 counted.append(along_path(at)[c] if len(c) else np.zeros((0, 3), np.int64))
             counted = np.concatenate(counted)
+        elif len(cams) and probes is not None:
+            counted = probes(cams, bits)
         elif len(cams):
             counted = np.stack(_counts_at(tables, rows, cams, bits, tests, orthographic, counts_of), 1)
         if len(cams):

@@ -278,9 +278,9 @@ def test_word_guessed_paths_equal_faces_for_budget_per_frame(built, kind):
 @pytest.mark.parametrize("kind", ["orbit", "fly"])
 def test_word_guesses_equal_one_camera_guesses(built, kind):
     """A word's frames traversed together at their own tolerances guess what
-    each frame's own traversal at that tolerance guesses; a frame whose
-    answers lie below its tolerance gets -1 where its own traversal would
-    have to go lower."""
+    each frame's own traversal at that tolerance guesses first (a word has
+    no second guess: its alt is its guess); a frame whose answers lie below
+    its tolerance gets -1 where its own traversal would have to go lower."""
     data = built("bunny.ply")
     pm = pmjax.ProgressiveMesh.from_data(data)
     cams = _paths(data, 48, seed=9)[kind]
@@ -297,8 +297,30 @@ def test_word_guesses_equal_one_camera_guesses(built, kind):
     alone = _refine._guesses(d, counts_of, host, frames, start, budgets, ALL_TESTS, 64)
     left = (words[0] == -1).all(axis=1)
     assert left[frames % 3 == 0].any() and not left[frames % 3 != 0].any()
-    for w, a in zip(words, alone):
-        np.testing.assert_array_equal(w[~left], a[~left])
+    np.testing.assert_array_equal(words[0][~left], alone[0][~left])
+    np.testing.assert_array_equal(words[1], words[0])
+
+
+@pytest.mark.parametrize("kind", ["orbit", "fly"])
+def test_path_guesses_are_mostly_the_answers(built, monkeypatch, kind):
+    """The guesses a path's answers are confirmed from (sampled frames alone,
+    the others word by word) are the exact answers for most frames and
+    budgets, and every answer is faces_for_budget's."""
+    data = built("bunny.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    K = 48
+    cams = _paths(data, K, seed=10)[kind]
+    budgets = np.tile(np.array(_budgets(pm, cams)[3:5]), (K, 1))
+    seen = []
+    original = _refine._exact_from_guess
+    monkeypatch.setattr(_refine, "_exact_from_guess", lambda *a, **k: seen.append(a[3].copy()) or original(*a, **k))
+    got = pmjax.faces_for_budget_batch(pm, cams, budgets, path=True, method="front")
+    _assert_one_at_a_time(pm, cams, budgets, got)
+    # The guesses come budget by budget, each the path's frames in order.
+    guess = seen[0].reshape(budgets.shape[1], K).T.astype(np.int64)
+    exact = np.where(np.isinf(got["tau"]), _refine._INF_BITS + 1, got["tau"].view(np.int32)).astype(np.int64)
+    in_words = np.arange(K) % _refine.PATH_SAMPLE != 0
+    assert (guess[in_words] == exact[in_words]).mean() >= 0.75, (guess - exact)[in_words]
 
 
 def test_frames_left_to_their_own_traversal_still_get_the_exact_answers(built, monkeypatch):

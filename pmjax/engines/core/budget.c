@@ -431,27 +431,69 @@ static int64_t eps_pass(const PmxScratch *s, Budget *b, int64_t n, float lo, int
     return t.count;
 }
 
-/* The answer for `budget` from an eps_pass at lo (count values, the count
- * `total` at lo): its bit pattern, or -2 when the count at lo is within the
- * budget. The bucket where the faces kept by the pcols above a value pass
- * the budget; the values in it then give the answer: just above the
- * largest eps whose pcols, with those above, keep too many faces. */
-static int64_t answer_of(Budget *b, int64_t count, float lo, int64_t total, int64_t budget, int64_t base_faces)
+/* Budgets whose answers one scan of the values finds (a group's buckets
+ * compared with each value's at once). */
+#define GROUP 8
+
+/* The answers for the B budgets from an eps_pass at lo (count values, the
+ * count `total` at lo) into out: each budget's bit pattern, or -2 when the
+ * count at lo is within it (budgets below base_faces are left alone). Per
+ * budget, the bucket where the faces kept by the pcols above a value pass
+ * the budget; one scan of the values per GROUP budgets gathers those
+ * buckets' values (b->sel), and each budget's answer comes from its
+ * bucket's: just above the largest eps whose pcols, with those above, keep
+ * too many faces. */
+static void answers_of(Budget *b, int64_t count, float lo, int64_t total, const int32_t *budgets, int64_t B,
+                       int64_t base_faces, int64_t *out)
 {
-    if (total <= budget)
-        return -2;
     const int32_t lo_bits = bits_of(lo);
-    int64_t over = budget - base_faces, q = BUCKETS - 1;
-    while (b->bucket[q] <= over) {
-        over -= b->bucket[q];
-        q--;
+    for (int64_t j0 = 0; j0 < B; j0 += GROUP) {
+        /* The group's budgets that the count at lo exceeds: their buckets
+         * and the weight left to pass inside them. */
+        int64_t at[GROUP], over_in[GROUP], q_of[GROUP];
+        int n_at = 0;
+        for (int64_t j = j0; j < B && j < j0 + GROUP; j++) {
+            if (budgets[j] < base_faces)
+                continue;
+            if (total <= budgets[j]) {
+                out[j] = -2;
+                continue;
+            }
+            int64_t over = budgets[j] - base_faces, q = BUCKETS - 1;
+            while (b->bucket[q] <= over) {
+                over -= b->bucket[q];
+                q--;
+            }
+            at[n_at] = j, over_in[n_at] = over, q_of[n_at++] = q;
+        }
+        if (!n_at)
+            continue;
+        /* The values in any of those buckets. */
+        int64_t m = 0;
+        for (int64_t i = 0; i < count; i++) {
+            const int64_t q = bucket_of(b->val[i], lo_bits);
+            int hit = 0;
+            for (int t = 0; t < n_at; t++)
+                hit |= q == q_of[t];
+            b->sel[m] = b->val[i], b->sel_wt[m] = b->wt[i];
+            m += hit;
+        }
+        /* Each budget's bucket's values moved to the front, then selected
+         * from (a selection only reorders values of one bucket). */
+        for (int t = 0; t < n_at; t++) {
+            int64_t c = 0;
+            for (int64_t i = 0; i < m; i++)
+                if (bucket_of(b->sel[i], lo_bits) == q_of[t]) {
+                    const float v = b->sel[i];
+                    const int32_t w = b->sel_wt[i];
+                    b->sel[i] = b->sel[c], b->sel_wt[i] = b->sel_wt[c];
+                    b->sel[c] = v, b->sel_wt[c] = w;
+                    c++;
+                }
+            const float v = crossing(b->sel, b->sel_wt, c, over_in[t]);
+            out[at[t]] = v == INFINITY ? (int64_t)INF_BITS + 1 : (int64_t)bits_of(v) + 1;
+        }
     }
-    int64_t m = 0;
-    for (int64_t j = 0; j < count; j++)
-        if (bucket_of(b->val[j], lo_bits) == q)
-            b->sel[m] = b->val[j], b->sel_wt[m] = b->wt[j], m++;
-    const float v = crossing(b->sel, b->sel_wt, m, over);
-    return v == INFINITY ? (int64_t)INF_BITS + 1 : (int64_t)bits_of(v) + 1;
 }
 
 /* The tolerance at which a count that is `a` (faces above the base, plus
@@ -491,20 +533,19 @@ static int answers_from(PmxScratch *s, Budget *b, int64_t n, int64_t m, int64_t 
         }
     }
     /* Each budget's answer from the same eps; those met at lo: 0. */
+    answers_of(b, count, lo, total, budgets, B, base_faces, guess);
     for (int64_t j = 0; j < B; j++)
-        if (budgets[j] >= base_faces) {
-            const int64_t g = answer_of(b, count, lo, total, budgets[j], base_faces);
-            guess[j] = g == -2 ? 0 : g;
-            alt[j] = g == -2 ? 0 : g;
-        }
+        if (budgets[j] >= base_faces)
+            guess[j] = alt[j] = guess[j] == -2 ? 0 : guess[j];
     if (m) {
+        /* The second guesses (alt holds the first until replaced; a budget
+         * met at lo keeps 0: the count with collapses is no larger). */
         int64_t total_alt = 0, unused = 0;
         count = eps_pass(s, b, n, lo, base_faces, 1, &total_alt, &unused);
+        answers_of(b, count, lo, total_alt, budgets, B, base_faces, alt);
         for (int64_t j = 0; j < B; j++)
-            if (budgets[j] >= base_faces && guess[j] != 0) {
-                const int64_t g_alt = answer_of(b, count, lo, total_alt, budgets[j], base_faces);
-                alt[j] = g_alt == -2 ? guess[j] : g_alt;
-            }
+            if (budgets[j] >= base_faces)
+                alt[j] = guess[j] == 0 || alt[j] == -2 ? guess[j] : alt[j];
     }
     return 1;
 }
@@ -657,15 +698,17 @@ typedef struct {
 } Batch;
 
 /* A thread's working memory: its scratch (with a word's frame masks where
- * `words`), the Budget arrays, the unsure frames of a word's slots and the
- * own parts of eps of the frames with one (own_room, frame by frame, where
- * `words`), and one camera's guesses (g, alt: B each); 0 when out of memory
- * (what was taken is given back by budget_give). */
+ * `words`), the Budget arrays, a word's eps (lanes_room) and every frame's
+ * tally of it (where `words`: lane_bucket, and
+ * lane_val, lane_wt with room for lane_room values per frame, grown with
+ * the words' slots), and one camera's guesses (g, alt: B each); 0 when out
+ * of memory (what was taken is given back by budget_give). */
 typedef struct {
     PmxScratch *s;
     Budget b;
-    float *eps_room, *lanes_room, *own_room;
-    Lanes *unsure_at;
+    float *eps_room, *lanes_room, *lane_val;
+    int32_t *lane_wt;
+    int64_t *lane_bucket, lane_room;
     int64_t *g, *alt;
 } Work;
 
@@ -678,9 +721,9 @@ static int budget_take(Work *k, const PmxHierarchy *h, int64_t B, int words)
                     malloc(sizeof(float) * (size_t)room), malloc(sizeof(float) * (size_t)room),
                     malloc(sizeof(int32_t) * (size_t)room), malloc(sizeof(int32_t) * (size_t)room),
                     malloc(sizeof(int64_t) * (BUCKETS + SPREAD))};
-    k->unsure_at = words ? malloc(sizeof(Lanes) * (size_t)room) : NULL;
     k->lanes_room = words ? malloc(sizeof(float) * FRAMES * (size_t)(room + 1)) : NULL;
-    k->own_room = words ? malloc(sizeof(float) * FRAMES * (size_t)room) : NULL;
+    k->lane_bucket = words ? malloc(sizeof(int64_t) * FRAMES * (BUCKETS + SPREAD)) : NULL;
+    k->lane_val = NULL, k->lane_wt = NULL, k->lane_room = 0;
     if (k->lanes_room)
         for (int l = 0; l < FRAMES; l++)
             k->lanes_room[l] = -INFINITY; /* a child not visited */
@@ -690,7 +733,7 @@ static int budget_take(Work *k, const PmxHierarchy *h, int64_t B, int words)
         k->eps_room[0] = -INFINITY; /* eps[-1]: a child not visited */
     const Budget *b = &k->b;
     return k->s && scratch_slots(k->s) &&
-           (!words || (scratch_words(k->s) && k->unsure_at && k->lanes_room && k->own_room)) &&
+           (!words || (scratch_words(k->s) && k->lanes_room && k->lane_bucket)) &&
            b->eps && b->own &&
            b->val && b->sel && b->wt && b->sel_wt && b->bucket && k->g;
 }
@@ -698,7 +741,8 @@ static int budget_take(Work *k, const PmxHierarchy *h, int64_t B, int words)
 static void budget_give(Work *k)
 {
     free(k->eps_room), free(k->b.own), free(k->b.val), free(k->b.sel), free(k->b.wt), free(k->b.sel_wt);
-    free(k->b.bucket), free(k->unsure_at), free(k->lanes_room), free(k->own_room), free(k->g);
+    free(k->b.bucket), free(k->lanes_room), free(k->g);
+    free(k->lane_bucket), free(k->lane_val), free(k->lane_wt);
     if (k->s)
         pmx_scratch_give(k->s);
 }
@@ -841,8 +885,7 @@ static void lanes_flush(const PmxHierarchy *h, const int32_t *pos, const int64_t
  * of lanes_up): -inf where the frame ran the slot or its own decision is a
  * sure collapse, else the larger of the own tolerance under the frame's
  * view and the frame's lo (a "keep" at lo puts the switch at lo or above;
- * an unsure decision is read so too: the second guess of a frame with one
- * reads it as a collapse). A slot that some frame needs takes all its
+ * an unsure decision is read so too). A slot that some frame needs takes all its
  * frames at once (the frames that do not need it computed and dropped, so
  * that a slot's row is read once and no list of pairs is kept),
  * SLOTS_PER_BLOCK slots a block. */
@@ -875,6 +918,63 @@ static void lanes_own(const PmxHierarchy *h, const PmxScratch *s, int64_t n, con
         lanes_flush(h, pos, slot, need, k, w, ortho, screen, own, lo, eps);
 }
 
+/* Room for n values per frame in k's lane tallies; 0 when out of memory. */
+static int lane_room(Work *k, int64_t n)
+{
+    if (n <= k->lane_room)
+        return 1;
+    free(k->lane_val), free(k->lane_wt);
+    k->lane_room = n + n / 2;
+    k->lane_val = malloc(sizeof(float) * FRAMES * (size_t)k->lane_room);
+    k->lane_wt = malloc(sizeof(int32_t) * FRAMES * (size_t)k->lane_room);
+    if (k->lane_val && k->lane_wt)
+        return 1;
+    k->lane_room = 0;
+    return 0;
+}
+
+/* The tallies of the frames in `frames` from a word's folded eps (n slots,
+ * layout of lanes_up; kills kill[i]) at their lo, in one pass over the
+ * slots (each slot's frames read together): frame l's values >= lo[l] with
+ * their kills from k's lane_val, lane_wt + l lane_room (t[l].count of
+ * them), their kills per bucket (lane_bucket + l (BUCKETS + SPREAD)), the
+ * counts at lo and at twice lo: what tally gives frame by frame. */
+static void lanes_tally(Work *k, const float *eps, const int32_t *kill, int64_t n, const float *lo, Lanes frames,
+                        int64_t base_faces, Tally *t)
+{
+    int32_t lo_bits[FRAMES];
+    int64_t count[FRAMES], total[FRAMES], total2[FRAMES];
+    float twice[FRAMES];
+    for (int l = 0; l < FRAMES; l++) {
+        lo_bits[l] = bits_of(lo[l]), twice[l] = 2 * lo[l];
+        count[l] = 0, total[l] = total2[l] = base_faces;
+    }
+    memset(k->lane_bucket, 0, sizeof(int64_t) * FRAMES * (BUCKETS + SPREAD));
+    for (int64_t i = 0; i < n; i++) {
+        const float *e = eps + i * FRAMES;
+        const int32_t w = kill[i];
+        /* The frames whose eps reach lo (and twice lo): their counts. */
+        uint32_t in = 0;
+        for (int l = 0; l < FRAMES; l++) {
+            in |= (uint32_t)(e[l] >= lo[l]) << l;
+            total2[l] += e[l] >= twice[l] ? w : 0;
+        }
+        in &= frames;
+        /* Each of them in turn (about half a slot's frames): its value and
+         * its bucket. */
+        while (in) {
+            const int l = __builtin_ctz(in);
+            in &= in - 1;
+            const int64_t c = count[l]++, at = (int64_t)l * k->lane_room + c;
+            k->lane_val[at] = e[l], k->lane_wt[at] = w;
+            k->lane_bucket[(int64_t)l * (BUCKETS + SPREAD) + bucket_of(e[l], lo_bits[l])] += w;
+            total[l] += w;
+        }
+    }
+    for (int l = 0; l < FRAMES; l++)
+        t[l] = (Tally){count[l], total[l], total2[l], 0};
+}
+
 /* A word's frames (views, one pixel units) as the own tolerances read them. */
 static void word_views(const float *views, const float *units, WordViews *w)
 {
@@ -892,11 +992,13 @@ static void word_views(const float *views, const float *units, WordViews *w)
  * own tolerance lo (its row's; most pcols decided for all the frames at
  * once under the fat camera, words.c), every frame's eps folded bottom-up
  * at once (lanes_own, lanes_up), then per frame the tally of its eps and
- * the answers from it as for one camera (answers_from); a frame with an
- * unsure decision reads it as a "keep" at lo for its first guess, and for
- * its second folds its own lane again (kept from before the fold) with its
- * unsure decisions as collapses. A frame whose largest budget's answer
- * lies below its lo gets -1 (a guess left to its own traversal). */
+ * the answers from it as for one camera (answers_from). An unsure
+ * decision is read as a "keep" at lo, and a frame has one guess (its alt
+ * the same): the second guess of one camera, with its unsure decisions as
+ * collapses, would fold the frame's lane again for the few guesses it
+ * mends, which the exact counts mend along the path for less. A frame
+ * whose largest budget's answer lies below its lo gets -1 (a guess left to
+ * its own traversal). */
 static void words_work(void *arg)
 {
     Batch *bt = arg;
@@ -912,7 +1014,6 @@ static void words_work(void *arg)
     const OwnSlots own = own_slots();
     const int ortho = (bt->flags & PMX_ORTHOGRAPHIC) != 0;
     float *eps = k.lanes_room + FRAMES; /* row -1: -inf */
-    float *own_part = k.own_room;
     for (int64_t w; (w = __atomic_fetch_add(&bt->cursor, 1, __ATOMIC_RELAXED)) < bt->K / FRAMES;) {
         const float *cameras = bt->cameras + w * FRAMES * PMX_CAMERA;
         const float *units = bt->units + w * FRAMES;
@@ -934,27 +1035,24 @@ static void words_work(void *arg)
         PmxCounts counts[FRAMES];
         kern->resolve_word(h->kills, h->order, n, s->ids, s->kid, s->visit, s->whole, s->yes, s->ran_frames, NULL,
                            counts);
-        /* Each slot's unsure frames and faces killed; every frame's eps. */
-        memset(k.unsure_at, 0, sizeof(Lanes) * (size_t)n);
-        Lanes unsure_frames = 0;
-        for (int64_t q = 0; q < m; q++)
-            k.unsure_at[s->unsure[q]] |= s->unsure_lanes[q], unsure_frames |= s->unsure_lanes[q];
+        /* Each slot's faces killed; every frame's eps. */
         for (int64_t i = 0; i < n; i++)
             s->kill[i] = h->kills[s->ids[i]];
         WordViews wv;
         word_views(views, units, &wv);
         lanes_own(h, s, n, &wv, lo, bt->flags, own, eps);
-        /* The own parts of the frames with unsure decisions kept, frame by
-         * frame (their second guesses fold them again). */
-        int64_t kept_at[FRAMES] = {0};
-        int64_t r = 0;
-        for (int l = 0; l < FRAMES; l++)
-            if ((unsure_frames >> l) & 1) {
-                kept_at[l] = r++ * n;
-                for (int64_t i = 0; i < n; i++)
-                    own_part[kept_at[l] + i] = eps[i * FRAMES + l];
-            }
         up(eps, n, s->kid, s->ran_frames);
+        /* Every frame's tally (of the frames with a budget to meet). */
+        Lanes asked = 0;
+        for (int l = 0; l < FRAMES; l++)
+            asked |= (Lanes)((largest_budget(bt->budgets + (w * FRAMES + l) * B, B, bt->base_faces, k.g, k.alt) >= 0)
+                             << l);
+        if (!lane_room(&k, n)) {
+            __atomic_store_n(&bt->status, PMX_NO_MEMORY, __ATOMIC_RELAXED);
+            break;
+        }
+        Tally tallies[FRAMES];
+        lanes_tally(&k, eps, s->kill, n, lo, asked, bt->base_faces, tallies);
         for (int l = 0; l < FRAMES; l++) {
             const int64_t c = w * FRAMES + l;
             const int32_t *budgets = bt->budgets + c * B;
@@ -962,26 +1060,12 @@ static void words_work(void *arg)
             int found = 1;
             float next = 0;
             if (top >= 0) {
-                /* The frame's tally from its lane of eps. */
-                const int32_t lo_bits = bits_of(lo[l]);
-                Tally t = tally_start(&k.b, bt->base_faces);
-                for (int64_t i = 0; i < n; i++)
-                    tally(&k.b, &t, i, eps[i * FRAMES + l], s->kill[i], lo[l], lo_bits);
-                tally_end(&k.b, &t);
-                /* A frame with unsure decisions: its slots as its own
-                 * traversal leaves them (a slot it did not visit, or whose
-                 * bound decided it, ran) and their own parts, for the
-                 * second guess's eps (unsure decisions as collapses). */
-                int64_t m_l = 0;
-                if ((unsure_frames >> l) & 1)
-                    for (int64_t i = 0; i < n; i++) {
-                        const int yes = (s->yes[i] >> l) & 1, unsure = (k.unsure_at[i] >> l) & 1;
-                        s->ran[i] = (uint8_t)((s->ran_frames[i] >> l) & 1);
-                        s->state[i] = (uint8_t)(yes ? YES : unsure ? UNSURE : NO);
-                        k.b.own[i] = own_part[kept_at[l] + i];
-                        m_l += unsure;
-                    }
-                found = answers_from(s, &k.b, n, m_l, t.count, t.total, t.total2, counts[l].kept, lo[l], budgets, B,
+                /* The frame's tally: its lane's. */
+                const Tally t = tallies[l];
+                Budget lane = k.b;
+                lane.val = k.lane_val + l * k.lane_room, lane.wt = k.lane_wt + l * k.lane_room;
+                lane.bucket = k.lane_bucket + l * (BUCKETS + SPREAD);
+                found = answers_from(s, &lane, n, 0, t.count, t.total, t.total2, counts[l].kept, lo[l], budgets, B,
                                      top, bt->base_faces, -1, &next, k.g, k.alt);
             }
             if (!found)
