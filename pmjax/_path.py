@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import os
 import time
 from typing import Iterator, NamedTuple
 
@@ -176,8 +177,8 @@ def _chunks(pm, host, taus, tests, path_length, want_front):
 # -- the C core's words ------------------------------------------------------------------
 
 FRAMES = _core.FRAMES
-# Words per call when refine_path streams a path (each word's lists are held
-# until its frames are read; the next block runs meanwhile).
+# Words per call when refine_path streams a path (each block's lists are
+# held until its frames are read).
 WORDS_STREAMED = 4
 
 
@@ -279,33 +280,66 @@ def _frame_refinement(fields: dict) -> Refinement:
     return r
 
 
+def _cpus() -> int:
+    """The CPUs this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def _word_blocks(pm, host, taus, tests, path_length):
+    """The word traversal of a path with lists, a block of words per call.
+
+    With one CPU the core is called from Python directly, each block when
+    it is reached (:func:`pmjax.engines._core.refine_words_eager`: no XLA
+    program around the traversal; the float32 predicate in XLA only for a
+    block whose words left unsure pairs): nothing could run meanwhile, and
+    a thread computing ahead would wait for the GIL between its steps. With
+    more, each block is an XLA program dispatched before the frames of the
+    last are read, so that it runs meanwhile on XLA's threads. Same results.
+
+    Returns:
+        ``(order, real, blocks)``: the frames in word order, which of them
+        are real (not a repeat), and an iterator of ``(first word, words,
+        counts, (pcols, ran, positions), overflow)`` per block, NumPy arrays.
+    """
+    tables, one_tables, order, real, spans, rows = _core_word_plan(pm, host, taus, path_length, WORDS_STREAMED)
+    rows_of = lambda w0, n: rows[order[w0 * FRAMES:(w0 + n) * FRAMES]]  # noqa: E731
+
+    def eager():
+        d = derived(pm)
+        host_tables = d.memo("core_words_host", lambda: tuple(np.asarray(a) for a in (tables.rows, tables.kills,
+                                                                                      tables.order)))
+        for w0, n in spans:
+            counts, _, lists, overflow = _core.refine_words_eager(tables, host_tables, rows_of(w0, n), tests,
+                                                                  host.orthographic, RECORD_ROOM)
+            yield w0, n, counts, lists, overflow
+
+    def dispatched():
+        call = lambda w0, n: _core_words(tables, one_tables, rows_of(w0, n), tests,  # noqa: E731
+                                         host.orthographic, True, RECORD_ROOM)
+        running = call(*spans[0]) if spans else None
+        for i, (w0, n) in enumerate(spans):
+            counts, _, lists, overflow = running
+            # Dispatched before this block's frames are read: it runs meanwhile.
+            running = call(*spans[i + 1]) if i + 1 < len(spans) else None
+            yield w0, n, np.asarray(counts), tuple(np.asarray(a) for a in lists), np.asarray(overflow)
+
+    return order, real, eager() if _cpus() == 1 else dispatched()
+
+
 def _core_path_frames(pm, host, taus, tests, path_length) -> Iterator[tuple[Refinement, tuple | None]]:
     """The frames of a path through the C core's words with their lists, a
-    few words per call, the next call running while the frames of the last
-    are read; the frames of a word whose unsure records did not fit are
-    refined alone.
+    few words per call (:func:`_word_blocks`); the frames of a word whose
+    unsure records did not fit are refined alone.
 
     Yields:
         ``(refinement, frame)``: ``frame`` the lists as a :class:`MeshStream`
         steps to them (``(positions, ran, bit, slots, key)``, the key naming
         the word's lists), ``None`` for a frame refined alone.
     """
-    tables, one_tables, order, real, spans, rows = _core_word_plan(pm, host, taus, path_length, WORDS_STREAMED)
+    order, real, blocks = _word_blocks(pm, host, taus, tests, path_length)
     counts_of = _Counts.of(pm)
-
-    def call(span):
-        w0, n = span
-        return span, _core_words(tables, one_tables, rows[order[w0 * FRAMES:(w0 + n) * FRAMES]], tests,
-                                 host.orthographic, True, RECORD_ROOM)
-
-    running = call(spans[0]) if spans else None
     real_lanes = real.tolist()  # Python bools: read once per frame
-    for i in range(len(spans)):
-        (w0, n), (counts_device, _, (pcols, ran, positions), overflow) = running
-        # Dispatched before this block's frames are read: it runs meanwhile.
-        running = call(spans[i + 1]) if i + 1 < len(spans) else None
-        counts, overflow = np.asarray(counts_device), np.asarray(overflow)
-        pcols_host, ran_host, positions_host = np.asarray(pcols), np.asarray(ran), np.asarray(positions)
+    for w0, n, counts, (pcols, ran, positions), overflow in blocks:
         faces, vertices, executed = counts_of(counts[:, 1], counts[:, 2], np)
         # Each frame's counts and item in the block's counts as lists of
         # NumPy scalars (one pass each; a frame then reads them by index).
@@ -320,7 +354,7 @@ def _core_path_frames(pm, host, taus, tests, path_length) -> Iterator[tuple[Refi
                         yield refine(pm, jax.tree.map(lambda a: a[order[lane]], host), taus[order[lane]], tests), None
                 continue
             m = int(counts[w * FRAMES, 0])  # the word's slots (every frame lists them)
-            visited, word_ran, at = pcols_host[w, :m], ran_host[w], positions_host[w]
+            visited, word_ran, at = pcols[w, :m], ran[w], positions[w]
             bits = word_ran[:m]
             # Every frame's executed bits at once, one row per frame.
             executed_bits = (bits & _LANE_MASKS) != 0
@@ -332,7 +366,7 @@ def _core_path_frames(pm, host, taus, tests, path_length) -> Iterator[tuple[Refi
                 yield _frame_refinement({
                     "pm": pm, "visited": visited, "visited_executed": executed_bits[j], "dense": None,
                     "n_faces": faces[k], "n_vertices": vertices[k], "n_executed": executed[k],
-                    "front_positions": positions, "core_ran": ran, "core_counts": counts_device, "core_item": items[k],
+                    "front_positions": positions, "core_ran": ran, "core_counts": counts, "core_item": items[k],
                     "n_slots": slots}), (at, word_ran, j, m, key)
 
 

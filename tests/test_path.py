@@ -185,23 +185,32 @@ needs_core = pytest.mark.core
 
 
 @needs_core
-def test_long_path_streams_word_by_word(built, monkeypatch):
+@pytest.mark.parametrize("cpus", [1, 2])
+def test_long_path_streams_word_by_word(built, monkeypatch, cpus):
     """With the C core, refine_path's frames are computed a few words of 16
-    frames at a time, one block ahead of the consumer; path_counts takes
+    frames at a time: with one CPU eagerly as the consumer reaches them,
+    with more one block ahead of the consumer (in XLA); path_counts takes
     blocks of words, whole ones and then the rest in powers of two."""
     data, pm = model(built, "cow.ply")
     cams = pmjax.standard_orbit(originals(data), 200)
+    monkeypatch.setattr(_path, "_cpus", lambda: cpus)
     sizes = []
-    real = _path._core_words
+    eager, real = engines._core.refine_words_eager, _path._core_words
+    monkeypatch.setattr(engines._core, "refine_words_eager", lambda tables, host, rows, *a: sizes.append(len(rows)) or
+                        eager(tables, host, rows, *a))
     monkeypatch.setattr(_path, "_core_words", lambda tables, one, rows, *a: sizes.append(len(rows)) or
                         real(tables, one, rows, *a))
     frames = pmjax.refine_path(pm, cams, 1.0)
     first = next(frames)
     block = 16 * _path.WORDS_STREAMED
-    assert int(first.n_faces) > 0 and sizes == [block, block]  # this block and the next, not the path
+    ahead = 0 if cpus == 1 else 1
+    assert int(first.n_faces) > 0 and sizes == [block] * (1 + ahead)  # this block (and the next), not the path
     for _ in range(block):
         next(frames)
-    assert sizes == [block] * 3
+    assert sizes == [block] * (2 + ahead)
+    rest = list(frames)
+    assert [int(r.n_faces) for r in rest] == [int(pmjax.refine(pm, index_camera(cams, i), 1.0).n_faces)
+                                              for i in range(block + 1, 200)]
     sizes.clear()
     monkeypatch.setattr(_path, "WORDS_PER_CALL", 4)
     counts = pmjax.path_counts(pm, cams, 1.0)
@@ -242,6 +251,45 @@ def test_path_at_a_float_tie_decides_the_unsure_pairs(built, monkeypatch, room):
             if i % 8 == 0:
                 assert_frame_equal(frame, cam if i < 40 else index_camera(orbit, i - 40), tau, pm, i, full=i == 40)
                 assert all(np.array_equal(a, b) for a, b in zip(frame.mesh(), r.mesh())), i
+
+
+@needs_core
+def test_eager_words_equal_the_xla_target(built, monkeypatch):
+    """The words of a path called eagerly from Python (refine_path's
+    traversal) give the XLA target's counts, lists, fat-camera counts and
+    overflow bit for bit: a random walk with cuts, and a word holding a
+    pcol's critical tolerance (a float tie: its unsure pairs are decided by
+    the float32 predicate in XLA and applied); a camera batch that is not
+    whole words is refused."""
+    data, pm = model(built, "bunny.ply")
+    d = engines.derived(pm)
+    host = tuple(np.asarray(a) for a in (d.core_words.rows, d.core_words.kills, d.core_words.order))
+    orbit = pmjax.standard_orbit(originals(data), 8)
+    cam = index_camera(orbit, 1)
+    t = np.asarray(pmjax.critical_tau(pm.attributes, cam))
+    tie = t[np.flatnonzero(np.isfinite(t) & (t > 0.5) & (t < 4))[0]]
+    walked = walk(data, 32, seed=7, cuts=(5, 20))
+    cases = {"walk": (walked, np.full(32, 1.0, np.float32)),
+             "tie": (stack_cameras([cam] * 16), np.full(16, tie, np.float32))}
+    answered = []
+    real = engines._core._answered_words
+    monkeypatch.setattr(engines._core, "_answered_words", lambda *a, **k: answered.append(1) or real(*a, **k))
+    for label, (cams, taus) in cases.items():
+        rows = engines._core.camera_rows(cams, taus, d.exponent)
+        want = _path._core_words(d.core_words, d.core, rows, pmjax.ALL_TESTS, False, True)
+        got = engines._core.refine_words_eager(d.core_words, host, np.asarray(rows), pmjax.ALL_TESTS, False)
+        counts, at_once, overflow = (np.asarray(want[i]) for i in (0, 1, 3))
+        lists = want[2]
+        assert np.array_equal(got[0], counts) and np.array_equal(got[1], at_once), label
+        assert np.array_equal(got[3], overflow) and not overflow.any(), label
+        for w in range(len(overflow)):
+            m = int(counts[w * 16, 0])
+            for a, b in zip(got[2], lists):
+                assert np.array_equal(a[w, :m], np.asarray(b)[w, :m]), (label, w)
+        assert len(answered) == (label == "tie"), label
+    with pytest.raises(ValueError, match="cameras must have shape"):
+        engines._core.refine_words_eager(d.core_words, host, np.zeros((15, engines._core.CAMERA), np.float32),
+                                         pmjax.ALL_TESTS, False)
 
 
 @pytest.mark.slow

@@ -4,8 +4,9 @@
  * face drawn (its three vertex slots), a vertex slot per front vertex (its
  * id and position). A frame is given by its visited slots and ran bits (the
  * refinement's lists); the pcols whose executed bit differs from the last
- * frame's are found from the two lists, and each is applied as one collapse
- * or one split, so the work follows the change, not the mesh:
+ * frame's are found from the two lists (within a word) or from the new list
+ * against a bit per pcol not executed in the mesh held, and each is applied
+ * as one collapse or one split, so the work follows the change, not the mesh:
  *
  * - a split of p (executed before, not now) hands p's vertex slot to its
  *   first child, gives the second child a new slot, moves the corners lying
@@ -39,16 +40,32 @@ typedef struct {
     int32_t id, slot;
 } IdSlot;
 
+/* A corner of a face slot: its depth-first start and its links in its
+ * vertex's list, side by side (a split or collapse walks the list reading
+ * both). */
+typedef struct {
+    int32_t start, next, prev, unused;
+} Corner;
+
+/* A vertex slot's depth-first interval [lo, hi) of the original vertices
+ * below and its first corner, side by side (a new face's corner reads the
+ * intervals of the vertices around it). */
+typedef struct {
+    int32_t lo, hi, head, unused;
+} VertexLinks;
+
 struct PmxMeshStream {
     PmxStreamTables t;
     /* Face slots: vertex slots per corner (-1 free), face id (-1 free), each
      * corner's depth-first start and its links in its vertex's list. */
-    int32_t *face_vertex, *face_id, *corner_start, *corner_next, *corner_prev, *face_free;
+    int32_t *face_vertex, *face_id, *face_free;
+    Corner *corner;
     uint32_t *face_stamp;
     int64_t face_cap, n_face_slots, n_face_free;
     /* Vertex slots: id (-1 free), position, first corner, corners held, the
      * depth-first interval [lo, hi) of the original vertices below. */
-    int32_t *vertex_id, *vertex_head, *vertex_free, *vertex_lo, *vertex_hi, *vertex_uses, *vertex_rank;
+    int32_t *vertex_id, *vertex_free, *vertex_uses, *vertex_rank;
+    VertexLinks *links;
     float *vertex_position;
     uint32_t *vertex_stamp;
     int64_t vertex_cap, n_vertex_slots, n_vertex_free;
@@ -73,6 +90,9 @@ struct PmxMeshStream {
     int64_t events_key, events_first[FRAMES + 1], events_cap, flipped_cap;
     int64_t checked_key; /* the key of the last lists whose positions were checked */
     int32_t *events, *flipped;
+    /* A bit per position: the pcols not executed in the mesh held (split),
+     * and those of the next frame's lists while its flips are found. */
+    uint64_t *split_bits, *next_split_bits;
     /* For the compacted mesh: a bit per face drawn and per vertex id some
      * face uses (ranks in them are the rows of Refinement.mesh()), and their
      * words' prefix counts. */
@@ -107,9 +127,7 @@ static int grow_faces(PmxMeshStream *s, int64_t need)
     int64_t cap = s->face_cap * 2 > need ? s->face_cap * 2 : need < 256 ? 256 : need;
     const int64_t old = s->face_cap;
     if (!grow((void **)&s->face_vertex, 3 * old, 3 * cap, 4) || !grow((void **)&s->face_id, old, cap, 4) ||
-        !grow((void **)&s->corner_start, 3 * old, 3 * cap, 4) ||
-        !grow((void **)&s->corner_next, 3 * old, 3 * cap, 4) ||
-        !grow((void **)&s->corner_prev, 3 * old, 3 * cap, 4) || !grow((void **)&s->face_free, old, cap, 4) ||
+        !grow((void **)&s->corner, 3 * old, 3 * cap, sizeof(Corner)) || !grow((void **)&s->face_free, old, cap, 4) ||
         !grow((void **)&s->face_stamp, old, cap, 4) || !grow((void **)&s->face_changes, old, cap, 4) ||
         !grow((void **)&s->changed_faces, 3 * old, 3 * cap, 4) ||
         !grow((void **)&s->face_rows[0], old, cap, sizeof(IdSlot)) ||
@@ -126,10 +144,9 @@ static int grow_vertices(PmxMeshStream *s, int64_t need)
         return 1;
     int64_t cap = s->vertex_cap * 2 > need ? s->vertex_cap * 2 : need < 256 ? 256 : need;
     const int64_t old = s->vertex_cap;
-    if (!grow((void **)&s->vertex_id, old, cap, 4) || !grow((void **)&s->vertex_head, old, cap, 4) ||
+    if (!grow((void **)&s->vertex_id, old, cap, 4) || !grow((void **)&s->links, old, cap, sizeof(VertexLinks)) ||
         !grow((void **)&s->vertex_free, old, cap, 4) || !grow((void **)&s->vertex_position, 3 * old, 3 * cap, 4) ||
         !grow((void **)&s->vertex_stamp, old, cap, 4) || !grow((void **)&s->vertex_changes, old, cap, 4) ||
-        !grow((void **)&s->vertex_lo, old, cap, 4) || !grow((void **)&s->vertex_hi, old, cap, 4) ||
         !grow((void **)&s->vertex_uses, old, cap, 4) || !grow((void **)&s->vertex_rank, old, cap, 4) ||
         !grow((void **)&s->changed_ids, old, cap, 4) ||
         !grow((void **)&s->changed_positions, 3 * old, 3 * cap, 4) ||
@@ -158,6 +175,8 @@ PMX_INLINE void touch_vertex(PmxMeshStream *s, int32_t slot)
 }
 
 PMX_INLINE void flip_bit(uint64_t *bits, int64_t i) { bits[i >> 6] ^= (uint64_t)1 << (i & 63); }
+PMX_INLINE void set_bit(uint64_t *bits, int64_t i) { bits[i >> 6] |= (uint64_t)1 << (i & 63); }
+PMX_INLINE void clear_bit(uint64_t *bits, int64_t i) { bits[i >> 6] &= ~((uint64_t)1 << (i & 63)); }
 
 /* A change since the last compaction, logged while its rows are kept: a
  * log of twice the rows (and 1024 more), or no memory for it, stops
@@ -209,25 +228,25 @@ PMX_INLINE void use(PmxMeshStream *s, int32_t v, int32_t delta)
 /* Corner c at the head of vertex slot v's list. */
 PMX_INLINE void link(PmxMeshStream *s, int32_t c, int32_t v)
 {
-    const int32_t head = s->vertex_head[v];
+    const int32_t head = s->links[v].head;
     s->face_vertex[c] = v;
-    s->corner_prev[c] = -1;
-    s->corner_next[c] = head;
+    s->corner[c].prev = -1;
+    s->corner[c].next = head;
     if (head >= 0)
-        s->corner_prev[head] = c;
-    s->vertex_head[v] = c;
+        s->corner[head].prev = c;
+    s->links[v].head = c;
     use(s, v, 1);
 }
 
 PMX_INLINE void unlink(PmxMeshStream *s, int32_t c)
 {
-    const int32_t prev = s->corner_prev[c], next = s->corner_next[c];
+    const int32_t prev = s->corner[c].prev, next = s->corner[c].next;
     if (prev >= 0)
-        s->corner_next[prev] = next;
+        s->corner[prev].next = next;
     else
-        s->vertex_head[s->face_vertex[c]] = next;
+        s->links[s->face_vertex[c]].head = next;
     if (next >= 0)
-        s->corner_prev[next] = prev;
+        s->corner[next].prev = prev;
     use(s, s->face_vertex[c], -1);
 }
 
@@ -241,8 +260,8 @@ PMX_INLINE void set_vertex(PmxMeshStream *s, int32_t slot, int32_t id, const flo
         log_vertex(s, id, slot);
     }
     s->vertex_id[slot] = id;
-    s->vertex_lo[slot] = lo;
-    s->vertex_hi[slot] = hi;
+    s->links[slot].lo = lo;
+    s->links[slot].hi = hi;
     memcpy(s->vertex_position + 3 * slot, position, 3 * sizeof(float));
     touch_vertex(s, slot);
 }
@@ -259,7 +278,7 @@ static int32_t new_vertex(PmxMeshStream *s, int64_t index, int32_t id, const flo
             return -1;
         slot = (int32_t)s->n_vertex_slots++;
     }
-    s->vertex_head[slot] = -1;
+    s->links[slot].head = -1;
     s->vertex_uses[slot] = 0;
     s->slot_at[index] = slot;
     set_vertex(s, slot, id, position, lo, hi);
@@ -270,7 +289,7 @@ static int32_t new_vertex(PmxMeshStream *s, int64_t index, int32_t id, const flo
 static void free_vertex(PmxMeshStream *s, int32_t slot)
 {
     s->vertex_id[slot] = -1;
-    s->vertex_lo[slot] = s->vertex_hi[slot] = 0;
+    s->links[slot].lo = s->links[slot].hi = 0;
     memset(s->vertex_position + 3 * slot, 0, 3 * sizeof(float));
     s->vertex_free[s->n_vertex_free++] = slot;
     touch_vertex(s, slot);
@@ -298,16 +317,16 @@ PMX_INLINE int32_t front_slot(const PmxMeshStream *s, int32_t v)
 PMX_INLINE int32_t corner_slot(const PmxMeshStream *s, int32_t start, int64_t face, int c, int32_t v, int32_t w)
 {
     if (v >= 0) {
-        if (start >= s->vertex_lo[v] && start < s->vertex_hi[v])
+        if (start >= s->links[v].lo && start < s->links[v].hi)
             return v;
-        if (start >= s->vertex_lo[w] && start < s->vertex_hi[w])
+        if (start >= s->links[w].lo && start < s->links[w].hi)
             return w;
         const int32_t around[2] = {v, w};
         for (int k = 0; k < 2; k++)
-            for (int32_t c = s->vertex_head[around[k]]; c >= 0; c = s->corner_next[c]) {
+            for (int32_t c = s->links[around[k]].head; c >= 0; c = s->corner[c].next) {
                 const int32_t *face = s->face_vertex + 3 * (c / 3);
                 for (int j = 0; j < 3; j++) /* -1: a corner of the face being drawn, not linked yet */
-                    if (face[j] >= 0 && start >= s->vertex_lo[face[j]] && start < s->vertex_hi[face[j]])
+                    if (face[j] >= 0 && start >= s->links[face[j]].lo && start < s->links[face[j]].hi)
                         return face[j];
             }
     }
@@ -332,7 +351,7 @@ static PmxStatus add_face(PmxMeshStream *s, const PmxFaceRecord *f, int32_t *at,
         const int32_t u = corner_slot(s, f->start[c], f->face, c, v, w);
         if (u < 0)
             return PMX_BAD_TABLE;
-        s->corner_start[3 * slot + c] = f->start[c];
+        s->corner[3 * slot + c].start = f->start[c];
         link(s, 3 * slot + c, u);
     }
     s->face_id[slot] = f->face;
@@ -379,10 +398,11 @@ static PmxStatus split(PmxMeshStream *s, int32_t at)
     if (v < 0)
         return PMX_BAD_TABLE;
     s->slot_at[at] = -1;
+    set_bit(s->split_bits, at);
     /* The first child keeps the slot; the second gets one. */
     s->slot_at[child_index(s, r, 0)] = v;
     /* The first child's interval ends where the second's starts. */
-    const int32_t end = s->vertex_hi[v];
+    const int32_t end = s->links[v].hi;
     set_vertex(s, v, r->vertex[0], r->position[0], r->start[0], r->start[1]);
     const int32_t w = new_vertex(s, child_index(s, r, 1), r->vertex[1], r->position[1], r->start[1], end);
     if (w < 0)
@@ -390,9 +410,9 @@ static PmxStatus split(PmxMeshStream *s, int32_t at)
     /* The corners in the second child's interval (it follows the first's)
      * move to it; their faces change. */
     const int32_t second = r->start[1];
-    for (int32_t c = s->vertex_head[v], next; c >= 0; c = next) {
-        next = s->corner_next[c];
-        if (s->corner_start[c] >= second) {
+    for (int32_t c = s->links[v].head, next; c >= 0; c = next) {
+        next = s->corner[c].next;
+        if (s->corner[c].start >= second) {
             unlink(s, c);
             link(s, c, w);
             touch_face(s, c / 3);
@@ -424,7 +444,7 @@ static PmxStatus collapse(PmxMeshStream *s, int32_t at)
     /* The second child's corners join the first's list, whose slot becomes
      * the pcol's vertex. */
     int32_t last = -1;
-    for (int32_t c = s->vertex_head[w]; c >= 0; c = s->corner_next[c]) {
+    for (int32_t c = s->links[w].head; c >= 0; c = s->corner[c].next) {
         s->face_vertex[c] = v;
         touch_face(s, c / 3);
         last = c;
@@ -433,19 +453,20 @@ static PmxStatus collapse(PmxMeshStream *s, int32_t at)
         const int32_t moved = s->vertex_uses[w];
         use(s, w, -moved);
         use(s, v, moved);
-        const int32_t head = s->vertex_head[v];
-        s->corner_next[last] = head;
+        const int32_t head = s->links[v].head;
+        s->corner[last].next = head;
         if (head >= 0)
-            s->corner_prev[head] = last;
-        s->vertex_head[v] = s->vertex_head[w];
-        s->vertex_head[w] = -1;
+            s->corner[head].prev = last;
+        s->links[v].head = s->links[w].head;
+        s->links[w].head = -1;
     }
-    const int32_t end = s->vertex_hi[w];
+    const int32_t end = s->links[w].hi;
     free_vertex(s, w);
     s->slot_at[second] = -1;
     s->slot_at[first] = -1;
     s->slot_at[at] = v;
-    set_vertex(s, v, s->t.own_vertex[at], s->t.own_position + 3 * (int64_t)at, s->vertex_lo[v], end);
+    clear_bit(s->split_bits, at);
+    set_vertex(s, v, s->t.own_vertex[at], s->t.own_position + 3 * (int64_t)at, s->links[v].lo, end);
     return PMX_OK;
 }
 
@@ -453,11 +474,11 @@ void pmx_mesh_stream_free(PmxMeshStream *s)
 {
     if (!s)
         return;
-    void *arrays[] = {s->face_vertex, s->face_id, s->corner_start, s->corner_next, s->corner_prev,
-                      s->face_free, s->face_stamp, s->vertex_id, s->vertex_head, s->vertex_free,
-                      s->vertex_lo, s->vertex_hi, s->vertex_uses, s->vertex_rank, s->vertex_position,
+    void *arrays[] = {s->face_vertex, s->face_id, s->corner, s->face_free, s->face_stamp, s->vertex_id,
+                      s->links, s->vertex_free, s->vertex_uses, s->vertex_rank, s->vertex_position,
                       s->vertex_stamp, s->face_changes, s->vertex_changes, s->slot_at, s->kill_slot,
-                      s->collapse, s->split, s->events, s->flipped, s->flipped_bits, s->face_bits,
+                      s->collapse, s->split, s->events, s->flipped, s->flipped_bits, s->split_bits,
+                      s->next_split_bits, s->face_bits,
                       s->used_bits, s->face_prefix, s->used_prefix, s->face_rows[0], s->face_rows[1], s->vertex_rows[0],
                       s->vertex_rows[1], s->face_log, s->vertex_log, s->sorted, s->changed_faces, s->changed_ids,
                       s->changed_positions};
@@ -482,9 +503,12 @@ PmxMeshStream *pmx_mesh_stream_new(const PmxStreamTables *t, PmxStatus *status)
     const size_t face_words = (size_t)t->n_faces / 64 + 1, used_words = (size_t)(V0 + P) / 64 + 1;
     s->face_bits = calloc(face_words, sizeof(uint64_t));
     s->used_bits = calloc(used_words, sizeof(uint64_t));
+    s->split_bits = calloc((size_t)P / 64 + 1, sizeof(uint64_t));
+    s->next_split_bits = calloc((size_t)P / 64 + 1, sizeof(uint64_t));
     s->face_prefix = malloc(face_words * sizeof(int32_t));
     s->used_prefix = malloc(used_words * sizeof(int32_t));
-    if (!s->slot_at || !s->kill_slot || !s->face_bits || !s->used_bits || !s->face_prefix || !s->used_prefix) {
+    if (!s->slot_at || !s->kill_slot || !s->face_bits || !s->used_bits || !s->face_prefix || !s->used_prefix ||
+        !s->split_bits || !s->next_split_bits) {
         pmx_mesh_stream_free(s);
         return NULL;
     }
@@ -626,34 +650,28 @@ static PmxStatus flips(PmxMeshStream *s, const PmxStreamFrame *last, const PmxSt
             }
         }
     } else {
-        /* Other lists: both increase, so one merge of the two finds every
-         * pcol that did not run in one of them and ran in the other (a pcol
-         * a list leaves out ran there: it lies under a decided subtree). */
+        /* Other lists: the next frame's pcols that did not run, as bits
+         * (a pcol its list leaves out ran: it lies under a decided
+         * subtree), against the bits of the mesh held; a position set in
+         * one only flips, and a pass over the words finds them in
+         * increasing position. */
         if (!checked(s, next))
             return PMX_BAD_SIZE;
-        const int64_t n_last = last ? last->n : 0, n_next = next->n;
-        const int32_t *const a = last ? last->positions : NULL, *const b = next->positions;
-        int64_t i = 0, j = 0;
-        /* Without branches: a pcol in both lists flips where its bits
-         * differ; one in a single list where it did not run there. */
-        while (i < n_last && j < n_next) {
-            const int32_t pa = a[i], pb = b[j];
-            const int ra = ran_of(last, i), rb = ran_of(next, j);
-            const int in_a = pa <= pb, in_b = pa >= pb;
-            collapses[nc] = pa;
-            splits[ns] = pb;
-            nc += in_a & (!ra) & (rb | !in_b);
-            ns += in_b & (!rb) & (ra | !in_a);
-            i += in_a;
-            j += in_b;
-        }
-        for (; i < n_last; i++) {
-            collapses[nc] = a[i];
-            nc += !ran_of(last, i);
-        }
-        for (; j < n_next; j++) {
-            splits[ns] = b[j];
-            ns += !ran_of(next, j);
+        const int64_t n_words = s->t.n_pcols / 64 + 1;
+        uint64_t *const held = s->split_bits, *const bits = s->next_split_bits;
+        memset(bits, 0, sizeof(uint64_t) * (size_t)n_words);
+        const int32_t *const b = next->positions;
+        if (next->ran8)
+            for (int64_t j = 0; j < next->n; j++)
+                bits[b[j] >> 6] |= (uint64_t)(next->ran8[j] == 0) << (b[j] & 63);
+        else
+            for (int64_t j = 0; j < next->n; j++)
+                bits[b[j] >> 6] |= (uint64_t)(((next->ran16[j] >> next->frame) & 1) ^ 1) << (b[j] & 63);
+        for (int64_t k = 0; k < n_words; k++) {
+            for (uint64_t d = held[k] & ~bits[k]; d; d &= d - 1)
+                collapses[nc++] = (int32_t)(64 * k + __builtin_ctzll(d));
+            for (uint64_t d = bits[k] & ~held[k]; d; d &= d - 1)
+                splits[ns++] = (int32_t)(64 * k + __builtin_ctzll(d));
         }
     }
     *n_collapses = nc;
