@@ -512,6 +512,59 @@ def test_meshes_of_fine_and_coarse_views_in_turn_equal_the_dense_mesh(built, sim
                     assert a.dtype == b.dtype and np.array_equal(a, b), (i, tau)
 
 
+@pytest.fixture(params=["bitmaps", "sorts", "rule"])
+def mesh_ranks(request):
+    """Each test that takes it runs with every way the core's mesh takes its
+    ranks (a bitmap each, a sort of faces and vertex ids, the ratio's
+    choice): the same mesh from each."""
+    was = engines.mesh_ranks(request.param)
+    assert engines.mesh_ranks() == request.param
+    yield request.param
+    engines.mesh_ranks(was)
+
+
+@pytest.mark.parametrize("name", ["cow.ply", "bunny.ply"])
+def test_meshes_ranked_each_way_equal_the_dense_mesh(built, name, mesh_ranks):
+    """Frames of an orbit and random views, fine to coarse, the base mesh, a
+    view that sees nothing and the full original, eagerly and under jit
+    (padded rows), in turn with the same working memory: each equal to the
+    dense engine's mesh whether faces and vertex ids are ranked in bitmaps or
+    by sorting them."""
+    data = built(name)
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    v0 = data.vertices[: data.n_original_vertices]
+    orbit = pmjax.standard_orbit(v0, 3)
+    c, r = v0.mean(0), np.linalg.norm(np.ptp(v0, 0))
+    away = pmjax.look_at(c + [0, 0, 3 * r], c + [0, 0, 6 * r])
+    cams = [index_camera(orbit, i) for i in range(3)] + [index_camera(views_of(data, 2, seed=4), i)
+                                                         for i in range(2)] + [away]
+    everything = Tests(frustum=False, orientation=False, screen=True)
+    cases = [(i, tau, True) for i in range(len(cams)) for tau in (0.0, 1.0, 16.0, 1e9)] + [(0, 0.0, False)]
+    meshed = jax.jit(lambda cam, tau: pmjax.refine(pm, cam, tau, method="front").mesh())
+    sizes = set()
+    for i, tau, all_tests in cases:
+        tests = pmjax.ALL_TESTS if all_tests else everything
+        want = pmjax.refine(pm, cams[i], tau, tests=tests, method="dense").mesh(pm)
+        got = pmjax.refine(pm, cams[i], tau, tests=tests, method="front").mesh()
+        for a, b in zip(got, want):
+            assert a.dtype == b.dtype and np.array_equal(a, b), (i, tau, all_tests)
+        if all_tests:
+            padded = [np.asarray(a) for a in meshed(cams[i], jnp.float32(tau))]
+            n, m = len(want[0]), len(want[1])
+            assert np.array_equal(padded[0][:n], want[0]) and np.array_equal(padded[1][:m], want[1])
+            assert np.array_equal(padded[2][:n], want[2]) and (padded[1][m:] == -1).all()
+        sizes.add(len(want[1]))
+    assert len(want[1]) == len(data.faces)  # the full original
+    assert min(sizes) < len(data.faces) // 100 and len(sizes) > 4
+
+
+def test_mesh_ranks_names_its_ways():
+    was = engines.mesh_ranks()
+    with pytest.raises(ValueError, match="mesh ranks must be one of"):
+        engines.mesh_ranks("radix")
+    assert engines.mesh_ranks() == was
+
+
 @pytest.mark.parametrize("name", ["cow.ply", "bunny.ply"])
 @pytest.mark.slow
 def test_budget_by_search_equals_the_sort(built, name):

@@ -219,6 +219,27 @@ def test_compacted_mesh_after_frames_not_compacted(built, name):
     assert i == n - 1
 
 
+def test_compacted_meshes_kept_by_the_caller_in_any_order(built):
+    """Frames of a path with cuts and single views of another engine, in a
+    shuffled order, mesh() asked 0, 1 or 2 times after each: every mesh
+    returned is kept, and at the end each still equals its frame's
+    Refinement.mesh() (later updates and compactions, merged or ranked
+    afresh, write into arrays of their own)."""
+    data, pm = model(built, "cow.ply")
+    cams = hand_held(data, 30, seed=41, cuts=(7, 19))
+    frames = list(pmjax.refine_path(pm, cams, 1.0))
+    rng = np.random.default_rng(43)
+    stream, kept = pmjax.MeshStream(pm), []
+    for n, i in enumerate(rng.permutation(len(frames))):
+        r = frames[i] if n % 5 else pmjax.refine(pm, index_camera(cams, int(i)), 1.0, method="dense")
+        stream.update(r)
+        for _ in range(int(rng.integers(0, 3))):
+            kept.append((r, stream.mesh()))
+    assert len({id(r) for r, _ in kept}) > 10
+    for n, (r, got) in enumerate(kept):
+        assert all(np.array_equal(a, b) for a, b in zip(got, r.mesh())), n
+
+
 def test_refine_path_changes_yields_each_frame_with_its_change(built):
     data, pm = model(built, "cow.ply")
     cams = hand_held(data, 36, seed=5, cuts=(17,))

@@ -15,8 +15,8 @@ tables are derived from a mesh's arrays and cached under their contents
 from ._choose import FRONT_BATCH_FROM_PCOLS, FRONT_FROM_PCOLS, METHODS, info, is_traced, select, without_core
 from ._core import built as core_built
 from ._core import enabled as core_enabled
-from ._core import simd, simd_best
+from ._core import mesh_ranks, simd, simd_best
 from ._tables import derived
 
 __all__ = ["FRONT_BATCH_FROM_PCOLS", "FRONT_FROM_PCOLS", "METHODS", "core_built", "core_enabled", "derived", "info",
-           "is_traced", "select", "simd", "simd_best", "without_core"]
+           "is_traced", "mesh_ranks", "select", "simd", "simd_best", "without_core"]

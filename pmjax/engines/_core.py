@@ -56,6 +56,9 @@ else:
 ROW, VIEW, CAMERA, FRAMES, FAT, NODE, SPARE = 16, 22, 19, 16, 29, 12, 16
 FRUSTUM, ORIENTATION, SCREEN, ORTHOGRAPHIC = 1, 2, 4, 8
 SIMD_LEVELS = ("plain", "avx2", "avx512")
+# How the core's mesh takes its ranks: by the ratio of items to bitmap words,
+# from bitmaps always, from sorts always.
+MESH_RANKS = ("rule", "bitmaps", "sorts")
 # Unsure pairs decided per step of the loop that asks the float32 predicate:
 # for batches, and for one camera or a few words of a path called eagerly,
 # whose unsure decisions are few (a bigger step makes XLA's cost estimate of
@@ -111,6 +114,19 @@ def simd(level: str | None = None) -> str:
     if _pmx is None:
         return "plain"
     return SIMD_LEVELS[_pmx.simd(-1 if level is None else SIMD_LEVELS.index(level))]
+
+
+def mesh_ranks(way: str | None = None) -> str:
+    """How the core's ``Refinement.mesh()`` ranks faces, front starts and
+    vertex ids: ``"rule"`` (a bitmap each, or a sort of the items where they
+    are few for the bitmap's words), ``"bitmaps"`` or ``"sorts"`` always.
+    With ``way``, switch and return the previous (for tests: every way gives
+    the same mesh)."""
+    if way is not None and way not in MESH_RANKS:
+        raise ValueError(f"the mesh ranks must be one of {MESH_RANKS}, got {way!r}")
+    if _pmx is None:
+        return "rule"
+    return MESH_RANKS[_pmx.mesh_ranks(-1 if way is None else MESH_RANKS.index(way))]
 
 
 def simd_best() -> str:

@@ -798,6 +798,16 @@ PyObject* Simd(PyObject*, PyObject* args) {
   return PyLong_FromLong(pmx_simd(level));
 }
 
+PyObject* MeshRanks(PyObject*, PyObject* args) {
+  int mode = -1;
+  if (!PyArg_ParseTuple(args, "|i", &mode)) return nullptr;
+  if (mode > 2) {
+    PyErr_Format(PyExc_ValueError, "mesh_ranks: mode %d is not -1, 0, 1 or 2", mode);
+    return nullptr;
+  }
+  return PyLong_FromLong(pmx_mesh_ranks(mode));
+}
+
 PyObject* SimdBest(PyObject*, PyObject*) { return PyLong_FromLong(pmx_simd_best()); }
 
 PyObject* Layout(PyObject*, PyObject*) {
@@ -1343,6 +1353,9 @@ PyMethodDef methods[] = {
     {"simd", Simd, METH_VARARGS,
      "simd(level=-1): the SIMD kernels in use before; level >= 0 switches to the best up to it (0 plain, 1 AVX2, "
      "2 AVX-512)."},
+    {"mesh_ranks", MeshRanks, METH_VARARGS,
+     "mesh_ranks(mode=-1): how front_mesh took its ranks before; mode >= 0 sets it (0 by the ratio of items to "
+     "bitmap words, 1 bitmaps always, 2 sorts always; every way gives the same mesh)."},
     {"simd_best", SimdBest, METH_NOARGS, "The best SIMD kernels this processor has (0 plain, 1 AVX2, 2 AVX-512)."},
     {"layout", Layout, METH_NOARGS, "The core's layout constants (pmx.h)."},
     {"drain", Drain, METH_NOARGS, "Frees the scratch the core keeps between calls."},

@@ -11,6 +11,38 @@
  * holds the corner's position. */
 #include "internal.h"
 
+/* How ranks are taken (pmx_mesh_ranks): 0 by the rule below, 1 bitmaps
+ * always, 2 sorts always. */
+static int ranks_in_use = 0;
+
+int pmx_mesh_ranks(int mode)
+{
+    const int was = __atomic_load_n(&ranks_in_use, __ATOMIC_ACQUIRE);
+    if (mode >= 0 && mode <= 2)
+        __atomic_store_n(&ranks_in_use, mode, __ATOMIC_RELEASE);
+    return was;
+}
+
+/* Whether n items are ranked by sorting them rather than in a bitmap of
+ * that many words. A bitmap costs a pass to count and one to clear over
+ * every word, and a scattered store and load per item in an array that may
+ * not fit the caches; a sort, two or three passes over the items (ids up to
+ * 2^24 or 2^32, digits of SORT_DIGIT_MOST bits) in arrays of their size:
+ * the sort wins once the words outnumber the items RANKS_SORTED times, as
+ * where a model far larger than the caches draws few of its faces. The
+ * front's starts stay in a bitmap either way (below). */
+#ifndef RANKS_SORTED
+#define RANKS_SORTED 4
+#endif
+PMX_INLINE int ranks_sorted(int mode, int64_t n, int64_t words)
+{
+    return mode == 2 || (mode == 0 && n * RANKS_SORTED < words);
+}
+
+/* The sort's digit for n items: the widest (two passes over ids up to
+ * 2^24) once the items outnumber its counts, else bytes. */
+PMX_INLINE int sort_digit(int64_t n) { return n >= ((int64_t)1 << SORT_DIGIT_MOST) ? SORT_DIGIT_MOST : 8; }
+
 /* The refined mesh from the pcols that did not run:
  * drawn faces are the base faces and those pcols' kill lists; each corner's
  * representative is the front vertex whose depth-first interval holds the
@@ -20,7 +52,9 @@
  * an array over all faces or vertices at random. Each bitmap has a summary
  * of its words set (set_marked), so that where few are set its ranks are
  * counted and it is cleared over those words only: a coarse mesh costs what
- * it draws, not the model's size.
+ * it draws, not the model's size. Faces and vertex ids that are few for
+ * their bitmap's words (ranks_sorted) are ranked by sorting them instead:
+ * their ranks then cost what is drawn, not a pass over the model's words.
  *
  * ran (or bit `frame` of ran_frames), positions: whether each of a
  * refinement's n visited slots ran, and their positions, the index of the
@@ -38,7 +72,7 @@
  * zero on entry and on return); start_prefix, face_prefix, vertex_prefix
  * int32 as their bitmaps, start_block as start_sum; front [V0 + 1] (the
  * vertices not kept are written one slot past the front), sorted [V0];
- * drawn [F]; front_index [V0]. */
+ * drawn [F]; front_index [V0]; pairs[2] [max(F, V0 + 1)] (the sorts'). */
 PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran, const uint16_t *ran_frames,
                                      int frame, const int32_t *positions, int64_t n, int64_t n_faces_drawn,
                                      int32_t *faces, int32_t *ids, float *vertex_positions, int64_t id_capacity,
@@ -66,8 +100,10 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
     const int64_t vertex_words = (V0 + n_pcols) / 64 + 1;
     /* The records and kill lists of the pcols that did not run are sparse in
      * arrays far larger than the cache, so each is a miss: requested
-     * MESH_AHEAD pcols early, the misses overlap. */
-    const int64_t MESH_AHEAD = 16;
+     * MESH_AHEAD pcols early, the misses overlap. Where the faces are
+     * sorted (a model large for what it draws), the start bitmap's words
+     * of a face's corners are requested FACE_AHEAD faces early too. */
+    const int64_t MESH_AHEAD = 16, FACE_AHEAD = 8;
     /* Without branches: whether a visited pcol ran is a coin toss to the
      * branch predictor. Every slot is written, the count advances on those
      * that did not run (mark is zero on entry, so a pcol that ran keeps 0). */
@@ -79,9 +115,12 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
         n_not_run += not_ran;
         mark[at] = not_ran;
     }
-    /* The bitmaps' summaries are kept where few bits will be set: the front
-     * is at most two vertices per pcol that did not run and the tops. */
-    const int start_dense = marked_dense(2 * n_not_run + n_tops, start_words);
+    /* Each rank from a bitmap or, where the items are few for its words,
+     * from sorting them (ranks_sorted); the bitmaps' summaries are kept
+     * where few bits will be set: the front is at most two vertices per
+     * pcol that did not run and the tops. */
+    const int mode = __atomic_load_n(&ranks_in_use, __ATOMIC_ACQUIRE);
+    const int face_sorted = ranks_sorted(mode, n_faces_drawn, face_words);
     const int face_dense = marked_dense(n_faces_drawn, face_words);
     /* The front and the drawn faces. Below each pcol that did not run: its
      * vertices that are original or whose own pcol ran, and its kill list. */
@@ -102,38 +141,63 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
             f->vertex = r->vertex[j];
             memcpy(f->position, r->position[j], sizeof f->position);
             n_front += kept;
-            set_marked(start_bits, start_sum, r->start[j], (uint64_t)kept, start_dense);
         }
         for (int32_t j = 0; j < r->kill_count; j++) {
             drawn[n_drawn] = kill_data[r->kill_first + j];
-            set_marked(face_bits, face_sum, drawn[n_drawn].face, 1, face_dense);
+            if (!face_sorted)
+                set_marked(face_bits, face_sum, drawn[n_drawn].face, 1, face_dense);
             n_drawn++;
         }
     }
     /* The tops: the roots that ran (top_at >= 0) and the lone originals. */
     for (int64_t i = 0; i < n_tops; i++)
-        if (top_at[i] < 0 || !mark[top_at[i]]) {
+        if (top_at[i] < 0 || !mark[top_at[i]])
             front[n_front++] = tops[i];
-            set_marked(start_bits, start_sum, tops[i].start, 1, start_dense);
-        }
-    for (int64_t i = 0; i < n_base; i++)
-        set_marked(face_bits, face_sum, base[i].face, 1, face_dense);
+    if (!face_sorted)
+        for (int64_t i = 0; i < n_base; i++)
+            set_marked(face_bits, face_sum, base[i].face, 1, face_dense);
     const int64_t total = n_drawn + n_base;
-    /* The front in depth-first order: each vertex goes to the rank of its start. */
+    IdSlot *const pairs = s->pairs[0], *const pairs_to = s->pairs[1];
+    /* The front in depth-first order: each vertex goes to the rank of its
+     * start. (Its starts stay in a bitmap: a corner's front vertex is then
+     * two independent loads, where a search among sorted starts is a chain
+     * of them.) */
+    const int start_dense = marked_dense(n_front, start_words);
+    for (int64_t i = 0; i < n_front; i++)
+        set_marked(start_bits, start_sum, front[i].start, 1, start_dense);
     prefix_marked(start_bits, start_sum, start_words, start_dense, start_prefix, start_block);
-    const int vertex_dense = marked_dense(n_front, vertex_words);
     for (int64_t i = 0; i < n_front; i++)
         sorted[rank_of(start_bits, start_prefix, front[i].start)] = front[i];
-    /* Each drawn face at its rank; each corner first the rank of the front
+    const int vertex_sorted = ranks_sorted(mode, n_front, vertex_words);
+    const int vertex_dense = marked_dense(n_front, vertex_words);
+    /* Each drawn face at its rank (in the bitmap, or its place among the
+     * drawn faces sorted by id); each corner first the rank of the front
      * vertex holding it (front_index: -1 unused, 0 used). */
     int64_t n_id_count = 0;
     PmxStatus status = total == n_faces_drawn ? PMX_OK : PMX_FACES_DIFFER;
     if (status == PMX_OK) {
         memset(front_index, 0xff, sizeof(int32_t) * (size_t)n_front);
-        prefix_marked(face_bits, face_sum, face_words, face_dense, face_prefix, NULL);
+        const IdSlot *by_face = NULL;
+        if (face_sorted) {
+            for (int64_t i = 0; i < total; i++)
+                pairs[i] = (IdSlot){i < n_drawn ? drawn[i].face : base[i - n_drawn].face, (int32_t)i};
+            by_face = sort_id_slots(pairs, pairs_to, total, (int32_t)(n_faces_total > 0 ? n_faces_total - 1 : 0),
+                                    sort_digit(total));
+        } else {
+            prefix_marked(face_bits, face_sum, face_words, face_dense, face_prefix, NULL);
+        }
         for (int64_t i = 0; i < total; i++) {
-            const PmxFaceRecord *f = i < n_drawn ? drawn + i : base + (i - n_drawn);
-            int32_t *row = faces + 3 * rank_of(face_bits, face_prefix, f->face);
+            if (face_sorted && i + FACE_AHEAD < total) {
+                const int64_t ahead = by_face[i + FACE_AHEAD].slot;
+                const PmxFaceRecord *g = ahead < n_drawn ? drawn + ahead : base + (ahead - n_drawn);
+                for (int c = 0; c < 3; c++) {
+                    __builtin_prefetch(start_bits + (g->start[c] >> 6));
+                    __builtin_prefetch(start_prefix + (g->start[c] >> 6));
+                }
+            }
+            const int64_t at = face_sorted ? by_face[i].slot : i;
+            const PmxFaceRecord *f = at < n_drawn ? drawn + at : base + (at - n_drawn);
+            int32_t *row = faces + 3 * (face_sorted ? i : rank_of(face_bits, face_prefix, f->face));
             for (int c = 0; c < 3; c++) {
                 int32_t k = (int32_t)(start_dense ? rank_of(start_bits, start_prefix, f->start[c])
                                                   : rank_at_or_before(start_bits, start_sum, start_prefix,
@@ -142,36 +206,53 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
                 front_index[k] = 0;
             }
         }
-        /* The vertices used in increasing id order (the ids' bitmap), each
-         * front vertex's output index, then the corners through it. */
+        /* The vertices used in increasing id order (the ids' bitmap, or the
+         * used ones sorted by id), each front vertex's output index, then
+         * the corners through it. */
         int64_t n_used = 0;
         for (int64_t k = 0; k < n_front; k++)
             if (front_index[k] == 0) {
-                set_marked(vertex_bits, vertex_sum, sorted[k].vertex, 1, vertex_dense);
+                if (vertex_sorted)
+                    pairs[n_used] = (IdSlot){sorted[k].vertex, (int32_t)k};
+                else
+                    set_marked(vertex_bits, vertex_sum, sorted[k].vertex, 1, vertex_dense);
                 n_used++;
             }
-        prefix_marked(vertex_bits, vertex_sum, vertex_words, vertex_dense, vertex_prefix, NULL);
         /* The outputs' room is checked before anything is written there. */
-        for (int64_t k = 0; k < n_front && n_used <= id_capacity; k++)
-            if (front_index[k] == 0) {
-                int64_t out = rank_of(vertex_bits, vertex_prefix, sorted[k].vertex);
-                front_index[k] = (int32_t)out;
-                ids[out] = sorted[k].vertex;
-                memcpy(vertex_positions + 3 * out, sorted[k].position, 3 * sizeof(float));
-                n_id_count++;
+        if (n_used > id_capacity) {
+            status = PMX_BAD_SIZE;
+        } else if (vertex_sorted) {
+            const IdSlot *by_id = sort_id_slots(pairs, pairs_to, n_used, (int32_t)(V0 + n_pcols - 1), sort_digit(n_used));
+            for (int64_t out = 0; out < n_used; out++) {
+                const PmxFrontVertex *v = sorted + by_id[out].slot;
+                front_index[by_id[out].slot] = (int32_t)out;
+                ids[out] = v->vertex;
+                memcpy(vertex_positions + 3 * out, v->position, 3 * sizeof(float));
             }
-        if (n_used <= id_capacity)
+            n_id_count = n_used;
+        } else {
+            prefix_marked(vertex_bits, vertex_sum, vertex_words, vertex_dense, vertex_prefix, NULL);
+            for (int64_t k = 0; k < n_front; k++)
+                if (front_index[k] == 0) {
+                    int64_t out = rank_of(vertex_bits, vertex_prefix, sorted[k].vertex);
+                    front_index[k] = (int32_t)out;
+                    ids[out] = sorted[k].vertex;
+                    memcpy(vertex_positions + 3 * out, sorted[k].position, 3 * sizeof(float));
+                    n_id_count++;
+                }
+        }
+        if (status == PMX_OK)
             for (int64_t i = 0; i < 3 * n_faces_drawn; i++)
                 faces[i] = front_index[faces[i]];
-        else
-            status = PMX_BAD_SIZE;
     }
-    /* Leave the scratch as found. */
+    /* Leave the scratch as found (the bitmaps of sorted ranks were not set). */
     for (int64_t i = 0; i < n_not_run; i++)
         mark[not_run_at[i]] = 0;
     clear_marked(start_bits, start_sum, start_words, start_dense);
-    clear_marked(face_bits, face_sum, face_words, face_dense);
-    clear_marked(vertex_bits, vertex_sum, vertex_words, vertex_dense);
+    if (!face_sorted)
+        clear_marked(face_bits, face_sum, face_words, face_dense);
+    if (!vertex_sorted)
+        clear_marked(vertex_bits, vertex_sum, vertex_words, vertex_dense);
     *n_ids = n_id_count;
     return status;
 }

@@ -56,6 +56,12 @@ typedef float Columns[ROW][BLOCK];
 /* Frame masks of a word: bit l for frame l. */
 typedef uint16_t Lanes;
 
+/* An id and a slot: a row or change of the compacted mesh (mesh_stream.c),
+ * or an item to rank (front_mesh.c). */
+typedef struct {
+    int32_t id, slot;
+} IdSlot;
+
 /* The cameras of the lanes of one decision pass, struct of arrays: the
  * frames of a word, or one camera in every lane (a block of pcols). Each
  * lane reads its own camera and its own pcol, so that no condition is
@@ -104,6 +110,7 @@ struct PmxScratch {
     uint64_t *start_bits, *face_bits, *vertex_bits, *start_sum, *face_sum, *vertex_sum;
     PmxFrontVertex *front, *sorted;
     PmxFaceRecord *drawn;
+    IdSlot *pairs[2]; /* [max(n_faces, n_original + 1)] each: ranks by sorting */
     struct PmxScratch *next; /* in the pool */
 };
 
@@ -287,6 +294,31 @@ PMX_INLINE void clear_marked(uint64_t *bits, uint64_t *sum, int64_t words, int d
             bits[64 * b + __builtin_ctzll(m)] = 0;
         sum[b] = 0;
     }
+}
+
+/* from's n entries (ids in [0, max_id]) in increasing id, entries of one id
+ * in the order they came: a stable radix sort on digits of `digit` bits (1
+ * to SORT_DIGIT_MOST), as many as max_id has, through to (room n); returns
+ * the sorted entries (from or to). Narrow digits keep the counts in a small
+ * table for few entries, wide ones take fewer passes over many. */
+#define SORT_DIGIT_MOST 12
+static inline IdSlot *sort_id_slots(IdSlot *from, IdSlot *to, int64_t n, int32_t max_id, int digit)
+{
+    const int32_t buckets = (int32_t)1 << digit;
+    int32_t count[((int32_t)1 << SORT_DIGIT_MOST) + 1];
+    for (int shift = 0; n > 1 && shift < 32 && (shift == 0 || ((uint32_t)max_id >> shift) > 0); shift += digit) {
+        memset(count, 0, sizeof(int32_t) * (size_t)(buckets + 1));
+        for (int64_t k = 0; k < n; k++)
+            count[(((uint32_t)from[k].id >> shift) & (uint32_t)(buckets - 1)) + 1]++;
+        for (int32_t b = 0; b < buckets; b++)
+            count[b + 1] += count[b];
+        for (int64_t k = 0; k < n; k++)
+            to[count[((uint32_t)from[k].id >> shift) & (uint32_t)(buckets - 1)]++] = from[k];
+        IdSlot *t = from;
+        from = to;
+        to = t;
+    }
+    return from;
 }
 
 /* Rows ids[0..n) of table into columns (the rest of the block repeats the

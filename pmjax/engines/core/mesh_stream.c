@@ -35,10 +35,7 @@
 
 /* A row of the compacted mesh as the stream keeps it between compactions
  * (a face drawn or a vertex id used: its id and slot), or an entry of the
- * log of changes since (slot -1: the id went). */
-typedef struct {
-    int32_t id, slot;
-} IdSlot;
+ * log of changes since (slot -1: the id went): an IdSlot (internal.h). */
 
 /* A corner of a face slot: its depth-first start and its links in its
  * vertex's list, side by side (a split or collapse walks the list reading
@@ -812,27 +809,12 @@ __attribute__((target("popcnt"))) static void rank_rows_popcnt(PmxMeshStream *s,
 #endif
 
 /* The log's n entries in increasing id, entries of one id in the order
- * they came (a stable radix sort on byte digits, as many as max_id has,
- * through s->sorted, whose room the caller made; byte digits keep the
- * counts in a small table); returns the sorted entries (the log or
- * s->sorted). */
+ * they came, through s->sorted, whose room the caller made (byte digits: a
+ * log holds a frame's changes, a few hundred); returns the sorted entries
+ * (the log or s->sorted). */
 static IdSlot *sort_log(PmxMeshStream *s, IdSlot *log, int64_t n, int32_t max_id)
 {
-    enum { DIGIT = 8, BUCKETS = 1 << DIGIT };
-    IdSlot *from = log, *to = s->sorted;
-    for (int shift = 0; n > 1 && shift < 32 && (shift == 0 || ((uint32_t)max_id >> shift) > 0); shift += DIGIT) {
-        int32_t count[BUCKETS + 1] = {0};
-        for (int64_t k = 0; k < n; k++)
-            count[((from[k].id >> shift) & (BUCKETS - 1)) + 1]++;
-        for (int b = 0; b < BUCKETS; b++)
-            count[b + 1] += count[b];
-        for (int64_t k = 0; k < n; k++)
-            to[count[(from[k].id >> shift) & (BUCKETS - 1)]++] = from[k];
-        IdSlot *t = from;
-        from = to;
-        to = t;
-    }
-    return from;
+    return sort_id_slots(log, s->sorted, n, max_id, 8);
 }
 
 /* The next rows (at most cap): the last ones (n_last, increasing id)

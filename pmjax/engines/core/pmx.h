@@ -299,6 +299,11 @@ void pmx_views_of(const float *cameras, int64_t n, int orthographic, float *view
 int pmx_simd(int level);
 int pmx_simd_best(void);
 
+/* How pmx_front_mesh takes its ranks (mode < 0: leave it; 0 by the ratio of
+ * items to bitmap words, 1 bitmaps always, 2 sorts always; every way gives
+ * the same mesh); returns the mode in use before. */
+int pmx_mesh_ranks(int mode);
+
 #ifdef __cplusplus
 }
 #endif

@@ -23,7 +23,8 @@ static void free_parts(PmxScratch *s)
     void *parts[] = {s->ids, s->kid, s->kill, s->pcols, s->unsure, s->parent, s->chain, s->state, s->ran, s->mark,
                      s->visit, s->whole, s->yes, s->ran_frames, s->unsure_lanes, s->not_run_at, s->start_prefix,
                      s->face_prefix, s->vertex_prefix, s->start_block, s->front_index, s->start_bits, s->face_bits,
-                     s->vertex_bits, s->start_sum, s->face_sum, s->vertex_sum, s->front, s->sorted, s->drawn};
+                     s->vertex_bits, s->start_sum, s->face_sum, s->vertex_sum, s->front, s->sorted, s->drawn,
+                     s->pairs[0], s->pairs[1]};
     for (size_t i = 0; i < sizeof parts / sizeof parts[0]; i++)
         free(parts[i]);
 }
@@ -32,13 +33,14 @@ static void free_mesh(PmxScratch *s)
 {
     void *parts[] = {s->not_run_at, s->start_prefix, s->face_prefix, s->vertex_prefix, s->start_block,
                      s->front_index, s->start_bits, s->face_bits, s->vertex_bits, s->start_sum, s->face_sum,
-                     s->vertex_sum, s->front, s->sorted, s->drawn};
+                     s->vertex_sum, s->front, s->sorted, s->drawn, s->pairs[0], s->pairs[1]};
     for (size_t i = 0; i < sizeof parts / sizeof parts[0]; i++)
         free(parts[i]);
     s->not_run_at = s->start_prefix = s->face_prefix = s->vertex_prefix = s->start_block = s->front_index = NULL;
     s->start_bits = s->face_bits = s->vertex_bits = s->start_sum = s->face_sum = s->vertex_sum = NULL;
     s->front = s->sorted = NULL;
     s->drawn = NULL;
+    s->pairs[0] = s->pairs[1] = NULL;
 }
 
 int scratch_slots(PmxScratch *s)
@@ -111,9 +113,12 @@ int scratch_mesh(PmxScratch *s, int64_t n_original, int64_t n_faces)
     s->drawn = zeros(n_faces, sizeof(PmxFaceRecord));
     s->front_index = zeros(V0, sizeof(int32_t));
     s->front = zeros(V0 + 1, sizeof(PmxFrontVertex)); /* one slot past the front */
+    const int64_t pairs = n_faces > V0 + 1 ? n_faces : V0 + 1;
+    s->pairs[0] = zeros(pairs, sizeof(IdSlot));
+    s->pairs[1] = zeros(pairs, sizeof(IdSlot));
     if (!(s->not_run_at && s->start_bits && s->face_bits && s->vertex_bits && s->start_sum && s->face_sum &&
           s->vertex_sum && s->start_prefix && s->face_prefix && s->vertex_prefix && s->start_block && s->sorted &&
-          s->drawn && s->front_index && s->front)) {
+          s->drawn && s->front_index && s->front && s->pairs[0] && s->pairs[1])) {
         free_mesh(s);
         return 0;
     }
