@@ -19,9 +19,11 @@ the unlit (geometry-only) share for each row and mean FLIP over the model's pixe
 
 normals: the shading normals compared on the same refinements and frames (one
 refinement and one original render per frame): the subtree means
-(``pmjax.hierarchy_normals``) against the fitted ones (``pmjax.fitted_normals``,
-what the renderer draws): differing share, silhouette share and mean FLIP over
-the model's pixels, medians and means over the frames, at one tau.
+(``pmjax.hierarchy_normals``), the fitted ones (``pmjax.fitted_normals``,
+what the renderer draws) and those fitted again per view on the mesh drawn
+(``pmjax.ViewNormals``, samples weighted by the area seen): differing share,
+silhouette share and mean FLIP over the model's pixels, medians and means over
+the frames, at one tau.
 
 cost: what ``path_fidelity`` (``pmjax path --fidelity``) spends per frame,
 ``fidelity_ms`` (every render and metric of a frame), without and with FLIP,
@@ -116,19 +118,23 @@ def frontier(name, frames, taus, shares, supersample=2):
 
 
 def normals(name, frames, tau, supersample=2):
-    """The subtree-mean and the fitted shading normals on the same refinements
-    of ``frames`` frames of the standard orbit at ``tau``: per normals, the
+    """The subtree-mean, the fitted and the per-view fitted shading normals on
+    the same refinements of ``frames`` frames of the standard orbit at
+    ``tau``: per normals, the
     median and mean over the frames of the differing share, the silhouette
     share and FLIP over the model's pixels."""
     data = pmjax.read_pm(pm_file(name))
     pm = pmjax.ProgressiveMesh.from_data(data)
     V0 = data.n_original_vertices
     sets = {"hierarchy": pmjax.hierarchy_normals(pm), "fitted": pmjax.fitted_normals(data)}
+    # Fitted again per view, on the mesh drawn (from the stored ones; the
+    # samples weighted by the area seen from the eye).
+    per_view = pmjax.ViewNormals(data, sets["fitted"])
     cams = pmjax.standard_orbit(data.vertices[:V0], frames)
     views = [index_camera(cams, i) for i in range(frames)]
-    # The original is drawn with its own vertex normals, the same in both sets.
+    # The original is drawn with its own vertex normals, the same in every set.
     ov, of = data.vertices[:V0], data.faces
-    measures = {key: dict(differing_share=[], silhouette_share=[], flip_model_mean=[]) for key in sets}
+    measures = {key: dict(differing_share=[], silhouette_share=[], flip_model_mean=[]) for key in [*sets, "per view"]}
     faces = []
     t0 = time.perf_counter()
     with Renderer(views[0].width, views[0].height, supersample=supersample, float_color=True) as r:
@@ -138,8 +144,10 @@ def normals(name, frames, tau, supersample=2):
             faces.append(len(f))
             original = r.render_mesh(ov, of, cam, normals=sets["fitted"][:V0])
             silhouette = silhouette_difference(r, (ov, of), (v, f), cam)["differing_share"]
-            for key, n in sets.items():
-                image = r.render_mesh(v, f, cam, normals=n[ids])
+            drawn = {key: n[ids] for key, n in sets.items()}
+            drawn["per view"] = per_view(ids, f, eye=np.asarray(cam.eye))
+            for key, n in drawn.items():
+                image = r.render_mesh(v, f, cam, normals=n)
                 m = measures[key]
                 m["differing_share"].append(image_difference(*original, *image)["differing_share"])
                 m["silhouette_share"].append(silhouette)
@@ -295,7 +303,7 @@ def main():
     if args.plot and frontier_rows:
         pareto_plot(frontier_rows, args.plot)
     if "normals" in parts:
-        print("\nShading normals (same refinements and frames for both):")
+        print("\nShading normals (same refinements and frames for all):")
         for name, n in zip(names, per_model(args.normals_frames, names)):
             normals_rows += normals(name, n, args.normals_tau, args.supersample)
     cost_rows = []
