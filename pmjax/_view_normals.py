@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import threading
+import weakref
+
 import numpy as np
 
-from ._normals import _corner_sums, _face_cross, _fit_batch, _hierarchy_arrays, _Samples
+from . import _normals
+from ._normals import FIT_SWEEPS, _corner_sums, _face_cross, _fit_batch, _hierarchy_arrays, _native_hierarchy, _Samples
 
 
 class ViewNormals:
@@ -27,6 +31,15 @@ class ViewNormals:
     their stored normals, so the original mesh is drawn as with the stored
     ones; refinements are not changed, only their normals.
 
+    By C loops (``pmjax/_normals_native.c``, on up to two threads) where
+    that extension is built: the drawn vertices are a front of the
+    hierarchy, so a created vertex's samples are the run of its leaves in
+    the hierarchy's leaf order and only the drawn created vertices' leaves
+    are visited. Else, or for vertex ids that are not a front (a drawn
+    vertex above another, or one listed twice), by NumPy, climbing from
+    every original vertex to its drawn ancestor: the same bits either way
+    (each sum taken in the order of :func:`pmjax.fitted_normals`).
+
     Args:
         pm: a :class:`pmjax.PMData` or :class:`pmjax.ProgressiveMesh`.
         normals: ``[V0 + P, 3]`` the stored shading normals (the fit's start
@@ -34,18 +47,74 @@ class ViewNormals:
             e.g. ``pmjax.fitted_normals(pm)``.
     """
 
-    def __init__(self, pm, normals):
+    def __init__(self, pm, normals, *, sweeps: int = FIT_SWEEPS):
+        if isinstance(sweeps, bool) or not isinstance(sweeps, (int, np.integer)) or sweeps < 1:
+            raise ValueError(f"ViewNormals: sweeps must be a whole number >= 1, got {sweeps!r}")
+        self._sweeps = int(sweeps)
         V0, vertices, faces, parent, _ = _hierarchy_arrays(pm)
         normals = np.asarray(normals)
         if normals.shape != (len(vertices), 3):
             raise ValueError(f"ViewNormals: normals must be [{len(vertices)}, 3], got {list(normals.shape)}")
         self._V0, self._parent = V0, parent
         self._positions = np.ascontiguousarray(vertices.T)  # [3, V] by axis
-        self._normals = np.asarray(normals, np.float32)
+        self._normals = np.ascontiguousarray(normals, np.float32)
         cross = _face_cross(self._positions, faces)
         area = _corner_sums(faces, np.linalg.norm(cross, axis=0)[None] / 6.0, len(vertices))[0]
         self._samples = _Samples(self._positions[:, :V0], np.ascontiguousarray(self._normals[:V0].T, np.float64),
                                  area[:V0])
+        self._hierarchy = pm
+        self._leaves = None  # the C loops' leaf order, made on their first call
+        self._workspace = None  # and their arrays, kept from call to call
+        self._lock = threading.Lock()  # one call at a time uses them
+
+    def _leaf_order(self):
+        """``(arrays for pmn_view_normals)`` or ``None`` where the C loops
+        are not built or do not take the hierarchy (its ids, int32)."""
+        if self._leaves is None:
+            hierarchy = _native_hierarchy(self._hierarchy)
+            if hierarchy is None:
+                self._leaves = ()
+            else:
+                V0, vertices, _, _, kid_lo, kid_hi = hierarchy
+                V = len(vertices)
+                leaf, first, count = np.empty(max(V0, 1), np.int32), np.empty(V, np.int32), np.empty(V, np.int32)
+                if _normals.native.pmn_leaf_order(V0, V, kid_lo.ctypes.data, kid_hi.ctypes.data, leaf.ctypes.data,
+                                                  first.ctypes.data, count.ctypes.data):
+                    raise MemoryError("ViewNormals: out of memory in the C loops")
+                leaf = leaf[:V0]
+                # The samples' arrays in leaf order: positions by axis,
+                # targets by vertex, areas.
+                self._leaves = (leaf, first, count, np.ascontiguousarray(self._samples.positions[:, leaf]),
+                                np.ascontiguousarray(self._samples.normals[:, leaf].T),
+                                np.ascontiguousarray(self._samples.weights[leaf]),
+                                np.ascontiguousarray(self._positions.T))
+                lib = _normals.native
+                self._workspace = lib.pmn_view_workspace()
+                if not self._workspace:
+                    raise MemoryError("ViewNormals: out of memory in the C loops")
+                weakref.finalize(self, lib.pmn_view_workspace_free, self._workspace)
+        return self._leaves or None
+
+    def _native(self, ids, faces, eye):
+        """``float64[N, 3]`` by the C loops, or ``None`` where they are not
+        built, do not take the hierarchy or the ids are not a front."""
+        if _normals.native is None:
+            return None
+        ids, faces = np.ascontiguousarray(ids, np.int64), np.ascontiguousarray(faces, np.int64)
+        eye = None if eye is None else np.ascontiguousarray(np.asarray(eye, np.float64).reshape(3))
+        out = np.empty((len(ids), 3))
+        with self._lock:
+            if self._leaf_order() is None:
+                return None
+            leaf, first, count, position, target, area, positions = self._leaves
+            rc = _normals.native.pmn_view_normals(
+                self._V0, positions.ctypes.data, self._normals.ctypes.data, leaf.ctypes.data, first.ctypes.data,
+                count.ctypes.data, position.ctypes.data, target.ctypes.data, area.ctypes.data, len(ids),
+                ids.ctypes.data, len(faces), faces.ctypes.data, None if eye is None else eye.ctypes.data, self._sweeps,
+                _normals.FIT_THREADS, _normals.FIT_MIN_SPLIT, self._workspace, out.ctypes.data)
+        if rc == 1:
+            raise MemoryError("ViewNormals: out of memory in the C loops")
+        return out if rc == 0 else None
 
     def __call__(self, vertex_ids, faces, eye=None) -> np.ndarray:
         """The shading normals of one drawn mesh.
@@ -67,6 +136,9 @@ class ViewNormals:
             raise ValueError(f"ViewNormals: vertex ids must be in [0, {V}), got {ids.min()}..{ids.max()}")
         if len(faces) and not (0 <= faces.min() and faces.max() < len(ids)):
             raise ValueError(f"ViewNormals: faces must index the {len(ids)} vertices")
+        fitted = self._native(ids, faces, eye)
+        if fitted is not None:
+            return fitted.astype(np.float32)
         # Slots: the mesh's original vertices first, then its created ones
         # (the unknowns, slots lo:N), each group in the given order.
         order = np.argsort(ids >= V0, kind="stable")
@@ -98,5 +170,5 @@ class ViewNormals:
             samples = samples._replace(weights=samples.weights * facing / distance**2)
         coordinates = np.ascontiguousarray(self._positions[:, ids[order]])
         corners = np.ascontiguousarray(slot_of[faces].T)
-        normals[:, lo:] = _fit_batch(coordinates, corners, ancestor, samples, normals, lo, len(ids))
+        normals[:, lo:] = _fit_batch(coordinates, corners, ancestor, samples, normals, lo, len(ids), self._sweeps)
         return np.ascontiguousarray(normals.T[slot_of], np.float32)

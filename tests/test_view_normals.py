@@ -4,6 +4,9 @@ independent of the order of the drawn vertices, and no effect on refinement."""
 
 from __future__ import annotations
 
+import dataclasses
+import os
+
 import numpy as np
 import pytest
 
@@ -106,3 +109,85 @@ def test_bad_arguments_are_refused(cow):
         view([0, 1, V], [[0, 1, 2]])
     with pytest.raises(ValueError, match="faces must index"):
         view([0, 1, 2], [[0, 1, 3]])
+
+
+def _refinement_meshes(cow, taus=(1.0, 4.0)):
+    """``(ids, faces, eye)`` of a few orbit views' refinements of the cow."""
+    V0 = cow.n_original_vertices
+    pm = pmjax.ProgressiveMesh.from_data(cow)
+    cams = pmjax.standard_orbit(cow.vertices[:V0], 6, width=320, height=240)
+    meshes = []
+    for i, tau in zip(range(0, 6, 2), [*taus, taus[0]]):
+        cam = pmjax.index_camera(cams, i)
+        _, faces, ids = pmjax.refine(pm, cam, tau).mesh(pm)
+        meshes.append((np.asarray(ids), np.asarray(faces), np.asarray(cam.eye)))
+    return meshes
+
+
+def _native_or_skip():
+    import pmjax._normals
+
+    if pmjax._normals.native is None:
+        if os.environ.get("PMJAX_REQUIRE_CORE") == "1":
+            pytest.fail("pmjax._normals_native is not built (python setup.py build_ext --inplace)")
+        pytest.skip("the fit's C loops (pmjax._normals_native) are not built")
+
+
+def _by_numpy(monkeypatch, view, *args, **kwargs):
+    import pmjax._normals
+
+    with monkeypatch.context() as m:
+        m.setattr(pmjax._normals, "native", None)
+        return view(*args, **kwargs)
+
+
+@pytest.mark.parametrize("snap", [False, True])
+def test_the_c_loops_give_the_numpy_bits(cow, monkeypatch, snap):
+    """The C loops (a created vertex's samples: the run of its leaves) and
+    NumPy (a climb from every original vertex) give the same bits: on
+    refinements of the cow at two taus, with and without an eye, with two and
+    five sweeps, every step split over one, two and three threads; also on
+    the cow with its coordinates snapped to a coarse grid (degenerate faces,
+    equally deep faces)."""
+    import pmjax._normals
+
+    _native_or_skip()
+    data = dataclasses.replace(cow, vertices=np.round(cow.vertices * 8.0) / 8.0) if snap else cow
+    for sweeps in (2, 5):
+        view = pmjax.ViewNormals(data, cow.shading_normals, sweeps=sweeps)
+        for ids, faces, eye in _refinement_meshes(cow):
+            for at in (None, eye):
+                expected = _by_numpy(monkeypatch, view, ids, faces, eye=at)
+                assert view._native(ids, faces, at) is not None  # the C loops take it
+                for threads in (1, 2, 3):
+                    monkeypatch.setattr(pmjax._normals, "FIT_THREADS", threads)
+                    monkeypatch.setattr(pmjax._normals, "FIT_MIN_SPLIT", 1)
+                    got = view(ids, faces, eye=at)
+                    assert got.dtype == np.float32 and got.tobytes() == expected.tobytes()
+
+
+def test_ids_that_are_not_a_front_go_to_numpy_with_its_bits(cow, monkeypatch):
+    """A drawn vertex listed with its parent, or twice: not a front of the
+    hierarchy, so the C loops hand it to NumPy (the same answer as with
+    them switched off)."""
+    _native_or_skip()
+    V0 = cow.n_original_vertices
+    ids, faces, eye = _refinement_meshes(cow)[0]
+    view = pmjax.ViewNormals(cow, cow.shading_normals)
+    parent = np.full(V0 + cow.n_pcols, -1, np.int64)
+    parent[cow.v1], parent[cow.v2] = np.arange(cow.n_pcols), np.arange(cow.n_pcols)
+    child = int(ids[(ids >= V0) | (parent[ids] >= 0)][0])
+    extra = np.concatenate([ids, [V0 + parent[child]]]) if parent[child] >= 0 else np.concatenate([ids, [child]])
+    for bad in (extra, np.concatenate([ids, ids[:1]])):
+        assert view._native(bad, faces, eye) is None
+        np.testing.assert_array_equal(view(bad, faces, eye=eye), _by_numpy(monkeypatch, view, bad, faces, eye=eye))
+
+
+def test_more_sweeps_move_the_fit_and_bad_sweeps_are_refused(cow):
+    ids, faces, eye = _refinement_meshes(cow)[0]
+    two = pmjax.ViewNormals(cow, cow.shading_normals)(ids, faces, eye=eye)
+    eight = pmjax.ViewNormals(cow, cow.shading_normals, sweeps=8)(ids, faces, eye=eye)
+    assert np.abs(two - eight).max() > 1e-3
+    for bad in (0, -1, 2.5, True, "2"):
+        with pytest.raises(ValueError, match="sweeps must be"):
+            pmjax.ViewNormals(cow, cow.shading_normals, sweeps=bad)
