@@ -32,7 +32,9 @@ then over the repeats, and their ratio.
 
 fit: what ``pmjax.fitted_normals`` costs, its C loops (two threads) against the
 NumPy steps (one thread, the same bits), alternated in one process on the
-loaded hierarchy (``--fit-repeats`` each): medians and their ratio.
+loaded hierarchy (``--fit-repeats`` each): medians and their ratio; and what
+``pmjax.ViewNormals`` costs per drawn mesh (8 orbit frames at tau 1), C loops
+(wall and CPU time) against NumPy, alternated per frame.
 """
 
 from __future__ import annotations
@@ -189,7 +191,49 @@ def fit(name, repeats):
     row["ratio"] = row["numpy_s"] / row["c_s"]
     print(f"{name:8s} fitted_normals: C {row['c_s']:.3f} s, NumPy {row['numpy_s']:.3f} s, "
           f"C {row['ratio']:.2f}x faster (medians of {repeats})", flush=True)
-    return [row]
+    return [row, view_fit(data, name, repeats)]
+
+
+def view_fit(data, name, repeats, frames=8, tau=1.0):
+    """Milliseconds of ``pmjax.ViewNormals`` per drawn mesh (the refinements of
+    ``frames`` standard-orbit frames at ``tau``, seen from their eyes): the C
+    loops (wall and the process's CPU time) and NumPy alternated ``repeats``
+    times per frame; medians over the frames of the medians over the repeats."""
+    from pmjax import _normals
+
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    V0 = data.n_original_vertices
+    view = pmjax.ViewNormals(data, data.shading_normals)
+    cams = pmjax.standard_orbit(data.vertices[:V0], frames)
+    native = _normals.native
+    per_frame = {"C": [], "C_cpu": [], "NumPy": []}
+    try:
+        for i in range(frames):
+            cam = index_camera(cams, i)
+            _, f, ids = pmjax.refine(pm, cam, tau).mesh(pm)
+            eye = np.asarray(cam.eye)
+            view(ids, f, eye=eye)  # the C loops' leaf order and workspace, made once
+            times = {key: [] for key in per_frame}
+            for _ in range(repeats):
+                for way in ("C", "NumPy"):
+                    _normals.native = native if way == "C" else None
+                    t, c = time.perf_counter(), time.process_time()
+                    view(ids, f, eye=eye)
+                    times[way].append(1e3 * (time.perf_counter() - t))
+                    if way == "C":
+                        times["C_cpu"].append(1e3 * (time.process_time() - c))
+            for key in per_frame:
+                per_frame[key].append(statistics.median(times[key]))
+    finally:
+        _normals.native = native
+    row = dict(model=name, part="ViewNormals", frames=frames, tau=tau, threads=_normals.FIT_THREADS,
+               c_ms=statistics.median(per_frame["C"]) if native is not None else float("nan"),
+               c_cpu_ms=statistics.median(per_frame["C_cpu"]), numpy_ms=statistics.median(per_frame["NumPy"]))
+    row["ratio"] = row["numpy_ms"] / row["c_ms"]
+    print(f"{name:8s} ViewNormals per frame: C {row['c_ms']:.1f} ms (CPU {row['c_cpu_ms']:.1f} ms, "
+          f"{row['threads']} threads), NumPy {row['numpy_ms']:.0f} ms, C {row['ratio']:.1f}x faster "
+          f"(medians over {frames} frames of {repeats} alternated repeats)", flush=True)
+    return row
 
 
 def cost(name, frames, tau, repeats, supersample=2):

@@ -151,8 +151,8 @@ def _load_native():
     lib.pmn_leaf_order.restype = ctypes.c_int64
     lib.pmn_leaf_order.argtypes = [i64, i64, ptr, ptr, ptr, ptr, ptr]
     lib.pmn_view_normals.restype = ctypes.c_int64
-    lib.pmn_view_normals.argtypes = [i64, ptr, ptr, ptr, ptr, ptr, ptr, ptr, ptr, i64, ptr, i64, ptr, ptr, i64, i64,
-                                     i64, ptr, ptr]
+    lib.pmn_view_normals.argtypes = [i64, ptr, ptr, ptr, ptr, ptr, ptr, ptr, ptr, i64, ptr, i64, ptr, ptr, i64,
+                                     ctypes.c_double, i64, i64, ptr, ptr]
     lib.pmn_view_workspace.restype = ptr
     lib.pmn_view_workspace.argtypes = []
     lib.pmn_view_workspace_free.restype = None
@@ -344,12 +344,13 @@ def _own_faces(geometry, first, size, positions):
 
 
 def _fit_batch(coordinates, corners, ancestor, samples: _Samples, normals, lo: int, hi: int,
-               sweeps: int = FIT_SWEEPS) -> np.ndarray:
+               sweeps: int = FIT_SWEEPS, relax: float = 1.0) -> np.ndarray:
     """``[3, hi - lo]`` by axis the fitted unit normals of the vertices
     ``lo:hi`` created by one batch, in the mesh of live faces ``corners[3,
     F]`` just after it (``coordinates[3, V]``: the vertices' positions;
     ``normals[3, V]``: every other vertex's, fixed; the batch's subtree
-    means), by ``sweeps`` Jacobi sweeps."""
+    means), by ``sweeps`` Jacobi sweeps, each moving a normal the share
+    ``relax`` of the way to its step's solution (1: the whole way)."""
     # Step 1: each created vertex's fan: the live faces with it as a corner,
     # grouped by vertex; in a group the faces where it is corner 0, then
     # corner 1, then corner 2, each in mesh order (one sort of unique keys).
@@ -404,5 +405,9 @@ def _fit_batch(coordinates, corners, ancestor, samples: _Samples, normals, lo: i
         rhs = np.concatenate([share[k] * (residual.take(on[k], axis=1) + terms[k].take(on[k], axis=1))
                               for k in range(3)], axis=1)
         rhs = np.stack([np.bincount(np.concatenate(at), row, minlength=hi - lo) for row in rhs])
-        fitted = np.where(solved, rhs / np.where(solved, diagonal, 1.0), start)
+        step = rhs / np.where(solved, diagonal, 1.0)
+        if relax != 1.0:
+            # Weighted Jacobi: the step's share relax, the rest kept.
+            step = (1.0 - relax) * fitted + relax * step
+        fitted = np.where(solved, step, start)
     return _unit(fitted, axis=0)

@@ -581,8 +581,10 @@ static void ordered_rhs(void *arg, int64_t first, int64_t end) {
 /* Step 3 of the per-view fit, after locate_samples: the located samples
  * (taken[L] = 2 at their leaf positions; at[p] the leaf position of
  * original p) gathered in original-id order, then the Jacobi sweeps of
- * fit_batch, the unit normals into fit->out. Returns OK or NO_MEMORY. */
-static int fit_in_vertex_order(Fit *fit, const int32_t *at, const unsigned char *taken, Buffer *work) {
+ * fit_batch, each moving a normal the share relax of the way to its
+ * step's solution (weighted Jacobi; 1: the whole way), the unit normals
+ * into fit->out. Returns OK or NO_MEMORY. */
+static int fit_in_vertex_order(Fit *fit, double relax, const int32_t *at, const unsigned char *taken, Buffer *work) {
     int64_t V0 = fit->V0, lo = fit->lo, k_new = fit->k_new, n = fit->samples[k_new];
     int32_t *own = room(&work[O_OWN], (size_t)n * 3 * sizeof *own);
     double *bary = room(&work[O_BARY], (size_t)n * 3 * sizeof *bary);
@@ -610,8 +612,12 @@ static int fit_in_vertex_order(Fit *fit, const int32_t *at, const unsigned char 
         split(fit->threads, fit->min_split, ordered_residuals, &o, n, NULL);
         split(fit->threads, fit->min_split, ordered_rhs, &o, k_new, NULL);
         for (int64_t u = 0; u < k_new; u++)
-            for (int x = 0; x < 3; x++)
-                fitted[3 * u + x] = diagonal[u] > 0 ? rhs[3 * u + x] / diagonal[u] : start[3 * u + x];
+            for (int x = 0; x < 3; x++) {
+                double step = rhs[3 * u + x] / diagonal[u];
+                /* Weighted Jacobi: the step's share relax, the rest kept. */
+                if (relax != 1.0) step = (1.0 - relax) * fitted[3 * u + x] + relax * step;
+                fitted[3 * u + x] = diagonal[u] > 0 ? step : start[3 * u + x];
+            }
     }
     for (int64_t u = 0; u < k_new; u++) {
         unit3(fitted + 3 * u);
@@ -778,13 +784,14 @@ enum { NOT_FRONT = 2 };
  * leaf order: position [3, V0] by axis, target [V0, 3] (the originals'
  * stored normals), area [V0] (a third of their faces'). Mesh: ids [N]
  * hierarchy ids, faces [F, 3] indices into ids, eye [3] or NULL (weights
- * then times the cosine toward it over the squared distance). out: [N, 3]
+ * then times the cosine toward it over the squared distance); sweeps of
+ * weighted Jacobi, each by the share relax. out: [N, 3]
  * float64, row i for ids[i]; workspace from pmn_view_workspace. Returns
  * OK, NO_MEMORY or NOT_FRONT. */
 int64_t pmn_view_normals(int64_t V0, const double *positions, const float *normals, const int32_t *leaf,
                          const int32_t *leaf_first, const int32_t *leaf_count, const double *position,
                          const double *target, const double *area, int64_t N, const int64_t *ids, int64_t F,
-                         const int64_t *faces, const double *eye, int64_t sweeps, int64_t threads,
+                         const int64_t *faces, const double *eye, int64_t sweeps, double relax, int64_t threads,
                          int64_t min_split, void *workspace, double *out) {
     int64_t W0 = V0 > 0 ? V0 : 1, W = N > 0 ? N : 1, WF = F > 0 ? F : 1;
     Buffer *work = workspace;
@@ -879,7 +886,7 @@ int64_t pmn_view_normals(int64_t V0, const double *positions, const float *norma
             for (int64_t u = 0; u < N - lo; u++)
                 if (fit.samples[u + 1] > fit.samples[u])
                     memset(taken + first[lo + u], 2, (size_t)count[lo + u]);
-            if (fit_in_vertex_order(&fit, leaf_first, taken, work) != OK) return NO_MEMORY;
+            if (fit_in_vertex_order(&fit, relax, leaf_first, taken, work) != OK) return NO_MEMORY;
         }
     }
     for (int64_t i = 0; i < N; i++) memcpy(out + 3 * i, start + 3 * slot_of[i], 3 * sizeof(double));

@@ -8,7 +8,17 @@ import weakref
 import numpy as np
 
 from . import _normals
-from ._normals import FIT_SWEEPS, _corner_sums, _face_cross, _fit_batch, _hierarchy_arrays, _native_hierarchy, _Samples
+from ._normals import _corner_sums, _face_cross, _fit_batch, _hierarchy_arrays, _native_hierarchy, _Samples
+
+
+# The per-view fit's Jacobi sweeps and the share of each step taken
+# (weighted Jacobi). Unlike a batch's, the drawn mesh's created vertices
+# are each other's neighbours, so a plain sweep moves every vertex for
+# neighbours that move too and overshoots, by turns (on the dragon's orbit
+# odd counts of plain sweeps draw better than even ones, more of them
+# worse); taking two thirds of each step damps that.
+VIEW_SWEEPS = 3
+VIEW_RELAX = 0.67
 
 
 class ViewNormals:
@@ -24,8 +34,9 @@ class ViewNormals:
     vertices standing under a created vertex of the mesh, on the face of its
     fan their projection falls into most deeply, each weighted by its area,
     a third of its faces', with target its vertex normal), solved by
-    :data:`pmjax._normals.FIT_SWEEPS` Jacobi sweeps from the stored shading
-    normals. With an eye position a sample's weight is the area seen from
+    ``sweeps`` weighted Jacobi sweeps from the stored shading normals, each
+    moving a normal the share ``relax`` of the way to its step's solution,
+    then normalized. With an eye position a sample's weight is the area seen from
     there instead: its area times its normal's cosine toward the eye (zero
     when facing away) over its squared distance. Original vertices keep
     their stored normals, so the original mesh is drawn as with the stored
@@ -45,12 +56,19 @@ class ViewNormals:
         normals: ``[V0 + P, 3]`` the stored shading normals (the fit's start
             and the original vertices' normals, also the samples' targets),
             e.g. ``pmjax.fitted_normals(pm)``.
+        sweeps: Jacobi sweeps, a whole number >= 1 (default
+            :data:`VIEW_SWEEPS`).
+        relax: the share of each step taken, in (0, 1] (default
+            :data:`VIEW_RELAX`; 1: plain Jacobi, with the batch fit's
+            sweeps the batch fit's rule).
     """
 
-    def __init__(self, pm, normals, *, sweeps: int = FIT_SWEEPS):
+    def __init__(self, pm, normals, *, sweeps: int = VIEW_SWEEPS, relax: float = VIEW_RELAX):
         if isinstance(sweeps, bool) or not isinstance(sweeps, (int, np.integer)) or sweeps < 1:
             raise ValueError(f"ViewNormals: sweeps must be a whole number >= 1, got {sweeps!r}")
-        self._sweeps = int(sweeps)
+        if isinstance(relax, bool) or not isinstance(relax, (int, float, np.floating, np.integer)) or not 0 < relax <= 1:
+            raise ValueError(f"ViewNormals: relax must be a number in (0, 1], got {relax!r}")
+        self._sweeps, self._relax = int(sweeps), float(relax)
         V0, vertices, faces, parent, _ = _hierarchy_arrays(pm)
         normals = np.asarray(normals)
         if normals.shape != (len(vertices), 3):
@@ -111,7 +129,7 @@ class ViewNormals:
                 self._V0, positions.ctypes.data, self._normals.ctypes.data, leaf.ctypes.data, first.ctypes.data,
                 count.ctypes.data, position.ctypes.data, target.ctypes.data, area.ctypes.data, len(ids),
                 ids.ctypes.data, len(faces), faces.ctypes.data, None if eye is None else eye.ctypes.data, self._sweeps,
-                _normals.FIT_THREADS, _normals.FIT_MIN_SPLIT, self._workspace, out.ctypes.data)
+                self._relax, _normals.FIT_THREADS, _normals.FIT_MIN_SPLIT, self._workspace, out.ctypes.data)
         if rc == 1:
             raise MemoryError("ViewNormals: out of memory in the C loops")
         return out if rc == 0 else None
@@ -170,5 +188,6 @@ class ViewNormals:
             samples = samples._replace(weights=samples.weights * facing / distance**2)
         coordinates = np.ascontiguousarray(self._positions[:, ids[order]])
         corners = np.ascontiguousarray(slot_of[faces].T)
-        normals[:, lo:] = _fit_batch(coordinates, corners, ancestor, samples, normals, lo, len(ids), self._sweeps)
+        normals[:, lo:] = _fit_batch(coordinates, corners, ancestor, samples, normals, lo, len(ids), self._sweeps,
+                                     self._relax)
         return np.ascontiguousarray(normals.T[slot_of], np.float32)

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import pmjax
+import pmjax._normals
 
 
 @pytest.fixture(scope="module")
@@ -35,12 +36,13 @@ def _mesh_after_first_batch(data):
 
 def test_on_the_mesh_after_a_batch_it_is_the_batch_fit(cow):
     """Started from the subtree means on the mesh just after batch 0 (whose
-    created vertices are those of batch 0, the other corners original), the
-    per-view fit is the stored fit of batch 0 (up to the float32 start)."""
+    created vertices are those of batch 0, the other corners original), with
+    the batch fit's plain sweeps, the per-view fit is the stored fit of
+    batch 0 (up to the float32 start)."""
     V0 = cow.n_original_vertices
     ids, faces = _mesh_after_first_batch(cow)
     start = pmjax.hierarchy_normals(pmjax.ProgressiveMesh.from_data(cow))
-    got = pmjax.ViewNormals(cow, start)(ids, faces)
+    got = pmjax.ViewNormals(cow, start, sweeps=pmjax._normals.FIT_SWEEPS, relax=1.0)(ids, faces)
     fitted = pmjax.fitted_normals(cow)
     created = ids >= V0
     assert created.sum() == int(cow.batch_offsets[1])
@@ -146,15 +148,16 @@ def test_the_c_loops_give_the_numpy_bits(cow, monkeypatch, snap):
     """The C loops (a created vertex's samples: the run of its leaves) and
     NumPy (a climb from every original vertex) give the same bits: on
     refinements of the cow at two taus, with and without an eye, with two and
-    five sweeps, every step split over one, two and three threads; also on
+    five plain sweeps and three weighted ones, every step split over one, two
+    and three threads; also on
     the cow with its coordinates snapped to a coarse grid (degenerate faces,
     equally deep faces)."""
     import pmjax._normals
 
     _native_or_skip()
     data = dataclasses.replace(cow, vertices=np.round(cow.vertices * 8.0) / 8.0) if snap else cow
-    for sweeps in (2, 5):
-        view = pmjax.ViewNormals(data, cow.shading_normals, sweeps=sweeps)
+    for sweeps, relax in ((2, 1.0), (5, 1.0), (3, 0.6)):
+        view = pmjax.ViewNormals(data, cow.shading_normals, sweeps=sweeps, relax=relax)
         for ids, faces, eye in _refinement_meshes(cow):
             for at in (None, eye):
                 expected = _by_numpy(monkeypatch, view, ids, faces, eye=at)
@@ -183,11 +186,15 @@ def test_ids_that_are_not_a_front_go_to_numpy_with_its_bits(cow, monkeypatch):
         np.testing.assert_array_equal(view(bad, faces, eye=eye), _by_numpy(monkeypatch, view, bad, faces, eye=eye))
 
 
-def test_more_sweeps_move_the_fit_and_bad_sweeps_are_refused(cow):
+def test_sweeps_and_relax_move_the_fit_and_bad_ones_are_refused(cow):
     ids, faces, eye = _refinement_meshes(cow)[0]
-    two = pmjax.ViewNormals(cow, cow.shading_normals)(ids, faces, eye=eye)
-    eight = pmjax.ViewNormals(cow, cow.shading_normals, sweeps=8)(ids, faces, eye=eye)
-    assert np.abs(two - eight).max() > 1e-3
+    plain = pmjax.ViewNormals(cow, cow.shading_normals, sweeps=2, relax=1.0)(ids, faces, eye=eye)
+    eight = pmjax.ViewNormals(cow, cow.shading_normals, sweeps=8, relax=1.0)(ids, faces, eye=eye)
+    relaxed = pmjax.ViewNormals(cow, cow.shading_normals, sweeps=2, relax=0.5)(ids, faces, eye=eye)
+    assert np.abs(plain - eight).max() > 1e-3 and np.abs(plain - relaxed).max() > 1e-3
     for bad in (0, -1, 2.5, True, "2"):
         with pytest.raises(ValueError, match="sweeps must be"):
             pmjax.ViewNormals(cow, cow.shading_normals, sweeps=bad)
+    for bad in (0, 0.0, -0.5, 1.5, float("nan"), True, "1"):
+        with pytest.raises(ValueError, match="relax must be"):
+            pmjax.ViewNormals(cow, cow.shading_normals, relax=bad)
