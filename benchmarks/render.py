@@ -20,8 +20,9 @@ the unlit (geometry-only) share for each row and mean FLIP over the model's pixe
 normals: the shading normals compared on the same refinements and frames (one
 refinement and one original render per frame): the subtree means
 (``pmjax.hierarchy_normals``), the fitted ones (``pmjax.fitted_normals``,
-what the renderer draws) and those fitted again per view on the mesh drawn
-(``pmjax.ViewNormals``, samples weighted by the area seen): differing share,
+stored in the file) and those fitted again per view on the mesh drawn
+(``pmjax.ViewNormals``, samples weighted by the area seen; what the renderer
+draws): differing share,
 silhouette share and mean FLIP over the model's pixels, medians and means over
 the frames, at one tau.
 
