@@ -2,6 +2,9 @@
  * plain C loops: the original surface's sums, then batch by batch up the
  * hierarchy the subtree means, the live faces relabelled, each created
  * vertex's fan, the samples located on their fans and the Jacobi sweeps.
+ * The per-view fit (pmjax.ViewNormals, pmn_view_normals) runs the same fan
+ * and location steps on one drawn mesh, as one batch of all its created
+ * vertices.
  *
  * Each loop is a NumPy step of pmjax/_normals.py with its arithmetic in the
  * same order (no contraction): sums of a vertex's terms in the order the

@@ -154,6 +154,10 @@ class ViewNormals:
             raise ValueError(f"ViewNormals: vertex ids must be in [0, {V}), got {ids.min()}..{ids.max()}")
         if len(faces) and not (0 <= faces.min() and faces.max() < len(ids)):
             raise ValueError(f"ViewNormals: faces must index the {len(ids)} vertices")
+        if eye is not None:
+            eye = np.asarray(eye, np.float64)
+            if eye.shape != (3,) or not np.isfinite(eye).all():
+                raise ValueError(f"ViewNormals: eye must be 3 finite coordinates, got {eye.tolist()}")
         fitted = self._native(ids, faces, eye)
         if fitted is not None:
             return fitted.astype(np.float32)

@@ -111,6 +111,9 @@ def test_bad_arguments_are_refused(cow):
         view([0, 1, V], [[0, 1, 2]])
     with pytest.raises(ValueError, match="faces must index"):
         view([0, 1, 2], [[0, 1, 3]])
+    for eye in ([0.0, 0.0], [0.0, np.nan, 1.0], [np.inf, 0.0, 0.0]):
+        with pytest.raises(ValueError, match="eye must be"):
+            view([0, 1, 2], [[0, 1, 2]], eye=eye)
 
 
 def _refinement_meshes(cow, taus=(1.0, 4.0)):
