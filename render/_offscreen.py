@@ -331,6 +331,24 @@ class SlotMesh:
             self._pending = (np.concatenate([self._pending[0], faces]), np.concatenate([self._pending[1], vertices]))
         return change
 
+    def shade(self, eye) -> None:
+        """Shades the mesh held with normals fitted on it, seen from ``eye``
+        (``[3]``, world units; :func:`view_normals`): every live vertex
+        slot's normal row is rewritten (the stored normals' rows come back
+        with the next :meth:`apply` only where that change writes them)."""
+        ids, faces = self.stream.vertex_ids, self.stream.faces
+        live = np.flatnonzero(ids >= 0)
+        if not len(live):
+            return
+        # The live slots as one mesh: their ids, and the live face slots'
+        # corners as indices into them.
+        index = np.full(len(ids), -1, np.int64)
+        index[live] = np.arange(len(live))
+        corners = index[faces[faces[:, 0] >= 0]]
+        self._vertex_normals[live] = view_normals(self.pm)(ids[live], corners, eye=np.asarray(eye, np.float64))
+        if self._pending is not None:
+            self._pending = (self._pending[0], np.concatenate([self._pending[1], live.astype(self._pending[1].dtype)]))
+
     def _grow(self, n_faces: int, n_vertices: int):
         """Host arrays and a new primitive with room for a quarter more slots."""
         F, V = max(n_faces + n_faces // 4, 64), max(n_vertices + n_vertices // 4, 64)
@@ -574,11 +592,11 @@ def render_path(pm: ProgressiveMesh, cameras: Camera, tau: float, out: str, *, t
                 fps: int = 30, coherent: bool = True, progress: bool = True, normals: str = "view") -> dict:
     """Refine and render every camera of a path; write ``out`` (.mp4/.gif/PNG folder).
 
-    Hard refinements in one colour (no geomorph, levels or wireframe) drawn
-    with the stored normals are drawn from GPU buffers that each frame's
-    change updates in place (:class:`StreamScene`); the others build each
-    frame's mesh (normals fitted per view rewrite every created vertex's
-    row each frame).
+    Hard refinements in one colour (no geomorph, levels or wireframe) are
+    drawn from GPU buffers that each frame's change updates in place
+    (:class:`StreamScene`; normals fitted per view rewrite every live
+    vertex's normal row each frame, :meth:`SlotMesh.shade`); the others
+    build each frame's mesh.
 
     Args:
         phantom: if given, every frame is refined for its path camera but seen
@@ -609,11 +627,13 @@ def render_path(pm: ProgressiveMesh, cameras: Camera, tau: float, out: str, *, t
             for i, refined in zip(it, refine_path(pm, cameras, tau, tests=tests, coherent=coherent)):
                 cam = index_camera(cameras, i)
                 scene.update(refined)
+                if normals == "view":
+                    scene.mesh.shade((phantom if phantom is not None else cam).eye)
                 faces.append(int(refined.n_faces))
                 lines = frustum_past_model(pm, cam) if phantom is not None else None
                 yield scene.render(cam, view=phantom, lines=lines)[0]
 
-    if geomorph <= 1 and not color_levels and not wireframe and normals == "stored":
+    if geomorph <= 1 and not color_levels and not wireframe:
         if not tau >= 0:
             raise ValueError(f"tau must be >= 0 (and not NaN), got {tau}")
         write_frames(streamed(), out, fps=fps)

@@ -70,9 +70,9 @@ def test_stream_scene_buffers_and_images_follow_the_path(cow):
 
 @pytest.mark.parametrize("normals", ["stored", "view"])
 def test_render_path_draws_from_the_stream(cow, tmp_path, normals):
-    """pmjax render's path: the frames written are the stream scene's with
-    the stored normals, and each frame's mesh drawn anew with normals
-    fitted per view."""
+    """pmjax render's path: the frames written are the stream scene's, with
+    the stored normals or those fitted per view on its live slots: the same
+    images as each frame's refinement drawn anew with them."""
     from pmjax.render import Renderer, render_path, render_refinement
 
     data, pm = cow
@@ -89,3 +89,6 @@ def test_render_path_draws_from_the_stream(cow, tmp_path, normals):
         for i, (f, r) in enumerate(zip(files, pmjax.refine_path(pm, cams, 1.0))):
             want, _ = render_refinement(renderer, pm, r, pmjax.index_camera(cams, i), normals=normals)
             assert np.count_nonzero(np.any(iio.imread(f)[..., :3] != want, axis=2)) <= 10, i
+            other, _ = render_refinement(renderer, pm, r, pmjax.index_camera(cams, i),
+                                         normals="view" if normals == "stored" else "stored")
+            assert np.count_nonzero(np.any(iio.imread(f)[..., :3] != other, axis=2)) > 10, i
