@@ -19,9 +19,12 @@ the unlit (geometry-only) share for each row and mean FLIP over the model's pixe
 
 normals: the shading normals compared on the same refinements and frames (one
 refinement and one original render per frame): the subtree means
-(``pmjax.hierarchy_normals``) against the fitted ones (``pmjax.fitted_normals``,
-what the renderer draws): differing share, silhouette share and mean FLIP over
-the model's pixels, medians and means over the frames, at one tau.
+(``pmjax.hierarchy_normals``), the fitted ones (``pmjax.fitted_normals``,
+stored in the file) and those fitted again per view on the mesh drawn
+(``pmjax.ViewNormals``, samples weighted by the area seen; what the renderer
+draws): differing share,
+silhouette share and mean FLIP over the model's pixels, medians and means over
+the frames, at one tau.
 
 cost: what ``path_fidelity`` (``pmjax path --fidelity``) spends per frame,
 ``fidelity_ms`` (every render and metric of a frame), without and with FLIP,
@@ -30,7 +33,9 @@ then over the repeats, and their ratio.
 
 fit: what ``pmjax.fitted_normals`` costs, its C loops (two threads) against the
 NumPy steps (one thread, the same bits), alternated in one process on the
-loaded hierarchy (``--fit-repeats`` each): medians and their ratio.
+loaded hierarchy (``--fit-repeats`` each): medians and their ratio; and what
+``pmjax.ViewNormals`` costs per drawn mesh (8 orbit frames at tau 1), C loops
+(wall and CPU time) against NumPy, alternated per frame.
 """
 
 from __future__ import annotations
@@ -116,19 +121,23 @@ def frontier(name, frames, taus, shares, supersample=2):
 
 
 def normals(name, frames, tau, supersample=2):
-    """The subtree-mean and the fitted shading normals on the same refinements
-    of ``frames`` frames of the standard orbit at ``tau``: per normals, the
+    """The subtree-mean, the fitted and the per-view fitted shading normals on
+    the same refinements of ``frames`` frames of the standard orbit at
+    ``tau``: per normals, the
     median and mean over the frames of the differing share, the silhouette
     share and FLIP over the model's pixels."""
     data = pmjax.read_pm(pm_file(name))
     pm = pmjax.ProgressiveMesh.from_data(data)
     V0 = data.n_original_vertices
     sets = {"hierarchy": pmjax.hierarchy_normals(pm), "fitted": pmjax.fitted_normals(data)}
+    # Fitted again per view, on the mesh drawn (from the stored ones; the
+    # samples weighted by the area seen from the eye).
+    per_view = pmjax.ViewNormals(data, sets["fitted"])
     cams = pmjax.standard_orbit(data.vertices[:V0], frames)
     views = [index_camera(cams, i) for i in range(frames)]
-    # The original is drawn with its own vertex normals, the same in both sets.
+    # The original is drawn with its own vertex normals, the same in every set.
     ov, of = data.vertices[:V0], data.faces
-    measures = {key: dict(differing_share=[], silhouette_share=[], flip_model_mean=[]) for key in sets}
+    measures = {key: dict(differing_share=[], silhouette_share=[], flip_model_mean=[]) for key in [*sets, "per view"]}
     faces = []
     t0 = time.perf_counter()
     with Renderer(views[0].width, views[0].height, supersample=supersample, float_color=True) as r:
@@ -138,8 +147,10 @@ def normals(name, frames, tau, supersample=2):
             faces.append(len(f))
             original = r.render_mesh(ov, of, cam, normals=sets["fitted"][:V0])
             silhouette = silhouette_difference(r, (ov, of), (v, f), cam)["differing_share"]
-            for key, n in sets.items():
-                image = r.render_mesh(v, f, cam, normals=n[ids])
+            drawn = {key: n[ids] for key, n in sets.items()}
+            drawn["per view"] = per_view(ids, f, eye=np.asarray(cam.eye))
+            for key, n in drawn.items():
+                image = r.render_mesh(v, f, cam, normals=n)
                 m = measures[key]
                 m["differing_share"].append(image_difference(*original, *image)["differing_share"])
                 m["silhouette_share"].append(silhouette)
@@ -181,7 +192,49 @@ def fit(name, repeats):
     row["ratio"] = row["numpy_s"] / row["c_s"]
     print(f"{name:8s} fitted_normals: C {row['c_s']:.3f} s, NumPy {row['numpy_s']:.3f} s, "
           f"C {row['ratio']:.2f}x faster (medians of {repeats})", flush=True)
-    return [row]
+    return [row, view_fit(data, name, repeats)]
+
+
+def view_fit(data, name, repeats, frames=8, tau=1.0):
+    """Milliseconds of ``pmjax.ViewNormals`` per drawn mesh (the refinements of
+    ``frames`` standard-orbit frames at ``tau``, seen from their eyes): the C
+    loops (wall and the process's CPU time) and NumPy alternated ``repeats``
+    times per frame; medians over the frames of the medians over the repeats."""
+    from pmjax import _normals
+
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    V0 = data.n_original_vertices
+    view = pmjax.ViewNormals(data, data.shading_normals)
+    cams = pmjax.standard_orbit(data.vertices[:V0], frames)
+    native = _normals.native
+    per_frame = {"C": [], "C_cpu": [], "NumPy": []}
+    try:
+        for i in range(frames):
+            cam = index_camera(cams, i)
+            _, f, ids = pmjax.refine(pm, cam, tau).mesh(pm)
+            eye = np.asarray(cam.eye)
+            view(ids, f, eye=eye)  # the C loops' leaf order and workspace, made once
+            times = {key: [] for key in per_frame}
+            for _ in range(repeats):
+                for way in ("C", "NumPy"):
+                    _normals.native = native if way == "C" else None
+                    t, c = time.perf_counter(), time.process_time()
+                    view(ids, f, eye=eye)
+                    times[way].append(1e3 * (time.perf_counter() - t))
+                    if way == "C":
+                        times["C_cpu"].append(1e3 * (time.process_time() - c))
+            for key in per_frame:
+                per_frame[key].append(statistics.median(times[key]))
+    finally:
+        _normals.native = native
+    row = dict(model=name, part="ViewNormals", frames=frames, tau=tau, threads=_normals.FIT_THREADS,
+               c_ms=statistics.median(per_frame["C"]) if native is not None else float("nan"),
+               c_cpu_ms=statistics.median(per_frame["C_cpu"]), numpy_ms=statistics.median(per_frame["NumPy"]))
+    row["ratio"] = row["numpy_ms"] / row["c_ms"]
+    print(f"{name:8s} ViewNormals per frame: C {row['c_ms']:.1f} ms (CPU {row['c_cpu_ms']:.1f} ms, "
+          f"{row['threads']} threads), NumPy {row['numpy_ms']:.0f} ms, C {row['ratio']:.1f}x faster "
+          f"(medians over {frames} frames of {repeats} alternated repeats)", flush=True)
+    return row
 
 
 def cost(name, frames, tau, repeats, supersample=2):
@@ -295,7 +348,7 @@ def main():
     if args.plot and frontier_rows:
         pareto_plot(frontier_rows, args.plot)
     if "normals" in parts:
-        print("\nShading normals (same refinements and frames for both):")
+        print("\nShading normals (same refinements and frames for all):")
         for name, n in zip(names, per_model(args.normals_frames, names)):
             normals_rows += normals(name, n, args.normals_tau, args.supersample)
     cost_rows = []

@@ -37,6 +37,7 @@ if TYPE_CHECKING:  # the names as a type checker and an editor see them
     from ._oracle import oracle_refine
     from ._soft import SoftRefinement, geomorph_blend, geomorph_positions, soft_refine, soft_tests, soft_weights
     from ._normals import fitted_normals, hierarchy_normals
+    from ._view_normals import ViewNormals
     from ._budget import BudgetSolution, soft_tau_for_budget
     from ._geomorph import Geomorph, geomorph_mesh, geomorph_start, geomorph_step, hidden_pcols
     from ._camera_table import CameraError, CameraTable, read_camera_table, table_from_cameras, write_camera_table
@@ -117,6 +118,7 @@ _EXPORTS = {
     "soft_weights": ("._soft", "soft_weights"),
     "hierarchy_normals": ("._normals", "hierarchy_normals"),
     "fitted_normals": ("._normals", "fitted_normals"),
+    "ViewNormals": ("._view_normals", "ViewNormals"),
     "BudgetSolution": ("._budget", "BudgetSolution"),
     "soft_tau_for_budget": ("._budget", "soft_tau_for_budget"),
     "Geomorph": ("._geomorph", "Geomorph"),
@@ -250,6 +252,7 @@ __all__ = [
     "geomorph_positions",
     "hierarchy_normals",
     "fitted_normals",
+    "ViewNormals",
     "soft_refine",
     "soft_tests",
     "soft_weights",

@@ -277,7 +277,8 @@ def cmd_path(args) -> int:
         from pmjax.render import path_fidelity
 
         fidelity = path_fidelity(pm, cams, args.tau, tests=tests, geomorph=args.geomorph,
-                                 supersample=args.supersample, coherent=not args.per_frame, progress=not args.quiet)
+                                 supersample=args.supersample, coherent=not args.per_frame, progress=not args.quiet,
+                                 normals="stored" if args.stored_normals else "view")
         for row, fid in zip(rows, fidelity):
             row.update({k: round(float(fid[k]), 6) for k in FIDELITY_COLUMNS})
         cols += list(FIDELITY_COLUMNS)
@@ -409,7 +410,8 @@ def cmd_render(args) -> int:
         view = overview_camera(np.asarray(pm.vertices)[: pm.n_original_vertices], pmjax.index_camera(cams, 0))
     out = render_path(pm, cams, args.tau, args.output, tests=_tests(args), wireframe=args.wireframe,
                       color_levels=args.levels, phantom=view, geomorph=args.geomorph, fps=args.fps,
-                      coherent=not args.per_frame, progress=not args.quiet)
+                      coherent=not args.per_frame, progress=not args.quiet,
+                      normals="stored" if args.stored_normals else "view")
     print(f"{args.output}: {out['frames']} frames, faces median {int(np.median(out['faces']))}")
     return 0
 
@@ -418,7 +420,7 @@ def cmd_figures(args) -> int:
     import pmjax
     from pmjax.render import paper_figures
 
-    out = paper_figures(pmjax.load(args.pm), args.output)
+    out = paper_figures(pmjax.load(args.pm), args.output, normals="stored" if args.stored_normals else "view")
     for name, (path, faces) in out.items():
         print(f"{path}: {faces} faces")
     return 0
@@ -542,6 +544,11 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--geomorph", type=_whole(0), default=0, metavar="N",
                        help="blend refinement changes over N frames instead of popping (default 0: off)")
 
+    def add_normals_arg(p, what):
+        p.add_argument("--stored-normals", action="store_true",
+                       help=f"shade {what} with the normals stored in the file instead of normals fitted "
+                            "on each mesh drawn, seen from its camera (docs/render.md)")
+
     def add_view_args(p):
         p.add_argument("--tau", type=TAU, default=1.0, help="screen-space tolerance in pixels (default 1)")
         p.add_argument("--no", action="append", choices=("frustum", "orientation", "screen"),
@@ -621,6 +628,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "and over the model's pixels (needs flip-evaluator), and the measuring cost per frame")
     p.add_argument("--supersample", type=_whole(1, 16), default=2, metavar="S",
                    help="fidelity renders: S×S samples per pixel (default 2; popping wants 4, docs/soft.md)")
+    add_normals_arg(p, "the fidelity renders' refinements")
     add_geomorph_arg(p)
     add_per_frame_arg(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -693,6 +701,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--phantom", action="store_true",
                    help="watch from a fixed overview camera, with each path camera's frustum drawn")
     p.add_argument("--fps", type=_whole(1, 1000), default=30, help="frames per second of the video")
+    add_normals_arg(p, "refinements")
     add_geomorph_arg(p)
     add_per_frame_arg(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -703,6 +712,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Frustum, orientation and screen-space effects and the phantom camera.")
     p.add_argument("pm", help=".pmz file")
     p.add_argument("-o", "--output", required=True, help="output folder")
+    add_normals_arg(p, "refinements")
     p.set_defaults(func=cmd_figures)
 
     p = sub.add_parser("view", help="interactive viewer (needs a display)",

@@ -505,7 +505,8 @@ def _fidelity(pm, digest: str, table: CameraTable, taus: np.ndarray, tests: Test
     """The image metrics (:data:`FIDELITY_COLUMNS`) of each camera of
     ``table``: its refinement at ``taus[row]`` against the original mesh,
     both drawn from that camera (:func:`pmjax.render.camera_fidelity`, the
-    per-frame measure of :func:`pmjax.render.path_fidelity`); ``fidelity_ms``
+    per-frame measure of :func:`pmjax.render.path_fidelity`, the refinement
+    shaded with normals fitted on the mesh drawn); ``fidelity_ms``
     is the camera's measuring (renders and metrics, not the refine)."""
     from pmjax.render import Renderer, camera_fidelity, original_arrays, refined_arrays
 
@@ -521,7 +522,8 @@ def _fidelity(pm, digest: str, table: CameraTable, taus: np.ndarray, tests: Test
     for idx, cams in table.batches():
         for j, row in enumerate(idx):
             cam = index_camera(cams, j)
-            mesh = refined_arrays(pm, refine(pm, cam, float(taus[row]), tests=tests, method=method))
+            mesh = refined_arrays(pm, refine(pm, cam, float(taus[row]), tests=tests, method=method),
+                                  eye=np.asarray(cam.eye))
             with _RENDER_LOCK:
                 t = time.perf_counter()
                 renderer = Renderer(int(cam.width), int(cam.height), FIDELITY_SUPERSAMPLE, True)

@@ -148,6 +148,15 @@ def _load_native():
     lib.pmn_fitted_normals.restype = ctypes.c_int64
     i64, ptr = ctypes.c_int64, ctypes.c_void_p
     lib.pmn_fitted_normals.argtypes = [i64, i64, ptr, i64, i64, ptr, ptr, ptr, i64, ptr, i64, i64, i64, ptr]
+    lib.pmn_leaf_order.restype = ctypes.c_int64
+    lib.pmn_leaf_order.argtypes = [i64, i64, ptr, ptr, ptr, ptr, ptr]
+    lib.pmn_view_normals.restype = ctypes.c_int64
+    lib.pmn_view_normals.argtypes = [i64, ptr, ptr, ptr, ptr, ptr, ptr, ptr, ptr, i64, ptr, i64, ptr, ptr, i64,
+                                     ctypes.c_double, i64, i64, ptr, ptr]
+    lib.pmn_view_workspace.restype = ptr
+    lib.pmn_view_workspace.argtypes = []
+    lib.pmn_view_workspace_free.restype = None
+    lib.pmn_view_workspace_free.argtypes = [ptr]
     return lib
 
 
@@ -173,13 +182,12 @@ def _fitted_by_axis(pm) -> np.ndarray:
     return _fitted_numpy(pm) if fitted is None else fitted.T
 
 
-def _fitted_native(pm) -> np.ndarray | None:
-    """``float64[V0 + P, 3]``: the fit by the C loops, or ``None`` where the
-    hierarchy's ids are outside what they take (faces on original vertices,
-    each pcol consuming two vertices made before its batch, int32 ids) or
-    they are not built."""
-    if native is None:
-        return None
+def _native_hierarchy(pm):
+    """``(V0, vertices, faces int32, offsets, kid_lo, kid_hi)`` as the C loops
+    take them (vertices float32 or float64, each pcol's children the
+    smaller id first), or ``None`` where the hierarchy's ids are outside
+    what they take (faces on original vertices, each pcol consuming two
+    vertices made before its batch, int32 ids)."""
     V0 = int(pm.n_original_vertices)
     vertices = np.asarray(pm.vertices)
     if vertices.dtype != np.float32:
@@ -213,7 +221,18 @@ def _fitted_native(pm) -> np.ndarray | None:
         return None
     if P and np.bincount(np.concatenate([kid_lo, kid_hi]), minlength=V).max() > 1:
         return None  # a vertex consumed twice
-    kid_lo, kid_hi = np.ascontiguousarray(kid_lo), np.ascontiguousarray(kid_hi)
+    return V0, vertices, faces, offsets, np.ascontiguousarray(kid_lo), np.ascontiguousarray(kid_hi)
+
+
+def _fitted_native(pm) -> np.ndarray | None:
+    """``float64[V0 + P, 3]``: the fit by the C loops, or ``None`` where the
+    hierarchy's ids are outside what they take (:func:`_native_hierarchy`)
+    or they are not built."""
+    hierarchy = None if native is None else _native_hierarchy(pm)
+    if hierarchy is None:
+        return None
+    V0, vertices, faces, offsets, kid_lo, kid_hi = hierarchy
+    V = len(vertices)
     out = np.empty((V, 3))
     if native.pmn_fitted_normals(V0, V, vertices.ctypes.data, int(vertices.dtype == np.float64), len(faces),
                                  faces.ctypes.data, kid_lo.ctypes.data, kid_hi.ctypes.data, len(offsets) - 1,
@@ -324,12 +343,14 @@ def _own_faces(geometry, first, size, positions):
     return face[own], bary
 
 
-def _fit_batch(coordinates, corners, ancestor, samples: _Samples, normals, lo: int, hi: int) -> np.ndarray:
+def _fit_batch(coordinates, corners, ancestor, samples: _Samples, normals, lo: int, hi: int,
+               sweeps: int = FIT_SWEEPS, relax: float = 1.0) -> np.ndarray:
     """``[3, hi - lo]`` by axis the fitted unit normals of the vertices
     ``lo:hi`` created by one batch, in the mesh of live faces ``corners[3,
     F]`` just after it (``coordinates[3, V]``: the vertices' positions;
     ``normals[3, V]``: every other vertex's, fixed; the batch's subtree
-    means)."""
+    means), by ``sweeps`` Jacobi sweeps, each moving a normal the share
+    ``relax`` of the way to its step's solution (1: the whole way)."""
     # Step 1: each created vertex's fan: the live faces with it as a corner,
     # grouped by vertex; in a group the faces where it is corner 0, then
     # corner 1, then corner 2, each in mesh order (one sort of unique keys).
@@ -375,7 +396,7 @@ def _fit_batch(coordinates, corners, ancestor, samples: _Samples, normals, lo: i
     values = [normals.take(own[k], axis=1) for k in range(3)]  # [3, S] each, the created corners' set per sweep
     solved = diagonal > 0
     fitted = start
-    for _ in range(FIT_SWEEPS):
+    for _ in range(sweeps):
         for k in range(3):
             values[k][:, on[k]] = fitted.take(at[k], axis=1)
         terms = [bary[k] * values[k] for k in range(3)]
@@ -384,5 +405,9 @@ def _fit_batch(coordinates, corners, ancestor, samples: _Samples, normals, lo: i
         rhs = np.concatenate([share[k] * (residual.take(on[k], axis=1) + terms[k].take(on[k], axis=1))
                               for k in range(3)], axis=1)
         rhs = np.stack([np.bincount(np.concatenate(at), row, minlength=hi - lo) for row in rhs])
-        fitted = np.where(solved, rhs / np.where(solved, diagonal, 1.0), start)
+        step = rhs / np.where(solved, diagonal, 1.0)
+        if relax != 1.0:
+            # Weighted Jacobi: the step's share relax, the rest kept.
+            step = (1.0 - relax) * fitted + relax * step
+        fitted = np.where(solved, step, start)
     return _unit(fitted, axis=0)

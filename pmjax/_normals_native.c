@@ -2,6 +2,9 @@
  * plain C loops: the original surface's sums, then batch by batch up the
  * hierarchy the subtree means, the live faces relabelled, each created
  * vertex's fan, the samples located on their fans and the Jacobi sweeps.
+ * The per-view fit (pmjax.ViewNormals, pmn_view_normals) runs the same fan
+ * and location steps on one drawn mesh, as one batch of all its created
+ * vertices.
  *
  * Each loop is a NumPy step of pmjax/_normals.py with its arithmetic in the
  * same order (no contraction): sums of a vertex's terms in the order the
@@ -367,6 +370,9 @@ typedef struct {
 } Buffer;
 
 enum { FAN_START, FAN, CURSOR, SAMPLES, TERM_START, TERM, DIAGONAL, FITTED, N_BUFFERS };
+/* The per-view fit's arrays besides (pmn_view_normals). */
+enum { SLOT_OF = N_BUFFERS, SLOT_ID, COORDS, START, FIRST, COUNT, TAKEN, WEIGHT, OWN, BARY, TRI, TOUCHED, O_OWN,
+       O_BARY, O_WEIGHT, O_TARGET, O_RESIDUAL, O_FITTED, O_RHS, O_DIAGONAL, N_VIEW_BUFFERS };
 
 static void *room(Buffer *b, size_t bytes) {
     if (bytes > b->bytes) {
@@ -378,15 +384,18 @@ static void *room(Buffer *b, size_t bytes) {
     return b->buf;
 }
 
-/* The fit of one batch's created vertices (_fit_batch), their subtree
- * means in out on entry, the fitted unit normals on return. fan_start:
+/* Steps 1 and 2 of the fit of the created slots lo .. lo + k_new - 1
+ * (_fit_batch): their fans, and their samples located on them (fit->own,
+ * fit->bary at the samples' leaf positions; fit->samples the running
+ * count per slot, none where *located is 0 on return). fan_start:
  * [k_new + 1], entry u + 1 the fan size of slot u; touched: the n_touched
- * live faces with a created corner, in mesh order. Returns OK or
- * NO_MEMORY. */
-static int fit_batch(Fit *fit, const int32_t *touched, int64_t n_touched, int64_t *fan_start, Buffer *scratch) {
+ * faces with a created corner, in mesh order. Returns OK or NO_MEMORY. */
+static int locate_samples(Fit *fit, const int32_t *touched, int64_t n_touched, int64_t *fan_start, Buffer *scratch,
+                          int *located) {
     int threads = fit->threads;
     int64_t min_split = fit->min_split;
-    int64_t k_new = fit->k_new, lo = fit->lo, V0 = fit->V0;
+    int64_t k_new = fit->k_new, lo = fit->lo;
+    *located = 0;
     if (!n_touched) return OK;
     /* Step 1: each created vertex's fan: the live faces with it as a corner,
      * grouped by vertex; in a group the faces where it is corner 0, then
@@ -422,6 +431,21 @@ static int fit_batch(Fit *fit, const int32_t *touched, int64_t n_touched, int64_
     fit->failed = 0;
     split(threads, min_split, locate, fit, k_new, samples);
     if (fit->failed) return NO_MEMORY;
+    *located = 1;
+    return OK;
+}
+
+/* The fit of one batch's created vertices (_fit_batch), their subtree
+ * means in out on entry, the fitted unit normals on return (arguments as
+ * locate_samples). Returns OK or NO_MEMORY. */
+static int fit_batch(Fit *fit, const int32_t *touched, int64_t n_touched, int64_t *fan_start, Buffer *scratch) {
+    int threads = fit->threads, located;
+    int64_t min_split = fit->min_split;
+    int64_t k_new = fit->k_new, lo = fit->lo, V0 = fit->V0;
+    if (locate_samples(fit, touched, n_touched, fan_start, scratch, &located) != OK) return NO_MEMORY;
+    if (!located) return OK;
+    const int64_t *samples = fit->samples;
+    int64_t *cursor = scratch[CURSOR].buf, *term_start = scratch[TERM_START].buf;
     /* Step 3: Jacobi sweeps of the weighted least squares over the created
      * vertices' normals, the other corners fixed. A sample's terms go to
      * the slots of its created corners, each slot's summed in the NumPy
@@ -463,6 +487,148 @@ static int fit_batch(Fit *fit, const int32_t *touched, int64_t n_touched, int64_
     return OK;
 }
 
+/* The originals in leaf order: every vertex's leaves (the originals it
+ * stands for) a run of positions, its first child's then its second's;
+ * leaf[L] the original at position L, leaf_first[v] and leaf_count[v]
+ * vertex v's run. Counts up the hierarchy, then runs handed down from the
+ * roots (the vertices no pcol consumes; mark[V] notes the consumed ones). */
+static void leaf_order(int64_t V0, int64_t V, const int64_t *kid_lo, const int64_t *kid_hi, int32_t *leaf,
+                       int32_t *leaf_first, int32_t *leaf_count, int32_t *mark) {
+    int64_t P = V - V0;
+    for (int64_t v = 0; v < V; v++) {
+        leaf_count[v] = v < V0;
+        mark[v] = 0;
+    }
+    for (int64_t i = 0; i < P; i++) {
+        leaf_count[V0 + i] = leaf_count[kid_lo[i]] + leaf_count[kid_hi[i]];
+        mark[kid_lo[i]] = mark[kid_hi[i]] = 1;
+    }
+    int64_t run = 0;
+    for (int64_t v = 0; v < V; v++)
+        if (!mark[v]) {
+            leaf_first[v] = (int32_t)run;
+            run += leaf_count[v];
+        }
+    for (int64_t i = P - 1; i >= 0; i--) {
+        leaf_first[kid_lo[i]] = leaf_first[V0 + i];
+        leaf_first[kid_hi[i]] = leaf_first[V0 + i] + leaf_count[kid_lo[i]];
+    }
+    for (int64_t p = 0; p < V0; p++) leaf[leaf_first[p]] = (int32_t)p;
+}
+
+/* The per-view fit's samples in original-id order, the order the NumPy fit
+ * takes them in (its sums: corner by corner, then by original vertex), so
+ * each slot's sums run in that order by a pass over them, with no sort. */
+typedef struct {
+    const Fit *fit;
+    int64_t n;            /* samples */
+    const int32_t *own;   /* [n, 3] slots of the corners of each one's face */
+    const double *bary;   /* [n, 3] its clamped barycentric coordinates */
+    const double *weight; /* [n] */
+    const double *target; /* [n, 3] */
+    double *residual;     /* [n, 3] */
+    const double *fitted; /* [k_new, 3] the created slots' last sweep */
+    double *rhs;          /* [k_new, 3] */
+    double *diagonal;     /* [k_new] */
+} Ordered;
+
+/* Samples first .. end-1: target minus the interpolated normal (residuals). */
+static void ordered_residuals(void *arg, int64_t first, int64_t end) {
+    Ordered *o = arg;
+    int64_t lo = o->fit->lo;
+    for (int64_t i = first; i < end; i++) {
+        double t[3][3];
+        for (int k = 0; k < 3; k++) {
+            int64_t c = o->own[3 * i + k];
+            const double *value = c >= lo ? o->fitted + 3 * (c - lo) : o->fit->out + 3 * c;
+            for (int x = 0; x < 3; x++) t[k][x] = o->bary[3 * i + k] * value[x];
+        }
+        for (int x = 0; x < 3; x++) o->residual[3 * i + x] = o->target[3 * i + x] - (t[0][x] + t[1][x] + t[2][x]);
+    }
+}
+
+/* Created slots first .. end-1: the diagonal, w b², summed corner by
+ * corner, then by sample (a pass over every sample, keeping this part's
+ * slots' terms). */
+static void ordered_diagonal(void *arg, int64_t first, int64_t end) {
+    Ordered *o = arg;
+    int64_t lo = o->fit->lo;
+    for (int64_t u = first; u < end; u++) o->diagonal[u] = 0.0;
+    for (int k = 0; k < 3; k++)
+        for (int64_t i = 0; i < o->n; i++) {
+            int64_t u = o->own[3 * i + k] - lo;
+            if (u < first || u >= end) continue;
+            double b = o->bary[3 * i + k];
+            o->diagonal[u] += o->weight[i] * (b * b);
+        }
+}
+
+/* Created slots first .. end-1: the right-hand side of one Jacobi step,
+ * each term the residual without this corner, weighted, summed as the
+ * diagonal. */
+static void ordered_rhs(void *arg, int64_t first, int64_t end) {
+    Ordered *o = arg;
+    int64_t lo = o->fit->lo;
+    for (int64_t u = first; u < end; u++)
+        for (int x = 0; x < 3; x++) o->rhs[3 * u + x] = 0.0;
+    for (int k = 0; k < 3; k++)
+        for (int64_t i = 0; i < o->n; i++) {
+            int64_t u = o->own[3 * i + k] - lo;
+            if (u < first || u >= end) continue;
+            double b = o->bary[3 * i + k], share = o->weight[i] * b;
+            const double *residual = o->residual + 3 * i, *fitted = o->fitted + 3 * u;
+            for (int x = 0; x < 3; x++) o->rhs[3 * u + x] += share * (residual[x] + b * fitted[x]);
+        }
+}
+
+/* Step 3 of the per-view fit, after locate_samples: the located samples
+ * (taken[L] = 2 at their leaf positions; at[p] the leaf position of
+ * original p) gathered in original-id order, then the Jacobi sweeps of
+ * fit_batch, each moving a normal the share relax of the way to its
+ * step's solution (weighted Jacobi; 1: the whole way), the unit normals
+ * into fit->out. Returns OK or NO_MEMORY. */
+static int fit_in_vertex_order(Fit *fit, double relax, const int32_t *at, const unsigned char *taken, Buffer *work) {
+    int64_t V0 = fit->V0, lo = fit->lo, k_new = fit->k_new, n = fit->samples[k_new];
+    int32_t *own = room(&work[O_OWN], (size_t)n * 3 * sizeof *own);
+    double *bary = room(&work[O_BARY], (size_t)n * 3 * sizeof *bary);
+    double *weight = room(&work[O_WEIGHT], (size_t)n * sizeof *weight);
+    double *target = room(&work[O_TARGET], (size_t)n * 3 * sizeof *target);
+    double *residual = room(&work[O_RESIDUAL], (size_t)n * 3 * sizeof *residual);
+    double *fitted = room(&work[O_FITTED], (size_t)k_new * 3 * sizeof *fitted);
+    double *rhs = room(&work[O_RHS], (size_t)k_new * 3 * sizeof *rhs);
+    double *diagonal = room(&work[O_DIAGONAL], (size_t)k_new * sizeof *diagonal);
+    if (!own || !bary || !weight || !target || !residual || !fitted || !rhs || !diagonal) return NO_MEMORY;
+    int64_t i = 0;
+    for (int64_t p = 0; p < V0; p++) {
+        int64_t L = at[p];
+        if (taken[L] != 2) continue;
+        memcpy(own + 3 * i, fit->own + 3 * L, 3 * sizeof *own);
+        memcpy(bary + 3 * i, fit->bary + 3 * L, 3 * sizeof *bary);
+        memcpy(target + 3 * i, fit->target + 3 * L, 3 * sizeof *target);
+        weight[i++] = fit->weight[L];
+    }
+    Ordered o = {fit, n, own, bary, weight, target, residual, fitted, rhs, diagonal};
+    split(fit->threads, fit->min_split, ordered_diagonal, &o, k_new, NULL);
+    const double *start = fit->out + 3 * lo;
+    memcpy(fitted, start, (size_t)k_new * 3 * sizeof *fitted);
+    for (int64_t sweep = 0; sweep < fit->sweeps; sweep++) {
+        split(fit->threads, fit->min_split, ordered_residuals, &o, n, NULL);
+        split(fit->threads, fit->min_split, ordered_rhs, &o, k_new, NULL);
+        for (int64_t u = 0; u < k_new; u++)
+            for (int x = 0; x < 3; x++) {
+                double step = rhs[3 * u + x] / diagonal[u];
+                /* Weighted Jacobi: the step's share relax, the rest kept. */
+                if (relax != 1.0) step = (1.0 - relax) * fitted[3 * u + x] + relax * step;
+                fitted[3 * u + x] = diagonal[u] > 0 ? step : start[3 * u + x];
+            }
+    }
+    for (int64_t u = 0; u < k_new; u++) {
+        unit3(fitted + 3 * u);
+        memcpy(fit->out + 3 * (lo + u), fitted + 3 * u, 3 * sizeof(double));
+    }
+    return OK;
+}
+
 /* pmjax.fitted_normals into out ([V, 3] float64, before the rounding to
  * float32). coords: [V, 3] float32 (coords_f64 = 0) or float64; faces:
  * [F, 3] original faces (ids below V0); pcol i (vertex V0 + i) consumes
@@ -475,7 +641,7 @@ int64_t pmn_fitted_normals(int64_t V0, int64_t V, const void *coords, int64_t co
                            const int64_t *offsets, int64_t sweeps, int64_t threads, int64_t min_split,
                            double *out) {
     Coords c = {coords_f64 ? NULL : (const float *)coords, coords_f64 ? (const double *)coords : NULL};
-    int64_t P = V - V0, W0 = V0 > 0 ? V0 : 1;
+    int64_t W0 = V0 > 0 ? V0 : 1;
     int rc = NO_MEMORY;
     double *total = calloc((size_t)V * 3, sizeof *total);
     double *area = calloc((size_t)W0, sizeof *area);
@@ -512,29 +678,7 @@ int64_t pmn_fitted_normals(int64_t V0, int64_t V, const void *coords, int64_t co
         memcpy(out + 3 * v, total + 3 * v, 3 * sizeof(double));
         unit3(out + 3 * v);
     }
-    /* The originals in leaf order: every vertex's leaves (the originals it
-     * stands for) a run, its first child's then its second's. Counts up the
-     * hierarchy, then runs handed down from the roots (the vertices no pcol
-     * consumes; rep marks the consumed ones meanwhile). */
-    for (int64_t v = 0; v < V; v++) {
-        leaf_count[v] = v < V0;
-        rep[v] = 0;
-    }
-    for (int64_t i = 0; i < P; i++) {
-        leaf_count[V0 + i] = leaf_count[kid_lo[i]] + leaf_count[kid_hi[i]];
-        rep[kid_lo[i]] = rep[kid_hi[i]] = 1;
-    }
-    int64_t run = 0;
-    for (int64_t v = 0; v < V; v++)
-        if (!rep[v]) {
-            leaf_first[v] = (int32_t)run;
-            run += leaf_count[v];
-        }
-    for (int64_t i = P - 1; i >= 0; i--) {
-        leaf_first[kid_lo[i]] = leaf_first[V0 + i];
-        leaf_first[kid_hi[i]] = leaf_first[V0 + i] + leaf_count[kid_lo[i]];
-    }
-    for (int64_t p = 0; p < V0; p++) leaf[leaf_first[p]] = (int32_t)p;
+    leaf_order(V0, V, kid_lo, kid_hi, leaf, leaf_first, leaf_count, rep);
     /* The samples' data in leaf order. */
     for (int64_t s = 0; s < V0; s++) {
         int64_t p = leaf[s];
@@ -612,6 +756,156 @@ done:
     free(touched);
     for (int i = 0; i < N_BUFFERS; i++) free(scratch[i].buf);
     return rc;
+}
+
+/* The leaf order of a hierarchy (leaf_order) for pmn_view_normals: pcol i
+ * (vertex V0 + i) consumes kid_lo[i] < kid_hi[i]. Returns OK or
+ * NO_MEMORY. */
+int64_t pmn_leaf_order(int64_t V0, int64_t V, const int64_t *kid_lo, const int64_t *kid_hi, int32_t *leaf,
+                       int32_t *leaf_first, int32_t *leaf_count) {
+    int32_t *mark = malloc((size_t)(V > 0 ? V : 1) * sizeof *mark);
+    if (!mark) return NO_MEMORY;
+    leaf_order(V0, V, kid_lo, kid_hi, leaf, leaf_first, leaf_count, mark);
+    free(mark);
+    return OK;
+}
+
+/* Outcome of pmn_view_normals when a drawn vertex stands above another (or
+ * is listed twice): the drawn vertices are not a front of the hierarchy,
+ * and the caller fits them by NumPy. */
+enum { NOT_FRONT = 2 };
+
+/* pmjax.ViewNormals on one drawn mesh: its created vertices fitted
+ * together by fit_batch, as one batch whose slots are the mesh's vertices,
+ * the originals first, then the created ones (the unknowns), each group in
+ * the given order; a created vertex's samples are the run of its leaves
+ * (a front's runs do not overlap, checked), so no original vertex is
+ * climbed from and only the drawn created vertices' leaves are touched.
+ *
+ * Hierarchy: positions [V, 3] float64; normals [V, 3] float32 (the stored
+ * ones); leaf, leaf_first, leaf_count from pmn_leaf_order; the samples in
+ * leaf order: position [3, V0] by axis, target [V0, 3] (the originals'
+ * stored normals), area [V0] (a third of their faces'). Mesh: ids [N]
+ * hierarchy ids, faces [F, 3] indices into ids, eye [3] or NULL (weights
+ * then times the cosine toward it over the squared distance); sweeps of
+ * weighted Jacobi, each by the share relax. out: [N, 3]
+ * float64, row i for ids[i]; workspace from pmn_view_workspace. Returns
+ * OK, NO_MEMORY or NOT_FRONT. */
+int64_t pmn_view_normals(int64_t V0, const double *positions, const float *normals, const int32_t *leaf,
+                         const int32_t *leaf_first, const int32_t *leaf_count, const double *position,
+                         const double *target, const double *area, int64_t N, const int64_t *ids, int64_t F,
+                         const int64_t *faces, const double *eye, int64_t sweeps, double relax, int64_t threads,
+                         int64_t min_split, void *workspace, double *out) {
+    int64_t W0 = V0 > 0 ? V0 : 1, W = N > 0 ? N : 1, WF = F > 0 ? F : 1;
+    Buffer *work = workspace;
+    int64_t *slot_of = room(&work[SLOT_OF], (size_t)W * sizeof *slot_of);
+    int64_t *slot_id = room(&work[SLOT_ID], (size_t)W * sizeof *slot_id);
+    double *coords = room(&work[COORDS], (size_t)W * 3 * sizeof *coords);
+    double *start = room(&work[START], (size_t)W * 3 * sizeof *start);
+    int32_t *first = room(&work[FIRST], (size_t)W * sizeof *first);
+    int32_t *count = room(&work[COUNT], (size_t)W * sizeof *count);
+    unsigned char *taken = room(&work[TAKEN], (size_t)W0);
+    double *weight = room(&work[WEIGHT], (size_t)W0 * sizeof *weight);
+    int32_t *own = room(&work[OWN], (size_t)W0 * 3 * sizeof *own);
+    double *bary = room(&work[BARY], (size_t)W0 * 3 * sizeof *bary);
+    int32_t *tri = room(&work[TRI], (size_t)WF * 3 * sizeof *tri);
+    int32_t *touched = room(&work[TOUCHED], (size_t)WF * sizeof *touched);
+    if (!slot_of || !slot_id || !coords || !start || !first || !count || !taken || !weight || !own || !bary || !tri
+        || !touched)
+        return NO_MEMORY;
+    memset(taken, 0, (size_t)W0);
+    /* Slots: the originals first, then the created vertices, each group in
+     * the given order; per slot its position, stored normal (the fit's
+     * start; kept for the originals) and leaf run. */
+    int64_t lo = 0;
+    for (int64_t i = 0; i < N; i++) lo += ids[i] < V0;
+    int64_t next[2] = {0, lo};
+    for (int64_t i = 0; i < N; i++) {
+        int64_t s = next[ids[i] >= V0]++;
+        slot_of[i] = s;
+        slot_id[s] = ids[i];
+    }
+    for (int64_t s = 0; s < N; s++) {
+        int64_t v = slot_id[s];
+        for (int x = 0; x < 3; x++) {
+            coords[3 * s + x] = positions[3 * v + x];
+            start[3 * s + x] = (double)normals[3 * v + x];
+        }
+        first[s] = leaf_first[v];
+        count[s] = leaf_count[v];
+    }
+    /* A front: no two drawn vertices share a leaf. */
+    for (int64_t s = 0; s < N; s++)
+        for (int64_t L = first[s]; L < first[s] + count[s]; L++) {
+            if (taken[L]) return NOT_FRONT;
+            taken[L] = 1;
+        }
+    if (lo < N && F > 0) {
+        /* The samples' weights: their area, or with an eye the area seen
+         * from there, times the cosine of their normal toward it (zero
+         * facing away) over the squared distance (the sums x, y, z in that
+         * order). */
+        for (int64_t s = lo; s < N; s++)
+            for (int64_t L = first[s]; L < first[s] + count[s]; L++) {
+                if (!eye) {
+                    weight[L] = area[L];
+                    continue;
+                }
+                double to[3], dot = 0.0, squares = 0.0;
+                for (int x = 0; x < 3; x++) to[x] = eye[x] - position[x * V0 + L];
+                for (int x = 0; x < 3; x++) squares += to[x] * to[x];
+                for (int x = 0; x < 3; x++) dot += target[3 * L + x] * to[x];
+                double distance = sqrt(squares);
+                distance = distance > 0 ? distance : 1.0;
+                double facing = dot / distance;
+                if (facing < 0.0) facing = 0.0; /* np.maximum(x, 0.0): NaN and -0.0 kept */
+                weight[L] = area[L] * facing / (distance * distance);
+            }
+        /* The mesh in slots; the faces with a created corner, and each
+         * created slot's fan size. */
+        int64_t *fan_start = room(&work[FAN_START], (size_t)(N - lo + 1) * sizeof *fan_start);
+        if (!fan_start) return NO_MEMORY;
+        memset(fan_start, 0, (size_t)(N - lo + 1) * sizeof *fan_start);
+        int64_t n_touched = 0;
+        for (int64_t f = 0; f < F; f++) {
+            int64_t x = slot_of[faces[3 * f]], y = slot_of[faces[3 * f + 1]], z = slot_of[faces[3 * f + 2]];
+            tri[3 * f] = (int32_t)x;
+            tri[3 * f + 1] = (int32_t)y;
+            tri[3 * f + 2] = (int32_t)z;
+            if (x >= lo || y >= lo || z >= lo) {
+                touched[n_touched++] = (int32_t)f;
+                if (x >= lo) fan_start[x - lo + 1]++;
+                if (y >= lo) fan_start[y - lo + 1]++;
+                if (z >= lo) fan_start[z - lo + 1]++;
+            }
+        }
+        Fit fit = {.c = {NULL, coords}, .V0 = V0, .sweeps = sweeps, .threads = (int)threads,
+                   .min_split = min_split, .out = start, .leaf = leaf, .leaf_first = first, .leaf_count = count,
+                   .position = position, .target = target, .weight = weight, .own = own, .bary = bary,
+                   .tri = tri, .lo = lo, .k_new = N - lo};
+        int located;
+        if (locate_samples(&fit, touched, n_touched, fan_start, work, &located) != OK) return NO_MEMORY;
+        if (located) {
+            for (int64_t u = 0; u < N - lo; u++)
+                if (fit.samples[u + 1] > fit.samples[u])
+                    memset(taken + first[lo + u], 2, (size_t)count[lo + u]);
+            if (fit_in_vertex_order(&fit, relax, leaf_first, taken, work) != OK) return NO_MEMORY;
+        }
+    }
+    for (int64_t i = 0; i < N; i++) memcpy(out + 3 * i, start + 3 * slot_of[i], 3 * sizeof(double));
+    return OK;
+}
+
+/* A workspace for pmn_view_normals: its arrays, kept from call to call
+ * (grown as needed), so a frame maps no new pages; NULL when out of
+ * memory. One call at a time uses it. */
+void *pmn_view_workspace(void) { return calloc(N_VIEW_BUFFERS, sizeof(Buffer)); }
+
+void pmn_view_workspace_free(void *workspace) {
+    Buffer *work = workspace;
+    if (!work) return;
+    for (int i = 0; i < N_VIEW_BUFFERS; i++) free(work[i].buf);
+    free(work);
 }
 
 static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_normals_native",

@@ -261,7 +261,7 @@ def _release_context(renderer) -> None:
 
 def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Tests = ALL_TESTS,
                   geomorph: int = 0, supersample: int = 2, float_color: bool = True, coherent: bool = True,
-                  progress: bool = False, flip: bool = True) -> list[dict]:
+                  progress: bool = False, flip: bool = True, normals: str = "view") -> list[dict]:
     """Per frame: faces, share of the model's pixels that differ from the
     original mesh's render (and PSNR), the part of that share due to geometry
     alone (:func:`silhouette_difference`), and popping — the share of pixels
@@ -284,6 +284,10 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
             :func:`pmjax.refine_path`).
         flip: also NVIDIA's FLIP against the original (:func:`flip_difference`;
             needs the flip-evaluator package).
+        normals: ``"view"``: each hard refinement shaded with normals fitted
+            on the mesh drawn, seen from its camera
+            (:func:`pmjax.render.refined_arrays`); ``"stored"``: with the
+            stored normals. The original is drawn with its stored normals.
 
     Returns:
         list of dicts (one per camera) with ``faces``, ``differing_share``,
@@ -303,7 +307,7 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
     rows = []
     with Renderer(int(first.width), int(first.height), supersample, float_color) as r:
         frames = path_geometry(pm, cameras, tau, tests=tests, geomorph=geomorph, coherent=coherent, progress=progress,
-                               desc="fidelity")
+                               desc="fidelity", normals=normals)
         for i, (cam, v, f, _, n) in enumerate(frames):
             t = time.perf_counter()
             # Popping against the previous frame's mesh, still in the scene

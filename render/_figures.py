@@ -10,7 +10,7 @@ import numpy as np
 from pmjax import ALL_TESTS, Camera, ProgressiveMesh, Tests, index_camera, look_at, refine, standard_orbit
 
 from ._annotate import FRUSTUM_SWATCH, LEVELS, annotate
-from ._offscreen import Renderer, render_refinement, write_png
+from ._offscreen import Renderer, check_normals, render_refinement, write_png
 from ._scene import frustum_past_model
 
 
@@ -45,7 +45,8 @@ def phantom(pm: ProgressiveMesh, refine_for: Camera, tau=1.0, tests: Tests = ALL
 FIGURES = ("frustum", "orientation", "screen", "phantom")
 
 
-def paper_figures(pm: ProgressiveMesh, out_dir: str, *, width=800, height=600, taus=(1.0, 4.0, 16.0)) -> dict:
+def paper_figures(pm: ProgressiveMesh, out_dir: str, *, width=800, height=600, taus=(1.0, 4.0, 16.0),
+                  normals: str = "view") -> dict:
     """Write the paper's figures as PNGs into ``out_dir``; returns ``{name: (path, faces)}``.
 
     Each PNG has a title, a caption (what is shown, tau, faces drawn) and a
@@ -59,7 +60,12 @@ def paper_figures(pm: ProgressiveMesh, out_dir: str, *, width=800, height=600, t
       camera, seen from its side: the fine front beside the coarse back.
     - ``screen_tau{t}.png``: only the screen test at three tolerances (wireframe).
     - ``phantom.png``: all tests, for the close camera, seen from the overview.
+
+    ``normals``: ``"view"`` shades each refinement with normals fitted on the
+    mesh drawn, seen from the camera it is drawn from; ``"stored"`` with the
+    stored ones (:func:`render_refinement`).
     """
+    check_normals(normals)
     os.makedirs(out_dir, exist_ok=True)
     verts = np.asarray(pm.vertices)[: pm.n_original_vertices]
     F = len(pm.faces)
@@ -87,7 +93,7 @@ def paper_figures(pm: ProgressiveMesh, out_dir: str, *, width=800, height=600, t
         def save(name, refined_for, seen_from, tau, tests, title, caption, *, phantom_lines=True, colour=True):
             ref = refine(pm, refined_for, tau, tests)
             rgb, _ = render_refinement(r, pm, ref, seen_from, wireframe=True, color_levels=colour,
-                                       phantom=refined_for if phantom_lines else None)
+                                       phantom=refined_for if phantom_lines else None, normals=normals)
             faces = int(ref.n_faces)
             legend = ((levels,) if colour else ()) + ((frustum,) if phantom_lines else ())
             path = os.path.join(out_dir, name + ".png")

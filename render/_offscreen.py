@@ -8,7 +8,8 @@ from typing import Optional
 import numpy as np
 
 from pmjax import ALL_TESTS, Camera, ProgressiveMesh, Refinement, Tests, camera_count, index_camera
-from pmjax import MeshChange, MeshStream, fitted_normals, geomorph_mesh, geomorph_start, geomorph_step, refine_path
+from pmjax import (MeshChange, MeshStream, ViewNormals, fitted_normals, geomorph_mesh, geomorph_start, geomorph_step,
+                   refine_path)
 from pmjax._path import path_refinement_pairs
 from pmjax._atomic import atomic_folder, atomic_path, check_output_path
 
@@ -200,13 +201,50 @@ def shading_normals(pm: ProgressiveMesh) -> np.ndarray:
     return _NORMALS[key][1]
 
 
-def refined_arrays(pm: ProgressiveMesh, refinement: Refinement, *, color_levels=False):
+# How refinements are shaded: "view", their created vertices' normals fitted
+# again on the mesh drawn, seen from the eye (pmjax.ViewNormals); "stored",
+# the normals stored in the file (shading_normals).
+NORMALS = ("view", "stored")
+
+
+def check_normals(normals: str) -> str:
+    """``normals`` if it is one of :data:`NORMALS`, else ``ValueError``."""
+    if normals not in NORMALS:
+        raise ValueError(f"normals must be one of {', '.join(map(repr, NORMALS))}, got {normals!r}")
+    return normals
+
+
+_VIEW_NORMALS: dict = {}
+
+
+def view_normals(pm: ProgressiveMesh) -> ViewNormals:
+    """The per-view fit of ``pm``'s refinements (:class:`pmjax.ViewNormals`
+    from :func:`shading_normals`), made once per mesh."""
+    key = id(pm)
+    if key not in _VIEW_NORMALS or _VIEW_NORMALS[key][0] is not pm:
+        _VIEW_NORMALS.clear()  # one mesh at a time; keeps the mesh alive while cached
+        _VIEW_NORMALS[key] = (pm, ViewNormals(pm, shading_normals(pm)))
+    return _VIEW_NORMALS[key][1]
+
+
+def refined_arrays(pm: ProgressiveMesh, refinement: Refinement, *, color_levels=False, eye=None):
     """``(vertices, faces, face levels or None, normals)`` of a refinement,
-    ready to draw; each vertex is shaded with the normal fitted to the
-    original surface it stands for (:func:`shading_normals`)."""
+    ready to draw.
+
+    Args:
+        eye: ``[3]`` the position it is seen from (world units): its created
+            vertices are then shaded with normals fitted to the original
+            surface in this very mesh, samples weighted by the area seen from
+            there (:func:`view_normals`); ``None``: with the stored normals
+            fitted to the original surface each vertex stands for
+            (:func:`shading_normals`). Original vertices keep their stored
+            normals either way, and the faces are the refinement's.
+    """
     v, f, ids = refinement.mesh(pm)
     levels = face_levels(f, batch_levels(pm, ids)) if color_levels else None
-    return v, f, levels, shading_normals(pm)[ids]
+    if eye is None:
+        return v, f, levels, shading_normals(pm)[ids]
+    return v, f, levels, view_normals(pm)(ids, f, eye=np.asarray(eye, np.float64))
 
 
 def original_arrays(pm: ProgressiveMesh):
@@ -216,18 +254,22 @@ def original_arrays(pm: ProgressiveMesh):
 
 
 def render_refinement(renderer: Renderer, pm: ProgressiveMesh, refinement: Refinement, camera: Camera, *,
-                      wireframe=False, color_levels=False, phantom: Optional[Camera] = None):
+                      wireframe=False, color_levels=False, phantom: Optional[Camera] = None, normals: str = "view"):
     """Render ``refinement`` seen from ``camera``.
 
     Args:
         phantom: the camera the refinement was made for, when it differs from
             the viewing ``camera`` (the paper's phantom camera); its frustum is
             drawn as red lines.
+        normals: ``"view"``: shaded with normals fitted on the mesh drawn,
+            seen from ``camera`` (:func:`refined_arrays`); ``"stored"``: with
+            the stored ones.
 
     Returns:
         ``(rgb uint8[H, W, 3], depth float32[H, W])``.
     """
-    v, f, levels, normals = refined_arrays(pm, refinement, color_levels=color_levels)
+    eye = np.asarray(camera.eye) if check_normals(normals) == "view" else None
+    v, f, levels, normals = refined_arrays(pm, refinement, color_levels=color_levels, eye=eye)
     lines = frustum_past_model(pm, phantom) if phantom is not None else None
     return renderer.render_mesh(v, f, camera, levels=levels, n_batches=len(pm.batch_offsets) - 1,
                                 wireframe=wireframe, lines=lines, normals=normals)
@@ -288,6 +330,24 @@ class SlotMesh:
         if self._pending is not None:
             self._pending = (np.concatenate([self._pending[0], faces]), np.concatenate([self._pending[1], vertices]))
         return change
+
+    def shade(self, eye) -> None:
+        """Shades the mesh held with normals fitted on it, seen from ``eye``
+        (``[3]``, world units; :func:`view_normals`): every live vertex
+        slot's normal row is rewritten (the stored normals' rows come back
+        with the next :meth:`apply` only where that change writes them)."""
+        ids, faces = self.stream.vertex_ids, self.stream.faces
+        live = np.flatnonzero(ids >= 0)
+        if not len(live):
+            return
+        # The live slots as one mesh: their ids, and the live face slots'
+        # corners as indices into them.
+        index = np.full(len(ids), -1, np.int64)
+        index[live] = np.arange(len(live))
+        corners = index[faces[faces[:, 0] >= 0]]
+        self._vertex_normals[live] = view_normals(self.pm)(ids[live], corners, eye=np.asarray(eye, np.float64))
+        if self._pending is not None:
+            self._pending = (self._pending[0], np.concatenate([self._pending[1], live.astype(self._pending[1].dtype)]))
 
     def _grow(self, n_faces: int, n_vertices: int):
         """Host arrays and a new primitive with room for a quarter more slots."""
@@ -476,20 +536,29 @@ def write_png(path: str, image) -> None:
 
 
 def path_geometry(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Tests = ALL_TESTS, geomorph: int = 0,
-                  color_levels=False, coherent: bool = True, progress: bool = False, desc: str = "frames"):
+                  color_levels=False, coherent: bool = True, progress: bool = False, desc: str = "frames",
+                  normals: str = "view", seen_from: Optional[Camera] = None):
     """Refine every camera of a path and yield what to draw, frame by frame.
 
     Args:
         geomorph: blend refinement changes over this many frames
             (:func:`pmjax.geomorph_step`); 0 or 1 draws each hard refinement.
+            A blended mesh is shaded with the stored normals, blended along
+            the ancestor chains like the positions.
         coherent: refine 32 consecutive frames at a time
             (:func:`pmjax.refine_path`, the same refinements as frame by frame).
+        normals: ``"view"``: a hard refinement is shaded with normals fitted
+            on the mesh drawn, seen from its camera (or ``seen_from``;
+            :func:`refined_arrays`); ``"stored"``: with the stored ones.
+        seen_from: the camera every frame is seen from, when not its own
+            (a phantom view).
 
     Yields:
         ``(camera, vertices, faces, face levels or None, normals)``.
     """
     if not tau >= 0:
         raise ValueError(f"tau must be >= 0 (and not NaN), got {tau}")
+    per_view = check_normals(normals) == "view"
     morph = None
     it = range(camera_count(cameras))
     if progress:
@@ -510,33 +579,38 @@ def path_geometry(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
                 morph = geomorph_start(executed, hidden)
             else:
                 morph = geomorph_step(pm, morph, executed, geomorph, hidden)
-            v, f, ids, normals = geomorph_mesh(pm, morph, shading_normals(pm))
+            v, f, ids, shading = geomorph_mesh(pm, morph, shading_normals(pm))
             levels = face_levels(f, batch_levels(pm, ids)) if color_levels else None
         else:
-            v, f, levels, normals = refined_arrays(pm, refined, color_levels=color_levels)
-        yield cam, v, f, levels, normals
+            eye = np.asarray((seen_from if seen_from is not None else cam).eye) if per_view else None
+            v, f, levels, shading = refined_arrays(pm, refined, color_levels=color_levels, eye=eye)
+        yield cam, v, f, levels, shading
 
 
 def render_path(pm: ProgressiveMesh, cameras: Camera, tau: float, out: str, *, tests: Tests = ALL_TESTS,
                 wireframe=False, color_levels=False, phantom: Optional[Camera] = None, geomorph: int = 0,
-                fps: int = 30, coherent: bool = True, progress: bool = True) -> dict:
+                fps: int = 30, coherent: bool = True, progress: bool = True, normals: str = "view") -> dict:
     """Refine and render every camera of a path; write ``out`` (.mp4/.gif/PNG folder).
 
     Hard refinements in one colour (no geomorph, levels or wireframe) are
     drawn from GPU buffers that each frame's change updates in place
-    (:class:`StreamScene`); the others build each frame's mesh.
+    (:class:`StreamScene`; normals fitted per view rewrite every live
+    vertex's normal row each frame, :meth:`SlotMesh.shade`); the others
+    build each frame's mesh.
 
     Args:
         phantom: if given, every frame is refined for its path camera but seen
             from this fixed overview camera, with the path camera's frustum drawn.
         geomorph: blend refinement changes over this many frames instead of
             popping (:func:`pmjax.geomorph_step`); 0 or 1: off.
-        coherent: see :func:`path_geometry`.
+        coherent, normals: see :func:`path_geometry` (``"view"``: seen from
+            the camera each frame is drawn from).
 
     Returns:
         dict with ``faces`` (int per frame) and ``frames`` (count).
     """
     check_frames_output(os.fspath(out), fps)
+    check_normals(normals)
     view = phantom if phantom is not None else index_camera(cameras, 0)
     n_batches = len(pm.batch_offsets) - 1
     faces = []
@@ -553,6 +627,8 @@ def render_path(pm: ProgressiveMesh, cameras: Camera, tau: float, out: str, *, t
             for i, refined in zip(it, refine_path(pm, cameras, tau, tests=tests, coherent=coherent)):
                 cam = index_camera(cameras, i)
                 scene.update(refined)
+                if normals == "view":
+                    scene.mesh.shade((phantom if phantom is not None else cam).eye)
                 faces.append(int(refined.n_faces))
                 lines = frustum_past_model(pm, cam) if phantom is not None else None
                 yield scene.render(cam, view=phantom, lines=lines)[0]
@@ -565,13 +641,14 @@ def render_path(pm: ProgressiveMesh, cameras: Camera, tau: float, out: str, *, t
 
     def frames():
         with Renderer(view.width, view.height) as r:
-            for cam, v, f, levels, normals in path_geometry(pm, cameras, tau, tests=tests, geomorph=geomorph,
+            for cam, v, f, levels, shading in path_geometry(pm, cameras, tau, tests=tests, geomorph=geomorph,
                                                             color_levels=color_levels, coherent=coherent,
-                                                            progress=progress, desc="render"):
+                                                            progress=progress, desc="render", normals=normals,
+                                                            seen_from=phantom):
                 faces.append(len(f))
                 lines = frustum_past_model(pm, cam) if phantom is not None else None
                 yield r.render_mesh(v, f, view if phantom is not None else cam, levels=levels, n_batches=n_batches,
-                                    wireframe=wireframe, lines=lines, normals=normals)[0]
+                                    wireframe=wireframe, lines=lines, normals=shading)[0]
 
     write_frames(frames(), out, fps=fps)
     return dict(faces=np.asarray(faces), frames=len(faces))

@@ -29,8 +29,10 @@ def test_block_average_equals_the_strided_mean_and_nearest_depth():
         assert (nearest == 0).sum() > 0  # empty blocks are present and read 0
 
 
-def _reference_rows(pm, cams, tau):
-    """path_fidelity's columns from separate render_mesh calls per image."""
+def _reference_rows(pm, cams, tau, normals="view"):
+    """path_fidelity's columns from separate render_mesh calls per image
+    (the refinements shaded with normals fitted on the mesh drawn, seen from
+    its camera, or with the stored ones)."""
     from pmjax.render import Renderer, flip_difference, image_difference, original_arrays, refined_arrays
     from pmjax.render import silhouette_difference
 
@@ -40,7 +42,7 @@ def _reference_rows(pm, cams, tau):
     with Renderer(int(first.width), int(first.height), 2, True) as r:
         for i, refined in enumerate(pmjax.refine_path(pm, cams, tau)):
             cam = pmjax.index_camera(cams, i)
-            v, f, _, n = refined_arrays(pm, refined)
+            v, f, _, n = refined_arrays(pm, refined, eye=np.asarray(cam.eye) if normals == "view" else None)
             rgb, depth = r.render_mesh(v, f, cam, normals=n)
             reference = r.render_mesh(ov, of, cam, normals=on)
             row = image_difference(*reference, rgb, depth)
@@ -55,13 +57,14 @@ def _reference_rows(pm, cams, tau):
     return rows
 
 
-def test_path_fidelity_equals_separate_renders(cow):
+@pytest.mark.parametrize("normals", ["view", "stored"])
+def test_path_fidelity_equals_separate_renders(cow, normals):
     from pmjax.render import path_fidelity
 
     pm = pmjax.load(cow)
     cams = pmjax.standard_orbit(np.asarray(pm.vertices)[: pm.n_original_vertices], 4, width=200, height=150)
-    got = path_fidelity(pm, cams, 1.0)
-    want = _reference_rows(pm, cams, 1.0)
+    got = path_fidelity(pm, cams, 1.0, normals=normals)
+    want = _reference_rows(pm, cams, 1.0, normals)
     keys = ("model_pixels", "differing", "differing_share", "mse", "psnr", "flip_mean", "flip_model_mean",
             "silhouette_share", "popping_share", "popping_mse")
     for g, w in zip(got, want, strict=True):

@@ -341,3 +341,67 @@ def test_path_geometry_refuses_a_bad_tau(cow):
     for tau in (-1.0, float("nan")):
         with pytest.raises(ValueError, match="tau must be >= 0"):
             next(path_geometry(pm, cams, tau, geomorph=4))
+
+
+def test_refinements_drawn_with_an_eye_get_the_per_view_fit(cow, renderer):
+    """With an eye a refinement's arrays are its own vertices and faces, shaded
+    with :class:`pmjax.ViewNormals` of the stored normals seen from there
+    (originals keep theirs); render_refinement draws them from its camera,
+    or the stored normals when asked; the original is drawn as before."""
+    from pmjax.render import original_arrays, refined_arrays, render_refinement
+    from pmjax.render._offscreen import shading_normals
+
+    _, pm, data = cow
+    V0 = data.n_original_vertices
+    cam = _camera(data, 3)
+    refinement = pmjax.refine(pm, cam, 1.0)
+    v, f, ids = refinement.mesh(pm)
+    eye = np.asarray(cam.eye)
+    stored = refined_arrays(pm, refinement)
+    seen = refined_arrays(pm, refinement, eye=eye)
+    for a, b in zip(stored[:2], seen[:2]):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(stored[3], shading_normals(pm)[ids])
+    expected = pmjax.ViewNormals(pm, shading_normals(pm))(ids, f, eye=eye)
+    assert seen[3].tobytes() == expected.tobytes()
+    created = np.asarray(ids) >= V0
+    np.testing.assert_array_equal(seen[3][~created], stored[3][~created])
+    assert np.abs(seen[3][created] - stored[3][created]).max() > 1e-2
+    np.testing.assert_array_equal(original_arrays(pm)[2], shading_normals(pm)[:V0])
+    by_view, _ = render_refinement(renderer, pm, refinement, cam)
+    by_stored, _ = render_refinement(renderer, pm, refinement, cam, normals="stored")
+    np.testing.assert_array_equal(by_view, renderer.render_mesh(v, f, cam, normals=seen[3])[0])
+    np.testing.assert_array_equal(by_stored, renderer.render_mesh(v, f, cam, normals=stored[3])[0])
+    assert (by_view != by_stored).any()
+
+
+def test_a_bad_normals_choice_is_refused(cow, renderer, tmp_path):
+    from pmjax.render import paper_figures, path_fidelity, render_path, render_refinement
+
+    _, pm, data = cow
+    cam = _camera(data)
+    cams = pmjax.standard_orbit(data.vertices[: data.n_original_vertices], 2, width=64, height=48)
+    with pytest.raises(ValueError, match="normals must be one of"):
+        render_refinement(renderer, pm, pmjax.refine(pm, cam, 1.0), cam, normals="fitted")
+    with pytest.raises(ValueError, match="normals must be one of"):
+        path_fidelity(pm, cams, 1.0, normals="hierarchy", flip=False)
+    with pytest.raises(ValueError, match="normals must be one of"):
+        render_path(pm, cams, 1.0, str(tmp_path / "out.gif"), normals=None, progress=False)
+    with pytest.raises(ValueError, match="normals must be one of"):
+        paper_figures(pm, str(tmp_path / "figures"), normals="View")
+
+
+def test_path_fidelity_with_stored_normals_draws_the_same_faces(cow, tmp_path):
+    """``pmjax path --fidelity --stored-normals``: the same faces and
+    silhouettes as with the normals fitted per view, other shading."""
+    path, _, _ = cow
+    rows = {}
+    for flag in ([], ["--stored-normals"]):
+        out = tmp_path / f"stats{len(flag)}.csv"
+        r = subprocess.run([sys.executable, "-m", "pmjax", "path", path, "--orbit", "3", "--fidelity", "--csv",
+                            str(out), "-q", *flag], capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+        rows[len(flag)] = list(csv.DictReader(open(out)))
+    for view, stored in zip(rows[0], rows[1], strict=True):
+        assert view["faces"] == stored["faces"] and view["silhouette_share"] == stored["silhouette_share"]
+    assert any(v["differing_share"] != s["differing_share"] for v, s in zip(rows[0], rows[1]))

@@ -63,19 +63,22 @@ def test_stream_scene_buffers_and_images_follow_the_path(cow):
         # The same images as each frame's mesh drawn anew: equal depth; colour
         # may differ only where two faces tie (drawn in another order).
         for i, r in enumerate(refinements):
-            rgb, depth = render_refinement(renderer, pm, r, pmjax.index_camera(cams, i))
+            rgb, depth = render_refinement(renderer, pm, r, pmjax.index_camera(cams, i), normals="stored")
             assert np.array_equal(depth, images[i][1]), i
             assert np.count_nonzero(np.any(rgb != images[i][0], axis=2)) <= 10, i
 
 
-def test_render_path_draws_from_the_stream(cow, tmp_path):
-    """pmjax render's path: the frames written are the stream scene's."""
+@pytest.mark.parametrize("normals", ["stored", "view"])
+def test_render_path_draws_from_the_stream(cow, tmp_path, normals):
+    """pmjax render's path: the frames written are the stream scene's, with
+    the stored normals or those fitted per view on its live slots: the same
+    images as each frame's refinement drawn anew with them."""
     from pmjax.render import Renderer, render_path, render_refinement
 
     data, pm = cow
     cams, n = orbit_with_cut(data, n=8)
     out = tmp_path / "frames"
-    result = render_path(pm, cams, 1.0, str(out), progress=False)
+    result = render_path(pm, cams, 1.0, str(out), progress=False, normals=normals)
     assert result["frames"] == n
     assert result["faces"].tolist() == [int(r.n_faces) for r in pmjax.refine_path(pm, cams, 1.0)]
     import imageio.v3 as iio
@@ -84,5 +87,8 @@ def test_render_path_draws_from_the_stream(cow, tmp_path):
     assert len(files) == n
     with Renderer(200, 150) as renderer:
         for i, (f, r) in enumerate(zip(files, pmjax.refine_path(pm, cams, 1.0))):
-            want, _ = render_refinement(renderer, pm, r, pmjax.index_camera(cams, i))
+            want, _ = render_refinement(renderer, pm, r, pmjax.index_camera(cams, i), normals=normals)
             assert np.count_nonzero(np.any(iio.imread(f)[..., :3] != want, axis=2)) <= 10, i
+            other, _ = render_refinement(renderer, pm, r, pmjax.index_camera(cams, i),
+                                         normals="view" if normals == "stored" else "stored")
+            assert np.count_nonzero(np.any(iio.imread(f)[..., :3] != other, axis=2)) > 10, i
