@@ -3,7 +3,7 @@
 Usage: python benchmarks/srmesh/build.py --mpl PATH [--models bunny,dragon] [--jobs 2] [--out DIR]
 
 From a source folder of Hoppe's Mesh-processing-library (``--mpl``; it is
-built in place with its own Makefile, ``make CC=gcc``), in order:
+built in place with its own Makefiles, ``make CC=gcc`` in each folder), in order:
 
 1. MPL's ``libHh`` and the three programs that make an SR progressive mesh
    (``MeshSimplify``, ``reverselines``, ``Filterprog``);
@@ -57,7 +57,10 @@ def run(cmd, log: Path, *, cwd=None, stdout=None):
 
 def build_mpl(mpl: Path, jobs: int, out: Path) -> Path:
     """MPL's libHh and programs, built in its tree; returns its bin folder."""
-    run(["make", "CC=gcc", f"-j{jobs}", "libHh", *MPL_PROGRAMS], out / "make_mpl.log", cwd=mpl)
+    # Folder by folder, libHh first: the top-level targets would build the
+    # X11 window library too, which none of these programs link.
+    for folder in ["libHh", *MPL_PROGRAMS]:
+        run(["make", "CC=gcc", f"-j{jobs}", "-C", folder], out / "make_mpl.log", cwd=mpl)
     bin_dir = mpl / "bin" / "unix"
     missing = [p for p in MPL_PROGRAMS if not (bin_dir / p).exists()]
     if missing:
