@@ -2,8 +2,9 @@
 
 Usage: python benchmarks/srmesh/build.py --mpl PATH [--models bunny,dragon] [--jobs 2] [--out DIR]
 
-From a source folder of Hoppe's Mesh-processing-library (``--mpl``; it is
-built in place with its own Makefiles, ``make CC=gcc`` in each folder), in order:
+From a source folder of Hoppe's Mesh-processing-library (``--mpl``, left as it
+is: the folders needed are copied under ``--out`` and built there with MPL's
+own Makefiles, ``make CC=gcc`` in each folder), in order:
 
 1. MPL's ``libHh`` and the three programs that make an SR progressive mesh
    (``MeshSimplify``, ``reverselines``, ``Filterprog``);
@@ -17,9 +18,18 @@ built in place with its own Makefiles, ``make CC=gcc`` in each folder), in order
    -fbase BASE -fprog RPROG -pm`` (the progressive mesh). ``-vsgeom`` keeps
    every vertex split's geometry SrMesh needs (``minii2``, no geometry fit).
 
+One line of the copy is changed before the build: ``plane_of_triangle``
+(``libHh/Geometry.h``) takes a zero-area triangle's normal as the zero vector
+instead of stopping on an assertion. ``MeshSimplify -vsgeom`` meets such a
+sliver while it reprojects the dragon's sample points along the vertex normal
+(``reproject_locally``); with a zero normal the line meets no plane, which the
+reprojection already handles (the point's residual falls back to its
+projection). SrMesh itself never calls it.
+
 Everything goes under ``--out`` (default ``benchmarks/.cache/srmesh``, ignored
-by git): ``bin/srmesh_adapt``, ``<model>.m``, ``<model>.sr.pm`` and a log per
-step. A mesh already made is kept (delete it to remake it).
+by git): ``mpl/`` (the copy, built), ``bin/srmesh_adapt``, ``<model>.m``,
+``<model>.sr.pm`` and a log per step. A mesh already made is kept (delete it
+to remake it).
 
 MPL's newest sources need C++23 (deducing ``this``); with g++ 12 build the
 last C++20 revision (its commit "Minor" of 2026-08-08, just before "Change C++
@@ -31,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -55,8 +66,38 @@ def run(cmd, log: Path, *, cwd=None, stdout=None):
         raise RuntimeError(f"{cmd[0]} failed (exit {result.returncode}); end of {log}:\n{tail}")
 
 
+# The folders of MPL the build needs, and the one line changed in the copy.
+MPL_FOLDERS = ["make", "bin", "libHh", *MPL_PROGRAMS]
+PLANE_LINE = "  const Vector nor = normalized(get_normal_dir(triangle));\n"
+PLANE_FIXED = "  const Vector nor = ok_normalized(get_normal_dir(triangle));\n"
+
+
+def copy_mpl(mpl: Path, out: Path) -> Path:
+    """MPL's needed folders copied to ``out/mpl`` (once; build products left
+    behind), ``plane_of_triangle`` changed as the module's docstring says."""
+    dest = out / "mpl"
+    if not dest.exists():
+        partial = out / "mpl.partial"
+        shutil.rmtree(partial, ignore_errors=True)
+        skip = shutil.ignore_patterns("*.o", "*.a", "*.gch", "Makefile.dep")
+        for folder in MPL_FOLDERS:
+            shutil.copytree(mpl / folder, partial / folder, ignore=skip)
+        shutil.copy2(mpl / "LICENSE", partial / "LICENSE")
+        os.replace(partial, dest)
+    header = dest / "libHh" / "Geometry.h"
+    lines = header.read_text().splitlines(keepends=True)
+    start = next((i for i, line in enumerate(lines) if line.startswith("inline Plane plane_of_triangle(")), None)
+    body = lines[start + 1:start + 3] if start is not None else []
+    if PLANE_LINE in body:
+        lines[lines.index(PLANE_LINE, start)] = PLANE_FIXED
+        header.write_text("".join(lines))
+    elif PLANE_FIXED not in body:
+        raise RuntimeError(f"{header}: plane_of_triangle is not as expected; this MPL revision is not supported")
+    return dest
+
+
 def build_mpl(mpl: Path, jobs: int, out: Path) -> Path:
-    """MPL's libHh and programs, built in its tree; returns its bin folder."""
+    """MPL's libHh and programs, built in the copy; returns its bin folder."""
     # Folder by folder, libHh first: the top-level targets would build the
     # X11 window library too, which none of these programs link.
     for folder in ["libHh", *MPL_PROGRAMS]:
@@ -125,7 +166,7 @@ def main():
     if not (args.mpl / "libHh" / "SrMesh.cpp").exists():
         sys.exit(f"--mpl {args.mpl}: no libHh/SrMesh.cpp there (not a Mesh-processing-library source folder)")
     args.out.mkdir(parents=True, exist_ok=True)
-    mpl = args.mpl.resolve()
+    mpl = copy_mpl(args.mpl.resolve(), args.out.resolve())
     bin_dir = build_mpl(mpl, args.jobs, args.out)
     exe = build_driver(mpl, args.out)
     print(f"driver: {exe}", flush=True)
