@@ -3,6 +3,7 @@
 Usage: python benchmarks/path.py [--models cow,bunny,terrain_gcanyon,terrain_sthelens,dragon]
        [--frames 240] [--tau 1] [--paths 256] [--many-model dragon] [--repeats 3] [--json FILE]
        python benchmarks/path.py --mesh [--mesh-models bunny,dragon] [--frames 240] [--tau 1] [--repeats 9]
+              [--srmesh benchmarks/.cache/srmesh/bin/srmesh_adapt]
        python benchmarks/path.py --draw [--draw-model dragon] [--frames 240] [--tau 1] [--repeats 3]
        xvfb-run -a python benchmarks/path.py --viewer [--draw-model dragon] [--frames 24] [--repeats 3]
 
@@ -26,10 +27,16 @@ path, medians over repeats, the variants alternated within each repeat:
 with each frame's change (:class:`pmjax.MeshStream`), and that with the
 stream's compacted mesh too; and, on refinements held in memory, the change
 alone, ``Refinement.mesh()`` alone and the stream's compacted mesh alone.
-Targets are read against SrMesh's per-frame adapt through the ratio measured
-with it on one machine (SrMesh over ``refine_path`` + ``mesh()``: 0.052 / 0.160
-on the bunny, 0.343 / 0.431 on the dragon), applied to this run's
-``refine_path`` + ``mesh()``. Run pinned to one core (``taskset -c 0``).
+With ``--srmesh DRIVER`` (``benchmarks/srmesh/build.py`` builds it and the
+SR meshes), Hoppe's SrMesh runs in the same run on the same cameras and
+tolerance, its passes alternated with the variants: per frame one
+``set_view_params`` + ``adapt_refinement`` from the last frame's mesh (its
+active mesh kept ready to draw), amortized over the path from the coarse
+mesh, median over repeats; the faces each draws are printed. Without it, the
+SrMesh figure is scaled: the ratio measured with it on one machine (SrMesh over
+``refine_path`` + ``mesh()``: 0.052 / 0.160 on the bunny, 0.343 / 0.431 on the
+dragon) applied to this run's ``refine_path`` + ``mesh()``, and labelled so.
+Run pinned to one core (``taskset -c 0``).
 
 Drawing (``--draw``, the standard orbit at 800x600, headless): per frame, what
 a viewer pays from camera to image (refine, mesh, upload, draw), medians over
@@ -51,6 +58,8 @@ repeats.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import statistics
 import sys
 import time
@@ -61,6 +70,7 @@ import numpy as np
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
 from _common import alternating_medians, machine, median_time, write_json  # noqa: E402
 from refine import pm_file  # noqa: E402
+from srmesh.serve import SrMeshServer  # noqa: E402
 
 import pmjax  # noqa: E402
 from pmjax._camera import index_camera, stack_cameras  # noqa: E402
@@ -167,12 +177,19 @@ def many_paths(name, n_paths, frames, tau, repeats):
 
 # SrMesh's per-frame adapt over refine_path + mesh(), measured in one run on
 # one machine (standard orbit, 240 frames, tau 1): this run's refine_path +
-# mesh() times it gives SrMesh's on this machine.
+# mesh() times it gives SrMesh's on this machine when SrMesh is not run.
 SRMESH_OVER_MESH = {"bunny": 0.052 / 0.160, "dragon": 0.343 / 0.431}
 
 
-def mesh_path(name, frames, tau, repeats):
-    """Per-frame costs of drawable meshes along the standard orbit (``--mesh``)."""
+def srmesh_mesh(driver, name):
+    """The SR mesh of ``name`` that ``benchmarks/srmesh/build.py`` makes beside
+    its driver (``<out>/bin/srmesh_adapt``, ``<out>/<name>.sr.pm``)."""
+    return os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(driver))), f"{name}.sr.pm")
+
+
+def mesh_path(name, frames, tau, repeats, srmesh_driver=None):
+    """Per-frame costs of drawable meshes along the standard orbit (``--mesh``);
+    with ``srmesh_driver``, SrMesh's adapt on the same cameras, alternated."""
     pm = pmjax.load(pm_file(name))
     cams = pmjax.standard_orbit(np.asarray(pm.vertices)[: pm.n_original_vertices], frames)
     held = list(pmjax.refine_path(pm, cams, tau))
@@ -202,15 +219,47 @@ def mesh_path(name, frames, tau, repeats):
         "mesh() alone": lambda: [r.mesh() for r in held],
         "compacted from the stream alone": lambda: [(stream.update(r), stream.mesh()) for r in held],
     }
-    ms = alternating_medians(variants, repeats, frames)
+    faces = np.asarray([int(r.n_faces) for r in held])
+    with contextlib.ExitStack() as stack:
+        srmesh_passes = []
+        if srmesh_driver:
+            # SrMesh's passes take their turn among the variants; each pass's
+            # own per-frame clock is kept (the request and the untimed
+            # coarsening before it are not SrMesh's per-frame work).
+            server = stack.enter_context(SrMeshServer(srmesh_driver, srmesh_mesh(srmesh_driver, name), cams, tau))
+            server.one_pass()  # warm: every pool and list grown along the path
+            variants["SrMesh"] = lambda: srmesh_passes.append(server.one_pass())
+        ms = alternating_medians(variants, repeats, frames)
     # The compacted mesh alone: the stream's update and compaction less its update.
     ms["compacted from the stream alone"] -= ms["change alone"]
-    srmesh = SRMESH_OVER_MESH.get(name, float("nan")) * ms["refine_path + mesh()"]
-    row = dict(model=name, pcols=pm.n_pcols, frames=frames, faces=int(np.median([int(r.n_faces) for r in held])),
-               faces_changed=float(np.median(changed)), ms=ms, srmesh_equivalent_ms=srmesh)
+    row = dict(model=name, pcols=pm.n_pcols, frames=frames, faces=int(np.median(faces)),
+               faces_changed=float(np.median(changed)))
+    if srmesh_passes:
+        ms.pop("SrMesh")
+        # Amortized over the path as refine_path is, median over passes.
+        srmesh = float(np.median([p_ms.sum() / frames for p_ms, _, _ in srmesh_passes]))
+        sr_faces = srmesh_passes[-1][1]
+        row.update(srmesh_ms=srmesh, srmesh_source="measured in this run", srmesh_faces=int(np.median(sr_faces)),
+                   srmesh_median_frame_ms=float(np.median([np.median(p_ms) for p_ms, _, _ in srmesh_passes])),
+                   srmesh_cpu_ms=float(np.median([cpu / frames for _, _, cpu in srmesh_passes])))
+        label = f"SrMesh {srmesh:.3f} ms per frame, measured here"
+    else:
+        srmesh = SRMESH_OVER_MESH.get(name, float("nan")) * ms["refine_path + mesh()"]
+        row.update(srmesh_ms=srmesh, srmesh_source="scaled by SRMESH_OVER_MESH")
+        label = (f"SrMesh ~ {srmesh:.3f} ms, scaled (= {SRMESH_OVER_MESH.get(name, float('nan')):.3f} x "
+                 f"refine_path + mesh(), a ratio from another machine)")
+    row["ms"] = ms
     print(f"{name}: P {pm.n_pcols}, faces {row['faces']} (median), faces changed per frame "
-          f"{row['faces_changed']:.0f} (median); SrMesh here ~ {srmesh:.3f} ms "
-          f"(= {SRMESH_OVER_MESH.get(name, float('nan')):.3f} x refine_path + mesh())")
+          f"{row['faces_changed']:.0f} (median); {label}")
+    if srmesh_passes:
+        ratio = sr_faces / faces
+        print(f"  faces drawn: pmjax {row['faces']}, SrMesh {row['srmesh_faces']} (median); SrMesh / pmjax per frame "
+              f"{np.median(ratio):.2f} (median), {ratio.min():.2f}..{ratio.max():.2f}; SrMesh's median frame "
+              f"{row['srmesh_median_frame_ms']:.3f} ms, its CPU time {row['srmesh_cpu_ms']:.3f} ms per frame")
+        if row["srmesh_cpu_ms"] < 0.9 * srmesh:
+            print("  NOTE: SrMesh's CPU time is under 90 % of its wall time: it was preempted (a busy machine)")
+        if not 0.75 <= np.median(ratio) <= 1.25:
+            print("  WARNING: SrMesh's faces differ from pmjax's by over 25 %: check the SR mesh and the cameras")
     base = ms["refine_path + mesh()"]
     for key, value in ms.items():
         print(f"  {key:42s} {value:7.4f} ms per frame   {base / value:5.2f}x refine_path + mesh()   "
@@ -352,10 +401,14 @@ def main():
     ap.add_argument("--json", help="also write results as JSON")
     ap.add_argument("--mesh", action="store_true", help="drawable meshes along the orbit, per frame (only)")
     ap.add_argument("--mesh-models", default="bunny,dragon")
+    ap.add_argument("--srmesh", metavar="DRIVER", help="with --mesh: run SrMesh's driver (benchmarks/srmesh/build.py "
+                    "makes it and the SR meshes beside it) in the same run, instead of the scaled figure")
     ap.add_argument("--draw", action="store_true", help="camera to image along the orbit, per frame (only)")
     ap.add_argument("--draw-model", default="dragon")
     ap.add_argument("--viewer", action="store_true", help="pmjax view's window along the orbit, per frame (only)")
     args = ap.parse_args()
+    if args.srmesh and not args.mesh:
+        ap.error("--srmesh goes with --mesh")
     print(f"machine: {machine()}\n")
     if args.viewer:
         row = viewer_path(args.draw_model, args.frames, args.tau, args.repeats)
@@ -368,7 +421,8 @@ def main():
             write_json(args.json, dict(machine=machine(), draw=row))
         return
     if args.mesh:
-        rows = [mesh_path(name, args.frames, args.tau, args.repeats) for name in args.mesh_models.split(",")]
+        rows = [mesh_path(name, args.frames, args.tau, args.repeats, args.srmesh)
+                for name in args.mesh_models.split(",")]
         if args.json:
             write_json(args.json, dict(machine=machine(), mesh=rows))
         return
