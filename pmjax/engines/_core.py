@@ -474,7 +474,8 @@ def budget_guesses(tables: CoreTables, cameras, budgets, tests, orthographic: bo
     Returns:
         ``(guess, guess_alt)`` ``int32 [K, B]``: float32 bit patterns,
         ``0x7F800001`` for ``tau = inf``; ``guess_alt`` takes the core's unsure
-        decisions as collapses, ``guess`` as "keep".
+        decisions as collapses, ``guess`` as "keep" (a word's frame makes one
+        guess, unsure decisions as "keep": its ``guess_alt`` equals ``guess``).
     """
     K, B = budgets.shape
     # One pixel as XLA computes it (the dense engine's value), which the

@@ -918,13 +918,16 @@ static void lanes_own(const PmxHierarchy *h, const PmxScratch *s, int64_t n, con
         lanes_flush(h, pos, slot, need, k, w, ortho, screen, own, lo, eps);
 }
 
-/* Room for n values per frame in k's lane tallies; 0 when out of memory. */
-static int lane_room(Work *k, int64_t n)
+/* Room for n values per frame in k's lane tallies (grown by half again,
+ * never past `room`, the slots a traversal can list, and at least one);
+ * 0 when out of memory. */
+static int lane_room(Work *k, int64_t n, int64_t room)
 {
-    if (n <= k->lane_room)
+    if (n <= k->lane_room && k->lane_room > 0)
         return 1;
     free(k->lane_val), free(k->lane_wt);
-    k->lane_room = n + n / 2;
+    const int64_t grown = n + n / 2 < room ? n + n / 2 : room;
+    k->lane_room = grown > n ? grown : (n > 0 ? n : 1);
     k->lane_val = malloc(sizeof(float) * FRAMES * (size_t)k->lane_room);
     k->lane_wt = malloc(sizeof(int32_t) * FRAMES * (size_t)k->lane_room);
     if (k->lane_val && k->lane_wt)
@@ -957,7 +960,7 @@ static void lanes_tally(Work *k, const float *eps, const int32_t *kill, int64_t 
         uint32_t in = 0;
         for (int l = 0; l < FRAMES; l++) {
             in |= (uint32_t)(e[l] >= lo[l]) << l;
-            total2[l] += e[l] >= twice[l] ? w : 0;
+            total2[l] += (e[l] >= lo[l] && e[l] >= twice[l]) ? w : 0; /* as tally: within lo first */
         }
         in &= frames;
         /* Each of them in turn (about half a slot's frames): its value and
@@ -1047,7 +1050,7 @@ static void words_work(void *arg)
         for (int l = 0; l < FRAMES; l++)
             asked |= (Lanes)((largest_budget(bt->budgets + (w * FRAMES + l) * B, B, bt->base_faces, k.g, k.alt) >= 0)
                              << l);
-        if (!lane_room(&k, n)) {
+        if (!lane_room(&k, n, h->n_pcols + PMX_SPARE)) {
             __atomic_store_n(&bt->status, PMX_NO_MEMORY, __ATOMIC_RELAXED);
             break;
         }

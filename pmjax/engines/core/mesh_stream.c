@@ -6,7 +6,8 @@
  * refinement's lists); the pcols whose executed bit differs from the last
  * frame's are found from the two lists (within a word) or from the new list
  * against a bit per pcol not executed in the mesh held, and each is applied
- * as one collapse or one split, so the work follows the change, not the mesh:
+ * as one collapse or one split, so the work follows the change, not the mesh
+ * (besides, between lists of different words, a pass over the bits):
  *
  * - a split of p (executed before, not now) hands p's vertex slot to its
  *   first child, gives the second child a new slot, moves the corners lying
@@ -810,7 +811,8 @@ __attribute__((target("popcnt"))) static void rank_rows_popcnt(PmxMeshStream *s,
 
 /* The log's n entries in increasing id, entries of one id in the order
  * they came, through s->sorted, whose room the caller made (byte digits: a
- * log holds a frame's changes, a few hundred); returns the sorted entries
+ * log usually holds a few frames' changes, at most twice the rows and 1024
+ * more, and its ids need up to four passes); returns the sorted entries
  * (the log or s->sorted). */
 static IdSlot *sort_log(PmxMeshStream *s, IdSlot *log, int64_t n, int32_t max_id)
 {

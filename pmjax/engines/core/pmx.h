@@ -153,7 +153,8 @@ PmxStatus pmx_refine_many(const PmxHierarchy *h, const float *views, int64_t K, 
  * (tables with bounds over whole subtrees, K a multiple of PMX_FRAMES,
  * PMX_BAD_SIZE otherwise), each frame's tolerance > 0 where to traverse:
  * each word traversed once for its frames, and a frame whose answers lie
- * below its tolerance gets -1 in guess and guess_alt. */
+ * below its tolerance gets -1 in guess and guess_alt; a word's frame makes
+ * one guess (unsure decisions as "keep"), so its guess_alt equals its guess. */
 PmxStatus pmx_budget_many(const PmxHierarchy *h, const float *cameras, const float *units, int64_t K, int flags,
                           const int32_t *budgets, int64_t B, int64_t base_faces, int32_t *guess, int32_t *guess_alt,
                           int words, const PmxRunner *run);
