@@ -783,7 +783,8 @@ def evaluate(
     command = dict(format=FORMAT, models=[os.path.abspath(m) for m in models], model_sha256=digests,
                    camera_sets=described, taus=[float(t) for t in taus], budgets=[int(b) for b in budgets],
                    tests=_tests_dict(tests), method=method, chunk=int(chunk), batch_chunk=int(batch_chunk),
-                   camera_columns=camera_columns, fidelity=fidelity, columns=schema.names)
+                   camera_columns=camera_columns, fidelity=fidelity,
+                   fidelity_normals="view" if fidelity else None, columns=schema.names)
     total = len(models) * len(values) * sum(counts)
     n_parts = len(models) * len(values) * sum(-(-n // chunk) for n in counts)
     # The parts found done and verified (file name -> SHA-256 of the model
@@ -1212,8 +1213,13 @@ def _merge_job(folder, old: dict, new: dict) -> dict:
                         "use another folder, or delete this one to start over")
     # A folder written before the image metrics existed has none.
     old = dict(old, fidelity=old.get("fidelity", False))
+    # Image metrics written before refinements were shaded with normals
+    # fitted per view used the stored normals: their rows would not mix.
+    old["fidelity_normals"] = old.get("fidelity_normals", "stored" if old["fidelity"] else None)
     changes = [f"{key}: {_short(old.get(key))!r} there, {_short(new[key])!r} here"
-               for key in SETTINGS + ("fidelity",) if old.get(key) != new[key]
+               for key in SETTINGS + ("fidelity", "fidelity_normals") if old.get(key) != new[key]
+               # Normals follow fidelity: named once.
+               and not (key == "fidelity_normals" and old["fidelity"] != new["fidelity"])
                # The columns follow camera_columns and fidelity: named once.
                and not (key == "columns" and (old.get("camera_columns") != new["camera_columns"]
                                               or old["fidelity"] != new["fidelity"]))]

@@ -780,7 +780,9 @@ enum { NOT_FRONT = 2 };
  * the originals first, then the created ones (the unknowns), each group in
  * the given order; a created vertex's samples are the run of its leaves
  * (a front's runs do not overlap, checked), so no original vertex is
- * climbed from and only the drawn created vertices' leaves are touched.
+ * climbed from: the samples are located from the drawn created vertices'
+ * leaves; putting them in original-id order (the sums' order) is one pass
+ * over a byte per original vertex.
  *
  * Hierarchy: positions [V, 3] float64; normals [V, 3] float32 (the stored
  * ones); leaf, leaf_first, leaf_count from pmn_leaf_order; the samples in

@@ -45,8 +45,9 @@ class ViewNormals:
     By C loops (``pmjax/_normals_native.c``, on up to two threads) where
     that extension is built: the drawn vertices are a front of the
     hierarchy, so a created vertex's samples are the run of its leaves in
-    the hierarchy's leaf order and only the drawn created vertices' leaves
-    are visited. Else, or for vertex ids that are not a front (a drawn
+    the hierarchy's leaf order: only the drawn created vertices' leaves are
+    located on faces (ordering the samples by original id is one pass over
+    a byte per original vertex). Else, or for vertex ids that are not a front (a drawn
     vertex above another, or one listed twice), by NumPy, climbing from
     every original vertex to its drawn ancestor: the same bits either way
     (each sum taken in the order of :func:`pmjax.fitted_normals`).
@@ -100,17 +101,19 @@ class ViewNormals:
                                                   first.ctypes.data, count.ctypes.data):
                     raise MemoryError("ViewNormals: out of memory in the C loops")
                 leaf = leaf[:V0]
+                # The workspace first: the leaves are kept only with one.
+                lib = _normals.native
+                workspace = lib.pmn_view_workspace()
+                if not workspace:
+                    raise MemoryError("ViewNormals: out of memory in the C loops")
+                self._workspace = workspace
+                weakref.finalize(self, lib.pmn_view_workspace_free, workspace)
                 # The samples' arrays in leaf order: positions by axis,
                 # targets by vertex, areas.
                 self._leaves = (leaf, first, count, np.ascontiguousarray(self._samples.positions[:, leaf]),
                                 np.ascontiguousarray(self._samples.normals[:, leaf].T),
                                 np.ascontiguousarray(self._samples.weights[leaf]),
                                 np.ascontiguousarray(self._positions.T))
-                lib = _normals.native
-                self._workspace = lib.pmn_view_workspace()
-                if not self._workspace:
-                    raise MemoryError("ViewNormals: out of memory in the C loops")
-                weakref.finalize(self, lib.pmn_view_workspace_free, self._workspace)
         return self._leaves or None
 
     def _native(self, ids, faces, eye):

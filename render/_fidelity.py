@@ -291,8 +291,11 @@ def path_fidelity(pm: ProgressiveMesh, cameras: Camera, tau: float, *, tests: Te
 
     Returns:
         list of dicts (one per camera) with ``faces``, ``differing_share``,
-        ``psnr``, ``silhouette_share``, ``popping_share`` (visibly changed pixels, see
-        :data:`DIFF_THRESHOLD`), ``popping_mse`` (mean squared change: a
+        ``psnr``, ``silhouette_share``, ``popping_share`` (visibly changed pixels
+        against the previous frame's mesh as it was drawn, see
+        :data:`DIFF_THRESHOLD`; with ``normals="view"`` its normals are the
+        previous eye's fit, so the share includes that reshading),
+        ``popping_mse`` (mean squared change: a
         change spread over ``n`` frames counts ``1/n`` as much per frame),
         both 0 for the first frame, ``flip_mean`` and ``flip_model_mean``
         (with ``flip``), ``render_ms`` (drawing the refined frame) and

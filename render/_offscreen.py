@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import collections
 import os
+import threading
 from typing import Optional
 
 import numpy as np
@@ -214,17 +216,25 @@ def check_normals(normals: str) -> str:
     return normals
 
 
-_VIEW_NORMALS: dict = {}
+# The per-view fits of the meshes drawn last (a few, kept alive with their
+# mesh: evaluation draws more than one model at a time, from threads).
+_VIEW_NORMALS: "collections.OrderedDict[int, tuple]" = collections.OrderedDict()
+_VIEW_NORMALS_KEPT = 4
+_VIEW_NORMALS_LOCK = threading.Lock()
 
 
 def view_normals(pm: ProgressiveMesh) -> ViewNormals:
     """The per-view fit of ``pm``'s refinements (:class:`pmjax.ViewNormals`
-    from :func:`shading_normals`), made once per mesh."""
+    from :func:`shading_normals`), made once per mesh (the last few kept;
+    safe from several threads)."""
     key = id(pm)
-    if key not in _VIEW_NORMALS or _VIEW_NORMALS[key][0] is not pm:
-        _VIEW_NORMALS.clear()  # one mesh at a time; keeps the mesh alive while cached
-        _VIEW_NORMALS[key] = (pm, ViewNormals(pm, shading_normals(pm)))
-    return _VIEW_NORMALS[key][1]
+    with _VIEW_NORMALS_LOCK:
+        if key not in _VIEW_NORMALS or _VIEW_NORMALS[key][0] is not pm:
+            _VIEW_NORMALS[key] = (pm, ViewNormals(pm, shading_normals(pm)))
+            while len(_VIEW_NORMALS) > _VIEW_NORMALS_KEPT:
+                _VIEW_NORMALS.popitem(last=False)
+        _VIEW_NORMALS.move_to_end(key)
+        return _VIEW_NORMALS[key][1]
 
 
 def refined_arrays(pm: ProgressiveMesh, refinement: Refinement, *, color_levels=False, eye=None):

@@ -109,6 +109,34 @@ def test_resume_gives_identical_rows_and_fidelity_defines_the_job(cow, tmp_path)
         evaluate([cow], sets, str(tmp_path / "bad"), fidelity="yes", **job)
 
 
+def test_metrics_of_stored_normals_are_not_resumed_with_view_normals(cow, tmp_path):
+    """A folder whose image metrics were written before refinements were
+    shaded with normals fitted per view (its job names no normals) is not
+    extended by rows shaded the new way: refused, naming both, the folder
+    left as it was."""
+    import json
+    import os
+
+    import pyarrow.parquet as pq
+
+    from pmjax._eval import JOB_FILE, JOB_KEY, read_job
+
+    job = dict(taus=[1.0], chunk=2, compile_cache=None, progress=False)
+    sets = [camera_set("random:3:1", **IMAGE)]
+    out = str(tmp_path / "out")
+    evaluate([cow], sets, out, fidelity=True, max_parts=1, **job)
+    described = read_job(out)
+    assert described["fidelity_normals"] == "view"
+    old = {k: v for k, v in described.items() if k != "fidelity_normals"}
+    schema = pq.read_schema(os.path.join(out, JOB_FILE))
+    pq.write_table(schema.empty_table().replace_schema_metadata({JOB_KEY: json.dumps(old)}),
+                   os.path.join(out, JOB_FILE))
+    before = sorted(os.listdir(out))
+    with pytest.raises(EvalError, match="fidelity_normals: 'stored' there, 'view' here"):
+        evaluate([cow], sets, out, fidelity=True, **job)
+    assert sorted(os.listdir(out)) == before
+
+
 @pytest.mark.slow
 def test_dask_gives_identical_rows(cow, tmp_path):
     """Parts rendered on Dask worker processes, or on a local cluster's

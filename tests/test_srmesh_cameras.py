@@ -11,7 +11,7 @@ import pytest
 
 import pmjax
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.append(str(Path(__file__).resolve().parents[1] / "benchmarks"))  # after the installed packages
 from srmesh.cameras import write_cameras  # noqa: E402
 
 

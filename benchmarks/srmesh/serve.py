@@ -41,10 +41,13 @@ class SrMeshServer:
         self._proc = subprocess.Popen([driver, mesh, self._cam_path, repr(float(tau)), "--serve"],
                                       stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         # MPL prints its own notes as '#' lines; the driver's first answer is "ready T".
-        line = self._answer()
-        if line.split() != ["ready", str(self.frames)]:
+        try:
+            line = self._answer()
+            if line.split() != ["ready", str(self.frames)]:
+                raise RuntimeError(f"SrMesh driver did not start: {line!r}")
+        except BaseException:
             self.close()
-            raise RuntimeError(f"SrMesh driver did not start: {line!r}")
+            raise
 
     def _answer(self) -> str:
         while True:
@@ -69,11 +72,19 @@ class SrMeshServer:
         return ms, faces, float(out["cpu_ms"][0])
 
     def close(self):
-        if self._proc.poll() is None:
-            self._proc.stdin.write("quit\n")
-            self._proc.stdin.close()
-            self._proc.wait(timeout=60)
-        os.unlink(self._cam_path)
+        """Ends the driver (killed if it does not quit) and removes the camera file."""
+        try:
+            if self._proc.poll() is None:
+                try:
+                    self._proc.stdin.write("quit\n")
+                    self._proc.stdin.close()
+                    self._proc.wait(timeout=60)
+                except (OSError, subprocess.TimeoutExpired):
+                    self._proc.kill()
+                    self._proc.wait()
+        finally:
+            if os.path.exists(self._cam_path):
+                os.unlink(self._cam_path)
 
     def __enter__(self):
         return self
