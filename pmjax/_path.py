@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import functools
 import itertools
-import os
 import time
 from typing import Iterator, NamedTuple
 
@@ -280,21 +279,10 @@ def _frame_refinement(fields: dict) -> Refinement:
     return r
 
 
-def _cpus() -> int:
-    """The CPUs this process may run on."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-
-
 def _word_blocks(pm, host, taus, tests, path_length):
-    """The word traversal of a path with lists, a block of words per call.
-
-    With one CPU the core is called from Python directly, each block when
-    it is reached (:func:`pmjax.engines._core.refine_words_eager`: no XLA
-    program around the traversal; the float32 predicate in XLA only for a
-    block whose words left unsure pairs): nothing could run meanwhile, and
-    a thread computing ahead would wait for the GIL between its steps. With
-    more, each block is an XLA program dispatched before the frames of the
-    last are read, so that it runs meanwhile on XLA's threads. Same results.
+    """The word traversal of a path with lists, a block of words per call:
+    each block an XLA program dispatched before the frames of the last are
+    read, so that it runs meanwhile on XLA's threads.
 
     Returns:
         ``(order, real, blocks)``: the frames in word order, which of them
@@ -302,20 +290,12 @@ def _word_blocks(pm, host, taus, tests, path_length):
         counts, (pcols, ran, positions), overflow)`` per block, NumPy arrays.
     """
     tables, one_tables, order, real, spans, rows = _core_word_plan(pm, host, taus, path_length, WORDS_STREAMED)
-    rows_of = lambda w0, n: rows[order[w0 * FRAMES:(w0 + n) * FRAMES]]  # noqa: E731
 
-    def eager():
-        d = derived(pm)
-        host_tables = d.memo("core_words_host", lambda: tuple(np.asarray(a) for a in (tables.rows, tables.kills,
-                                                                                      tables.order)))
-        for w0, n in spans:
-            counts, _, lists, overflow = _core.refine_words_eager(tables, host_tables, rows_of(w0, n), tests,
-                                                                  host.orthographic, RECORD_ROOM)
-            yield w0, n, counts, lists, overflow
+    def call(w0, n):
+        return _core_words(tables, one_tables, rows[order[w0 * FRAMES:(w0 + n) * FRAMES]], tests, host.orthographic,
+                           True, RECORD_ROOM)
 
-    def dispatched():
-        call = lambda w0, n: _core_words(tables, one_tables, rows_of(w0, n), tests,  # noqa: E731
-                                         host.orthographic, True, RECORD_ROOM)
+    def blocks():
         running = call(*spans[0]) if spans else None
         for i, (w0, n) in enumerate(spans):
             counts, _, lists, overflow = running
@@ -323,7 +303,7 @@ def _word_blocks(pm, host, taus, tests, path_length):
             running = call(*spans[i + 1]) if i + 1 < len(spans) else None
             yield w0, n, np.asarray(counts), tuple(np.asarray(a) for a in lists), np.asarray(overflow)
 
-    return order, real, eager() if _cpus() == 1 else dispatched()
+    return order, real, blocks()
 
 
 def _core_path_frames(pm, host, taus, tests, path_length) -> Iterator[tuple[Refinement, tuple | None]]:

@@ -185,29 +185,23 @@ needs_core = pytest.mark.core
 
 
 @needs_core
-@pytest.mark.parametrize("cpus", [1, 2])
-def test_long_path_streams_word_by_word(built, monkeypatch, cpus):
+def test_long_path_streams_word_by_word(built, monkeypatch):
     """With the C core, refine_path's frames are computed a few words of 16
-    frames at a time: with one CPU eagerly as the consumer reaches them,
-    with more one block ahead of the consumer (in XLA); path_counts takes
+    frames at a time, one block ahead of the consumer; path_counts takes
     blocks of words, whole ones and then the rest in powers of two."""
     data, pm = model(built, "cow.ply")
     cams = pmjax.standard_orbit(originals(data), 200)
-    monkeypatch.setattr(_path, "_cpus", lambda: cpus)
     sizes = []
-    eager, real = engines._core.refine_words_eager, _path._core_words
-    monkeypatch.setattr(engines._core, "refine_words_eager", lambda tables, host, rows, *a: sizes.append(len(rows)) or
-                        eager(tables, host, rows, *a))
+    real = _path._core_words
     monkeypatch.setattr(_path, "_core_words", lambda tables, one, rows, *a: sizes.append(len(rows)) or
                         real(tables, one, rows, *a))
     frames = pmjax.refine_path(pm, cams, 1.0)
     first = next(frames)
     block = 16 * _path.WORDS_STREAMED
-    ahead = 0 if cpus == 1 else 1
-    assert int(first.n_faces) > 0 and sizes == [block] * (1 + ahead)  # this block (and the next), not the path
+    assert int(first.n_faces) > 0 and sizes == [block] * 2  # this block and the next, not the path
     for _ in range(block):
         next(frames)
-    assert sizes == [block] * (2 + ahead)
+    assert sizes == [block] * 3
     rest = list(frames)
     assert [int(r.n_faces) for r in rest] == [int(pmjax.refine(pm, index_camera(cams, i), 1.0).n_faces)
                                               for i in range(block + 1, 200)]
