@@ -7,13 +7,12 @@ import contextlib
 import json
 import math
 import os
-import signal
 import sys
-import threading
 
 import numpy as np
 
 from pmjax._atomic import atomic_path, check_distinct, check_output_path
+from pmjax._terminate import sigterm_exits
 
 
 def _whole(low: int, high: int | None = None, hint: str = ""):
@@ -839,7 +838,7 @@ def main(argv=None) -> int:
     try:
         # Not the viewer: its window thread would keep the process alive past
         # an exit raised at the wrong moment; SIGTERM stays a plain kill there.
-        with _sigterm_exits() if args.command != "view" else contextlib.nullcontext():
+        with sigterm_exits() if args.command != "view" else contextlib.nullcontext():
             check_outputs(args)
             return args.func(args)
     except (MeshError, PMFormatError, CameraError, ValueError, OSError, RenderError) as exc:
@@ -850,21 +849,6 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:  # Ctrl-C: temporaries are gone (the writers' finally), no traceback
         print(f"pmjax {args.command}: interrupted", file=sys.stderr)
         return 130
-
-
-@contextlib.contextmanager
-def _sigterm_exits():
-    """While a command runs, SIGTERM ends it as an exception would, so the
-    writers remove their temporary files and folders on the way out (status
-    143); the previous handler is restored after."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def _closed_pipe() -> int:

@@ -14,6 +14,7 @@ from pmjax import (MeshChange, MeshStream, ViewNormals, fitted_normals, geomorph
                    refine_path)
 from pmjax._path import path_refinement_pairs
 from pmjax._atomic import atomic_folder, atomic_path, check_output_path
+from pmjax._terminate import check_terminated
 
 
 from ._gl import RenderError, pyrender_module
@@ -509,12 +510,22 @@ def check_frames_output(path: str, fps: int = 30) -> str:
     return ext
 
 
+def _checked(frames):
+    """The frames, each after :func:`pmjax._terminate.check_terminated`: an
+    exit that SIGTERM raised where Python swallowed it (inside a finalizer)
+    is raised again before the next frame."""
+    for frame in frames:
+        check_terminated()
+        yield frame
+
+
 def write_frames(frames, path: str, fps: int = 30) -> None:
     """Write RGB frames as a video (``.mp4``: H.264 through ffmpeg, started
     without forking; ``.gif``: looping, at ``fps``) or, for a directory path or
     ``.png`` pattern, as numbered PNGs, all moved into the folder at the end."""
     path = os.fspath(path)
     ext = check_frames_output(path, fps)
+    frames = _checked(frames)
     if ext == ".mp4":
         with atomic_path(path, ext) as tmp, Mp4Writer(tmp, fps) as video:
             for frame in frames:
