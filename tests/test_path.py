@@ -247,45 +247,6 @@ def test_path_at_a_float_tie_decides_the_unsure_pairs(built, monkeypatch, room):
                 assert all(np.array_equal(a, b) for a, b in zip(frame.mesh(), r.mesh())), i
 
 
-@needs_core
-def test_eager_words_equal_the_xla_target(built, monkeypatch):
-    """The words of a path called eagerly from Python (refine_path's
-    traversal) give the XLA target's counts, lists, fat-camera counts and
-    overflow bit for bit: a random walk with cuts, and a word holding a
-    pcol's critical tolerance (a float tie: its unsure pairs are decided by
-    the float32 predicate in XLA and applied); a camera batch that is not
-    whole words is refused."""
-    data, pm = model(built, "bunny.ply")
-    d = engines.derived(pm)
-    host = tuple(np.asarray(a) for a in (d.core_words.rows, d.core_words.kills, d.core_words.order))
-    orbit = pmjax.standard_orbit(originals(data), 8)
-    cam = index_camera(orbit, 1)
-    t = np.asarray(pmjax.critical_tau(pm.attributes, cam))
-    tie = t[np.flatnonzero(np.isfinite(t) & (t > 0.5) & (t < 4))[0]]
-    walked = walk(data, 32, seed=7, cuts=(5, 20))
-    cases = {"walk": (walked, np.full(32, 1.0, np.float32)),
-             "tie": (stack_cameras([cam] * 16), np.full(16, tie, np.float32))}
-    answered = []
-    real = engines._core._answered_words
-    monkeypatch.setattr(engines._core, "_answered_words", lambda *a, **k: answered.append(1) or real(*a, **k))
-    for label, (cams, taus) in cases.items():
-        rows = engines._core.camera_rows(cams, taus, d.exponent)
-        want = _path._core_words(d.core_words, d.core, rows, pmjax.ALL_TESTS, False, True)
-        got = engines._core.refine_words_eager(d.core_words, host, np.asarray(rows), pmjax.ALL_TESTS, False)
-        counts, at_once, overflow = (np.asarray(want[i]) for i in (0, 1, 3))
-        lists = want[2]
-        assert np.array_equal(got[0], counts) and np.array_equal(got[1], at_once), label
-        assert np.array_equal(got[3], overflow) and not overflow.any(), label
-        for w in range(len(overflow)):
-            m = int(counts[w * 16, 0])
-            for a, b in zip(got[2], lists):
-                assert np.array_equal(a[w, :m], np.asarray(b)[w, :m]), (label, w)
-        assert len(answered) == (label == "tie"), label
-    with pytest.raises(ValueError, match="cameras must have shape"):
-        engines._core.refine_words_eager(d.core_words, host, np.zeros((15, engines._core.CAMERA), np.float32),
-                                         pmjax.ALL_TESTS, False)
-
-
 @pytest.mark.slow
 def test_path_as_jax_kernels_is_exact_and_streams(built, monkeypatch):
     """The word traversal as JAX kernels (where the C core is not built): 32

@@ -60,10 +60,10 @@ SIMD_LEVELS = ("plain", "avx2", "avx512")
 # from bitmaps always, from sorts always.
 MESH_RANKS = ("rule", "bitmaps", "sorts")
 # Unsure pairs decided per step of the loop that asks the float32 predicate:
-# for batches, and for one camera or a few words of a path called eagerly,
-# whose unsure decisions are few (a bigger step makes XLA's cost estimate of
-# the whole call grow past the point where the CPU client runs it on another
-# thread, which costs an eager call more than the step saves).
+# for batches, and for one camera, whose unsure decisions are few (a bigger
+# step makes XLA's cost estimate of the whole call grow past the point where
+# the CPU client runs it on another thread, which costs an eager call more
+# than the step saves).
 CHUNK = 64
 CHUNK_ONE = 4
 # Words per call of the path targets (a path's words are taken by the core's
@@ -117,9 +117,10 @@ def simd(level: str | None = None) -> str:
 
 
 def mesh_ranks(way: str | None = None) -> str:
-    """How the core's ``Refinement.mesh()`` ranks faces, front starts and
-    vertex ids: ``"rule"`` (a bitmap each, or a sort of the items where they
-    are few for the bitmap's words), ``"bitmaps"`` or ``"sorts"`` always.
+    """How the core's ``Refinement.mesh()`` ranks faces and vertex ids (the
+    front's starts always in a bitmap): ``"rule"`` (a bitmap each, or a sort
+    of the items where they are few for the bitmap's words), ``"bitmaps"``
+    or ``"sorts"`` always.
     With ``way``, switch and return the previous (for tests: every way gives
     the same mesh)."""
     if way is not None and way not in MESH_RANKS:
@@ -257,27 +258,27 @@ def _decide_each(tables, positions, values, tests, orthographic):
     return jax.vmap(one)(columns, values)[:, 0]
 
 
-def _answer_pairs(tables, pairs, count, yes, cameras, tests, orthographic, frames, chunk=CHUNK):
+def _answer_pairs(tables, pairs, count, yes, cameras, tests, orthographic, frames):
     """``yes[i]`` for the first ``count`` pairs ``(at, item, position,
     frames)``: the frames (bits) of the pair's item whose float32 predicate
     collapses its pcol; ``cameras [items * frames, CAMERA]`` (:func:`camera_rows`),
-    ``chunk`` pairs at a time."""
+    CHUNK pairs at a time."""
     capacity = pairs.shape[0]
     lanes = jnp.arange(frames)
 
     def step(i, yes):
-        at = i * chunk + jnp.arange(chunk)
+        at = i * CHUNK + jnp.arange(CHUNK)
         valid = at < count
         pair = pairs[jnp.minimum(at, capacity - 1)]
         position = jnp.where(valid, pair[:, 2], 0)
-        # Each pair's pcol under each frame of its item: [chunk, frames].
+        # Each pair's pcol under each frame of its item: [CHUNK, frames].
         frame = jnp.where(valid, pair[:, 1], 0)[:, None] * frames + lanes
         views = _view_of_rows(cameras[frame.reshape(-1)], orthographic, i)
         bits = _decide_each(tables, jnp.repeat(position, frames), views, tests, orthographic)
-        word = jnp.sum(bits.reshape(chunk, frames).astype(jnp.int32) << lanes, axis=1) & pair[:, 3]
+        word = jnp.sum(bits.reshape(CHUNK, frames).astype(jnp.int32) << lanes, axis=1) & pair[:, 3]
         return yes.at[jnp.where(valid, at, capacity)].set(word, mode="drop")
 
-    return lax.fori_loop(0, (count + chunk - 1) // chunk, step, yes)
+    return lax.fori_loop(0, (count + CHUNK - 1) // CHUNK, step, yes)
 
 
 # -- one camera ------------------------------------------------------------------
@@ -529,53 +530,6 @@ def refine_words(tables: CoreTables, one_tables: CoreTables, cameras, tests, ort
     if not lists:
         counts = _recount_overflowed(one_tables, cameras, tests, orthographic, overflow, counts)
     return counts, at_once, (pcols, ran, positions), overflow
-
-
-def refine_words_eager(tables: CoreTables, host, cameras: np.ndarray, tests, orthographic: bool,
-                       room: int | None = None):
-    """:func:`refine_words` with lists, eagerly: the core called from Python
-    directly on this thread (``_pmx.refine_words``, with the XLA target's
-    checks; no XLA program around it), the unsure pairs asked of the float32
-    predicate in XLA and applied there only where the words left some.
-
-    Args:
-        tables: :class:`CoreTables` with bounds over whole subtrees.
-        host: ``(rows, kills, order)`` of ``tables`` as NumPy arrays (read
-            once per mesh by the caller).
-        cameras: NumPy ``float32 [W * FRAMES, CAMERA]`` (:func:`camera_rows`).
-        room: int32 of unsure records (``None``: :func:`record_capacity`).
-
-    Returns:
-        NumPy ``(counts int32 [W * FRAMES, 4], at_once int32 [W], (pcols,
-        ran uint16, positions) [W, P + SPARE], overflow uint8 [W])``, as
-        :func:`refine_words` with lists returns them.
-    """
-    P = tables.n_pcols
-    W = cameras.shape[0] // FRAMES
-    L = P + SPARE
-    R = record_capacity(W, FRAMES) if room is None else room
-    counts, at_once = np.empty((W * FRAMES, 4), np.int32), np.empty(W, np.int32)
-    pcols, ran, positions = np.empty((W, L), np.int32), np.empty((W, L), np.uint16), np.empty((W, L), np.int32)
-    records, pairs, sizes = np.empty(R, np.int32), np.empty((R // NODE + 1, 4), np.int32), np.empty(2, np.int32)
-    overflow = np.empty(W, np.uint8)
-    _pmx.refine_words(*host, cameras, flags_of(tests, orthographic), tables.n_roots, counts, at_once, pcols, ran,
-                      positions, records, pairs, sizes, overflow)
-    if sizes[1]:
-        counts, ran = (np.asarray(a) for a in _answered_words(tables, records, sizes, pairs, counts, ran, cameras,
-                                                               tests, orthographic))
-    return counts, at_once, (pcols, ran, positions), overflow
-
-
-@functools.partial(jax.jit, static_argnames=("tests", "orthographic"))
-def _answered_words(tables, records, sizes, pairs, counts, ran, cameras, tests, orthographic):
-    """The unsure pairs of :func:`refine_words_eager`'s words decided by the
-    float32 predicate, and the words' counts and frame bits corrected."""
-    # A few words' pairs are few: CHUNK_ONE at a time.
-    yes = _answer_pairs(tables, pairs, sizes[1], jnp.zeros(pairs.shape[0], jnp.int32), cameras, tests,
-                        orthographic, FRAMES, CHUNK_ONE)
-    _, counts, _, ran = _apply(tables, records, sizes, pairs, yes, counts, jnp.zeros((counts.shape[0] // FRAMES, 0),
-                                                                                      jnp.uint8), ran, FRAMES)
-    return counts, ran
 
 
 def _recount_overflowed(tables, cameras, tests, orthographic, overflow, counts):

@@ -997,69 +997,6 @@ PyObject* RefineOneEager(PyObject*, PyObject* args, PyObject* kwargs) {
   Py_RETURN_NONE;
 }
 
-// refine_words(rows, kills, order, cameras, flags, n_roots, counts, at_once, pcols, ran, positions, records,
-//              pairs, sizes, overflow)
-// Words of a path eagerly, as the target pmx_refine_words computes them, on
-// the calling thread alone (no helpers): cameras f32[W * 16, CAMERA];
-// written: counts s32[W * 16, 4], at_once s32[W], lists pcols s32[W, L],
-// ran u16[W, L], positions s32[W, L] (L = P + PMX_SPARE), records s32[R],
-// pairs s32[R / NODE + 1, 4], sizes s32[2] (records used, unsure pairs),
-// overflow u8[W].
-PyObject* RefineWordsEager(PyObject*, PyObject* args) {
-  PyObject *rows_o, *kills_o, *order_o, *cameras_o, *counts_o, *at_once_o, *pcols_o, *ran_o, *positions_o,
-      *records_o, *pairs_o, *sizes_o, *overflow_o;
-  int flags = 0;
-  long long n_roots = 0;
-  if (!PyArg_ParseTuple(args, "OOOOiLOOOOOOOOO", &rows_o, &kills_o, &order_o, &cameras_o, &flags, &n_roots,
-                        &counts_o, &at_once_o, &pcols_o, &ran_o, &positions_o, &records_o, &pairs_o, &sizes_o,
-                        &overflow_o))
-    return nullptr;
-  HostArray rows, kills, order, cameras, counts, at_once, pcols, ran, positions, records, pairs, sizes, overflow;
-  PmxHierarchy h;
-  if (!TakeHierarchy(rows_o, kills_o, order_o, n_roots, &rows, &kills, &order, &h) ||
-      !Take(cameras_o, "cameras", 'f', 4, false, false, &cameras) ||
-      !Take(counts_o, "counts", 'i', 4, true, false, &counts) ||
-      !Take(at_once_o, "at_once", 'i', 4, true, false, &at_once) ||
-      !Take(pcols_o, "pcols", 'i', 4, true, false, &pcols) || !Take(ran_o, "ran", 'u', 2, true, false, &ran) ||
-      !Take(positions_o, "positions", 'i', 4, true, false, &positions) ||
-      !Take(records_o, "records", 'i', 4, true, false, &records) ||
-      !Take(pairs_o, "pairs", 'i', 4, true, false, &pairs) || !Take(sizes_o, "sizes", 'i', 4, true, false, &sizes) ||
-      !Take(overflow_o, "overflow", 'u', 1, true, false, &overflow))
-    return nullptr;
-  const int64_t P = h.n_pcols;
-  auto vd = cameras.shape();
-  if (vd.size() != 2 || vd[1] != PMX_CAMERA || vd[0] % PMX_FRAMES != 0 || vd[0] == 0) {
-    PyErr_Format(PyExc_ValueError, "cameras must have shape [W * 16, %d], W >= 1, got %s", PMX_CAMERA,
-                 Shape(vd).c_str());
-    return nullptr;
-  }
-  const int64_t W = vd[0] / PMX_FRAMES;
-  if (!Raise(Expect("counts", counts.shape(), {W * PMX_FRAMES, 4})) ||
-      !Raise(Expect("at_once", at_once.shape(), {W})) || !Raise(Expect("overflow", overflow.shape(), {W})) ||
-      !Raise(Expect("pcols", pcols.shape(), {W, P + PMX_SPARE})) ||
-      !Raise(Expect("ran", ran.shape(), {W, P + PMX_SPARE})) ||
-      !Raise(Expect("positions", positions.shape(), {W, P + PMX_SPARE})) ||
-      !Raise(CheckRecords(records.shape(), pairs.shape(), sizes.shape())))
-    return nullptr;
-  PmxLists lists{pcols.data<int32_t>(), nullptr, ran.data<uint16_t>(), positions.data<int32_t>()};
-  PmxRecords rec{records.data<int32_t>(), records.dims[0], 0};
-  const PmxRunner alone{nullptr, nullptr, 1};
-  std::vector<float> views(vd[0] * PMX_VIEW);
-  PmxStatus status;
-  Py_BEGIN_ALLOW_THREADS;
-  pmx_views_of(cameras.data<float>(), vd[0], (flags & PMX_ORTHOGRAPHIC) != 0, views.data());
-  status = pmx_refine_words(&h, views.data(), W, flags, reinterpret_cast<PmxCounts*>(counts.data<int32_t>()), lists,
-                            at_once.data<int32_t>(), &rec, overflow.data<uint8_t>(), &alone);
-  if (status == PMX_OK) Pairs(rec.records, rec.used, pairs.data<int32_t>(), sizes.data<int32_t>());
-  Py_END_ALLOW_THREADS;
-  if (status != PMX_OK) {
-    PyErr_Format(status == PMX_NO_MEMORY ? PyExc_MemoryError : PyExc_ValueError, "path: %s",
-                 pmx_status_text(status));
-    return nullptr;
-  }
-  Py_RETURN_NONE;
-}
-
 template <typename T>
 Raw<T> RawOf(const HostArray& a) {
   return Raw<T>{a.data<T>(), a.shape()};
@@ -1364,10 +1301,6 @@ PyMethodDef methods[] = {
      "refine_one(rows, kills, order, camera, flags, n_roots, pcols, ran, positions, counts, unsure=None, "
      "answered=None, answers=None, level=-1): one camera eagerly, as the targets pmx_refine_one and "
      "pmx_refine_answered compute it (NumPy arrays in and out; ValueError naming a bad argument)."},
-    {"refine_words", RefineWordsEager, METH_VARARGS,
-     "refine_words(rows, kills, order, cameras, flags, n_roots, counts, at_once, pcols, ran, positions, records, "
-     "pairs, sizes, overflow): words of a path eagerly on this thread, as the target pmx_refine_words computes "
-     "them (NumPy arrays in and out; ValueError naming a bad argument)."},
     {"front_mesh", FrontMeshEager, METH_VARARGS,
      "front_mesh(pcol_records, kill_data, base, tops, top_at, ran, positions, counts, item, n_original, "
      "n_faces_total, faces, ids, vertex_positions) -> n_ids: one refinement's mesh eagerly, as the target "
