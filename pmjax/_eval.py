@@ -788,7 +788,7 @@ def evaluate(
     total = len(models) * len(values) * sum(counts)
     n_parts = len(models) * len(values) * sum(-(-n // chunk) for n in counts)
     # The parts found done and verified (file name -> SHA-256 of the model
-    # they came from), and those written now: what an interruption reports.
+    # they came from), and the parts and rows written now.
     done, checked = {}, False
     written = rows_now = n_done = 0
     try:
@@ -883,8 +883,15 @@ def evaluate(
                 del data, vertices, v64
             store(runner.drain())
     except KeyboardInterrupt:
-        raise EvalInterrupted(os.fspath(folder), len(done) + written if checked else None, n_parts,
-                              n_done + rows_now, total) from None
+        if not checked:
+            raise EvalInterrupted(os.fspath(folder), None, n_parts, n_done + rows_now, total) from None
+        # Ctrl-C can fall between a part's rename and its count, so the parts
+        # saved now are read from the folder (each one there was written
+        # whole), next to those found done (some may be in compacted files).
+        saved = set(done).union(name for name in os.listdir(folder) if (found := _PART_NAME.fullmatch(name))
+                                and tuple(int(g) for g in found.groups()[:3]) in mine)
+        raise EvalInterrupted(os.fspath(folder), len(saved), n_parts,
+                              sum(_rows_of(name, job_counts, chunk) for name in saved), total) from None
     return EvalSummary(folder=os.fspath(folder), rows=n_done + rows_now, parts_written=written,
                        parts_skipped=len(done), cameras=rows_now, seconds=time.perf_counter() - start)
 

@@ -339,3 +339,30 @@ def test_path_runs_follow_each_path_in_frame_order():
     # A table without paths: everything to the batch.
     no_paths = pmjax._camera_table.CameraTable(**{**table.__dict__, "path_id": None, "frame": None})
     assert path_runs(no_paths, idx)[0] == [] and np.array_equal(path_runs(no_paths, idx)[1], idx)
+
+
+def test_ctrl_c_right_after_a_part_is_renamed_counts_that_part(cow, tmp_path, monkeypatch):
+    """Ctrl-C between a part's rename and the run's count of it: the message
+    still counts every part file in the folder, and resuming finds them all."""
+    import pmjax._eval as ev
+
+    write = ev._write_part
+    calls = []
+
+    def write_then_interrupt(folder, part, table):
+        write(folder, part, table)
+        calls.append(part.file)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(ev, "_write_part", write_then_interrupt)
+    out = str(tmp_path / "out")
+    with pytest.raises(ev.EvalInterrupted) as info:
+        evaluate([cow], ["random:500:1"], out, taus=[1.0], chunk=50, compile_cache=None, progress=False)
+    saved = sorted(n for n in os.listdir(out) if n.startswith("part-"))
+    assert saved == sorted(calls)
+    assert (info.value.parts_saved, info.value.parts_total) == (2, 10)
+    assert (info.value.rows_saved, info.value.rows_total) == (100, 500)
+    monkeypatch.setattr(ev, "_write_part", write)
+    summary = evaluate([cow], ["random:500:1"], out, taus=[1.0], chunk=50, compile_cache=None, progress=False)
+    assert (summary.parts_skipped, summary.parts_written) == (2, 8)
