@@ -276,7 +276,7 @@ def cmd_path(args) -> int:
         from pmjax.render import path_fidelity
 
         fidelity = path_fidelity(pm, cams, args.tau, tests=tests, geomorph=args.geomorph,
-                                 supersample=args.supersample, coherent=not args.per_frame, progress=not args.quiet,
+                                 supersample=args.supersample or 2, coherent=not args.per_frame, progress=not args.quiet,
                                  normals="stored" if args.stored_normals else "view")
         for row, fid in zip(rows, fidelity):
             row.update({k: round(float(fid[k]), 6) for k in FIDELITY_COLUMNS})
@@ -625,7 +625,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also render each frame and the original: differing-pixel share, PSNR, "
                         "the share due to geometry alone (silhouette), popping, NVIDIA's FLIP over the image "
                         "and over the model's pixels (needs flip-evaluator), and the measuring cost per frame")
-    p.add_argument("--supersample", type=_whole(1, 16), default=2, metavar="S",
+    p.add_argument("--supersample", type=_whole(1, 16), default=None, metavar="S",
                    help="fidelity renders: S×S samples per pixel (default 2; popping wants 4, docs/soft.md)")
     add_normals_arg(p, "the fidelity renders' refinements")
     add_geomorph_arg(p)
@@ -811,6 +811,14 @@ def _parse(parser: argparse.ArgumentParser, argv):
         hints = [m for x in extra for m in difflib.get_close_matches(x.split("=")[0], known, n=1)]
         sub.error(f"unrecognized arguments: {' '.join(extra)}"
                   + (f" (did you mean {', '.join(hints)}?)" if hints else ""))
+    if getattr(args, "command", None) == "path" and not args.fidelity:
+        # These shape the fidelity renders only: without them they would be ignored.
+        given = [flag for flag, on in (("--stored-normals", args.stored_normals), ("--geomorph", args.geomorph),
+                                       ("--supersample", args.supersample is not None)) if on]
+        if given:
+            sub = parser._subparsers._group_actions[0].choices["path"]
+            sub.error(f"{', '.join(given)} shape{'s' if len(given) == 1 else ''} the --fidelity renders: "
+                      "add --fidelity, or leave it out")
     if getattr(args, "command", None) == "eval":
         # A job (models and -o) or a compaction (--compact FOLDER), not both.
         sub = parser._subparsers._group_actions[0].choices["eval"]

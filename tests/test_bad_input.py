@@ -124,6 +124,17 @@ def test_out_of_range_flags_are_refused_with_the_subcommand_usage(argv, flag, tm
     assert os.listdir(tmp_path) == []
 
 
+@pytest.mark.parametrize("extra", [["--stored-normals"], ["--geomorph", "4"], ["--supersample", "2"]])
+def test_path_refuses_fidelity_flags_without_fidelity(extra, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as info:
+        main(["path", "x.pmz", "--orbit", "3", "--csv", "p.csv", *extra])
+    err = capsys.readouterr().err
+    assert info.value.code == 2
+    assert "usage: pmjax path" in err and f"{extra[0]} shapes the --fidelity renders" in err
+    assert os.listdir(tmp_path) == []
+
+
 def test_a_misspelt_flag_gets_a_suggestion(capsys):
     with pytest.raises(SystemExit):
         main(["info", SPOT, "--jsn"])
