@@ -712,6 +712,44 @@ static PmxStatus flips(PmxMeshStream *s, const PmxStreamFrame *last, const PmxSt
     return PMX_OK;
 }
 
+/* Requests the rows of vertex slot v (-1: none) that a flip reads. */
+PMX_INLINE void prefetch_vertex(const PmxMeshStream *s, int32_t v)
+{
+    if (v < 0)
+        return;
+    __builtin_prefetch(s->links + v);
+    __builtin_prefetch(s->vertex_id + v);
+    __builtin_prefetch(s->vertex_uses + v);
+    __builtin_prefetch(s->vertex_stamp + v);
+    __builtin_prefetch(s->vertex_position + 3 * (int64_t)v);
+}
+
+/* Requests what a collapse at `at` reads once its record is in: its kill
+ * list's slots and its children's vertex slots. */
+PMX_INLINE void prefetch_collapse_lists(const PmxMeshStream *s, int32_t at)
+{
+    const PmxPcolRecord *r = s->t.pcols + at;
+    __builtin_prefetch(s->kill_slot + r->kill_first);
+    __builtin_prefetch(s->slot_at + child_index(s, r, 0));
+    __builtin_prefetch(s->slot_at + child_index(s, r, 1));
+}
+
+/* Requests the rows a collapse at `at` reads once its lists are in: its
+ * children's vertex rows and its kill list's face slots. */
+PMX_INLINE void prefetch_collapse_slots(const PmxMeshStream *s, int32_t at)
+{
+    const PmxPcolRecord *r = s->t.pcols + at;
+    prefetch_vertex(s, s->slot_at[child_index(s, r, 0)]);
+    prefetch_vertex(s, s->slot_at[child_index(s, r, 1)]);
+    for (int32_t j = 0; j < r->kill_count && j < 4; j++) {
+        const int32_t slot = s->kill_slot[r->kill_first + j];
+        if (slot >= 0) {
+            __builtin_prefetch(s->corner + 3 * (int64_t)slot);
+            __builtin_prefetch(s->face_vertex + 3 * (int64_t)slot);
+        }
+    }
+}
+
 PmxStatus pmx_mesh_stream_step(PmxMeshStream *s, const PmxStreamFrame *next)
 {
     if (s->broken)
@@ -738,22 +776,38 @@ PmxStatus pmx_mesh_stream_step(PmxMeshStream *s, const PmxStreamFrame *next)
      * broken. */
     const PmxPcolRecord *const records = s->t.pcols;
     const int32_t *const collapses = s->collapse, *const splits = s->split;
-    /* Each flip's record and kill list are misses in tables far larger than
-     * the cache: requested FLIPS_AHEAD flips early (the kill list once its record
-     * is in), the misses overlap. */
+    /* Each flip's record, kill list and slots are misses in tables far
+     * larger than the cache: requested in stages ahead of the flip, each
+     * once what it needs is in (a record FLIPS_AHEAD flips early, with its
+     * position's slot; its kill list and children's slots half as early;
+     * the rows of the slots it reads a quarter as early), so the misses
+     * overlap. A stage reads the stream as the earlier flips leave it,
+     * which only makes a request useless, never wrong. */
     enum { FLIPS_AHEAD = 8 };
+    for (int64_t i = n_collapses - 1; i >= n_collapses - FLIPS_AHEAD && i >= 0; i--)
+        __builtin_prefetch(records + collapses[i]);
     for (int64_t i = n_collapses - 1; i >= 0 && status == PMX_OK; i--) {
         if (i >= FLIPS_AHEAD)
             __builtin_prefetch(records + collapses[i - FLIPS_AHEAD]);
         if (i >= FLIPS_AHEAD / 2)
-            __builtin_prefetch(s->kill_slot + records[collapses[i - FLIPS_AHEAD / 2]].kill_first);
+            prefetch_collapse_lists(s, collapses[i - FLIPS_AHEAD / 2]);
+        if (i >= FLIPS_AHEAD / 4)
+            prefetch_collapse_slots(s, collapses[i - FLIPS_AHEAD / 4]);
         status = collapse(s, collapses[i]);
     }
+    for (int64_t i = 0; i < FLIPS_AHEAD && i < n_splits; i++) {
+        __builtin_prefetch(records + splits[i]);
+        __builtin_prefetch(s->slot_at + splits[i]);
+    }
     for (int64_t i = 0; i < n_splits && status == PMX_OK; i++) {
-        if (i + FLIPS_AHEAD < n_splits)
+        if (i + FLIPS_AHEAD < n_splits) {
             __builtin_prefetch(records + splits[i + FLIPS_AHEAD]);
+            __builtin_prefetch(s->slot_at + splits[i + FLIPS_AHEAD]);
+        }
         if (i + FLIPS_AHEAD / 2 < n_splits)
             __builtin_prefetch(s->t.kill_data + records[splits[i + FLIPS_AHEAD / 2]].kill_first);
+        if (i + FLIPS_AHEAD / 4 < n_splits)
+            prefetch_vertex(s, s->slot_at[splits[i + FLIPS_AHEAD / 4]]);
         status = split(s, splits[i]);
     }
     if (status != PMX_OK) {
