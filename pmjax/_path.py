@@ -33,7 +33,7 @@ from __future__ import annotations
 import functools
 import itertools
 import time
-from typing import Iterator, NamedTuple
+from typing import Iterator
 
 import jax
 import jax.numpy as jnp
