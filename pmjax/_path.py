@@ -33,7 +33,7 @@ from __future__ import annotations
 import functools
 import itertools
 import time
-from typing import Iterator, NamedTuple
+from typing import Iterator
 
 import jax
 import jax.numpy as jnp
@@ -264,8 +264,6 @@ def _core_path_counts(pm, host, taus, tests, path_length, cols, ms, bar, timing)
 # Keys naming a block of words' lists for a MeshStream (its frames share them):
 # one count for every block, so that no two blocks' lists share a key.
 _BLOCK_KEYS = itertools.count(1)
-# The frames' bits of a word, one row per frame.
-_LANE_MASKS = (np.uint16(1) << np.arange(FRAMES, dtype=np.uint16))[:, None]
 
 
 def _frame_refinement(fields: dict) -> Refinement:
@@ -306,19 +304,23 @@ def _word_blocks(pm, host, taus, tests, path_length):
     return order, real, blocks()
 
 
-def _core_path_frames(pm, host, taus, tests, path_length) -> Iterator[tuple[Refinement, tuple | None]]:
+def _core_path_frames(pm, host, taus, tests, path_length, stream=None) -> Iterator:
     """The frames of a path through the C core's words with their lists, a
     few words per call (:func:`_word_blocks`); the frames of a word whose
     unsure records did not fit are refined alone.
 
+    Args:
+        stream: ``None``, or a :class:`MeshStream` of ``pm`` that follows
+            the frames (each frame's change made by its word's lists).
+
     Yields:
-        ``(refinement, frame)``: ``frame`` the lists as a :class:`MeshStream`
-        steps to them (``(positions, ran, bit, slots, key)``, the key naming
-        the word's lists), ``None`` for a frame refined alone.
+        each frame's :class:`Refinement`; with ``stream``, ``(refinement,
+        MeshChange)``.
     """
     order, real, blocks = _word_blocks(pm, host, taus, tests, path_length)
     counts_of = _Counts.of(pm)
     real_lanes = real.tolist()  # Python bools: read once per frame
+    lane_step = stream._step_lane if stream is not None and stream._stream is not None else None
     for w0, n, counts, (pcols, ran, positions), overflow in blocks:
         faces, vertices, executed = counts_of(counts[:, 1], counts[:, 2], np)
         # Each frame's counts and item in the block's counts as lists of
@@ -331,23 +333,29 @@ def _core_path_frames(pm, host, taus, tests, path_length) -> Iterator[tuple[Refi
             if overflow[w]:
                 for lane in lanes:
                     if real_lanes[lane]:
-                        yield refine(pm, jax.tree.map(lambda a: a[order[lane]], host), taus[order[lane]], tests), None
+                        r = refine(pm, jax.tree.map(lambda a: a[order[lane]], host), taus[order[lane]], tests)
+                        yield r if stream is None else (r, stream.update(r))
                 continue
             m = int(counts[w * FRAMES, 0])  # the word's slots (every frame lists them)
             visited, word_ran, at = pcols[w, :m], ran[w], positions[w]
-            bits = word_ran[:m]
-            # Every frame's executed bits at once, one row per frame.
-            executed_bits = (bits & _LANE_MASKS) != 0
-            key, slots = block | w, np.int32(m)
+            slots = np.int32(m)
+            # The word's lists as a stream steps to them (its frames then
+            # pass their bit alone: MeshStream._step_lane).
+            word = (at, word_ran, 0, m, block | w)
             for j, lane in enumerate(lanes):
                 if not real_lanes[lane]:
                     continue
                 k = w * FRAMES + j
-                yield _frame_refinement({
-                    "pm": pm, "visited": visited, "visited_executed": executed_bits[j], "dense": None,
+                # Its executed bits are made from the word's when first read.
+                r = _frame_refinement({
+                    "pm": pm, "visited": visited, "_lane": (word_ran, m, j), "dense": None,
                     "n_faces": faces[k], "n_vertices": vertices[k], "n_executed": executed[k],
                     "front_positions": positions, "core_ran": ran, "core_counts": counts, "core_item": items[k],
-                    "n_slots": slots}), (at, word_ran, j, m, key)
+                    "n_slots": slots})
+                if stream is None:
+                    yield r
+                else:
+                    yield r, (lane_step(word, j) if lane_step is not None else stream.update(r))
 
 
 def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, tests: Tests = ALL_TESTS,
@@ -387,24 +395,31 @@ def refine_path(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, t
         for i in range(T):
             yield refine(pm, jax.tree.map(lambda a: a[i], cameras), taus[i], tests)
         return
-    for r, _ in _path_frames(pm, cameras, tau, budget, tests, coherent):
-        yield r
+    yield from _path_frames(pm, cameras, tau, budget, tests, coherent)
 
 
-def _path_frames(pm, cameras, tau, budget, tests, coherent):
-    """:func:`refine_path` of concrete cameras: ``(refinement, frame)`` per
-    frame, ``frame`` as :func:`_core_path_frames` gives it (``None`` where
-    the C core's words did not refine it)."""
+def _path_frames(pm, cameras, tau, budget, tests, coherent, stream=None):
+    """:func:`refine_path` of concrete cameras: each frame's refinement, or
+    with ``stream`` (a :class:`MeshStream`) ``(refinement, MeshChange)``,
+    the stream following the frames (by the C core's word lists where they
+    made the frame: :func:`_core_path_frames`)."""
     host, taus, budgets, shape = check_path(cameras, tau, budget)
     if budgets is not None:
         taus = _budget_taus(pm, host, budgets, tests)
     engine = select(pm, "front", batch=True) if coherent else "dense"
+    if engine == "core":
+        yield from _core_path_frames(pm, host, taus, tests, shape[-1], stream)
+        return
+    for r in _other_path_frames(pm, host, taus, tests, shape, coherent, engine):
+        yield r if stream is None else (r, stream.update(r))
+
+
+def _other_path_frames(pm, host, taus, tests, shape, coherent, engine):
+    """The frames of a path refined alone (dense, or not ``coherent``) or by
+    the JAX kernels' words of 32 frames."""
     if not coherent or engine == "dense":
         for i in range(len(taus)):
-            yield refine(pm, jax.tree.map(lambda a: a[i], host), taus[i], tests), None
-        return
-    if engine == "core":
-        yield from _core_path_frames(pm, host, taus, tests, shape[-1])
+            yield refine(pm, jax.tree.map(lambda a: a[i], host), taus[i], tests)
         return
     for frames, (faces, vertices, executed, visited, ran) in _chunks(pm, host, taus, tests, shape[-1], True):
         faces, vertices, executed = np.asarray(faces), np.asarray(vertices), np.asarray(executed)
@@ -418,7 +433,7 @@ def _path_frames(pm, cameras, tau, budget, tests, coherent):
                 if k >= len(frames) or frames[k] < 0:
                     continue
                 yield Refinement(pm=pm, visited=ids, visited_executed=((bits >> lane) & 1).astype(bool), dense=None,
-                                 n_faces=faces[k], n_vertices=vertices[k], n_executed=executed[k]), None
+                                 n_faces=faces[k], n_vertices=vertices[k], n_executed=executed[k])
 
 
 def path_mesh_changes(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=None, tests: Tests = ALL_TESTS,
@@ -454,10 +469,7 @@ def path_mesh_changes(pm: ProgressiveMesh, cameras: Camera, tau=1.0, *, budget=N
     elif stream.pm is not pm:
         raise ValueError("path_mesh_changes: stream is a MeshStream of another mesh; make one with MeshStream(pm)")
     check_camera_type(cameras, "refine_path", "cameras")
-    # The C core's frames step the stream by their word's lists directly.
-    update, step = stream.update, (stream._step_frame if stream._stream is not None else None)
-    for r, frame in _path_frames(pm, cameras, tau, budget, tests, True):
-        yield r, (update(r) if frame is None or step is None else step(frame))
+    yield from _path_frames(pm, cameras, tau, budget, tests, True, stream)
 
 
 def _traced_path_length(cameras) -> int:
@@ -605,10 +617,14 @@ def path_refinement_pairs(pm: ProgressiveMesh, cameras: Camera, tau, *, tests: T
 # -- drawable meshes along a path: each frame a change against the last ------------------
 
 
-class MeshChange(NamedTuple):
+class MeshChange:
     """One frame's change to a :class:`MeshStream`'s mesh: the slots whose
     contents changed, each once, with their new contents. Writing these rows
     into buffers holding the last frame's slots gives this frame's.
+
+    With the C core the change is one buffer the core packed, and each array
+    is a view of it made when first read (a frame whose change is not read
+    costs no arrays); it is the change's own (later frames do not change it).
 
     Attributes:
         face_slots: ``int32 [k]`` face slots changed.
@@ -622,13 +638,46 @@ class MeshChange(NamedTuple):
             buffer needs); every slot index is below them.
     """
 
-    face_slots: np.ndarray
-    faces: np.ndarray
-    vertex_slots: np.ndarray
-    vertex_ids: np.ndarray
-    vertex_positions: np.ndarray
-    n_face_slots: int
-    n_vertex_slots: int
+    __slots__ = ("n_face_slots", "n_vertex_slots", "_packed", "_k", "_u", "_arrays")
+
+    def __init__(self, face_slots, faces, vertex_slots, vertex_ids, vertex_positions, n_face_slots: int,
+                 n_vertex_slots: int):
+        self.n_face_slots, self.n_vertex_slots = n_face_slots, n_vertex_slots
+        self._arrays = [face_slots, faces, vertex_slots, vertex_ids, vertex_positions]
+
+    @classmethod
+    def _of_packed(cls, packed, k: int, u: int, n_face_slots: int, n_vertex_slots: int) -> "MeshChange":
+        """The change the core packed in ``packed`` (``int32`` face slots
+        ``[k]``, faces ``[k, 3]``, vertex slots ``[u]``, ids ``[u]``, then
+        ``float32`` positions ``[u, 3]``), its arrays made when read."""
+        change = object.__new__(cls)
+        change.n_face_slots, change.n_vertex_slots = n_face_slots, n_vertex_slots
+        change._packed, change._k, change._u, change._arrays = packed, k, u, None
+        return change
+
+    def _array(self, which: int) -> np.ndarray:
+        arrays = self._arrays
+        if arrays is None:
+            arrays = self._arrays = [None] * 5
+        a = arrays[which]
+        if a is None:
+            # An array over its bytes of the packed buffer (it keeps the
+            # buffer alive): (shape, dtype, byte offset) of each field.
+            k, u = self._k, self._u
+            shape, dtype, offset = (((k,), _INT32, 0), ((k, 3), _INT32, 4 * k), ((u,), _INT32, 16 * k),
+                                    ((u,), _INT32, 16 * k + 4 * u), ((u, 3), _FLOAT32, 16 * k + 8 * u))[which]
+            a = arrays[which] = _array(shape, dtype, self._packed, offset)
+        return a
+
+    face_slots = property(lambda self: self._array(0), doc="``int32 [k]`` face slots changed.")
+    faces = property(lambda self: self._array(1), doc="``int32 [k, 3]`` their vertex slots (-1 rows: freed).")
+    vertex_slots = property(lambda self: self._array(2), doc="``int32 [u]`` vertex slots changed.")
+    vertex_ids = property(lambda self: self._array(3), doc="``int32 [u]`` their PM vertex ids (-1: freed).")
+    vertex_positions = property(lambda self: self._array(4), doc="``float32 [u, 3]`` their positions.")
+
+    def __repr__(self) -> str:
+        return (f"MeshChange({len(self.face_slots)} face slots, {len(self.vertex_slots)} vertex slots; "
+                f"n_face_slots={self.n_face_slots}, n_vertex_slots={self.n_vertex_slots})")
 
 
 class MeshStream:
@@ -742,22 +791,26 @@ class MeshStream:
 
     def _step_frame(self, frame) -> MeshChange:
         """The core's step to a frame's lists (``(positions, ran, bit, slots,
-        key)``, :meth:`_frame`), its change viewed in the bytearray the core
-        packs it in (``int32`` face slots, faces, vertex slots, ids, then
-        ``float32`` positions)."""
+        key)``, :meth:`_frame`), its change in the bytearray the core packs
+        it in (:meth:`MeshChange._of_packed`)."""
         last = self._last
         if last is not None and frame[4] >= 0 and frame[4] == last[4]:  # the word held: its lists not passed again
             counts = self._lane(self._stream, frame[2])
         else:
             counts = self._step(self._stream, *frame)
         self._last, self._counts = frame, counts  # the core reads the last frame's lists at the next step
-        n_face_slots, n_vertex_slots, k, u = counts[:4]
-        packed = counts[8]
-        # Each field an array over its bytes (one constructor call each, no
-        # intermediate views); they keep the buffer alive, it is the change's.
-        return MeshChange(_array((k,), _INT32, packed), _array((k, 3), _INT32, packed, 4 * k),
-                          _array((u,), _INT32, packed, 16 * k), _array((u,), _INT32, packed, 16 * k + 4 * u),
-                          _array((u, 3), _FLOAT32, packed, 16 * k + 8 * u), n_face_slots, n_vertex_slots)
+        return _of_packed(counts[8], counts[2], counts[3], counts[0], counts[1])
+
+    def _step_lane(self, word, bit: int) -> MeshChange:
+        """The core's step to frame ``bit`` of a word whose lists are ``word``
+        (``(positions, ran, 0, slots, key)``, one tuple for all its frames):
+        the lists passed once, at the first of its frames stepped to."""
+        if self._last is word:
+            counts = self._lane(self._stream, bit)
+        else:
+            counts = self._step(self._stream, word[0], word[1], bit, word[3], word[4])
+        self._last, self._counts = word, counts
+        return _of_packed(counts[8], counts[2], counts[3], counts[0], counts[1])
 
     @property
     def faces(self) -> np.ndarray:
@@ -812,6 +865,7 @@ class MeshStream:
 
 # Arrays over a buffer the core packed (shape, dtype, buffer, byte offset).
 _array, _INT32, _FLOAT32 = np.ndarray, np.dtype(np.int32), np.dtype(np.float32)
+_of_packed = MeshChange._of_packed
 
 
 def _positions_of(order: np.ndarray) -> np.ndarray:

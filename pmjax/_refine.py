@@ -85,6 +85,19 @@ class Refinement:
     core_item: Optional[Int[Array, ""]] = None
     n_slots: Optional[Int[Array, ""]] = None
 
+    def __getattr__(self, name):
+        # A frame of a path made by its word's lists (pmjax._path) holds
+        # its ran bits as the word's bit rows and its lane ("_lane": bits,
+        # slots, bit) until visited_executed is first read: most frames'
+        # readers never read it, and the word's bits are already held.
+        lane = self.__dict__.get("_lane") if name == "visited_executed" else None
+        if lane is None:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        bits, m, bit = lane
+        value = (bits[:m] & (1 << bit)) != 0
+        self.__dict__["visited_executed"] = value
+        return value
+
     @property
     def executed(self) -> Bool[Array, " P"]:
         """``bool[P]`` pcols executed."""

@@ -293,3 +293,32 @@ def test_bad_paths_name_the_frame(built):
         pmjax.path_counts(pm, cams, np.ones(5))
     with pytest.raises(pmjax.PathError, match="frame 2: a face budget"):
         pmjax.path_counts(pm, cams, budget=[10, 10, -1] + [10] * 9)
+
+
+def test_path_frames_are_whole_refinements(built):
+    """A path frame from the C core's words holds its ran bits as its
+    word's until they are read: then (and through copies, pickling,
+    dataclasses.replace, equality, JAX's tree functions) they are the
+    frame's own, equal to refine's."""
+    import copy
+    import dataclasses
+    import pickle
+
+    data, pm = model(built, "cow.ply")
+    cams = walk(data, 32, seed=31, cuts=(9,))
+    frames = list(pmjax.refine_path(pm, cams, 1.0))
+    for i in (0, 5, 15, 16, 31):
+        r, want = frames[i], pmjax.refine(pm, index_camera(cams, i), 1.0)
+        same = lambda x: np.array_equal(np.asarray(x.executed), np.asarray(want.executed))  # noqa: E731
+        assert same(pickle.loads(pickle.dumps(r))), i  # before visited_executed is read
+        assert same(copy.copy(r)) and same(dataclasses.replace(r, n_faces=r.n_faces)), i
+        leaves, tree = jax.tree.flatten(r)
+        again = jax.tree.unflatten(tree, leaves)
+        assert same(again) and same(r) and r == r, i
+        bits = r.visited_executed
+        assert bits.dtype == bool and bits.shape == r.visited.shape and r.visited_executed is bits, i
+        ran = np.ones(pm.n_pcols, bool)
+        ran[r.visited] = bits
+        assert np.array_equal(ran, np.asarray(want.executed)), i
+    with pytest.raises(AttributeError, match="no attribute 'missing'"):
+        frames[3].missing

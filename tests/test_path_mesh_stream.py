@@ -387,3 +387,71 @@ def test_change_stream_on_the_dragon(built):
     data, pm = model(built, "dragon.ply")
     follow(pm, pmjax.refine_path(pm, pmjax.standard_orbit(originals(data), 64), 1.0), where="dragon orbit")
     follow(pm, pmjax.refine_path(pm, hand_held(data, 48, seed=11, cuts=(20,)), 1.0), where="dragon hand-held")
+
+
+def _away_from_the_model(data, n):
+    """Frames whose eyes circle the model looking away from it (nothing in
+    the frustum: every pcol culled)."""
+    v0 = originals(data)
+    c, r = v0.mean(0), np.linalg.norm(np.ptp(v0, 0))
+    angles = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    eyes = c + 1.5 * r * np.stack([np.cos(angles), 0.2 * np.ones(n), np.sin(angles)], 1)
+    return stack_cameras([pmjax.look_at(e, e + (e - c)) for e in eyes])
+
+
+def test_path_mesh_changes_continued_across_calls(built):
+    """One stream across calls of path_mesh_changes: a hand-held path with
+    a cut, a path that leaves the frustum (the model behind the camera) and
+    comes back, a fly-through through the model with a tolerance changing
+    each frame, then a path at another image size and tolerance. Each call's
+    first change is from the last call's mesh; each change's arrays, read
+    only after the call has made every frame, replay each frame's mesh."""
+    data, pm = model(built, "cow.ply")
+    cams = hand_held(data, 40, seed=23, cuts=(29,))
+    away = _away_from_the_model(data, 20)
+    back = stack_cameras([index_camera(cams, i) for i in range(8)] + [index_camera(away, i) for i in range(20)]
+                         + [index_camera(cams, i) for i in range(8, 20)])
+    fly = fly_through(data, 36)
+    small = eqx.tree_at(lambda c: (c.width, c.height), fly, (np.full(36, 320, np.int32), np.full(36, 200, np.int32)))
+    calls = [(cams, 1.0), (back, 2.0), (fly, np.geomspace(0.2, 8.0, 36).astype(np.float32)), (small, 0.7)]
+    stream, replay = pmjax.MeshStream(pm), Replay()
+    for k, (path, tau) in enumerate(calls):
+        frames = list(pmjax.path_mesh_changes(pm, path, tau, stream=stream))  # every frame made first
+        alone = pmjax.refine_path(pm, path, tau, coherent=False)
+        for i, ((r, change), want) in enumerate(zip(frames, alone)):
+            assert np.array_equal(np.asarray(r.executed), np.asarray(want.executed)), (k, i)
+            replay.apply(change)
+            v, f, ids = want.mesh()
+            assert replay.face_set() == {tuple(row) for row in ids[f].tolist()}, (k, i)
+            assert int(np.count_nonzero(replay.ids >= 0)) == int(want.n_vertices), (k, i)
+        assert_same_mesh(replay, stream, frames[-1][0], k)
+    # The frames that look away draw the coarsest mesh the view allows: all culled.
+    culled = pmjax.refine(pm, index_camera(away, 3), 2.0)
+    assert int(culled.n_faces) == int(pmjax.refine(pm, index_camera(away, 3), np.inf).n_faces)
+
+
+@pytest.mark.skipif(not _core.built(), reason="the C core is not built")
+def test_core_change_arrays_are_the_changes_own(built):
+    """A change's arrays are made from the core's packed change when read:
+    read at once, read after later frames, or read in another order, they
+    are the same arrays, and later frames do not change them."""
+    data, pm = model(built, "cow.ply")
+    cams = hand_held(data, 40, seed=29, cuts=(20,))
+    fields = ("face_slots", "faces", "vertex_slots", "vertex_ids", "vertex_positions")
+    stream, early, changes = pmjax.MeshStream(pm), [], []
+    for _, change in pmjax.path_mesh_changes(pm, cams, 1.0, stream=stream):
+        early.append([getattr(change, name).copy() for name in fields])
+        changes.append(change)
+    for i, (change, want) in enumerate(zip(changes, early)):
+        for name, a in reversed(list(zip(fields, want))):
+            b = getattr(change, name)
+            assert b.dtype == a.dtype and b.shape == a.shape and np.array_equal(a, b), (i, name)
+            assert getattr(change, name) is b  # made once
+        k, u = len(change.face_slots), len(change.vertex_slots)
+        assert change.faces.shape == (k, 3) and change.vertex_positions.shape == (u, 3), i
+        assert change.face_slots.max(initial=-1) < change.n_face_slots, i
+        assert change.vertex_slots.max(initial=-1) < change.n_vertex_slots, i
+    # A change made from arrays (the stream without the core) reads them back.
+    made = pmjax.MeshChange(*early[3], changes[3].n_face_slots, changes[3].n_vertex_slots)
+    assert all(np.array_equal(getattr(made, name), a) for name, a in zip(fields, early[3]))
+    assert made.n_face_slots == changes[3].n_face_slots

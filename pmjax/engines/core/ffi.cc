@@ -1147,16 +1147,7 @@ PyObject* StreamState(const PmxMeshStream* s) {
   const int64_t k = st.n_face_changes, u = st.n_vertex_changes;
   PyObject* packed = PyByteArray_FromStringAndSize(nullptr, (Py_ssize_t)(4 * (4 * k + 5 * u)));
   if (!packed) return nullptr;
-  char* at = PyByteArray_AS_STRING(packed);
-  const auto put = [&at](const void* p, int64_t bytes) {
-    if (bytes) memcpy(at, p, (size_t)bytes);
-    at += bytes;
-  };
-  put(st.face_changes, 4 * k);
-  put(st.changed_faces, 12 * k);
-  put(st.vertex_changes, 4 * u);
-  put(st.changed_ids, 4 * u);
-  put(st.changed_positions, 12 * u);
+  pmx_mesh_stream_pack(s, PyByteArray_AS_STRING(packed));
   return Py_BuildValue("(LLLLLLLLN)", (long long)st.n_face_slots, (long long)st.n_vertex_slots, (long long)k,
                        (long long)u, (long long)st.n_faces, (long long)st.n_vertices, (long long)st.n_used,
                        (long long)st.generation, packed);

@@ -67,10 +67,9 @@ struct PmxMeshStream {
     float *vertex_position;
     uint32_t *vertex_stamp;
     int64_t vertex_cap, n_vertex_slots, n_vertex_free;
-    /* The change since the last step: the slots touched, each once, and
-     * their contents after it (rows side by side, for the caller to copy). */
-    int32_t *face_changes, *vertex_changes, *changed_faces, *changed_ids;
-    float *changed_positions;
+    /* The change since the last step: the slots touched, each once
+     * (pmx_mesh_stream_pack writes them with their contents after it). */
+    int32_t *face_changes, *vertex_changes;
     int64_t n_face_changes, n_vertex_changes;
     uint32_t stamp;
     int started; /* a step has run: the next one starts a new change */
@@ -127,7 +126,6 @@ static int grow_faces(PmxMeshStream *s, int64_t need)
     if (!grow((void **)&s->face_vertex, 3 * old, 3 * cap, 4) || !grow((void **)&s->face_id, old, cap, 4) ||
         !grow((void **)&s->corner, 3 * old, 3 * cap, sizeof(Corner)) || !grow((void **)&s->face_free, old, cap, 4) ||
         !grow((void **)&s->face_stamp, old, cap, 4) || !grow((void **)&s->face_changes, old, cap, 4) ||
-        !grow((void **)&s->changed_faces, 3 * old, 3 * cap, 4) ||
         !grow((void **)&s->face_rows[0], old, cap, sizeof(IdSlot)) ||
         !grow((void **)&s->face_rows[1], old, cap, sizeof(IdSlot)))
         return 0;
@@ -146,8 +144,6 @@ static int grow_vertices(PmxMeshStream *s, int64_t need)
         !grow((void **)&s->vertex_free, old, cap, 4) || !grow((void **)&s->vertex_position, 3 * old, 3 * cap, 4) ||
         !grow((void **)&s->vertex_stamp, old, cap, 4) || !grow((void **)&s->vertex_changes, old, cap, 4) ||
         !grow((void **)&s->vertex_uses, old, cap, 4) || !grow((void **)&s->vertex_rank, old, cap, 4) ||
-        !grow((void **)&s->changed_ids, old, cap, 4) ||
-        !grow((void **)&s->changed_positions, 3 * old, 3 * cap, 4) ||
         !grow((void **)&s->vertex_rows[0], old, cap, sizeof(IdSlot)) ||
         !grow((void **)&s->vertex_rows[1], old, cap, sizeof(IdSlot)))
         return 0;
@@ -406,15 +402,41 @@ static PmxStatus split(PmxMeshStream *s, int32_t at)
     if (w < 0)
         return PMX_NO_MEMORY;
     /* The corners in the second child's interval (it follows the first's)
-     * move to it; their faces change. */
+     * move to it; their faces change. One walk of v's list splits it: the
+     * corners kept stay in order, each one moved goes to the head of w's
+     * (the lists one unlink and link per corner would give), and the uses
+     * move at once. */
     const int32_t second = r->start[1];
+    Corner *const corner = s->corner;
+    int32_t kept = -1, moved = -1, n_moved = 0;
     for (int32_t c = s->links[v].head, next; c >= 0; c = next) {
-        next = s->corner[c].next;
-        if (s->corner[c].start >= second) {
-            unlink(s, c);
-            link(s, c, w);
+        next = corner[c].next;
+        if (corner[c].start >= second) {
+            s->face_vertex[c] = w;
+            corner[c].prev = -1;
+            corner[c].next = moved;
+            if (moved >= 0)
+                corner[moved].prev = c;
+            moved = c;
+            n_moved++;
             touch_face(s, c / 3);
+        } else {
+            corner[c].prev = kept;
+            if (kept >= 0)
+                corner[kept].next = c;
+            else
+                s->links[v].head = c;
+            kept = c;
         }
+    }
+    if (kept >= 0)
+        corner[kept].next = -1;
+    else
+        s->links[v].head = -1;
+    s->links[w].head = moved;
+    if (n_moved) {
+        use(s, w, n_moved);
+        use(s, v, -n_moved);
     }
     /* Its kill list is drawn again. */
     for (int32_t j = 0; j < r->kill_count; j++) {
@@ -478,8 +500,7 @@ void pmx_mesh_stream_free(PmxMeshStream *s)
                       s->collapse, s->split, s->events, s->flipped, s->flipped_bits, s->split_bits,
                       s->next_split_bits, s->face_bits,
                       s->used_bits, s->face_prefix, s->used_prefix, s->face_rows[0], s->face_rows[1], s->vertex_rows[0],
-                      s->vertex_rows[1], s->face_log, s->vertex_log, s->sorted, s->changed_faces, s->changed_ids,
-                      s->changed_positions};
+                      s->vertex_rows[1], s->face_log, s->vertex_log, s->sorted};
     for (size_t i = 0; i < sizeof arrays / sizeof arrays[0]; i++)
         free(arrays[i]);
     free(s);
@@ -658,13 +679,27 @@ static PmxStatus flips(PmxMeshStream *s, const PmxStreamFrame *last, const PmxSt
         const int64_t n_words = s->t.n_pcols / 64 + 1;
         uint64_t *const held = s->split_bits, *const bits = s->next_split_bits;
         memset(bits, 0, sizeof(uint64_t) * (size_t)n_words);
+        /* The positions increase: a word's bits gather in a register,
+         * stored at every slot without a branch (its last store holds
+         * them all), with no read of the word back. */
         const int32_t *const b = next->positions;
+        uint64_t gathered = 0;
+        int64_t at = -1;
         if (next->ran8)
-            for (int64_t j = 0; j < next->n; j++)
-                bits[b[j] >> 6] |= (uint64_t)(next->ran8[j] == 0) << (b[j] & 63);
+            for (int64_t j = 0; j < next->n; j++) {
+                const int64_t word = b[j] >> 6;
+                gathered = (word == at ? gathered : 0) | (uint64_t)(next->ran8[j] == 0) << (b[j] & 63);
+                bits[word] = gathered;
+                at = word;
+            }
         else
-            for (int64_t j = 0; j < next->n; j++)
-                bits[b[j] >> 6] |= (uint64_t)(((next->ran16[j] >> next->frame) & 1) ^ 1) << (b[j] & 63);
+            for (int64_t j = 0; j < next->n; j++) {
+                const int64_t word = b[j] >> 6;
+                gathered = (word == at ? gathered : 0) |
+                           (uint64_t)(((next->ran16[j] >> next->frame) & 1) ^ 1) << (b[j] & 63);
+                bits[word] = gathered;
+                at = word;
+            }
         for (int64_t k = 0; k < n_words; k++) {
             for (uint64_t d = held[k] & ~bits[k]; d; d &= d - 1)
                 collapses[nc++] = (int32_t)(64 * k + __builtin_ctzll(d));
@@ -675,6 +710,44 @@ static PmxStatus flips(PmxMeshStream *s, const PmxStreamFrame *last, const PmxSt
     *n_collapses = nc;
     *n_splits = ns;
     return PMX_OK;
+}
+
+/* Requests the rows of vertex slot v (-1: none) that a flip reads. */
+PMX_INLINE void prefetch_vertex(const PmxMeshStream *s, int32_t v)
+{
+    if (v < 0)
+        return;
+    __builtin_prefetch(s->links + v);
+    __builtin_prefetch(s->vertex_id + v);
+    __builtin_prefetch(s->vertex_uses + v);
+    __builtin_prefetch(s->vertex_stamp + v);
+    __builtin_prefetch(s->vertex_position + 3 * (int64_t)v);
+}
+
+/* Requests what a collapse at `at` reads once its record is in: its kill
+ * list's slots and its children's vertex slots. */
+PMX_INLINE void prefetch_collapse_lists(const PmxMeshStream *s, int32_t at)
+{
+    const PmxPcolRecord *r = s->t.pcols + at;
+    __builtin_prefetch(s->kill_slot + r->kill_first);
+    __builtin_prefetch(s->slot_at + child_index(s, r, 0));
+    __builtin_prefetch(s->slot_at + child_index(s, r, 1));
+}
+
+/* Requests the rows a collapse at `at` reads once its lists are in: its
+ * children's vertex rows and its kill list's face slots. */
+PMX_INLINE void prefetch_collapse_slots(const PmxMeshStream *s, int32_t at)
+{
+    const PmxPcolRecord *r = s->t.pcols + at;
+    prefetch_vertex(s, s->slot_at[child_index(s, r, 0)]);
+    prefetch_vertex(s, s->slot_at[child_index(s, r, 1)]);
+    for (int32_t j = 0; j < r->kill_count && j < 4; j++) {
+        const int32_t slot = s->kill_slot[r->kill_first + j];
+        if (slot >= 0) {
+            __builtin_prefetch(s->corner + 3 * (int64_t)slot);
+            __builtin_prefetch(s->face_vertex + 3 * (int64_t)slot);
+        }
+    }
 }
 
 PmxStatus pmx_mesh_stream_step(PmxMeshStream *s, const PmxStreamFrame *next)
@@ -703,35 +776,43 @@ PmxStatus pmx_mesh_stream_step(PmxMeshStream *s, const PmxStreamFrame *next)
      * broken. */
     const PmxPcolRecord *const records = s->t.pcols;
     const int32_t *const collapses = s->collapse, *const splits = s->split;
-    /* Each flip's record and kill list are misses in tables far larger than
-     * the cache: requested FLIPS_AHEAD flips early (the kill list once its record
-     * is in), the misses overlap. */
+    /* Each flip's record, kill list and slots are misses in tables far
+     * larger than the cache: requested in stages ahead of the flip, each
+     * once what it needs is in (a record FLIPS_AHEAD flips early, with its
+     * position's slot; its kill list and children's slots half as early;
+     * the rows of the slots it reads a quarter as early), so the misses
+     * overlap. A stage reads the stream as the earlier flips leave it,
+     * which only makes a request useless, never wrong. */
     enum { FLIPS_AHEAD = 8 };
+    for (int64_t i = n_collapses - 1; i >= n_collapses - FLIPS_AHEAD && i >= 0; i--)
+        __builtin_prefetch(records + collapses[i]);
     for (int64_t i = n_collapses - 1; i >= 0 && status == PMX_OK; i--) {
         if (i >= FLIPS_AHEAD)
             __builtin_prefetch(records + collapses[i - FLIPS_AHEAD]);
         if (i >= FLIPS_AHEAD / 2)
-            __builtin_prefetch(s->kill_slot + records[collapses[i - FLIPS_AHEAD / 2]].kill_first);
+            prefetch_collapse_lists(s, collapses[i - FLIPS_AHEAD / 2]);
+        if (i >= FLIPS_AHEAD / 4)
+            prefetch_collapse_slots(s, collapses[i - FLIPS_AHEAD / 4]);
         status = collapse(s, collapses[i]);
     }
+    for (int64_t i = 0; i < FLIPS_AHEAD && i < n_splits; i++) {
+        __builtin_prefetch(records + splits[i]);
+        __builtin_prefetch(s->slot_at + splits[i]);
+    }
     for (int64_t i = 0; i < n_splits && status == PMX_OK; i++) {
-        if (i + FLIPS_AHEAD < n_splits)
+        if (i + FLIPS_AHEAD < n_splits) {
             __builtin_prefetch(records + splits[i + FLIPS_AHEAD]);
+            __builtin_prefetch(s->slot_at + splits[i + FLIPS_AHEAD]);
+        }
         if (i + FLIPS_AHEAD / 2 < n_splits)
             __builtin_prefetch(s->t.kill_data + records[splits[i + FLIPS_AHEAD / 2]].kill_first);
+        if (i + FLIPS_AHEAD / 4 < n_splits)
+            prefetch_vertex(s, s->slot_at[splits[i + FLIPS_AHEAD / 4]]);
         status = split(s, splits[i]);
     }
     if (status != PMX_OK) {
         s->broken = 1;
         return status;
-    }
-    /* The changed slots' contents, side by side. */
-    for (int64_t k = 0; k < s->n_face_changes; k++)
-        memcpy(s->changed_faces + 3 * k, s->face_vertex + 3 * s->face_changes[k], 3 * sizeof(int32_t));
-    for (int64_t k = 0; k < s->n_vertex_changes; k++) {
-        const int32_t v = s->vertex_changes[k];
-        s->changed_ids[k] = s->vertex_id[v];
-        memcpy(s->changed_positions + 3 * k, s->vertex_position + 3 * v, 3 * sizeof(float));
     }
     s->last = *next;
     s->has_last = 1;
@@ -748,17 +829,34 @@ PmxStatus pmx_mesh_stream_lane(PmxMeshStream *s, int frame)
     return pmx_mesh_stream_step(s, &next);
 }
 
+void pmx_mesh_stream_pack(const PmxMeshStream *s, void *out)
+{
+    /* The slots touched, then their rows (read through the slots), each
+     * array after the last: int32 face slots [k], faces [k, 3], vertex
+     * slots [u], ids [u], float positions [u, 3]. */
+    const int64_t k = s->n_face_changes, u = s->n_vertex_changes;
+    int32_t *const face_slots = out, *const faces = face_slots + k, *const vertex_slots = faces + 3 * k,
+                   *const ids = vertex_slots + u;
+    float *const positions = (float *)(ids + u);
+    if (k)
+        memcpy(face_slots, s->face_changes, (size_t)k * sizeof(int32_t));
+    for (int64_t i = 0; i < k; i++)
+        memcpy(faces + 3 * i, s->face_vertex + 3 * (int64_t)s->face_changes[i], 3 * sizeof(int32_t));
+    if (u)
+        memcpy(vertex_slots, s->vertex_changes, (size_t)u * sizeof(int32_t));
+    for (int64_t i = 0; i < u; i++) {
+        const int32_t v = s->vertex_changes[i];
+        ids[i] = s->vertex_id[v];
+        memcpy(positions + 3 * i, s->vertex_position + 3 * (int64_t)v, 3 * sizeof(float));
+    }
+}
+
 void pmx_mesh_stream_state(const PmxMeshStream *s, PmxStreamState *out)
 {
     out->face_vertex = s->face_vertex;
     out->face_id = s->face_id;
     out->vertex_id = s->vertex_id;
     out->vertex_position = s->vertex_position;
-    out->face_changes = s->face_changes;
-    out->changed_faces = s->changed_faces;
-    out->changed_ids = s->changed_ids;
-    out->changed_positions = s->changed_positions;
-    out->vertex_changes = s->vertex_changes;
     out->face_cap = s->face_cap;
     out->vertex_cap = s->vertex_cap;
     out->n_face_slots = s->n_face_slots;

@@ -259,9 +259,6 @@ typedef struct {                 /* the stream's arrays (valid until it grows: g
     const int32_t *face_id;      /* [face_cap] face drawn, -1 free */
     const int32_t *vertex_id;    /* [vertex_cap] vertex id, -1 free */
     const float *vertex_position;
-    const int32_t *face_changes, *vertex_changes; /* the slots the last step touched */
-    const int32_t *changed_faces, *changed_ids;   /* their rows after it: [n_face_changes, 3], [n_vertex_changes] */
-    const float *changed_positions;               /* [n_vertex_changes, 3] */
     int64_t face_cap, vertex_cap, n_face_slots, n_vertex_slots, n_face_changes, n_vertex_changes, n_faces,
         n_vertices, n_used, generation;
 } PmxStreamState;
@@ -281,6 +278,11 @@ PmxStatus pmx_mesh_stream_step(PmxMeshStream *s, const PmxStreamFrame *next);
  * is not a word's. */
 PmxStatus pmx_mesh_stream_lane(PmxMeshStream *s, int frame);
 void pmx_mesh_stream_state(const PmxMeshStream *s, PmxStreamState *out);
+/* The last step's change packed side by side in out (4 * (4 * n_face_changes
+ * + 5 * n_vertex_changes) bytes, 4-aligned): int32 face slots [k], their
+ * vertex slots [k, 3], int32 vertex slots [u], their ids [u], float32
+ * positions [u, 3]. */
+void pmx_mesh_stream_pack(const PmxMeshStream *s, void *out);
 /* The mesh held, compacted as Refinement.mesh() gives it: faces [n_faces, 3]
  * in increasing face id, ids and positions [n_used(, 3)] the vertices the
  * faces use in increasing id. The stream keeps the rows (ids and slots)
