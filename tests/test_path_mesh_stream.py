@@ -240,6 +240,44 @@ def test_compacted_meshes_kept_by_the_caller_in_any_order(built):
         assert all(np.array_equal(a, b) for a, b in zip(got, r.mesh())), n
 
 
+@pytest.mark.skipif(not _core.built(), reason="the C core is not built")
+def test_compacted_mesh_every_frame_at_each_simd_level(built, simd):
+    """mesh() after every frame of a long path (teleports, a tolerance and
+    an image size changing, the coarsest and the finest meshes, a frame
+    given twice), with the faces written four at a time (vector levels) or
+    one by one (plain): each is the frame's own ``refine(...).mesh()`` bit
+    for bit, asked twice in a row it is the same, and every mesh returned
+    stays as it was while the later ones are made."""
+    data, pm = model(built, "cow.ply")
+    n = 72
+    cams = hand_held(data, n, seed=47, cuts=(6, 7, 25, 26, 50))
+    cams = eqx.tree_at(lambda c: (c.width, c.height), cams,
+                       (np.where(np.arange(n) < 40, 640, 200).astype(np.int32),
+                        np.where(np.arange(n) < 40, 480, 150).astype(np.int32)))
+    taus = np.geomspace(0.2, 8, n).astype(np.float32)
+    taus[[12, 60]] = np.inf  # the coarsest mesh: the fewest faces
+    taus[[13, 61]] = 0.0  # the finest
+    stream, kept = pmjax.MeshStream(pm), []
+    order = list(range(n))
+    order.insert(31, 30)  # frame 30 twice: nothing changes, nothing logged
+    for n_asked, i in enumerate(order):
+        cam = index_camera(cams, i)
+        stream.update(pmjax.refine(pm, cam, taus[i]))
+        want = pmjax.refine(pm, cam, taus[i], method="dense").mesh()
+        got = stream.mesh()
+        assert all(np.array_equal(a, b) for a, b in zip(got, want)), (simd, i)
+        if i % 5 == 0:  # twice in a row: the rows just kept, an empty log
+            again = stream.mesh()
+            assert all(np.array_equal(a, b) for a, b in zip(again, want)), (simd, i)
+            assert all(a is not b and not np.shares_memory(a, b) for a, b in zip(again, got))
+        kept.append((want, got))
+    # Whole blocks of four faces, and blocks and a tail (a closed mesh's
+    # faces are even in number).
+    assert {len(want[1]) % 4 for want, _ in kept} >= {0, 2}
+    for n_asked, (want, got) in enumerate(kept):
+        assert all(np.array_equal(a, b) for a, b in zip(got, want)), (simd, n_asked)
+
+
 def test_refine_path_changes_yields_each_frame_with_its_change(built):
     data, pm = model(built, "cow.ply")
     cams = hand_held(data, 36, seed=5, cuts=(17,))

@@ -33,6 +33,9 @@
 #include <stdlib.h>
 
 #include "internal.h"
+#if PMX_X86
+#include <immintrin.h>
+#endif
 
 /* A row of the compacted mesh as the stream keeps it between compactions
  * (a face drawn or a vertex id used: its id and slot), or an entry of the
@@ -925,12 +928,18 @@ static IdSlot *sort_log(PmxMeshStream *s, IdSlot *log, int64_t n, int32_t max_id
 static int64_t merge_log(const IdSlot *last, int64_t n_last, const IdSlot *log, int64_t n_log,
                          const uint64_t *bits, IdSlot *rows, int64_t cap)
 {
+    enum { SKIP = 8 };
     int64_t i = 0, n = 0;
     for (int64_t k = 0; k < n_log; k++) {
         const int32_t id = log[k].id;
         if (k + 1 < n_log && log[k + 1].id == id)
             continue; /* a later entry of the id: its slot now */
-        int64_t j = i; /* the last rows below the id: kept */
+        /* The last rows below the id, kept: found a run of SKIP rows at a
+         * time (a log entry lies some dozens of rows past the last), then
+         * row by row. */
+        int64_t j = i;
+        while (j + SKIP < n_last && last[j + SKIP].id < id)
+            j += SKIP;
         while (j < n_last && last[j].id < id)
             j++;
         if (n + j - i > cap)
@@ -949,6 +958,104 @@ static int64_t merge_log(const IdSlot *last, int64_t n_last, const IdSlot *log, 
     memcpy(rows + n, last + i, (size_t)(n_last - i) * sizeof *rows);
     return n + n_last - i;
 }
+
+/* Vertices out, rows `from` to n: row k is the vertex id and position of
+ * slot rows[k].slot, and the slot's row is noted (rank). */
+static void vertex_rows_out_plain(const IdSlot *rows, int64_t from, int64_t n, const float *vertex_position,
+                                  int32_t *restrict ids, float *restrict positions, int32_t *restrict rank)
+{
+    for (int64_t k = from; k < n; k++) {
+        const int32_t slot = rows[k].slot;
+        ids[k] = rows[k].id;
+        memcpy(positions + 3 * k, vertex_position + 3 * (int64_t)slot, 3 * sizeof(float));
+        rank[slot] = (int32_t)k;
+    }
+}
+
+#if PMX_X86
+/* The same rows four vertices at a time: four ids in one store, the twelve
+ * coordinates loaded into three vectors (no load past a slot's three) and
+ * stored whole. */
+__attribute__((target("sse4.1"))) static void vertex_rows_out_sse(const IdSlot *rows, int64_t n,
+                                                                const float *vertex_position, int32_t *restrict ids,
+                                                                float *restrict positions, int32_t *restrict rank)
+{
+    int64_t k = 0;
+    for (; k + 4 <= n; k += 4) {
+        const __m128i lo = _mm_loadu_si128((const __m128i *)(rows + k)),
+                      hi = _mm_loadu_si128((const __m128i *)(rows + k + 2));
+        /* rows: id, slot, id, slot | id, slot, id, slot */
+        _mm_storeu_si128((__m128i *)(ids + k), _mm_castps_si128(_mm_shuffle_ps(_mm_castsi128_ps(lo),
+                                                                               _mm_castsi128_ps(hi), 0x88)));
+        const int32_t s0 = _mm_extract_epi32(lo, 1), s1 = _mm_extract_epi32(lo, 3), s2 = _mm_extract_epi32(hi, 1),
+                      s3 = _mm_extract_epi32(hi, 3);
+        const float *a = vertex_position + 3 * (int64_t)s0, *b = vertex_position + 3 * (int64_t)s1,
+                    *c = vertex_position + 3 * (int64_t)s2, *d = vertex_position + 3 * (int64_t)s3;
+        /* a.xyz b.x | b.yz c.xy | c.z d.xyz */
+        __m128 x = _mm_castsi128_ps(_mm_loadl_epi64((const __m128i *)a));
+        x = _mm_insert_ps(x, _mm_load_ss(a + 2), 0x20);
+        x = _mm_insert_ps(x, _mm_load_ss(b), 0x30);
+        const __m128 y = _mm_castsi128_ps(
+            _mm_unpacklo_epi64(_mm_loadl_epi64((const __m128i *)(b + 1)), _mm_loadl_epi64((const __m128i *)c)));
+        __m128 z = _mm_load_ss(c + 2);
+        z = _mm_insert_ps(z, _mm_load_ss(d), 0x10);
+        z = _mm_insert_ps(z, _mm_load_ss(d + 1), 0x20);
+        z = _mm_insert_ps(z, _mm_load_ss(d + 2), 0x30);
+        _mm_storeu_ps(positions + 3 * k, x);
+        _mm_storeu_ps(positions + 3 * k + 4, y);
+        _mm_storeu_ps(positions + 3 * k + 8, z);
+        rank[s0] = (int32_t)k;
+        rank[s1] = (int32_t)k + 1;
+        rank[s2] = (int32_t)k + 2;
+        rank[s3] = (int32_t)k + 3;
+    }
+    vertex_rows_out_plain(rows, k, n, vertex_position, ids, positions, rank);
+}
+#endif
+
+/* Faces out: row k is the face in slot rows[k].slot, its corners as the
+ * rows of their vertex slots (rank). */
+static void face_rows_out_plain(const IdSlot *rows, int64_t n, const int32_t *face_vertex, const int32_t *rank,
+                                int32_t *restrict faces)
+{
+    for (int64_t k = 0; k < n; k++) {
+        const int32_t *corner = face_vertex + 3 * (int64_t)rows[k].slot;
+        faces[3 * k] = rank[corner[0]];
+        faces[3 * k + 1] = rank[corner[1]];
+        faces[3 * k + 2] = rank[corner[2]];
+    }
+}
+
+#if PMX_X86
+/* The same rows four faces at a time: their twelve corners' rows loaded
+ * straight into three vectors, stored whole (three stores, not twelve: the
+ * loop is bound by the loads and stores it issues). */
+__attribute__((target("sse4.1"))) static void face_rows_out_sse(const IdSlot *rows, int64_t n,
+                                                              const int32_t *face_vertex, const int32_t *rank,
+                                                              int32_t *restrict faces)
+{
+    int64_t k = 0;
+    for (; k + 4 <= n; k += 4) {
+        const int32_t *a = face_vertex + 3 * (int64_t)rows[k].slot, *b = face_vertex + 3 * (int64_t)rows[k + 1].slot,
+                      *c = face_vertex + 3 * (int64_t)rows[k + 2].slot, *d = face_vertex + 3 * (int64_t)rows[k + 3].slot;
+        __m128i x = _mm_cvtsi32_si128(rank[a[0]]), y = _mm_cvtsi32_si128(rank[b[1]]),
+                z = _mm_cvtsi32_si128(rank[c[2]]);
+        x = _mm_insert_epi32(x, rank[a[1]], 1);
+        x = _mm_insert_epi32(x, rank[a[2]], 2);
+        x = _mm_insert_epi32(x, rank[b[0]], 3);
+        y = _mm_insert_epi32(y, rank[b[2]], 1);
+        y = _mm_insert_epi32(y, rank[c[0]], 2);
+        y = _mm_insert_epi32(y, rank[c[1]], 3);
+        z = _mm_insert_epi32(z, rank[d[0]], 1);
+        z = _mm_insert_epi32(z, rank[d[1]], 2);
+        z = _mm_insert_epi32(z, rank[d[2]], 3);
+        _mm_storeu_si128((__m128i *)(faces + 3 * k), x);
+        _mm_storeu_si128((__m128i *)(faces + 3 * k + 4), y);
+        _mm_storeu_si128((__m128i *)(faces + 3 * k + 8), z);
+    }
+    face_rows_out_plain(rows + k, n - k, face_vertex, rank, faces + 3 * k);
+}
+#endif
 
 PmxStatus pmx_mesh_stream_compact(PmxMeshStream *s, int32_t *restrict faces, int32_t *restrict ids,
                                   float *restrict positions)
@@ -993,29 +1100,19 @@ PmxStatus pmx_mesh_stream_compact(PmxMeshStream *s, int32_t *restrict faces, int
     s->rows_kept = 1;
     /* The rows out: each vertex's id and position, its slot's row noted
      * (a face's corners then read their rows from one small array), then
-     * each face's corners' rows. The slots lie anywhere: each is requested
-     * a few rows early, so that the misses overlap. */
-    const float *const vertex_position = s->vertex_position;
-    const int32_t *const face_vertex = s->face_vertex;
-    int32_t *restrict const rank = s->vertex_rank;
-    enum { FACES_AHEAD = 16, VERTICES_AHEAD = 16 };
-    const int64_t n_vertices = s->n_vertex_rows;
-    for (int64_t k = 0; k < n_vertices; k++) {
-        if (k + VERTICES_AHEAD < n_vertices)
-            __builtin_prefetch(vertex_position + 3 * (int64_t)vertex_rows[k + VERTICES_AHEAD].slot);
-        const int32_t slot = vertex_rows[k].slot;
-        ids[k] = vertex_rows[k].id;
-        memcpy(positions + 3 * k, vertex_position + 3 * (int64_t)slot, 3 * sizeof(float));
-        rank[slot] = (int32_t)k;
-    }
-    const int64_t n_faces = s->n_face_rows;
-    for (int64_t k = 0; k < n_faces; k++) {
-        if (k + FACES_AHEAD < n_faces)
-            __builtin_prefetch(face_vertex + 3 * (int64_t)face_rows[k + FACES_AHEAD].slot);
-        const int32_t *corner = face_vertex + 3 * (int64_t)face_rows[k].slot;
-        faces[3 * k] = rank[corner[0]];
-        faces[3 * k + 1] = rank[corner[1]];
-        faces[3 * k + 2] = rank[corner[2]];
+     * each face's corners' rows. Each row is a few loads and stores: the
+     * loops are bound by the loads and stores they issue, so the vector
+     * levels move four rows' values in whole vectors. */
+    int32_t *const rank = s->vertex_rank;
+#if PMX_X86
+    if (pmx_simd(-1) >= PMX_SIMD_AVX2) {
+        vertex_rows_out_sse(vertex_rows, s->n_vertex_rows, s->vertex_position, ids, positions, rank);
+        face_rows_out_sse(face_rows, s->n_face_rows, s->face_vertex, rank, faces);
+    } else
+#endif
+    {
+        vertex_rows_out_plain(vertex_rows, 0, s->n_vertex_rows, s->vertex_position, ids, positions, rank);
+        face_rows_out_plain(face_rows, s->n_face_rows, s->face_vertex, rank, faces);
     }
     return PMX_OK;
 }
