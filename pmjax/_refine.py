@@ -1010,8 +1010,9 @@ def _exact_from_guess(tables, rows, budgets, guess, alt, tests, orthographic, co
     bracket. Each round is one batched call of exact counts over the cameras
     still open. With ``along_path`` (``bits_0 [n], bits_1 [n] -> counts
     int64 [2, n, 3]``: all the cameras as a path, each at both patterns) the
-    first round's two sets of counts come from one call of it instead, and with ``probes`` (``cams [m], bits [m]
-    -> counts int64 [m, 3]``) the later rounds' counts. With ``reguess``
+    first round's two sets of counts come from one call of it instead, and
+    with ``probes`` (``cams [m], bits [m] -> counts int64 [m, 3]``) the
+    later rounds' counts. With ``reguess``
     (``cams [m] -> (guess, alt) int [m]``: new guesses of those cameras,
     each alone) the third round probes the new guesses of the cameras the
     second left open.
@@ -1030,8 +1031,8 @@ def _exact_from_guess(tables, rows, budgets, guess, alt, tests, orthographic, co
         groups = [(c[(b >= 0) & (b <= _INF_BITS)], b[(b >= 0) & (b <= _INF_BITS)]) for c, b in groups]
         cams, bits = np.concatenate([c for c, _ in groups]), np.concatenate([b for _, b in groups])
         if len(cams) and along_path is not None and rounds == 0:
-            # Every camera at the guess, then every camera one pattern below
-            # it, each as a path (patterns out of range counted at inf, unused).
+            # Every camera at the guess and one pattern below it, in one call
+            # as a path (patterns out of range counted at inf, unused).
             ats = []
             for c, b in groups:
                 at = np.full(n, _INF_BITS, np.int64)
