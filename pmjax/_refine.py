@@ -888,14 +888,29 @@ def _path_budgets(pm, host, budgets, tests, chunk):
     rows = _core.host_camera_rows(host, np.zeros(K, np.float32), d.exponent)
 
     # The (frame, budget) pairs budget by budget: each budget's K pairs are
-    # the path's frames in order.
-    def along_path(bits):
-        counted = np.empty((K * B, 3), np.int64)
+    # the path's frames in order, each frame twice in a row (at the guess,
+    # then just below it), so that a word holds 8 frames at both patterns:
+    # one pass per budget over fronts that differ little, rather than two.
+    def along_path(*bits):
+        G = len(bits)
+        counted = np.empty((G, K * B, 3), np.int64)
         for j in range(B):
-            at = rows.copy()
-            at[:, -1] = bits[j * K:(j + 1) * K].astype(np.int32).view(np.float32)
-            counted[j * K:(j + 1) * K] = _word_counts(d, counts_of, at, tests, host.orthographic)
+            at = np.repeat(rows, G, axis=0)
+            for q in range(G):
+                at[q::G, -1] = bits[q][j * K:(j + 1) * K].astype(np.int32).view(np.float32)
+            got = _word_counts(d, counts_of, at, tests, host.orthographic)
+            for q in range(G):
+                counted[q, j * K:(j + 1) * K] = got[q::G]
         return counted
+
+    # Pairs far off after the second round: their frames guessed again, each
+    # alone from its start (its unsure decisions also taken as collapses, the
+    # other guess), where the word's one guess read them as "keep".
+    def reguess(cams):
+        frames, at = np.unique(cams % K, return_inverse=True)
+        g, a = _guesses(d, counts_of, host, frames, start[frames], budgets, tests,
+                        _padded_chunk(len(frames), chunk))
+        return g[at, cams // K], a[at, cams // K]
 
     # The later rounds' probes (a few per guess that missed) through the
     # core's words too, budget by budget and in the path's order, so that a
@@ -911,7 +926,7 @@ def _path_budgets(pm, host, budgets, tests, chunk):
 
     tau, cols = _exact_from_guess(d.core, np.tile(rows, (B, 1)), budgets.T.ravel(), guess.T.ravel(),
                                   alt.T.ravel(), tests, host.orthographic, counts_of, along_path,
-                                  probes_along_path)
+                                  probes_along_path, reguess)
     return dict(tau=tau.reshape(B, K).T.copy(), faces=cols[0].reshape(B, K).T.astype(np.int32),
                 vertices=cols[1].reshape(B, K).T.astype(np.int32),
                 executed_count=cols[2].reshape(B, K).T.astype(np.int32))
@@ -992,7 +1007,7 @@ NEAR = 3
 
 
 def _exact_from_guess(tables, rows, budgets, guess, alt, tests, orthographic, counts_of, along_path=None,
-                      probes=None):
+                      probes=None, reguess=None):
     """The exact answers from the guesses, by rounds of exact counts.
 
     Over the float32 bit patterns ``b`` of ``tau`` (``0 .. INF_BITS``; a
@@ -1006,10 +1021,14 @@ def _exact_from_guess(tables, rows, budgets, guess, alt, tests, orthographic, co
     next to the bracket's known end; later rounds
     gallop from a virtual end (steps growing geometrically) or split the
     bracket. Each round is one batched call of exact counts over the cameras
-    still open. With ``along_path`` (``bits [n] -> counts int64 [n, 3]``, all
-    the cameras as a path at those patterns) the first round's two sets of
-    counts come from it instead, and with ``probes`` (``cams [m], bits [m]
-    -> counts int64 [m, 3]``) the later rounds' counts.
+    still open. With ``along_path`` (``bits_0 [n], bits_1 [n] -> counts
+    int64 [2, n, 3]``: all the cameras as a path, each at both patterns) the
+    first round's two sets of counts come from one call of it instead, and
+    with ``probes`` (``cams [m], bits [m] -> counts int64 [m, 3]``) the
+    later rounds' counts. With ``reguess``
+    (``cams [m] -> (guess, alt) int [m]``: new guesses of those cameras,
+    each alone) the third round probes the new guesses of the cameras the
+    second left open.
     """
     n = len(budgets)
     lo = np.full(n, -1, np.int64)
@@ -1025,14 +1044,15 @@ def _exact_from_guess(tables, rows, budgets, guess, alt, tests, orthographic, co
         groups = [(c[(b >= 0) & (b <= _INF_BITS)], b[(b >= 0) & (b <= _INF_BITS)]) for c, b in groups]
         cams, bits = np.concatenate([c for c, _ in groups]), np.concatenate([b for _, b in groups])
         if len(cams) and along_path is not None and rounds == 0:
-            # Every camera at the guess, then every camera one pattern below
-            # it, each as a path (patterns out of range counted at inf, unused).
-            counted = []
+            # Every camera at the guess and one pattern below it, in one call
+            # as a path (patterns out of range counted at inf, unused).
+            ats = []
             for c, b in groups:
                 at = np.full(n, _INF_BITS, np.int64)
                 at[c] = b
-                counted.append(along_path(at)[c] if len(c) else np.zeros((0, 3), np.int64))
-            counted = np.concatenate(counted)
+                ats.append(at)
+            got = along_path(*ats)
+            counted = np.concatenate([got[q][c] for q, (c, _) in enumerate(groups)])
         elif len(cams) and probes is not None:
             counted = probes(cams, bits)
         elif len(cams):
@@ -1065,6 +1085,18 @@ def _exact_from_guess(tables, rows, budgets, guess, alt, tests, orthographic, co
             other = (a != g[c]) & (a > l) & (a <= h)
             groups += [(c[other], a[other]), (c[other], a[other] - 1)]
             c, l, h, st, below, above = (x[~other] for x in (c, l, h, st, below, above))
+        if rounds == 1 and reguess is not None and len(c):
+            # Guesses still open after the NEAR patterns are far off (mostly
+            # an unsure decision read as "keep"): guessed again, the new guess
+            # and its other one probed with the pattern below each, where they
+            # lie inside the bracket, instead of galloping this round.
+            new = [np.clip(x.astype(np.int64), 0, _INF_BITS + 1) for x in reguess(c)]
+            taken = np.zeros(len(c), bool)
+            for q, x in enumerate(new):
+                inside = (x > l) & (x <= h) & ((q == 0) | (x != new[0]))
+                groups += [(c[inside], x[inside]), (c[inside], x[inside] - 1)]
+                taken |= inside
+            c, l, h, st, below, above = (x[~taken] for x in (c, l, h, st, below, above))
         for j in range(m):
             reach = st * (j + 1) if rounds == 0 else st << j
             inner = l + (h - l) * (j + 1) // (m + 1)

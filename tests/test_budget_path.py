@@ -15,7 +15,7 @@ import pmjax
 from pmjax import _refine
 from pmjax._camera import index_camera, stack_cameras
 from pmjax._predicate import ALL_TESTS
-from pmjax.engines import _dense
+from pmjax.engines import _core, _dense
 from pmjax.engines._tables import derived
 
 pytestmark = pytest.mark.core
@@ -358,3 +358,57 @@ def test_frames_past_the_last_sampled_frame_get_the_exact_answers(built, monkeyp
     got = pmjax.faces_for_budget_batch(pm, cams, budgets, path=True, method="front")
     np.testing.assert_array_equal(calls[0], np.arange(0, 44, _refine.PATH_SAMPLE))
     _assert_one_at_a_time(pm, cams, budgets, got)
+
+
+def test_guesses_far_off_are_guessed_again_alone(built, monkeypatch):
+    """Word guesses far above the answers (as an unsure decision read as
+    "keep" makes them) are not settled by the patterns next to them: their
+    frames are guessed again alone, and every answer stays
+    faces_for_budget's."""
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    K = 40
+    cams = _paths(data, K, seed=11)["fly"]
+    budgets = np.tile(np.array(_budgets(pm, cams)[2:5]), (K, 1))
+    original_words, original = _refine._word_guesses, _refine._guesses
+    far = np.arange(K) % 5 == 1
+
+    def words(*a):
+        g, alt = original_words(*a)
+        g = np.where(far[:, None] & (g > 0) & (g < _refine._INF_BITS), g + 5000, g).astype(np.int32)
+        return g, g.copy()
+
+    calls = []
+    monkeypatch.setattr(_refine, "_word_guesses", words)
+    monkeypatch.setattr(_refine, "_guesses", lambda d, c_, h, frames, *a: calls.append(frames.copy()) or
+                        original(d, c_, h, frames, *a))
+    got = pmjax.faces_for_budget_batch(pm, cams, budgets, path=True, method="front")
+    _assert_one_at_a_time(pm, cams, budgets, got)
+    # The sampled frames first, the frames without a word guess next, and
+    # last only frames whose word guesses were moved.
+    np.testing.assert_array_equal(calls[0], np.arange(0, K, _refine.PATH_SAMPLE))
+    assert len(calls) == 3 and len(calls[-1]) and far[calls[-1]].all(), calls
+
+
+@pytest.mark.parametrize("kind", ["orbit", "fly"])
+def test_two_tolerances_per_frame_in_one_pass_count_each_frame_alone(built, kind):
+    """A path with each frame twice in a row at its own tolerances, jumping
+    from lane to lane (an answer and the pattern below it, 0, inf, far
+    apart), as the confirming counts run: every lane's counts are those of
+    a refine of that frame at that tolerance."""
+    data = built("bunny.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    K = 24
+    cams = _paths(data, K, seed=12)[kind]
+    host = jax.tree.map(np.asarray, cams)
+    d, counts_of = derived(pm), _refine._Counts.of(pm)
+    rng = np.random.default_rng(3)
+    tau = np.float32(rng.choice([0.3, 0.7, 1.0, 4.0], K)).astype(np.float32)
+    tau[::7], tau[3::7] = 0.0, np.inf
+    below = np.where(np.isfinite(tau) & (tau > 0), (tau.view(np.int32) - 1).view(np.float32), tau)
+    rows = np.repeat(_core.host_camera_rows(host, np.zeros(K, np.float32), d.exponent), 2, axis=0)
+    rows[0::2, -1], rows[1::2, -1] = tau, below
+    counted = _refine._word_counts(d, counts_of, rows, ALL_TESTS, host.orthographic)
+    for k in range(2 * K):
+        r = pmjax.refine(pm, index_camera(cams, k // 2), float(rows[k, -1]), method="front")
+        assert tuple(counted[k]) == (int(r.n_faces), int(r.n_vertices), int(r.n_executed)), k

@@ -435,14 +435,47 @@ static int64_t eps_pass(const PmxScratch *s, Budget *b, int64_t n, float lo, int
  * compared with each value's at once). */
 #define GROUP 8
 
+/* The bucket (of b_bucket, the kills per bucket above lo) where the faces
+ * kept by the pcols above a value pass `budget`, and in *over the weight
+ * left to pass inside it. */
+static int64_t crossing_bucket(const int64_t *b_bucket, int64_t budget, int64_t base_faces, int64_t *over)
+{
+    int64_t left = budget - base_faces, q = BUCKETS - 1;
+    while (b_bucket[q] <= left) {
+        left -= b_bucket[q];
+        q--;
+    }
+    *over = left;
+    return q;
+}
+
+/* The answer's bit pattern of a budget whose crossing lies in bucket q
+ * with `over` left to pass in it, from the m values sel (weights sel_wt)
+ * that hold every value of that bucket: those values moved to the front
+ * (a selection only reorders values of one bucket), then selected from:
+ * just above the largest eps whose pcols, with those above, keep too many
+ * faces. */
+static int64_t answer_in_bucket(float *sel, int32_t *sel_wt, int64_t m, int64_t q, int32_t lo_bits, int64_t over)
+{
+    int64_t c = 0;
+    for (int64_t i = 0; i < m; i++)
+        if (bucket_of(sel[i], lo_bits) == q) {
+            const float v = sel[i];
+            const int32_t w = sel_wt[i];
+            sel[i] = sel[c], sel_wt[i] = sel_wt[c];
+            sel[c] = v, sel_wt[c] = w;
+            c++;
+        }
+    const float v = crossing(sel, sel_wt, c, over);
+    return v == INFINITY ? (int64_t)INF_BITS + 1 : (int64_t)bits_of(v) + 1;
+}
+
 /* The answers for the B budgets from an eps_pass at lo (count values, the
  * count `total` at lo) into out: each budget's bit pattern, or -2 when the
  * count at lo is within it (budgets below base_faces are left alone). Per
- * budget, the bucket where the faces kept by the pcols above a value pass
- * the budget; one scan of the values per GROUP budgets gathers those
- * buckets' values (b->sel), and each budget's answer comes from its
- * bucket's: just above the largest eps whose pcols, with those above, keep
- * too many faces. */
+ * budget, the bucket where its crossing lies; one scan of the values per
+ * GROUP budgets gathers those buckets' values (b->sel), and each budget's
+ * answer comes from its bucket's (answer_in_bucket). */
 static void answers_of(Budget *b, int64_t count, float lo, int64_t total, const int32_t *budgets, int64_t B,
                        int64_t base_faces, int64_t *out)
 {
@@ -459,12 +492,9 @@ static void answers_of(Budget *b, int64_t count, float lo, int64_t total, const 
                 out[j] = -2;
                 continue;
             }
-            int64_t over = budgets[j] - base_faces, q = BUCKETS - 1;
-            while (b->bucket[q] <= over) {
-                over -= b->bucket[q];
-                q--;
-            }
-            at[n_at] = j, over_in[n_at] = over, q_of[n_at++] = q;
+            at[n_at] = j;
+            q_of[n_at] = crossing_bucket(b->bucket, budgets[j], base_faces, &over_in[n_at]);
+            n_at++;
         }
         if (!n_at)
             continue;
@@ -478,21 +508,8 @@ static void answers_of(Budget *b, int64_t count, float lo, int64_t total, const 
             b->sel[m] = b->val[i], b->sel_wt[m] = b->wt[i];
             m += hit;
         }
-        /* Each budget's bucket's values moved to the front, then selected
-         * from (a selection only reorders values of one bucket). */
-        for (int t = 0; t < n_at; t++) {
-            int64_t c = 0;
-            for (int64_t i = 0; i < m; i++)
-                if (bucket_of(b->sel[i], lo_bits) == q_of[t]) {
-                    const float v = b->sel[i];
-                    const int32_t w = b->sel_wt[i];
-                    b->sel[i] = b->sel[c], b->sel_wt[i] = b->sel_wt[c];
-                    b->sel[c] = v, b->sel_wt[c] = w;
-                    c++;
-                }
-            const float v = crossing(b->sel, b->sel_wt, c, over_in[t]);
-            out[at[t]] = v == INFINITY ? (int64_t)INF_BITS + 1 : (int64_t)bits_of(v) + 1;
-        }
+        for (int t = 0; t < n_at; t++)
+            out[at[t]] = answer_in_bucket(b->sel, b->sel_wt, m, q_of[t], lo_bits, over_in[t]);
     }
 }
 
@@ -503,6 +520,29 @@ static double extrapolated(float lo, double a, double power, int64_t top, int64_
 {
     power = power < 0.5 ? 0.5 : power > 4.0 ? 4.0 : power;
     return lo * MARGIN * pow(a / (double)(top - base_faces + 1), 1.0 / power);
+}
+
+/* Whether the largest budget's (`top`) answer lies below lo, from the
+ * counts of a traversal at lo (total, at_twice at 2 lo; the pcols that did
+ * not run keep `kept` faces; last_count: the count at the tolerance
+ * traversed before, -1: none), and then in *next_lo the tolerance to
+ * traverse at next. It does unless the view is as fine as it gets: the
+ * counts at lo and 2 lo give the count's power of tau, extrapolated to the
+ * largest budget, times MARGIN; a count that does not change from 2 lo (or
+ * from the last lo) says the view is as fine as it gets. */
+static int answers_below(int64_t total, int64_t at_twice, int64_t kept, float lo, int64_t top, int64_t base_faces,
+                         int64_t last_count, float *next_lo)
+{
+    const int64_t count_at_lo = base_faces + kept;
+    if (total <= top && lo != 0.0f && count_at_lo != last_count && at_twice != count_at_lo) {
+        const double a = (double)(count_at_lo - base_faces + 1), a2 = (double)(at_twice - base_faces + 1);
+        const double next = extrapolated(lo, a, a > a2 ? log(a / a2) / log(2.0) : 1.0, top, base_faces);
+        if (next >= 1e-30) {
+            *next_lo = (float)(next < lo * 0.9 ? next : lo * 0.9);
+            return 1;
+        }
+    }
+    return 0;
 }
 
 /* The guesses of one camera from the tally of its traversal at lo (count
@@ -518,20 +558,9 @@ static int answers_from(PmxScratch *s, Budget *b, int64_t n, int64_t m, int64_t 
                         int64_t at_twice, int64_t kept, float lo, const int32_t *budgets, int64_t B, int64_t top,
                         int64_t base_faces, int64_t last_count, float *next_lo, int64_t *guess, int64_t *alt)
 {
-    /* The largest budget's answer lies below lo unless the view is as fine
-     * as it gets (then the budgets met at lo have the guess 0): the counts
-     * at lo and 2 lo give the count's power of tau, extrapolated to the
-     * largest budget, times MARGIN; a count that does not change from 2 lo
-     * (or from the last lo) says the view is as fine as it gets. */
-    const int64_t count_at_lo = base_faces + kept;
-    if (total <= top && lo != 0.0f && count_at_lo != last_count && at_twice != count_at_lo) {
-        const double a = (double)(count_at_lo - base_faces + 1), a2 = (double)(at_twice - base_faces + 1);
-        const double next = extrapolated(lo, a, a > a2 ? log(a / a2) / log(2.0) : 1.0, top, base_faces);
-        if (next >= 1e-30) {
-            *next_lo = (float)(next < lo * 0.9 ? next : lo * 0.9);
-            return 0;
-        }
-    }
+    /* The largest budget's answer below lo: traverse again lower. */
+    if (answers_below(total, at_twice, kept, lo, top, base_faces, last_count, next_lo))
+        return 0;
     /* Each budget's answer from the same eps; those met at lo: 0. */
     answers_of(b, count, lo, total, budgets, B, base_faces, guess);
     for (int64_t j = 0; j < B; j++)
@@ -701,7 +730,8 @@ typedef struct {
  * `words`), the Budget arrays, a word's eps (lanes_room) and every frame's
  * tally of it (where `words`: lane_bucket, and
  * lane_val, lane_wt with room for lane_room values per frame, grown with
- * the words' slots), and one camera's guesses (g, alt: B each); 0 when out
+ * the words' slots, and every frame's guesses lane_g, B each), and one
+ * camera's guesses (g, alt: B each); 0 when out
  * of memory (what was taken is given back by budget_give). */
 typedef struct {
     PmxScratch *s;
@@ -709,7 +739,7 @@ typedef struct {
     float *eps_room, *lanes_room, *lane_val;
     int32_t *lane_wt;
     int64_t *lane_bucket, lane_room;
-    int64_t *g, *alt;
+    int64_t *g, *alt, *lane_g;
 } Work;
 
 static int budget_take(Work *k, const PmxHierarchy *h, int64_t B, int words)
@@ -724,6 +754,7 @@ static int budget_take(Work *k, const PmxHierarchy *h, int64_t B, int words)
     k->lanes_room = words ? malloc(sizeof(float) * FRAMES * (size_t)(room + 1)) : NULL;
     k->lane_bucket = words ? malloc(sizeof(int64_t) * FRAMES * (BUCKETS + SPREAD)) : NULL;
     k->lane_val = NULL, k->lane_wt = NULL, k->lane_room = 0;
+    k->lane_g = words ? malloc(sizeof(int64_t) * FRAMES * (size_t)B) : NULL;
     if (k->lanes_room)
         for (int l = 0; l < FRAMES; l++)
             k->lanes_room[l] = -INFINITY; /* a child not visited */
@@ -733,7 +764,7 @@ static int budget_take(Work *k, const PmxHierarchy *h, int64_t B, int words)
         k->eps_room[0] = -INFINITY; /* eps[-1]: a child not visited */
     const Budget *b = &k->b;
     return k->s && scratch_slots(k->s) &&
-           (!words || (scratch_words(k->s) && k->lanes_room && k->lane_bucket)) &&
+           (!words || (scratch_words(k->s) && k->lanes_room && k->lane_bucket && k->lane_g)) &&
            b->eps && b->own &&
            b->val && b->sel && b->wt && b->sel_wt && b->bucket && k->g;
 }
@@ -742,7 +773,7 @@ static void budget_give(Work *k)
 {
     free(k->eps_room), free(k->b.own), free(k->b.val), free(k->b.sel), free(k->b.wt), free(k->b.sel_wt);
     free(k->b.bucket), free(k->lanes_room), free(k->g);
-    free(k->lane_bucket), free(k->lane_val), free(k->lane_wt);
+    free(k->lane_bucket), free(k->lane_val), free(k->lane_wt), free(k->lane_g);
     if (k->s)
         pmx_scratch_give(k->s);
 }
@@ -938,10 +969,11 @@ static int lane_room(Work *k, int64_t n, int64_t room)
 
 /* The tallies of the frames in `frames` from a word's folded eps (n slots,
  * layout of lanes_up; kills kill[i]) at their lo, in one pass over the
- * slots (each slot's frames read together): frame l's values >= lo[l] with
- * their kills from k's lane_val, lane_wt + l lane_room (t[l].count of
- * them), their kills per bucket (lane_bucket + l (BUCKETS + SPREAD)), the
- * counts at lo and at twice lo: what tally gives frame by frame. */
+ * slots (each slot's frames read together): frame l's number of values
+ * >= lo[l] (t[l].count), their kills per bucket (lane_bucket + l (BUCKETS +
+ * SPREAD)), the counts at lo and at twice lo: what tally gives frame by
+ * frame, less the values themselves (lanes_answers gathers the few that
+ * an answer needs). */
 static void lanes_tally(Work *k, const float *eps, const int32_t *kill, int64_t n, const float *lo, Lanes frames,
                         int64_t base_faces, Tally *t)
 {
@@ -963,19 +995,140 @@ static void lanes_tally(Work *k, const float *eps, const int32_t *kill, int64_t 
             total2[l] += (e[l] >= lo[l] && e[l] >= twice[l]) ? w : 0; /* as tally: within lo first */
         }
         in &= frames;
-        /* Each of them in turn (about half a slot's frames): its value and
-         * its bucket. */
+        /* Each of them in turn (about half a slot's frames): its bucket. */
         while (in) {
             const int l = __builtin_ctz(in);
             in &= in - 1;
-            const int64_t c = count[l]++, at = (int64_t)l * k->lane_room + c;
-            k->lane_val[at] = e[l], k->lane_wt[at] = w;
+            count[l]++;
             k->lane_bucket[(int64_t)l * (BUCKETS + SPREAD) + bucket_of(e[l], lo_bits[l])] += w;
             total[l] += w;
         }
     }
     for (int l = 0; l < FRAMES; l++)
         t[l] = (Tally){count[l], total[l], total2[l], 0};
+}
+
+/* No bucket (the buckets are 0 .. BUCKETS - 1). */
+#define NO_BUCKET 0xFFFFFFFFu
+
+/* The values >= lo[l] of a word's folded eps (n slots, layout of lanes_up;
+ * kills kill[i]) in any of frame l's buckets q_of[.][l] appended to frame
+ * l's val, wt + l room (m[l] of them): a slot's frames in one vector
+ * (bucket_of in unsigned 32 bits, the same for the values >= lo, the others
+ * dropped). */
+PMX_INLINE void hits_body(const float *eps, int64_t n, const float *lo, const int32_t *lo_bits,
+                          const uint32_t (*q_of)[FRAMES], const int32_t *kill, float *val, int32_t *wt, int64_t room,
+                          int64_t *m)
+{
+    for (int64_t i = 0; i < n; i++) {
+        const float *e = eps + i * FRAMES;
+        int32_t hv[FRAMES];
+#pragma omp simd
+        for (int l = 0; l < FRAMES; l++) {
+            uint32_t x;
+            memcpy(&x, &e[l], sizeof x);
+            uint32_t q = (x - (uint32_t)lo_bits[l]) >> 16;
+            q = q < BUCKETS - 1 ? q : BUCKETS - 1;
+            int h = 0;
+            for (int g = 0; g < GROUP; g++)
+                h |= q == q_of[g][l];
+            hv[l] = h & (e[l] >= lo[l]);
+        }
+        uint32_t hit = 0;
+        for (int l = 0; l < FRAMES; l++)
+            hit |= (uint32_t)hv[l] << l;
+        while (hit) {
+            const int l = __builtin_ctz(hit);
+            hit &= hit - 1;
+            const int64_t at = (int64_t)l * room + m[l]++;
+            val[at] = e[l], wt[at] = kill[i];
+        }
+    }
+}
+
+static void hits_plain(const float *eps, int64_t n, const float *lo, const int32_t *lo_bits,
+                       const uint32_t (*q_of)[FRAMES], const int32_t *kill, float *val, int32_t *wt, int64_t room,
+                       int64_t *m)
+{
+    hits_body(eps, n, lo, lo_bits, q_of, kill, val, wt, room, m);
+}
+#if PMX_X86
+PMX_TARGET_AVX2 static void hits_avx2(const float *eps, int64_t n, const float *lo, const int32_t *lo_bits,
+                                      const uint32_t (*q_of)[FRAMES], const int32_t *kill, float *val, int32_t *wt,
+                                      int64_t room, int64_t *m)
+{
+    hits_body(eps, n, lo, lo_bits, q_of, kill, val, wt, room, m);
+}
+PMX_TARGET_AVX512 static void hits_avx512(const float *eps, int64_t n, const float *lo, const int32_t *lo_bits,
+                                          const uint32_t (*q_of)[FRAMES], const int32_t *kill, float *val,
+                                          int32_t *wt, int64_t room, int64_t *m)
+{
+    hits_body(eps, n, lo, lo_bits, q_of, kill, val, wt, room, m);
+}
+#endif
+
+typedef void (*Hits)(const float *, int64_t, const float *, const int32_t *, const uint32_t (*)[FRAMES],
+                     const int32_t *, float *, int32_t *, int64_t, int64_t *);
+
+static Hits hits_kernel(void)
+{
+#if PMX_X86
+    static const Hits at_level[] = {hits_plain, hits_avx2, hits_avx512};
+    return at_level[simd_level()];
+#else
+    return hits_plain;
+#endif
+}
+
+/* Every frame's answers from a word's folded eps (n slots, layout of
+ * lanes_up; kills kill[i]) and its tallies t at lo, for the frames in
+ * `frames` and their B budgets (budgets + l B) into out + l B, as
+ * answers_of gives them from the frame's own values: per GROUP budgets,
+ * the bucket where each one's crossing lies in each frame, then one pass
+ * over the slots (a slot's frames compared at once) gathering the values
+ * in those buckets into the frame's lane_val, lane_wt (rarely more than a
+ * few per frame), and each budget's answer from its bucket's. */
+static void lanes_answers(Work *k, const float *eps, const int32_t *kill, int64_t n, const float *lo,
+                          const Tally *t, Lanes frames, const int32_t *budgets, int64_t B, int64_t base_faces,
+                          int64_t *out)
+{
+    const Hits hits = hits_kernel();
+    int32_t lo_bits[FRAMES];
+    for (int l = 0; l < FRAMES; l++)
+        lo_bits[l] = bits_of(lo[l]);
+    for (int64_t j0 = 0; j0 < B; j0 += GROUP) {
+        /* Each frame's buckets of the group's budgets that its count at lo
+         * exceeds (NO_BUCKET: none), and the weight left to pass inside them. */
+        uint32_t q_of[GROUP][FRAMES];
+        int64_t over_in[GROUP][FRAMES];
+        const int n_at = (int)(B - j0 < GROUP ? B - j0 : GROUP);
+        Lanes wanted = 0;
+        for (int g = 0; g < GROUP; g++)
+            for (int l = 0; l < FRAMES; l++) {
+                q_of[g][l] = NO_BUCKET;
+                const int64_t budget = g < n_at ? budgets[l * B + j0 + g] : -1;
+                if (g >= n_at || !((frames >> l) & 1) || budget < base_faces)
+                    continue;
+                if (t[l].total <= budget) {
+                    out[l * B + j0 + g] = -2;
+                    continue;
+                }
+                q_of[g][l] = (uint32_t)crossing_bucket(k->lane_bucket + (int64_t)l * (BUCKETS + SPREAD), budget,
+                                                       base_faces, &over_in[g][l]);
+                wanted |= (Lanes)(1u << l);
+            }
+        if (!wanted)
+            continue;
+        /* The values >= lo in any of a frame's buckets, frame by frame. */
+        int64_t m[FRAMES] = {0};
+        hits(eps, n, lo, lo_bits, (const uint32_t(*)[FRAMES])q_of, kill, k->lane_val, k->lane_wt, k->lane_room, m);
+        for (int l = 0; l < FRAMES; l++)
+            for (int g = 0; g < n_at; g++)
+                if (q_of[g][l] != NO_BUCKET)
+                    out[l * B + j0 + g] = answer_in_bucket(k->lane_val + (int64_t)l * k->lane_room,
+                                                           k->lane_wt + (int64_t)l * k->lane_room, m[l], q_of[g][l],
+                                                           lo_bits[l], over_in[g][l]);
+    }
 }
 
 /* A word's frames (views, one pixel units) as the own tolerances read them. */
@@ -1056,25 +1209,30 @@ static void words_work(void *arg)
         }
         Tally tallies[FRAMES];
         lanes_tally(&k, eps, s->kill, n, lo, asked, bt->base_faces, tallies);
+        /* The frames whose largest budget's answer does not lie below their
+         * lo (answers_from's test): their answers, all frames at once. */
+        const int32_t *budgets = bt->budgets + w * FRAMES * B;
+        Lanes found = 0, below = 0;
         for (int l = 0; l < FRAMES; l++) {
-            const int64_t c = w * FRAMES + l;
-            const int32_t *budgets = bt->budgets + c * B;
-            const int64_t top = largest_budget(budgets, B, bt->base_faces, k.g, k.alt);
-            int found = 1;
+            const int64_t top = largest_budget(budgets + l * B, B, bt->base_faces, k.lane_g + l * B,
+                                               k.lane_g + l * B);
             float next = 0;
-            if (top >= 0) {
-                /* The frame's tally: its lane's. */
-                const Tally t = tallies[l];
-                Budget lane = k.b;
-                lane.val = k.lane_val + l * k.lane_room, lane.wt = k.lane_wt + l * k.lane_room;
-                lane.bucket = k.lane_bucket + l * (BUCKETS + SPREAD);
-                found = answers_from(s, &lane, n, 0, t.count, t.total, t.total2, counts[l].kept, lo[l], budgets, B,
-                                     top, bt->base_faces, -1, &next, k.g, k.alt);
+            const Tally t = tallies[l];
+            if (top >= 0 && answers_below(t.total, t.total2, counts[l].kept, lo[l], top, bt->base_faces, -1, &next))
+                below |= (Lanes)(1u << l);
+            else if (top >= 0)
+                found |= (Lanes)(1u << l);
+        }
+        lanes_answers(&k, eps, s->kill, n, lo, tallies, found, budgets, B, bt->base_faces, k.lane_g);
+        for (int l = 0; l < FRAMES; l++) {
+            int64_t *g = k.lane_g + l * B;
+            for (int64_t j = 0; j < B; j++) {
+                if ((below >> l) & 1)
+                    g[j] = -1;
+                else if (((found >> l) & 1) && budgets[l * B + j] >= bt->base_faces && g[j] == -2)
+                    g[j] = 0; /* met at lo */
             }
-            if (!found)
-                for (int64_t j = 0; j < B; j++)
-                    k.g[j] = k.alt[j] = -1;
-            put_guesses(bt, c, k.g, k.alt);
+            put_guesses(bt, w * FRAMES + l, g, g);
         }
     }
     subnormals_back(mode);
