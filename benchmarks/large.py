@@ -24,10 +24,22 @@ labelled (edges, costs, the cheapest share, the batch choice, ...) and the
 process's RSS sampled every 2 ms: per step the peak RSS above the model's
 arrays (per input face) and the main thread's time in it.
 
+``--alternate A,B`` instead times refine and ``Refinement.mesh()`` of two
+models side by side in one process, pinned to ``--cores`` CPUs (one by
+default): each is made and built once by subprocesses (its ``.pmz`` kept in
+``--keep``, and read from there when it is already made; a ``.pmz`` path may
+stand for a model), both are loaded, then every round runs the 24 standard-
+orbit frames at tau = 1 px, alternating the models frame by frame (refine of
+A, its ``mesh()``, refine of B, its ``mesh()``), after two warm-up frames of
+each. Per model the median over each round's frames, the median over
+``--rounds`` rounds, and the ratio B / A of those medians, so that both run
+under the same load and caches.
+
 Usage::
 
     python benchmarks/large.py [--models dragon:0,dragon:1] [--json out.json]
     python benchmarks/large.py --stages dragon:1
+    taskset -c 0 python benchmarks/large.py --alternate dragon:0,dragon:2 --keep /tmp/large --rounds 3
 """
 
 from __future__ import annotations
@@ -45,7 +57,7 @@ import time
 import numpy as np
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _common import DATA, machine, write_json  # noqa: E402
+from _common import DATA, machine, pin_cores, write_json  # noqa: E402
 
 NOISE = 0.05
 SEED = 44
@@ -151,6 +163,78 @@ def one_model(spec: str, folder: str) -> dict:
                 refine_faces=int(statistics.median(faces)), mesh_ms=1e3 * statistics.median(mesh_times))
 
 
+def save_built(folder: str, path: str) -> float:
+    """Build the model in ``folder`` (``v.npy``, ``f.npy``) and save it to
+    ``path`` (``.pmz``, as ``pmjax build`` writes it); seconds taken."""
+    import pmjax
+    from pmjax.builders import build_pm
+
+    t = time.perf_counter()
+    pm = build_pm(np.load(os.path.join(folder, "v.npy")), np.load(os.path.join(folder, "f.npy")))
+    pmjax.save_pm(pm, path)
+    return time.perf_counter() - t
+
+
+def kept_model(spec: str, keep: str) -> str:
+    """The ``.pmz`` of ``spec``: the path itself for a ``.pmz`` file, else
+    ``keep/NAME_LEVELS.pmz``, made and built by subprocesses (the build's
+    peak, about 330 B per input face, not in this process) if not there."""
+    if spec.endswith(".pmz"):
+        if not os.path.isfile(spec):
+            raise FileNotFoundError(f"--alternate: no model file {spec}")
+        return spec
+    name, _, levels = spec.partition(":")
+    path = os.path.join(keep, f"{name}_{levels or 0}.pmz")
+    if os.path.isfile(path):
+        return path
+    os.makedirs(keep, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="pmjax-large-model-") as folder:
+        for step in (["--make", spec], ["--save-built", path]):
+            done = subprocess.run([sys.executable, __file__, *step, "--folder", folder], capture_output=True,
+                                  text=True)
+            if done.returncode:
+                raise RuntimeError(f"{spec}: {step[0]} failed\n{done.stderr[-2000:]}")
+    return path
+
+
+def alternate(paths: list[str], rounds: int) -> list[dict]:
+    """Refine and ``mesh()`` of the models in ``paths`` alternated frame by
+    frame in this process: per model the median over rounds of each round's
+    median over the 24 frames (milliseconds), and the faces drawn."""
+    import jax
+
+    import pmjax
+
+    models = []
+    for path in paths:
+        mesh = pmjax.load(path)
+        orbit = pmjax.standard_orbit(mesh.vertices[: mesh.n_original_vertices], 24)
+        frames = [jax.tree.map(lambda x, i=i: x[i], orbit) for i in range(24)]
+        models.append(dict(mesh=mesh, frames=frames, refine=[], mesh_ms=[], faces=[]))
+    # Warm-up: the first calls compile and size the scratch.
+    for m in models:
+        for cam in m["frames"][:2]:
+            np.asarray(pmjax.refine(m["mesh"], cam, 1.0).mesh()[1])
+    for _ in range(rounds):
+        per = [dict(refine=[], mesh=[]) for _ in models]
+        for i in range(24):
+            for m, p in zip(models, per):
+                t = time.perf_counter()
+                r = pmjax.refine(m["mesh"], m["frames"][i], 1.0)
+                n = int(r.n_faces)
+                p["refine"].append(time.perf_counter() - t)
+                t = time.perf_counter()
+                np.asarray(r.mesh()[1])
+                p["mesh"].append(time.perf_counter() - t)
+                m["faces"].append(n)
+        for m, p in zip(models, per):
+            m["refine"].append(1e3 * statistics.median(p["refine"]))
+            m["mesh_ms"].append(1e3 * statistics.median(p["mesh"]))
+    return [dict(model=path, refine_ms=statistics.median(m["refine"]), mesh_ms=statistics.median(m["mesh_ms"]),
+                 refine_rounds=m["refine"], mesh_rounds=m["mesh_ms"], faces=int(statistics.median(m["faces"])))
+            for path, m in zip(paths, models)]
+
+
 # The builder's main-thread steps that --stages labels: (module, name, label).
 STAGES = (
     ("qd", "vertex_quadrics", "initial quadrics (and, beside them, the attribute start)"),
@@ -223,7 +307,38 @@ def main(argv=None) -> int:
     ap.add_argument("--json", help="also write the rows as JSON")
     ap.add_argument("--stages", help="one model: peak RSS and main-thread time per step of its build")
     ap.add_argument("--stages-of", help=argparse.SUPPRESS)
+    ap.add_argument("--save-built", help=argparse.SUPPRESS)
+    ap.add_argument("--alternate", metavar="A,B",
+                    help="two models (NAME:LEVELS or .pmz files): refine and mesh() alternated frame by frame in one "
+                         "process, B's time over A's")
+    ap.add_argument("--keep", default=os.path.join(tempfile.gettempdir(), "pmjax-large"),
+                    help="with --alternate: folder of the built models' .pmz, made there once (default %(default)s)")
+    ap.add_argument("--rounds", type=int, default=3, help="with --alternate: rounds of the 24 frames (default 3)")
+    ap.add_argument("--cores", type=int, default=1, help="with --alternate: CPUs to run on (default 1)")
     args = ap.parse_args(argv)
+    if args.save_built:
+        print(json.dumps(dict(build_s=save_built(args.folder, args.save_built))))
+        return 0
+    if args.alternate:
+        specs = args.alternate.split(",")
+        if len(specs) != 2 or args.rounds < 1:
+            ap.error("--alternate takes two models, A,B, and --rounds at least 1")
+
+        pin_cores(args.cores)
+        paths = [kept_model(spec, args.keep) for spec in specs]
+        print(machine())
+        rows = alternate(paths, args.rounds)
+        for spec, row in zip(specs, rows):
+            print(f"{spec:12s} {row['faces']:>7,d} faces drawn  refine {row['refine_ms']:.3f} ms  "
+                  f"mesh() {row['mesh_ms']:.3f} ms  (rounds: "
+                  + ", ".join(f"{a:.3f}/{b:.3f}" for a, b in zip(row["refine_rounds"], row["mesh_rounds"])) + ")")
+        a, b = rows
+        print(f"{specs[1]} / {specs[0]}: faces {b['faces'] / a['faces']:.2f}x  refine "
+              f"{b['refine_ms'] / a['refine_ms']:.2f}x  mesh() {b['mesh_ms'] / a['mesh_ms']:.2f}x  "
+              f"(medians over {args.rounds} rounds of 24 frames, alternated in one process)")
+        if args.json:
+            write_json(args.json, dict(machine=machine(), rows=rows, specs=specs, rounds=args.rounds))
+        return 0
     if args.stages_of:
         print(json.dumps(stages(args.stages_of, args.folder)))
         return 0

@@ -100,10 +100,12 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
     const int64_t vertex_words = (V0 + n_pcols) / 64 + 1;
     /* The records and kill lists of the pcols that did not run are sparse in
      * arrays far larger than the cache, so each is a miss: requested
-     * MESH_AHEAD pcols early, the misses overlap. Where the faces are
+     * MESH_AHEAD pcols early (both cache lines of a record that straddles
+     * two), then, from the record, its kill list and its vertices' marks
+     * MESH_AHEAD / 2 pcols early, the misses overlap. Where the faces are
      * sorted (a model large for what it draws), the start bitmap's words
      * of a face's corners are requested FACE_AHEAD faces early too. */
-    const int64_t MESH_AHEAD = 16, FACE_AHEAD = 8;
+    const int64_t MESH_AHEAD = 32, FACE_AHEAD = 8;
     /* Without branches: whether a visited pcol ran is a coin toss to the
      * branch predictor. Every slot is written, the count advances on those
      * that did not run (mark is zero on entry, so a pcol that ran keeps 0). */
@@ -126,10 +128,18 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
      * vertices that are original or whose own pcol ran, and its kill list. */
     int64_t n_front = 0, n_drawn = 0;
     for (int64_t i = 0; i < n_not_run; i++) {
-        if (i + MESH_AHEAD < n_not_run)
-            __builtin_prefetch(records + not_run_at[i + MESH_AHEAD]);
-        if (i + MESH_AHEAD / 2 < n_not_run) /* its record was requested MESH_AHEAD / 2 steps ago */
-            __builtin_prefetch(kill_data + records[not_run_at[i + MESH_AHEAD / 2]].kill_first);
+        if (i + MESH_AHEAD < n_not_run) {
+            const char *ahead = (const char *)(records + not_run_at[i + MESH_AHEAD]);
+            __builtin_prefetch(ahead);
+            __builtin_prefetch(ahead + sizeof(PmxPcolRecord) - 1);
+        }
+        if (i + MESH_AHEAD / 2 < n_not_run) { /* its record was requested MESH_AHEAD / 2 steps ago */
+            const PmxPcolRecord *q = records + not_run_at[i + MESH_AHEAD / 2];
+            __builtin_prefetch(kill_data + q->kill_first);
+            __builtin_prefetch(kill_data + q->kill_first + (q->kill_count > 0 ? q->kill_count - 1 : 0));
+            __builtin_prefetch(mark + (q->made_at[0] < 0 ? 0 : q->made_at[0]));
+            __builtin_prefetch(mark + (q->made_at[1] < 0 ? 0 : q->made_at[1]));
+        }
         const PmxPcolRecord *r = records + not_run_at[i];
         for (int j = 0; j < 2; j++) {
             /* Without branches too: the vertex is written, and kept when it is
@@ -177,27 +187,35 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
     PmxStatus status = total == n_faces_drawn ? PMX_OK : PMX_FACES_DIFFER;
     if (status == PMX_OK) {
         memset(front_index, 0xff, sizeof(int32_t) * (size_t)n_front);
-        const IdSlot *by_face = NULL;
+        /* Where the faces are sorted, each drawn face's row is its place in
+         * the sorted order (row_at, in the sort's other buffer): the faces
+         * are then read in the order drawn, and only their rows are written
+         * out of order (a store does not wait for its line, where a face
+         * read at random would hold up its corners' look-ups). */
+        int32_t *row_at = NULL;
         if (face_sorted) {
             for (int64_t i = 0; i < total; i++)
                 pairs[i] = (IdSlot){i < n_drawn ? drawn[i].face : base[i - n_drawn].face, (int32_t)i};
-            by_face = sort_id_slots(pairs, pairs_to, total, (int32_t)(n_faces_total > 0 ? n_faces_total - 1 : 0),
-                                    sort_digit(total));
+            const IdSlot *by_face = sort_id_slots(pairs, pairs_to, total,
+                                                  (int32_t)(n_faces_total > 0 ? n_faces_total - 1 : 0),
+                                                  sort_digit(total));
+            row_at = (int32_t *)(by_face == pairs ? pairs_to : pairs);
+            for (int64_t j = 0; j < total; j++)
+                row_at[by_face[j].slot] = (int32_t)j;
         } else {
             prefix_marked(face_bits, face_sum, face_words, face_dense, face_prefix, NULL);
         }
         for (int64_t i = 0; i < total; i++) {
             if (face_sorted && i + FACE_AHEAD < total) {
-                const int64_t ahead = by_face[i + FACE_AHEAD].slot;
+                const int64_t ahead = i + FACE_AHEAD;
                 const PmxFaceRecord *g = ahead < n_drawn ? drawn + ahead : base + (ahead - n_drawn);
                 for (int c = 0; c < 3; c++) {
                     __builtin_prefetch(start_bits + (g->start[c] >> 6));
                     __builtin_prefetch(start_prefix + (g->start[c] >> 6));
                 }
             }
-            const int64_t at = face_sorted ? by_face[i].slot : i;
-            const PmxFaceRecord *f = at < n_drawn ? drawn + at : base + (at - n_drawn);
-            int32_t *row = faces + 3 * (face_sorted ? i : rank_of(face_bits, face_prefix, f->face));
+            const PmxFaceRecord *f = i < n_drawn ? drawn + i : base + (i - n_drawn);
+            int32_t *row = faces + 3 * (face_sorted ? row_at[i] : rank_of(face_bits, face_prefix, f->face));
             for (int c = 0; c < 3; c++) {
                 int32_t k = (int32_t)(start_dense ? rank_of(start_bits, start_prefix, f->start[c])
                                                   : rank_at_or_before(start_bits, start_sum, start_prefix,
