@@ -115,6 +115,26 @@ def test_tau_along_the_path_budgets_and_orthographic(built):
         assert_frame_equal(res, index_camera(ortho, i), 2.0, pm, ("ortho", i))
 
 
+def test_words_give_every_frame_its_bits_at_every_simd_level(built, simd):
+    """Each SIMD level of the C core's word traversal (its own mask
+    building among them): the orbit's slots settled by the fat camera, the
+    walk's decided frame by frame, an orthographic orbit's by the
+    orthographic rows; every frame's executed bits as the dense engine's."""
+    data, pm = model(built, "cow.ply")
+    v0 = originals(data)
+    c, r = v0.mean(0), np.linalg.norm(np.ptp(v0, 0))
+    cams = paths_of(data, ("orbit", "walk with cuts"))
+    cams["ortho"] = stack_cameras([pmjax.look_at(c + r * np.array([np.cos(a), 0.3, np.sin(a)]), c, orthographic=True,
+                                                 ortho_height=r, near=1e-3, far=10 * r)
+                                   for a in np.linspace(0, 2, 32)])
+    for label, path in cams.items():
+        got = list(pmjax.refine_path(pm, path, 1.0))
+        for i, res in enumerate(got):
+            assert_frame_equal(res, index_camera(path, i), 1.0, pm, (simd, label, i))
+        counts = pmjax.path_counts(pm, path, 1.0)
+        assert counts["executed_count"].tolist() == [int(x.n_executed) for x in got], (simd, label)
+
+
 @pytest.mark.parametrize("name, pair_distance, seed", [
     ("cow.ply", 0.0, 1),
     ("bunny.ply", 0.0, 2),

@@ -2,6 +2,9 @@
  * (certify.h), compiled once per SIMD level, and the whole-table pass the
  * tests compare with the float32 predicate. */
 #include "certify.h"
+#if PMX_X86
+#include <immintrin.h>
+#endif
 
 /* The usual view, for which decide_one is compiled with its uniform
  * conditions as constants (GCC builds the mask of a condition that is uniform
@@ -78,17 +81,10 @@ static inline __attribute__((always_inline)) void decide_lanes(const Frames *res
     decide_each_lane(fr, col, unused, 0, code, ortho, 0);
 }
 
-/* One pcol's row under every lane's camera (the frames of a word): the row
- * read once as scalars, which the decision broadcasts at its vector width;
- * the frames' decisions as masks (one bit per frame: WHOLE, YES, UNSURE). */
-static inline __attribute__((always_inline)) void decide_row_lanes(const Frames *fr, const float *row, Lanes *masks,
-                                                                   const int ortho, const int settled)
+/* The frames' decisions code[] as masks (one bit per frame: WHOLE, YES,
+ * UNSURE). */
+static inline __attribute__((always_inline)) void masks_of(const int32_t *code, Lanes *masks)
 {
-    const Pcol q = {row[CX],     row[CY],    row[CZ],    row[NX],     row[NY],    row[NZ],
-                    row[RADIUS], row[SIN_A], row[COS_A], row[DELTA],  row[MU],    row[REACH],
-                    row[SPREAD], row[FACING], row[ERROR]};
-    int32_t code[BLOCK];
-    decide_each_lane(fr, NULL, q, 1, code, ortho, settled);
     Lanes wh = 0, y = 0, u = 0;
     for (int l = 0; l < BLOCK; l++) {
         wh |= (Lanes)(((code[l] & WHOLE) != 0) << l);
@@ -97,17 +93,51 @@ static inline __attribute__((always_inline)) void decide_row_lanes(const Frames 
     }
     masks[0] = wh, masks[1] = y, masks[2] = u;
 }
+#if PMX_X86
+/* The same with AVX-512's compares into mask registers (GCC builds the
+ * loop's masks as a reduction of shifted bits, a fifth of a row's cost). */
+static inline PMX_TARGET_AVX512 void masks_of_avx512(const int32_t *code, Lanes *masks)
+{
+    const __m512i c = _mm512_loadu_si512(code), own = _mm512_and_si512(c, _mm512_set1_epi32(3));
+    masks[0] = (Lanes)_mm512_test_epi32_mask(c, _mm512_set1_epi32(WHOLE));
+    masks[1] = (Lanes)_mm512_cmpeq_epi32_mask(own, _mm512_set1_epi32(YES));
+    masks[2] = (Lanes)_mm512_cmpeq_epi32_mask(own, _mm512_set1_epi32(UNSURE));
+}
+#endif
+
+/* One pcol's row under every lane's camera (the frames of a word): the row
+ * read once as scalars, which the decision broadcasts at its vector width;
+ * the frames' decisions as masks (masks_of, or with wide, a constant, at
+ * the AVX-512 level, masks_of_avx512). */
+static inline __attribute__((always_inline)) void decide_row_lanes(const Frames *fr, const float *row, Lanes *masks,
+                                                                   const int ortho, const int settled, const int wide)
+{
+    const Pcol q = {row[CX],     row[CY],    row[CZ],    row[NX],     row[NY],    row[NZ],
+                    row[RADIUS], row[SIN_A], row[COS_A], row[DELTA],  row[MU],    row[REACH],
+                    row[SPREAD], row[FACING], row[ERROR]};
+    int32_t code[BLOCK];
+    decide_each_lane(fr, NULL, q, 1, code, ortho, settled);
+#if PMX_X86
+    if (wide) {
+        masks_of_avx512(code, masks);
+        return;
+    }
+#else
+    (void)wide;
+#endif
+    masks_of(code, masks);
+}
 
 /* A word's row under its frames (perspective, the fat camera applying) with
  * the tests the fat camera settled (fat_code FAT_INSIDE or FAT_SCREEN) left
  * out. */
 static inline __attribute__((always_inline)) void decide_row_settled(const Frames *fr, const float *row,
-                                                                     int32_t fat_code, Lanes *masks)
+                                                                     int32_t fat_code, Lanes *masks, const int wide)
 {
     if (fat_code == FAT_SCREEN)
-        decide_row_lanes(fr, row, masks, 0, SETTLED_FRUSTUM | SETTLED_ORIENTATION);
+        decide_row_lanes(fr, row, masks, 0, SETTLED_FRUSTUM | SETTLED_ORIENTATION, wide);
     else
-        decide_row_lanes(fr, row, masks, 0, SETTLED_FRUSTUM);
+        decide_row_lanes(fr, row, masks, 0, SETTLED_FRUSTUM, wide);
 }
 
 /* The level wrappers: the loops above at each level's vector width. */
@@ -121,15 +151,15 @@ void decide_orthographic_plain(const Frames *fr, Columns col, int32_t *code)
 }
 void decide_row_perspective_plain(const Frames *fr, const float *row, Lanes *masks)
 {
-    decide_row_lanes(fr, row, masks, 0, 0);
+    decide_row_lanes(fr, row, masks, 0, 0, 0);
 }
 void decide_row_orthographic_plain(const Frames *fr, const float *row, Lanes *masks)
 {
-    decide_row_lanes(fr, row, masks, 1, 0);
+    decide_row_lanes(fr, row, masks, 1, 0, 0);
 }
 void decide_row_settled_plain(const Frames *fr, const float *row, int32_t fat_code, Lanes *masks)
 {
-    decide_row_settled(fr, row, fat_code, masks);
+    decide_row_settled(fr, row, fat_code, masks, 0);
 }
 #if PMX_X86
 PMX_TARGET_AVX2 void decide_perspective_avx2(const Frames *fr, Columns col, int32_t *code)
@@ -142,15 +172,15 @@ PMX_TARGET_AVX2 void decide_orthographic_avx2(const Frames *fr, Columns col, int
 }
 PMX_TARGET_AVX2 void decide_row_perspective_avx2(const Frames *fr, const float *row, Lanes *masks)
 {
-    decide_row_lanes(fr, row, masks, 0, 0);
+    decide_row_lanes(fr, row, masks, 0, 0, 0);
 }
 PMX_TARGET_AVX2 void decide_row_orthographic_avx2(const Frames *fr, const float *row, Lanes *masks)
 {
-    decide_row_lanes(fr, row, masks, 1, 0);
+    decide_row_lanes(fr, row, masks, 1, 0, 0);
 }
 PMX_TARGET_AVX2 void decide_row_settled_avx2(const Frames *fr, const float *row, int32_t fat_code, Lanes *masks)
 {
-    decide_row_settled(fr, row, fat_code, masks);
+    decide_row_settled(fr, row, fat_code, masks, 0);
 }
 PMX_TARGET_AVX512 void decide_perspective_avx512(const Frames *fr, Columns col, int32_t *code)
 {
@@ -162,15 +192,15 @@ PMX_TARGET_AVX512 void decide_orthographic_avx512(const Frames *fr, Columns col,
 }
 PMX_TARGET_AVX512 void decide_row_perspective_avx512(const Frames *fr, const float *row, Lanes *masks)
 {
-    decide_row_lanes(fr, row, masks, 0, 0);
+    decide_row_lanes(fr, row, masks, 0, 0, 1);
 }
 PMX_TARGET_AVX512 void decide_row_orthographic_avx512(const Frames *fr, const float *row, Lanes *masks)
 {
-    decide_row_lanes(fr, row, masks, 1, 0);
+    decide_row_lanes(fr, row, masks, 1, 0, 1);
 }
 PMX_TARGET_AVX512 void decide_row_settled_avx512(const Frames *fr, const float *row, int32_t fat_code, Lanes *masks)
 {
-    decide_row_settled(fr, row, fat_code, masks);
+    decide_row_settled(fr, row, fat_code, masks, 1);
 }
 #endif
 
