@@ -137,23 +137,12 @@ def one_model(spec: str, folder: str) -> dict:
             t = time.perf_counter()
             mesh = pmjax.load(path)
             loads[version].append(time.perf_counter() - t)
-    orbit = pmjax.standard_orbit(pm.vertices[: pm.n_original_vertices], 24)
-    import jax
-
-    frames = [jax.tree.map(lambda x, i=i: x[i], orbit) for i in range(24)]
-    for cam in frames[:2]:
-        int(pmjax.refine(mesh, cam, 1.0).n_faces)
     times, faces, mesh_times = [], [], []
-    for cam in frames:
-        t = time.perf_counter()
-        r = pmjax.refine(mesh, cam, 1.0)
-        n = int(r.n_faces)
-        times.append(time.perf_counter() - t)
+    for cam in orbit_frames(mesh):
+        refine_s, n, mesh_s = time_frame(mesh, cam)
+        times.append(refine_s)
         faces.append(n)
-        t = time.perf_counter()
-        out = r.mesh()
-        np.asarray(out[1])
-        mesh_times.append(time.perf_counter() - t)
+        mesh_times.append(mesh_s)
     shutil.rmtree(work)
     return dict(model=spec, faces=len(f), vertices=len(v), pcols=pm.n_pcols, batches=pm.n_batches,
                 build_s=build_s, fs_1pct_s=fs_s, peak_rss_bytes=peak,
@@ -177,8 +166,9 @@ def save_built(folder: str, path: str) -> float:
 
 def kept_model(spec: str, keep: str) -> str:
     """The ``.pmz`` of ``spec``: the path itself for a ``.pmz`` file, else
-    ``keep/NAME_LEVELS.pmz``, made and built by subprocesses (the build's
-    peak, about 330 B per input face, not in this process) if not there."""
+    ``keep/NAME_LEVELS.pmz``, made and built by subprocesses if not there
+    (the build's peak memory is kept out of this process); a file already
+    there is reused, and said so: delete it to build it with this checkout."""
     if spec.endswith(".pmz"):
         if not os.path.isfile(spec):
             raise FileNotFoundError(f"--alternate: no model file {spec}")
@@ -186,6 +176,7 @@ def kept_model(spec: str, keep: str) -> str:
     name, _, levels = spec.partition(":")
     path = os.path.join(keep, f"{name}_{levels or 0}.pmz")
     if os.path.isfile(path):
+        print(f"{spec}: reusing {path} (delete it to build again)")
         return path
     os.makedirs(keep, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="pmjax-large-model-") as folder:
@@ -197,35 +188,51 @@ def kept_model(spec: str, keep: str) -> str:
     return path
 
 
+def orbit_frames(mesh) -> list:
+    """The 24 cameras of the standard orbit around ``mesh``, one per frame,
+    after two warm-up frames (the first calls compile and size the scratch)."""
+    import jax
+
+    import pmjax
+
+    orbit = pmjax.standard_orbit(mesh.vertices[: mesh.n_original_vertices], 24)
+    frames = [jax.tree.map(lambda x, i=i: x[i], orbit) for i in range(24)]
+    for cam in frames[:2]:
+        time_frame(mesh, cam)
+    return frames
+
+
+def time_frame(mesh, cam) -> tuple[float, int, float]:
+    """Seconds of one ``refine`` of ``mesh`` at tau = 1 px from ``cam``, the
+    faces it draws, and seconds of its ``mesh()``."""
+    import pmjax
+
+    t = time.perf_counter()
+    r = pmjax.refine(mesh, cam, 1.0)
+    n = int(r.n_faces)
+    refine_s = time.perf_counter() - t
+    t = time.perf_counter()
+    np.asarray(r.mesh()[1])
+    return refine_s, n, time.perf_counter() - t
+
+
 def alternate(paths: list[str], rounds: int) -> list[dict]:
     """Refine and ``mesh()`` of the models in ``paths`` alternated frame by
     frame in this process: per model the median over rounds of each round's
     median over the 24 frames (milliseconds), and the faces drawn."""
-    import jax
-
     import pmjax
 
     models = []
     for path in paths:
         mesh = pmjax.load(path)
-        orbit = pmjax.standard_orbit(mesh.vertices[: mesh.n_original_vertices], 24)
-        frames = [jax.tree.map(lambda x, i=i: x[i], orbit) for i in range(24)]
-        models.append(dict(mesh=mesh, frames=frames, refine=[], mesh_ms=[], faces=[]))
-    # Warm-up: the first calls compile and size the scratch.
-    for m in models:
-        for cam in m["frames"][:2]:
-            np.asarray(pmjax.refine(m["mesh"], cam, 1.0).mesh()[1])
+        models.append(dict(mesh=mesh, frames=orbit_frames(mesh), refine=[], mesh_ms=[], faces=[]))
     for _ in range(rounds):
         per = [dict(refine=[], mesh=[]) for _ in models]
         for i in range(24):
             for m, p in zip(models, per):
-                t = time.perf_counter()
-                r = pmjax.refine(m["mesh"], m["frames"][i], 1.0)
-                n = int(r.n_faces)
-                p["refine"].append(time.perf_counter() - t)
-                t = time.perf_counter()
-                np.asarray(r.mesh()[1])
-                p["mesh"].append(time.perf_counter() - t)
+                refine_s, n, mesh_s = time_frame(m["mesh"], m["frames"][i])
+                p["refine"].append(refine_s)
+                p["mesh"].append(mesh_s)
                 m["faces"].append(n)
         for m, p in zip(models, per):
             m["refine"].append(1e3 * statistics.median(p["refine"]))
@@ -311,23 +318,31 @@ def main(argv=None) -> int:
     ap.add_argument("--alternate", metavar="A,B",
                     help="two models (NAME:LEVELS or .pmz files): refine and mesh() alternated frame by frame in one "
                          "process, B's time over A's")
-    ap.add_argument("--keep", default=os.path.join(tempfile.gettempdir(), "pmjax-large"),
-                    help="with --alternate: folder of the built models' .pmz, made there once (default %(default)s)")
-    ap.add_argument("--rounds", type=int, default=3, help="with --alternate: rounds of the 24 frames (default 3)")
-    ap.add_argument("--cores", type=int, default=1, help="with --alternate: CPUs to run on (default 1)")
+    ap.add_argument("--keep", default=None,
+                    help="with --alternate: folder of the built models' .pmz, made there once (default: "
+                         f"{os.path.join(tempfile.gettempdir(), 'pmjax-large')})")
+    ap.add_argument("--rounds", type=int, default=None, help="with --alternate: rounds of the 24 frames (default 3)")
+    ap.add_argument("--cores", type=int, default=None, help="with --alternate: CPUs to run on (default 1)")
     args = ap.parse_args(argv)
+    alternate_only = [f"--{k}" for k in ("keep", "rounds", "cores") if getattr(args, k) is not None]
+    if alternate_only and not args.alternate:
+        ap.error(f"{', '.join(alternate_only)} only go{'es' if len(alternate_only) == 1 else ''} with --alternate")
+    keep = args.keep or os.path.join(tempfile.gettempdir(), "pmjax-large")
+    rounds = 3 if args.rounds is None else args.rounds
+    cores = 1 if args.cores is None else args.cores
     if args.save_built:
         print(json.dumps(dict(build_s=save_built(args.folder, args.save_built))))
         return 0
     if args.alternate:
         specs = args.alternate.split(",")
-        if len(specs) != 2 or args.rounds < 1:
+        if len(specs) != 2 or rounds < 1:
             ap.error("--alternate takes two models, A,B, and --rounds at least 1")
-
-        pin_cores(args.cores)
-        paths = [kept_model(spec, args.keep) for spec in specs]
+        # The models are made first: their builds run in subprocesses that
+        # would inherit this process's pinning.
+        paths = [kept_model(spec, keep) for spec in specs]
+        pin_cores(cores)
         print(machine())
-        rows = alternate(paths, args.rounds)
+        rows = alternate(paths, rounds)
         for spec, row in zip(specs, rows):
             print(f"{spec:12s} {row['faces']:>7,d} faces drawn  refine {row['refine_ms']:.3f} ms  "
                   f"mesh() {row['mesh_ms']:.3f} ms  (rounds: "
@@ -335,9 +350,9 @@ def main(argv=None) -> int:
         a, b = rows
         print(f"{specs[1]} / {specs[0]}: faces {b['faces'] / a['faces']:.2f}x  refine "
               f"{b['refine_ms'] / a['refine_ms']:.2f}x  mesh() {b['mesh_ms'] / a['mesh_ms']:.2f}x  "
-              f"(medians over {args.rounds} rounds of 24 frames, alternated in one process)")
+              f"(medians over {rounds} rounds of 24 frames, alternated in one process)")
         if args.json:
-            write_json(args.json, dict(machine=machine(), rows=rows, specs=specs, rounds=args.rounds))
+            write_json(args.json, dict(machine=machine(), rows=rows, specs=specs, rounds=rounds))
         return 0
     if args.stages_of:
         print(json.dumps(stages(args.stages_of, args.folder)))

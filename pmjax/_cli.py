@@ -276,8 +276,9 @@ def cmd_path(args) -> int:
         from pmjax.render import path_fidelity
 
         fidelity = path_fidelity(pm, cams, args.tau, tests=tests, geomorph=args.geomorph,
-                                 supersample=args.supersample or 2, coherent=not args.per_frame, progress=not args.quiet,
-                                 normals="stored" if args.stored_normals else "view")
+                                 coherent=not args.per_frame, progress=not args.quiet,
+                                 normals="stored" if args.stored_normals else "view",
+                                 **({} if args.supersample is None else dict(supersample=args.supersample)))
         for row, fid in zip(rows, fidelity):
             row.update({k: round(float(fid[k]), 6) for k in FIDELITY_COLUMNS})
         cols += list(FIDELITY_COLUMNS)

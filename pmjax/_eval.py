@@ -886,12 +886,15 @@ def evaluate(
         if not checked:
             raise EvalInterrupted(os.fspath(folder), None, n_parts, n_done + rows_now, total) from None
         # Ctrl-C can fall between a part's rename and its count, so the parts
-        # saved now are read from the folder (each one there was written
-        # whole), next to those found done (some may be in compacted files).
-        saved = set(done).union(name for name in os.listdir(folder) if (found := _PART_NAME.fullmatch(name))
-                                and tuple(int(g) for g in found.groups()[:3]) in mine)
-        raise EvalInterrupted(os.fspath(folder), len(saved), n_parts,
-                              sum(_rows_of(name, job_counts, chunk) for name in saved), total) from None
+        # written now are read from the folder (each one there was written
+        # whole); those found done may be in compacted files.
+        try:
+            new = [name for name in os.listdir(folder) if name not in done and (found := _PART_NAME.fullmatch(name))
+                   and tuple(int(g) for g in found.groups()[:3]) in mine]
+            written, rows_now = len(new), sum(_rows_of(name, job_counts, chunk) for name in new)
+        except OSError:  # the folder cannot be listed: the parts this run counted
+            pass
+        raise EvalInterrupted(os.fspath(folder), len(done) + written, n_parts, n_done + rows_now, total) from None
     return EvalSummary(folder=os.fspath(folder), rows=n_done + rows_now, parts_written=written,
                        parts_skipped=len(done), cameras=rows_now, seconds=time.perf_counter() - start)
 

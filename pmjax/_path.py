@@ -675,9 +675,36 @@ class MeshChange:
     vertex_ids = property(lambda self: self._array(3), doc="``int32 [u]`` their PM vertex ids (-1: freed).")
     vertex_positions = property(lambda self: self._array(4), doc="``float32 [u, 3]`` their positions.")
 
+    # The seven fields in order, as a tuple of them: unpacking, indexing,
+    # pickling and JAX's tree functions see the same fields as a NamedTuple's.
+    _fields = ("face_slots", "faces", "vertex_slots", "vertex_ids", "vertex_positions", "n_face_slots",
+               "n_vertex_slots")
+
+    def __iter__(self):
+        return (getattr(self, name) for name in self._fields)
+
+    def __len__(self) -> int:
+        return len(self._fields)
+
+    def __getitem__(self, i):
+        return tuple(self)[i]
+
+    def _asdict(self) -> dict:
+        return dict(zip(self._fields, self))
+
+    def _replace(self, **fields) -> "MeshChange":
+        return MeshChange(**{**self._asdict(), **fields})
+
+    def __reduce__(self):
+        return MeshChange, tuple(self)
+
     def __repr__(self) -> str:
         return (f"MeshChange({len(self.face_slots)} face slots, {len(self.vertex_slots)} vertex slots; "
                 f"n_face_slots={self.n_face_slots}, n_vertex_slots={self.n_vertex_slots})")
+
+
+jax.tree_util.register_pytree_node(MeshChange, lambda change: (tuple(change), None),
+                                   lambda _, fields: MeshChange(*fields))
 
 
 class MeshStream:
@@ -717,6 +744,8 @@ class MeshStream:
         check_mesh(pm, "MeshStream")
         self.pm = pm
         self._last = None
+        # Lists of steps that failed, kept alive until a step succeeds.
+        self._kept = []
         self._block = (None,)  # the last block's lists: (its object, positions, ran on the host, key)
         d = derived(pm)
         if _core.enabled() and pm.n_pcols > 0:
@@ -794,22 +823,34 @@ class MeshStream:
         key)``, :meth:`_frame`), its change in the bytearray the core packs
         it in (:meth:`MeshChange._of_packed`)."""
         last = self._last
-        if last is not None and frame[4] >= 0 and frame[4] == last[4]:  # the word held: its lists not passed again
-            counts = self._lane(self._stream, frame[2])
-        else:
-            counts = self._step(self._stream, *frame)
+        try:
+            if last is not None and frame[4] >= 0 and frame[4] == last[4]:  # the word held: lists not passed again
+                counts = self._lane(self._stream, frame[2])
+            else:
+                counts = self._step(self._stream, *frame)
+        except BaseException:
+            self._kept.append(frame)  # the core may have stepped to it before failing: its lists stay alive
+            raise
         self._last, self._counts = frame, counts  # the core reads the last frame's lists at the next step
+        if self._kept:
+            self._kept.clear()
         return _of_packed(counts[8], counts[2], counts[3], counts[0], counts[1])
 
     def _step_lane(self, word, bit: int) -> MeshChange:
         """The core's step to frame ``bit`` of a word whose lists are ``word``
         (``(positions, ran, 0, slots, key)``, one tuple for all its frames):
         the lists passed once, at the first of its frames stepped to."""
-        if self._last is word:
-            counts = self._lane(self._stream, bit)
-        else:
-            counts = self._step(self._stream, word[0], word[1], bit, word[3], word[4])
+        try:
+            if self._last is word:
+                counts = self._lane(self._stream, bit)
+            else:
+                counts = self._step(self._stream, word[0], word[1], bit, word[3], word[4])
+        except BaseException:
+            self._kept.append(word)  # as in _step_frame
+            raise
         self._last, self._counts = word, counts
+        if self._kept:
+            self._kept.clear()
         return _of_packed(counts[8], counts[2], counts[3], counts[0], counts[1])
 
     @property

@@ -8,6 +8,7 @@ import pytest
 import pmjax
 from pmjax import _path, engines
 from pmjax.engines import _front_jax
+from pmjax.engines._choose import select
 from pmjax._camera import index_camera, stack_cameras
 
 
@@ -329,6 +330,8 @@ def test_path_frames_are_whole_refinements(built):
     frames = list(pmjax.refine_path(pm, cams, 1.0))
     for i in (0, 5, 15, 16, 31):
         r, want = frames[i], pmjax.refine(pm, index_camera(cams, i), 1.0)
+        if select(pm, "front", batch=True) == "core":
+            assert "_lane" in vars(r), i  # the bits are still the word's
         same = lambda x: np.array_equal(np.asarray(x.executed), np.asarray(want.executed))  # noqa: E731
         assert same(pickle.loads(pickle.dumps(r))), i  # before visited_executed is read
         assert same(copy.copy(r)) and same(dataclasses.replace(r, n_faces=r.n_faces)), i

@@ -3,6 +3,7 @@ frame's slots, gives exactly that frame's Refinement.mesh()."""
 
 import contextlib
 import dataclasses
+import pickle
 
 import equinox as eqx
 import jax
@@ -285,7 +286,7 @@ def test_refine_path_changes_yields_each_frame_with_its_change(built):
     replay = Replay()
     got = list(pmjax.path_mesh_changes(pm, cams, 1.0, stream=stream))
     assert len(got) == 36
-    for i, ((r, change), want) in enumerate(zip(got, pmjax.refine_path(pm, cams, 1.0))):
+    for i, ((r, change), want) in enumerate(zip(got, pmjax.refine_path(pm, cams, 1.0), strict=True)):
         assert np.array_equal(np.asarray(r.executed), np.asarray(want.executed)), i
         replay.apply(change)
     assert_same_mesh(replay, stream, got[-1][0], "last")
@@ -297,7 +298,7 @@ def follow_changes(pm, cams, tau, where=""):
     alone. Returns each frame's faces (rows of vertex ids)."""
     stream, replay, faces = pmjax.MeshStream(pm), Replay(), []
     alone = pmjax.refine_path(pm, cams, tau, coherent=False)
-    for i, ((r, change), want) in enumerate(zip(pmjax.path_mesh_changes(pm, cams, tau, stream=stream), alone)):
+    for i, ((r, change), want) in enumerate(zip(pmjax.path_mesh_changes(pm, cams, tau, stream=stream), alone, strict=True)):
         assert np.array_equal(np.asarray(r.executed), np.asarray(want.executed)), (where, i)
         replay.apply(change)
         assert_same_mesh(replay, stream, want, (where, i))
@@ -456,7 +457,7 @@ def test_path_mesh_changes_continued_across_calls(built):
     for k, (path, tau) in enumerate(calls):
         frames = list(pmjax.path_mesh_changes(pm, path, tau, stream=stream))  # every frame made first
         alone = pmjax.refine_path(pm, path, tau, coherent=False)
-        for i, ((r, change), want) in enumerate(zip(frames, alone)):
+        for i, ((r, change), want) in enumerate(zip(frames, alone, strict=True)):
             assert np.array_equal(np.asarray(r.executed), np.asarray(want.executed)), (k, i)
             replay.apply(change)
             v, f, ids = want.mesh()
@@ -480,7 +481,13 @@ def test_core_change_arrays_are_the_changes_own(built):
     for _, change in pmjax.path_mesh_changes(pm, cams, 1.0, stream=stream):
         early.append([getattr(change, name).copy() for name in fields])
         changes.append(change)
-    for i, (change, want) in enumerate(zip(changes, early)):
+    # The same path again, its changes' arrays first read after every frame
+    # is made, in reverse order: the same arrays as those read at once.
+    late = [change for _, change in pmjax.path_mesh_changes(pm, cams, 1.0, stream=pmjax.MeshStream(pm))]
+    for i, (change, want) in reversed(list(enumerate(zip(late, early, strict=True)))):
+        for name, a in reversed(list(zip(fields, want))):
+            assert np.array_equal(getattr(change, name), a), (i, name)
+    for i, (change, want) in enumerate(zip(changes, early, strict=True)):
         for name, a in reversed(list(zip(fields, want))):
             b = getattr(change, name)
             assert b.dtype == a.dtype and b.shape == a.shape and np.array_equal(a, b), (i, name)
@@ -493,3 +500,15 @@ def test_core_change_arrays_are_the_changes_own(built):
     made = pmjax.MeshChange(*early[3], changes[3].n_face_slots, changes[3].n_vertex_slots)
     assert all(np.array_equal(getattr(made, name), a) for name, a in zip(fields, early[3]))
     assert made.n_face_slots == changes[3].n_face_slots
+    # A change is also the tuple of its seven fields: unpacked, indexed,
+    # pickled, replaced, and a JAX tree whose leaves are those fields.
+    for change in (changes[3], made):
+        face_slots, faces, vertex_slots, vertex_ids, positions, n_f, n_v = change
+        assert len(change) == 7 and change[1] is faces and change[-1] == n_v == change.n_vertex_slots
+        assert list(change._asdict()) == list(fields) + ["n_face_slots", "n_vertex_slots"]
+        for other in (pickle.loads(pickle.dumps(change, protocol=0)), pickle.loads(pickle.dumps(change)),
+                      jax.tree.unflatten(*reversed(jax.tree.flatten(change))), change._replace()):
+            assert type(other) is pmjax.MeshChange and (other.n_face_slots, other.n_vertex_slots) == (n_f, n_v)
+            assert all(np.array_equal(a, b) for a, b in zip(list(other)[:5], early[3]))
+        assert len(jax.tree.leaves(change)) == 7
+        assert change._replace(n_face_slots=n_f + 1).n_face_slots == n_f + 1

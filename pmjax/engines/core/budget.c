@@ -1148,7 +1148,8 @@ static void word_views(const float *views, const float *units, WordViews *w)
  * own tolerance lo (its row's; most pcols decided for all the frames at
  * once under the fat camera, words.c), every frame's eps folded bottom-up
  * at once (lanes_own, lanes_up), then per frame the tally of its eps and
- * the answers from it as for one camera (answers_from). An unsure
+ * the answers gathered from the crossing buckets of all its frames in one
+ * pass over the word's slots (lanes_answers). An unsure
  * decision is read as a "keep" at lo, and a frame has one guess (its alt
  * the same): the second guess of one camera, with its unsure decisions as
  * collapses, would fold the frame's lane again for the few guesses it

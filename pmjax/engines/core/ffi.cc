@@ -1147,7 +1147,17 @@ PyObject* StreamState(const PmxMeshStream* s) {
   const int64_t k = st.n_face_changes, u = st.n_vertex_changes;
   PyObject* packed = PyByteArray_FromStringAndSize(nullptr, (Py_ssize_t)(4 * (4 * k + 5 * u)));
   if (!packed) return nullptr;
-  pmx_mesh_stream_pack(s, PyByteArray_AS_STRING(packed));
+  // A large change (a first frame, a cut) is gathered with the GIL released,
+  // so other Python threads run meanwhile; a small one is not worth the
+  // hand-over. The new bytearray is no one else's yet.
+  char* out = PyByteArray_AS_STRING(packed);
+  if (k + u > 4096) {
+    Py_BEGIN_ALLOW_THREADS;
+    pmx_mesh_stream_pack(s, out);
+    Py_END_ALLOW_THREADS;
+  } else {
+    pmx_mesh_stream_pack(s, out);
+  }
   return Py_BuildValue("(LLLLLLLLN)", (long long)st.n_face_slots, (long long)st.n_vertex_slots, (long long)k,
                        (long long)u, (long long)st.n_faces, (long long)st.n_vertices, (long long)st.n_used,
                        (long long)st.generation, packed);
