@@ -176,9 +176,27 @@ def _chunks(pm, host, taus, tests, path_length, want_front):
 # -- the C core's words ------------------------------------------------------------------
 
 FRAMES = _core.FRAMES
-# Words per call when refine_path streams a path (each block's lists are
-# held until its frames are read).
-WORDS_STREAMED = 4
+# Words per call when refine_path streams a path: the fewest and the most.
+# Each call has a fixed cost that its frames share, so a small model's path
+# takes the most words per call; a block's lists are held until its frames
+# are read while the next block runs, so the words are halved (down to the
+# fewest) until a block's lists fit STREAM_BYTES: a large model's memory
+# stays that of a few words.
+WORDS_STREAMED = (4, 16)
+STREAM_BYTES = 8 << 20
+# Bytes a word's lists take per slot: pcols and positions int32, ran uint16.
+_LIST_BYTES = 4 + 2 + 4
+
+
+def words_streamed(slots: int) -> int:
+    """Words per call when streaming a path of a model with ``slots`` pcols
+    (``P``): the most of :data:`WORDS_STREAMED` halved, not below the
+    fewest, until a block's lists (``[words, P + SPARE]``) fit
+    :data:`STREAM_BYTES`."""
+    fewest, words = WORDS_STREAMED
+    while words > fewest and words * _LIST_BYTES * (slots + _core.SPARE) > STREAM_BYTES:
+        words //= 2
+    return max(words, fewest)
 
 
 def frames_per_word() -> int:
@@ -287,7 +305,8 @@ def _word_blocks(pm, host, taus, tests, path_length):
         are real (not a repeat), and an iterator of ``(first word, words,
         counts, (pcols, ran, positions), overflow)`` per block, NumPy arrays.
     """
-    tables, one_tables, order, real, spans, rows = _core_word_plan(pm, host, taus, path_length, WORDS_STREAMED)
+    tables, one_tables, order, real, spans, rows = _core_word_plan(
+        pm, host, taus, path_length, words_streamed(derived(pm).core_words.n_pcols))
 
     def call(w0, n):
         return _core_words(tables, one_tables, rows[order[w0 * FRAMES:(w0 + n) * FRAMES]], tests, host.orthographic,
