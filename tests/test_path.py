@@ -216,6 +216,7 @@ def test_long_path_streams_word_by_word(built, monkeypatch):
     real = _path._core_words
     monkeypatch.setattr(_path, "_core_words", lambda tables, one, rows, *a: sizes.append(len(rows)) or
                         real(tables, one, rows, *a))
+    default = _path.WORDS_STREAMED
     monkeypatch.setattr(_path, "WORDS_STREAMED", (4, 4))
     frames = pmjax.refine_path(pm, cams, 1.0)
     first = next(frames)
@@ -233,13 +234,18 @@ def test_long_path_streams_word_by_word(built, monkeypatch):
     # 200 frames padded to 208: thirteen words in blocks of 4, 4, 4 and 1.
     assert len(counts["faces"]) == 200 and sizes == [64, 64, 64, 16]
     assert counts["faces"].tolist() == [int(r.n_faces) for r in pmjax.refine_path(pm, cams, 1.0)]
+    sizes.clear()
+    monkeypatch.setattr(_path, "WORDS_STREAMED", default)
+    frames = list(pmjax.refine_path(pm, cams, 1.0))
+    # The cow's lists fit 16 words: thirteen words in blocks of 8, 4 and 1, every frame its bits.
+    assert sizes == [128, 64, 16]
+    for i, r in enumerate(frames):
+        assert_frame_equal(r, index_camera(cams, i), 1.0, pm, i)
 
 
-@needs_core
-def test_streamed_words_per_call_follow_the_model_size(built, monkeypatch):
+def test_streamed_words_per_call_follow_the_model_size():
     """A block of streamed words takes the most words whose lists fit
-    STREAM_BYTES, halved down to the fewest; a small model's path in the
-    largest blocks gives every frame its bits."""
+    STREAM_BYTES, halved down to the fewest."""
     fewest, most = _path.WORDS_STREAMED
     # The pcols whose lists (10 bytes a slot, P + SPARE slots a word) fill STREAM_BYTES in `words`.
     filling = lambda words: _path.STREAM_BYTES // (10 * words) - engines._core.SPARE
@@ -247,17 +253,6 @@ def test_streamed_words_per_call_follow_the_model_size(built, monkeypatch):
     assert _path.words_streamed(filling(16)) == 16 and _path.words_streamed(filling(16) + 1) == 8
     assert _path.words_streamed(filling(8)) == 8 and _path.words_streamed(filling(8) + 1) == fewest == 4
     assert _path.words_streamed(10 ** 7) == fewest
-    data, pm = model(built, "cow.ply")
-    cams = pmjax.standard_orbit(originals(data), 200)
-    sizes = []
-    real = _path._core_words
-    monkeypatch.setattr(_path, "_core_words", lambda tables, one, rows, *a: sizes.append(len(rows)) or
-                        real(tables, one, rows, *a))
-    frames = list(pmjax.refine_path(pm, cams, 1.0))
-    # The cow's lists fit 16 words: 200 frames padded to thirteen words, in blocks of 8, 4 and 1.
-    assert sizes == [128, 64, 16]
-    for i, r in enumerate(frames):
-        assert_frame_equal(r, index_camera(cams, i), 1.0, pm, i)
 
 
 @needs_core
