@@ -295,6 +295,29 @@ def _frame_refinement(fields: dict) -> Refinement:
     return r
 
 
+def _rounded_tail(order, real, spans, most):
+    """The calls after the whole blocks of ``most`` words (the rest in
+    powers of two) made one call of the next power of two when that adds
+    at most one word per two calls it saves: a call has a fixed cost that
+    a small model's few words do not outweigh (a large model's blocks of a
+    few words leave a tail too short to pay for a word). The added words
+    repeat the last frame and are not real.
+
+    Returns:
+        ``(order, real, spans)``, padded where the tail became one call.
+    """
+    whole = [span for span in spans if span[1] == most]
+    tail = spans[len(whole):]
+    rest = sum(n for _, n in tail)
+    padded = 1 << max(rest - 1, 0).bit_length()
+    if len(tail) < 2 or 2 * (padded - rest) > len(tail) - 1:
+        return order, real, spans
+    extra = (padded - rest) * FRAMES
+    order = np.concatenate([order, np.full(extra, order[-1], order.dtype)])
+    real = np.concatenate([real, np.zeros(extra, bool)])
+    return order, real, whole + [(tail[0][0], padded)]
+
+
 def _word_blocks(pm, host, taus, tests, path_length):
     """The word traversal of a path with lists, a block of words per call:
     each block an XLA program dispatched before the frames of the last are
@@ -305,8 +328,9 @@ def _word_blocks(pm, host, taus, tests, path_length):
         are real (not a repeat), and an iterator of ``(first word, words,
         counts, (pcols, ran, positions), overflow)`` per block, NumPy arrays.
     """
-    tables, one_tables, order, real, spans, rows = _core_word_plan(
-        pm, host, taus, path_length, words_streamed(derived(pm).core_words.n_pcols))
+    most = words_streamed(derived(pm).core_words.n_pcols)
+    tables, one_tables, order, real, spans, rows = _core_word_plan(pm, host, taus, path_length, most)
+    order, real, spans = _rounded_tail(order, real, spans, most)
 
     def call(w0, n):
         return _core_words(tables, one_tables, rows[order[w0 * FRAMES:(w0 + n) * FRAMES]], tests, host.orthographic,

@@ -255,6 +255,21 @@ def test_streamed_words_per_call_follow_the_model_size():
     assert _path.words_streamed(10 ** 7) == fewest
 
 
+def test_streamed_tail_is_one_call_where_it_adds_a_word_per_two_calls_saved():
+    """After the whole blocks, the rest of a path's words is one call of the
+    next power of two where that adds at most one word per two calls saved;
+    the added words repeat the last frame and are not real."""
+    for words, most, want in [(15, 16, [(0, 16)]), (7, 16, [(0, 8)]), (31, 16, [(0, 16), (16, 16)]),
+                              (13, 16, [(0, 8), (8, 4), (12, 1)]), (3, 16, [(0, 2), (2, 1)]),
+                              (15, 4, [(0, 4), (4, 4), (8, 4), (12, 2), (14, 1)]), (1, 16, [(0, 1)])]:
+        order, real = np.arange(words * 16) // 2, np.ones(words * 16, bool)
+        got_order, got_real, spans = _path._rounded_tail(order, real, engines._core.word_spans(words, most), most)
+        assert spans == want, (words, most)
+        n = 16 * sum(k for _, k in spans)
+        assert got_order.tolist() == order.tolist() + [order[-1]] * (n - len(order)), (words, most)
+        assert got_real.tolist() == [True] * len(order) + [False] * (n - len(order)), (words, most)
+
+
 @needs_core
 @pytest.mark.parametrize("room", [None, 16])
 @pytest.mark.slow

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import pmjax
-from pmjax import engines
+from pmjax import _path, engines
 from pmjax._camera import index_camera, stack_cameras
 from pmjax.engines import _core
 
@@ -317,6 +317,20 @@ def test_path_mesh_changes_every_frame(built, name, n):
     cams = hand_held(data, n, seed=13, cuts=(16, 23, 64))
     taus = np.geomspace(0.3, 6.0, n).astype(np.float32)
     follow_changes(pm, cams, taus, f"{name} hand-held")
+
+
+@pytest.mark.core
+def test_path_mesh_changes_in_a_padded_last_call(built, monkeypatch):
+    """Seven words stream as one call of eight, the eighth repeating the
+    last frame (never yielded): every frame and change as the frame alone
+    gives them."""
+    data, pm = model(built, "cow.ply")
+    sizes = []
+    real = _path._core_words
+    monkeypatch.setattr(_path, "_core_words", lambda tables, one, rows, *a: sizes.append(len(rows)) or
+                        real(tables, one, rows, *a))
+    faces = follow_changes(pm, hand_held(data, 112, seed=5, cuts=(40,)), 1.0, "cow, seven words")
+    assert sizes == [128] and len(faces) == 112
 
 
 def _moved(data, scale, offset):
