@@ -984,17 +984,15 @@ PMX_INLINE void tally_body(const float *eps, const int32_t *kill, int64_t n, con
         const float *e = eps + i * FRAMES;
         const int32_t w = kill[i];
         /* The frames whose eps reach lo (and twice lo): their counts. */
-        int32_t at[FRAMES];
-#pragma omp simd
+        uint32_t hit = 0;
+#pragma omp simd reduction(| : hit)
         for (int l = 0; l < FRAMES; l++) {
             const int32_t in = e[l] >= lo[l];
-            at[l] = in & asked[l];
-            total[l] += at[l] ? w : 0;
+            const int32_t at = in & asked[l];
+            total[l] += at ? w : 0;
             total2[l] += (in & (e[l] >= twice[l])) ? w : 0; /* as tally: within lo first */
+            hit |= (uint32_t)at << l;
         }
-        uint32_t hit = 0;
-        for (int l = 0; l < FRAMES; l++)
-            hit |= (uint32_t)at[l] << l;
         /* Each of the asked ones in turn (about half a slot's frames): its
          * bucket. */
         while (hit) {
