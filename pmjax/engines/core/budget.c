@@ -969,43 +969,92 @@ static int lane_room(Work *k, int64_t n, int64_t room)
 
 /* The tallies of the frames in `frames` from a word's folded eps (n slots,
  * layout of lanes_up; kills kill[i]) at their lo, in one pass over the
- * slots (each slot's frames read together): frame l's number of values
- * >= lo[l] (t[l].count), their kills per bucket (lane_bucket + l (BUCKETS +
- * SPREAD)), the counts at lo and at twice lo: what tally gives frame by
- * frame, less the values themselves (lanes_answers gathers the few that
- * an answer needs). */
-static void lanes_tally(Work *k, const float *eps, const int32_t *kill, int64_t n, const float *lo, Lanes frames,
-                        int64_t base_faces, Tally *t)
+ * slots (each slot's frames compared at once, in one vector): frame l's
+ * kills per bucket (bucket + l (BUCKETS + SPREAD)) and its counts at lo
+ * (total[l], of the frames in `frames`) and at twice lo (total2[l]), both
+ * added to what they hold. */
+PMX_INLINE void tally_body(const float *eps, const int32_t *kill, int64_t n, const float *lo,
+                           const int32_t *lo_bits, Lanes frames, int64_t *bucket, int64_t *total, int64_t *total2)
 {
-    int32_t lo_bits[FRAMES];
-    int64_t count[FRAMES], total[FRAMES], total2[FRAMES];
     float twice[FRAMES];
-    for (int l = 0; l < FRAMES; l++) {
-        lo_bits[l] = bits_of(lo[l]), twice[l] = 2 * lo[l];
-        count[l] = 0, total[l] = total2[l] = base_faces;
-    }
-    memset(k->lane_bucket, 0, sizeof(int64_t) * FRAMES * (BUCKETS + SPREAD));
+    int32_t asked[FRAMES];
+    for (int l = 0; l < FRAMES; l++)
+        twice[l] = 2 * lo[l], asked[l] = (frames >> l) & 1;
     for (int64_t i = 0; i < n; i++) {
         const float *e = eps + i * FRAMES;
         const int32_t w = kill[i];
         /* The frames whose eps reach lo (and twice lo): their counts. */
-        uint32_t in = 0;
+        uint32_t hit = 0;
+#pragma omp simd reduction(| : hit)
         for (int l = 0; l < FRAMES; l++) {
-            in |= (uint32_t)(e[l] >= lo[l]) << l;
-            total2[l] += (e[l] >= lo[l] && e[l] >= twice[l]) ? w : 0; /* as tally: within lo first */
+            const int32_t in = e[l] >= lo[l];
+            const int32_t at = in & asked[l];
+            total[l] += at ? w : 0;
+            total2[l] += (in & (e[l] >= twice[l])) ? w : 0; /* as tally: within lo first */
+            hit |= (uint32_t)at << l;
         }
-        in &= frames;
-        /* Each of them in turn (about half a slot's frames): its bucket. */
-        while (in) {
-            const int l = __builtin_ctz(in);
-            in &= in - 1;
-            count[l]++;
-            k->lane_bucket[(int64_t)l * (BUCKETS + SPREAD) + bucket_of(e[l], lo_bits[l])] += w;
-            total[l] += w;
+        /* Each of the asked ones in turn (about half a slot's frames): its
+         * bucket. */
+        while (hit) {
+            const int l = __builtin_ctz(hit);
+            hit &= hit - 1;
+            bucket[(int64_t)l * (BUCKETS + SPREAD) + bucket_of(e[l], lo_bits[l])] += w;
         }
     }
+}
+
+static void tally_plain(const float *eps, const int32_t *kill, int64_t n, const float *lo, const int32_t *lo_bits,
+                        Lanes frames, int64_t *bucket, int64_t *total, int64_t *total2)
+{
+    tally_body(eps, kill, n, lo, lo_bits, frames, bucket, total, total2);
+}
+#if PMX_X86
+PMX_TARGET_AVX2 static void tally_avx2(const float *eps, const int32_t *kill, int64_t n, const float *lo,
+                                       const int32_t *lo_bits, Lanes frames, int64_t *bucket, int64_t *total,
+                                       int64_t *total2)
+{
+    tally_body(eps, kill, n, lo, lo_bits, frames, bucket, total, total2);
+}
+PMX_TARGET_AVX512 static void tally_avx512(const float *eps, const int32_t *kill, int64_t n, const float *lo,
+                                           const int32_t *lo_bits, Lanes frames, int64_t *bucket, int64_t *total,
+                                           int64_t *total2)
+{
+    tally_body(eps, kill, n, lo, lo_bits, frames, bucket, total, total2);
+}
+#endif
+
+typedef void (*LanesTally)(const float *, const int32_t *, int64_t, const float *, const int32_t *, Lanes, int64_t *,
+                           int64_t *, int64_t *);
+
+static LanesTally tally_kernel(void)
+{
+#if PMX_X86
+    static const LanesTally at_level[] = {tally_plain, tally_avx2, tally_avx512};
+    return at_level[simd_level()];
+#else
+    return tally_plain;
+#endif
+}
+
+/* The tallies of the frames in `frames` from a word's folded eps (n slots,
+ * layout of lanes_up; kills kill[i]) at their lo: frame l's kills per
+ * bucket (lane_bucket + l (BUCKETS + SPREAD)), the counts at lo and at
+ * twice lo: what tally gives frame by frame, less the values themselves
+ * (lanes_answers gathers the few that an answer needs) and their number
+ * (t[l].count is -1: nothing reads it for a frame). */
+static void lanes_tally(Work *k, const float *eps, const int32_t *kill, int64_t n, const float *lo, Lanes frames,
+                        int64_t base_faces, Tally *t)
+{
+    int32_t lo_bits[FRAMES];
+    int64_t total[FRAMES], total2[FRAMES];
+    for (int l = 0; l < FRAMES; l++) {
+        lo_bits[l] = bits_of(lo[l]);
+        total[l] = total2[l] = base_faces;
+    }
+    memset(k->lane_bucket, 0, sizeof(int64_t) * FRAMES * (BUCKETS + SPREAD));
+    tally_kernel()(eps, kill, n, lo, lo_bits, frames, k->lane_bucket, total, total2);
     for (int l = 0; l < FRAMES; l++)
-        t[l] = (Tally){count[l], total[l], total2[l], 0};
+        t[l] = (Tally){-1, total[l], total2[l], 0};
 }
 
 /* No bucket (the buckets are 0 .. BUCKETS - 1). */
@@ -1199,11 +1248,15 @@ static void words_work(void *arg)
         word_views(views, units, &wv);
         lanes_own(h, s, n, &wv, lo, bt->flags, own, eps);
         up(eps, n, s->kid, s->ran_frames);
-        /* Every frame's tally (of the frames with a budget to meet). */
+        /* Every frame's largest budget (its guesses start at inf) and its
+         * tally (of the frames with a budget to meet). */
+        const int32_t *budgets = bt->budgets + w * FRAMES * B;
+        int64_t top[FRAMES];
         Lanes asked = 0;
-        for (int l = 0; l < FRAMES; l++)
-            asked |= (Lanes)((largest_budget(bt->budgets + (w * FRAMES + l) * B, B, bt->base_faces, k.g, k.alt) >= 0)
-                             << l);
+        for (int l = 0; l < FRAMES; l++) {
+            top[l] = largest_budget(budgets + l * B, B, bt->base_faces, k.lane_g + l * B, k.lane_g + l * B);
+            asked |= (Lanes)((top[l] >= 0) << l);
+        }
         if (!lane_room(&k, n, h->n_pcols + PMX_SPARE)) {
             __atomic_store_n(&bt->status, PMX_NO_MEMORY, __ATOMIC_RELAXED);
             break;
@@ -1212,16 +1265,14 @@ static void words_work(void *arg)
         lanes_tally(&k, eps, s->kill, n, lo, asked, bt->base_faces, tallies);
         /* The frames whose largest budget's answer does not lie below their
          * lo (answers_from's test): their answers, all frames at once. */
-        const int32_t *budgets = bt->budgets + w * FRAMES * B;
         Lanes found = 0, below = 0;
         for (int l = 0; l < FRAMES; l++) {
-            const int64_t top = largest_budget(budgets + l * B, B, bt->base_faces, k.lane_g + l * B,
-                                               k.lane_g + l * B);
             float next = 0;
             const Tally t = tallies[l];
-            if (top >= 0 && answers_below(t.total, t.total2, counts[l].kept, lo[l], top, bt->base_faces, -1, &next))
+            if (top[l] >= 0 &&
+                answers_below(t.total, t.total2, counts[l].kept, lo[l], top[l], bt->base_faces, -1, &next))
                 below |= (Lanes)(1u << l);
-            else if (top >= 0)
+            else if (top[l] >= 0)
                 found |= (Lanes)(1u << l);
         }
         lanes_answers(&k, eps, s->kill, n, lo, tallies, found, budgets, B, bt->base_faces, k.lane_g);
