@@ -718,7 +718,7 @@ class MeshChange:
     vertex_ids = property(lambda self: self._array(3), doc="``int32 [u]`` their PM vertex ids (-1: freed).")
     vertex_positions = property(lambda self: self._array(4), doc="``float32 [u, 3]`` their positions.")
 
-    # The seven fields in order, as a tuple of them: unpacking, indexing,
+    # The seven fields in order, with a tuple's protocol: unpacking, indexing,
     # pickling and JAX's tree functions see the same fields as a NamedTuple's.
     _fields = ("face_slots", "faces", "vertex_slots", "vertex_ids", "vertex_positions", "n_face_slots",
                "n_vertex_slots")
@@ -730,7 +730,7 @@ class MeshChange:
         return len(self._fields)
 
     def __getitem__(self, i):
-        return tuple(self)[i]
+        return getattr(self, self._fields[i]) if isinstance(i, int) else tuple(self)[i]
 
     def _asdict(self) -> dict:
         return dict(zip(self._fields, self))
@@ -746,8 +746,9 @@ class MeshChange:
                 f"n_face_slots={self.n_face_slots}, n_vertex_slots={self.n_vertex_slots})")
 
 
-jax.tree_util.register_pytree_node(MeshChange, lambda change: (tuple(change), None),
-                                   lambda _, fields: MeshChange(*fields))
+jax.tree_util.register_pytree_with_keys(
+    MeshChange, lambda change: (tuple((jax.tree_util.GetAttrKey(k), x) for k, x in change._asdict().items()), None),
+    lambda _, fields: MeshChange(*fields), flatten_func=lambda change: (tuple(change), None))
 
 
 class MeshStream:
@@ -787,8 +788,8 @@ class MeshStream:
         check_mesh(pm, "MeshStream")
         self.pm = pm
         self._last = None
-        # Lists of steps that failed, kept alive until a step succeeds.
-        self._kept = []
+        # The lists of a step that failed (the core may hold them), kept alive.
+        self._kept = None
         self._block = (None,)  # the last block's lists: (its object, positions, ran on the host, key)
         d = derived(pm)
         if _core.enabled() and pm.n_pcols > 0:
@@ -866,34 +867,31 @@ class MeshStream:
         key)``, :meth:`_frame`), its change in the bytearray the core packs
         it in (:meth:`MeshChange._of_packed`)."""
         last = self._last
-        try:
-            if last is not None and frame[4] >= 0 and frame[4] == last[4]:  # the word held: lists not passed again
-                counts = self._lane(self._stream, frame[2])
-            else:
-                counts = self._step(self._stream, *frame)
-        except BaseException:
-            self._kept.append(frame)  # the core may have stepped to it before failing: its lists stay alive
-            raise
-        self._last, self._counts = frame, counts  # the core reads the last frame's lists at the next step
-        if self._kept:
-            self._kept.clear()
-        return _of_packed(counts[8], counts[2], counts[3], counts[0], counts[1])
+        if last is not None and frame[4] >= 0 and frame[4] == last[4]:  # the word held: lists not passed again
+            return self._stepped(frame, self._lane, frame[2])
+        return self._stepped(frame, self._step, *frame)
 
     def _step_lane(self, word, bit: int) -> MeshChange:
         """The core's step to frame ``bit`` of a word whose lists are ``word``
         (``(positions, ran, 0, slots, key)``, one tuple for all its frames):
         the lists passed once, at the first of its frames stepped to."""
-        try:
-            if self._last is word:
-                counts = self._lane(self._stream, bit)
-            else:
-                counts = self._step(self._stream, word[0], word[1], bit, word[3], word[4])
-        except BaseException:
-            self._kept.append(word)  # as in _step_frame
-            raise
-        self._last, self._counts = word, counts
+        if self._last is word:
+            return self._stepped(word, self._lane, bit)
+        return self._stepped(word, self._step, word[0], word[1], bit, word[3], word[4])
+
+    def _stepped(self, lists, call, *args) -> MeshChange:
+        """``call(stream, *args)``, the core's step to the frame whose lists
+        are ``lists``, and its change. The core reads the last frame's lists
+        at the next step, so they are kept; after a failed step the core may
+        hold either frame's, so both stay and the stream takes no more steps."""
         if self._kept:
-            self._kept.clear()
+            raise ValueError("MeshStream: an earlier step failed; make a new MeshStream")
+        try:
+            counts = call(self._stream, *args)
+        except BaseException:
+            self._kept = [lists]
+            raise
+        self._last, self._counts = lists, counts
         return _of_packed(counts[8], counts[2], counts[3], counts[0], counts[1])
 
     @property

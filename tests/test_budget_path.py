@@ -276,7 +276,7 @@ def test_word_guessed_paths_equal_faces_for_budget_per_frame(built, kind):
 
 
 @pytest.mark.parametrize("kind", ["orbit", "fly"])
-def test_word_guesses_equal_one_camera_guesses(built, kind):
+def test_word_guesses_equal_one_camera_guesses(built, kind, simd):
     """A word's frames traversed together at their own tolerances guess what
     each frame's own traversal at that tolerance guesses first (a word has
     no second guess: its alt is its guess); a frame whose answers lie below

@@ -526,3 +526,27 @@ def test_core_change_arrays_are_the_changes_own(built):
             assert all(np.array_equal(a, b) for a, b in zip(list(other)[:5], early[3]))
         assert len(jax.tree.leaves(change)) == 7
         assert change._replace(n_face_slots=n_f + 1).n_face_slots == n_f + 1
+
+
+@pytest.mark.skipif(not _core.built(), reason="the C core is not built")
+def test_a_stream_whose_step_failed_takes_no_more_steps(built):
+    """A step that fails (here the core's call raising MemoryError) leaves a
+    stream whose core may hold the failed frame's lists: they are kept, and
+    later steps are refused with a clear error instead of reading them."""
+    data, pm = model(built, "cow.ply")
+    cams = hand_held(data, 4, seed=5)
+    stream = pmjax.MeshStream(pm)
+    first, second = (pmjax.refine(pm, index_camera(cams, i), 1.0) for i in range(2))
+    stream.update(first)
+    step = stream._step
+
+    def failing(*args):
+        raise MemoryError("out of memory")
+
+    stream._step = failing
+    with pytest.raises(MemoryError):
+        stream.update(second)
+    assert stream._kept is not None
+    stream._step = step
+    with pytest.raises(ValueError, match="an earlier step failed; make a new MeshStream"):
+        stream.update(second)
