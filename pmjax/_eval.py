@@ -889,7 +889,7 @@ def evaluate(
         # written now are read from the folder (each one there was written
         # whole); those found done may be in compacted files.
         try:
-            new = [name for name in os.listdir(folder) if name not in done and (found := _PART_NAME.fullmatch(name))
+            new = [name for name in _part_files(folder) - done.keys() if (found := _PART_NAME.fullmatch(name))
                    and tuple(int(g) for g in found.groups()[:3]) in mine]
             written, rows_now = len(new), sum(_rows_of(name, job_counts, chunk) for name in new)
         except OSError:  # the folder cannot be listed: the parts this run counted

@@ -894,8 +894,8 @@ def _path_budgets(pm, host, budgets, tests, chunk):
     def along_path(*bits):
         G = len(bits)
         counted = np.empty((G, K * B, 3), np.int64)
+        at = np.repeat(rows, G, axis=0)  # each budget rewrites every row's tolerance
         for j in range(B):
-            at = np.repeat(rows, G, axis=0)
             for q in range(G):
                 at[q::G, -1] = bits[q][j * K:(j + 1) * K].astype(np.int32).view(np.float32)
             got = _word_counts(d, counts_of, at, tests, host.orthographic)
