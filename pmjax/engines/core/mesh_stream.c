@@ -43,9 +43,12 @@
 
 /* A corner of a face slot: its depth-first start and its links in its
  * vertex's list, side by side (a split or collapse walks the list reading
- * both). */
+ * both); a face's first corner also holds the stamp of the last change
+ * that touched the face (beside the corner an edit reads, not in an array
+ * of its own). */
 typedef struct {
-    int32_t start, next, prev, unused;
+    int32_t start, next, prev;
+    uint32_t stamp;
 } Corner;
 
 /* A killed face's entry (by its place in kill_data): its face slot while
@@ -59,10 +62,12 @@ typedef struct {
 } KillEntry;
 
 /* A vertex slot's depth-first interval [lo, hi) of the original vertices
- * below and its first corner, side by side (a new face's corner reads the
- * intervals of the vertices around it). */
+ * below, its first corner and the stamp of the last change that touched
+ * it, side by side (a new face's corner reads the intervals of the
+ * vertices around it; an edit of the vertex reads them all). */
 typedef struct {
-    int32_t lo, hi, head, unused;
+    int32_t lo, hi, head;
+    uint32_t stamp;
 } VertexLinks;
 
 struct PmxMeshStream {
@@ -71,7 +76,6 @@ struct PmxMeshStream {
      * corner's depth-first start and its links in its vertex's list. */
     int32_t *face_vertex, *face_id, *face_free;
     Corner *corner;
-    uint32_t *face_stamp;
     int64_t face_cap, n_face_slots, n_face_free;
     /* Vertex slots: id (-1 free), map index, position, first corner,
      * corners held, the depth-first interval [lo, hi) of the original
@@ -79,7 +83,6 @@ struct PmxMeshStream {
     int32_t *vertex_id, *vertex_index, *vertex_free, *vertex_uses, *vertex_rank;
     VertexLinks *links;
     float *vertex_position;
-    uint32_t *vertex_stamp;
     int64_t vertex_cap, n_vertex_slots, n_vertex_free;
     /* The change since the last step: the slots touched, each once
      * (pmx_mesh_stream_pack writes them with their contents after it). */
@@ -141,7 +144,7 @@ static int grow_faces(PmxMeshStream *s, int64_t need)
     const int64_t old = s->face_cap;
     if (!grow((void **)&s->face_vertex, 3 * old, 3 * cap, 4) || !grow((void **)&s->face_id, old, cap, 4) ||
         !grow((void **)&s->corner, 3 * old, 3 * cap, sizeof(Corner)) || !grow((void **)&s->face_free, old, cap, 4) ||
-        !grow((void **)&s->face_stamp, old, cap, 4) || !grow((void **)&s->face_changes, old, cap, 4) ||
+        !grow((void **)&s->face_changes, old, cap, 4) ||
         !grow((void **)&s->face_rows[0], old, cap, sizeof(IdSlot)) ||
         !grow((void **)&s->face_rows[1], old, cap, sizeof(IdSlot)))
         return 0;
@@ -158,7 +161,7 @@ static int grow_vertices(PmxMeshStream *s, int64_t need)
     const int64_t old = s->vertex_cap;
     if (!grow((void **)&s->vertex_id, old, cap, 4) || !grow((void **)&s->vertex_index, old, cap, 4) || !grow((void **)&s->links, old, cap, sizeof(VertexLinks)) ||
         !grow((void **)&s->vertex_free, old, cap, 4) || !grow((void **)&s->vertex_position, 3 * old, 3 * cap, 4) ||
-        !grow((void **)&s->vertex_stamp, old, cap, 4) || !grow((void **)&s->vertex_changes, old, cap, 4) ||
+        !grow((void **)&s->vertex_changes, old, cap, 4) ||
         !grow((void **)&s->vertex_uses, old, cap, 4) || !grow((void **)&s->vertex_rank, old, cap, 4) ||
         !grow((void **)&s->vertex_rows[0], old, cap, sizeof(IdSlot)) ||
         !grow((void **)&s->vertex_rows[1], old, cap, sizeof(IdSlot)))
@@ -170,16 +173,16 @@ static int grow_vertices(PmxMeshStream *s, int64_t need)
 
 PMX_INLINE void touch_face(PmxMeshStream *s, int32_t slot)
 {
-    if (s->face_stamp[slot] != s->stamp) {
-        s->face_stamp[slot] = s->stamp;
+    if (s->corner[3 * (int64_t)slot].stamp != s->stamp) {
+        s->corner[3 * (int64_t)slot].stamp = s->stamp;
         s->face_changes[s->n_face_changes++] = slot;
     }
 }
 
 PMX_INLINE void touch_vertex(PmxMeshStream *s, int32_t slot)
 {
-    if (s->vertex_stamp[slot] != s->stamp) {
-        s->vertex_stamp[slot] = s->stamp;
+    if (s->links[slot].stamp != s->stamp) {
+        s->links[slot].stamp = s->stamp;
         s->vertex_changes[s->n_vertex_changes++] = slot;
     }
 }
@@ -550,9 +553,9 @@ void pmx_mesh_stream_free(PmxMeshStream *s)
 {
     if (!s)
         return;
-    void *arrays[] = {s->face_vertex, s->face_id, s->corner, s->face_free, s->face_stamp, s->vertex_id, s->vertex_index,
+    void *arrays[] = {s->face_vertex, s->face_id, s->corner, s->face_free, s->vertex_id, s->vertex_index,
                       s->links, s->vertex_free, s->vertex_uses, s->vertex_rank, s->vertex_position,
-                      s->vertex_stamp, s->face_changes, s->vertex_changes, s->slot_at, s->kill,
+                      s->face_changes, s->vertex_changes, s->slot_at, s->kill,
                       s->collapse, s->split, s->events, s->flipped, s->flipped_bits, s->split_bits,
                       s->next_split_bits, s->face_bits,
                       s->used_bits, s->face_prefix, s->used_prefix, s->face_rows[0], s->face_rows[1], s->vertex_rows[0],
@@ -776,7 +779,6 @@ PMX_INLINE void prefetch_vertex(const PmxMeshStream *s, int32_t v)
     __builtin_prefetch(s->links + v);
     __builtin_prefetch(s->vertex_id + v);
     __builtin_prefetch(s->vertex_uses + v);
-    __builtin_prefetch(s->vertex_stamp + v);
     __builtin_prefetch(s->vertex_position + 3 * (int64_t)v);
 }
 
@@ -813,8 +815,10 @@ PmxStatus pmx_mesh_stream_step(PmxMeshStream *s, const PmxStreamFrame *next)
     /* A new change: the slots touched from here on. */
     if (s->started) {
         if (++s->stamp == 0) { /* wrapped: no slot may hold the new stamp */
-            memset(s->face_stamp, 0, sizeof(uint32_t) * (size_t)s->face_cap);
-            memset(s->vertex_stamp, 0, sizeof(uint32_t) * (size_t)s->vertex_cap);
+            for (int64_t i = 0; i < s->face_cap; i++)
+                s->corner[3 * i].stamp = 0;
+            for (int64_t i = 0; i < s->vertex_cap; i++)
+                s->links[i].stamp = 0;
             s->stamp = 1;
         }
         s->n_face_changes = s->n_vertex_changes = 0;
