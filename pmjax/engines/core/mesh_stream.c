@@ -20,13 +20,17 @@
  * a set closed under children, so each vertex a step reads has its slot.
  * Corners are kept in one list per vertex slot (linked through the corners),
  * so a split or collapse touches only the corners of its vertex. A new
- * face's corner finds its vertex by walking up from its original vertex to
- * the first vertex with a slot: the front vertex above it.
+ * face's corner finds its vertex, the front vertex above its original
+ * vertex, among the split's two, else from the vertex it had when the face
+ * was last removed (still on the front, or split or collapsed since: down
+ * or up from it), else among the split's neighbours, else by walking up
+ * from its original vertex to the first vertex with a slot.
  *
  * Memory: the slots of one frame's mesh (grown to the largest frame seen,
  * freed slots reused first), the change's slot lists, and maps over the
- * hierarchy (a slot per position and per original vertex, a slot per killed
- * face, a bit per face and per vertex id), whatever the path's length; for
+ * hierarchy (a slot per position and per original vertex, a slot and its
+ * corners' last vertices per killed face, a bit per face and per vertex
+ * id), whatever the path's length; for
  * the compaction, its rows (two buffers of an id and a slot per slot) and,
  * once one ran, the log of changes since (at most twice the rows and 1024
  * more). */
@@ -864,8 +868,11 @@ PmxStatus pmx_mesh_stream_step(PmxMeshStream *s, const PmxStreamFrame *next)
             __builtin_prefetch(records + splits[i + FLIPS_AHEAD]);
             __builtin_prefetch(s->slot_at + splits[i + FLIPS_AHEAD]);
         }
-        if (i + FLIPS_AHEAD / 2 < n_splits)
-            __builtin_prefetch(s->t.kill_data + records[splits[i + FLIPS_AHEAD / 2]].kill_first);
+        if (i + FLIPS_AHEAD / 2 < n_splits) {
+            const int32_t first = records[splits[i + FLIPS_AHEAD / 2]].kill_first;
+            __builtin_prefetch(s->t.kill_data + first);
+            __builtin_prefetch(s->kill + first);
+        }
         if (i + FLIPS_AHEAD / 4 < n_splits)
             prefetch_vertex(s, s->slot_at[splits[i + FLIPS_AHEAD / 4]]);
         status = split(s, splits[i]);
