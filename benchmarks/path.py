@@ -25,7 +25,9 @@ path, medians over repeats, the variants alternated within each repeat:
 ``path_counts``; ``refine_path`` alone; ``refine_path`` with each frame's
 ``Refinement.mesh()`` (a mesh built from nothing per frame); ``refine_path``
 with each frame's change (:class:`pmjax.MeshStream`), and that with the
-stream's compacted mesh too; and, on refinements held in memory, the change
+stream's compacted mesh too (each of the two on a stream of its own that
+follows the path pass after pass, as a viewer's does); and, on refinements
+held in memory (a third stream), the change
 alone, ``Refinement.mesh()`` alone and the stream's compacted mesh alone.
 With ``--srmesh DRIVER`` (``benchmarks/srmesh/build.py`` builds it and the
 SR meshes), Hoppe's SrMesh runs in the same run on the same cameras and
@@ -204,10 +206,20 @@ def mesh_path(name, frames, tau, repeats, srmesh_driver=None):
         change = stream.update(r)
         changed.append(len(change.face_slots))
 
+    # The two path variants follow the path with streams of their own, as a
+    # viewer's loop does: one never compacted (a stream that was compacted
+    # logs its changes for the next compaction, work a loop that only draws
+    # the changes does not do), one compacted every frame; each warmed once.
+    drawn, drawn_compacted = pmjax.MeshStream(pm), pmjax.MeshStream(pm)
+
     def follow(with_mesh):
-        for _ in pmjax.path_mesh_changes(pm, cams, tau, stream=stream):
+        own = drawn_compacted if with_mesh else drawn
+        for _ in pmjax.path_mesh_changes(pm, cams, tau, stream=own):
             if with_mesh:
-                stream.mesh()
+                own.mesh()
+
+    follow(False)
+    follow(True)
 
     variants = {
         "path_counts": lambda: pmjax.path_counts(pm, cams, tau),

@@ -550,3 +550,21 @@ def test_a_stream_whose_step_failed_takes_no_more_steps(built):
     stream._step = step
     with pytest.raises(ValueError, match="an earlier step failed; make a new MeshStream"):
         stream.update(second)
+
+
+@pytest.mark.parametrize("name", ["cow.ply", pytest.param("bunny.ply", marks=pytest.mark.slow)])
+def test_faces_killed_and_drawn_again_many_times(built, name):
+    """A tolerance jumping between fine and coarse every frame (a face
+    killed by one frame is drawn again by a later one, its corners' vertices
+    split or collapsed meanwhile, many times over), along a fly-through
+    through the model and a hand-held path with cuts, one stream continued
+    across the calls of path_mesh_changes: each frame's mesh is exactly its
+    refinement's."""
+    data, pm = model(built, name)
+    n = 48
+    taus = np.resize(np.asarray([0.3, 8.0, 1.0, 40.0, 0.1, 3.0, 0.6, np.inf, 0.2], np.float32), n)
+    stream, replay = pmjax.MeshStream(pm), Replay()
+    for k, cams in enumerate((fly_through(data, n), hand_held(data, n, seed=41, cuts=(12, 13, 30)))):
+        for i, (r, change) in enumerate(pmjax.path_mesh_changes(pm, cams, taus, stream=stream)):
+            replay.apply(change)
+            assert_same_mesh(replay, stream, r, (k, i))

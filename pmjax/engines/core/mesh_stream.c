@@ -20,13 +20,17 @@
  * a set closed under children, so each vertex a step reads has its slot.
  * Corners are kept in one list per vertex slot (linked through the corners),
  * so a split or collapse touches only the corners of its vertex. A new
- * face's corner finds its vertex by walking up from its original vertex to
- * the first vertex with a slot: the front vertex above it.
+ * face's corner finds its vertex, the front vertex above its original
+ * vertex, among the split's two, else from the vertex it had when the face
+ * was last removed (still on the front, or split or collapsed since: down
+ * or up from it), else among the split's neighbours, else by walking up
+ * from its original vertex to the first vertex with a slot.
  *
  * Memory: the slots of one frame's mesh (grown to the largest frame seen,
  * freed slots reused first), the change's slot lists, and maps over the
- * hierarchy (a slot per position and per original vertex, a slot per killed
- * face, a bit per face and per vertex id), whatever the path's length; for
+ * hierarchy (a slot per position and per original vertex, a slot and its
+ * corners' last vertices per killed face, a bit per face and per vertex
+ * id), whatever the path's length; for
  * the compaction, its rows (two buffers of an id and a slot per slot) and,
  * once one ran, the log of changes since (at most twice the rows and 1024
  * more). */
@@ -43,16 +47,31 @@
 
 /* A corner of a face slot: its depth-first start and its links in its
  * vertex's list, side by side (a split or collapse walks the list reading
- * both). */
+ * both); a face's first corner also holds the stamp of the last change
+ * that touched the face (beside the corner an edit reads, not in an array
+ * of its own). */
 typedef struct {
-    int32_t start, next, prev, unused;
+    int32_t start, next, prev;
+    uint32_t stamp;
 } Corner;
 
-/* A vertex slot's depth-first interval [lo, hi) of the original vertices
- * below and its first corner, side by side (a new face's corner reads the
- * intervals of the vertices around it). */
+/* A killed face's entry (by its place in kill_data): its face slot while
+ * drawn (-1 if not), and the map indexes of its corners' front vertices
+ * when it was last removed (-1: never drawn), side by side. A split drawing
+ * it again starts each corner's search from there: that vertex is on the
+ * front still, or split since (the corner's vertex is below it), or
+ * collapsed since (above it). */
 typedef struct {
-    int32_t lo, hi, head, unused;
+    int32_t slot, index[3];
+} KillEntry;
+
+/* A vertex slot's depth-first interval [lo, hi) of the original vertices
+ * below, its first corner and the stamp of the last change that touched
+ * it, side by side (a new face's corner reads the intervals of the
+ * vertices around it; an edit of the vertex reads them all). */
+typedef struct {
+    int32_t lo, hi, head;
+    uint32_t stamp;
 } VertexLinks;
 
 struct PmxMeshStream {
@@ -61,14 +80,13 @@ struct PmxMeshStream {
      * corner's depth-first start and its links in its vertex's list. */
     int32_t *face_vertex, *face_id, *face_free;
     Corner *corner;
-    uint32_t *face_stamp;
     int64_t face_cap, n_face_slots, n_face_free;
-    /* Vertex slots: id (-1 free), position, first corner, corners held, the
-     * depth-first interval [lo, hi) of the original vertices below. */
-    int32_t *vertex_id, *vertex_free, *vertex_uses, *vertex_rank;
+    /* Vertex slots: id (-1 free), map index, position, first corner,
+     * corners held, the depth-first interval [lo, hi) of the original
+     * vertices below. */
+    int32_t *vertex_id, *vertex_index, *vertex_free, *vertex_uses, *vertex_rank;
     VertexLinks *links;
     float *vertex_position;
-    uint32_t *vertex_stamp;
     int64_t vertex_cap, n_vertex_slots, n_vertex_free;
     /* The change since the last step: the slots touched, each once
      * (pmx_mesh_stream_pack writes them with their contents after it). */
@@ -78,8 +96,10 @@ struct PmxMeshStream {
     int started; /* a step has run: the next one starts a new change */
     /* Maps: the vertex slot at each index (positions, then P + original
      * vertex; -1 off the front), the face slot of each killed face (by its
-     * place in kill_data: a pcol's kill list side by side). */
-    int32_t *slot_at, *kill_slot;
+     * place in kill_data: a pcol's kill list side by side), with its
+     * corners' vertices when last removed. */
+    int32_t *slot_at;
+    KillEntry *kill;
     /* The steps' collapses and splits (positions). */
     int32_t *collapse, *split;
     int64_t step_cap;
@@ -128,7 +148,7 @@ static int grow_faces(PmxMeshStream *s, int64_t need)
     const int64_t old = s->face_cap;
     if (!grow((void **)&s->face_vertex, 3 * old, 3 * cap, 4) || !grow((void **)&s->face_id, old, cap, 4) ||
         !grow((void **)&s->corner, 3 * old, 3 * cap, sizeof(Corner)) || !grow((void **)&s->face_free, old, cap, 4) ||
-        !grow((void **)&s->face_stamp, old, cap, 4) || !grow((void **)&s->face_changes, old, cap, 4) ||
+        !grow((void **)&s->face_changes, old, cap, 4) ||
         !grow((void **)&s->face_rows[0], old, cap, sizeof(IdSlot)) ||
         !grow((void **)&s->face_rows[1], old, cap, sizeof(IdSlot)))
         return 0;
@@ -143,9 +163,9 @@ static int grow_vertices(PmxMeshStream *s, int64_t need)
         return 1;
     int64_t cap = s->vertex_cap * 2 > need ? s->vertex_cap * 2 : need < 256 ? 256 : need;
     const int64_t old = s->vertex_cap;
-    if (!grow((void **)&s->vertex_id, old, cap, 4) || !grow((void **)&s->links, old, cap, sizeof(VertexLinks)) ||
+    if (!grow((void **)&s->vertex_id, old, cap, 4) || !grow((void **)&s->vertex_index, old, cap, 4) || !grow((void **)&s->links, old, cap, sizeof(VertexLinks)) ||
         !grow((void **)&s->vertex_free, old, cap, 4) || !grow((void **)&s->vertex_position, 3 * old, 3 * cap, 4) ||
-        !grow((void **)&s->vertex_stamp, old, cap, 4) || !grow((void **)&s->vertex_changes, old, cap, 4) ||
+        !grow((void **)&s->vertex_changes, old, cap, 4) ||
         !grow((void **)&s->vertex_uses, old, cap, 4) || !grow((void **)&s->vertex_rank, old, cap, 4) ||
         !grow((void **)&s->vertex_rows[0], old, cap, sizeof(IdSlot)) ||
         !grow((void **)&s->vertex_rows[1], old, cap, sizeof(IdSlot)))
@@ -157,16 +177,16 @@ static int grow_vertices(PmxMeshStream *s, int64_t need)
 
 PMX_INLINE void touch_face(PmxMeshStream *s, int32_t slot)
 {
-    if (s->face_stamp[slot] != s->stamp) {
-        s->face_stamp[slot] = s->stamp;
+    if (s->corner[3 * (int64_t)slot].stamp != s->stamp) {
+        s->corner[3 * (int64_t)slot].stamp = s->stamp;
         s->face_changes[s->n_face_changes++] = slot;
     }
 }
 
 PMX_INLINE void touch_vertex(PmxMeshStream *s, int32_t slot)
 {
-    if (s->vertex_stamp[slot] != s->stamp) {
-        s->vertex_stamp[slot] = s->stamp;
+    if (s->links[slot].stamp != s->stamp) {
+        s->links[slot].stamp = s->stamp;
         s->vertex_changes[s->n_vertex_changes++] = slot;
     }
 }
@@ -278,6 +298,7 @@ static int32_t new_vertex(PmxMeshStream *s, int64_t index, int32_t id, const flo
     s->links[slot].head = -1;
     s->vertex_uses[slot] = 0;
     s->slot_at[index] = slot;
+    s->vertex_index[slot] = (int32_t)index;
     set_vertex(s, slot, id, position, lo, hi);
     s->n_vertices_live++;
     return slot;
@@ -293,11 +314,11 @@ static void free_vertex(PmxMeshStream *s, int32_t slot)
     s->n_vertices_live--;
 }
 
-/* The vertex slot above original vertex v: up from it to the first vertex
- * on the front (-1 if none: the state is not a refinement's). */
-PMX_INLINE int32_t front_slot(const PmxMeshStream *s, int32_t v)
+/* The vertex slot at map index `index` or, off the front, up from it to
+ * the first vertex on the front (-1 if none: the state is not a
+ * refinement's). */
+PMX_INLINE int32_t up_slot(const PmxMeshStream *s, int64_t index)
 {
-    int64_t index = s->t.n_pcols + v;
     int32_t slot;
     while ((slot = s->slot_at[index]) < 0) {
         index = s->t.up[index];
@@ -307,17 +328,57 @@ PMX_INLINE int32_t front_slot(const PmxMeshStream *s, int32_t v)
     return slot;
 }
 
+/* The vertex slot above original vertex v. */
+PMX_INLINE int32_t front_slot(const PmxMeshStream *s, int32_t v) { return up_slot(s, s->t.n_pcols + v); }
+
+/* The map index of a pcol record's child j: its pcol's position, or
+ * P + the original vertex. */
+PMX_INLINE int64_t child_index(const PmxMeshStream *s, const PmxPcolRecord *r, int j)
+{
+    return r->made_at[j] >= 0 ? r->made_at[j] : s->t.n_pcols + r->vertex[j];
+}
+
+/* The vertex slot above the corner at depth-first position `start` whose
+ * front vertex was once the one at map index `index`: that vertex if on
+ * the front; if split since (its pcol's bit in split_bits), down through
+ * the children whose interval holds `start` (the second child's starts at
+ * r->start[1]) to the first on the front; else collapsed since, up from it
+ * (-1 if none is found: the state is not a refinement's). */
+PMX_INLINE int32_t slot_from(const PmxMeshStream *s, int64_t index, int32_t start)
+{
+    int32_t slot = s->slot_at[index];
+    if (slot >= 0)
+        return slot;
+    if (index < s->t.n_pcols && ((s->split_bits[index >> 6] >> (index & 63)) & 1)) {
+        do {
+            const PmxPcolRecord *r = s->t.pcols + index;
+            index = child_index(s, r, start >= r->start[1]);
+            slot = s->slot_at[index];
+        } while (slot < 0 && index < s->t.n_pcols);
+        return slot;
+    }
+    return up_slot(s, index);
+}
+
 /* The vertex slot above the corner at depth-first position `start`: one of
- * the split's two vertices (v, w; -1 for none), else a neighbour of theirs
- * (a face killed by a split joins its two vertices to vertices already
- * around them), else up from the corner's original vertex. */
-PMX_INLINE int32_t corner_slot(const PmxMeshStream *s, int32_t start, int64_t face, int c, int32_t v, int32_t w)
+ * the split's two vertices (v, w; -1 for none), else found from the map
+ * index its face's corner had when last removed (`had`, -1 for none), else
+ * a neighbour of v's or w's (a face killed by a split joins its two
+ * vertices to vertices already around them), else up from the corner's
+ * original vertex. */
+PMX_INLINE int32_t corner_slot(const PmxMeshStream *s, int32_t start, int64_t face, int c, int32_t v, int32_t w,
+                               int32_t had)
 {
     if (v >= 0) {
         if (start >= s->links[v].lo && start < s->links[v].hi)
             return v;
         if (start >= s->links[w].lo && start < s->links[w].hi)
             return w;
+        if (had >= 0) {
+            const int32_t u = slot_from(s, had, start);
+            if (u >= 0)
+                return u;
+        }
         const int32_t around[2] = {v, w};
         for (int k = 0; k < 2; k++)
             for (int32_t c = s->links[around[k]].head; c >= 0; c = s->corner[c].next) {
@@ -330,10 +391,11 @@ PMX_INLINE int32_t corner_slot(const PmxMeshStream *s, int32_t start, int64_t fa
     return front_slot(s, s->t.corners[3 * face + c]);
 }
 
-/* Draws face record f: a face slot (a freed one first, written to *at
- * unless NULL), each corner linked to the front vertex above it (v, w: the
- * vertices of the split drawing it). */
-static PmxStatus add_face(PmxMeshStream *s, const PmxFaceRecord *f, int32_t *at, int32_t v, int32_t w)
+/* Draws face record f: a face slot (a freed one first, written to its
+ * kill entry unless NULL), each corner linked to the front vertex above it
+ * (v, w: the vertices of the split drawing it; the entry's indexes of the
+ * corners' vertices when it was last removed: searched from). */
+static PmxStatus add_face(PmxMeshStream *s, const PmxFaceRecord *f, KillEntry *at, int32_t v, int32_t w)
 {
     int32_t slot;
     if (s->n_face_free)
@@ -345,7 +407,7 @@ static PmxStatus add_face(PmxMeshStream *s, const PmxFaceRecord *f, int32_t *at,
     }
     s->face_vertex[3 * slot] = s->face_vertex[3 * slot + 1] = s->face_vertex[3 * slot + 2] = -1;
     for (int c = 0; c < 3; c++) {
-        const int32_t u = corner_slot(s, f->start[c], f->face, c, v, w);
+        const int32_t u = corner_slot(s, f->start[c], f->face, c, v, w, at ? at->index[c] : -1);
         if (u < 0)
             return PMX_BAD_TABLE;
         s->corner[3 * slot + c].start = f->start[c];
@@ -355,19 +417,22 @@ static PmxStatus add_face(PmxMeshStream *s, const PmxFaceRecord *f, int32_t *at,
     flip_bit(s->face_bits, f->face);
     log_face(s, f->face, slot);
     if (at)
-        *at = slot;
+        at->slot = slot;
     touch_face(s, slot);
     s->n_faces_live++;
     return PMX_OK;
 }
 
-static PmxStatus remove_face(PmxMeshStream *s, int32_t *at)
+/* Removes the face of a kill entry, noting in it its corners' vertices'
+ * map indexes. */
+static PmxStatus remove_face(PmxMeshStream *s, KillEntry *at)
 {
-    const int32_t slot = *at;
+    const int32_t slot = at->slot;
     if (slot < 0)
         return PMX_BAD_TABLE;
-    *at = -1;
+    at->slot = -1;
     for (int c = 0; c < 3; c++) {
+        at->index[c] = s->vertex_index[s->face_vertex[3 * slot + c]];
         unlink(s, 3 * slot + c);
         s->face_vertex[3 * slot + c] = -1;
     }
@@ -380,13 +445,6 @@ static PmxStatus remove_face(PmxMeshStream *s, int32_t *at)
     return PMX_OK;
 }
 
-/* The map index of a pcol record's child j: its pcol's position, or
- * P + the original vertex. */
-PMX_INLINE int64_t child_index(const PmxMeshStream *s, const PmxPcolRecord *r, int j)
-{
-    return r->made_at[j] >= 0 ? r->made_at[j] : s->t.n_pcols + r->vertex[j];
-}
-
 /* The pcol at position `at` not executed any more: its vertex splits in two. */
 static PmxStatus split(PmxMeshStream *s, int32_t at)
 {
@@ -397,7 +455,8 @@ static PmxStatus split(PmxMeshStream *s, int32_t at)
     s->slot_at[at] = -1;
     set_bit(s->split_bits, at);
     /* The first child keeps the slot; the second gets one. */
-    s->slot_at[child_index(s, r, 0)] = v;
+    s->vertex_index[v] = (int32_t)child_index(s, r, 0);
+    s->slot_at[s->vertex_index[v]] = v;
     /* The first child's interval ends where the second's starts. */
     const int32_t end = s->links[v].hi;
     set_vertex(s, v, r->vertex[0], r->position[0], r->start[0], r->start[1]);
@@ -443,7 +502,7 @@ static PmxStatus split(PmxMeshStream *s, int32_t at)
     }
     /* Its kill list is drawn again. */
     for (int32_t j = 0; j < r->kill_count; j++) {
-        PmxStatus status = add_face(s, s->t.kill_data + r->kill_first + j, s->kill_slot + r->kill_first + j, v, w);
+        PmxStatus status = add_face(s, s->t.kill_data + r->kill_first + j, s->kill + r->kill_first + j, v, w);
         if (status != PMX_OK)
             return status;
     }
@@ -460,7 +519,7 @@ static PmxStatus collapse(PmxMeshStream *s, int32_t at)
         return PMX_BAD_TABLE;
     /* Its kill list goes. */
     for (int32_t j = 0; j < r->kill_count; j++) {
-        PmxStatus status = remove_face(s, s->kill_slot + r->kill_first + j);
+        PmxStatus status = remove_face(s, s->kill + r->kill_first + j);
         if (status != PMX_OK)
             return status;
     }
@@ -488,6 +547,7 @@ static PmxStatus collapse(PmxMeshStream *s, int32_t at)
     s->slot_at[second] = -1;
     s->slot_at[first] = -1;
     s->slot_at[at] = v;
+    s->vertex_index[v] = at;
     clear_bit(s->split_bits, at);
     set_vertex(s, v, s->t.own_vertex[at], s->t.own_position + 3 * (int64_t)at, s->links[v].lo, end);
     return PMX_OK;
@@ -497,9 +557,9 @@ void pmx_mesh_stream_free(PmxMeshStream *s)
 {
     if (!s)
         return;
-    void *arrays[] = {s->face_vertex, s->face_id, s->corner, s->face_free, s->face_stamp, s->vertex_id,
+    void *arrays[] = {s->face_vertex, s->face_id, s->corner, s->face_free, s->vertex_id, s->vertex_index,
                       s->links, s->vertex_free, s->vertex_uses, s->vertex_rank, s->vertex_position,
-                      s->vertex_stamp, s->face_changes, s->vertex_changes, s->slot_at, s->kill_slot,
+                      s->face_changes, s->vertex_changes, s->slot_at, s->kill,
                       s->collapse, s->split, s->events, s->flipped, s->flipped_bits, s->split_bits,
                       s->next_split_bits, s->face_bits,
                       s->used_bits, s->face_prefix, s->used_prefix, s->face_rows[0], s->face_rows[1], s->vertex_rows[0],
@@ -521,7 +581,7 @@ PmxMeshStream *pmx_mesh_stream_new(const PmxStreamTables *t, PmxStatus *status)
     s->checked_key = -1;
     const int64_t P = t->n_pcols, V0 = t->n_original;
     s->slot_at = malloc(sizeof(int32_t) * (size_t)(P + V0 + 1));
-    s->kill_slot = malloc(sizeof(int32_t) * (size_t)(t->n_kill_data + 1));
+    s->kill = malloc(sizeof(KillEntry) * (size_t)(t->n_kill_data + 1));
     const size_t face_words = (size_t)t->n_faces / 64 + 1, used_words = (size_t)(V0 + P) / 64 + 1;
     s->face_bits = calloc(face_words, sizeof(uint64_t));
     s->used_bits = calloc(used_words, sizeof(uint64_t));
@@ -529,13 +589,13 @@ PmxMeshStream *pmx_mesh_stream_new(const PmxStreamTables *t, PmxStatus *status)
     s->next_split_bits = calloc((size_t)P / 64 + 1, sizeof(uint64_t));
     s->face_prefix = malloc(face_words * sizeof(int32_t));
     s->used_prefix = malloc(used_words * sizeof(int32_t));
-    if (!s->slot_at || !s->kill_slot || !s->face_bits || !s->used_bits || !s->face_prefix || !s->used_prefix ||
+    if (!s->slot_at || !s->kill || !s->face_bits || !s->used_bits || !s->face_prefix || !s->used_prefix ||
         !s->split_bits || !s->next_split_bits) {
         pmx_mesh_stream_free(s);
         return NULL;
     }
     memset(s->slot_at, 0xff, sizeof(int32_t) * (size_t)(P + V0 + 1));
-    memset(s->kill_slot, 0xff, sizeof(int32_t) * (size_t)(t->n_kill_data + 1));
+    memset(s->kill, 0xff, sizeof(KillEntry) * (size_t)(t->n_kill_data + 1));
     /* The start: every pcol executed, the tops on the front, the base faces. */
     for (int64_t i = 0; i < t->n_tops; i++) {
         const int64_t index = t->top_at[i] >= 0 ? t->top_at[i] : P + t->tops[i].vertex;
@@ -723,7 +783,6 @@ PMX_INLINE void prefetch_vertex(const PmxMeshStream *s, int32_t v)
     __builtin_prefetch(s->links + v);
     __builtin_prefetch(s->vertex_id + v);
     __builtin_prefetch(s->vertex_uses + v);
-    __builtin_prefetch(s->vertex_stamp + v);
     __builtin_prefetch(s->vertex_position + 3 * (int64_t)v);
 }
 
@@ -732,7 +791,7 @@ PMX_INLINE void prefetch_vertex(const PmxMeshStream *s, int32_t v)
 PMX_INLINE void prefetch_collapse_lists(const PmxMeshStream *s, int32_t at)
 {
     const PmxPcolRecord *r = s->t.pcols + at;
-    __builtin_prefetch(s->kill_slot + r->kill_first);
+    __builtin_prefetch(s->kill + r->kill_first);
     __builtin_prefetch(s->slot_at + child_index(s, r, 0));
     __builtin_prefetch(s->slot_at + child_index(s, r, 1));
 }
@@ -745,7 +804,7 @@ PMX_INLINE void prefetch_collapse_slots(const PmxMeshStream *s, int32_t at)
     prefetch_vertex(s, s->slot_at[child_index(s, r, 0)]);
     prefetch_vertex(s, s->slot_at[child_index(s, r, 1)]);
     for (int32_t j = 0; j < r->kill_count && j < 4; j++) {
-        const int32_t slot = s->kill_slot[r->kill_first + j];
+        const int32_t slot = s->kill[r->kill_first + j].slot;
         if (slot >= 0) {
             __builtin_prefetch(s->corner + 3 * (int64_t)slot);
             __builtin_prefetch(s->face_vertex + 3 * (int64_t)slot);
@@ -760,8 +819,10 @@ PmxStatus pmx_mesh_stream_step(PmxMeshStream *s, const PmxStreamFrame *next)
     /* A new change: the slots touched from here on. */
     if (s->started) {
         if (++s->stamp == 0) { /* wrapped: no slot may hold the new stamp */
-            memset(s->face_stamp, 0, sizeof(uint32_t) * (size_t)s->face_cap);
-            memset(s->vertex_stamp, 0, sizeof(uint32_t) * (size_t)s->vertex_cap);
+            for (int64_t i = 0; i < s->face_cap; i++)
+                s->corner[3 * i].stamp = 0;
+            for (int64_t i = 0; i < s->vertex_cap; i++)
+                s->links[i].stamp = 0;
             s->stamp = 1;
         }
         s->n_face_changes = s->n_vertex_changes = 0;
@@ -807,8 +868,11 @@ PmxStatus pmx_mesh_stream_step(PmxMeshStream *s, const PmxStreamFrame *next)
             __builtin_prefetch(records + splits[i + FLIPS_AHEAD]);
             __builtin_prefetch(s->slot_at + splits[i + FLIPS_AHEAD]);
         }
-        if (i + FLIPS_AHEAD / 2 < n_splits)
-            __builtin_prefetch(s->t.kill_data + records[splits[i + FLIPS_AHEAD / 2]].kill_first);
+        if (i + FLIPS_AHEAD / 2 < n_splits) {
+            const int32_t first = records[splits[i + FLIPS_AHEAD / 2]].kill_first;
+            __builtin_prefetch(s->t.kill_data + first);
+            __builtin_prefetch(s->kill + first);
+        }
         if (i + FLIPS_AHEAD / 4 < n_splits)
             prefetch_vertex(s, s->slot_at[splits[i + FLIPS_AHEAD / 4]]);
         status = split(s, splits[i]);
