@@ -123,6 +123,11 @@ int scratch_mesh(PmxScratch *s, int64_t n_original, int64_t n_faces);
 typedef int64_t (*PushBlock)(const PmxHierarchy *h, int64_t i, int64_t nb, int64_t n, const int32_t *decided,
                              const float *kids, uint8_t *state, int32_t *kill, int32_t *kid, int32_t *ids,
                              int32_t *parent, int32_t *unsure, int64_t *m);
+/* The slots' bookkeeping of one decided block of a word (slots_plain.c). */
+typedef int64_t (*PushWordBlock)(const PmxHierarchy *h, int64_t i, int64_t nb, int64_t n,
+                                 const Lanes (*masks)[BLOCK], const float *kids, Lanes *visit, Lanes *whole,
+                                 Lanes *yes, int32_t *kid, int32_t *ids, int32_t *unsure_slots, Lanes *unsure_lanes,
+                                 int64_t *m);
 typedef void (*Resolve)(const PmxHierarchy *h, int64_t n, const int32_t *ids, const int32_t *kid,
                         const uint8_t *state, const int32_t *kill, uint8_t *ran, int32_t *pcols, int64_t *not_run,
                         int64_t *kept);
@@ -139,6 +144,7 @@ typedef struct {
     void (*decide_fat)(const Fat *W, Columns col, int32_t *code);
     void (*gather)(const float *const *rows, Columns col);
     PushBlock push_block;
+    PushWordBlock push_word_block;
     Resolve resolve;
     void (*resolve_word)(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids,
                          const int32_t *kid, const Lanes *visit, const Lanes *whole, const Lanes *yes, Lanes *ran,
@@ -178,6 +184,9 @@ PMX_LEVEL_DECLS(avx512)
 int64_t push_block_plain(const PmxHierarchy *h, int64_t i, int64_t nb, int64_t n, const int32_t *decided,
                          const float *kids, uint8_t *state, int32_t *kill, int32_t *kid, int32_t *ids, int32_t *parent,
                          int32_t *unsure, int64_t *m);
+int64_t push_word_block_plain(const PmxHierarchy *h, int64_t i, int64_t nb, int64_t n, const Lanes (*masks)[BLOCK],
+                              const float *kids, Lanes *visit, Lanes *whole, Lanes *yes, int32_t *kid, int32_t *ids,
+                              int32_t *unsure_slots, Lanes *unsure_lanes, int64_t *m);
 void resolve_plain_range(const PmxHierarchy *h, int64_t lo, int64_t hi, const int32_t *ids, const int32_t *kid,
                          const uint8_t *state, const int32_t *kill, uint8_t *ran, int32_t *pcols, int64_t *not_run,
                          int64_t *kept);
@@ -192,6 +201,9 @@ void resolve_avx2(const PmxHierarchy *h, int64_t n, const int32_t *ids, const in
 int64_t push_block_avx512(const PmxHierarchy *h, int64_t i, int64_t nb, int64_t n, const int32_t *decided,
                           const float *kids, uint8_t *state, int32_t *kill, int32_t *kid, int32_t *ids,
                           int32_t *parent, int32_t *unsure, int64_t *m);
+int64_t push_word_block_avx512(const PmxHierarchy *h, int64_t i, int64_t nb, int64_t n, const Lanes (*masks)[BLOCK],
+                               const float *kids, Lanes *visit, Lanes *whole, Lanes *yes, int32_t *kid, int32_t *ids,
+                               int32_t *unsure_slots, Lanes *unsure_lanes, int64_t *m);
 void resolve_avx512(const PmxHierarchy *h, int64_t n, const int32_t *ids, const int32_t *kid, const uint8_t *state,
                     const int32_t *kill, uint8_t *ran, int32_t *pcols, int64_t *not_run, int64_t *kept);
 #endif

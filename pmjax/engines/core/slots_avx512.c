@@ -66,6 +66,72 @@ PMX_TARGET_AVX512 int64_t push_block_avx512(const PmxHierarchy *h, int64_t i, in
     return n + n_lo + n_hi;
 }
 
+/* push_word_block_plain with AVX-512 masks, the sixteen slots of a block at
+ * once (the frame masks widened to int32 lanes): the scalar loop's branches
+ * on whether a slot is open are coin tosses. Same results, bit for bit. */
+PMX_TARGET_AVX512 int64_t push_word_block_avx512(const PmxHierarchy *h, int64_t i, int64_t nb, int64_t n,
+                                                   const Lanes (*masks)[BLOCK], const float *kids, Lanes *visit,
+                                                   Lanes *whole, Lanes *yes, int32_t *kid, int32_t *ids,
+                                                   int32_t *unsure_slots, Lanes *unsure_lanes, int64_t *m)
+{
+    const __mmask16 valid = (__mmask16)((1u << nb) - 1);
+    const __m512i lane = _mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
+    const __m512i v = _mm512_cvtepu16_epi32(_mm256_maskz_loadu_epi16(valid, visit + i));
+    const __m512i wh = _mm512_cvtepu16_epi32(_mm256_loadu_si256((const __m256i *)masks[0]));
+    const __m512i y = _mm512_cvtepu16_epi32(_mm256_loadu_si256((const __m256i *)masks[1]));
+    const __m512i u = _mm512_cvtepu16_epi32(_mm256_loadu_si256((const __m256i *)masks[2]));
+    /* The visiting frames the bound decided, and those it left open. */
+    const __m512i open_frames = _mm512_andnot_si512(wh, v);
+    _mm512_mask_cvtepi32_storeu_epi16(whole + i, valid, _mm512_and_si512(v, wh));
+    _mm512_mask_cvtepi32_storeu_epi16(yes + i, valid, _mm512_and_si512(open_frames, y));
+    const __m512i un = _mm512_and_si512(open_frames, u);
+    const __mmask16 unsure = _mm512_mask_test_epi32_mask(valid, un, un);
+    if (unsure) { /* rare: decided by the caller (the float32 predicate) */
+        const __mmask16 first_ones = (__mmask16)((1u << _mm_popcnt_u32(unsure)) - 1);
+        _mm512_mask_compressstoreu_epi32(unsure_slots + *m, unsure, _mm512_add_epi32(lane, _mm512_set1_epi32((int32_t)i)));
+        _mm512_mask_cvtepi32_storeu_epi16(unsure_lanes + *m, first_ones, _mm512_maskz_compress_epi32(unsure, un));
+        *m += _mm_popcnt_u32(unsure);
+    }
+    /* Lanes with at least one / two children to visit, as one mask of the
+     * children in queue order (bit 2j: lane j's first, 2j + 1: its second). */
+    const __mmask16 open = _mm512_mask_test_epi32_mask(valid, open_frames, open_frames);
+    const __m512i k = _mm512_loadu_si512(kids);
+    const __m512i count = _mm512_and_si512(k, _mm512_set1_epi32(3));
+    const __mmask16 one = _mm512_mask_cmpgt_epi32_mask(open, count, _mm512_setzero_si512());
+    const __mmask16 two = _mm512_mask_cmpgt_epi32_mask(open, count, _mm512_set1_epi32(1));
+    const uint32_t pushed = _pdep_u32(one, 0x55555555u) | _pdep_u32(two, 0xAAAAAAAAu);
+    const __mmask16 lo = (__mmask16)pushed, hi = (__mmask16)(pushed >> 16);
+    const int n_lo = _mm_popcnt_u32(lo), n_hi = _mm_popcnt_u32(hi);
+    if (n + n_lo + n_hi > h->n_pcols)
+        return -1;
+    /* Their slots (-1 where no child is visited): n, n + 1, ... expanded. */
+    const __m512i none = _mm512_set1_epi32(-1);
+    const __m512i slot_lo = _mm512_mask_expand_epi32(none, lo, _mm512_add_epi32(lane, _mm512_set1_epi32((int32_t)n)));
+    const __m512i slot_hi =
+        _mm512_mask_expand_epi32(none, hi, _mm512_add_epi32(lane, _mm512_set1_epi32((int32_t)n + n_lo)));
+    const uint32_t kid_valid = nb == BLOCK ? 0xFFFFFFFFu : (1u << (2 * nb)) - 1;
+    _mm512_mask_storeu_epi32(kid + 2 * i, (__mmask16)kid_valid, slot_lo);
+    _mm512_mask_storeu_epi32(kid + 2 * i + BLOCK, (__mmask16)(kid_valid >> 16), slot_hi);
+    /* Their positions, (first, first + 1) of each lane interleaved, and
+     * their frames, the parent's open ones, compressed. */
+    const __m512i first = _mm512_and_si512(_mm512_srli_epi32(k, 2), _mm512_set1_epi32(KIDS_FIRST));
+    const __m512i second = _mm512_add_epi32(first, _mm512_set1_epi32(1));
+    const __m512i pick_lo = _mm512_set_epi32(23, 7, 22, 6, 21, 5, 20, 4, 19, 3, 18, 2, 17, 1, 16, 0);
+    const __m512i pick_hi = _mm512_add_epi32(pick_lo, _mm512_set1_epi32(8));
+    const __mmask16 store_lo = (__mmask16)((1u << n_lo) - 1), store_hi = (__mmask16)((1u << n_hi) - 1);
+    _mm512_mask_storeu_epi32(ids + n, store_lo,
+                             _mm512_maskz_compress_epi32(lo, _mm512_permutex2var_epi32(first, pick_lo, second)));
+    _mm512_mask_storeu_epi32(ids + n + n_lo, store_hi,
+                             _mm512_maskz_compress_epi32(hi, _mm512_permutex2var_epi32(first, pick_hi, second)));
+    _mm512_mask_cvtepi32_storeu_epi16(
+        visit + n, store_lo,
+        _mm512_maskz_compress_epi32(lo, _mm512_permutex2var_epi32(open_frames, pick_lo, open_frames)));
+    _mm512_mask_cvtepi32_storeu_epi16(
+        visit + n + n_lo, store_hi,
+        _mm512_maskz_compress_epi32(hi, _mm512_permutex2var_epi32(open_frames, pick_hi, open_frames)));
+    return n + n_lo + n_hi;
+}
+
 /* resolve_plain_range over all n slots, sixteen at a time on the traversal's
  * blocks (whose children all sit in later blocks; a block of the rare
  * stretch where the queue ran short of sixteen may hold its own children

@@ -40,49 +40,47 @@ int64_t traverse_word(const Kernels *kern, const PmxHierarchy *h, const float *v
         visit[n++] = active;
     }
     for (int64_t i0 = 0; i0 < n;) {
-        /* A block of slots under the fat camera first (children land behind
-         * the queue, after the block). */
+        /* A block of slots (children land behind the queue, after the
+         * block): its rows as columns, under the fat camera first. */
         const int64_t nb = n - i0 < BLOCK ? n - i0 : BLOCK;
-        if (use_fat) {
-            gather_block(kern, table, ids + i0, nb, col);
+        for (int64_t i = i0 + AHEAD; i < i0 + AHEAD + nb && i < n; i++)
+            __builtin_prefetch(table + (int64_t)ids[i] * ROW);
+        gather_block(kern, table, ids + i0, nb, col);
+        if (use_fat)
             kern->decide_fat(&W, col, fat_code);
+        /* The frames' masks (whole, yes, unsure) of the slots the fat camera
+         * decided, and the slots left to the frames by kind: every test
+         * (open), or less those the fat camera settled. */
+        Lanes masks[3][BLOCK];
+        uint32_t open = 0, screen = 0, inside = 0;
+        for (int j = 0; j < BLOCK; j++) {
+            const int32_t fc = use_fat ? fat_code[j] : FAT_OPEN;
+            const uint32_t here = j < nb;
+            masks[0][j] = fc == FAT_WHOLE ? (Lanes)0xFFFF : 0, masks[1][j] = masks[2][j] = 0;
+            decided_at_once += here & ((fc == FAT_WHOLE) | (fc == FAT_NO));
+            open |= (here & (fc == FAT_OPEN)) << j;
+            screen |= (here & (fc == FAT_SCREEN)) << j;
+            inside |= (here & (fc == FAT_INSIDE)) << j;
         }
-        for (int64_t i = i0; i < i0 + nb; i++) {
-            if (i + AHEAD < n)
-                __builtin_prefetch(table + (int64_t)ids[i + AHEAD] * ROW);
-            const float *row = table + (int64_t)ids[i] * ROW;
-            const int32_t fc = use_fat ? fat_code[i - i0] : FAT_OPEN;
-            decided_at_once += (fc == FAT_WHOLE) | (fc == FAT_NO);
-            Lanes masks[3] = {fc == FAT_WHOLE ? (Lanes)0xFFFF : 0, 0, 0};
-            /* The pcol under every frame of the word, one by one, less the
-             * tests the fat camera settled for all of them. */
-            if (fc == FAT_OPEN)
-                decide_row(&fr, row, masks);
-            else if (fc != FAT_WHOLE && fc != FAT_NO)
-                kern->decide_row_settled(&fr, row, fc, masks);
-            const Lanes wh = masks[0], y = masks[1], u = masks[2];
-            const Lanes v = visit[i], open = v & (Lanes)~wh;
-            whole[i] = v & wh;
-            yes[i] = open & y;
-            if (open & u) {
-                unsure_slots[m] = (int32_t)i;
-                unsure_lanes[m++] = open & u;
-            }
-            kid[2 * i] = kid[2 * i + 1] = -1;
-            if (!open)
-                continue;
-            /* The children, for the frames that did not decide this subtree. */
-            int32_t kids;
-            memcpy(&kids, row + KIDS, sizeof kids);
-            const int32_t first = kids_first(kids), count = kids & 3;
-            if (n + count > h->n_pcols)
-                return -1;
-            for (int t = 0; t < count; t++) {
-                kid[2 * i + t] = (int32_t)n;
-                visit[n] = open;
-                ids[n++] = first + t;
-            }
-        }
+        /* Those under every frame of the word, one by one, each kind in a
+         * loop of its own (a branch on the kind per slot is a coin toss). */
+        Lanes frame_masks[3];
+#define DECIDE_SLOTS(bits, call)                                                                                  \
+    for (uint32_t left = (bits); left; left &= left - 1) {                                                        \
+        const int j = __builtin_ctz(left);                                                                         \
+        const float *row = table + (int64_t)ids[i0 + j] * ROW;                                                     \
+        call;                                                                                                      \
+        masks[0][j] = frame_masks[0], masks[1][j] = frame_masks[1], masks[2][j] = frame_masks[2];                \
+    }
+        DECIDE_SLOTS(open, decide_row(&fr, row, frame_masks))
+        DECIDE_SLOTS(screen, kern->decide_row_settled(&fr, row, FAT_SCREEN, frame_masks))
+        DECIDE_SLOTS(inside, kern->decide_row_settled(&fr, row, FAT_INSIDE, frame_masks))
+#undef DECIDE_SLOTS
+        /* Each slot's frames, and the children of the open ones. */
+        n = kern->push_word_block(h, i0, nb, n, (const Lanes(*)[BLOCK])masks, col[KIDS], visit, whole, yes, kid, ids,
+                                  unsure_slots, unsure_lanes, &m);
+        if (n < 0)
+            return -1;
         i0 += nb;
     }
     *n_unsure = m;
