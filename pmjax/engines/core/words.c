@@ -10,6 +10,9 @@
 #include <stdlib.h>
 
 #include "internal.h"
+#if PMX_X86
+#include <immintrin.h>
+#endif
 
 /* One word (views [n_frames, PMX_VIEW]; fat: its fat camera or NULL). Slot i
  * holds position ids[i], visited by the frames visit[i]; whole[i], yes[i]
@@ -51,17 +54,12 @@ int64_t traverse_word(const Kernels *kern, const PmxHierarchy *h, const float *v
         /* The frames' masks (whole, yes, unsure) of the slots the fat camera
          * decided, and the slots left to the frames by kind: every test
          * (open), or less those the fat camera settled. */
+        if (!use_fat)
+            for (int j = 0; j < BLOCK; j++)
+                fat_code[j] = FAT_OPEN;
         Lanes masks[3][BLOCK];
-        uint32_t open = 0, screen = 0, inside = 0;
-        for (int j = 0; j < BLOCK; j++) {
-            const int32_t fc = use_fat ? fat_code[j] : FAT_OPEN;
-            const uint32_t here = j < nb;
-            masks[0][j] = fc == FAT_WHOLE ? (Lanes)0xFFFF : 0, masks[1][j] = masks[2][j] = 0;
-            decided_at_once += here & ((fc == FAT_WHOLE) | (fc == FAT_NO));
-            open |= (here & (fc == FAT_OPEN)) << j;
-            screen |= (here & (fc == FAT_SCREEN)) << j;
-            inside |= (here & (fc == FAT_INSIDE)) << j;
-        }
+        uint32_t kinds[3];
+        decided_at_once += kern->fat_masks(fat_code, nb, masks, kinds);
         /* Those under every frame of the word, one by one, each kind in a
          * loop of its own (a branch on the kind per slot is a coin toss). */
         Lanes frame_masks[3];
@@ -72,9 +70,9 @@ int64_t traverse_word(const Kernels *kern, const PmxHierarchy *h, const float *v
         call;                                                                                                      \
         masks[0][j] = frame_masks[0], masks[1][j] = frame_masks[1], masks[2][j] = frame_masks[2];                \
     }
-        DECIDE_SLOTS(open, decide_row(&fr, row, frame_masks))
-        DECIDE_SLOTS(screen, kern->decide_row_settled(&fr, row, FAT_SCREEN, frame_masks))
-        DECIDE_SLOTS(inside, kern->decide_row_settled(&fr, row, FAT_INSIDE, frame_masks))
+        DECIDE_SLOTS(kinds[0], decide_row(&fr, row, frame_masks))
+        DECIDE_SLOTS(kinds[1], kern->decide_row_settled(&fr, row, FAT_SCREEN, frame_masks))
+        DECIDE_SLOTS(kinds[2], kern->decide_row_settled(&fr, row, FAT_INSIDE, frame_masks))
 #undef DECIDE_SLOTS
         /* Each slot's frames, and the children of the open ones. */
         n = kern->push_word_block(h, i0, nb, n, (const Lanes(*)[BLOCK])masks, col[KIDS], visit, whole, yes, kid, ids,
@@ -87,6 +85,56 @@ int64_t traverse_word(const Kernels *kern, const PmxHierarchy *h, const float *v
     *at_once = decided_at_once;
     return n;
 }
+
+/* A block's fat codes code[0..nb) as the frames' masks (masks[0]: whole,
+ * every frame where FAT_WHOLE; masks[1]: yes, every frame where FAT_YES;
+ * masks[2]: unsure, none) and the slots left to the frames as bits j of
+ * kinds[0] (FAT_OPEN), kinds[1] (FAT_SCREEN), kinds[2] (FAT_INSIDE).
+ * Returns the number of slots decided for every frame (FAT_WHOLE, FAT_NO,
+ * FAT_YES). */
+PMX_INLINE int fat_masks_body(const int32_t *code, int64_t nb, Lanes (*masks)[BLOCK], uint32_t *kinds)
+{
+    int at_once = 0;
+    kinds[0] = kinds[1] = kinds[2] = 0;
+    for (int j = 0; j < BLOCK; j++) {
+        const int32_t fc = code[j];
+        const uint32_t here = j < nb;
+        masks[0][j] = here & (fc == FAT_WHOLE) ? (Lanes)0xFFFF : 0;
+        masks[1][j] = here & (fc == FAT_YES) ? (Lanes)0xFFFF : 0, masks[2][j] = 0;
+        at_once += (int)(here & ((fc == FAT_WHOLE) | (fc == FAT_NO) | (fc == FAT_YES)));
+        kinds[0] |= (here & (fc == FAT_OPEN)) << j;
+        kinds[1] |= (here & (fc == FAT_SCREEN)) << j;
+        kinds[2] |= (here & (fc == FAT_INSIDE)) << j;
+    }
+    return at_once;
+}
+int fat_masks_plain(const int32_t *code, int64_t nb, Lanes (*masks)[BLOCK], uint32_t *kinds)
+{
+    return fat_masks_body(code, nb, masks, kinds);
+}
+#if PMX_X86
+PMX_TARGET_AVX2 int fat_masks_avx2(const int32_t *code, int64_t nb, Lanes (*masks)[BLOCK], uint32_t *kinds)
+{
+    return fat_masks_body(code, nb, masks, kinds);
+}
+/* The same with AVX-512's compares into mask registers (the plain loop
+ * builds each mask bit by bit). */
+PMX_TARGET_AVX512 int fat_masks_avx512(const int32_t *code, int64_t nb, Lanes (*masks)[BLOCK], uint32_t *kinds)
+{
+    const __mmask16 valid = (__mmask16)((1u << nb) - 1);
+    const __m512i c = _mm512_loadu_si512(code), every = _mm512_set1_epi32(0xFFFF);
+    const __mmask16 whole = _mm512_mask_cmpeq_epi32_mask(valid, c, _mm512_set1_epi32(FAT_WHOLE));
+    const __mmask16 yes = _mm512_mask_cmpeq_epi32_mask(valid, c, _mm512_set1_epi32(FAT_YES));
+    const __mmask16 no = _mm512_mask_cmpeq_epi32_mask(valid, c, _mm512_set1_epi32(FAT_NO));
+    _mm256_storeu_si256((__m256i *)masks[0], _mm512_cvtepi32_epi16(_mm512_maskz_mov_epi32(whole, every)));
+    _mm256_storeu_si256((__m256i *)masks[1], _mm512_cvtepi32_epi16(_mm512_maskz_mov_epi32(yes, every)));
+    _mm256_storeu_si256((__m256i *)masks[2], _mm256_setzero_si256());
+    kinds[0] = _mm512_mask_cmpeq_epi32_mask(valid, c, _mm512_set1_epi32(FAT_OPEN));
+    kinds[1] = _mm512_mask_cmpeq_epi32_mask(valid, c, _mm512_set1_epi32(FAT_SCREEN));
+    kinds[2] = _mm512_mask_cmpeq_epi32_mask(valid, c, _mm512_set1_epi32(FAT_INSIDE));
+    return _mm_popcnt_u32((uint32_t)(whole | yes | no));
+}
+#endif
 
 /* Bottom-up for a word: per frame, a slot ran if the frame did not visit it
  * (decided above), its bound decided it, or it collapses and both children
