@@ -140,14 +140,13 @@ PMX_TARGET_AVX512 int fat_masks_avx512(const int32_t *code, int64_t nb, Lanes (*
  * (decided above), its bound decided it, or it collapses and both children
  * ran. Writes ran[], pcols[] (each slot's pcol; optional) and per frame the
  * pcols that did not run and the faces they keep (counts[FRAMES]). */
-PMX_INLINE void resolve_word_body(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids,
-                                  const int32_t *kid, const Lanes *visit, const Lanes *whole, const Lanes *yes,
-                                  Lanes *ran, int32_t *pcols, PmxCounts *counts)
+PMX_INLINE void resolve_word_range(const int32_t *kills, const int32_t *order, int64_t lo, int64_t hi,
+                                   const int32_t *ids, const int32_t *kid, const Lanes *visit, const Lanes *whole,
+                                   const Lanes *yes, Lanes *ran, int32_t *pcols, int32_t *failures, int32_t *keeps)
 {
     /* Per-frame counts as int32 lanes (one vector add per slot that failed
      * somewhere; no count exceeds P or F). */
-    int32_t failures[FRAMES] = {0}, keeps[FRAMES] = {0};
-    for (int64_t i = n - 1; i >= 0; i--) {
+    for (int64_t i = hi - 1; i >= lo; i--) {
         const int32_t k1 = kid[2 * i], k2 = kid[2 * i + 1];
         const Lanes below = (Lanes)((k1 < 0 ? 0xFFFF : ran[k1]) & (k2 < 0 ? 0xFFFF : ran[k2]));
         const Lanes r = (Lanes)(~visit[i] | whole[i] | (yes[i] & below));
@@ -165,6 +164,14 @@ PMX_INLINE void resolve_word_body(const int32_t *kills, const int32_t *order, in
             }
         }
     }
+}
+
+PMX_INLINE void resolve_word_body(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids,
+                                  const int32_t *kid, const Lanes *visit, const Lanes *whole, const Lanes *yes,
+                                  Lanes *ran, int32_t *pcols, PmxCounts *counts)
+{
+    int32_t failures[FRAMES] = {0}, keeps[FRAMES] = {0};
+    resolve_word_range(kills, order, 0, n, ids, kid, visit, whole, yes, ran, pcols, failures, keeps);
     for (int l = 0; l < FRAMES; l++)
         counts[l].not_run = failures[l], counts[l].kept = keeps[l];
 }
@@ -182,11 +189,71 @@ PMX_TARGET_AVX2 void resolve_word_avx2(const int32_t *kills, const int32_t *orde
 {
     resolve_word_body(kills, order, n, ids, kid, visit, whole, yes, ran, pcols, counts);
 }
+/* The same sixteen slots at a time with AVX-512 (the scalar loop's branch on
+ * whether a slot failed somewhere is a coin toss): groups of slots aligned
+ * to sixteen from the end, whose children all sit in later groups (a group
+ * of the rare stretch where the queue ran short of a block may hold its own
+ * children and goes through the scalar loop). ran[] needs 2 bytes past n:
+ * the children's frames are gathered as int32. Same results, bit for bit. */
 PMX_TARGET_AVX512 void resolve_word_avx512(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids,
                                            const int32_t *kid, const Lanes *visit, const Lanes *whole,
                                            const Lanes *yes, Lanes *ran, int32_t *pcols, PmxCounts *counts)
 {
-    resolve_word_body(kills, order, n, ids, kid, visit, whole, yes, ran, pcols, counts);
+    int32_t failures[FRAMES] = {0}, keeps[FRAMES] = {0};
+    const __m512i none = _mm512_set1_epi32(-1), zero = _mm512_setzero_si512(), every = _mm512_set1_epi32(0xFFFF);
+    const __m512i frame_bit = _mm512_sllv_epi32(_mm512_set1_epi32(1), _mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8,
+                                                                                       7, 6, 5, 4, 3, 2, 1, 0));
+    /* Each slot's first and second child out of the pairs kid[2j], kid[2j + 1]. */
+    const __m512i even = _mm512_set_epi32(30, 28, 26, 24, 22, 20, 18, 16, 14, 12, 10, 8, 6, 4, 2, 0);
+    const __m512i odd = _mm512_add_epi32(even, _mm512_set1_epi32(1));
+    __m512i not_run = zero, kept = zero; /* lane l: frame l */
+    for (int64_t s = (n - 1) & ~(int64_t)(BLOCK - 1); s >= 0; s -= BLOCK) {
+        const int64_t nb = n - s < BLOCK ? n - s : BLOCK;
+        const __mmask16 valid = (__mmask16)((1u << nb) - 1);
+        const uint32_t kid_valid = nb == BLOCK ? 0xFFFFFFFFu : (1u << (2 * nb)) - 1;
+        const __m512i pairs_lo = _mm512_mask_loadu_epi32(none, (__mmask16)kid_valid, kid + 2 * s);
+        const __m512i pairs_hi = _mm512_mask_loadu_epi32(none, (__mmask16)(kid_valid >> 16), kid + 2 * s + BLOCK);
+        const __m512i k1 = _mm512_permutex2var_epi32(pairs_lo, even, pairs_hi);
+        const __m512i k2 = _mm512_permutex2var_epi32(pairs_lo, odd, pairs_hi);
+        const __mmask16 has1 = _mm512_cmpge_epi32_mask(k1, zero), has2 = _mm512_cmpge_epi32_mask(k2, zero);
+        const __m512i end = _mm512_set1_epi32((int32_t)(s + nb));
+        if (_mm512_mask_cmplt_epi32_mask(has1, k1, end) | _mm512_mask_cmplt_epi32_mask(has2, k2, end)) {
+            resolve_word_range(kills, order, s, s + nb, ids, kid, visit, whole, yes, ran, pcols, failures, keeps);
+            continue;
+        }
+        /* The children's frames (every frame where there is no child). */
+        const __m512i r1 = _mm512_mask_i32gather_epi32(every, has1, k1, ran, 2);
+        const __m512i r2 = _mm512_mask_i32gather_epi32(every, has2, k2, ran, 2);
+        const __m512i below = _mm512_and_si512(_mm512_and_si512(r1, r2), every);
+        const __m512i v = _mm512_cvtepu16_epi32(_mm256_maskz_loadu_epi16(valid, visit + s));
+        const __m512i wh = _mm512_cvtepu16_epi32(_mm256_maskz_loadu_epi16(valid, whole + s));
+        const __m512i y = _mm512_cvtepu16_epi32(_mm256_maskz_loadu_epi16(valid, yes + s));
+        /* r = ~visit | whole | (yes & below), and the frames where it failed. */
+        const __m512i r = _mm512_ternarylogic_epi32(wh, y, below, 0xF8); /* wh | (y & below) */
+        const __m512i failed = _mm512_andnot_si512(r, v);
+        _mm512_mask_cvtepi32_storeu_epi16(ran + s, valid, _mm512_xor_si512(failed, every));
+        const __m512i at = _mm512_maskz_loadu_epi32(valid, ids + s);
+        if (pcols) /* not for counts alone: order[] is read at random */
+            _mm512_mask_storeu_epi32(pcols + s, valid, _mm512_mask_i32gather_epi32(zero, valid, at, order, 4));
+        __mmask16 some = _mm512_mask_test_epi32_mask(valid, failed, failed);
+        if (!some)
+            continue;
+        int32_t f[BLOCK], k[BLOCK];
+        _mm512_storeu_si512(f, failed);
+        _mm512_storeu_si512(k, _mm512_mask_i32gather_epi32(zero, some, at, kills, 4));
+        /* Each failing slot into its frames' counts. */
+        for (uint32_t left = some; left; left &= left - 1) {
+            const int j = __builtin_ctz(left);
+            const __mmask16 frames = _mm512_test_epi32_mask(_mm512_set1_epi32(f[j]), frame_bit);
+            not_run = _mm512_mask_add_epi32(not_run, frames, not_run, _mm512_set1_epi32(1));
+            kept = _mm512_mask_add_epi32(kept, frames, kept, _mm512_set1_epi32(k[j]));
+        }
+    }
+    int32_t nr[FRAMES], kp[FRAMES];
+    _mm512_storeu_si512(nr, not_run);
+    _mm512_storeu_si512(kp, kept);
+    for (int l = 0; l < FRAMES; l++)
+        counts[l].not_run = failures[l] + nr[l], counts[l].kept = keeps[l] + kp[l];
 }
 #endif
 
