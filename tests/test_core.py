@@ -329,6 +329,7 @@ def test_fat_camera_decisions_hold_for_every_frame(built, name):
     """Over every pcol, for words of frames: where the fat camera says
     "whole", every frame's subtree collapses under the float32 predicate;
     where it says "no", no frame's predicate collapses the pcol; where it
+    says "yes", every frame's does (and its screen bound does not hold); where it
     settles tests ("inside": the frustum test, "screen": the frustum and
     orientation tests), no frame's predicate with only those tests on
     collapses the pcol, nor does their subtree bound hold for any frame.
@@ -351,8 +352,17 @@ def test_fat_camera_decisions_hold_for_every_frame(built, name):
                 cam = index_camera(word, f)
                 want = np.asarray(pmjax.collapse_mask(pm.attributes, cam, jnp.float32(tau), pmjax.ALL_TESTS))
                 assert not np.any(want[got == _core.FAT_NO]), (label, tau, f)
-                for tests, settled in ((Tests(orientation=False, screen=False), (_core.FAT_INSIDE, _core.FAT_SCREEN)),
-                                       (Tests(frustum=False, screen=False), (_core.FAT_SCREEN,))):
+                # "yes": every frame's predicate collapses the pcol, its screen
+                # test's certified decision is not "no", and that test's
+                # subtree bound does not hold (the frames take the pcol as
+                # collapsing, its children visited).
+                assert np.all(want[got == _core.FAT_YES]), (label, tau, f)
+                screen = decide_every_pcol(pm, cam, tau, Tests(frustum=False, orientation=False))
+                assert not np.any((screen[got == _core.FAT_YES] & 3) == _core.NO), (label, tau, f)
+                assert not np.any(screen[got == _core.FAT_YES] & _core.WHOLE), (label, tau, f)
+                for tests, settled in ((Tests(orientation=False, screen=False),
+                                        (_core.FAT_INSIDE, _core.FAT_SCREEN, _core.FAT_YES)),
+                                       (Tests(frustum=False, screen=False), (_core.FAT_SCREEN, _core.FAT_YES))):
                     by = np.asarray(pmjax.collapse_mask(pm.attributes, cam, jnp.float32(tau), tests))
                     assert not np.any(by[np.isin(got, settled)]), (label, tau, f, tests)
                     # Nor do those tests' subtree bounds hold there (the frames leave them out).
@@ -367,18 +377,18 @@ def test_fat_camera_decisions_hold_for_every_frame(built, name):
                         all_below[lo:hi][has] &= all_below[k[has]]
                 assert np.all(all_below[got == _core.FAT_WHOLE]), (label, tau, f)
             if label.startswith("orbit") and tau == 1.0:
-                assert np.mean(got == 1) > 0.3 and np.any(got == 2), (label, np.bincount(got, minlength=5))
-                # Both settled codes occur, so both ways of leaving tests out
-                # are exercised (on the terrain, whose surface faces the orbit's
+                assert np.mean(got == 1) > 0.3 and np.any(got == 2), (label, np.bincount(got, minlength=6))
+                # Both settled codes and "yes" occur, so every way of leaving
+                # tests out is exercised (on the terrain, whose surface faces the orbit's
                 # eyes, the orientation test is settled wherever the frustum is).
-                counts = np.bincount(got, minlength=5)
-                assert counts[_core.FAT_SCREEN] > 0, (label, counts)
+                counts = np.bincount(got, minlength=6)
+                assert counts[_core.FAT_SCREEN] > 0 and counts[_core.FAT_YES] > 0, (label, counts)
                 assert counts[_core.FAT_INSIDE] > 0 or name.startswith("terrain"), (label, counts)
                 if name == "bunny.ply":
                     # The chord's range of v . n settles the orientation test
                     # on most pcols near the silhouette: fewer are left open
                     # on it than have it settled and the screen test open.
-                    assert counts[_core.FAT_INSIDE] < counts[_core.FAT_SCREEN], (label, counts)
+                    assert counts[_core.FAT_INSIDE] < counts[_core.FAT_SCREEN] + counts[_core.FAT_YES], (label, counts)
                 nan = jnp.full(_core.FAT, jnp.nan, jnp.float32)
                 unused = _core.decide_fat_all(table, views, nan, _core.flags_of(pmjax.ALL_TESTS, False))
                 assert not np.any(np.asarray(unused)), label

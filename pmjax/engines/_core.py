@@ -654,9 +654,10 @@ def front_mesh_eager(tables, ran, positions, counts, item: int, n_original: int,
 # A pcol's own decision in the core (certify.h): keep, collapse, unsure; |
 # WHOLE where its bound decides everything below it. Fat-camera passes:
 # open, every frame's subtree collapses, no frame collapses it, only the
-# screen test left to the frames, the frustum test settled for them.
+# screen test left to the frames, the frustum test settled for them, every
+# frame collapses it (its subtree bound holding for none).
 NO, YES, UNSURE, WHOLE = 0, 1, 2, 4
-FAT_OPEN, FAT_WHOLE, FAT_NO, FAT_SCREEN, FAT_INSIDE = 0, 1, 2, 3, 4
+FAT_OPEN, FAT_WHOLE, FAT_NO, FAT_SCREEN, FAT_INSIDE, FAT_YES = 0, 1, 2, 3, 4, 5
 
 
 @functools.partial(jax.jit, static_argnames=("orthographic",))
@@ -686,6 +687,7 @@ def decide_fat_all(rows, view_values, fat, flags: int):
     """``uint8 [P]``: every pcol under the fat camera of ``[F, 22]`` view
     constants (``FAT_OPEN``, ``FAT_WHOLE``, ``FAT_NO``, ``FAT_SCREEN``: only
     the screen test left to the frames, ``FAT_INSIDE``: the frustum test
-    settled)."""
+    settled, ``FAT_YES``: every frame collapses it, no frame's subtree bound
+    holding)."""
     return _call("pmx_decide_fat_all", _sds((rows.shape[0],), jnp.uint8), rows, view_values, fat,
                  flags=np.int32(flags))

@@ -42,7 +42,15 @@
  * Otherwise the frames are decided one by one, less the tests settled for
  * all of them: FAT_INSIDE where every frame's frustum test surely keeps the
  * pcol, FAT_SCREEN where its orientation test does too (the bounds of
- * FAT_NO's first two parts).
+ * FAT_NO's first two parts). Where those two are settled, the pcol is
+ * decided for all the frames once more as
+ *
+ *  - FAT_YES: every frame's screen test surely collapses it (its own
+ *    decision "yes", the bounds as FAT_NO's with the other ends of the
+ *    ranges), and no frame's screen bound can hold (its error is at least
+ *    the largest tolerance at the largest room any frame's float32 bound
+ *    can compute), so that every frame's decision is "yes" and not "whole",
+ *    as its own.
  * Either way every frame gets the bits of its own refinement. */
 #include "certify.h"
 
@@ -101,8 +109,9 @@ void load_fat(Fat *W, const float *fat, const Frames *fr, int n_frames)
  * roundings from d, which is within a few ulps of the exact distance). */
 #define GROW_M (1.0f + 0x1p-18f)
 
-/* One pcol under every frame of the fat camera W: FAT_WHOLE, FAT_NO, or the
- * tests left to the frames (FAT_SCREEN, FAT_INSIDE, FAT_OPEN). No branches
+/* One pcol under every frame of the fat camera W: FAT_WHOLE, FAT_NO,
+ * FAT_YES, or the tests left to the frames (FAT_SCREEN, FAT_INSIDE,
+ * FAT_OPEN). No branches
  * (vectorized over the pcols of a block). */
 static inline __attribute__((always_inline)) int32_t decide_fat_one(const Fat *W, const Pcol q)
 {
@@ -197,7 +206,27 @@ static inline __attribute__((always_inline)) int32_t decide_fat_one(const Fat *W
      * surely, with d^2 - h^2 = |v x n|^2 + d^2 (1 - |n|^2) and |v x n|
      * moving by at most rho |n|. */
     const float wx = vy * nz - vz * ny, wy = vz * nx - vx * nz, wz = vx * ny - vy * nx;
-    const float wlo = pos(sqrtf(wx * wx + wy * wy + wz * wz) - hshift), mw = v1 * n1 + hshift;
+    const float wlen = sqrtf(wx * wx + wy * wy + wz * wz);
+    /* Along a path, v x n = P - t Q - delta x n with P = (c - a) x n, Q = ab
+     * x n: |v x n| is at least the distance from P to the segment [0, Q]
+     * (less the rounding of the projection, as path_lo's) less capsule |n|;
+     * its largest is at an end (a norm is convex in t), at most the larger
+     * of |P| and |P - Q| = |(c - b) x n| plus capsule |n|. */
+    const float px0 = oy * nz - oz * ny, py0 = oz * nx - ox * nz, pz0 = ox * ny - oy * nx;
+    const float px1 = by * nz - bz * ny, py1 = bz * nx - bx * nz, pz1 = bx * ny - by * nx;
+    const float qx = px0 - px1, qy = py0 - py1, qz = pz0 - pz1, qq = qx * qx + qy * qy + qz * qz;
+    const float tq = qq > 0x1p-100f ? (px0 * qx + py0 * qy + pz0 * qz) / qq : 0.0f;
+    const float tc = tq > 0.0f ? (tq < 1.0f ? tq : 1.0f) : 0.0f;
+    const float rx = px0 - tc * qx, ry = py0 - tc * qy, rz = pz0 - tc * qz;
+    const float pslop = 0x1p-18f * (fabsf(px0) + fabsf(py0) + fabsf(pz0) + fabsf(qx) + fabsf(qy) + fabsf(qz));
+    const float p0 = px0 * px0 + py0 * py0 + pz0 * pz0, p1 = px1 * px1 + py1 * py1 + pz1 * pz1;
+    const float wpath_lo = sqrtf(rx * rx + ry * ry + rz * rz) - pslop - cshift;
+    const float wpath_hi = sqrtf(p0 > p1 ? p0 : p1) + cshift;
+    /* The magnitudes bound either way's terms. */
+    const float mw = v1 * n1 + hshift +
+                     (fabsf(ox) + fabsf(oy) + fabsf(oz) + fabsf(W->abx) + fabsf(W->aby) + fabsf(W->abz)) * n1 * 2 +
+                     cshift;
+    const float wlo = pos(wlen - hshift > wpath_lo ? wlen - hshift : wpath_lo);
     const float nn = nx * nx + ny * ny + nz * nz;
     const _Bool coarse =
         less(mu * mu - kappa2_hi * far_d2, 2 * mu * mu + 2 * kappa2_hi * far_d2 * GROW_M, slack).n |
@@ -206,10 +235,35 @@ static inline __attribute__((always_inline)) int32_t decide_fat_one(const Fat *W
                  2 * kappa2_hi * far_d2 * far_d2 * GROW_M,
              slack)
             .n;
+    /* Small for every frame (at the smallest kappa2, the nearest distance):
+     * mu^2 < kappa2 d^2 surely, and delta^2 (d^2 - h^2) < kappa2 d^4 surely,
+     * with |v x n| at most |w| + rho |n| or the path's bound, the smaller;
+     * the magnitudes as coarse's. */
+    const float whi = wlen + hshift < wpath_hi ? wlen + hshift : wpath_hi, near_d2 = near_d * near_d;
+    const _Bool small =
+        less(mu * mu - kappa2 * near_d2, 2 * mu * mu + 2 * kappa2_hi * far_d2 * GROW_M, slack).y &
+        less(delta * delta * (whi * whi + dhi2 * pos(1 - nn)) - kappa2 * near_d2 * near_d2,
+             delta * delta * (mw * mw + dhi2 * (nn + 1) + dhi2 * (1 + n1 * n1) * GROW_M) +
+                 2 * kappa2_hi * far_d2 * far_d2 * GROW_M,
+             slack)
+            .y;
+    /* No frame's screen bound (bound_small at its own distance) holds: its
+     * room, d - spread less a nonnegative margin in float32, is at most
+     * room_hi (far_d and the rounding of the frame's d and of room_hi's own
+     * operations covered by 2^-16 twice), and e2 is at least every frame's
+     * kappa2 room^2 (1 - SCREEN_MARGIN) in float32 (2^-16 covers its three
+     * roundings and this product's). */
+    const float room_hi = pos(far_d * (1 + 0x1p-16f) - q.spread) * (1 + 0x1p-16f);
+    const _Bool unbounded = (q.spread >= 0) & (e2 > kappa2_hi * room_hi * room_hi * (1 + 0x1p-16f));
     /* Otherwise the tests settled for every frame (FAT_INSIDE, FAT_SCREEN)
      * are left out of the frames' own decisions. */
     const _Bool seen = guard & inside;
-    return whole ? FAT_WHOLE : !seen ? FAT_OPEN : !toward ? FAT_INSIDE : coarse ? FAT_NO : FAT_SCREEN;
+    return whole    ? FAT_WHOLE
+           : !seen  ? FAT_OPEN
+           : !toward ? FAT_INSIDE
+           : coarse ? FAT_NO
+           : small & unbounded ? FAT_YES
+                               : FAT_SCREEN;
 }
 
 /* The level wrappers of the fat pass over a block. */
@@ -226,7 +280,7 @@ PMX_TARGET_AVX512 void decide_fat_avx512(const Fat *W, Columns col, int32_t *cod
 #endif
 
 /* Every pcol under the fat camera of views [n_frames, PMX_VIEW] (FAT_WHOLE,
- * FAT_NO, FAT_SCREEN, FAT_INSIDE or FAT_OPEN; all FAT_OPEN where the fat
+ * FAT_NO, FAT_YES, FAT_SCREEN, FAT_INSIDE or FAT_OPEN; all FAT_OPEN where the fat
  * camera does not apply), for
  * tests that compare it with every frame's float32 predicate. */
 void pmx_decide_fat_all(const float *rows, int64_t n_pcols, const float *views, int n_frames, int flags,

@@ -33,8 +33,9 @@ enum { NO = 0, YES = 1, UNSURE = 2, WHOLE = 4 };
 
 /* Decisions of the fat pass. FAT_INSIDE: every frame's frustum test surely
  * keeps the pcol; FAT_SCREEN: its orientation test too (only the screen test
- * is left to the frames). */
-enum { FAT_OPEN = 0, FAT_WHOLE = 1, FAT_NO = 2, FAT_SCREEN = 3, FAT_INSIDE = 4 };
+ * is left to the frames); FAT_YES: that screen test surely collapses the
+ * pcol for every frame, and no frame's subtree bound holds. */
+enum { FAT_OPEN = 0, FAT_WHOLE = 1, FAT_NO = 2, FAT_SCREEN = 3, FAT_INSIDE = 4, FAT_YES = 5 };
 /* The tests a frame's decision may leave out (decide_one's settled). */
 enum { SETTLED_FRUSTUM = 1, SETTLED_ORIENTATION = 2 };
 
@@ -123,6 +124,11 @@ int scratch_mesh(PmxScratch *s, int64_t n_original, int64_t n_faces);
 typedef int64_t (*PushBlock)(const PmxHierarchy *h, int64_t i, int64_t nb, int64_t n, const int32_t *decided,
                              const float *kids, uint8_t *state, int32_t *kill, int32_t *kid, int32_t *ids,
                              int32_t *parent, int32_t *unsure, int64_t *m);
+/* The slots' bookkeeping of one decided block of a word (slots_plain.c). */
+typedef int64_t (*PushWordBlock)(const PmxHierarchy *h, int64_t i, int64_t nb, int64_t n,
+                                 const Lanes (*masks)[BLOCK], const float *kids, Lanes *visit, Lanes *whole,
+                                 Lanes *yes, int32_t *kid, int32_t *ids, int32_t *unsure_slots, Lanes *unsure_lanes,
+                                 int64_t *m);
 typedef void (*Resolve)(const PmxHierarchy *h, int64_t n, const int32_t *ids, const int32_t *kid,
                         const uint8_t *state, const int32_t *kill, uint8_t *ran, int32_t *pcols, int64_t *not_run,
                         int64_t *kept);
@@ -139,6 +145,8 @@ typedef struct {
     void (*decide_fat)(const Fat *W, Columns col, int32_t *code);
     void (*gather)(const float *const *rows, Columns col);
     PushBlock push_block;
+    PushWordBlock push_word_block;
+    int (*fat_masks)(const int32_t *code, int64_t nb, Lanes (*masks)[BLOCK], uint32_t *kinds);
     Resolve resolve;
     void (*resolve_word)(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids,
                          const int32_t *kid, const Lanes *visit, const Lanes *whole, const Lanes *yes, Lanes *ran,
@@ -162,6 +170,7 @@ const Kernels *pmx_kernels_at(int level, int *used);
     void decide_row_settled_##suffix(const Frames *fr, const float *row, int32_t fat_code, Lanes *masks);    \
     void decide_fat_##suffix(const Fat *W, Columns col, int32_t *code);                                      \
     void gather_##suffix(const float *const *rows, Columns col);                                            \
+    int fat_masks_##suffix(const int32_t *code, int64_t nb, Lanes (*masks)[BLOCK], uint32_t *kinds);         \
     void resolve_word_##suffix(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids,    \
                                const int32_t *kid, const Lanes *visit, const Lanes *whole, const Lanes *yes, \
                                Lanes *ran, int32_t *pcols, PmxCounts *counts);                               \
@@ -178,6 +187,9 @@ PMX_LEVEL_DECLS(avx512)
 int64_t push_block_plain(const PmxHierarchy *h, int64_t i, int64_t nb, int64_t n, const int32_t *decided,
                          const float *kids, uint8_t *state, int32_t *kill, int32_t *kid, int32_t *ids, int32_t *parent,
                          int32_t *unsure, int64_t *m);
+int64_t push_word_block_plain(const PmxHierarchy *h, int64_t i, int64_t nb, int64_t n, const Lanes (*masks)[BLOCK],
+                              const float *kids, Lanes *visit, Lanes *whole, Lanes *yes, int32_t *kid, int32_t *ids,
+                              int32_t *unsure_slots, Lanes *unsure_lanes, int64_t *m);
 void resolve_plain_range(const PmxHierarchy *h, int64_t lo, int64_t hi, const int32_t *ids, const int32_t *kid,
                          const uint8_t *state, const int32_t *kill, uint8_t *ran, int32_t *pcols, int64_t *not_run,
                          int64_t *kept);
@@ -192,6 +204,9 @@ void resolve_avx2(const PmxHierarchy *h, int64_t n, const int32_t *ids, const in
 int64_t push_block_avx512(const PmxHierarchy *h, int64_t i, int64_t nb, int64_t n, const int32_t *decided,
                           const float *kids, uint8_t *state, int32_t *kill, int32_t *kid, int32_t *ids,
                           int32_t *parent, int32_t *unsure, int64_t *m);
+int64_t push_word_block_avx512(const PmxHierarchy *h, int64_t i, int64_t nb, int64_t n, const Lanes (*masks)[BLOCK],
+                               const float *kids, Lanes *visit, Lanes *whole, Lanes *yes, int32_t *kid, int32_t *ids,
+                               int32_t *unsure_slots, Lanes *unsure_lanes, int64_t *m);
 void resolve_avx512(const PmxHierarchy *h, int64_t n, const int32_t *ids, const int32_t *kid, const uint8_t *state,
                     const int32_t *kill, uint8_t *ran, int32_t *pcols, int64_t *not_run, int64_t *kept);
 #endif

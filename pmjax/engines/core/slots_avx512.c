@@ -4,6 +4,55 @@
 #if PMX_X86
 #include <immintrin.h>
 
+/* Lanes j of a and b interleaved (a_0, b_0, a_1, b_1, ...) in queue order
+ * and compressed: the block's first eight lanes' pairs by lo into *at_lo, the
+ * last eight's by hi into *at_hi. */
+PMX_INLINE PMX_TARGET_AVX512 void spread_pairs(__m512i a, __m512i b, __mmask16 lo, __mmask16 hi, __m512i *at_lo,
+                                               __m512i *at_hi)
+{
+    const __m512i pick_lo = _mm512_set_epi32(23, 7, 22, 6, 21, 5, 20, 4, 19, 3, 18, 2, 17, 1, 16, 0);
+    const __m512i pick_hi = _mm512_add_epi32(pick_lo, _mm512_set1_epi32(8));
+    *at_lo = _mm512_maskz_compress_epi32(lo, _mm512_permutex2var_epi32(a, pick_lo, b));
+    *at_hi = _mm512_maskz_compress_epi32(hi, _mm512_permutex2var_epi32(a, pick_hi, b));
+}
+
+/* The children of the open lanes of block [i, i + nb) (k: their rows' KIDS
+ * column) pushed behind the queue at n: their slots into kid[] (-1 where no
+ * child is visited), their positions into ids[]; *lo, *hi: the children in
+ * queue order (bit 2j: lane j's first, 2j + 1: its second) of the first and
+ * the last eight lanes. Returns the new end of the queue, or -1 (nothing
+ * pushed) where it would pass limit. */
+PMX_INLINE PMX_TARGET_AVX512 int64_t push_children(__m512i k, __mmask16 open, int64_t i, int64_t nb, int64_t n,
+                                                   int64_t limit, int32_t *kid, int32_t *ids, __mmask16 *lo,
+                                                   __mmask16 *hi)
+{
+    const __m512i lane = _mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
+    /* Lanes with at least one / two children to visit. */
+    const __m512i count = _mm512_and_si512(k, _mm512_set1_epi32(3));
+    const __mmask16 one = _mm512_mask_cmpgt_epi32_mask(open, count, _mm512_setzero_si512());
+    const __mmask16 two = _mm512_mask_cmpgt_epi32_mask(open, count, _mm512_set1_epi32(1));
+    const uint32_t pushed = _pdep_u32(one, 0x55555555u) | _pdep_u32(two, 0xAAAAAAAAu);
+    *lo = (__mmask16)pushed, *hi = (__mmask16)(pushed >> 16);
+    const int n_lo = _mm_popcnt_u32(*lo), n_hi = _mm_popcnt_u32(*hi);
+    if (n + n_lo + n_hi > limit)
+        return -1;
+    /* Their slots (-1 where no child is visited): n, n + 1, ... expanded. */
+    const __m512i none = _mm512_set1_epi32(-1);
+    const __m512i slot_lo = _mm512_mask_expand_epi32(none, *lo, _mm512_add_epi32(lane, _mm512_set1_epi32((int32_t)n)));
+    const __m512i slot_hi =
+        _mm512_mask_expand_epi32(none, *hi, _mm512_add_epi32(lane, _mm512_set1_epi32((int32_t)n + n_lo)));
+    const uint32_t kid_valid = nb == BLOCK ? 0xFFFFFFFFu : (1u << (2 * nb)) - 1;
+    _mm512_mask_storeu_epi32(kid + 2 * i, (__mmask16)kid_valid, slot_lo);
+    _mm512_mask_storeu_epi32(kid + 2 * i + BLOCK, (__mmask16)(kid_valid >> 16), slot_hi);
+    /* Their positions: (first, first + 1) of each lane interleaved, compressed. */
+    const __m512i first = _mm512_and_si512(_mm512_srli_epi32(k, 2), _mm512_set1_epi32(KIDS_FIRST));
+    __m512i at_lo, at_hi;
+    spread_pairs(first, _mm512_add_epi32(first, _mm512_set1_epi32(1)), *lo, *hi, &at_lo, &at_hi);
+    _mm512_mask_storeu_epi32(ids + n, (__mmask16)((1u << n_lo) - 1), at_lo);
+    _mm512_mask_storeu_epi32(ids + n + n_lo, (__mmask16)((1u << n_hi) - 1), at_hi);
+    return n + n_lo + n_hi;
+}
+
 /* The same two steps with AVX-512 masks, sixteen slots at a time: the
  * scalar versions spend a third of a camera's time on per-slot stores,
  * shifts and counts. Same results, bit for bit. */
@@ -23,8 +72,7 @@ PMX_TARGET_AVX512 int64_t push_block_avx512(const PmxHierarchy *h, int64_t i, in
         _mm512_mask_compressstoreu_epi32(unsure + *m, unsure_lanes, slots);
         *m += _mm_popcnt_u32(unsure_lanes);
     }
-    /* Lanes with at least one / two children to visit, as one mask of the
-     * children in queue order (bit 2j: lane j's first, 2j + 1: its second). */
+    /* The rows' KIDS column. */
     const __m512i k = _mm512_loadu_si512(kids);
     /* Two faces killed, but where the sign bit says otherwise (rare). */
     const __mmask16 odd = _mm512_mask_cmplt_epi32_mask(valid, k, _mm512_setzero_si512());
@@ -33,37 +81,59 @@ PMX_TARGET_AVX512 int64_t push_block_avx512(const PmxHierarchy *h, int64_t i, in
         kills = _mm512_mask_i32gather_epi32(kills, odd, _mm512_maskz_loadu_epi32(odd, ids + i), h->kills, 4);
     _mm512_mask_storeu_epi32(kill + i, valid, kills);
     const __mmask16 open = _mm512_mask_testn_epi32_mask(valid, code, _mm512_set1_epi32(WHOLE));
-    const __m512i count = _mm512_and_si512(k, _mm512_set1_epi32(3));
-    const __mmask16 one = _mm512_mask_cmpgt_epi32_mask(open, count, _mm512_setzero_si512());
-    const __mmask16 two = _mm512_mask_cmpgt_epi32_mask(open, count, _mm512_set1_epi32(1));
-    const uint32_t pushed = _pdep_u32(one, 0x55555555u) | _pdep_u32(two, 0xAAAAAAAAu);
-    const __mmask16 lo = (__mmask16)pushed, hi = (__mmask16)(pushed >> 16);
-    const int n_lo = _mm_popcnt_u32(lo), n_hi = _mm_popcnt_u32(hi);
-    /* Their slots (-1 where no child is visited): n, n + 1, ... expanded. */
-    const __m512i none = _mm512_set1_epi32(-1);
-    const __m512i slot_lo = _mm512_mask_expand_epi32(none, lo, _mm512_add_epi32(lane, _mm512_set1_epi32((int32_t)n)));
-    const __m512i slot_hi =
-        _mm512_mask_expand_epi32(none, hi, _mm512_add_epi32(lane, _mm512_set1_epi32((int32_t)n + n_lo)));
-    const uint32_t kid_valid = nb == BLOCK ? 0xFFFFFFFFu : (1u << (2 * nb)) - 1;
-    _mm512_mask_storeu_epi32(kid + 2 * i, (__mmask16)kid_valid, slot_lo);
-    _mm512_mask_storeu_epi32(kid + 2 * i + BLOCK, (__mmask16)(kid_valid >> 16), slot_hi);
-    /* Their positions: (first, first + 1) of each lane interleaved, compressed. */
-    const __m512i first = _mm512_and_si512(_mm512_srli_epi32(k, 2), _mm512_set1_epi32(KIDS_FIRST));
-    const __m512i second = _mm512_add_epi32(first, _mm512_set1_epi32(1));
-    const __m512i pick_lo = _mm512_set_epi32(23, 7, 22, 6, 21, 5, 20, 4, 19, 3, 18, 2, 17, 1, 16, 0);
-    const __m512i pick_hi = _mm512_add_epi32(pick_lo, _mm512_set1_epi32(8));
-    const __m512i at_lo = _mm512_maskz_compress_epi32(lo, _mm512_permutex2var_epi32(first, pick_lo, second));
-    const __m512i at_hi = _mm512_maskz_compress_epi32(hi, _mm512_permutex2var_epi32(first, pick_hi, second));
-    _mm512_mask_storeu_epi32(ids + n, (__mmask16)((1u << n_lo) - 1), at_lo);
-    _mm512_mask_storeu_epi32(ids + n + n_lo, (__mmask16)((1u << n_hi) - 1), at_hi);
+    __mmask16 lo, hi;
+    const int64_t end = push_children(k, open, i, nb, n, INT64_MAX, kid, ids, &lo, &hi);
     if (parent) { /* each child's parent slot, the same way */
         const __m512i slot = _mm512_add_epi32(lane, _mm512_set1_epi32((int32_t)i));
-        _mm512_mask_storeu_epi32(parent + n, (__mmask16)((1u << n_lo) - 1),
-                                 _mm512_maskz_compress_epi32(lo, _mm512_permutex2var_epi32(slot, pick_lo, slot)));
-        _mm512_mask_storeu_epi32(parent + n + n_lo, (__mmask16)((1u << n_hi) - 1),
-                                 _mm512_maskz_compress_epi32(hi, _mm512_permutex2var_epi32(slot, pick_hi, slot)));
+        const int n_lo = _mm_popcnt_u32(lo), n_hi = _mm_popcnt_u32(hi);
+        __m512i at_lo, at_hi;
+        spread_pairs(slot, slot, lo, hi, &at_lo, &at_hi);
+        _mm512_mask_storeu_epi32(parent + n, (__mmask16)((1u << n_lo) - 1), at_lo);
+        _mm512_mask_storeu_epi32(parent + n + n_lo, (__mmask16)((1u << n_hi) - 1), at_hi);
     }
-    return n + n_lo + n_hi;
+    return end;
+}
+
+/* push_word_block_plain with AVX-512 masks, the sixteen slots of a block at
+ * once (the frame masks widened to int32 lanes): the scalar loop's branches
+ * on whether a slot is open are coin tosses. Same results, bit for bit. */
+PMX_TARGET_AVX512 int64_t push_word_block_avx512(const PmxHierarchy *h, int64_t i, int64_t nb, int64_t n,
+                                                   const Lanes (*masks)[BLOCK], const float *kids, Lanes *visit,
+                                                   Lanes *whole, Lanes *yes, int32_t *kid, int32_t *ids,
+                                                   int32_t *unsure_slots, Lanes *unsure_lanes, int64_t *m)
+{
+    const __mmask16 valid = (__mmask16)((1u << nb) - 1);
+    const __m512i lane = _mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
+    const __m512i v = _mm512_cvtepu16_epi32(_mm256_maskz_loadu_epi16(valid, visit + i));
+    const __m512i wh = _mm512_cvtepu16_epi32(_mm256_loadu_si256((const __m256i *)masks[0]));
+    const __m512i y = _mm512_cvtepu16_epi32(_mm256_loadu_si256((const __m256i *)masks[1]));
+    const __m512i u = _mm512_cvtepu16_epi32(_mm256_loadu_si256((const __m256i *)masks[2]));
+    /* The visiting frames the bound decided, and those it left open. */
+    const __m512i open_frames = _mm512_andnot_si512(wh, v);
+    _mm512_mask_cvtepi32_storeu_epi16(whole + i, valid, _mm512_and_si512(v, wh));
+    _mm512_mask_cvtepi32_storeu_epi16(yes + i, valid, _mm512_and_si512(open_frames, y));
+    const __m512i un = _mm512_and_si512(open_frames, u);
+    const __mmask16 unsure = _mm512_mask_test_epi32_mask(valid, un, un);
+    if (unsure) { /* rare: decided by the caller (the float32 predicate) */
+        const __mmask16 first_ones = (__mmask16)((1u << _mm_popcnt_u32(unsure)) - 1);
+        _mm512_mask_compressstoreu_epi32(unsure_slots + *m, unsure, _mm512_add_epi32(lane, _mm512_set1_epi32((int32_t)i)));
+        _mm512_mask_cvtepi32_storeu_epi16(unsure_lanes + *m, first_ones, _mm512_maskz_compress_epi32(unsure, un));
+        *m += _mm_popcnt_u32(unsure);
+    }
+    /* The children of the slots some visiting frame left open. */
+    const __mmask16 open = _mm512_mask_test_epi32_mask(valid, open_frames, open_frames);
+    const __m512i k = _mm512_loadu_si512(kids);
+    __mmask16 lo, hi;
+    const int64_t end = push_children(k, open, i, nb, n, h->n_pcols, kid, ids, &lo, &hi);
+    if (end < 0)
+        return -1;
+    /* Their frames, the parent's open ones, the same way. */
+    const int n_lo = _mm_popcnt_u32(lo), n_hi = _mm_popcnt_u32(hi);
+    __m512i at_lo, at_hi;
+    spread_pairs(open_frames, open_frames, lo, hi, &at_lo, &at_hi);
+    _mm512_mask_cvtepi32_storeu_epi16(visit + n, (__mmask16)((1u << n_lo) - 1), at_lo);
+    _mm512_mask_cvtepi32_storeu_epi16(visit + n + n_lo, (__mmask16)((1u << n_hi) - 1), at_hi);
+    return end;
 }
 
 /* resolve_plain_range over all n slots, sixteen at a time on the traversal's

@@ -44,6 +44,45 @@ int64_t push_block_plain(const PmxHierarchy *h, int64_t i, int64_t nb, int64_t n
     return n;
 }
 
+/* The slots of one decided block [i, i + nb) of a word (traverse_word):
+ * masks[0][j], masks[1][j], masks[2][j] are the frames whose bound decided
+ * slot i + j, whose own decision is yes, and which are unsure; kids[] their
+ * rows' KIDS column. Each slot's whole[] and yes[] frames (of those that
+ * visit it) are written, its unsure frames go to unsure_slots[*m...] and
+ * unsure_lanes[*m...], and the children of a slot that some visiting frame
+ * left open are pushed behind the queue at n, visited by those frames (their
+ * slots in kid[], -1 where none). Returns the new end of the queue, or -1
+ * where it would pass n_pcols (links that are not a forest). */
+int64_t push_word_block_plain(const PmxHierarchy *h, int64_t i, int64_t nb, int64_t n, const Lanes (*masks)[BLOCK],
+                              const float *kids, Lanes *visit, Lanes *whole, Lanes *yes, int32_t *kid, int32_t *ids,
+                              int32_t *unsure_slots, Lanes *unsure_lanes, int64_t *m)
+{
+    for (int64_t j = i; j < i + nb; j++) {
+        const Lanes wh = masks[0][j - i], y = masks[1][j - i], u = masks[2][j - i];
+        const Lanes v = visit[j], open = v & (Lanes)~wh;
+        whole[j] = v & wh;
+        yes[j] = open & y;
+        if (open & u) {
+            unsure_slots[*m] = (int32_t)j;
+            unsure_lanes[(*m)++] = open & u;
+        }
+        /* The children (at most two, as push_block counts them), for the
+         * frames that did not decide this subtree. */
+        int32_t k;
+        memcpy(&k, &kids[j - i], sizeof k);
+        const int32_t first = kids_first(k), count = open ? ((k & 3) > 1 ? 2 : k & 3) : 0;
+        if (n + count > h->n_pcols)
+            return -1;
+        kid[2 * j] = kid[2 * j + 1] = -1;
+        for (int t = 0; t < count; t++) {
+            kid[2 * j + t] = (int32_t)n;
+            visit[n] = open;
+            ids[n++] = first + t;
+        }
+    }
+    return n;
+}
+
 /* Bottom-up over slots [lo, hi), from the end: a slot ran if it collapses
  * and both children ran (a child not visited ran). Counts the slots that
  * did not run and the faces they keep into *not_run, *keep. */

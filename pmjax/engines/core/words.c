@@ -10,6 +10,9 @@
 #include <stdlib.h>
 
 #include "internal.h"
+#if PMX_X86
+#include <immintrin.h>
+#endif
 
 /* One word (views [n_frames, PMX_VIEW]; fat: its fat camera or NULL). Slot i
  * holds position ids[i], visited by the frames visit[i]; whole[i], yes[i]
@@ -40,49 +43,42 @@ int64_t traverse_word(const Kernels *kern, const PmxHierarchy *h, const float *v
         visit[n++] = active;
     }
     for (int64_t i0 = 0; i0 < n;) {
-        /* A block of slots under the fat camera first (children land behind
-         * the queue, after the block). */
+        /* A block of slots (children land behind the queue, after the
+         * block): its rows as columns, under the fat camera first. */
         const int64_t nb = n - i0 < BLOCK ? n - i0 : BLOCK;
-        if (use_fat) {
-            gather_block(kern, table, ids + i0, nb, col);
+        for (int64_t i = i0 + AHEAD; i < i0 + AHEAD + nb && i < n; i++)
+            __builtin_prefetch(table + (int64_t)ids[i] * ROW);
+        gather_block(kern, table, ids + i0, nb, col);
+        if (use_fat)
             kern->decide_fat(&W, col, fat_code);
-        }
-        for (int64_t i = i0; i < i0 + nb; i++) {
-            if (i + AHEAD < n)
-                __builtin_prefetch(table + (int64_t)ids[i + AHEAD] * ROW);
-            const float *row = table + (int64_t)ids[i] * ROW;
-            const int32_t fc = use_fat ? fat_code[i - i0] : FAT_OPEN;
-            decided_at_once += (fc == FAT_WHOLE) | (fc == FAT_NO);
-            Lanes masks[3] = {fc == FAT_WHOLE ? (Lanes)0xFFFF : 0, 0, 0};
-            /* The pcol under every frame of the word, one by one, less the
-             * tests the fat camera settled for all of them. */
-            if (fc == FAT_OPEN)
-                decide_row(&fr, row, masks);
-            else if (fc != FAT_WHOLE && fc != FAT_NO)
-                kern->decide_row_settled(&fr, row, fc, masks);
-            const Lanes wh = masks[0], y = masks[1], u = masks[2];
-            const Lanes v = visit[i], open = v & (Lanes)~wh;
-            whole[i] = v & wh;
-            yes[i] = open & y;
-            if (open & u) {
-                unsure_slots[m] = (int32_t)i;
-                unsure_lanes[m++] = open & u;
-            }
-            kid[2 * i] = kid[2 * i + 1] = -1;
-            if (!open)
-                continue;
-            /* The children, for the frames that did not decide this subtree. */
-            int32_t kids;
-            memcpy(&kids, row + KIDS, sizeof kids);
-            const int32_t first = kids_first(kids), count = kids & 3;
-            if (n + count > h->n_pcols)
-                return -1;
-            for (int t = 0; t < count; t++) {
-                kid[2 * i + t] = (int32_t)n;
-                visit[n] = open;
-                ids[n++] = first + t;
-            }
-        }
+        /* The frames' masks (whole, yes, unsure) of the slots the fat camera
+         * decided, and the slots left to the frames by kind: every test
+         * (open), or less those the fat camera settled. */
+        if (!use_fat)
+            for (int j = 0; j < BLOCK; j++)
+                fat_code[j] = FAT_OPEN;
+        Lanes masks[3][BLOCK];
+        uint32_t kinds[3];
+        decided_at_once += kern->fat_masks(fat_code, nb, masks, kinds);
+        /* Those under every frame of the word, one by one, each kind in a
+         * loop of its own (a branch on the kind per slot is a coin toss). */
+        Lanes frame_masks[3];
+#define DECIDE_SLOTS(bits, call)                                                                                  \
+    for (uint32_t left = (bits); left; left &= left - 1) {                                                        \
+        const int j = __builtin_ctz(left);                                                                         \
+        const float *row = table + (int64_t)ids[i0 + j] * ROW;                                                     \
+        call;                                                                                                      \
+        masks[0][j] = frame_masks[0], masks[1][j] = frame_masks[1], masks[2][j] = frame_masks[2];                \
+    }
+        DECIDE_SLOTS(kinds[0], decide_row(&fr, row, frame_masks))
+        DECIDE_SLOTS(kinds[1], kern->decide_row_settled(&fr, row, FAT_SCREEN, frame_masks))
+        DECIDE_SLOTS(kinds[2], kern->decide_row_settled(&fr, row, FAT_INSIDE, frame_masks))
+#undef DECIDE_SLOTS
+        /* Each slot's frames, and the children of the open ones. */
+        n = kern->push_word_block(h, i0, nb, n, (const Lanes(*)[BLOCK])masks, col[KIDS], visit, whole, yes, kid, ids,
+                                  unsure_slots, unsure_lanes, &m);
+        if (n < 0)
+            return -1;
         i0 += nb;
     }
     *n_unsure = m;
@@ -90,18 +86,67 @@ int64_t traverse_word(const Kernels *kern, const PmxHierarchy *h, const float *v
     return n;
 }
 
+/* A block's fat codes code[0..nb) as the frames' masks (masks[0]: whole,
+ * every frame where FAT_WHOLE; masks[1]: yes, every frame where FAT_YES;
+ * masks[2]: unsure, none) and the slots left to the frames as bits j of
+ * kinds[0] (FAT_OPEN), kinds[1] (FAT_SCREEN), kinds[2] (FAT_INSIDE).
+ * Returns the number of slots decided for every frame (FAT_WHOLE, FAT_NO,
+ * FAT_YES). */
+PMX_INLINE int fat_masks_body(const int32_t *code, int64_t nb, Lanes (*masks)[BLOCK], uint32_t *kinds)
+{
+    int at_once = 0;
+    kinds[0] = kinds[1] = kinds[2] = 0;
+    for (int j = 0; j < BLOCK; j++) {
+        const int32_t fc = code[j];
+        const uint32_t here = j < nb;
+        masks[0][j] = here & (fc == FAT_WHOLE) ? (Lanes)0xFFFF : 0;
+        masks[1][j] = here & (fc == FAT_YES) ? (Lanes)0xFFFF : 0, masks[2][j] = 0;
+        at_once += (int)(here & ((fc == FAT_WHOLE) | (fc == FAT_NO) | (fc == FAT_YES)));
+        kinds[0] |= (here & (fc == FAT_OPEN)) << j;
+        kinds[1] |= (here & (fc == FAT_SCREEN)) << j;
+        kinds[2] |= (here & (fc == FAT_INSIDE)) << j;
+    }
+    return at_once;
+}
+int fat_masks_plain(const int32_t *code, int64_t nb, Lanes (*masks)[BLOCK], uint32_t *kinds)
+{
+    return fat_masks_body(code, nb, masks, kinds);
+}
+#if PMX_X86
+PMX_TARGET_AVX2 int fat_masks_avx2(const int32_t *code, int64_t nb, Lanes (*masks)[BLOCK], uint32_t *kinds)
+{
+    return fat_masks_body(code, nb, masks, kinds);
+}
+/* The same with AVX-512's compares into mask registers (the plain loop
+ * builds each mask bit by bit). */
+PMX_TARGET_AVX512 int fat_masks_avx512(const int32_t *code, int64_t nb, Lanes (*masks)[BLOCK], uint32_t *kinds)
+{
+    const __mmask16 valid = (__mmask16)((1u << nb) - 1);
+    const __m512i c = _mm512_loadu_si512(code), every = _mm512_set1_epi32(0xFFFF);
+    const __mmask16 whole = _mm512_mask_cmpeq_epi32_mask(valid, c, _mm512_set1_epi32(FAT_WHOLE));
+    const __mmask16 yes = _mm512_mask_cmpeq_epi32_mask(valid, c, _mm512_set1_epi32(FAT_YES));
+    const __mmask16 no = _mm512_mask_cmpeq_epi32_mask(valid, c, _mm512_set1_epi32(FAT_NO));
+    _mm256_storeu_si256((__m256i *)masks[0], _mm512_cvtepi32_epi16(_mm512_maskz_mov_epi32(whole, every)));
+    _mm256_storeu_si256((__m256i *)masks[1], _mm512_cvtepi32_epi16(_mm512_maskz_mov_epi32(yes, every)));
+    _mm256_storeu_si256((__m256i *)masks[2], _mm256_setzero_si256());
+    kinds[0] = _mm512_mask_cmpeq_epi32_mask(valid, c, _mm512_set1_epi32(FAT_OPEN));
+    kinds[1] = _mm512_mask_cmpeq_epi32_mask(valid, c, _mm512_set1_epi32(FAT_SCREEN));
+    kinds[2] = _mm512_mask_cmpeq_epi32_mask(valid, c, _mm512_set1_epi32(FAT_INSIDE));
+    return _mm_popcnt_u32((uint32_t)(whole | yes | no));
+}
+#endif
+
 /* Bottom-up for a word: per frame, a slot ran if the frame did not visit it
  * (decided above), its bound decided it, or it collapses and both children
  * ran. Writes ran[], pcols[] (each slot's pcol; optional) and per frame the
  * pcols that did not run and the faces they keep (counts[FRAMES]). */
-PMX_INLINE void resolve_word_body(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids,
-                                  const int32_t *kid, const Lanes *visit, const Lanes *whole, const Lanes *yes,
-                                  Lanes *ran, int32_t *pcols, PmxCounts *counts)
+PMX_INLINE void resolve_word_range(const int32_t *kills, const int32_t *order, int64_t lo, int64_t hi,
+                                   const int32_t *ids, const int32_t *kid, const Lanes *visit, const Lanes *whole,
+                                   const Lanes *yes, Lanes *ran, int32_t *pcols, int32_t *failures, int32_t *keeps)
 {
     /* Per-frame counts as int32 lanes (one vector add per slot that failed
      * somewhere; no count exceeds P or F). */
-    int32_t failures[FRAMES] = {0}, keeps[FRAMES] = {0};
-    for (int64_t i = n - 1; i >= 0; i--) {
+    for (int64_t i = hi - 1; i >= lo; i--) {
         const int32_t k1 = kid[2 * i], k2 = kid[2 * i + 1];
         const Lanes below = (Lanes)((k1 < 0 ? 0xFFFF : ran[k1]) & (k2 < 0 ? 0xFFFF : ran[k2]));
         const Lanes r = (Lanes)(~visit[i] | whole[i] | (yes[i] & below));
@@ -119,6 +164,14 @@ PMX_INLINE void resolve_word_body(const int32_t *kills, const int32_t *order, in
             }
         }
     }
+}
+
+PMX_INLINE void resolve_word_body(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids,
+                                  const int32_t *kid, const Lanes *visit, const Lanes *whole, const Lanes *yes,
+                                  Lanes *ran, int32_t *pcols, PmxCounts *counts)
+{
+    int32_t failures[FRAMES] = {0}, keeps[FRAMES] = {0};
+    resolve_word_range(kills, order, 0, n, ids, kid, visit, whole, yes, ran, pcols, failures, keeps);
     for (int l = 0; l < FRAMES; l++)
         counts[l].not_run = failures[l], counts[l].kept = keeps[l];
 }
@@ -136,11 +189,71 @@ PMX_TARGET_AVX2 void resolve_word_avx2(const int32_t *kills, const int32_t *orde
 {
     resolve_word_body(kills, order, n, ids, kid, visit, whole, yes, ran, pcols, counts);
 }
+/* The same sixteen slots at a time with AVX-512 (the scalar loop's branch on
+ * whether a slot failed somewhere is a coin toss): groups of slots aligned
+ * to sixteen from the end, whose children all sit in later groups (a group
+ * of the rare stretch where the queue ran short of a block may hold its own
+ * children and goes through the scalar loop). ran[] needs 2 bytes past n:
+ * the children's frames are gathered as int32. Same results, bit for bit. */
 PMX_TARGET_AVX512 void resolve_word_avx512(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids,
                                            const int32_t *kid, const Lanes *visit, const Lanes *whole,
                                            const Lanes *yes, Lanes *ran, int32_t *pcols, PmxCounts *counts)
 {
-    resolve_word_body(kills, order, n, ids, kid, visit, whole, yes, ran, pcols, counts);
+    int32_t failures[FRAMES] = {0}, keeps[FRAMES] = {0};
+    const __m512i none = _mm512_set1_epi32(-1), zero = _mm512_setzero_si512(), every = _mm512_set1_epi32(0xFFFF);
+    const __m512i frame_bit = _mm512_sllv_epi32(_mm512_set1_epi32(1), _mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8,
+                                                                                       7, 6, 5, 4, 3, 2, 1, 0));
+    /* Each slot's first and second child out of the pairs kid[2j], kid[2j + 1]. */
+    const __m512i even = _mm512_set_epi32(30, 28, 26, 24, 22, 20, 18, 16, 14, 12, 10, 8, 6, 4, 2, 0);
+    const __m512i odd = _mm512_add_epi32(even, _mm512_set1_epi32(1));
+    __m512i not_run = zero, kept = zero; /* lane l: frame l */
+    for (int64_t s = (n - 1) & ~(int64_t)(BLOCK - 1); s >= 0; s -= BLOCK) {
+        const int64_t nb = n - s < BLOCK ? n - s : BLOCK;
+        const __mmask16 valid = (__mmask16)((1u << nb) - 1);
+        const uint32_t kid_valid = nb == BLOCK ? 0xFFFFFFFFu : (1u << (2 * nb)) - 1;
+        const __m512i pairs_lo = _mm512_mask_loadu_epi32(none, (__mmask16)kid_valid, kid + 2 * s);
+        const __m512i pairs_hi = _mm512_mask_loadu_epi32(none, (__mmask16)(kid_valid >> 16), kid + 2 * s + BLOCK);
+        const __m512i k1 = _mm512_permutex2var_epi32(pairs_lo, even, pairs_hi);
+        const __m512i k2 = _mm512_permutex2var_epi32(pairs_lo, odd, pairs_hi);
+        const __mmask16 has1 = _mm512_cmpge_epi32_mask(k1, zero), has2 = _mm512_cmpge_epi32_mask(k2, zero);
+        const __m512i end = _mm512_set1_epi32((int32_t)(s + nb));
+        if (_mm512_mask_cmplt_epi32_mask(has1, k1, end) | _mm512_mask_cmplt_epi32_mask(has2, k2, end)) {
+            resolve_word_range(kills, order, s, s + nb, ids, kid, visit, whole, yes, ran, pcols, failures, keeps);
+            continue;
+        }
+        /* The children's frames (every frame where there is no child). */
+        const __m512i r1 = _mm512_mask_i32gather_epi32(every, has1, k1, ran, 2);
+        const __m512i r2 = _mm512_mask_i32gather_epi32(every, has2, k2, ran, 2);
+        const __m512i below = _mm512_and_si512(_mm512_and_si512(r1, r2), every);
+        const __m512i v = _mm512_cvtepu16_epi32(_mm256_maskz_loadu_epi16(valid, visit + s));
+        const __m512i wh = _mm512_cvtepu16_epi32(_mm256_maskz_loadu_epi16(valid, whole + s));
+        const __m512i y = _mm512_cvtepu16_epi32(_mm256_maskz_loadu_epi16(valid, yes + s));
+        /* r = ~visit | whole | (yes & below), and the frames where it failed. */
+        const __m512i r = _mm512_ternarylogic_epi32(wh, y, below, 0xF8); /* wh | (y & below) */
+        const __m512i failed = _mm512_andnot_si512(r, v);
+        _mm512_mask_cvtepi32_storeu_epi16(ran + s, valid, _mm512_xor_si512(failed, every));
+        const __m512i at = _mm512_maskz_loadu_epi32(valid, ids + s);
+        if (pcols) /* not for counts alone: order[] is read at random */
+            _mm512_mask_storeu_epi32(pcols + s, valid, _mm512_mask_i32gather_epi32(zero, valid, at, order, 4));
+        __mmask16 some = _mm512_mask_test_epi32_mask(valid, failed, failed);
+        if (!some)
+            continue;
+        int32_t f[BLOCK], k[BLOCK];
+        _mm512_storeu_si512(f, failed);
+        _mm512_storeu_si512(k, _mm512_mask_i32gather_epi32(zero, some, at, kills, 4));
+        /* Each failing slot into its frames' counts. */
+        for (uint32_t left = some; left; left &= left - 1) {
+            const int j = __builtin_ctz(left);
+            const __mmask16 frames = _mm512_test_epi32_mask(_mm512_set1_epi32(f[j]), frame_bit);
+            not_run = _mm512_mask_add_epi32(not_run, frames, not_run, _mm512_set1_epi32(1));
+            kept = _mm512_mask_add_epi32(kept, frames, kept, _mm512_set1_epi32(k[j]));
+        }
+    }
+    int32_t nr[FRAMES], kp[FRAMES];
+    _mm512_storeu_si512(nr, not_run);
+    _mm512_storeu_si512(kp, kept);
+    for (int l = 0; l < FRAMES; l++)
+        counts[l].not_run = failures[l] + nr[l], counts[l].kept = keeps[l] + kp[l];
 }
 #endif
 
