@@ -539,7 +539,9 @@ def test_meshes_ranked_each_way_equal_the_dense_mesh(built, name, mesh_ranks):
     view that sees nothing and the full original, eagerly and under jit
     (padded rows), in turn with the same working memory: each equal to the
     dense engine's mesh whether faces and vertex ids are ranked in bitmaps or
-    by sorting them."""
+    by sorting them. The sorts take byte-wide digits below 4,096 items and
+    wider ones above: the cow's 13-bit face ids in one pass or two, the
+    bunny's 17-bit face and vertex ids in two or three."""
     data = built(name)
     pm = pmjax.ProgressiveMesh.from_data(data)
     v0 = data.vertices[: data.n_original_vertices]
@@ -566,6 +568,7 @@ def test_meshes_ranked_each_way_equal_the_dense_mesh(built, name, mesh_ranks):
         sizes.add(len(want[1]))
     assert len(want[1]) == len(data.faces)  # the full original
     assert min(sizes) < len(data.faces) // 100 and len(sizes) > 4
+    assert min(sizes) < 4096 <= max(sizes)  # both digit widths of the sorts
 
 
 def test_mesh_ranks_names_its_ways():

@@ -39,9 +39,97 @@ PMX_INLINE int ranks_sorted(int mode, int64_t n, int64_t words)
     return mode == 2 || (mode == 0 && n * RANKS_SORTED < words);
 }
 
-/* The sort's digit for n items: the widest (two passes over ids up to
- * 2^24) once the items outnumber its counts, else bytes. */
-PMX_INLINE int sort_digit(int64_t n) { return n >= ((int64_t)1 << SORT_DIGIT_MOST) ? SORT_DIGIT_MOST : 8; }
+/* A sort's plan: `passes` digits of `digit` bits, as even as they go,
+ * cover ids up to max_id. Once the items outnumber 2^12, digits of up to
+ * RANK_DIGIT_MOST bits (two passes over ids up to 2^26: faces or vertex ids
+ * of models of up to 67 M), else of up to a byte (small tables of counts
+ * for few items). */
+typedef struct {
+    int passes, digit;
+} SortPlan;
+
+PMX_INLINE SortPlan sort_plan(int64_t n, int32_t max_id)
+{
+    int bits = 1;
+    while (bits < 31 && ((uint32_t)max_id >> bits) > 0)
+        bits++;
+    const int most = n >= ((int64_t)1 << 12) ? RANK_DIGIT_MOST : 8;
+    const int passes = (bits + most - 1) / most;
+    return (SortPlan){passes, (bits + passes - 1) / passes};
+}
+
+/* Digit p of an id under plan. */
+PMX_INLINE int32_t id_digit(int32_t id, SortPlan plan, int p)
+{
+    return (int32_t)(((uint32_t)id >> (p * plan.digit)) & ((1u << plan.digit) - 1));
+}
+
+/* The digits of `passes` passes of the ids id_of [n] counted into count
+ * (pass p's table at p << digit). */
+PMX_INLINE void count_digits(const int32_t *id_of, int64_t n, int32_t *count, SortPlan plan, int passes)
+{
+    for (int64_t i = 0; i < n; i++)
+        for (int p = 0; p < passes; p++)
+            count[((int64_t)p << plan.digit) + id_digit(id_of[i], plan, p)]++;
+}
+
+/* Each item's row, its place in increasing id order (items of one id in
+ * the order they came): a stable radix sort of the ids id_of [n] (gathered
+ * while the items are read), with every pass's digit counts taken in one
+ * read (count: pass p's table at p << digit, zero on entry and on return),
+ * the first pass reading the ids themselves and the last writing each
+ * item's row rather than the sorted entries. Returns the rows, int32 [n]
+ * by item, over a's or b's room (two buffers of n entries; id_of may lie
+ * in b: only the first pass reads it). */
+static int32_t *rows_by_id(const int32_t *id_of, int64_t n, int32_t *count, SortPlan plan, IdSlot *a, IdSlot *b)
+{
+    const int32_t buckets = (int32_t)1 << plan.digit;
+    /* Every pass's digits counted in one read (the loop over passes
+     * unrolled for one and two). */
+    if (plan.passes == 1)
+        count_digits(id_of, n, count, plan, 1);
+    else if (plan.passes == 2)
+        count_digits(id_of, n, count, plan, 2);
+    else
+        count_digits(id_of, n, count, plan, plan.passes);
+    /* Each count to the first place of its digit, in each pass. */
+    for (int p = 0; p < plan.passes; p++) {
+        int32_t below = 0, *at = count + ((int64_t)p << plan.digit);
+        for (int32_t d = 0; d < buckets; d++) {
+            const int32_t here = at[d];
+            at[d] = below;
+            below += here;
+        }
+    }
+    const int last = plan.passes - 1;
+    int32_t *row;
+    if (last == 0) {
+        /* One pass: each item straight to its row. */
+        row = (int32_t *)a;
+        for (int64_t i = 0; i < n; i++)
+            row[i] = count[id_digit(id_of[i], plan, 0)]++;
+    } else {
+        /* The first pass from the ids, the middle ones between the
+         * buffers, the last to the rows. */
+        for (int64_t i = 0; i < n; i++)
+            a[count[id_digit(id_of[i], plan, 0)]++] = (IdSlot){id_of[i], (int32_t)i};
+        IdSlot *from = a, *to = b;
+        for (int p = 1; p < last; p++) {
+            int32_t *at = count + ((int64_t)p << plan.digit);
+            for (int64_t k = 0; k < n; k++)
+                to[at[id_digit(from[k].id, plan, p)]++] = from[k];
+            IdSlot *t = from;
+            from = to;
+            to = t;
+        }
+        row = (int32_t *)to;
+        int32_t *at = count + ((int64_t)last << plan.digit);
+        for (int64_t k = 0; k < n; k++)
+            row[from[k].slot] = at[id_digit(from[k].id, plan, last)]++;
+    }
+    memset(count, 0, sizeof(int32_t) * ((size_t)plan.passes << plan.digit));
+    return row;
+}
 
 /* The refined mesh from the pcols that did not run:
  * drawn faces are the base faces and those pcols' kill lists; each corner's
@@ -72,7 +160,9 @@ PMX_INLINE int sort_digit(int64_t n) { return n >= ((int64_t)1 << SORT_DIGIT_MOS
  * zero on entry and on return); start_prefix, face_prefix, vertex_prefix
  * int32 as their bitmaps, start_block as start_sum; front [V0 + 1] (the
  * vertices not kept are written one slot past the front), sorted [V0];
- * drawn [F]; front_index [V0]; pairs[2] [max(F, V0 + 1)] (the sorts'). */
+ * drawn [F]; front_index [V0]; pairs[2] [max(F, V0 + 1)] (the sorts'; the
+ * ids to sort gathered in pairs[1]);
+ * sort_counts [RANK_COUNTS] (zero on entry and on return). */
 PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran, const uint16_t *ran_frames,
                                      int frame, const int32_t *positions, int64_t n, int64_t n_faces_drawn,
                                      int32_t *faces, int32_t *ids, float *vertex_positions, int64_t id_capacity,
@@ -124,8 +214,13 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
     const int mode = __atomic_load_n(&ranks_in_use, __ATOMIC_ACQUIRE);
     const int face_sorted = ranks_sorted(mode, n_faces_drawn, face_words);
     const int face_dense = marked_dense(n_faces_drawn, face_words);
+    const SortPlan face_plan = sort_plan(n_faces_drawn, (int32_t)(n_faces_total > 0 ? n_faces_total - 1 : 0));
+    int32_t *const sort_counts = s->sort_counts;
+    int32_t *const face_of = (int32_t *)s->pairs[1];
     /* The front and the drawn faces. Below each pcol that did not run: its
-     * vertices that are original or whose own pcol ran, and its kill list. */
+     * vertices that are original or whose own pcol ran, and its kill list
+     * (where faces are sorted, their ids gathered too: the sort then reads
+     * a quarter of the bytes). */
     int64_t n_front = 0, n_drawn = 0;
     for (int64_t i = 0; i < n_not_run; i++) {
         if (i + MESH_AHEAD < n_not_run) {
@@ -154,7 +249,9 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
         }
         for (int32_t j = 0; j < r->kill_count; j++) {
             drawn[n_drawn] = kill_data[r->kill_first + j];
-            if (!face_sorted)
+            if (face_sorted)
+                face_of[n_drawn] = drawn[n_drawn].face;
+            else
                 set_marked(face_bits, face_sum, drawn[n_drawn].face, 1, face_dense);
             n_drawn++;
         }
@@ -163,8 +260,10 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
     for (int64_t i = 0; i < n_tops; i++)
         if (top_at[i] < 0 || !mark[top_at[i]])
             front[n_front++] = tops[i];
-    if (!face_sorted)
-        for (int64_t i = 0; i < n_base; i++)
+    for (int64_t i = 0; i < n_base; i++)
+        if (face_sorted)
+            face_of[n_drawn + i] = base[i].face;
+        else
             set_marked(face_bits, face_sum, base[i].face, 1, face_dense);
     const int64_t total = n_drawn + n_base;
     IdSlot *const pairs = s->pairs[0], *const pairs_to = s->pairs[1];
@@ -194,14 +293,7 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
          * read at random would hold up its corners' look-ups). */
         int32_t *row_at = NULL;
         if (face_sorted) {
-            for (int64_t i = 0; i < total; i++)
-                pairs[i] = (IdSlot){i < n_drawn ? drawn[i].face : base[i - n_drawn].face, (int32_t)i};
-            const IdSlot *by_face = sort_id_slots(pairs, pairs_to, total,
-                                                  (int32_t)(n_faces_total > 0 ? n_faces_total - 1 : 0),
-                                                  sort_digit(total));
-            row_at = (int32_t *)(by_face == pairs ? pairs_to : pairs);
-            for (int64_t j = 0; j < total; j++)
-                row_at[by_face[j].slot] = (int32_t)j;
+            row_at = rows_by_id(face_of, total, sort_counts, face_plan, pairs, pairs_to);
         } else {
             prefix_marked(face_bits, face_sum, face_words, face_dense, face_prefix, NULL);
         }
@@ -228,10 +320,11 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
          * used ones sorted by id), each front vertex's output index, then
          * the corners through it. */
         int64_t n_used = 0;
+        int32_t *const id_of = (int32_t *)pairs_to;
         for (int64_t k = 0; k < n_front; k++)
             if (front_index[k] == 0) {
                 if (vertex_sorted)
-                    pairs[n_used] = (IdSlot){sorted[k].vertex, (int32_t)k};
+                    id_of[n_used] = sorted[k].vertex;
                 else
                     set_marked(vertex_bits, vertex_sum, sorted[k].vertex, 1, vertex_dense);
                 n_used++;
@@ -240,13 +333,18 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
         if (n_used > id_capacity) {
             status = PMX_BAD_SIZE;
         } else if (vertex_sorted) {
-            const IdSlot *by_id = sort_id_slots(pairs, pairs_to, n_used, (int32_t)(V0 + n_pcols - 1), sort_digit(n_used));
-            for (int64_t out = 0; out < n_used; out++) {
-                const PmxFrontVertex *v = sorted + by_id[out].slot;
-                front_index[by_id[out].slot] = (int32_t)out;
-                ids[out] = v->vertex;
-                memcpy(vertex_positions + 3 * out, v->position, 3 * sizeof(float));
-            }
+            /* Each used vertex's output index is its row among their ids
+             * sorted, the used ones met in the same order as above. */
+            const int32_t *out_of = rows_by_id(id_of, n_used, sort_counts,
+                                               sort_plan(n_used, (int32_t)(V0 + n_pcols - 1)), pairs, pairs_to);
+            int64_t u = 0;
+            for (int64_t k = 0; k < n_front; k++)
+                if (front_index[k] == 0) {
+                    const int32_t out = out_of[u++];
+                    front_index[k] = out;
+                    ids[out] = sorted[k].vertex;
+                    memcpy(vertex_positions + 3 * (int64_t)out, sorted[k].position, 3 * sizeof(float));
+                }
             n_id_count = n_used;
         } else {
             prefix_marked(vertex_bits, vertex_sum, vertex_words, vertex_dense, vertex_prefix, NULL);

@@ -112,8 +112,13 @@ struct PmxScratch {
     PmxFrontVertex *front, *sorted;
     PmxFaceRecord *drawn;
     IdSlot *pairs[2]; /* [max(n_faces, n_original + 1)] each: ranks by sorting */
+    int32_t *sort_counts; /* [RANK_COUNTS] the sorts' digit counts */
     struct PmxScratch *next; /* in the pool */
 };
+
+/* The front mesh sorts' digit counts: at most two tables of 2^13 (front_mesh.c). */
+#define RANK_DIGIT_MOST 13
+#define RANK_COUNTS (2 << RANK_DIGIT_MOST)
 
 /* The parts (0 when out of memory). */
 int scratch_slots(PmxScratch *s);

@@ -33,7 +33,7 @@ static void free_mesh(PmxScratch *s)
 {
     void *parts[] = {s->not_run_at, s->start_prefix, s->face_prefix, s->vertex_prefix, s->start_block,
                      s->front_index, s->start_bits, s->face_bits, s->vertex_bits, s->start_sum, s->face_sum,
-                     s->vertex_sum, s->front, s->sorted, s->drawn, s->pairs[0], s->pairs[1]};
+                     s->vertex_sum, s->front, s->sorted, s->drawn, s->pairs[0], s->pairs[1], s->sort_counts};
     for (size_t i = 0; i < sizeof parts / sizeof parts[0]; i++)
         free(parts[i]);
     s->not_run_at = s->start_prefix = s->face_prefix = s->vertex_prefix = s->start_block = s->front_index = NULL;
@@ -41,6 +41,7 @@ static void free_mesh(PmxScratch *s)
     s->front = s->sorted = NULL;
     s->drawn = NULL;
     s->pairs[0] = s->pairs[1] = NULL;
+    s->sort_counts = NULL;
 }
 
 int scratch_slots(PmxScratch *s)
@@ -116,9 +117,10 @@ int scratch_mesh(PmxScratch *s, int64_t n_original, int64_t n_faces)
     const int64_t pairs = n_faces > V0 + 1 ? n_faces : V0 + 1;
     s->pairs[0] = zeros(pairs, sizeof(IdSlot));
     s->pairs[1] = zeros(pairs, sizeof(IdSlot));
+    s->sort_counts = zeros(RANK_COUNTS, sizeof(int32_t));
     if (!(s->not_run_at && s->start_bits && s->face_bits && s->vertex_bits && s->start_sum && s->face_sum &&
           s->vertex_sum && s->start_prefix && s->face_prefix && s->vertex_prefix && s->start_block && s->sorted &&
-          s->drawn && s->front_index && s->front && s->pairs[0] && s->pairs[1])) {
+          s->drawn && s->front_index && s->front && s->pairs[0] && s->pairs[1] && s->sort_counts)) {
         free_mesh(s);
         return 0;
     }
