@@ -832,7 +832,7 @@ POOLED = 4096
 # predict (log tau interpolated along the path, held past the last sampled
 # frame), where it finds the answers at once.
 PATH_SAMPLE = 32
-PATH_START = 0.9
+PATH_START = 0.95
 
 
 def _padded_chunk(n: int, chunk: int) -> int:
@@ -894,10 +894,12 @@ def _path_budgets(pm, host, budgets, tests, chunk):
     # share most of their slots.
     def along_path(*bits):
         G = len(bits)
-        tols = np.stack([b.reshape(B, K) for b in bits], axis=1).reshape(B * G, K)  # budget-major
+        # Budget by budget, the finest pattern first (the core decides a set's
+        # frames from the finer sets' collapses where it can).
+        tols = np.stack([b.reshape(B, K) for b in bits[::-1]], axis=1).reshape(B * G, K)
         got = np.concatenate([_word_set_counts(d, counts_of, rows, tols[s:s + G], tests, host.orthographic)
                               for s in range(0, B * G, G)])
-        return got.reshape(B, G, K, 3).transpose(1, 0, 2, 3).reshape(G, B * K, 3)
+        return got.reshape(B, G, K, 3)[:, ::-1].transpose(1, 0, 2, 3).reshape(G, B * K, 3)
 
     # Pairs far off after the second round: their frames guessed again, each
     # alone from its start (its unsure decisions also taken as collapses, the

@@ -705,48 +705,32 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxBudgetMany, BudgetMany,
                                   .Attr<int64_t>("threads")
                                   .Attr<int32_t>("words"));
 
-XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxRefineWords, RefineWords,
-                              ffi::Ffi::Bind()
-                                  .Ctx<ffi::ThreadPool>()
-                                  .Arg<ffi::Buffer<ffi::F32>>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()
-                                  .Arg<ffi::Buffer<ffi::F32>>()
-                                  .Ret<ffi::Buffer<ffi::S32>>()
-                                  .Ret<ffi::Buffer<ffi::S32>>()
-                                  .Ret<ffi::Buffer<ffi::S32>>()
-                                  .Ret<ffi::Buffer<ffi::U16>>()
-                                  .Ret<ffi::Buffer<ffi::S32>>()
-                                  .Ret<ffi::Buffer<ffi::S32>>()
-                                  .Ret<ffi::Buffer<ffi::S32>>()
-                                  .Ret<ffi::Buffer<ffi::S32>>()
-                                  .Ret<ffi::Buffer<ffi::S32>>()
-                                  .Ret<ffi::Buffer<ffi::U8>>()
-                                  .Attr<int32_t>("flags")
-                                  .Attr<int64_t>("n_roots")
-                                  .Attr<int64_t>("threads"));
+// The binding of the word targets (RefineWords; RefineWordSets adds `sets`).
+static auto WordsBinding() {
+  return ffi::Ffi::Bind()
+          .Ctx<ffi::ThreadPool>()
+          .Arg<ffi::Buffer<ffi::F32>>()
+          .Arg<ffi::Buffer<ffi::S32>>()
+          .Arg<ffi::Buffer<ffi::S32>>()
+          .Arg<ffi::Buffer<ffi::F32>>()
+          .Ret<ffi::Buffer<ffi::S32>>()
+          .Ret<ffi::Buffer<ffi::S32>>()
+          .Ret<ffi::Buffer<ffi::S32>>()
+          .Ret<ffi::Buffer<ffi::U16>>()
+          .Ret<ffi::Buffer<ffi::S32>>()
+          .Ret<ffi::Buffer<ffi::S32>>()
+          .Ret<ffi::Buffer<ffi::S32>>()
+          .Ret<ffi::Buffer<ffi::S32>>()
+          .Ret<ffi::Buffer<ffi::S32>>()
+          .Ret<ffi::Buffer<ffi::U8>>()
+          .Attr<int32_t>("flags")
+          .Attr<int64_t>("n_roots")
+          .Attr<int64_t>("threads");
+}
 
-XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxRefineWordSets, RefineWordSets,
-                              ffi::Ffi::Bind()
-                                  .Ctx<ffi::ThreadPool>()
-                                  .Arg<ffi::Buffer<ffi::F32>>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()
-                                  .Arg<ffi::Buffer<ffi::F32>>()
-                                  .Ret<ffi::Buffer<ffi::S32>>()
-                                  .Ret<ffi::Buffer<ffi::S32>>()
-                                  .Ret<ffi::Buffer<ffi::S32>>()
-                                  .Ret<ffi::Buffer<ffi::U16>>()
-                                  .Ret<ffi::Buffer<ffi::S32>>()
-                                  .Ret<ffi::Buffer<ffi::S32>>()
-                                  .Ret<ffi::Buffer<ffi::S32>>()
-                                  .Ret<ffi::Buffer<ffi::S32>>()
-                                  .Ret<ffi::Buffer<ffi::S32>>()
-                                  .Ret<ffi::Buffer<ffi::U8>>()
-                                  .Attr<int32_t>("flags")
-                                  .Attr<int64_t>("n_roots")
-                                  .Attr<int64_t>("threads")
-                                  .Attr<int64_t>("sets"));
+XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxRefineWords, RefineWords, WordsBinding());
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxRefineWordSets, RefineWordSets, WordsBinding().Attr<int64_t>("sets"));
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxApplyUnsure, ApplyUnsure,
                               ffi::Ffi::Bind()

@@ -63,30 +63,21 @@ static inline __attribute__((always_inline)) int64_t traverse_sets(const Kernels
                 W.kabs = fmaxf(W.kabs, fr[t].kabs[l]);
             }
     }
-    /* Per pair of sets (u before t), the frames where u's tolerance is at
+    /* The sets are decided in order; a caller lists the finest first:
+     * near the front, where the fat camera leaves slots open, most
+     * decisions are collapses, which a finer set's imply for the coarser
+     * ones. Per pair of sets (u before t), the frames where u's tolerance is at
      * least t's (coarser: a sure "keep" at u is one at t, the frustum and
      * orientation tests being the same and the screen test monotone in
      * kappa2) and at most t's (finer: a sure collapse, or a subtree that
      * collapses whole, at u is one at t). */
     Lanes coarser[MOST_SETS][MOST_SETS] = {{0}}, finer[MOST_SETS][MOST_SETS] = {{0}};
     for (int t = 0; t < T; t++)
-        for (int u = 0; u < T; u++)
+        for (int u = 0; u < t; u++)
             for (int l = 0; l < FRAMES; l++) {
                 coarser[u][t] |= (Lanes)((fr[u].kappa2[l] >= fr[t].kappa2[l]) << l);
                 finer[u][t] |= (Lanes)((fr[u].kappa2[l] <= fr[t].kappa2[l]) << l);
             }
-    /* The sets decided finest first (by their first frame's kappa2): near
-     * the front, where the fat camera leaves slots open, most decisions are
-     * collapses, which a finer set's imply for the coarser ones. */
-    int rank[MOST_SETS];
-    for (int t = 0; t < T; t++) {
-        int r = t;
-        while (r > 0 && fr[rank[r - 1]].kappa2[0] > fr[t].kappa2[0]) {
-            rank[r] = rank[r - 1];
-            r--;
-        }
-        rank[r] = t;
-    }
     void (*decide_row)(const Frames *, const float *, Lanes *) =
         fr[0].ortho ? kern->decide_row_orthographic : kern->decide_row_perspective;
     const Lanes active = (Lanes)((1u << FRAMES) - 1);
@@ -116,8 +107,7 @@ static inline __attribute__((always_inline)) int64_t traverse_sets(const Kernels
             /* Each set's frames that reach the slot decide it, less what the
              * fat camera decided for all of them and what the sets decided
              * before imply (monotone). */
-            for (int r = 0; r < T; r++) {
-                const int t = rank[r];
+            for (int t = 0; t < T; t++) {
                 const Lanes v = sb->visit[t * room + i];
                 open[t] = no[t] = sure_whole[t] = sure_yes[t] = 0;
                 sb->whole[t * room + i] = sb->yes[t * room + i] = 0;
@@ -128,8 +118,7 @@ static inline __attribute__((always_inline)) int64_t traverse_sets(const Kernels
                 Lanes masks[3] = {fc == FAT_WHOLE ? (Lanes)0xFFFF : 0, 0, 0};
                 if (fc != FAT_WHOLE && fc != FAT_NO) {
                     Lanes known_no = 0, known_whole = 0, known_yes = 0;
-                    for (int q = 0; q < r; q++) {
-                        const int u = rank[q];
+                    for (int u = 0; u < t; u++) {
                         known_no |= no[u] & coarser[u][t];
                         known_whole |= sure_whole[u] & finer[u][t];
                         known_yes |= sure_yes[u] & finer[u][t];
