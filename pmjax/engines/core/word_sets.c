@@ -6,11 +6,13 @@
  * traversed once: each slot is visited for the frames of every set that
  * reaches it, its row read and its fat camera decision made once for all
  * the sets (the fat camera's kappa2 range spans every set's frames), and
- * only the frames' own decisions are made set by set. Each set keeps its own
- * bits (visit, whole, yes, unsure), so that its counts, its unsure records
- * and the slots it visits are exactly those of pmx_refine_words on its word
- * alone: a slot that a set does not visit ran for all its frames, as a slot
- * decided above it does in the word alone. */
+ * only the frames' own decisions are made set by set, less those another
+ * set's sure decisions imply (the screen test is monotone in kappa2, the
+ * other tests do not depend on it). Each set keeps its own bits (visit,
+ * whole, yes, unsure), so that it visits the slots its word alone visits and
+ * its counts, once its unsure pairs are decided, are those of
+ * pmx_refine_words on its word alone: a slot that a set does not visit ran
+ * for all its frames, as a slot decided above it does in the word alone. */
 #include <stdlib.h>
 
 #include "internal.h"
