@@ -832,7 +832,7 @@ POOLED = 4096
 # predict (log tau interpolated along the path, held past the last sampled
 # frame), where it finds the answers at once.
 PATH_SAMPLE = 32
-PATH_START = 0.9
+PATH_START = 0.95
 
 
 def _padded_chunk(n: int, chunk: int) -> int:
@@ -887,21 +887,19 @@ def _path_budgets(pm, host, budgets, tests, chunk):
                                                 _padded_chunk(len(alone), chunk))
     rows = _core.host_camera_rows(host, np.zeros(K, np.float32), d.exponent)
 
-    # The (frame, budget) pairs budget by budget: each budget's K pairs are
-    # the path's frames in order, each frame twice in a row (at the guess,
-    # then just below it), so that a word holds 8 frames at both patterns:
-    # one pass per budget over fronts that differ little, rather than two.
+    # The (frame, budget) pairs of all budgets at both patterns (at the
+    # guess, then just below it) in one pass along the path: each word of
+    # 16 frames traversed once for its frames at every (budget, pattern)
+    # tolerance (a set of words, :func:`_word_set_counts`), whose fronts
+    # share most of their slots.
     def along_path(*bits):
         G = len(bits)
-        counted = np.empty((G, K * B, 3), np.int64)
-        at = np.repeat(rows, G, axis=0)  # each budget rewrites every row's tolerance
-        for j in range(B):
-            for q in range(G):
-                at[q::G, -1] = bits[q][j * K:(j + 1) * K].astype(np.int32).view(np.float32)
-            got = _word_counts(d, counts_of, at, tests, host.orthographic)
-            for q in range(G):
-                counted[q, j * K:(j + 1) * K] = got[q::G]
-        return counted
+        # Budget by budget, the finest pattern first (the core decides a set's
+        # frames from the finer sets' collapses where it can).
+        tols = np.stack([b.reshape(B, K) for b in bits[::-1]], axis=1).reshape(B * G, K)
+        got = np.concatenate([_word_set_counts(d, counts_of, rows, tols[s:s + G], tests, host.orthographic)
+                              for s in range(0, B * G, G)])
+        return got.reshape(B, G, K, 3)[:, ::-1].transpose(1, 0, 2, 3).reshape(G, B * K, 3)
 
     # Pairs far off after the second round: their frames guessed again, each
     # alone from its start (its unsure decisions also taken as collapses, the
@@ -955,9 +953,38 @@ def _word_counts(d, counts_of, rows, tests, orthographic):
     return out
 
 
-@functools.partial(jax.jit, static_argnames=("tests", "orthographic"))
-def _core_word_counts(tables, one_tables, rows, tests, orthographic):
-    return _core.refine_words(tables, one_tables, rows, tests, orthographic, False)[0]
+@functools.partial(jax.jit, static_argnames=("tests", "orthographic", "sets"))
+def _core_word_counts(tables, one_tables, rows, tests, orthographic, sets=1):
+    return _core.refine_words(tables, one_tables, rows, tests, orthographic, False, sets=sets)[0]
+
+
+# Tolerances of a path's frames counted in one traversal of each word at
+# most (the core's word sets).
+MOST_SETS = 8
+
+
+def _word_set_counts(d, counts_of, rows, bits, tests, orthographic):
+    """Exact ``(faces, vertices, executed)`` (``int64 [T, K, 3]``) of a
+    path's frames ``rows`` (``float32 [K, CAMERA]``, in order) at T
+    tolerances each (``bits``: ``[T, K]`` float32 bit patterns of tau,
+    ``T <= MOST_SETS``): each word of frames (:func:`_word_calls`) traversed
+    once for all T tolerances, as a set of T words that differ only in
+    their tolerances."""
+    T, K = bits.shape
+    F = _core.FRAMES
+    out = np.empty((T, K, 3), np.int64)
+    tau = np.asarray(bits, np.int64).astype(np.int32).view(np.float32)
+    for lanes in _word_calls(K):
+        n = len(lanes) // F
+        # Word j's set: its frames at tolerance 0, then at 1, ... (rows
+        # [j, t, frame]).
+        at = np.repeat(rows[lanes].reshape(n, 1, F, -1), T, axis=1)
+        at[..., -1] = tau[:, lanes].reshape(T, n, F).transpose(1, 0, 2)
+        counts = np.asarray(_core_word_counts(d.core_words, d.core, at.reshape(n * T * F, -1), tests,
+                                              orthographic, sets=T))
+        got = np.stack(counts_of(counts[:, 1], counts[:, 2], np), 1).reshape(n, T, F, 3)
+        out[:, lanes] = got.transpose(1, 0, 2, 3).reshape(T, n * F, 3)
+    return out
 
 
 def _guesses(d, counts_of, host, frames, start, budgets, tests, chunk):

@@ -412,3 +412,106 @@ def test_two_tolerances_per_frame_in_one_pass_count_each_frame_alone(built, kind
     for k in range(2 * K):
         r = pmjax.refine(pm, index_camera(cams, k // 2), float(rows[k, -1]), method="front")
         assert tuple(counted[k]) == (int(r.n_faces), int(r.n_vertices), int(r.n_executed)), k
+
+
+# -- word sets: the confirming counts' words at several tolerances in one pass --
+
+
+def _set_tolerances(K, rng):
+    """Per frame a tolerance that jumps about, with 0 and inf among them, then
+    the pattern just below it (0 and inf kept)."""
+    tau = rng.choice(np.float32([0.3, 0.7, 1.0, 4.0]), K).astype(np.float32)
+    tau[::7], tau[3::7] = 0.0, np.inf
+    below = np.where(np.isfinite(tau) & (tau > 0), (tau.view(np.int32) - 1).view(np.float32), tau)
+    return tau, below.astype(np.float32)
+
+
+def _set_bits(tau):
+    return tau.view(np.int32).astype(np.int64)
+
+
+@pytest.mark.parametrize("kind", ["orbit", "fly", "jittered"])
+def test_word_sets_count_each_frame_at_each_tolerance(built, kind, simd):
+    """Two sets (a tolerance and the pattern below it) and three (with a
+    coarser one, and one set at the first's tolerance: a tie) counted in one
+    pass: each (frame, tolerance) as a refine counts it."""
+    data = built("bunny.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    K = 40  # not a whole number of words: the last word repeats its last frame
+    cams = _paths(data, K, seed=21)[kind]
+    host = jax.tree.map(np.asarray, cams)
+    d, counts_of = derived(pm), _refine._Counts.of(pm)
+    rows = _core.host_camera_rows(host, np.zeros(K, np.float32), d.exponent)
+    tau, below = _set_tolerances(K, np.random.default_rng(4))
+    coarse = np.where(np.isfinite(tau), 3 * tau, tau).astype(np.float32)
+    for taus in ([tau, below], [below, coarse, tau, tau]):
+        got = _refine._word_set_counts(d, counts_of, rows, np.stack([_set_bits(t) for t in taus]), ALL_TESTS,
+                                       host.orthographic)
+        for t, at in enumerate(taus):
+            for k in range(K):
+                r = pmjax.refine(pm, index_camera(cams, k), float(at[k]), method="front")
+                assert tuple(got[t, k]) == (int(r.n_faces), int(r.n_vertices), int(r.n_executed)), (t, k)
+
+
+@pytest.mark.parametrize("name", ["bunny.ply", "terrain_gcanyon.ply"])
+def test_word_sets_give_the_counts_of_each_word_alone(built, name):
+    """The core's counts of a set of words equal those of each of its words
+    traversed alone (pcols that did not run, the faces they keep), for sets
+    whose tolerances differ by one pattern (the terrain's grid has many pcols
+    whose switches tie) and by a factor, and for sets whose frames differ
+    (traversed word by word)."""
+    data = built(name)
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    K = 32
+    paths = _paths(data, K, seed=8)
+    d = derived(pm)
+    rng = np.random.default_rng(6)
+    F = _core.FRAMES
+    for kind, other in (("orbit", "orbit"), ("fly", "fly"), ("orbit", "fly")):
+        tau, below = _set_tolerances(K, rng)
+        sets = [(kind, tau), (other, below), (kind, (2 * tau).astype(np.float32))]
+        rows = [_core.host_camera_rows(jax.tree.map(np.asarray, paths[p]), t, d.exponent) for p, t in sets]
+        # Word j's set: its frames in each set in turn.
+        T = len(sets)
+        grouped = np.stack([r.reshape(K // F, F, -1) for r in rows], axis=1).reshape(K * T, -1)
+        together = np.asarray(_refine._core_word_counts(d.core_words, d.core, grouped, ALL_TESTS, False,
+                                                        sets=T)).reshape(K // F, T, F, 4)
+        for t in range(T):
+            alone = np.asarray(_refine._core_word_counts(d.core_words, d.core, rows[t], ALL_TESTS, False))
+            np.testing.assert_array_equal(together[:, t].reshape(K, 4)[:, 1:3], alone[:, 1:3], err_msg=(kind, t))
+
+
+def test_word_sets_refuse_lists_and_sets_that_do_not_divide_the_words(built):
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    d = derived(pm)
+    cams = _paths(data, 48, seed=1)["orbit"]
+    rows = _core.host_camera_rows(jax.tree.map(np.asarray, cams), np.ones(48, np.float32), d.exponent)
+    with pytest.raises(ValueError, match="no lists"):
+        _core.refine_words(d.core_words, d.core, rows, ALL_TESTS, False, True, sets=3)
+    with pytest.raises(Exception, match="divide"):
+        np.asarray(_refine._core_word_counts(d.core_words, d.core, rows, ALL_TESTS, False, sets=2))
+
+
+def test_path_budgets_confirm_through_word_sets(built, monkeypatch):
+    """The confirming counts of a path's budgets (several per frame, below
+    the base mesh and above F among them) run as word sets, one pass per
+    budget with both patterns, and give faces_for_budget_batch's answers
+    without a path."""
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    K = 48
+    cams = _paths(data, K, seed=3)["fly"]
+    full = pm.n_faces
+    base = full - int(np.sum(np.asarray(pm.kills)))
+    some = int(np.median(pmjax.refine_batch(pm, cams, 1.0)["faces"]))
+    budgets = np.tile(np.array([max(base - 1, 0), some, full + 5]), (K, 1))
+    shapes = []
+    original = _refine._word_set_counts
+    monkeypatch.setattr(_refine, "_word_set_counts",
+                        lambda d, c, rows, bits, *a: shapes.append(bits.shape) or original(d, c, rows, bits, *a))
+    got = pmjax.faces_for_budget_batch(pm, cams, budgets, path=True, method="front")
+    assert shapes == [(2, K)] * 3, shapes
+    want = pmjax.faces_for_budget_batch(pm, cams, budgets, method="front")
+    for key in want:
+        np.testing.assert_array_equal(got[key], want[key], err_msg=key)

@@ -492,7 +492,7 @@ def budget_guesses(tables: CoreTables, cameras, budgets, tests, orthographic: bo
 
 
 def refine_words(tables: CoreTables, one_tables: CoreTables, cameras, tests, orthographic: bool, lists: bool,
-                 threads: int = 0, room: int | None = None):
+                 threads: int = 0, room: int | None = None, sets: int = 1):
     """Words of FRAMES consecutive frames, each traversed once for its frames.
 
     Args:
@@ -504,6 +504,10 @@ def refine_words(tables: CoreTables, one_tables: CoreTables, cameras, tests, ort
             tolerances (:func:`camera_rows`), word by word.
         lists: also return each word's lists (``[W, P + SPARE]``, ``ran``
             the frames' bits as uint16).
+        sets: the words come in groups of ``sets`` (1 to 8) consecutive
+            words; a group whose words hold the same frames at other
+            tolerances (a face budget's patterns) is traversed once for all
+            of them, with the same results. Without ``lists`` only.
 
     Returns:
         ``(counts int32 [W * FRAMES, 4], at_once int32 [W], (pcols, ran,
@@ -517,12 +521,15 @@ def refine_words(tables: CoreTables, one_tables: CoreTables, cameras, tests, ort
     R = record_capacity(W, FRAMES) if room is None else room
     N = R // NODE + 1
     list_shape = (W, L) if lists else (W, 0)
-    out = _call("pmx_refine_words", (_sds((W * FRAMES, 4), jnp.int32), _sds((W,), jnp.int32),
+    if sets != 1 and lists:
+        raise ValueError("refine_words: word sets have no lists")
+    target, extra = ("pmx_refine_words", {}) if sets == 1 else ("pmx_refine_word_sets", dict(sets=np.int64(sets)))
+    out = _call(target, (_sds((W * FRAMES, 4), jnp.int32), _sds((W,), jnp.int32),
                                      _sds(list_shape, jnp.int32), _sds(list_shape, jnp.uint16),
                                      _sds(list_shape, jnp.int32), _sds((R,), jnp.int32), _sds((N, 4), jnp.int32),
                                      _sds((N,), jnp.int32), _sds((2,), jnp.int32), _sds((W,), jnp.uint8)),
                 *_hierarchy_args(tables), cameras, flags=np.int32(flags_of(tests, orthographic)),
-                n_roots=np.int64(tables.n_roots), threads=np.int64(threads))
+                n_roots=np.int64(tables.n_roots), threads=np.int64(threads), **extra)
     counts, at_once, pcols, ran, positions, records, pairs, yes, sizes, overflow = out
     yes = _answer_pairs(tables, pairs, sizes[1], yes, cameras, tests, orthographic, FRAMES)
     records, counts, _, ran = _apply(tables, records, sizes, pairs, yes, counts, jnp.zeros((W, 0), jnp.uint8),
