@@ -818,6 +818,17 @@ class MeshStream:
             self._generation = generation
         return self._arrays[which]
 
+    def _corner_searches(self) -> dict | None:
+        """How many corners of faces the stream drew found their vertex each
+        way since it was made: ``split`` (at the split's two vertices),
+        ``had`` (from the vertex the face's third corner had when last
+        removed), ``around`` (among the split's neighbours), ``up`` (up from
+        the corner's original vertex: the base faces and any corner the
+        others miss). None without the core (NumPy stream)."""
+        if self._stream is None:
+            return None
+        return dict(zip(("split", "had", "around", "up"), _core._pmx.mesh_stream_searches(self._stream)))
+
     def _frame(self, r: Refinement):
         """The refinement's visited slots as the core's stream reads them:
         ``(positions, ran, frame bit, slots, key)``, ``key`` naming a word's

@@ -1327,6 +1327,19 @@ PyObject* MeshStreamArrays(PyObject*, PyObject* args) {
                        view(st.vertex_id, 4 * st.vertex_cap), view(st.vertex_position, 12 * st.vertex_cap));
 }
 
+// mesh_stream_searches(stream) -> (at the split, from the vertex had, around, up): how many corners of new
+// faces found their vertex each way since the stream was made.
+PyObject* MeshStreamSearches(PyObject*, PyObject* args) {
+  PyObject* stream_o;
+  if (!PyArg_ParseTuple(args, "O", &stream_o)) return nullptr;
+  auto* h = static_cast<StreamHandle*>(PyCapsule_GetPointer(stream_o, kStreamCapsule));
+  if (!h) return nullptr;
+  int64_t n[PMX_SEARCHES];
+  pmx_mesh_stream_searches(h->stream, n);
+  return Py_BuildValue("(LLLL)", (long long)n[PMX_SEARCH_SPLIT], (long long)n[PMX_SEARCH_HAD],
+                       (long long)n[PMX_SEARCH_AROUND], (long long)n[PMX_SEARCH_UP]);
+}
+
 PyMethodDef methods[] = {
     {"targets", Targets, METH_NOARGS, "The XLA FFI targets of the core: {name: PyCapsule of the handler}."},
     {"simd", Simd, METH_VARARGS,
@@ -1364,6 +1377,9 @@ PyMethodDef methods[] = {
     {"mesh_stream_arrays", MeshStreamArrays, METH_VARARGS,
      "mesh_stream_arrays(stream) -> read-only memoryviews (face_vertex, face_id, vertex_id, vertex_position) "
      "of the slots, valid until the generation changes."},
+    {"mesh_stream_searches", MeshStreamSearches, METH_VARARGS,
+     "mesh_stream_searches(stream) -> (at the split, from the vertex had, around, up): how many corners of new "
+     "faces found their vertex each way."},
     {nullptr, nullptr, 0, nullptr}};
 
 PyModuleDef module = {PyModuleDef_HEAD_INIT, "_pmx", "The front engine's C core as XLA FFI targets (pmx.h).", -1,

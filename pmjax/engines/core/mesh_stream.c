@@ -29,9 +29,8 @@
  * Memory: the slots of one frame's mesh (grown to the largest frame seen,
  * freed slots reused first), the change's slot lists, and maps over the
  * hierarchy (a slot per position and per original vertex, a slot and its
- * corners' last vertices per killed face, a bit per face and per vertex
- * id), whatever the path's length; for
- * the compaction, its rows (two buffers of an id and a slot per slot) and,
+ * third corner's last vertex per killed face, a bit per face and per vertex
+ * id), whatever the path's length; for the compaction, its rows (two buffers of an id and a slot per slot) and,
  * once one ran, the log of changes since (at most twice the rows and 1024
  * more). */
 #include <stdlib.h>
@@ -56,13 +55,15 @@ typedef struct {
 } Corner;
 
 /* A killed face's entry (by its place in kill_data): its face slot while
- * drawn (-1 if not), and the map indexes of its corners' front vertices
- * when it was last removed (-1: never drawn), side by side. A split drawing
- * it again starts each corner's search from there: that vertex is on the
+ * drawn (-1 if not), and the map index of the front vertex of its one
+ * corner on neither of the split's two vertices when it was last removed
+ * (-1: never drawn), side by side. Its other two corners lie under the
+ * split's two children, where a split drawing it again finds them first;
+ * the third's search starts from the vertex kept: that vertex is on the
  * front still, or split since (the corner's vertex is below it), or
  * collapsed since (above it). */
 typedef struct {
-    int32_t slot, index[3];
+    int32_t slot, index;
 } KillEntry;
 
 /* A vertex slot's depth-first interval [lo, hi) of the original vertices
@@ -100,6 +101,8 @@ struct PmxMeshStream {
      * corners' vertices when last removed. */
     int32_t *slot_at;
     KillEntry *kill;
+    /* How many corners found their vertex each way (pmx_mesh_stream_searches). */
+    int64_t searches[PMX_SEARCHES];
     /* The steps' collapses and splits (positions). */
     int32_t *collapse, *split;
     int64_t step_cap;
@@ -163,7 +166,8 @@ static int grow_vertices(PmxMeshStream *s, int64_t need)
         return 1;
     int64_t cap = s->vertex_cap * 2 > need ? s->vertex_cap * 2 : need < 256 ? 256 : need;
     const int64_t old = s->vertex_cap;
-    if (!grow((void **)&s->vertex_id, old, cap, 4) || !grow((void **)&s->vertex_index, old, cap, 4) || !grow((void **)&s->links, old, cap, sizeof(VertexLinks)) ||
+    if (!grow((void **)&s->vertex_id, old, cap, 4) || !grow((void **)&s->vertex_index, old, cap, 4) ||
+        !grow((void **)&s->links, old, cap, sizeof(VertexLinks)) ||
         !grow((void **)&s->vertex_free, old, cap, 4) || !grow((void **)&s->vertex_position, 3 * old, 3 * cap, 4) ||
         !grow((void **)&s->vertex_changes, old, cap, 4) ||
         !grow((void **)&s->vertex_uses, old, cap, 4) || !grow((void **)&s->vertex_rank, old, cap, 4) ||
@@ -362,39 +366,51 @@ PMX_INLINE int32_t slot_from(const PmxMeshStream *s, int64_t index, int32_t star
 
 /* The vertex slot above the corner at depth-first position `start`: one of
  * the split's two vertices (v, w; -1 for none), else found from the map
- * index its face's corner had when last removed (`had`, -1 for none), else
- * a neighbour of v's or w's (a face killed by a split joins its two
- * vertices to vertices already around them), else up from the corner's
- * original vertex. */
-PMX_INLINE int32_t corner_slot(const PmxMeshStream *s, int32_t start, int64_t face, int c, int32_t v, int32_t w,
+ * index its face's third corner had when last removed (`had`, -1 for none)
+ * if the vertex found holds `start` in its interval (anything else, a table
+ * that breaks the rule, falls back to the searches below, never to a wrong
+ * vertex), else a neighbour of v's or w's (a face killed by a split joins
+ * its two vertices to vertices already around them), else up from the
+ * corner's original vertex. Each way found counts in s->searches. */
+PMX_INLINE int32_t corner_slot(PmxMeshStream *s, int32_t start, int64_t face, int c, int32_t v, int32_t w,
                                int32_t had)
 {
     if (v >= 0) {
-        if (start >= s->links[v].lo && start < s->links[v].hi)
+        if (start >= s->links[v].lo && start < s->links[v].hi) {
+            s->searches[PMX_SEARCH_SPLIT]++;
             return v;
-        if (start >= s->links[w].lo && start < s->links[w].hi)
+        }
+        if (start >= s->links[w].lo && start < s->links[w].hi) {
+            s->searches[PMX_SEARCH_SPLIT]++;
             return w;
+        }
         if (had >= 0) {
             const int32_t u = slot_from(s, had, start);
-            if (u >= 0)
+            if (u >= 0 && start >= s->links[u].lo && start < s->links[u].hi) {
+                s->searches[PMX_SEARCH_HAD]++;
                 return u;
+            }
         }
         const int32_t around[2] = {v, w};
         for (int k = 0; k < 2; k++)
             for (int32_t c = s->links[around[k]].head; c >= 0; c = s->corner[c].next) {
                 const int32_t *face = s->face_vertex + 3 * (c / 3);
                 for (int j = 0; j < 3; j++) /* -1: a corner of the face being drawn, not linked yet */
-                    if (face[j] >= 0 && start >= s->links[face[j]].lo && start < s->links[face[j]].hi)
+                    if (face[j] >= 0 && start >= s->links[face[j]].lo && start < s->links[face[j]].hi) {
+                        s->searches[PMX_SEARCH_AROUND]++;
                         return face[j];
+                    }
             }
     }
+    s->searches[PMX_SEARCH_UP]++;
     return front_slot(s, s->t.corners[3 * face + c]);
 }
 
 /* Draws face record f: a face slot (a freed one first, written to its
  * kill entry unless NULL), each corner linked to the front vertex above it
- * (v, w: the vertices of the split drawing it; the entry's indexes of the
- * corners' vertices when it was last removed: searched from). */
+ * (v, w: the vertices of the split drawing it, where two corners lie; the
+ * entry's index of the third corner's vertex when it was last removed: the
+ * third is searched from there). */
 static PmxStatus add_face(PmxMeshStream *s, const PmxFaceRecord *f, KillEntry *at, int32_t v, int32_t w)
 {
     int32_t slot;
@@ -407,7 +423,7 @@ static PmxStatus add_face(PmxMeshStream *s, const PmxFaceRecord *f, KillEntry *a
     }
     s->face_vertex[3 * slot] = s->face_vertex[3 * slot + 1] = s->face_vertex[3 * slot + 2] = -1;
     for (int c = 0; c < 3; c++) {
-        const int32_t u = corner_slot(s, f->start[c], f->face, c, v, w, at ? at->index[c] : -1);
+        const int32_t u = corner_slot(s, f->start[c], f->face, c, v, w, at ? at->index : -1);
         if (u < 0)
             return PMX_BAD_TABLE;
         s->corner[3 * slot + c].start = f->start[c];
@@ -423,16 +439,20 @@ static PmxStatus add_face(PmxMeshStream *s, const PmxFaceRecord *f, KillEntry *a
     return PMX_OK;
 }
 
-/* Removes the face of a kill entry, noting in it its corners' vertices'
- * map indexes. */
-static PmxStatus remove_face(PmxMeshStream *s, KillEntry *at)
+/* Removes the face of a kill entry, noting in it the map index of the
+ * vertex of its corner on neither v nor w (the collapse's two vertices;
+ * -1 if every corner is on them). */
+static PmxStatus remove_face(PmxMeshStream *s, KillEntry *at, int32_t v, int32_t w)
 {
     const int32_t slot = at->slot;
     if (slot < 0)
         return PMX_BAD_TABLE;
     at->slot = -1;
+    at->index = -1;
     for (int c = 0; c < 3; c++) {
-        at->index[c] = s->vertex_index[s->face_vertex[3 * slot + c]];
+        const int32_t u = s->face_vertex[3 * slot + c];
+        if (u != v && u != w)
+            at->index = s->vertex_index[u];
         unlink(s, 3 * slot + c);
         s->face_vertex[3 * slot + c] = -1;
     }
@@ -519,7 +539,7 @@ static PmxStatus collapse(PmxMeshStream *s, int32_t at)
         return PMX_BAD_TABLE;
     /* Its kill list goes. */
     for (int32_t j = 0; j < r->kill_count; j++) {
-        PmxStatus status = remove_face(s, s->kill + r->kill_first + j);
+        PmxStatus status = remove_face(s, s->kill + r->kill_first + j, v, w);
         if (status != PMX_OK)
             return status;
     }
@@ -934,6 +954,11 @@ void pmx_mesh_stream_state(const PmxMeshStream *s, PmxStreamState *out)
     out->n_vertices = s->n_vertices_live;
     out->n_used = s->n_used;
     out->generation = s->generation;
+}
+
+void pmx_mesh_stream_searches(const PmxMeshStream *s, int64_t out[PMX_SEARCHES])
+{
+    memcpy(out, s->searches, sizeof s->searches);
 }
 
 /* The stream keeps a bit per face drawn and per vertex id used: a face's row

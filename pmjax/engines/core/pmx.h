@@ -289,6 +289,13 @@ PmxStatus pmx_mesh_stream_step(PmxMeshStream *s, const PmxStreamFrame *next);
  * is not a word's. */
 PmxStatus pmx_mesh_stream_lane(PmxMeshStream *s, int frame);
 void pmx_mesh_stream_state(const PmxMeshStream *s, PmxStreamState *out);
+/* The ways corners of new faces found their vertex since the stream was
+ * made, counted in out[PMX_SEARCHES]: at the split's two vertices, from the
+ * vertex the face's third corner had when last removed, among the split's
+ * neighbours, or up from the corner's original vertex (the base faces, and
+ * any corner the others miss). */
+enum { PMX_SEARCH_SPLIT, PMX_SEARCH_HAD, PMX_SEARCH_AROUND, PMX_SEARCH_UP, PMX_SEARCHES };
+void pmx_mesh_stream_searches(const PmxMeshStream *s, int64_t out[PMX_SEARCHES]);
 /* The last step's change packed side by side in out (4 * (4 * n_face_changes
  * + 5 * n_vertex_changes) bytes, 4-aligned): int32 face slots [k], their
  * vertex slots [k, 3], int32 vertex slots [u], their ids [u], float32
