@@ -27,8 +27,10 @@ path, medians over repeats, the variants alternated within each repeat:
 with each frame's change (:class:`pmjax.MeshStream`), and that with the
 stream's compacted mesh too (each of the two on a stream of its own that
 follows the path pass after pass, as a viewer's does); and, on refinements
-held in memory (a third stream), the change
-alone, ``Refinement.mesh()`` alone and the stream's compacted mesh alone.
+held in memory, the change alone (a stream never compacted),
+``Refinement.mesh()`` alone and the compacted mesh alone (a stream compacted
+every frame, less the change alone: the compaction and the logging of the
+changes it merges).
 With ``--srmesh DRIVER`` (``benchmarks/srmesh/build.py`` builds it and the
 SR meshes), Hoppe's SrMesh runs in the same run on the same cameras and
 tolerance, its passes alternated with the variants: per frame one
@@ -205,6 +207,11 @@ def mesh_path(name, frames, tau, repeats, srmesh_driver=None):
     for r in held:
         change = stream.update(r)
         changed.append(len(change.face_slots))
+    # The change alone on a stream of its own, never compacted (a compacted
+    # stream logs its changes for the next compaction); warmed once.
+    bare = pmjax.MeshStream(pm)
+    for r in held:
+        bare.update(r)
 
     # The two path variants follow the path with streams of their own, as a
     # viewer's loop does: one never compacted (a stream that was compacted
@@ -227,7 +234,7 @@ def mesh_path(name, frames, tau, repeats, srmesh_driver=None):
         "refine_path + mesh()": lambda: [r.mesh() for r in pmjax.refine_path(pm, cams, tau)],
         "path_mesh_changes (refine_path + change)": lambda: follow(False),
         "path_mesh_changes + compacted": lambda: follow(True),
-        "change alone": lambda: [stream.update(r) for r in held],
+        "change alone": lambda: [bare.update(r) for r in held],
         "mesh() alone": lambda: [r.mesh() for r in held],
         "compacted from the stream alone": lambda: [(stream.update(r), stream.mesh()) for r in held],
     }
@@ -242,7 +249,8 @@ def mesh_path(name, frames, tau, repeats, srmesh_driver=None):
             server.one_pass()  # warm: every pool and list grown along the path
             variants["SrMesh"] = lambda: srmesh_passes.append(server.one_pass())
         ms = alternating_medians(variants, repeats, frames)
-    # The compacted mesh alone: the stream's update and compaction less its update.
+    # The compacted mesh alone: the compacted stream's update and compaction
+    # less the change alone (so the logging its compactions need counts).
     ms["compacted from the stream alone"] -= ms["change alone"]
     row = dict(model=name, pcols=pm.n_pcols, frames=frames, faces=int(np.median(faces)),
                faces_changed=float(np.median(changed)))
