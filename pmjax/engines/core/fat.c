@@ -49,8 +49,10 @@
  *    decision "yes", the bounds as FAT_NO's with the other ends of the
  *    ranges), and no frame's screen bound can hold (its error is at least
  *    the largest tolerance at the largest room any frame's float32 bound
- *    can compute), so that every frame's decision is "yes" and not "whole",
- *    as its own.
+ *    can compute), so that the float32 predicate collapses it in every
+ *    frame, "yes" and not "whole"; a frame's own certificate may have been
+ *    unsure. The unsure counts are counted after the fat pass, so such a
+ *    pcol is not among them.
  * Either way every frame gets the bits of its own refinement. */
 #include "certify.h"
 

@@ -300,7 +300,10 @@ static void words_work(void *arg)
             break;
         }
         PmxCounts *counts = b->counts + w * FRAMES;
-        /* Unsure pairs are taken as "keep" (their yes bits clear). */
+        /* Unsure pairs are taken as "keep" (their yes bits clear). They are
+         * counted after the fat pass: a FAT_YES pcol, which the float32
+         * predicate collapses in every frame, is not among them even where
+         * a frame's own certificate may have been unsure. */
         kern->resolve_word(h->kills, h->order, n, ids, s->kid, s->visit, s->whole, s->yes, ran, pcols, counts);
         for (int l = 0; l < FRAMES; l++)
             counts[l].visited = (int32_t)n, counts[l].unsure = 0;
