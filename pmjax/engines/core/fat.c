@@ -222,7 +222,10 @@ static inline __attribute__((always_inline)) int32_t decide_fat_one(const Fat *W
     const float rx = px0 - tc * qx, ry = py0 - tc * qy, rz = pz0 - tc * qz;
     const float pslop = 0x1p-18f * (fabsf(px0) + fabsf(py0) + fabsf(pz0) + fabsf(qx) + fabsf(qy) + fabsf(qz));
     const float p0 = px0 * px0 + py0 * py0 + pz0 * pz0, p1 = px1 * px1 + py1 * py1 + pz1 * pz1;
-    const float wpath_lo = sqrtf(rx * rx + ry * ry + rz * rz) - pslop - cshift;
+    /* Where Q is too short to project on (tc left 0), the distance to the
+     * segment can be smaller than |P| by up to |Q|. */
+    const float qshort = qq > 0x1p-100f ? 0.0f : sqrtf(qq);
+    const float wpath_lo = sqrtf(rx * rx + ry * ry + rz * rz) - pslop - cshift - qshort;
     const float wpath_hi = sqrtf(p0 > p1 ? p0 : p1) + cshift;
     /* The magnitudes bound either way's terms. */
     const float mw = v1 * n1 + hshift +
