@@ -82,7 +82,9 @@ PMX_TARGET_AVX512 int64_t push_block_avx512(const PmxHierarchy *h, int64_t i, in
     _mm512_mask_storeu_epi32(kill + i, valid, kills);
     const __mmask16 open = _mm512_mask_testn_epi32_mask(valid, code, _mm512_set1_epi32(WHOLE));
     __mmask16 lo, hi;
-    const int64_t end = push_children(k, open, i, nb, n, INT64_MAX, kid, ids, &lo, &hi);
+    const int64_t end = push_children(k, open, i, nb, n, h->n_pcols, kid, ids, &lo, &hi);
+    if (end < 0)
+        return -1;
     if (parent) { /* each child's parent slot, the same way */
         const __m512i slot = _mm512_add_epi32(lane, _mm512_set1_epi32((int32_t)i));
         const int n_lo = _mm_popcnt_u32(lo), n_hi = _mm_popcnt_u32(hi);
