@@ -54,8 +54,8 @@ PMX_INLINE PMX_TARGET_AVX512 int64_t push_children(__m512i k, __mmask16 open, in
 }
 
 /* The same two steps with AVX-512 masks, sixteen slots at a time: the
- * scalar versions spend a third of a camera's time on per-slot stores,
- * shifts and counts. Same results, bit for bit. */
+ * scalar versions store, shift and count slot by slot, where masks do a
+ * block's sixteen in a few instructions. Same results, bit for bit. */
 PMX_TARGET_AVX512 int64_t push_block_avx512(const PmxHierarchy *h, int64_t i, int64_t nb, int64_t n,
                                               const int32_t *decided, const float *kids, uint8_t *state,
                                               int32_t *kill, int32_t *kid, int32_t *ids, int32_t *parent,
@@ -139,7 +139,8 @@ PMX_TARGET_AVX512 int64_t push_word_block_avx512(const PmxHierarchy *h, int64_t 
 }
 
 /* resolve_plain_range over all n slots, sixteen at a time on the traversal's
- * blocks (whose children all sit in later blocks; a block of the rare
+ * blocks (groups aligned to multiples of sixteen from slot 0, visited from
+ * the end, whose children all sit in later blocks; a block of the rare
  * stretch where the queue ran short of sixteen may hold its own children
  * and goes through resolve_plain_range). ran[] needs 3 bytes past n: the
  * children's ran bits are gathered as int32. */
