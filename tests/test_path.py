@@ -273,8 +273,9 @@ def test_streamed_tail_is_one_call_where_it_adds_a_word_per_two_calls_saved():
 @needs_core
 @pytest.mark.parametrize("room", [None, 16])
 @pytest.mark.slow
-def test_path_at_a_float_tie_decides_the_unsure_pairs(built, monkeypatch, room):
-    """A path that holds a pcol's critical tolerance (a float tie) in many
+def test_path_at_a_float_tie_decides_the_unsure_pairs(built, monkeypatch, room, simd):
+    """At every SIMD level (each has its own branch for unsure pairs), a
+    path that holds a pcol's critical tolerance (a float tie) in many
     frames: each word with unsure pairs is counted as if they kept and leaves
     a record of the slots they can change; the pairs are decided by the
     float32 predicate and the counts corrected. With room for 16 int32 of

@@ -49,8 +49,10 @@
  *    decision "yes", the bounds as FAT_NO's with the other ends of the
  *    ranges), and no frame's screen bound can hold (its error is at least
  *    the largest tolerance at the largest room any frame's float32 bound
- *    can compute), so that every frame's decision is "yes" and not "whole",
- *    as its own.
+ *    can compute), so that the float32 predicate collapses it in every
+ *    frame, "yes" and not "whole"; a frame's own certificate may have been
+ *    unsure. The unsure counts are counted after the fat pass, so such a
+ *    pcol is not among them.
  * Either way every frame gets the bits of its own refinement. */
 #include "certify.h"
 
@@ -220,7 +222,10 @@ static inline __attribute__((always_inline)) int32_t decide_fat_one(const Fat *W
     const float rx = px0 - tc * qx, ry = py0 - tc * qy, rz = pz0 - tc * qz;
     const float pslop = 0x1p-18f * (fabsf(px0) + fabsf(py0) + fabsf(pz0) + fabsf(qx) + fabsf(qy) + fabsf(qz));
     const float p0 = px0 * px0 + py0 * py0 + pz0 * pz0, p1 = px1 * px1 + py1 * py1 + pz1 * pz1;
-    const float wpath_lo = sqrtf(rx * rx + ry * ry + rz * rz) - pslop - cshift;
+    /* Where Q is too short to project on (tc left 0), the distance to the
+     * segment can be smaller than |P| by up to |Q|. */
+    const float qshort = qq > 0x1p-100f ? 0.0f : sqrtf(qq);
+    const float wpath_lo = sqrtf(rx * rx + ry * ry + rz * rz) - pslop - cshift - qshort;
     const float wpath_hi = sqrtf(p0 > p1 ? p0 : p1) + cshift;
     /* The magnitudes bound either way's terms. */
     const float mw = v1 * n1 + hshift +
@@ -228,25 +233,22 @@ static inline __attribute__((always_inline)) int32_t decide_fat_one(const Fat *W
                      cshift;
     const float wlo = pos(wlen - hshift > wpath_lo ? wlen - hshift : wpath_lo);
     const float nn = nx * nx + ny * ny + nz * nz;
+    /* The magnitudes of the two tests' differences, shared by coarse and
+     * small (both bounded at the largest kappa2 and distance). */
+    const float mag_mu = 2 * mu * mu + 2 * kappa2_hi * far_d2 * GROW_M;
+    const float mag_w = delta * delta * (mw * mw + dhi2 * (nn + 1) + dhi2 * (1 + n1 * n1) * GROW_M) +
+                        2 * kappa2_hi * far_d2 * far_d2 * GROW_M;
     const _Bool coarse =
-        less(mu * mu - kappa2_hi * far_d2, 2 * mu * mu + 2 * kappa2_hi * far_d2 * GROW_M, slack).n |
-        less(delta * delta * (wlo * wlo - dhi2 * pos(nn - 1)) - kappa2_hi * far_d2 * far_d2,
-             delta * delta * (mw * mw + dhi2 * (nn + 1) + dhi2 * (1 + n1 * n1) * GROW_M) +
-                 2 * kappa2_hi * far_d2 * far_d2 * GROW_M,
-             slack)
-            .n;
+        less(mu * mu - kappa2_hi * far_d2, mag_mu, slack).n |
+        less(delta * delta * (wlo * wlo - dhi2 * pos(nn - 1)) - kappa2_hi * far_d2 * far_d2, mag_w, slack).n;
     /* Small for every frame (at the smallest kappa2, the nearest distance):
      * mu^2 < kappa2 d^2 surely, and delta^2 (d^2 - h^2) < kappa2 d^4 surely,
      * with |v x n| at most |w| + rho |n| or the path's bound, the smaller;
      * the magnitudes as coarse's. */
     const float whi = wlen + hshift < wpath_hi ? wlen + hshift : wpath_hi, near_d2 = near_d * near_d;
     const _Bool small =
-        less(mu * mu - kappa2 * near_d2, 2 * mu * mu + 2 * kappa2_hi * far_d2 * GROW_M, slack).y &
-        less(delta * delta * (whi * whi + dhi2 * pos(1 - nn)) - kappa2 * near_d2 * near_d2,
-             delta * delta * (mw * mw + dhi2 * (nn + 1) + dhi2 * (1 + n1 * n1) * GROW_M) +
-                 2 * kappa2_hi * far_d2 * far_d2 * GROW_M,
-             slack)
-            .y;
+        less(mu * mu - kappa2 * near_d2, mag_mu, slack).y &
+        less(delta * delta * (whi * whi + dhi2 * pos(1 - nn)) - kappa2 * near_d2 * near_d2, mag_w, slack).y;
     /* No frame's screen bound (bound_small at its own distance) holds: its
      * room, d - spread less a nonnegative margin in float32, is at most
      * room_hi (far_d and the rounding of the frame's d and of room_hi's own

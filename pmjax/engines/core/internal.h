@@ -33,8 +33,10 @@ enum { NO = 0, YES = 1, UNSURE = 2, WHOLE = 4 };
 
 /* Decisions of the fat pass. FAT_INSIDE: every frame's frustum test surely
  * keeps the pcol; FAT_SCREEN: its orientation test too (only the screen test
- * is left to the frames); FAT_YES: that screen test surely collapses the
- * pcol for every frame, and no frame's subtree bound holds. */
+ * is left to the frames); FAT_YES: no frame's subtree bound holds and the
+ * float32 predicate collapses the pcol in every frame; a frame's own
+ * certificate may have been unsure (unsure counts are counted after the fat
+ * pass). */
 enum { FAT_OPEN = 0, FAT_WHOLE = 1, FAT_NO = 2, FAT_SCREEN = 3, FAT_INSIDE = 4, FAT_YES = 5 };
 /* The tests a frame's decision may leave out (decide_one's settled). */
 enum { SETTLED_FRUSTUM = 1, SETTLED_ORIENTATION = 2 };

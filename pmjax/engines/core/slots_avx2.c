@@ -61,6 +61,11 @@ PMX_TARGET_AVX2 int64_t push_block_avx2(const PmxHierarchy *h, int64_t i, int64_
         make_tables8();
     const __m256i lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
     for (int64_t part = 0; part < nb; part += 8) {
+        /* A queue past the table (links that are not a forest) stops before
+         * the part's sixteen stores could pass the spare room; the caller
+         * checks n. */
+        if (n > h->n_pcols)
+            return n;
         const int cnt = (int)(nb - part < 8 ? nb - part : 8);
         const int valid = (1 << cnt) - 1;
         const int64_t j0 = i + part;

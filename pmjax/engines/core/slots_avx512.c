@@ -4,6 +4,13 @@
 #if PMX_X86
 #include <immintrin.h>
 
+/* The sixteen slots first, first + 1, ..., first + 15, lane by lane. */
+PMX_INLINE PMX_TARGET_AVX512 __m512i slots_from(int64_t first)
+{
+    const __m512i lane = _mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
+    return _mm512_add_epi32(lane, _mm512_set1_epi32((int32_t)first));
+}
+
 /* Lanes j of a and b interleaved (a_0, b_0, a_1, b_1, ...) in queue order
  * and compressed: the block's first eight lanes' pairs by lo into *at_lo, the
  * last eight's by hi into *at_hi. */
@@ -20,27 +27,25 @@ PMX_INLINE PMX_TARGET_AVX512 void spread_pairs(__m512i a, __m512i b, __mmask16 l
  * column) pushed behind the queue at n: their slots into kid[] (-1 where no
  * child is visited), their positions into ids[]; *lo, *hi: the children in
  * queue order (bit 2j: lane j's first, 2j + 1: its second) of the first and
- * the last eight lanes. Returns the new end of the queue, or -1 (nothing
- * pushed) where it would pass limit. */
+ * the last eight lanes, *n_lo, *n_hi their numbers. Returns the new end of
+ * the queue, or -1 (nothing pushed) where it would pass limit. */
 PMX_INLINE PMX_TARGET_AVX512 int64_t push_children(__m512i k, __mmask16 open, int64_t i, int64_t nb, int64_t n,
                                                    int64_t limit, int32_t *kid, int32_t *ids, __mmask16 *lo,
-                                                   __mmask16 *hi)
+                                                   __mmask16 *hi, int *n_lo, int *n_hi)
 {
-    const __m512i lane = _mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
     /* Lanes with at least one / two children to visit. */
     const __m512i count = _mm512_and_si512(k, _mm512_set1_epi32(3));
     const __mmask16 one = _mm512_mask_cmpgt_epi32_mask(open, count, _mm512_setzero_si512());
     const __mmask16 two = _mm512_mask_cmpgt_epi32_mask(open, count, _mm512_set1_epi32(1));
     const uint32_t pushed = _pdep_u32(one, 0x55555555u) | _pdep_u32(two, 0xAAAAAAAAu);
     *lo = (__mmask16)pushed, *hi = (__mmask16)(pushed >> 16);
-    const int n_lo = _mm_popcnt_u32(*lo), n_hi = _mm_popcnt_u32(*hi);
-    if (n + n_lo + n_hi > limit)
+    *n_lo = _mm_popcnt_u32(*lo), *n_hi = _mm_popcnt_u32(*hi);
+    if (n + *n_lo + *n_hi > limit)
         return -1;
     /* Their slots (-1 where no child is visited): n, n + 1, ... expanded. */
     const __m512i none = _mm512_set1_epi32(-1);
-    const __m512i slot_lo = _mm512_mask_expand_epi32(none, *lo, _mm512_add_epi32(lane, _mm512_set1_epi32((int32_t)n)));
-    const __m512i slot_hi =
-        _mm512_mask_expand_epi32(none, *hi, _mm512_add_epi32(lane, _mm512_set1_epi32((int32_t)n + n_lo)));
+    const __m512i slot_lo = _mm512_mask_expand_epi32(none, *lo, slots_from(n));
+    const __m512i slot_hi = _mm512_mask_expand_epi32(none, *hi, slots_from(n + *n_lo));
     const uint32_t kid_valid = nb == BLOCK ? 0xFFFFFFFFu : (1u << (2 * nb)) - 1;
     _mm512_mask_storeu_epi32(kid + 2 * i, (__mmask16)kid_valid, slot_lo);
     _mm512_mask_storeu_epi32(kid + 2 * i + BLOCK, (__mmask16)(kid_valid >> 16), slot_hi);
@@ -48,28 +53,26 @@ PMX_INLINE PMX_TARGET_AVX512 int64_t push_children(__m512i k, __mmask16 open, in
     const __m512i first = _mm512_and_si512(_mm512_srli_epi32(k, 2), _mm512_set1_epi32(KIDS_FIRST));
     __m512i at_lo, at_hi;
     spread_pairs(first, _mm512_add_epi32(first, _mm512_set1_epi32(1)), *lo, *hi, &at_lo, &at_hi);
-    _mm512_mask_storeu_epi32(ids + n, (__mmask16)((1u << n_lo) - 1), at_lo);
-    _mm512_mask_storeu_epi32(ids + n + n_lo, (__mmask16)((1u << n_hi) - 1), at_hi);
-    return n + n_lo + n_hi;
+    _mm512_mask_storeu_epi32(ids + n, (__mmask16)((1u << *n_lo) - 1), at_lo);
+    _mm512_mask_storeu_epi32(ids + n + *n_lo, (__mmask16)((1u << *n_hi) - 1), at_hi);
+    return n + *n_lo + *n_hi;
 }
 
 /* The same two steps with AVX-512 masks, sixteen slots at a time: the
- * scalar versions spend a third of a camera's time on per-slot stores,
- * shifts and counts. Same results, bit for bit. */
+ * scalar versions store, shift and count slot by slot, where masks do a
+ * block's sixteen in a few instructions. Same results, bit for bit. */
 PMX_TARGET_AVX512 int64_t push_block_avx512(const PmxHierarchy *h, int64_t i, int64_t nb, int64_t n,
                                               const int32_t *decided, const float *kids, uint8_t *state,
                                               int32_t *kill, int32_t *kid, int32_t *ids, int32_t *parent,
                                               int32_t *unsure, int64_t *m)
 {
     const __mmask16 valid = (__mmask16)((1u << nb) - 1);
-    const __m512i lane = _mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
     const __m512i code = _mm512_loadu_si512(decided);
     const __m512i own = _mm512_and_si512(code, _mm512_set1_epi32(YES | UNSURE));
     _mm512_mask_cvtepi32_storeu_epi8(state + i, valid, own);
     const __mmask16 unsure_lanes = _mm512_mask_cmpeq_epi32_mask(valid, own, _mm512_set1_epi32(UNSURE));
     if (unsure_lanes) { /* rare: decided by the caller (the float32 predicate) */
-        const __m512i slots = _mm512_add_epi32(lane, _mm512_set1_epi32((int32_t)i));
-        _mm512_mask_compressstoreu_epi32(unsure + *m, unsure_lanes, slots);
+        _mm512_mask_compressstoreu_epi32(unsure + *m, unsure_lanes, slots_from(i));
         *m += _mm_popcnt_u32(unsure_lanes);
     }
     /* The rows' KIDS column. */
@@ -82,10 +85,12 @@ PMX_TARGET_AVX512 int64_t push_block_avx512(const PmxHierarchy *h, int64_t i, in
     _mm512_mask_storeu_epi32(kill + i, valid, kills);
     const __mmask16 open = _mm512_mask_testn_epi32_mask(valid, code, _mm512_set1_epi32(WHOLE));
     __mmask16 lo, hi;
-    const int64_t end = push_children(k, open, i, nb, n, INT64_MAX, kid, ids, &lo, &hi);
+    int n_lo, n_hi;
+    const int64_t end = push_children(k, open, i, nb, n, h->n_pcols, kid, ids, &lo, &hi, &n_lo, &n_hi);
+    if (end < 0)
+        return -1;
     if (parent) { /* each child's parent slot, the same way */
-        const __m512i slot = _mm512_add_epi32(lane, _mm512_set1_epi32((int32_t)i));
-        const int n_lo = _mm_popcnt_u32(lo), n_hi = _mm_popcnt_u32(hi);
+        const __m512i slot = slots_from(i);
         __m512i at_lo, at_hi;
         spread_pairs(slot, slot, lo, hi, &at_lo, &at_hi);
         _mm512_mask_storeu_epi32(parent + n, (__mmask16)((1u << n_lo) - 1), at_lo);
@@ -103,7 +108,6 @@ PMX_TARGET_AVX512 int64_t push_word_block_avx512(const PmxHierarchy *h, int64_t 
                                                    int32_t *unsure_slots, Lanes *unsure_lanes, int64_t *m)
 {
     const __mmask16 valid = (__mmask16)((1u << nb) - 1);
-    const __m512i lane = _mm512_set_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
     const __m512i v = _mm512_cvtepu16_epi32(_mm256_maskz_loadu_epi16(valid, visit + i));
     const __m512i wh = _mm512_cvtepu16_epi32(_mm256_loadu_si256((const __m256i *)masks[0]));
     const __m512i y = _mm512_cvtepu16_epi32(_mm256_loadu_si256((const __m256i *)masks[1]));
@@ -116,7 +120,7 @@ PMX_TARGET_AVX512 int64_t push_word_block_avx512(const PmxHierarchy *h, int64_t 
     const __mmask16 unsure = _mm512_mask_test_epi32_mask(valid, un, un);
     if (unsure) { /* rare: decided by the caller (the float32 predicate) */
         const __mmask16 first_ones = (__mmask16)((1u << _mm_popcnt_u32(unsure)) - 1);
-        _mm512_mask_compressstoreu_epi32(unsure_slots + *m, unsure, _mm512_add_epi32(lane, _mm512_set1_epi32((int32_t)i)));
+        _mm512_mask_compressstoreu_epi32(unsure_slots + *m, unsure, slots_from(i));
         _mm512_mask_cvtepi32_storeu_epi16(unsure_lanes + *m, first_ones, _mm512_maskz_compress_epi32(unsure, un));
         *m += _mm_popcnt_u32(unsure);
     }
@@ -124,11 +128,11 @@ PMX_TARGET_AVX512 int64_t push_word_block_avx512(const PmxHierarchy *h, int64_t 
     const __mmask16 open = _mm512_mask_test_epi32_mask(valid, open_frames, open_frames);
     const __m512i k = _mm512_loadu_si512(kids);
     __mmask16 lo, hi;
-    const int64_t end = push_children(k, open, i, nb, n, h->n_pcols, kid, ids, &lo, &hi);
+    int n_lo, n_hi;
+    const int64_t end = push_children(k, open, i, nb, n, h->n_pcols, kid, ids, &lo, &hi, &n_lo, &n_hi);
     if (end < 0)
         return -1;
     /* Their frames, the parent's open ones, the same way. */
-    const int n_lo = _mm_popcnt_u32(lo), n_hi = _mm_popcnt_u32(hi);
     __m512i at_lo, at_hi;
     spread_pairs(open_frames, open_frames, lo, hi, &at_lo, &at_hi);
     _mm512_mask_cvtepi32_storeu_epi16(visit + n, (__mmask16)((1u << n_lo) - 1), at_lo);
@@ -137,7 +141,8 @@ PMX_TARGET_AVX512 int64_t push_word_block_avx512(const PmxHierarchy *h, int64_t 
 }
 
 /* resolve_plain_range over all n slots, sixteen at a time on the traversal's
- * blocks (whose children all sit in later blocks; a block of the rare
+ * blocks (groups aligned to multiples of sixteen from slot 0, visited from
+ * the end, whose children all sit in later blocks; a block of the rare
  * stretch where the queue ran short of sixteen may hold its own children
  * and goes through resolve_plain_range). ran[] needs 3 bytes past n: the
  * children's ran bits are gathered as int32. */

@@ -9,8 +9,9 @@
  * unsure[*m...], and the children of the open slots (those whose bound did
  * not decide everything below them) are pushed behind the queue at n, their
  * slots written to kid[] (and, where parent is not NULL, the slot of each
- * child's parent to parent[]). Returns the new end of the queue. The children
- * of an open slot are visited whatever it does (each may run on its own); a
+ * child's parent to parent[]). Returns the new end of the queue (past
+ * n_pcols: links that are not a forest). The children of an open slot are
+ * visited whatever it does (each may run on its own); a
  * slot is closed when everything below it collapses: its children ran, and it
  * runs when it collapses itself. */
 int64_t push_block_plain(const PmxHierarchy *h, int64_t i, int64_t nb, int64_t n, const int32_t *decided,
@@ -18,6 +19,10 @@ int64_t push_block_plain(const PmxHierarchy *h, int64_t i, int64_t nb, int64_t n
                                        int32_t *parent, int32_t *unsure, int64_t *m)
 {
     for (int64_t j = i; j < i + nb; j++) {
+        /* A queue past the table (links that are not a forest) stops before
+         * its two stores could pass the spare room; the caller checks n. */
+        if (n > h->n_pcols)
+            return n;
         /* Without branches but for the rare unsure decisions: whether the
          * bound decided a slot is a coin toss to the branch predictor. */
         const int32_t own = decided[j - i] & (YES | UNSURE);

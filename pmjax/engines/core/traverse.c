@@ -38,8 +38,9 @@ int64_t traverse(const Kernels *kern, const PmxHierarchy *h, const Frames *w, in
         decide(w, col, decided);
         n = kern->push_block(h, i, nb, n, decided, col[KIDS], state, kill, kid, ids, parent, unsure, &m);
         /* Each position is visited at most once in a forest: more slots
-         * than pcols means links that are not one (checked, not trusted). */
-        if (n > h->n_pcols)
+         * than pcols means links that are not one (checked, not trusted);
+         * -1: the block found so before storing its children. */
+        if (n < 0 || n > h->n_pcols)
             return -1;
         i += nb;
     }

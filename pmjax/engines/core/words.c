@@ -191,9 +191,10 @@ PMX_TARGET_AVX2 void resolve_word_avx2(const int32_t *kills, const int32_t *orde
 }
 /* The same sixteen slots at a time with AVX-512 (the scalar loop's branch on
  * whether a slot failed somewhere is a coin toss): groups of slots aligned
- * to sixteen from the end, whose children all sit in later groups (a group
- * of the rare stretch where the queue ran short of a block may hold its own
- * children and goes through the scalar loop). ran[] needs 2 bytes past n:
+ * to multiples of sixteen from slot 0, visited from the end, whose children
+ * all sit in later groups (a group of the rare stretch where the queue ran
+ * short of a block may hold its own children and goes through the scalar
+ * loop). ran[] needs 2 bytes past n:
  * the children's frames are gathered as int32. Same results, bit for bit. */
 PMX_TARGET_AVX512 void resolve_word_avx512(const int32_t *kills, const int32_t *order, int64_t n, const int32_t *ids,
                                            const int32_t *kid, const Lanes *visit, const Lanes *whole,
@@ -300,7 +301,10 @@ static void words_work(void *arg)
             break;
         }
         PmxCounts *counts = b->counts + w * FRAMES;
-        /* Unsure pairs are taken as "keep" (their yes bits clear). */
+        /* Unsure pairs are taken as "keep" (their yes bits clear). They are
+         * counted after the fat pass: a FAT_YES pcol, which the float32
+         * predicate collapses in every frame, is not among them even where
+         * a frame's own certificate may have been unsure. */
         kern->resolve_word(h->kills, h->order, n, ids, s->kid, s->visit, s->whole, s->yes, ran, pcols, counts);
         for (int l = 0; l < FRAMES; l++)
             counts[l].visited = (int32_t)n, counts[l].unsure = 0;
