@@ -239,7 +239,9 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
     int64_t n_front = 0, n_drawn = 0;
     /* The room: a refinement draws each face at most once (drawn, and the
      * face ids in pairs[1], hold F) and its front tiles [0, V0) (front
-     * holds V0 + 1), so before each pcol or top the front is below V0.
+     * holds V0 + 1). Its slots visit a pcol before its children's, so each
+     * pcol that did not run (and each top kept) has a front vertex still to
+     * come: before it the front is below V0.
      * Slots that are not a refinement's (a position twice, ran that does
      * not match) can find more: the reading stops there and the mesh is
      * refused as faces that differ, with nothing written past the room. */
