@@ -729,6 +729,36 @@ def test_the_eager_mesh_entry_checks_its_arrays(built):
     for match, change in cases.items():
         with pytest.raises(ValueError, match=match):
             call(**change)
+    # Slots that are not a refinement's, none ran: one position in every slot
+    # (more front vertices than the model has), or a pcol whose children are
+    # split there and itself in every other slot (its kill list more often
+    # than the model with boundaries has faces; as often as the closed cow
+    # has faces, where a face in two rows of the bitmap's ranks is refused).
+    # The mesh is refused, with nothing written past a buffer.
+    bunny = derived(pmjax.ProgressiveMesh.from_data(built("bunny.ply"))).core_mesh
+    was = engines.mesh_ranks()
+    try:
+        for m in (mesh, bunny):
+            held = tuple(np.asarray(a) for a in (m.pcols, m.kill_data, m.base, m.tops, m.top_at))
+            pcols, n_base, P = held[0], len(held[2]), len(held[0])
+            split = np.flatnonzero((pcols[:, 6] >= 0) & (pcols[:, 7] >= 0) & (pcols[:, 1] == 2))[0]
+            again = np.full(P, split, np.int32)
+            children = again.copy()
+            children[:2] = pcols[split, 6:8]
+            counts = np.asarray(r.core_counts).copy()
+            counts[0], counts[2] = P, m.n_faces - n_base
+            if m is bunny:
+                assert 2 * (P - 2) + n_base > m.n_faces  # past the room for faces
+            for way in ("bitmaps", "sorts"):
+                engines.mesh_ranks(way)
+                for positions in (again, children) if m is bunny or way == "bitmaps" else (again,):
+                    with pytest.raises(ValueError, match="faces drawn do not match"):
+                        _core.front_mesh_eager(held, np.zeros(P, np.uint8), positions, counts, 0, m.n_original,
+                                               m.n_faces, np.empty((m.n_faces, 3), np.int32),
+                                               np.empty(m.n_original, np.int32),
+                                               np.empty((m.n_original, 3), np.float32))
+    finally:
+        engines.mesh_ranks(was)
     vertices, faces, ids = r.mesh()
     whole = _core.front_mesh(mesh, r.core_ran, r.front_positions, r.core_counts)
     k = int(whole[3])

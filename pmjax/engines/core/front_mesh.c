@@ -48,14 +48,29 @@ typedef struct {
     int passes, digit;
 } SortPlan;
 
-PMX_INLINE SortPlan sort_plan(int64_t n, int32_t max_id)
+PMX_INLINE SortPlan sort_plan(int64_t n, int64_t max_id)
 {
+    /* The ids are int32, so at most 31 bits: a larger max_id is capped
+     * there, not cut to its low bits. */
+    const uint64_t top = max_id < 0 ? 0 : max_id > INT32_MAX ? INT32_MAX : (uint64_t)max_id;
     int bits = 1;
-    while (bits < 31 && ((uint32_t)max_id >> bits) > 0)
+    while (bits < 31 && (top >> bits) > 0)
         bits++;
     const int most = n >= ((int64_t)1 << 12) ? RANK_DIGIT_MOST : 8;
     const int passes = (bits + most - 1) / most;
     return (SortPlan){passes, (bits + passes - 1) / passes};
+}
+
+/* The set bits of a bitmap after prefix_marked: those before its last
+ * marked word (every word where dense) and in it. */
+PMX_INLINE int64_t marked_count(const uint64_t *bits, const uint64_t *sum, const int32_t *prefix, int64_t words,
+                                int dense)
+{
+    int64_t last = dense ? words - 1 : -1;
+    for (int64_t b = words / 64; !dense && b >= 0 && last < 0; b--)
+        if (sum[b])
+            last = 64 * b + 63 - __builtin_clzll(sum[b]);
+    return last < 0 ? 0 : prefix[last] + __builtin_popcountll(bits[last]);
 }
 
 /* Digit p of an id under plan. */
@@ -214,7 +229,7 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
     const int mode = __atomic_load_n(&ranks_in_use, __ATOMIC_ACQUIRE);
     const int face_sorted = ranks_sorted(mode, n_faces_drawn, face_words);
     const int face_dense = marked_dense(n_faces_drawn, face_words);
-    const SortPlan face_plan = sort_plan(n_faces_drawn, (int32_t)(n_faces_total > 0 ? n_faces_total - 1 : 0));
+    const SortPlan face_plan = sort_plan(n_faces_drawn, n_faces_total > 0 ? n_faces_total - 1 : 0);
     int32_t *const sort_counts = s->sort_counts;
     int32_t *const face_of = (int32_t *)s->pairs[1];
     /* The front and the drawn faces. Below each pcol that did not run: its
@@ -222,6 +237,15 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
      * (where faces are sorted, their ids gathered too: the sort then reads
      * a quarter of the bytes). */
     int64_t n_front = 0, n_drawn = 0;
+    /* The room: a refinement draws each face at most once (drawn, and the
+     * face ids in pairs[1], hold F) and its front tiles [0, V0) (front
+     * holds V0 + 1). Its slots visit a pcol before its children's, so each
+     * pcol that did not run (and each top kept) has a front vertex still to
+     * come: before it the front is below V0.
+     * Slots that are not a refinement's (a position twice, ran that does
+     * not match) can find more: the reading stops there and the mesh is
+     * refused as faces that differ, with nothing written past the room. */
+    int over = 0;
     for (int64_t i = 0; i < n_not_run; i++) {
         if (i + MESH_AHEAD < n_not_run) {
             const char *ahead = (const char *)(records + not_run_at[i + MESH_AHEAD]);
@@ -236,6 +260,10 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
             __builtin_prefetch(mark + (q->made_at[1] < 0 ? 0 : q->made_at[1]));
         }
         const PmxPcolRecord *r = records + not_run_at[i];
+        if (n_front >= V0 || n_drawn + r->kill_count > n_faces_total) {
+            over = 1;
+            break;
+        }
         for (int j = 0; j < 2; j++) {
             /* Without branches too: the vertex is written, and kept when it is
              * original or its own pcol ran. */
@@ -257,10 +285,15 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
         }
     }
     /* The tops: the roots that ran (top_at >= 0) and the lone originals. */
-    for (int64_t i = 0; i < n_tops; i++)
-        if (top_at[i] < 0 || !mark[top_at[i]])
-            front[n_front++] = tops[i];
-    for (int64_t i = 0; i < n_base; i++)
+    for (int64_t i = 0; i < n_tops && !over; i++)
+        if (top_at[i] < 0 || !mark[top_at[i]]) {
+            if (n_front >= V0)
+                over = 1;
+            else
+                front[n_front++] = tops[i];
+        }
+    over |= n_drawn + n_base > n_faces_total;
+    for (int64_t i = 0; i < n_base && !over; i++)
         if (face_sorted)
             face_of[n_drawn + i] = base[i].face;
         else
@@ -272,18 +305,26 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
      * two independent loads, where a search among sorted starts is a chain
      * of them.) */
     const int start_dense = marked_dense(n_front, start_words);
-    for (int64_t i = 0; i < n_front; i++)
-        set_marked(start_bits, start_sum, front[i].start, 1, start_dense);
-    prefix_marked(start_bits, start_sum, start_words, start_dense, start_prefix, start_block);
-    for (int64_t i = 0; i < n_front; i++)
-        sorted[rank_of(start_bits, start_prefix, front[i].start)] = front[i];
+    PmxStatus status = !over && total == n_faces_drawn ? PMX_OK : PMX_FACES_DIFFER;
+    if (status == PMX_OK) {
+        for (int64_t i = 0; i < n_front; i++)
+            set_marked(start_bits, start_sum, front[i].start, 1, start_dense);
+        prefix_marked(start_bits, start_sum, start_words, start_dense, start_prefix, start_block);
+        for (int64_t i = 0; i < n_front; i++)
+            sorted[rank_of(start_bits, start_prefix, front[i].start)] = front[i];
+        /* A front that tiles [0, V0) starts at 0, so every corner has a
+         * front vertex at or before its position (a rank in [0, n_front));
+         * one that does not is no refinement's front. */
+        if (V0 > 0 && !(start_bits[0] & 1))
+            status = PMX_FACES_DIFFER;
+    }
     const int vertex_sorted = ranks_sorted(mode, n_front, vertex_words);
     const int vertex_dense = marked_dense(n_front, vertex_words);
     /* Each drawn face at its rank (in the bitmap, or its place among the
      * drawn faces sorted by id); each corner first the rank of the front
      * vertex holding it (front_index: -1 unused, 0 used). */
     int64_t n_id_count = 0;
-    PmxStatus status = total == n_faces_drawn ? PMX_OK : PMX_FACES_DIFFER;
+    int32_t *row_at = NULL;
     if (status == PMX_OK) {
         memset(front_index, 0xff, sizeof(int32_t) * (size_t)n_front);
         /* Where the faces are sorted, each drawn face's row is its place in
@@ -291,12 +332,17 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
          * are then read in the order drawn, and only their rows are written
          * out of order (a store does not wait for its line, where a face
          * read at random would hold up its corners' look-ups). */
-        int32_t *row_at = NULL;
         if (face_sorted) {
             row_at = rows_by_id(face_of, total, sort_counts, face_plan, pairs, pairs_to);
         } else {
             prefix_marked(face_bits, face_sum, face_words, face_dense, face_prefix, NULL);
+            /* Each face's row is its rank: a face drawn twice would leave
+             * a row unwritten, so the faces must all differ. */
+            if (marked_count(face_bits, face_sum, face_prefix, face_words, face_dense) != total)
+                status = PMX_FACES_DIFFER;
         }
+    }
+    if (status == PMX_OK) {
         for (int64_t i = 0; i < total; i++) {
             if (face_sorted && i + FACE_AHEAD < total) {
                 const int64_t ahead = i + FACE_AHEAD;
@@ -336,7 +382,7 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
             /* Each used vertex's output index is its row among their ids
              * sorted, the used ones met in the same order as above. */
             const int32_t *out_of = rows_by_id(id_of, n_used, sort_counts,
-                                               sort_plan(n_used, (int32_t)(V0 + n_pcols - 1)), pairs, pairs_to);
+                                               sort_plan(n_used, V0 + n_pcols - 1), pairs, pairs_to);
             int64_t u = 0;
             for (int64_t k = 0; k < n_front; k++)
                 if (front_index[k] == 0) {
