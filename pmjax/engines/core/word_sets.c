@@ -116,9 +116,11 @@ static inline __attribute__((always_inline)) int64_t traverse_sets(const Kernels
                 if (!v)
                     continue;
                 visited[t]++;
-                at_once[t] += (fc == FAT_WHOLE) | (fc == FAT_NO);
-                Lanes masks[3] = {fc == FAT_WHOLE ? (Lanes)0xFFFF : 0, 0, 0};
-                if (fc != FAT_WHOLE && fc != FAT_NO) {
+                /* The fat camera's verdicts for every frame (as traverse_word's
+                 * fat masks); the frames decide only the slots it left open. */
+                at_once[t] += (fc == FAT_WHOLE) | (fc == FAT_NO) | (fc == FAT_YES);
+                Lanes masks[3] = {fc == FAT_WHOLE ? (Lanes)0xFFFF : 0, fc == FAT_YES ? (Lanes)0xFFFF : 0, 0};
+                if (fc == FAT_OPEN || fc == FAT_SCREEN || fc == FAT_INSIDE) {
                     Lanes known_no = 0, known_whole = 0, known_yes = 0;
                     for (int u = 0; u < t; u++) {
                         known_no |= no[u] & coarser[u][t];
