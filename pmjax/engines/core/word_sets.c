@@ -202,31 +202,6 @@ typedef struct {
     PmxStatus status;
 } Sets;
 
-/* A thread's per-set bits for `sets` sets of room slots, kept by the
- * thread from call to call (grown when short), so that a call does not
- * fault its pages in afresh; 0 when out of memory. */
-static __thread SetBits kept;
-
-static int set_bits_take(SetBits *sb, int sets, int64_t room)
-{
-    if (kept.visit && kept.room >= room && kept.sets >= sets) {
-        *sb = kept;
-        return 1;
-    }
-    free(kept.visit), free(kept.whole), free(kept.yes), free(kept.ran), free(kept.unsure_lanes), free(kept.unsure);
-    const size_t lanes = sizeof(Lanes) * (size_t)room * (size_t)sets;
-    kept.visit = malloc(lanes), kept.whole = malloc(lanes), kept.yes = malloc(lanes), kept.ran = malloc(lanes);
-    kept.unsure_lanes = malloc(lanes);
-    kept.unsure = malloc(sizeof(int32_t) * (size_t)room * (size_t)sets);
-    kept.room = room, kept.sets = sets;
-    *sb = kept;
-    if (kept.visit && kept.whole && kept.yes && kept.ran && kept.unsure_lanes && kept.unsure)
-        return 1;
-    free(kept.visit), free(kept.whole), free(kept.yes), free(kept.ran), free(kept.unsure_lanes), free(kept.unsure);
-    memset(&kept, 0, sizeof kept);
-    return 0;
-}
-
 /* The records of set t's unsure slots (as records.c writes a word's, item
  * `word`), or its overflow flag. parent_known: the slots' parents are built. */
 static void record_set(Sets *b, PmxScratch *s, const SetBits *sb, int64_t n, int64_t room, int t, int64_t m,
@@ -251,18 +226,23 @@ static void sets_work(void *arg)
     const PmxHierarchy *h = b->h;
     const int64_t room = h->n_pcols + PMX_SPARE;
     const int64_t groups = b->W / b->sets;
+    int64_t g = __atomic_fetch_add(&b->cursor, 1, __ATOMIC_RELAXED);
+    /* A thread that finds no group left takes no scratch. */
+    if (g >= groups)
+        return;
     PmxScratch *s = pmx_scratch_take(h->n_pcols);
-    SetBits sb;
-    const int ok = s && scratch_slots(s) && set_bits_take(&sb, b->sets, room);
+    const int ok = s && scratch_slots(s) && scratch_sets(s, b->sets);
     if (!ok) {
         __atomic_store_n(&b->status, PMX_NO_MEMORY, __ATOMIC_RELAXED);
         if (s)
             pmx_scratch_give(s);
         return;
     }
+    SetBits sb = {s->set_visit, s->set_whole, s->set_yes, s->set_ran, s->set_unsure_lanes, s->set_unsure,
+                  room, s->sets};
     const unsigned mode = subnormals_off();
     const Kernels *kern = pmx_kernels();
-    for (int64_t g; (g = __atomic_fetch_add(&b->cursor, 1, __ATOMIC_RELAXED)) < groups;) {
+    for (; g < groups; g = __atomic_fetch_add(&b->cursor, 1, __ATOMIC_RELAXED)) {
         const int64_t first = g * b->sets;
         /* Sets that differ in more than their tolerances (or whose frames
          * the fat camera cannot share) are traversed one by one. */
