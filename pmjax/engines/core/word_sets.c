@@ -9,16 +9,20 @@
  * only the frames' own decisions are made set by set, less those another
  * set's sure decisions imply (the screen test is monotone in kappa2, the
  * other tests do not depend on it). Each set keeps its own bits (visit,
- * whole, yes, unsure), so that it visits the slots its word alone visits and
- * its counts, once its unsure pairs are decided, are those of
- * pmx_refine_words on its word alone: a slot that a set does not visit ran
- * for all its frames, as a slot decided above it does in the word alone. */
+ * whole, yes, unsure), and its counts of faces and pcols run, once its
+ * unsure pairs are decided, are those of pmx_refine_words on its word alone:
+ * a slot that a set does not visit ran for all its frames, as a slot decided
+ * above it does in the word alone. Its visited slots and unsure pairs may
+ * differ from the word alone's: another set's sure decisions settle some of
+ * its unsure pairs, and where they settle every frame of a slot as a
+ * collapse, the set's own decision (whose "whole" would have stopped the walk
+ * there) is not made and the set walks on below it. */
 #include <stdlib.h>
 
 #include "internal.h"
 
 /* Sets a word is traversed with at most. */
-#define MOST_SETS 8
+#define MOST_SETS PMX_MOST_SETS
 
 /* Whether the words at views a and b (FRAMES frames each) differ only in
  * their frames' tolerances (kappa2), bit for bit. */
@@ -134,7 +138,9 @@ static inline __attribute__((always_inline)) int64_t traverse_sets(const Kernels
                         else
                             kern->decide_row_settled(&fr[t], row, fc, masks);
                     }
-                    masks[0] = (Lanes)((masks[0] & ~known) | (known_whole & v));
+                    /* A frame keeps its own "whole" unless a coarser set's sure
+                     * "keep" rules it out (a finer set's sure collapse does not). */
+                    masks[0] = (Lanes)((masks[0] & ~known_no) | (known_whole & v));
                     masks[1] = (Lanes)((masks[1] & ~known) | (known_yes & v));
                     masks[2] = (Lanes)(masks[2] & ~known);
                 }
