@@ -888,9 +888,9 @@ def _path_budgets(pm, host, budgets, tests, chunk):
     rows = _core.host_camera_rows(host, np.zeros(K, np.float32), d.exponent)
 
     # The (frame, budget) pairs of all budgets at both patterns (at the
-    # guess, then just below it) in one pass along the path: each word of
-    # 16 frames traversed once for its frames at every (budget, pattern)
-    # tolerance (a set of words, :func:`_word_set_counts`), whose fronts
+    # guess, then just below it), one pass along the path per budget: each
+    # word of 16 frames traversed once for its frames at the budget's
+    # patterns (a set of words, :func:`_word_set_counts`), whose fronts
     # share most of their slots.
     def along_path(*bits):
         G = len(bits)
@@ -971,6 +971,8 @@ def _word_set_counts(d, counts_of, rows, bits, tests, orthographic):
     once for all T tolerances, as a set of T words that differ only in
     their tolerances."""
     T, K = bits.shape
+    if not 1 <= T <= MOST_SETS:
+        raise ValueError(f"word sets hold 1 to {MOST_SETS} tolerances, got {T}")
     F = _core.FRAMES
     out = np.empty((T, K, 3), np.int64)
     tau = np.asarray(bits, np.int64).astype(np.int32).view(np.float32)

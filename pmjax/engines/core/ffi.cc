@@ -365,8 +365,9 @@ static ffi::Error WordsIn(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> rows, ffi:
                      "path"));
   } else {
     // Words in sets of the same frames at several tolerances: counts only.
-    if (sets < 1 || sets > 8 || W % sets != 0)
-      return ffi::Error::InvalidArgument("sets must be 1 to 8 and divide the words (" + std::to_string(W) +
+    if (sets < 1 || sets > PMX_MOST_SETS || W % sets != 0)
+      return ffi::Error::InvalidArgument("sets must be 1 to " + std::to_string(PMX_MOST_SETS) +
+                                         " and divide the words (" + std::to_string(W) +
                                          "), got " + std::to_string(sets));
     if (lists.pcols || lists.ran_frames || lists.positions)
       return ffi::Error::InvalidArgument("word sets have no lists");

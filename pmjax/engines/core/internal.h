@@ -107,6 +107,10 @@ struct PmxScratch {
     uint8_t *state, *ran, *mark;
     /* words */
     Lanes *visit, *whole, *yes, *ran_frames, *unsure_lanes;
+    /* word sets: `sets` sets of the words' bits, set t's slot i at t * room + i */
+    int64_t sets;
+    Lanes *set_visit, *set_whole, *set_yes, *set_ran, *set_unsure_lanes;
+    int32_t *set_unsure;
     /* front mesh, for n_original vertices and n_faces faces */
     int64_t n_original, n_faces;
     int32_t *not_run_at, *start_prefix, *face_prefix, *vertex_prefix, *start_block, *front_index;
@@ -125,6 +129,7 @@ struct PmxScratch {
 /* The parts (0 when out of memory). */
 int scratch_slots(PmxScratch *s);
 int scratch_words(PmxScratch *s);
+int scratch_sets(PmxScratch *s, int64_t sets); /* grown when short */
 int scratch_mesh(PmxScratch *s, int64_t n_original, int64_t n_faces);
 
 /* The slots' bookkeeping of one decided block (slots.h). */

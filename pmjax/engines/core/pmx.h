@@ -169,13 +169,18 @@ PmxStatus pmx_refine_words(const PmxHierarchy *h, const float *views, int64_t W,
                            PmxLists lists, int32_t *at_once, PmxRecords *records, uint8_t *overflow,
                            const PmxRunner *run);
 
-/* pmx_refine_words without lists, for W words in groups of `sets` (1 to 8)
+/* Words pmx_refine_word_sets traverses together at most. */
+#define PMX_MOST_SETS 8
+
+/* pmx_refine_words without lists, for W words in groups of `sets` (1 to PMX_MOST_SETS)
  * consecutive words: a group whose words hold the same frames, differing
  * only in their tolerances, is traversed once for all of them (word_sets.c);
- * any other group word by word. Each word's counts are pmx_refine_words'
- * once its unsure pairs are decided (its records may hold fewer pairs:
- * another set's sure decisions settle some, and at_once counts the fat
- * camera of the whole group); PMX_BAD_SIZE unless W is a multiple of sets. */
+ * any other group word by word. Each word's faces and pcols run are
+ * pmx_refine_words' once its unsure pairs are decided; its visited slots and
+ * records may differ (another set's sure decisions settle some pairs, and
+ * the set then walks below slots its own "whole" would have stopped at), and
+ * at_once counts the fat camera of the whole group; PMX_BAD_SIZE unless W is
+ * a multiple of sets. */
 PmxStatus pmx_refine_word_sets(const PmxHierarchy *h, const float *views, int64_t W, int sets, int flags,
                                PmxCounts *counts, int32_t *at_once, PmxRecords *records, uint8_t *overflow,
                                const PmxRunner *run);

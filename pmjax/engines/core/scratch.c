@@ -18,6 +18,16 @@ static int pool_size = 0;
  * touched where a call writes). */
 static void *zeros(int64_t n, size_t size) { return calloc((size_t)(n > 0 ? n : 1), size); }
 
+static void free_sets(PmxScratch *s)
+{
+    void *parts[] = {s->set_visit, s->set_whole, s->set_yes, s->set_ran, s->set_unsure_lanes, s->set_unsure};
+    for (size_t i = 0; i < sizeof parts / sizeof parts[0]; i++)
+        free(parts[i]);
+    s->set_visit = s->set_whole = s->set_yes = s->set_ran = s->set_unsure_lanes = NULL;
+    s->set_unsure = NULL;
+    s->sets = 0;
+}
+
 static void free_parts(PmxScratch *s)
 {
     void *parts[] = {s->ids, s->kid, s->kill, s->pcols, s->unsure, s->parent, s->chain, s->state, s->ran, s->mark,
@@ -27,6 +37,7 @@ static void free_parts(PmxScratch *s)
                      s->pairs[0], s->pairs[1]};
     for (size_t i = 0; i < sizeof parts / sizeof parts[0]; i++)
         free(parts[i]);
+    free_sets(s);
 }
 
 static void free_mesh(PmxScratch *s)
@@ -88,6 +99,26 @@ int scratch_words(PmxScratch *s)
         s->visit = s->whole = s->yes = s->ran_frames = s->unsure_lanes = NULL;
         return 0;
     }
+    return 1;
+}
+
+int scratch_sets(PmxScratch *s, int64_t sets)
+{
+    if (s->set_visit && s->sets >= sets)
+        return 1;
+    free_sets(s);
+    const int64_t room = (s->n_pcols + PMX_SPARE) * sets;
+    s->set_visit = zeros(room, sizeof(Lanes));
+    s->set_whole = zeros(room, sizeof(Lanes));
+    s->set_yes = zeros(room, sizeof(Lanes));
+    s->set_ran = zeros(room, sizeof(Lanes));
+    s->set_unsure_lanes = zeros(room, sizeof(Lanes));
+    s->set_unsure = zeros(room, sizeof(int32_t));
+    if (!(s->set_visit && s->set_whole && s->set_yes && s->set_ran && s->set_unsure_lanes && s->set_unsure)) {
+        free_sets(s);
+        return 0;
+    }
+    s->sets = sets;
     return 1;
 }
 

@@ -9,16 +9,20 @@
  * only the frames' own decisions are made set by set, less those another
  * set's sure decisions imply (the screen test is monotone in kappa2, the
  * other tests do not depend on it). Each set keeps its own bits (visit,
- * whole, yes, unsure), so that it visits the slots its word alone visits and
- * its counts, once its unsure pairs are decided, are those of
- * pmx_refine_words on its word alone: a slot that a set does not visit ran
- * for all its frames, as a slot decided above it does in the word alone. */
+ * whole, yes, unsure), and its counts of faces and pcols run, once its
+ * unsure pairs are decided, are those of pmx_refine_words on its word alone:
+ * a slot that a set does not visit ran for all its frames, as a slot decided
+ * above it does in the word alone. Its visited slots and unsure pairs may
+ * differ from the word alone's: another set's sure decisions settle some of
+ * its unsure pairs, and where they settle every frame of a slot as a
+ * collapse, the set's own decision (whose "whole" would have stopped the walk
+ * there) is not made and the set walks on below it. */
 #include <stdlib.h>
 
 #include "internal.h"
 
 /* Sets a word is traversed with at most. */
-#define MOST_SETS 8
+#define MOST_SETS PMX_MOST_SETS
 
 /* Whether the words at views a and b (FRAMES frames each) differ only in
  * their frames' tolerances (kappa2), bit for bit. */
@@ -116,9 +120,11 @@ static inline __attribute__((always_inline)) int64_t traverse_sets(const Kernels
                 if (!v)
                     continue;
                 visited[t]++;
-                at_once[t] += (fc == FAT_WHOLE) | (fc == FAT_NO);
-                Lanes masks[3] = {fc == FAT_WHOLE ? (Lanes)0xFFFF : 0, 0, 0};
-                if (fc != FAT_WHOLE && fc != FAT_NO) {
+                /* The fat camera's verdicts for every frame (as traverse_word's
+                 * fat masks); the frames decide only the slots it left open. */
+                at_once[t] += (fc == FAT_WHOLE) | (fc == FAT_NO) | (fc == FAT_YES);
+                Lanes masks[3] = {fc == FAT_WHOLE ? (Lanes)0xFFFF : 0, fc == FAT_YES ? (Lanes)0xFFFF : 0, 0};
+                if (fc == FAT_OPEN || fc == FAT_SCREEN || fc == FAT_INSIDE) {
                     Lanes known_no = 0, known_whole = 0, known_yes = 0;
                     for (int u = 0; u < t; u++) {
                         known_no |= no[u] & coarser[u][t];
@@ -132,7 +138,9 @@ static inline __attribute__((always_inline)) int64_t traverse_sets(const Kernels
                         else
                             kern->decide_row_settled(&fr[t], row, fc, masks);
                     }
-                    masks[0] = (Lanes)((masks[0] & ~known) | (known_whole & v));
+                    /* A frame keeps its own "whole" unless a coarser set's sure
+                     * "keep" rules it out (a finer set's sure collapse does not). */
+                    masks[0] = (Lanes)((masks[0] & ~known_no) | (known_whole & v));
                     masks[1] = (Lanes)((masks[1] & ~known) | (known_yes & v));
                     masks[2] = (Lanes)(masks[2] & ~known);
                 }
@@ -200,31 +208,6 @@ typedef struct {
     PmxStatus status;
 } Sets;
 
-/* A thread's per-set bits for `sets` sets of room slots, kept by the
- * thread from call to call (grown when short), so that a call does not
- * fault its pages in afresh; 0 when out of memory. */
-static __thread SetBits kept;
-
-static int set_bits_take(SetBits *sb, int sets, int64_t room)
-{
-    if (kept.visit && kept.room >= room && kept.sets >= sets) {
-        *sb = kept;
-        return 1;
-    }
-    free(kept.visit), free(kept.whole), free(kept.yes), free(kept.ran), free(kept.unsure_lanes), free(kept.unsure);
-    const size_t lanes = sizeof(Lanes) * (size_t)room * (size_t)sets;
-    kept.visit = malloc(lanes), kept.whole = malloc(lanes), kept.yes = malloc(lanes), kept.ran = malloc(lanes);
-    kept.unsure_lanes = malloc(lanes);
-    kept.unsure = malloc(sizeof(int32_t) * (size_t)room * (size_t)sets);
-    kept.room = room, kept.sets = sets;
-    *sb = kept;
-    if (kept.visit && kept.whole && kept.yes && kept.ran && kept.unsure_lanes && kept.unsure)
-        return 1;
-    free(kept.visit), free(kept.whole), free(kept.yes), free(kept.ran), free(kept.unsure_lanes), free(kept.unsure);
-    memset(&kept, 0, sizeof kept);
-    return 0;
-}
-
 /* The records of set t's unsure slots (as records.c writes a word's, item
  * `word`), or its overflow flag. parent_known: the slots' parents are built. */
 static void record_set(Sets *b, PmxScratch *s, const SetBits *sb, int64_t n, int64_t room, int t, int64_t m,
@@ -249,18 +232,23 @@ static void sets_work(void *arg)
     const PmxHierarchy *h = b->h;
     const int64_t room = h->n_pcols + PMX_SPARE;
     const int64_t groups = b->W / b->sets;
+    int64_t g = __atomic_fetch_add(&b->cursor, 1, __ATOMIC_RELAXED);
+    /* A thread that finds no group left takes no scratch. */
+    if (g >= groups)
+        return;
     PmxScratch *s = pmx_scratch_take(h->n_pcols);
-    SetBits sb;
-    const int ok = s && scratch_slots(s) && set_bits_take(&sb, b->sets, room);
+    const int ok = s && scratch_slots(s) && scratch_sets(s, b->sets);
     if (!ok) {
         __atomic_store_n(&b->status, PMX_NO_MEMORY, __ATOMIC_RELAXED);
         if (s)
             pmx_scratch_give(s);
         return;
     }
+    SetBits sb = {s->set_visit, s->set_whole, s->set_yes, s->set_ran, s->set_unsure_lanes, s->set_unsure,
+                  room, s->sets};
     const unsigned mode = subnormals_off();
     const Kernels *kern = pmx_kernels();
-    for (int64_t g; (g = __atomic_fetch_add(&b->cursor, 1, __ATOMIC_RELAXED)) < groups;) {
+    for (; g < groups; g = __atomic_fetch_add(&b->cursor, 1, __ATOMIC_RELAXED)) {
         const int64_t first = g * b->sets;
         /* Sets that differ in more than their tolerances (or whose frames
          * the fat camera cannot share) are traversed one by one. */
