@@ -958,21 +958,16 @@ def _core_word_counts(tables, one_tables, rows, tests, orthographic, sets=1):
     return _core.refine_words(tables, one_tables, rows, tests, orthographic, False, sets=sets)[0]
 
 
-# Tolerances of a path's frames counted in one traversal of each word at
-# most (the core's word sets).
-MOST_SETS = 8
-
-
 def _word_set_counts(d, counts_of, rows, bits, tests, orthographic):
     """Exact ``(faces, vertices, executed)`` (``int64 [T, K, 3]``) of a
     path's frames ``rows`` (``float32 [K, CAMERA]``, in order) at T
     tolerances each (``bits``: ``[T, K]`` float32 bit patterns of tau,
-    ``T <= MOST_SETS``): each word of frames (:func:`_word_calls`) traversed
+    ``T <= _core.MOST_SETS``): each word of frames (:func:`_word_calls`) traversed
     once for all T tolerances, as a set of T words that differ only in
     their tolerances."""
     T, K = bits.shape
-    if not 1 <= T <= MOST_SETS:
-        raise ValueError(f"word sets hold 1 to {MOST_SETS} tolerances, got {T}")
+    if not 1 <= T <= _core.MOST_SETS:
+        raise ValueError(f"word sets hold 1 to {_core.MOST_SETS} tolerances, got {T}")
     F = _core.FRAMES
     out = np.empty((T, K, 3), np.int64)
     tau = np.asarray(bits, np.int64).astype(np.int32).view(np.float32)

@@ -54,6 +54,9 @@ else:
 
 # The core's layout (pmx.h), checked against the library below.
 ROW, VIEW, CAMERA, FRAMES, FAT, NODE, SPARE = 16, 22, 19, 16, 29, 12, 16
+# Words of the same frames at other tolerances traversed together at most
+# (refine_words' sets).
+MOST_SETS = 8
 FRUSTUM, ORIENTATION, SCREEN, ORTHOGRAPHIC = 1, 2, 4, 8
 SIMD_LEVELS = ("plain", "avx2", "avx512")
 # How the core's mesh takes its ranks: by the ratio of items to bitmap words,
@@ -85,7 +88,7 @@ def word_spans(words: int, most: int) -> list:
 if _pmx is not None:
     _layout = _pmx.layout()
     assert (_layout["row"], _layout["view"], _layout["camera"], _layout["frames"], _layout["fat"], _layout["node"],
-            _layout["spare"]) == (ROW, VIEW, CAMERA, FRAMES, FAT, NODE, SPARE), _layout
+            _layout["spare"], _layout["most_sets"]) == (ROW, VIEW, CAMERA, FRAMES, FAT, NODE, SPARE, MOST_SETS), _layout
     for _name, _capsule in _pmx.targets().items():
         jax.ffi.register_ffi_target(_name, _capsule, platform="cpu")
 
@@ -504,7 +507,7 @@ def refine_words(tables: CoreTables, one_tables: CoreTables, cameras, tests, ort
             tolerances (:func:`camera_rows`), word by word.
         lists: also return each word's lists (``[W, P + SPARE]``, ``ran``
             the frames' bits as uint16).
-        sets: the words come in groups of ``sets`` (1 to 8) consecutive
+        sets: the words come in groups of ``sets`` (1 to MOST_SETS) consecutive
             words; a group whose words hold the same frames at other
             tolerances (a face budget's patterns) is traversed once for all
             of them, with the same results. Without ``lists`` only.
@@ -523,13 +526,12 @@ def refine_words(tables: CoreTables, one_tables: CoreTables, cameras, tests, ort
     list_shape = (W, L) if lists else (W, 0)
     if sets != 1 and lists:
         raise ValueError("refine_words: word sets have no lists")
-    target, extra = ("pmx_refine_words", {}) if sets == 1 else ("pmx_refine_word_sets", dict(sets=np.int64(sets)))
-    out = _call(target, (_sds((W * FRAMES, 4), jnp.int32), _sds((W,), jnp.int32),
+    out = _call("pmx_refine_words", (_sds((W * FRAMES, 4), jnp.int32), _sds((W,), jnp.int32),
                                      _sds(list_shape, jnp.int32), _sds(list_shape, jnp.uint16),
                                      _sds(list_shape, jnp.int32), _sds((R,), jnp.int32), _sds((N, 4), jnp.int32),
                                      _sds((N,), jnp.int32), _sds((2,), jnp.int32), _sds((W,), jnp.uint8)),
                 *_hierarchy_args(tables), cameras, flags=np.int32(flags_of(tests, orthographic)),
-                n_roots=np.int64(tables.n_roots), threads=np.int64(threads), **extra)
+                n_roots=np.int64(tables.n_roots), threads=np.int64(threads), sets=np.int64(sets))
     counts, at_once, pcols, ran, positions, records, pairs, yes, sizes, overflow = out
     yes = _answer_pairs(tables, pairs, sizes[1], yes, cameras, tests, orthographic, FRAMES)
     records, counts, _, ran = _apply(tables, records, sizes, pairs, yes, counts, jnp.zeros((W, 0), jnp.uint8),

@@ -324,14 +324,15 @@ ffi::Error BudgetMany(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> rows, ffi::Buf
 // operands: rows, kills, order, cameras f32[W * 16, PMX_CAMERA]
 // results: counts s32[W * 16, 4], at_once s32[W], pcols s32[W, L], ran u16[W, L], positions s32[W, L],
 //          records s32[R], pairs s32[N, 4], yes s32[N] (room for the answers), sizes s32[2], overflow u8[W]
-static ffi::Error WordsIn(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> rows, ffi::Buffer<ffi::S32> kills,
+// sets > 1: the words in groups of `sets` (pmx_refine_word_sets), counts only (lists [W, 0]).
+ffi::Error RefineWords(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> rows, ffi::Buffer<ffi::S32> kills,
                        ffi::Buffer<ffi::S32> order, ffi::Buffer<ffi::F32> cameras, ffi::ResultBuffer<ffi::S32> counts,
                        ffi::ResultBuffer<ffi::S32> at_once, ffi::ResultBuffer<ffi::S32> pcols,
                        ffi::ResultBuffer<ffi::U16> ran, ffi::ResultBuffer<ffi::S32> positions,
                        ffi::ResultBuffer<ffi::S32> records, ffi::ResultBuffer<ffi::S32> pairs,
                        ffi::ResultBuffer<ffi::S32> yes, ffi::ResultBuffer<ffi::S32> sizes,
                        ffi::ResultBuffer<ffi::U8> overflow, int32_t flags, int64_t n_roots, int64_t threads,
-                         int64_t sets) {
+                       int64_t sets) {
   PmxHierarchy h;
   PMX_CHECK(Hierarchy(rows, kills, order, n_roots, &h));
   const int64_t P = h.n_pcols;
@@ -377,27 +378,6 @@ static ffi::Error WordsIn(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> rows, ffi:
   }
   Pairs(rec.records, rec.used, pairs->typed_data(), sizes->typed_data());
   return ffi::Error::Success();
-}
-
-ffi::Error RefineWords(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> rows, ffi::Buffer<ffi::S32> kills,
-                       ffi::Buffer<ffi::S32> order, ffi::Buffer<ffi::F32> cameras, ffi::ResultBuffer<ffi::S32> counts,
-                       ffi::ResultBuffer<ffi::S32> at_once, ffi::ResultBuffer<ffi::S32> pcols,
-                       ffi::ResultBuffer<ffi::U16> ran, ffi::ResultBuffer<ffi::S32> positions,
-                       ffi::ResultBuffer<ffi::S32> records, ffi::ResultBuffer<ffi::S32> pairs,
-                       ffi::ResultBuffer<ffi::S32> yes, ffi::ResultBuffer<ffi::S32> sizes,
-                       ffi::ResultBuffer<ffi::U8> overflow, int32_t flags, int64_t n_roots, int64_t threads) {
-  return WordsIn(pool, rows, kills, order, cameras, counts, at_once, pcols, ran, positions, records, pairs, yes, sizes, overflow, flags, n_roots, threads, 1);
-}
-
-// The same with the words in sets of `sets` (pmx_refine_word_sets; lists [W, 0]).
-ffi::Error RefineWordSets(ffi::ThreadPool pool, ffi::Buffer<ffi::F32> rows, ffi::Buffer<ffi::S32> kills,
-                       ffi::Buffer<ffi::S32> order, ffi::Buffer<ffi::F32> cameras, ffi::ResultBuffer<ffi::S32> counts,
-                       ffi::ResultBuffer<ffi::S32> at_once, ffi::ResultBuffer<ffi::S32> pcols,
-                       ffi::ResultBuffer<ffi::U16> ran, ffi::ResultBuffer<ffi::S32> positions,
-                       ffi::ResultBuffer<ffi::S32> records, ffi::ResultBuffer<ffi::S32> pairs,
-                       ffi::ResultBuffer<ffi::S32> yes, ffi::ResultBuffer<ffi::S32> sizes,
-                       ffi::ResultBuffer<ffi::U8> overflow, int32_t flags, int64_t n_roots, int64_t threads, int64_t sets) {
-  return WordsIn(pool, rows, kills, order, cameras, counts, at_once, pcols, ran, positions, records, pairs, yes, sizes, overflow, flags, n_roots, threads, sets);
 }
 
 // ---- unsure pairs decided: counts, masks and lists corrected -----------------
@@ -706,32 +686,27 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxBudgetMany, BudgetMany,
                                   .Attr<int64_t>("threads")
                                   .Attr<int32_t>("words"));
 
-// The binding of the word targets (RefineWords; RefineWordSets adds `sets`).
-static auto WordsBinding() {
-  return ffi::Ffi::Bind()
-          .Ctx<ffi::ThreadPool>()
-          .Arg<ffi::Buffer<ffi::F32>>()
-          .Arg<ffi::Buffer<ffi::S32>>()
-          .Arg<ffi::Buffer<ffi::S32>>()
-          .Arg<ffi::Buffer<ffi::F32>>()
-          .Ret<ffi::Buffer<ffi::S32>>()
-          .Ret<ffi::Buffer<ffi::S32>>()
-          .Ret<ffi::Buffer<ffi::S32>>()
-          .Ret<ffi::Buffer<ffi::U16>>()
-          .Ret<ffi::Buffer<ffi::S32>>()
-          .Ret<ffi::Buffer<ffi::S32>>()
-          .Ret<ffi::Buffer<ffi::S32>>()
-          .Ret<ffi::Buffer<ffi::S32>>()
-          .Ret<ffi::Buffer<ffi::S32>>()
-          .Ret<ffi::Buffer<ffi::U8>>()
-          .Attr<int32_t>("flags")
-          .Attr<int64_t>("n_roots")
-          .Attr<int64_t>("threads");
-}
-
-XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxRefineWords, RefineWords, WordsBinding());
-
-XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxRefineWordSets, RefineWordSets, WordsBinding().Attr<int64_t>("sets"));
+XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxRefineWords, RefineWords,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::S32>>()
+                                  .Arg<ffi::Buffer<ffi::F32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::U16>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::S32>>()
+                                  .Ret<ffi::Buffer<ffi::U8>>()
+                                  .Attr<int32_t>("flags")
+                                  .Attr<int64_t>("n_roots")
+                                  .Attr<int64_t>("threads")
+                                  .Attr<int64_t>("sets"));
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(PmxApplyUnsure, ApplyUnsure,
                               ffi::Ffi::Bind()
@@ -811,7 +786,6 @@ PyObject* Targets(PyObject*, PyObject*) {
                  {"pmx_refine_answered", reinterpret_cast<void*>(PmxRefineAnswered)},
                  {"pmx_refine_many", reinterpret_cast<void*>(PmxRefineMany)},
                  {"pmx_refine_words", reinterpret_cast<void*>(PmxRefineWords)},
-                 {"pmx_refine_word_sets", reinterpret_cast<void*>(PmxRefineWordSets)},
                  {"pmx_budget_many", reinterpret_cast<void*>(PmxBudgetMany)},
                  {"pmx_apply_unsure", reinterpret_cast<void*>(PmxApplyUnsure)},
                  {"pmx_front_mesh", reinterpret_cast<void*>(PmxFrontMesh)},
@@ -853,9 +827,9 @@ PyObject* MeshRanks(PyObject*, PyObject* args) {
 PyObject* SimdBest(PyObject*, PyObject*) { return PyLong_FromLong(pmx_simd_best()); }
 
 PyObject* Layout(PyObject*, PyObject*) {
-  return Py_BuildValue("{s:i,s:i,s:i,s:i,s:i,s:i,s:i,s:i,s:i,s:i,s:i}", "row", PMX_ROW, "view", PMX_VIEW, "camera",
-                       PMX_CAMERA, "frames",
-                       PMX_FRAMES, "fat", PMX_FAT, "node", PMX_NODE, "spare", PMX_SPARE, "max_pcols", PMX_MAX_PCOLS,
+  return Py_BuildValue("{s:i,s:i,s:i,s:i,s:i,s:i,s:i,s:i,s:i,s:i,s:i,s:i}", "row", PMX_ROW, "view", PMX_VIEW, "camera",
+                       PMX_CAMERA, "frames", PMX_FRAMES, "fat", PMX_FAT, "node", PMX_NODE, "spare", PMX_SPARE,
+                       "most_sets", PMX_MOST_SETS, "max_pcols", PMX_MAX_PCOLS,
                        "pcol_record", int(sizeof(PmxPcolRecord) / 4), "face_record", int(sizeof(PmxFaceRecord) / 4),
                        "front_vertex", int(sizeof(PmxFrontVertex) / 4));
 }
