@@ -214,9 +214,8 @@ def mesh_path(name, frames, tau, repeats, srmesh_driver=None):
         bare.update(r)
 
     # The two path variants follow the path with streams of their own, as a
-    # viewer's loop does: one never compacted (a stream that was compacted
-    # logs its changes for the next compaction, work a loop that only draws
-    # the changes does not do), one compacted every frame; each warmed once.
+    # viewer's loop does: one never compacted (no logging, as above), one
+    # compacted every frame; each warmed once.
     drawn, drawn_compacted = pmjax.MeshStream(pm), pmjax.MeshStream(pm)
 
     def follow(with_mesh):
@@ -263,11 +262,14 @@ def mesh_path(name, frames, tau, repeats, srmesh_driver=None):
                    srmesh_median_frame_ms=float(np.median([np.median(p_ms) for p_ms, _, _ in srmesh_passes])),
                    srmesh_cpu_ms=float(np.median([cpu / frames for _, _, cpu in srmesh_passes])))
         label = f"SrMesh {srmesh:.3f} ms per frame, measured here"
-    else:
-        srmesh = SRMESH_OVER_MESH.get(name, float("nan")) * ms["refine_path + mesh()"]
+    elif name in SRMESH_OVER_MESH:
+        srmesh = SRMESH_OVER_MESH[name] * ms["refine_path + mesh()"]
         row.update(srmesh_ms=srmesh, srmesh_source="scaled by SRMESH_OVER_MESH")
-        label = (f"SrMesh ~ {srmesh:.3f} ms, scaled (= {SRMESH_OVER_MESH.get(name, float('nan')):.3f} x "
+        label = (f"SrMesh ~ {srmesh:.3f} ms, scaled (= {SRMESH_OVER_MESH[name]:.3f} x "
                  f"refine_path + mesh(), a ratio from another machine)")
+    else:
+        srmesh = None
+        label = "no SrMesh figure for this model (--srmesh DRIVER measures one)"
     row["ms"] = ms
     print(f"{name}: P {pm.n_pcols}, faces {row['faces']} (median), faces changed per frame "
           f"{row['faces_changed']:.0f} (median); {label}")
@@ -282,8 +284,8 @@ def mesh_path(name, frames, tau, repeats, srmesh_driver=None):
             print("  WARNING: SrMesh's faces differ from pmjax's by over 25 %: check the SR mesh and the cameras")
     base = ms["refine_path + mesh()"]
     for key, value in ms.items():
-        print(f"  {key:42s} {value:7.4f} ms per frame   {base / value:5.2f}x refine_path + mesh()   "
-              f"{srmesh / value:5.2f}x SrMesh", flush=True)
+        versus = f"   {srmesh / value:5.2f}x SrMesh" if srmesh is not None else ""
+        print(f"  {key:42s} {value:7.4f} ms per frame   {base / value:5.2f}x refine_path + mesh(){versus}", flush=True)
     return row
 
 
