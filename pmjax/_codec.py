@@ -39,6 +39,7 @@ from __future__ import annotations
 import ctypes
 import hashlib
 import math
+import os
 import zlib
 from concurrent.futures import Future, wait
 from dataclasses import dataclass
@@ -96,6 +97,21 @@ def _load_native():
 # ctypes releases the GIL during each call: a second thread decompresses the
 # next chunk meanwhile.
 native = _load_native()
+
+# Raised whenever a change of the decoding could give other arrays for the
+# same bytes: records of earlier decodings (pmjax._structure.decoding_known)
+# then no longer count.
+DECODER_VERSION = 1
+
+
+def decoder_identity() -> bytes:
+    """Names the decoder this process runs: :data:`DECODER_VERSION` and the
+    C loops' library (its path, size and modification time, so a rebuilt
+    library is another decoder) or the NumPy steps."""
+    if native is None:
+        return f"pmz decoder {DECODER_VERSION}: NumPy steps".encode()
+    st = os.stat(native._name)
+    return f"pmz decoder {DECODER_VERSION}: {native._name} {st.st_size} {st.st_mtime_ns}".encode()
 
 
 def _ptr(a) -> int:

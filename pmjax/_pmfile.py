@@ -27,7 +27,7 @@ import numpy as np
 from . import _codec
 from ._atomic import atomic_path
 from ._pmdata import ARRAY_SPECS, METRICS, OPTIONAL_ARRAY_SPECS, PMData, PMFormatError  # noqa: F401 (re-exported)
-from ._structure import check_structure, remember_structure, structure_known
+from ._structure import check_structure, decoding_known, remember_decoding, remember_structure, structure_known
 
 MAGIC = "pmjax.progressive-mesh"
 # The version save_pm writes; read_pm reads every version in VERSIONS.
@@ -313,6 +313,7 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
     codec = header["codec"]
     tail = None
     wheres = {}
+    digests = []  # each chunk's SHA-256 as stored (checked before its chunk is used)
 
     def expand(where: str, payload, raw: int):
         # On the pool's thread: hashlib and the decompressors release the GIL.
@@ -374,6 +375,7 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
                 raise PMFormatError(f"{path}: truncated in chunk {name!r} (bytes {at} to {end}; the file ends at byte "
                                     f"{at + len(payload)}): {held}")
             where = f"{path}: chunk {name!r} (bytes {at} to {at + len(payload)})"
+            digests.append(bytes(payload[:_codec.SHA_BYTES]))
             job = (i, where, pool.submit(expand, where, payload, raw) if nbytes >= PIPELINE_BYTES
                    else _codec.finished(expand, where, payload, raw))
             if pending is not None:
@@ -389,20 +391,29 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
             raise PMFormatError(f"{path}: {exc}; the file is damaged") from exc
         if batches is not None:
             return _prefix_pm(_codec.finish_prefix(stream, k), header, k, B, path)
-        # Each array is hashed on the pool as soon as it is final, beside the
-        # rest of the decoding and beside the structure rules' check.
+        # Every chunk has passed its SHA-256: the header and the chunks'
+        # digests name the file's bytes, and with the decoder its arrays. A
+        # decoding of these bytes recorded on this machine matched the
+        # arrays' checksums and passed validate_pm: only the decoding's own
+        # checks run again.
+        key = hashlib.sha256(b"".join([_codec.decoder_identity(), b"\0", text, *digests])).hexdigest()
+        known = decoding_known(key)
+        # Otherwise each array is hashed on the pool as soon as it is final,
+        # beside the rest of the decoding and beside the array checks.
         hashing = {}
+        ready = None if known else lambda name, a: hashing.setdefault(name, pool.submit(_sha256, a))
         where, raw_bytes = tail
         try:
-            arrays = _codec.finish_full(stream, raw_bytes, B, F, bool(header["shading_normals"]),
-                                        lambda name, a: hashing.setdefault(name, pool.submit(_sha256, a)), pool)
+            arrays = _codec.finish_full(stream, raw_bytes, B, F, bool(header["shading_normals"]), ready, pool)
         except ValueError as exc:
             raise PMFormatError(f"{where} is damaged: {exc}") from exc
         for name, shape in shapes.items():
             if arrays.get(name) is not None and arrays[name].shape != shape:
                 raise PMFormatError(f"{path}: array {name!r} decodes to shape {arrays[name].shape}, expected {shape}")
-        meta = {key: v for key, v in header.items() if key not in LAYOUT_FIELDS}
+        meta = {name: v for name, v in header.items() if name not in LAYOUT_FIELDS}
         pm = PMData(**arrays, header=meta)
+        if known:
+            return pm, known
         # The checksums' failures come first, as they name the damage.
         rules = None
         try:
@@ -410,16 +421,18 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
         except PMFormatError as exc:
             rules = exc
         sums = header["array_sha256"]
-        digests = {name: hashing[name].result() for name, a in arrays.items() if a is not None}
-        for name, digest in digests.items():
+        sums_read = {name: hashing[name].result() for name, a in arrays.items() if a is not None}
+        for name, digest in sums_read.items():
             if digest != sums.get(name):
                 raise PMFormatError(f"{path}: checksum mismatch in array {name!r}")
         for name in sums:
-            if name not in digests:
+            if name not in sums_read:
                 raise PMFormatError(f"{path}: array {name!r} is missing (the header has its checksum)")
         if rules is not None:
             raise rules
-    return pm, content_fingerprint(digests)
+        fingerprint = content_fingerprint(sums_read)
+        remember_decoding(key, fingerprint)
+    return pm, fingerprint
 
 
 def _check_header(header: Any, path: str, version: int | None = None) -> None:

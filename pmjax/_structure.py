@@ -92,6 +92,48 @@ def remember_structure(fingerprint: str) -> None:
         pass
 
 
+def decoding_known(key: str) -> str | None:
+    """The content fingerprint that a version 2 file with decoding key
+    ``key`` (a SHA-256 over its verified bytes and the decoder, from
+    :func:`pmjax.read_arrays`) decoded to on this machine, its arrays then
+    matching their checksums and passing :func:`pmjax.validate_pm`; ``None``
+    if no such decoding is recorded. Other bytes or another decoder give
+    another key, so the record can only skip repeating those checks on the
+    same decoding of the same bytes."""
+    folder = known_structures_dir()
+    if folder is None:
+        return None
+    try:
+        with open(os.path.join(folder, f"{key}.decoded"), "rb") as fh:
+            text = fh.read(65).decode("ascii")
+    except (OSError, UnicodeDecodeError):
+        return None
+    # A record is the 64 hex digits of a fingerprint (written whole, by rename).
+    return text if len(text) == 64 and all(c in "0123456789abcdef" for c in text) else None
+
+
+def remember_decoding(key: str, fingerprint: str) -> None:
+    """Record that the version 2 file with decoding key ``key`` decoded to
+    arrays with content ``fingerprint`` that passed their checks (silently
+    skipped where the folder cannot be written)."""
+    folder = known_structures_dir()
+    if folder is None:
+        return
+    path = os.path.join(folder, f"{key}.decoded")
+    # Written beside, then renamed: a reader sees no record or a whole one.
+    tmp = f"{path}.{os.getpid()}.tmp"
+    try:
+        os.makedirs(folder, exist_ok=True)
+        with open(tmp, "w", encoding="ascii") as fh:
+            fh.write(fingerprint)
+        os.replace(tmp, path)
+    except OSError:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+
+
 def check_structure(pm: PMData, *, source: str = "<memory>", threads: int = 2, nesting: bool = True) -> None:
     """Refuse a hierarchy whose structure the engine cannot trust.
 

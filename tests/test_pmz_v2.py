@@ -266,3 +266,61 @@ def test_a_checksum_failure_is_named_before_a_broken_rule(cow, tmp_path, monkeyp
     _with_header(path, bad, array_sha256={**sums, "radius": "0" * 64})
     with pytest.raises(PMFormatError, match=r"both.pmz: checksum mismatch in array 'radius'"):
         read_pm(bad)
+
+
+def test_a_file_cut_at_any_chunk_boundary_is_refused_or_read_as_the_prefix_it_holds(cow, tmp_path,
+                                                                                       assert_same_pm):
+    pm, path = cow
+    data = path.read_bytes()
+    cut = tmp_path / "cut.pmz"
+    for i, (name, start, end) in enumerate(chunk_table(path)):
+        # At the chunk's start, after its digest, and one byte short of its end.
+        for at in (start, start + 32, end - 1):
+            cut.write_bytes(data[:at])
+            with pytest.raises(PMFormatError, match=rf"cut.pmz: truncated in chunk '{name}' \(bytes {start} to {end}; "
+                                                    rf"the file ends at byte {at}\)"):
+                read_pm(cut)
+            if i:
+                # The whole chunks before the cut read as the prefix they hold.
+                assert_same_pm(read_pm(cut, batches=i - 1), read_pm(path, batches=i - 1))
+
+
+def test_a_recorded_decoding_skips_the_array_checks_of_those_bytes_only(cow, tmp_path, monkeypatch,
+                                                                         assert_same_pm):
+    pm, path = cow
+    monkeypatch.setenv("PMJAX_KNOWN_STRUCTURES", str(tmp_path / "known"))
+    hashed = []
+    sha256 = pmjax._pmfile._sha256
+    monkeypatch.setattr(pmjax._pmfile, "_sha256", lambda a: hashed.append(a.shape) or sha256(a))
+    first, fingerprint = read_arrays(path)
+    assert len(hashed) == len(pm.arrays())
+    # The same bytes by the same decoder: the arrays are not hashed again,
+    # and the fingerprint is the content's, as version 1's.
+    hashed.clear()
+    again, same = read_arrays(path)
+    assert not hashed and same == fingerprint
+    assert_same_pm(again, pm)
+    v1 = tmp_path / "v1.pmz"
+    save_pm(pm, v1, version=1)
+    assert read_arrays(v1)[1] == fingerprint
+    # Other bytes (a forged checksum in the header) are checked, and refused each time.
+    data = path.read_bytes()
+    sums = json.loads(data[12:12 + int.from_bytes(data[8:12], "little")])["array_sha256"]
+    bad = tmp_path / "sums.pmz"
+    _with_header(path, bad, array_sha256={**sums, "faces": "0" * 64})
+    for _ in range(2):
+        with pytest.raises(PMFormatError, match=r"sums.pmz: checksum mismatch in array 'faces'"):
+            read_arrays(bad)
+    # Another decoder (a new decoder version, the NumPy steps), or a damaged
+    # record: checked again.
+    for change in ("version", "numpy", "record"):
+        with monkeypatch.context() as m:
+            if change == "version":
+                m.setattr(pmjax._codec, "DECODER_VERSION", pmjax._codec.DECODER_VERSION + 1)
+            elif change == "numpy":
+                m.setattr(pmjax._codec, "native", None)
+            else:
+                for record in (tmp_path / "known").glob("*.decoded"):
+                    record.write_text("not a fingerprint")
+            hashed.clear()
+            assert read_arrays(path)[1] == fingerprint and len(hashed) == len(pm.arrays())
