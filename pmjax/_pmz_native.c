@@ -167,15 +167,13 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
         if (a[i] < 0 || a[i] >= first) return info[0] = lo + i, BAD_V1;
     for (int64_t i = 0; i < n; i++)
         if (d[i] < 0 || d[i] >= first) return info[0] = lo + i, BAD_V2;
-    /* A child seen before, or twice in this batch (marked 2 while
-     * checking), is an error. */
-    for (int64_t i = 0; i < n; i++)
-        if (seen[a[i]] || seen[d[i]]) return CHILD_SEEN;
+    /* A child seen before, or twice in this batch (marked seen while
+     * checking, in one pass), is an error. */
     for (int64_t i = 0; i < n; i++) {
         if (seen[a[i]]) return CHILD_SEEN;
-        seen[a[i]] = 2;
+        seen[a[i]] = 1;
         if (seen[d[i]]) return CHILD_SEEN;
-        seen[d[i]] = 2;
+        seen[d[i]] = 1;
     }
     for (int64_t i = 0; i < n; i++)
         if (!seen[first + i]) return PARENT_UNSEEN;
@@ -201,7 +199,6 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
             PREFETCH(parent + a[i + AHEAD]);
             PREFETCH(parent + d[i + AHEAD]);
         }
-        seen[a[i]] = seen[d[i]] = 1;
         seen[u] = 0;
         count[a[i]] = c1;
         count[d[i]] = count[u] - c1;
@@ -337,7 +334,7 @@ int64_t pmz_batch_faces(const uint8_t *at, int64_t n_faces, int64_t V0, int64_t 
  * corners the original vertices at its ranks. The groups' sizes were
  * checked against the chunks'. */
 void pmz_place_faces(int64_t F, int64_t B, const void *group, int64_t group_size, const int32_t *const *ranks,
-                     const int32_t *const *killers, const int64_t *orig_of_rank, int64_t *cursor, int32_t *faces,
+                     const int32_t *const *killers, const int32_t *orig_of_rank, int64_t *cursor, int32_t *faces,
                      int32_t *killer) {
     memset(cursor, 0, (size_t)(B + 1) * sizeof(int64_t));
     for (int64_t f = 0; f < F; f++) {
@@ -346,9 +343,9 @@ void pmz_place_faces(int64_t F, int64_t B, const void *group, int64_t group_size
                                       : ((const uint32_t *)group)[f];
         int64_t i = B - g, j = cursor[i]++;
         const int32_t *r = ranks[i] + 3 * j;
-        faces[3 * f] = (int32_t)orig_of_rank[r[0]];
-        faces[3 * f + 1] = (int32_t)orig_of_rank[r[1]];
-        faces[3 * f + 2] = (int32_t)orig_of_rank[r[2]];
+        faces[3 * f] = orig_of_rank[r[0]];
+        faces[3 * f + 1] = orig_of_rank[r[1]];
+        faces[3 * f + 2] = orig_of_rank[r[2]];
         killer[f] = killers[i][j];
     }
 }
