@@ -13,8 +13,9 @@ With ``--format FILE.pmz ...``: the file versions instead, per hierarchy,
 same run: sizes of version 1, version 2, version 2 with its chunks in
 encoding 1 (no predictions) and the source mesh (given as
 ``FILE.pmz=MESH``); ``pmjax.load`` of each, alternating, medians over
-repeats, with the structure check skipped (its content known) and run
-(forgotten first), the processor time of the former (all threads), and
+repeats, with the structure check skipped (its content known; version 2's
+decoding known too, docs/format.md "Known decodings") and run (the records
+forgotten first), the processor time of the former (all threads), and
 version 2 decoded by the NumPy steps instead of the C
 loops (structure known); where version 2's bytes go (each part of each chunk
 compressed alone); and the coarse-first prefixes: the bytes needed for 1 % of
