@@ -29,6 +29,7 @@ different pcols of one batch touching the face, unless it is the killer.
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -121,7 +122,7 @@ def remember_decoding(key: str, fingerprint: str) -> None:
         return
     path = os.path.join(folder, f"{key}.decoded")
     # Written beside, then renamed: a reader sees no record or a whole one.
-    tmp = f"{path}.{os.getpid()}.tmp"
+    tmp = f"{path}.{os.getpid()}.{threading.get_ident()}.tmp"
     try:
         os.makedirs(folder, exist_ok=True)
         with open(tmp, "w", encoding="ascii") as fh:

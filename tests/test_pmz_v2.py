@@ -324,3 +324,24 @@ def test_a_recorded_decoding_skips_the_array_checks_of_those_bytes_only(cow, tmp
                     record.write_text("not a fingerprint")
             hashed.clear()
             assert read_arrays(path)[1] == fingerprint and len(hashed) == len(pm.arrays())
+
+
+def test_a_damaged_chunk_anywhere_is_refused_though_the_file_was_read_before(cow, tmp_path, monkeypatch,
+                                                                              assert_same_pm):
+    pm, path = cow
+    monkeypatch.setenv("PMJAX_KNOWN_STRUCTURES", str(tmp_path / "known"))
+    bad = tmp_path / "bad.pmz"
+    data = path.read_bytes()
+    bad.write_bytes(data)
+    read_pm(bad)  # its decoding is recorded: a damaged copy at the same path is still refused
+    for i, (name, start, end) in enumerate(chunk_table(path)):
+        # One bit flipped in the chunk's digest, or in its compressed bytes.
+        for at in (start, (start + 32 + end) // 2):
+            damaged = bytearray(data)
+            damaged[at] ^= 0x01
+            bad.write_bytes(bytes(damaged))
+            with pytest.raises(PMFormatError, match=rf"bad.pmz: chunk '{name}' \(bytes {start} to {end}\) fails its "
+                                                    "SHA-256: the file is damaged"):
+                read_pm(bad)
+            if i:
+                assert_same_pm(read_pm(bad, batches=i - 1), read_pm(path, batches=i - 1))
