@@ -105,13 +105,15 @@ DECODER_VERSION = 1
 
 
 def decoder_identity() -> bytes:
-    """Names the decoder this process runs: :data:`DECODER_VERSION` and the
-    C loops' library (its path, size and modification time, so a rebuilt
-    library is another decoder) or the NumPy steps."""
-    if native is None:
-        return f"pmz decoder {DECODER_VERSION}: NumPy steps".encode()
-    st = os.stat(native._name)
-    return f"pmz decoder {DECODER_VERSION}: {native._name} {st.st_size} {st.st_mtime_ns}".encode()
+    """Names the decoder this process runs: :data:`DECODER_VERSION`, NumPy's
+    version, this module's file and the C loops' library (each by path,
+    size and modification time, so an edited or rebuilt one is another
+    decoder) or the NumPy steps."""
+    files = [__file__] + ([native._name] if native is not None else [])
+    stats = [(path, os.stat(path)) for path in files]
+    named = " ".join(f"{path} {st.st_size} {st.st_mtime_ns}" for path, st in stats)
+    steps = "C loops" if native is not None else "NumPy steps"
+    return f"pmz decoder {DECODER_VERSION}, numpy {np.__version__}, {steps}: {named}".encode()
 
 
 def _ptr(a) -> int:

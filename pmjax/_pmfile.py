@@ -282,6 +282,14 @@ class _Mapped:
         return out
 
 
+def _reader_identity() -> bytes:
+    """The decoder (:func:`pmjax._codec.decoder_identity`) and the array
+    checks' code (this module's file, by size and modification time): what
+    a recorded decoding's outcome depends on besides the file's bytes."""
+    st = os.stat(__file__)
+    return _codec.decoder_identity() + f"; checks: {__file__} {st.st_size} {st.st_mtime_ns}".encode()
+
+
 def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
     """Version 2 after its magic bytes: the header, then the chunks the read
     needs, each checked (SHA-256, size, content) before it is used."""
@@ -396,7 +404,7 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
         # decoding of these bytes recorded on this machine matched the
         # arrays' checksums and passed validate_pm: only the decoding's own
         # checks run again.
-        key = hashlib.sha256(b"".join([_codec.decoder_identity(), b"\0", text, *digests])).hexdigest()
+        key = hashlib.sha256(b"".join([_reader_identity(), b"\0", text, *digests])).hexdigest()
         known = decoding_known(key)
         # Otherwise each array is hashed on the pool as soon as it is final,
         # beside the rest of the decoding and beside the array checks.
