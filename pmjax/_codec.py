@@ -88,7 +88,7 @@ def _load_native():
     lib.pmz_unit_from_planed.restype = None
     lib.pmz_unit_from_planed.argtypes = [_i64, _p, _p, _p]
     lib.pmz_place_faces.restype = None
-    lib.pmz_place_faces.argtypes = [_i64, _i64, _p, _i64, _p, _p, _p, _p, _p, _p]
+    lib.pmz_place_faces.argtypes = [_i64, _i64, _i64, _p, _i64, _p, _p, _p, _p, _p, _p]
     lib.pmz_area_normals.restype = None
     lib.pmz_area_normals.argtypes = [_i64, _p, _p, _i64, _p, _p]
     return lib
@@ -833,9 +833,22 @@ def finish_full(s: Stream, raw: bytes, B: int, F: int, shading: bool, ready=None
         kills = [np.ascontiguousarray(k, np.int32) for k in s.killers]
         rank_ptrs = (ctypes.c_void_p * len(ranks))(*(_ptr(r) for r in ranks))
         kill_ptrs = (ctypes.c_void_p * len(kills))(*(_ptr(k) for k in kills))
-        cursor = np.empty(B + 1, np.int64)
-        native.pmz_place_faces(F, B, _ptr(group), group.dtype.itemsize, rank_ptrs, kill_ptrs, _ptr(orig_of_rank),
-                               _ptr(cursor), _ptr(faces), _ptr(killer))
+
+        def place(f0: int, f1: int, cursor: np.ndarray) -> None:
+            # The pointer tables and arrays stay referenced by this closure.
+            native.pmz_place_faces(f0, f1, B, _ptr(group), group.dtype.itemsize, rank_ptrs, kill_ptrs,
+                                   _ptr(orig_of_rank), _ptr(cursor), _ptr(faces), _ptr(killer))
+
+        # With a pool, the second half of the faces is placed there meanwhile:
+        # its groups' cursors start at the first half's counts (read order).
+        half = F // 2 if pool is not None and F >= 2 * FACES_BESIDE else F
+        second = None
+        if half < F:
+            counts = np.bincount(group[:half], minlength=B + 1)[::-1]
+            second = pool.submit(place, half, F, np.ascontiguousarray(counts, np.int64))
+        place(0, half, np.zeros(B + 1, np.int64))
+        if second is not None:
+            second.result()
     else:
         by_group = np.argsort(group, kind="stable")
         bounds = np.concatenate([[0], np.cumsum(np.bincount(group, minlength=B + 1))])

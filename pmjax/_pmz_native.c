@@ -329,15 +329,16 @@ int64_t pmz_batch_faces(const uint8_t *at, int64_t n_faces, int64_t V0, int64_t 
     return OK;
 }
 
-/* Faces and killers in file order (_codec.finish_full): face f is the next
- * face of its group (groups read base first, then batches B-1 .. 0), its
- * corners the original vertices at its ranks. The groups' sizes were
- * checked against the chunks'. */
-void pmz_place_faces(int64_t F, int64_t B, const void *group, int64_t group_size, const int32_t *const *ranks,
-                     const int32_t *const *killers, const int32_t *orig_of_rank, int64_t *cursor, int32_t *faces,
-                     int32_t *killer) {
-    memset(cursor, 0, (size_t)(B + 1) * sizeof(int64_t));
-    for (int64_t f = 0; f < F; f++) {
+/* Faces f0 .. f1-1 and their killers in file order (_codec.finish_full):
+ * face f is the next face of its group (groups read base first, then
+ * batches B-1 .. 0), its corners the original vertices at its ranks.
+ * cursor[i] holds the faces of read group i before f0 (so that two calls
+ * may place two spans at once) and is advanced past f1. The groups' sizes
+ * were checked against the chunks'. */
+void pmz_place_faces(int64_t f0, int64_t f1, int64_t B, const void *group, int64_t group_size,
+                     const int32_t *const *ranks, const int32_t *const *killers, const int32_t *orig_of_rank,
+                     int64_t *cursor, int32_t *faces, int32_t *killer) {
+    for (int64_t f = f0; f < f1; f++) {
         int64_t g = group_size == 1 ? ((const uint8_t *)group)[f]
                     : group_size == 2 ? ((const uint16_t *)group)[f]
                                       : ((const uint32_t *)group)[f];

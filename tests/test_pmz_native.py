@@ -70,7 +70,13 @@ def check_model(pm, tmp_path, numpy_decoder, assert_same_pm, codec="zstd"):
 
 @needs_native
 @pytest.mark.parametrize("codec", ["zstd", "zlib"])
-def test_cow_decodes_to_the_same_bits_both_ways(built, tmp_path, numpy_decoder, codec, assert_same_pm):
+@pytest.mark.parametrize("beside", [False, True], ids=["inline", "beside"])
+def test_cow_decodes_to_the_same_bits_both_ways(built, tmp_path, numpy_decoder, codec, beside, monkeypatch,
+                                                 assert_same_pm):
+    # Also with every batch's face ranks and killers, and half of the faces'
+    # placing, on the pool (as a large model's).
+    if beside:
+        monkeypatch.setattr(_codec, "FACES_BESIDE", 0)
     check_model(built("cow.ply"), tmp_path, numpy_decoder, assert_same_pm, codec)
 
 
