@@ -39,7 +39,6 @@ from __future__ import annotations
 import ctypes
 import hashlib
 import math
-import os
 import zlib
 from concurrent.futures import Future, wait
 from dataclasses import dataclass
@@ -100,20 +99,9 @@ native = _load_native()
 
 # Raised whenever a change of the decoding could give other arrays for the
 # same bytes: records of earlier decodings (pmjax._structure.decoding_known)
-# then no longer count.
+# then no longer count. The reader's identity (pmjax._pmfile.READER_IDENTITY)
+# also covers this module's code and the C loops' library by their contents.
 DECODER_VERSION = 1
-
-
-def decoder_identity() -> bytes:
-    """Names the decoder this process runs: :data:`DECODER_VERSION`, NumPy's
-    version, this module's file and the C loops' library (each by path,
-    size and modification time, so an edited or rebuilt one is another
-    decoder) or the NumPy steps."""
-    files = [__file__] + ([native._name] if native is not None else [])
-    stats = [(path, os.stat(path)) for path in files]
-    named = " ".join(f"{path} {st.st_size} {st.st_mtime_ns}" for path, st in stats)
-    steps = "C loops" if native is not None else "NumPy steps"
-    return f"pmz decoder {DECODER_VERSION}, numpy {np.__version__}, {steps}: {named}".encode()
 
 
 def _ptr(a) -> int:
@@ -726,6 +714,11 @@ _NATIVE_ERRORS = {
 # Fewest faces whose ranks and killers the C loops find on a pool's thread
 # (beside the next chunks' decoding): fewer cost less than the handing over.
 FACES_BESIDE = 1 << 12
+# Fewest faces whose placing finish_full splits in two halves, the second on
+# a pool's thread: each half then places at least FACES_BESIDE faces, the
+# least that repays handing work to the pool (the placing reads as much at
+# random per face as the ranks' check does).
+FACES_SPLIT = 2 * FACES_BESIDE
 
 
 def _read_batch_native(s: Stream, raw, lo: int, hi: int, n_faces: int, pool=None) -> None:
@@ -805,16 +798,6 @@ def finish_full(s: Stream, raw: bytes, B: int, F: int, shading: bool, ready=None
     c.done()
     normals = s.normals
     shading_normals = None if shading is None else np.empty((V0 + P, 3), np.float32)
-    created = None
-    if shading is not None and len(shading) == 2:
-        # The created vertices' shading normals need only their cone axes,
-        # final since the batches: decoded into place now.
-        created = _beside(pool, unit_from_planed, shading[1], normals[V0:], shading_normals[V0:])
-    if ready is not None:
-        # Final once every batch is read: the tail adds faces and normals only.
-        for name in ("vertices", "v1", "v2", "radius", "alpha", "delta", "mu", "cost", "metric"):
-            ready(name, getattr(s, name))
-        ready("batch_offsets", offsets)
     # Rank -> original vertex id: each original vertex appeared exactly once.
     # int32 (as the faces): half the bytes that the placing reads at random.
     orig_of_rank = np.full(V0, -1, np.int32)
@@ -827,6 +810,7 @@ def finish_full(s: Stream, raw: bytes, B: int, F: int, shading: bool, ready=None
     sizes = [len(r) for r in s.face_ranks]
     if np.any(group > B) or not np.array_equal(np.bincount(group, minlength=B + 1)[::-1], sizes):
         raise ValueError("the faces' groups do not match the chunks' face counts")
+    half, second = F, None
     if native is not None:
         # One pass in face order: each face is the next of its group.
         ranks = [np.ascontiguousarray(r, np.int32) for r in s.face_ranks]
@@ -841,11 +825,23 @@ def finish_full(s: Stream, raw: bytes, B: int, F: int, shading: bool, ready=None
 
         # With a pool, the second half of the faces is placed there meanwhile:
         # its groups' cursors start at the first half's counts (read order).
-        half = F // 2 if pool is not None and F >= 2 * FACES_BESIDE else F
-        second = None
-        if half < F:
+        # Submitted before the shading and hashing jobs, so that the pool
+        # starts it first and the calling thread's half does not wait for it.
+        if pool is not None and F >= FACES_SPLIT:
+            half = F // 2
             counts = np.bincount(group[:half], minlength=B + 1)[::-1]
             second = pool.submit(place, half, F, np.ascontiguousarray(counts, np.int64))
+    created = None
+    if shading is not None and len(shading) == 2:
+        # The created vertices' shading normals need only their cone axes,
+        # final since the batches: decoded into place now.
+        created = _beside(pool, unit_from_planed, shading[1], normals[V0:], shading_normals[V0:])
+    if ready is not None:
+        # Final once every batch is read: the tail adds faces and normals only.
+        for name in ("vertices", "v1", "v2", "radius", "alpha", "delta", "mu", "cost", "metric"):
+            ready(name, getattr(s, name))
+        ready("batch_offsets", offsets)
+    if native is not None:
         place(0, half, np.zeros(B + 1, np.int64))
         if second is not None:
             second.result()

@@ -19,12 +19,13 @@ import math
 import mmap
 import os
 import zipfile
+import zlib
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
 
-from . import _codec
+from . import _codec, _pmdata
 from ._atomic import atomic_path
 from ._pmdata import ARRAY_SPECS, METRICS, OPTIONAL_ARRAY_SPECS, PMData, PMFormatError  # noqa: F401 (re-exported)
 from ._structure import check_structure, decoding_known, remember_decoding, remember_structure, structure_known
@@ -274,6 +275,7 @@ class _Mapped:
 
     def __init__(self, fh):
         self.at = fh.tell()
+        self.fileno = fh.fileno
         self.view = memoryview(mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ))
 
     def read(self, n: int) -> memoryview:
@@ -282,17 +284,77 @@ class _Mapped:
         return out
 
 
-def _reader_identity() -> bytes:
-    """The decoder (:func:`pmjax._codec.decoder_identity`) and the array
-    checks' code (this module's file, by size and modification time): what
-    a recorded decoding's outcome depends on besides the file's bytes."""
-    st = os.stat(__file__)
-    return _codec.decoder_identity() + f"; checks: {__file__} {st.st_size} {st.st_mtime_ns}".encode()
+def _framed(*parts: bytes) -> bytes:
+    """``parts`` joined, each after its length (8 bytes, little-endian): no
+    two lists of parts give the same bytes."""
+    return b"".join(len(part).to_bytes(8, "little") + part for part in parts)
+
+
+def reader_identity() -> bytes | None:
+    """SHA-256 naming the version 2 reader this process runs: everything a
+    recorded decoding's outcome depends on besides the file's bytes.
+
+    Covers :data:`pmjax._codec.DECODER_VERSION`, NumPy's, zstandard's and
+    zlib's versions, whether the C loops or the NumPy steps decode, and the
+    contents of the decoder (``_codec.py``), the array checks (this module
+    and ``_pmdata.py``, whose specs :func:`validate_pm` applies) and the C
+    library loaded. Computed once, at import (:data:`READER_IDENTITY`): the
+    code that runs is the code read then, whatever is on disk later.
+
+    Returns:
+        32 bytes, or ``None`` where a file cannot be read (no record of a
+        decoding is then read or written).
+    """
+    try:
+        try:
+            import zstandard
+            zstd = zstandard.__version__
+        except ImportError:
+            zstd = "absent"
+        native = _codec.native
+        files = [_codec.__file__, __file__, _pmdata.__file__] + ([native._name] if native is not None else [])
+        names = [f"pmz decoder {_codec.DECODER_VERSION}", f"numpy {np.__version__}", f"zstandard {zstd}",
+                 f"zlib {zlib.ZLIB_RUNTIME_VERSION}", "C loops" if native is not None else "NumPy steps"]
+        contents = []
+        for path in files:
+            with open(path, "rb") as fh:
+                contents.append(fh.read())
+        return hashlib.sha256(_framed(*(name.encode() for name in names), *contents)).digest()
+    except Exception:  # a file gone or unreadable, a module without its file
+        return None
+
+
+READER_IDENTITY = reader_identity()
+
+
+def decoding_key(identity: bytes | None, header: bytes, digests: list) -> str | None:
+    """The key of a version 2 file's decoding record: a SHA-256 over the
+    reader's identity, the header's bytes and the chunks' stored SHA-256s
+    (each part framed by its length), or ``None`` without an identity."""
+    if identity is None:
+        return None
+    return hashlib.sha256(_framed(identity, header, *digests)).hexdigest()
+
+
+def _file_state(fh) -> tuple | None:
+    """``(size, mtime_ns, inode, device)`` of an open file, or ``None`` for a
+    file object without a descriptor (bytes in memory). Not the change time:
+    a new file renamed over the path (how pmjax writes) changes the old
+    inode's link count and change time, not its bytes."""
+    try:
+        st = os.fstat(fh.fileno())
+    except (AttributeError, OSError, ValueError, io.UnsupportedOperation):
+        return None
+    return st.st_size, st.st_mtime_ns, st.st_ino, st.st_dev
 
 
 def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
     """Version 2 after its magic bytes: the header, then the chunks the read
     needs, each checked (SHA-256, size, content) before it is used."""
+    # The file's size, times and inode as the read starts: a file changed in
+    # place meanwhile (a copy over it) could have chunk bytes hashed, then
+    # other bytes expanded from the map.
+    opened = _file_state(fh)
     size = fh.read(4)
     length = int.from_bytes(size, "little")
     if len(size) < 4:
@@ -393,6 +455,11 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
         if pending is not None:
             decode(*pending)
             settle(pending[0])
+        # Every chunk the read needs is expanded: the bytes expanded are the
+        # bytes hashed only if the file did not change since it was opened.
+        if _file_state(fh) != opened:
+            raise PMFormatError(f"{path}: the file changed while it was read (another program wrote it); "
+                                "read it again once it is whole")
         try:
             _codec.killers_of(stream, names)
         except ValueError as exc:
@@ -404,8 +471,8 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
         # decoding of these bytes recorded on this machine matched the
         # arrays' checksums and passed validate_pm: only the decoding's own
         # checks run again.
-        key = hashlib.sha256(b"".join([_reader_identity(), b"\0", text, *digests])).hexdigest()
-        known = decoding_known(key)
+        key = decoding_key(READER_IDENTITY, text, digests)
+        known = decoding_known(key) if key is not None else None
         # Otherwise each array is hashed on the pool as soon as it is final,
         # beside the rest of the decoding and beside the array checks.
         hashing = {}
@@ -439,7 +506,8 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
         if rules is not None:
             raise rules
         fingerprint = content_fingerprint(sums_read)
-        remember_decoding(key, fingerprint)
+        if key is not None:
+            remember_decoding(key, fingerprint)
     return pm, fingerprint
 
 

@@ -29,6 +29,18 @@ def _built(name: str, pair_distance: float, metric: str, target_faces: int):
     return build_pm(v, f, options)
 
 
+@pytest.fixture(scope="session", autouse=True)
+def known_records(tmp_path_factory):
+    """The folder of structure and decoding records for the whole session
+    (``$PMJAX_KNOWN_STRUCTURES``): the tests write none into the user's
+    cache, and none recorded there by another pmjax skips a test's checks.
+    Tests of the records themselves set a folder of their own."""
+    folder = tmp_path_factory.mktemp("known")
+    with pytest.MonkeyPatch.context() as m:
+        m.setenv("PMJAX_KNOWN_STRUCTURES", str(folder))
+        yield folder
+
+
 @pytest.fixture(scope="session")
 def built():
     """``built(name, pair_distance=0, metric='quadric', target_faces=0)`` -> PMData (cached)."""

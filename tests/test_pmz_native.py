@@ -77,6 +77,7 @@ def test_cow_decodes_to_the_same_bits_both_ways(built, tmp_path, numpy_decoder, 
     # placing, on the pool (as a large model's).
     if beside:
         monkeypatch.setattr(_codec, "FACES_BESIDE", 0)
+        monkeypatch.setattr(_codec, "FACES_SPLIT", 0)
     check_model(built("cow.ply"), tmp_path, numpy_decoder, assert_same_pm, codec)
 
 

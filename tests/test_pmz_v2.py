@@ -311,19 +311,102 @@ def test_a_recorded_decoding_skips_the_array_checks_of_those_bytes_only(cow, tmp
     for _ in range(2):
         with pytest.raises(PMFormatError, match=r"sums.pmz: checksum mismatch in array 'faces'"):
             read_arrays(bad)
-    # Another decoder (a new decoder version, the NumPy steps), or a damaged
-    # record: checked again.
-    for change in ("version", "numpy", "record"):
+    # The reader's identity is the code this process imported: a module file
+    # gone from disk since changes nothing (the record still counts).
+    with monkeypatch.context() as m:
+        m.setattr(pmjax._pmdata, "__file__", str(tmp_path / "gone.py"))
+        assert pmjax._pmfile.reader_identity() is None
+        hashed.clear()
+        assert read_arrays(path)[1] == fingerprint and not hashed
+    # Another reader (a new decoder version, the NumPy steps, another NumPy,
+    # other check code), or a damaged record: checked again.
+    (tmp_path / "_pmdata.py").write_bytes(Path(pmjax._pmdata.__file__).read_bytes() + b"\n")
+    for change in ("version", "numpy steps", "numpy version", "check code", "record"):
         with monkeypatch.context() as m:
             if change == "version":
                 m.setattr(pmjax._codec, "DECODER_VERSION", pmjax._codec.DECODER_VERSION + 1)
-            elif change == "numpy":
+            elif change == "numpy steps":
                 m.setattr(pmjax._codec, "native", None)
+            elif change == "numpy version":
+                m.setattr(np, "__version__", np.__version__ + ".post1")
+            elif change == "check code":
+                m.setattr(pmjax._pmdata, "__file__", str(tmp_path / "_pmdata.py"))
             else:
                 for record in (tmp_path / "known").glob("*.decoded"):
                     record.write_text("not a fingerprint")
+            identity = pmjax._pmfile.reader_identity()
+            assert identity is not None
+            assert (identity == pmjax._pmfile.READER_IDENTITY) == (change == "record"), change
+            m.setattr(pmjax._pmfile, "READER_IDENTITY", identity)
             hashed.clear()
-            assert read_arrays(path)[1] == fingerprint and len(hashed) == len(pm.arrays())
+            assert read_arrays(path)[1] == fingerprint and len(hashed) == len(pm.arrays()), change
+            # The new reader's decoding is recorded under its own key.
+            hashed.clear()
+            assert read_arrays(path)[1] == fingerprint and not hashed, change
+
+
+def test_without_a_reader_identity_no_decoding_is_recorded_or_used(cow, tmp_path, monkeypatch):
+    pm, path = cow
+    known = tmp_path / "known"
+    monkeypatch.setenv("PMJAX_KNOWN_STRUCTURES", str(known))
+    read_arrays(path)
+    assert len(list(known.glob("*.decoded"))) == 1
+    monkeypatch.setattr(pmjax._pmfile, "READER_IDENTITY", None)
+    hashed = []
+    sha256 = pmjax._pmfile._sha256
+    monkeypatch.setattr(pmjax._pmfile, "_sha256", lambda a: hashed.append(a.shape) or sha256(a))
+    for record in known.glob("*.decoded"):
+        record.unlink()
+    for _ in range(2):
+        hashed.clear()
+        read_arrays(path)
+        assert len(hashed) == len(pm.arrays())
+    assert not list(known.glob("*.decoded"))
+
+
+def test_the_decoding_key_frames_its_parts():
+    key = pmjax._pmfile.decoding_key
+    identity = bytes(32)
+    # Header text and digests moved across a boundary give another key.
+    assert key(identity, b"ab", [b"c" * 32]) != key(identity, b"a", [b"b" + b"c" * 32])
+    assert key(identity, b"a", [b"b" * 32, b"c" * 32]) != key(identity, b"a", [b"b" * 32 + b"c" * 32])
+    assert key(identity, b"a", []) == key(bytes(32), b"a", []) and key(None, b"a", []) is None
+
+
+def test_a_file_changed_in_place_while_it_is_read_is_refused(cow, tmp_path, monkeypatch):
+    pm, path = cow
+    known = tmp_path / "known"
+    monkeypatch.setenv("PMJAX_KNOWN_STRUCTURES", str(known))
+    target = tmp_path / "changing.pmz"
+    data = path.read_bytes()
+    target.write_bytes(data)
+    first = chunk_table(path)[1][1]
+    chunk_sha = pmjax._codec.chunk_sha
+    writes = []
+
+    def rewrite_after_hashing(chunk):
+        # The first chunk is hashed, then the file is written over in place
+        # (same inode, same size, another modification time), as ``cp`` does.
+        digest = chunk_sha(chunk)
+        if not writes:
+            with open(target, "r+b") as fh:
+                fh.seek(first)
+                fh.write(data[first:first + 64])
+            os.utime(target, ns=(os.stat(target).st_atime_ns, os.stat(target).st_mtime_ns + 10**9))
+            writes.append(first)
+        return digest
+
+    monkeypatch.setattr(pmjax._codec, "chunk_sha", rewrite_after_hashing)
+    for batches in (None, 1):
+        writes.clear()
+        with pytest.raises(PMFormatError, match=r"changing.pmz: the file changed while it was read"):
+            read_arrays(target, batches=batches)
+        assert writes
+    # Nothing was recorded; unchanged, the same file reads and is recorded.
+    assert not list(known.glob("*.decoded"))
+    monkeypatch.setattr(pmjax._codec, "chunk_sha", chunk_sha)
+    assert read_arrays(target)[1] == read_arrays(path)[1]
+    assert len(list(known.glob("*.decoded"))) == 1
 
 
 def test_a_damaged_chunk_anywhere_is_refused_though_the_file_was_read_before(cow, tmp_path, monkeypatch,
@@ -334,6 +417,7 @@ def test_a_damaged_chunk_anywhere_is_refused_though_the_file_was_read_before(cow
     data = path.read_bytes()
     bad.write_bytes(data)
     read_pm(bad)  # its decoding is recorded: a damaged copy at the same path is still refused
+    assert len(list((tmp_path / "known").glob("*.decoded"))) == 1
     for i, (name, start, end) in enumerate(chunk_table(path)):
         # One bit flipped in the chunk's digest, or in its compressed bytes.
         for at in (start, (start + 32 + end) // 2):
