@@ -46,6 +46,7 @@ from _common import machine, median_time, write_json  # noqa: E402
 import pmjax  # noqa: E402
 from pmjax import _codec  # noqa: E402
 from pmjax._model import ProgressiveMesh  # noqa: E402
+from pmjax._pmfile import numpy_steps  # noqa: E402
 
 CACHE = Path(__file__).resolve().parent / ".cache"
 
@@ -154,11 +155,8 @@ def formats(args) -> int:
         # files' decodings recorded (by the C loops and by the NumPy steps).
         for path in (v1, v2, enc1):
             pmjax.load(path)
-        native, _codec.native = _codec.native, None
-        try:
+        with numpy_steps():
             pmjax.load(v2)
-        finally:
-            _codec.native = native
         times = {"v1": [], "v2": [], "v2 enc1": [], "v2 numpy": [], "v1 first": [], "v2 first": []}
         # Processor time of the load, all threads: what it costs a machine
         # whose cores are busy with other work (the wall time then follows it).
@@ -169,11 +167,8 @@ def formats(args) -> int:
                 times[key].append(median_time(lambda: pmjax.load(path), 1)[0])
                 cpu[key].append(time.process_time() - start)
             # Version 2 decoded by the NumPy steps (where the C loops are not built).
-            native, _codec.native = _codec.native, None
-            try:
+            with numpy_steps():
                 times["v2 numpy"].append(median_time(lambda: pmjax.load(v2), 1)[0])
-            finally:
-                _codec.native = native
             # Each first load with an empty record of its own: the record of
             # the loads above (structures and decodings) stays as it is.
             for key, path in (("v1 first", v1), ("v2 first", v2)):

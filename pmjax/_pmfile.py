@@ -12,6 +12,7 @@ order), so truncation or tampering is caught on load. See ``docs/format.md``.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import json
@@ -325,6 +326,21 @@ def reader_identity() -> bytes | None:
 
 
 READER_IDENTITY = reader_identity()
+
+
+@contextlib.contextmanager
+def numpy_steps():
+    """Within the ``with`` block, version 2 files are decoded by the NumPy
+    steps, as where the C loops are not built (the same arrays, bit for
+    bit), under that reader's identity: its decodings are recorded apart."""
+    native, identity = _codec.native, READER_IDENTITY
+    _codec.native = None
+    try:
+        globals()["READER_IDENTITY"] = reader_identity()
+        yield
+    finally:
+        _codec.native = native
+        globals()["READER_IDENTITY"] = identity
 
 
 def decoding_key(identity: bytes | None, header: bytes, digests: list) -> str | None:

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from pmjax import PMFormatError, _codec, read_arrays, save_pm
+from pmjax._pmfile import numpy_steps
 
 REQUIRED = os.environ.get("PMJAX_REQUIRE_CORE") == "1"
 needs_native = pytest.mark.skipif(_codec.native is None and not REQUIRED,
@@ -25,17 +26,9 @@ def test_the_c_loops_are_built_where_required():
 
 
 @pytest.fixture
-def numpy_decoder(monkeypatch):
+def numpy_decoder():
     """Run the NumPy steps inside ``with numpy_decoder():``."""
-    import contextlib
-
-    @contextlib.contextmanager
-    def use():
-        with monkeypatch.context() as m:
-            m.setattr(_codec, "native", None)
-            yield
-
-    return use
+    return numpy_steps
 
 
 def both_ways(numpy_decoder, read):
