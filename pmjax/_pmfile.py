@@ -19,6 +19,7 @@ import json
 import math
 import mmap
 import os
+import stat
 import zipfile
 import zlib
 from concurrent.futures import ThreadPoolExecutor
@@ -333,14 +334,15 @@ def numpy_steps():
     """Within the ``with`` block, version 2 files are decoded by the NumPy
     steps, as where the C loops are not built (the same arrays, bit for
     bit), under that reader's identity: its decodings are recorded apart."""
+    global READER_IDENTITY
     native, identity = _codec.native, READER_IDENTITY
     _codec.native = None
     try:
-        globals()["READER_IDENTITY"] = reader_identity()
+        READER_IDENTITY = reader_identity()
         yield
     finally:
         _codec.native = native
-        globals()["READER_IDENTITY"] = identity
+        READER_IDENTITY = identity
 
 
 def decoding_key(identity: bytes | None, header: bytes, digests: list) -> str | None:
@@ -353,15 +355,17 @@ def decoding_key(identity: bytes | None, header: bytes, digests: list) -> str | 
 
 
 def _file_state(fh) -> tuple | None:
-    """``(size, mtime_ns, inode, device)`` of an open file, or ``None`` for a
-    file object without a descriptor (bytes in memory). Not the change time:
-    a new file renamed over the path (how pmjax writes) changes the old
-    inode's link count and change time, not its bytes."""
+    """``(size, mtime_ns, inode, device)`` of an open regular file, or
+    ``None`` for a file object without a descriptor (bytes in memory) or a
+    pipe or socket (its bytes are copied as they are read, and a writer
+    changes its times). Not the change time: a new file renamed over the
+    path (how pmjax writes) changes the old inode's link count and change
+    time, not its bytes."""
     try:
         st = os.fstat(fh.fileno())
     except (AttributeError, OSError, ValueError, io.UnsupportedOperation):
         return None
-    return st.st_size, st.st_mtime_ns, st.st_ino, st.st_dev
+    return (st.st_size, st.st_mtime_ns, st.st_ino, st.st_dev) if stat.S_ISREG(st.st_mode) else None
 
 
 def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
