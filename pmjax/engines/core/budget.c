@@ -123,7 +123,8 @@ static float own_tolerance(const float *row, const float *view, float unit, int 
 
 /* The switches of n <= LANES pairs from their screen test's terms (mu2,
  * normal2, s) and one pixel unit, as loops the compiler vectorizes: the
- * closed form (in double) and the float32 test at it and at the two
+ * closed form (in double: sqrt(max(mu2 s, normal2)) / (s unit), whose
+ * products of floats are exact) and the float32 test at it and at the two
  * patterns on either side (the switch is the pattern not small whose next
  * one is) into out; 0 in settled[j] where the switch lies farther (rare:
  * the caller takes own_tolerance's scalar steps). */
@@ -132,9 +133,8 @@ PMX_INLINE void own_switch(const float *mu2, const float *normal2, const float *
 {
     float f[LANES];
     for (int64_t j = 0; j < n; j++) {
-        const double ds = s[j], nn = normal2[j] > 0 ? normal2[j] : 0.0f;
-        const double x = (double)mu2[j] / ds > nn / (ds * ds) ? (double)mu2[j] / ds : nn / (ds * ds);
-        double t = sqrt(x) / unit[j];
+        const double ds = s[j], nn = normal2[j] > 0 ? normal2[j] : 0.0f, mm = (double)mu2[j] * ds;
+        double t = sqrt(mm > nn ? mm : nn) / (ds * unit[j]);
         t = t <= FLT_MAX ? t : FLT_MAX;
         const float tf = (float)t;
         memcpy(&f[j], &tf, sizeof tf);
@@ -223,10 +223,19 @@ PMX_INLINE void own_slots_body(const float *rows, const int32_t *pos, int64_t k,
     for (int64_t q = 0; q < k; q++) {
         const float *row = rows + (int64_t)pos[q] * ROW;
         float *m = mu2 + q * FRAMES, *nn = normal2 + q * FRAMES, *sq = s + q * FRAMES;
+        /* The projection's branch outside the frames' loop, which then
+         * takes all FRAMES frames in one vector. */
+        if (ortho) {
 #pragma omp simd
-        for (int l = 0; l < FRAMES; l++)
-            screen_terms(row, w->ex[l], w->ey[l], w->ez[l], w->fx[l], w->fy[l], w->fz[l], ortho, &m[l], &nn[l],
-                         &sq[l]);
+            for (int l = 0; l < FRAMES; l++)
+                screen_terms(row, w->ex[l], w->ey[l], w->ez[l], w->fx[l], w->fy[l], w->fz[l], 1, &m[l], &nn[l],
+                             &sq[l]);
+        } else {
+#pragma omp simd
+            for (int l = 0; l < FRAMES; l++)
+                screen_terms(row, w->ex[l], w->ey[l], w->ez[l], w->fx[l], w->fy[l], w->fz[l], 0, &m[l], &nn[l],
+                             &sq[l]);
+        }
     }
     own_switch(mu2, normal2, s, w->unit, k * FRAMES, out, settled);
     for (int64_t j = 0; j < k * FRAMES; j++)
@@ -983,23 +992,30 @@ PMX_INLINE void tally_body(const float *eps, const int32_t *kill, int64_t n, con
     for (int64_t i = 0; i < n; i++) {
         const float *e = eps + i * FRAMES;
         const int32_t w = kill[i];
-        /* The frames whose eps reach lo (and twice lo): their counts. */
-        uint32_t hit = 0;
-#pragma omp simd reduction(| : hit)
+        const int32_t spare = BUCKETS + (int32_t)(i & (SPREAD - 1));
+        /* The frames whose eps reach lo (and twice lo): their counts, and
+         * each frame's entry to add to: its bucket (bucket_of in unsigned
+         * 32 bits, the same for the values >= lo), else one of its spare
+         * entries, given 0. */
+        int32_t at_entry[FRAMES], add[FRAMES];
+#pragma omp simd
         for (int l = 0; l < FRAMES; l++) {
             const int32_t in = e[l] >= lo[l];
             const int32_t at = in & asked[l];
             total[l] += at ? w : 0;
             total2[l] += (in & (e[l] >= twice[l])) ? w : 0; /* as tally: within lo first */
-            hit |= (uint32_t)at << l;
+            uint32_t x;
+            memcpy(&x, &e[l], sizeof x);
+            uint32_t q = (x - (uint32_t)lo_bits[l]) >> 16;
+            q = q < BUCKETS - 1 ? q : BUCKETS - 1;
+            at_entry[l] = l * (BUCKETS + SPREAD) + (at ? (int32_t)q : spare);
+            add[l] = at ? w : 0;
         }
-        /* Each of the asked ones in turn (about half a slot's frames): its
-         * bucket. */
-        while (hit) {
-            const int l = __builtin_ctz(hit);
-            hit &= hit - 1;
-            bucket[(int64_t)l * (BUCKETS + SPREAD) + bucket_of(e[l], lo_bits[l])] += w;
-        }
+        /* Every frame's add, the same FRAMES adds for every slot (about
+         * half of them 0: a branch per asked frame mispredicts more than
+         * the adds of 0 cost). */
+        for (int l = 0; l < FRAMES; l++)
+            bucket[at_entry[l]] += add[l];
     }
 }
 
@@ -1071,8 +1087,8 @@ PMX_INLINE void hits_body(const float *eps, int64_t n, const float *lo, const in
 {
     for (int64_t i = 0; i < n; i++) {
         const float *e = eps + i * FRAMES;
-        int32_t hv[FRAMES];
-#pragma omp simd
+        int32_t hv[FRAMES], any = 0;
+#pragma omp simd reduction(| : any)
         for (int l = 0; l < FRAMES; l++) {
             uint32_t x;
             memcpy(&x, &e[l], sizeof x);
@@ -1082,7 +1098,11 @@ PMX_INLINE void hits_body(const float *eps, int64_t n, const float *lo, const in
             for (int g = 0; g < GROUP; g++)
                 h |= q == q_of[g][l];
             hv[l] = h & (e[l] >= lo[l]);
+            any |= hv[l];
         }
+        /* Most slots hold no frame's value in its buckets. */
+        if (!any)
+            continue;
         uint32_t hit = 0;
         for (int l = 0; l < FRAMES; l++)
             hit |= (uint32_t)hv[l] << l;
