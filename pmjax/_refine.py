@@ -837,9 +837,9 @@ PATH_START = 0.95
 
 def _padded_chunk(n: int, chunk: int) -> int:
     """Cameras per call for ``n`` single-camera guesses along a path: the
-    smallest ``WORD * 2**k`` that holds them (few compiled sizes, and a
-    call pads with repeats of its last camera, each a whole guess), at
-    most ``chunk``."""
+    smallest ``WORD * 2**k`` that holds them (few compiled sizes; a call
+    pads with repeats of its last camera, which make no guess), at most
+    ``chunk``."""
     size = WORD
     while size < n:
         size *= 2
@@ -989,16 +989,19 @@ def _guesses(d, counts_of, host, frames, start, budgets, tests, chunk):
     ``host[frames]`` for their budgets ``budgets[frames]`` (``[K, B]``), each
     traversal starting at ``start`` (0: from the thread's last answer),
     ``chunk`` cameras per call (the last chunk padded by repeating its last
-    camera)."""
+    camera with no budget to meet, which costs no traversal)."""
     B = budgets.shape[1]
     guess, alt = np.empty((len(frames), B), np.int32), np.empty((len(frames), B), np.int32)
     for s in range(0, len(frames), chunk):
         pick = np.minimum(np.arange(s, s + chunk), len(frames) - 1)
         part = jax.tree.map(lambda a: a[frames[pick]], host)
         rows = _core.host_camera_rows(part, start[pick], d.exponent)
-        got = _core_guesses(d.core, rows, budgets[frames[pick]].astype(np.int32), tests, host.orthographic,
-                            counts_of.base_faces)
         n = min(chunk, len(frames) - s)
+        # The padding's budgets below every mesh (-1): the core answers them
+        # inf without a traversal.
+        want = budgets[frames[pick]].astype(np.int32)
+        want[n:] = -1
+        got = _core_guesses(d.core, rows, want, tests, host.orthographic, counts_of.base_faces)
         guess[s:s + n], alt[s:s + n] = (np.asarray(x)[:n] for x in got)
     return guess, alt
 

@@ -177,6 +177,36 @@ def test_guesses_are_the_same_at_every_simd_level(built):
         assert all(np.array_equal(a, b) for a, b in zip(got[0], other))
 
 
+def test_padded_guesses_are_the_guesses_of_their_cameras(built):
+    """A call padded past its cameras (repeats of its last camera, with no
+    budget to meet) guesses each camera as a call of exactly its cameras
+    does, and the padding makes no guess of its own: inf, with no
+    traversal (with the first tolerances given, so that no thread's order
+    enters)."""
+    from pmjax.engines import _core
+    from pmjax.engines._tables import derived
+
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _views(data, 8, seed=6)
+    host = jax.tree.map(np.asarray, cams)
+    d, counts_of = derived(pm), _refine._Counts.of(pm)
+    K = len(host.eye)
+    base = counts_of.base_faces
+    budgets = np.stack([np.full(K, base), np.full(K, base + 40), np.full(K, 900), np.full(K, pm.n_faces)], 1)
+    start = np.full(K, 0.7, np.float32)
+    frames = np.arange(K - 3)
+    padded = _refine._guesses(d, counts_of, host, frames, start, budgets, pmjax.ALL_TESTS, 32)
+    rows = _core.host_camera_rows(host, start, d.exponent)[frames]
+    exact = [np.asarray(g) for g in _refine._core_guesses(d.core, rows, budgets[frames].astype(np.int32),
+                                                          pmjax.ALL_TESTS, False, base)]
+    assert all(np.array_equal(a, b) for a, b in zip(padded, exact))
+    # A row with no budget to meet (all below every mesh) is answered inf.
+    none = [np.asarray(g) for g in _refine._core_guesses(d.core, rows[:1], np.full((1, 2), -1, np.int32),
+                                                         pmjax.ALL_TESTS, False, base)]
+    assert all((g == _refine._INF_BITS + 1).all() for g in none)
+
+
 def _columns(pm, cams, budgets):
     """Per camera, every budget of ``budgets`` (a row per camera: its order
     rotated by the camera's index, so that columns mix budgets)."""

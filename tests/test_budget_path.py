@@ -301,6 +301,53 @@ def test_word_guesses_equal_one_camera_guesses(built, kind, simd):
     np.testing.assert_array_equal(words[1], words[0])
 
 
+def test_orthographic_word_guesses_equal_one_camera_guesses(built, simd):
+    """An orthographic orbit: a word's frames (the screen test's terms of
+    the orthographic projection, all frames of a row at once) guess what
+    each frame's own traversal at its tolerance guesses first."""
+    data = built("bunny.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    v0 = data.vertices[: data.n_original_vertices]
+    c, r = v0.mean(0), float(np.linalg.norm(np.ptp(v0, 0)))
+    angles = np.linspace(0, 2 * np.pi, 32, endpoint=False)
+    cams = stack_cameras([pmjax.look_at(c + r * np.array([np.cos(a), 0.3, np.sin(a)]), c, orthographic=True,
+                                        ortho_height=0.6 * r, near=1e-3, far=10 * r) for a in angles])
+    host = jax.tree.map(np.asarray, cams)
+    d, counts_of = derived(pm), _refine._Counts.of(pm)
+    budgets = np.tile(np.array(_budgets(pm, cams)[2:5]), (32, 1)).astype(np.int64)
+    frames = np.arange(32)
+    first, _ = _refine._guesses(d, counts_of, host, frames, np.zeros(32, np.float32), budgets, ALL_TESTS, 32)
+    start = (0.9 * first[:, np.argmax(budgets[0])].view(np.float32)).astype(np.float32)
+    words = _refine._word_guesses(d, counts_of, host, start, budgets, ALL_TESTS)
+    alone = _refine._guesses(d, counts_of, host, frames, start, budgets, ALL_TESTS, 32)
+    assert (words[0] > 0).all()
+    np.testing.assert_array_equal(words[0], alone[0])
+
+
+def test_word_frames_without_a_budget_to_meet_leave_the_others_guesses_alone(built, simd):
+    """A word whose frames alternate between budgets to meet and budgets all
+    below the base mesh (frames the word's tally leaves out): the latter
+    guess inf, the others what each frame's own traversal at its tolerance
+    guesses first."""
+    data = built("bunny.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _paths(data, 32, seed=5)["orbit"]
+    host = jax.tree.map(np.asarray, cams)
+    d, counts_of = derived(pm), _refine._Counts.of(pm)
+    wanted = np.array(_budgets(pm, cams)[2:5], np.int64)
+    frames = np.arange(32)
+    met = frames % 2 == 0
+    budgets = np.where(met[:, None], wanted[None, :], 0).astype(np.int64)
+    first, _ = _refine._guesses(d, counts_of, host, frames, np.zeros(32, np.float32),
+                                np.tile(wanted, (32, 1)), ALL_TESTS, 32)
+    start = (0.9 * first[:, np.argmax(wanted)].view(np.float32)).astype(np.float32)
+    words = _refine._word_guesses(d, counts_of, host, start, budgets, ALL_TESTS)
+    alone = _refine._guesses(d, counts_of, host, frames, start, budgets, ALL_TESTS, 32)
+    assert (words[0][~met] == _refine._INF_BITS + 1).all()
+    assert (words[0][met] > 0).all()
+    np.testing.assert_array_equal(words[0][met], alone[0][met])
+
+
 @pytest.mark.parametrize("kind", ["orbit", "fly"])
 def test_path_guesses_are_mostly_the_answers(built, monkeypatch, kind):
     """The guesses a path's answers are confirmed from (sampled frames alone,

@@ -123,18 +123,20 @@ static float own_tolerance(const float *row, const float *view, float unit, int 
 
 /* The switches of n <= LANES pairs from their screen test's terms (mu2,
  * normal2, s) and one pixel unit, as loops the compiler vectorizes: the
- * closed form (in double) and the float32 test at it and at the two
+ * closed form (in double: sqrt(max(mu2 s, normal2)) / (s unit), whose
+ * products of floats are exact) and the float32 test at it and at the two
  * patterns on either side (the switch is the pattern not small whose next
  * one is) into out; 0 in settled[j] where the switch lies farther (rare:
- * the caller takes own_tolerance's scalar steps). */
-PMX_INLINE void own_switch(const float *mu2, const float *normal2, const float *s, const float *unit, int64_t n,
-                           float *out, int32_t *settled)
+ * the caller takes own_tolerance's scalar steps). Returns the number of
+ * pairs not settled. */
+PMX_INLINE int32_t own_switch(const float *mu2, const float *normal2, const float *s, const float *unit, int64_t n,
+                              float *out, int32_t *settled)
 {
     float f[LANES];
+    int32_t open = 0;
     for (int64_t j = 0; j < n; j++) {
-        const double ds = s[j], nn = normal2[j] > 0 ? normal2[j] : 0.0f;
-        const double x = (double)mu2[j] / ds > nn / (ds * ds) ? (double)mu2[j] / ds : nn / (ds * ds);
-        double t = sqrt(x) / unit[j];
+        const double ds = s[j], nn = normal2[j] > 0 ? normal2[j] : 0.0f, mm = (double)mu2[j] * ds;
+        double t = sqrt(mm > nn ? mm : nn) / (ds * unit[j]);
         t = t <= FLT_MAX ? t : FLT_MAX;
         const float tf = (float)t;
         memcpy(&f[j], &tf, sizeof tf);
@@ -160,7 +162,9 @@ PMX_INLINE void own_switch(const float *mu2, const float *normal2, const float *
         memcpy(&fu, &bt, sizeof bt);
         settled[j] = never | e3 | e2 | e1 | e0;
         out[j] = never ? INFINITY : fu;
+        open += 1 - settled[j];
     }
+    return open;
 }
 
 /* own_tolerance of the pcols at positions pos[0..n) (n <= LANES) into out,
@@ -176,7 +180,8 @@ PMX_INLINE void own_block_body(const float *rows, const int32_t *pos, int64_t n,
         screen_terms(rows + (int64_t)pos[j] * ROW, v[EYE], v[EYE + 1], v[EYE + 2], v[FORWARD], v[FORWARD + 1],
                      v[FORWARD + 2], ortho, &mu2[j], &normal2[j], &s[j]);
     }
-    own_switch(mu2, normal2, s, unit, n, out, settled);
+    if (!own_switch(mu2, normal2, s, unit, n, out, settled))
+        return;
     for (int64_t j = 0; j < n; j++)
         if (!settled[j])
             out[j] = own_tolerance(rows + (int64_t)pos[j] * ROW, view[j], unit[j], ortho);
@@ -223,12 +228,22 @@ PMX_INLINE void own_slots_body(const float *rows, const int32_t *pos, int64_t k,
     for (int64_t q = 0; q < k; q++) {
         const float *row = rows + (int64_t)pos[q] * ROW;
         float *m = mu2 + q * FRAMES, *nn = normal2 + q * FRAMES, *sq = s + q * FRAMES;
+        /* The projection's branch outside the frames' loop, which then
+         * takes all FRAMES frames in one vector. */
+        if (ortho) {
 #pragma omp simd
-        for (int l = 0; l < FRAMES; l++)
-            screen_terms(row, w->ex[l], w->ey[l], w->ez[l], w->fx[l], w->fy[l], w->fz[l], ortho, &m[l], &nn[l],
-                         &sq[l]);
+            for (int l = 0; l < FRAMES; l++)
+                screen_terms(row, w->ex[l], w->ey[l], w->ez[l], w->fx[l], w->fy[l], w->fz[l], 1, &m[l], &nn[l],
+                             &sq[l]);
+        } else {
+#pragma omp simd
+            for (int l = 0; l < FRAMES; l++)
+                screen_terms(row, w->ex[l], w->ey[l], w->ez[l], w->fx[l], w->fy[l], w->fz[l], 0, &m[l], &nn[l],
+                             &sq[l]);
+        }
     }
-    own_switch(mu2, normal2, s, w->unit, k * FRAMES, out, settled);
+    if (!own_switch(mu2, normal2, s, w->unit, k * FRAMES, out, settled))
+        return;
     for (int64_t j = 0; j < k * FRAMES; j++)
         if (!settled[j])
             out[j] = own_tolerance(rows + (int64_t)pos[j / FRAMES] * ROW, w->views + (j % FRAMES) * PMX_VIEW,
@@ -340,11 +355,11 @@ static int64_t bucket_of(float v, int32_t lo_bits)
 /* Working memory of one thread beyond its scratch: the slots' eps (eps[-1]
  * valid, -inf) and own tolerances, the values and weights selected from
  * (val, wt: every slot's; sel, sel_wt: one bucket's, taken by a selection),
- * the buckets' weights. */
+ * the buckets' weights (faces, which a count's int32 holds). */
 typedef struct {
     float *eps, *own, *val, *sel;
     int32_t *wt, *sel_wt;
-    int64_t *bucket;
+    int32_t *bucket;
 } Budget;
 
 /* The own tolerances of the m slots listed in b->wt into b->own (inf for
@@ -381,7 +396,7 @@ typedef struct {
 
 static Tally tally_start(Budget *b, int64_t base_faces)
 {
-    memset(b->bucket, 0, sizeof(int64_t) * (BUCKETS + SPREAD));
+    memset(b->bucket, 0, sizeof(int32_t) * (BUCKETS + SPREAD));
     return (Tally){0, base_faces, base_faces, 0};
 }
 
@@ -398,7 +413,7 @@ PMX_INLINE void tally(Budget *b, Tally *t, int64_t i, float e, int32_t kill, flo
     t->total2 += e >= 2 * lo ? kill : 0;
 }
 
-static void tally_end(Budget *b, const Tally *t) { b->bucket[0] = t->zero; }
+static void tally_end(Budget *b, const Tally *t) { b->bucket[0] = (int32_t)t->zero; }
 
 /* The counts of a traversal at lo from its n slots and their own
  * tolerances: eps bottom-up over the slots that did not run (children sit
@@ -438,7 +453,7 @@ static int64_t eps_pass(const PmxScratch *s, Budget *b, int64_t n, float lo, int
 /* The bucket (of b_bucket, the kills per bucket above lo) where the faces
  * kept by the pcols above a value pass `budget`, and in *over the weight
  * left to pass inside it. */
-static int64_t crossing_bucket(const int64_t *b_bucket, int64_t budget, int64_t base_faces, int64_t *over)
+static int64_t crossing_bucket(const int32_t *b_bucket, int64_t budget, int64_t base_faces, int64_t *over)
 {
     int64_t left = budget - base_faces, q = BUCKETS - 1;
     while (b_bucket[q] <= left) {
@@ -738,7 +753,8 @@ typedef struct {
     Budget b;
     float *eps_room, *lanes_room, *lane_val;
     int32_t *lane_wt;
-    int64_t *lane_bucket, lane_room;
+    int32_t *lane_bucket;
+    int64_t lane_room;
     int64_t *g, *alt, *lane_g;
 } Work;
 
@@ -750,9 +766,9 @@ static int budget_take(Work *k, const PmxHierarchy *h, int64_t B, int words)
     k->b = (Budget){k->eps_room ? k->eps_room + 1 : NULL, malloc(sizeof(float) * (size_t)room),
                     malloc(sizeof(float) * (size_t)room), malloc(sizeof(float) * (size_t)room),
                     malloc(sizeof(int32_t) * (size_t)room), malloc(sizeof(int32_t) * (size_t)room),
-                    malloc(sizeof(int64_t) * (BUCKETS + SPREAD))};
+                    malloc(sizeof(int32_t) * (BUCKETS + SPREAD))};
     k->lanes_room = words ? malloc(sizeof(float) * FRAMES * (size_t)(room + 1)) : NULL;
-    k->lane_bucket = words ? malloc(sizeof(int64_t) * FRAMES * (BUCKETS + SPREAD)) : NULL;
+    k->lane_bucket = words ? malloc(sizeof(int32_t) * FRAMES * (BUCKETS + SPREAD)) : NULL;
     k->lane_val = NULL, k->lane_wt = NULL, k->lane_room = 0;
     k->lane_g = words ? malloc(sizeof(int64_t) * FRAMES * (size_t)B) : NULL;
     if (k->lanes_room)
@@ -974,7 +990,7 @@ static int lane_room(Work *k, int64_t n, int64_t room)
  * (total[l], of the frames in `frames`) and at twice lo (total2[l]), both
  * added to what they hold. */
 PMX_INLINE void tally_body(const float *eps, const int32_t *kill, int64_t n, const float *lo,
-                           const int32_t *lo_bits, Lanes frames, int64_t *bucket, int64_t *total, int64_t *total2)
+                           const int32_t *lo_bits, Lanes frames, int32_t *bucket, int64_t *total, int64_t *total2)
 {
     float twice[FRAMES];
     int32_t asked[FRAMES];
@@ -983,47 +999,54 @@ PMX_INLINE void tally_body(const float *eps, const int32_t *kill, int64_t n, con
     for (int64_t i = 0; i < n; i++) {
         const float *e = eps + i * FRAMES;
         const int32_t w = kill[i];
-        /* The frames whose eps reach lo (and twice lo): their counts. */
-        uint32_t hit = 0;
-#pragma omp simd reduction(| : hit)
+        const int32_t spare = BUCKETS + (int32_t)(i & (SPREAD - 1));
+        /* The frames whose eps reach lo (and twice lo): their counts, and
+         * each frame's entry to add to: its bucket (bucket_of in unsigned
+         * 32 bits, the same for the values >= lo), else one of its spare
+         * entries, given 0. */
+        int32_t at_entry[FRAMES], add[FRAMES];
+#pragma omp simd
         for (int l = 0; l < FRAMES; l++) {
             const int32_t in = e[l] >= lo[l];
             const int32_t at = in & asked[l];
             total[l] += at ? w : 0;
             total2[l] += (in & (e[l] >= twice[l])) ? w : 0; /* as tally: within lo first */
-            hit |= (uint32_t)at << l;
+            uint32_t x;
+            memcpy(&x, &e[l], sizeof x);
+            uint32_t q = (x - (uint32_t)lo_bits[l]) >> 16;
+            q = q < BUCKETS - 1 ? q : BUCKETS - 1;
+            at_entry[l] = l * (BUCKETS + SPREAD) + (at ? (int32_t)q : spare);
+            add[l] = at ? w : 0;
         }
-        /* Each of the asked ones in turn (about half a slot's frames): its
-         * bucket. */
-        while (hit) {
-            const int l = __builtin_ctz(hit);
-            hit &= hit - 1;
-            bucket[(int64_t)l * (BUCKETS + SPREAD) + bucket_of(e[l], lo_bits[l])] += w;
-        }
+        /* Every frame's add, the same FRAMES adds for every slot (about
+         * half of them 0: a branch per asked frame mispredicts more than
+         * the adds of 0 cost). */
+        for (int l = 0; l < FRAMES; l++)
+            bucket[at_entry[l]] += add[l];
     }
 }
 
 static void tally_plain(const float *eps, const int32_t *kill, int64_t n, const float *lo, const int32_t *lo_bits,
-                        Lanes frames, int64_t *bucket, int64_t *total, int64_t *total2)
+                        Lanes frames, int32_t *bucket, int64_t *total, int64_t *total2)
 {
     tally_body(eps, kill, n, lo, lo_bits, frames, bucket, total, total2);
 }
 #if PMX_X86
 PMX_TARGET_AVX2 static void tally_avx2(const float *eps, const int32_t *kill, int64_t n, const float *lo,
-                                       const int32_t *lo_bits, Lanes frames, int64_t *bucket, int64_t *total,
+                                       const int32_t *lo_bits, Lanes frames, int32_t *bucket, int64_t *total,
                                        int64_t *total2)
 {
     tally_body(eps, kill, n, lo, lo_bits, frames, bucket, total, total2);
 }
 PMX_TARGET_AVX512 static void tally_avx512(const float *eps, const int32_t *kill, int64_t n, const float *lo,
-                                           const int32_t *lo_bits, Lanes frames, int64_t *bucket, int64_t *total,
+                                           const int32_t *lo_bits, Lanes frames, int32_t *bucket, int64_t *total,
                                            int64_t *total2)
 {
     tally_body(eps, kill, n, lo, lo_bits, frames, bucket, total, total2);
 }
 #endif
 
-typedef void (*LanesTally)(const float *, const int32_t *, int64_t, const float *, const int32_t *, Lanes, int64_t *,
+typedef void (*LanesTally)(const float *, const int32_t *, int64_t, const float *, const int32_t *, Lanes, int32_t *,
                            int64_t *, int64_t *);
 
 static LanesTally tally_kernel(void)
@@ -1051,7 +1074,7 @@ static void lanes_tally(Work *k, const float *eps, const int32_t *kill, int64_t 
         lo_bits[l] = bits_of(lo[l]);
         total[l] = total2[l] = base_faces;
     }
-    memset(k->lane_bucket, 0, sizeof(int64_t) * FRAMES * (BUCKETS + SPREAD));
+    memset(k->lane_bucket, 0, sizeof(int32_t) * FRAMES * (BUCKETS + SPREAD));
     tally_kernel()(eps, kill, n, lo, lo_bits, frames, k->lane_bucket, total, total2);
     for (int l = 0; l < FRAMES; l++)
         t[l] = (Tally){-1, total[l], total2[l], 0};
@@ -1071,8 +1094,8 @@ PMX_INLINE void hits_body(const float *eps, int64_t n, const float *lo, const in
 {
     for (int64_t i = 0; i < n; i++) {
         const float *e = eps + i * FRAMES;
-        int32_t hv[FRAMES];
-#pragma omp simd
+        int32_t hv[FRAMES], any = 0;
+#pragma omp simd reduction(| : any)
         for (int l = 0; l < FRAMES; l++) {
             uint32_t x;
             memcpy(&x, &e[l], sizeof x);
@@ -1082,7 +1105,11 @@ PMX_INLINE void hits_body(const float *eps, int64_t n, const float *lo, const in
             for (int g = 0; g < GROUP; g++)
                 h |= q == q_of[g][l];
             hv[l] = h & (e[l] >= lo[l]);
+            any |= hv[l];
         }
+        /* Most slots hold no frame's value in its buckets. */
+        if (!any)
+            continue;
         uint32_t hit = 0;
         for (int l = 0; l < FRAMES; l++)
             hit |= (uint32_t)hv[l] << l;
