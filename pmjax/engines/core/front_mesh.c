@@ -93,9 +93,7 @@ PMX_INLINE void count_digits(const int32_t *id_of, int64_t n, int32_t *count, So
  * while the items are read), with every pass's digit counts taken in one
  * read (count: pass p's table at p << digit, zero on entry and on return),
  * the first pass reading the ids themselves and the last writing each
- * item's row rather than the sorted entries (between two passes, an entry
- * is the item's second digit and slot in one word where the slots fit).
- * Returns the rows, int32 [n]
+ * item's row rather than the sorted entries. Returns the rows, int32 [n]
  * by item, over a's or b's room (two buffers of n entries; id_of may lie
  * in b: only the first pass reads it). */
 static int32_t *rows_by_id(const int32_t *id_of, int64_t n, int32_t *count, SortPlan plan, IdSlot *a, IdSlot *b)
@@ -125,22 +123,6 @@ static int32_t *rows_by_id(const int32_t *id_of, int64_t n, int32_t *count, Sort
         row = (int32_t *)a;
         for (int64_t i = 0; i < n; i++)
             row[i] = count[id_digit(id_of[i], plan, 0)]++;
-    } else if (plan.passes == 2 && n <= ((int64_t)1 << (32 - plan.digit))) {
-        /* Two passes of items whose slots fit beside a digit: the first
-         * writes each item's second digit and its slot in one word (half
-         * the bytes of an id and a slot), the second reads them to the
-         * rows. */
-        const int shift = 32 - plan.digit;
-        const uint32_t slot_mask = (uint32_t)((((uint64_t)1) << shift) - 1);
-        uint32_t *const packed = (uint32_t *)a;
-        for (int64_t i = 0; i < n; i++) {
-            const uint32_t second = (uint32_t)id_digit(id_of[i], plan, 1);
-            packed[count[id_digit(id_of[i], plan, 0)]++] = (second << shift) | (uint32_t)i;
-        }
-        row = (int32_t *)b;
-        int32_t *at = count + ((int64_t)1 << plan.digit);
-        for (int64_t k = 0; k < n; k++)
-            row[packed[k] & slot_mask] = at[packed[k] >> shift]++;
     } else {
         /* The first pass from the ids, the middle ones between the
          * buffers, the last to the rows. */
