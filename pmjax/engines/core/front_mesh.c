@@ -174,7 +174,7 @@ static int32_t *rows_by_id(const int32_t *id_of, int64_t n, int32_t *count, Sort
  * and their summaries start_sum, face_sum, vertex_sum (a word per 64; all
  * zero on entry and on return); start_prefix, face_prefix, vertex_prefix
  * int32 as their bitmaps, start_block as start_sum; front [V0 + 1] (the
- * vertices not kept are written one slot past the front), sorted [V0];
+ * vertices not kept are written one slot past the front), front_rank [V0];
  * drawn [F]; front_index [V0]; pairs[2] [max(F, V0 + 1)] (the sorts'; the
  * ids to sort gathered in pairs[1]);
  * sort_counts [RANK_COUNTS] (zero on entry and on return). */
@@ -199,7 +199,8 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
     int32_t *const start_block = s->start_block;
     uint64_t *const start_bits = s->start_bits, *const face_bits = s->face_bits, *const vertex_bits = s->vertex_bits;
     uint64_t *const start_sum = s->start_sum, *const face_sum = s->face_sum, *const vertex_sum = s->vertex_sum;
-    PmxFrontVertex *const front = s->front, *const sorted = s->sorted;
+    PmxFrontVertex *const front = s->front;
+    int32_t *const front_rank = s->front_rank;
     PmxFaceRecord *const drawn = s->drawn;
     const int64_t start_words = V0 / 64 + 1, face_words = n_faces_total / 64 + 1;
     const int64_t vertex_words = (V0 + n_pcols) / 64 + 1;
@@ -300,10 +301,11 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
             set_marked(face_bits, face_sum, base[i].face, 1, face_dense);
     const int64_t total = n_drawn + n_base;
     IdSlot *const pairs = s->pairs[0], *const pairs_to = s->pairs[1];
-    /* The front in depth-first order: each vertex goes to the rank of its
-     * start. (Its starts stay in a bitmap: a corner's front vertex is then
-     * two independent loads, where a search among sorted starts is a chain
-     * of them.) */
+    /* The front in depth-first order: each vertex's rank is the rank of its
+     * start, kept beside it (front_rank, written in order) rather than the
+     * vertex moved there (a scattered store of the whole vertex). (Its starts
+     * stay in a bitmap: a corner's front vertex is then two independent
+     * loads, where a search among sorted starts is a chain of them.) */
     const int start_dense = marked_dense(n_front, start_words);
     PmxStatus status = !over && total == n_faces_drawn ? PMX_OK : PMX_FACES_DIFFER;
     if (status == PMX_OK) {
@@ -311,7 +313,7 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
             set_marked(start_bits, start_sum, front[i].start, 1, start_dense);
         prefix_marked(start_bits, start_sum, start_words, start_dense, start_prefix, start_block);
         for (int64_t i = 0; i < n_front; i++)
-            sorted[rank_of(start_bits, start_prefix, front[i].start)] = front[i];
+            front_rank[i] = (int32_t)rank_of(start_bits, start_prefix, front[i].start);
         /* A front that tiles [0, V0) starts at 0, so every corner has a
          * front vertex at or before its position (a rank in [0, n_front));
          * one that does not is no refinement's front. */
@@ -364,15 +366,16 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
         }
         /* The vertices used in increasing id order (the ids' bitmap, or the
          * used ones sorted by id), each front vertex's output index, then
-         * the corners through it. */
+         * the corners through it. The front is read in the order found, each
+         * vertex's use looked up at its rank. */
         int64_t n_used = 0;
         int32_t *const id_of = (int32_t *)pairs_to;
-        for (int64_t k = 0; k < n_front; k++)
-            if (front_index[k] == 0) {
+        for (int64_t i = 0; i < n_front; i++)
+            if (front_index[front_rank[i]] == 0) {
                 if (vertex_sorted)
-                    id_of[n_used] = sorted[k].vertex;
+                    id_of[n_used] = front[i].vertex;
                 else
-                    set_marked(vertex_bits, vertex_sum, sorted[k].vertex, 1, vertex_dense);
+                    set_marked(vertex_bits, vertex_sum, front[i].vertex, 1, vertex_dense);
                 n_used++;
             }
         /* The outputs' room is checked before anything is written there. */
@@ -384,22 +387,22 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
             const int32_t *out_of = rows_by_id(id_of, n_used, sort_counts,
                                                sort_plan(n_used, V0 + n_pcols - 1), pairs, pairs_to);
             int64_t u = 0;
-            for (int64_t k = 0; k < n_front; k++)
-                if (front_index[k] == 0) {
+            for (int64_t i = 0; i < n_front; i++)
+                if (front_index[front_rank[i]] == 0) {
                     const int32_t out = out_of[u++];
-                    front_index[k] = out;
-                    ids[out] = sorted[k].vertex;
-                    memcpy(vertex_positions + 3 * (int64_t)out, sorted[k].position, 3 * sizeof(float));
+                    front_index[front_rank[i]] = out;
+                    ids[out] = front[i].vertex;
+                    memcpy(vertex_positions + 3 * (int64_t)out, front[i].position, 3 * sizeof(float));
                 }
             n_id_count = n_used;
         } else {
             prefix_marked(vertex_bits, vertex_sum, vertex_words, vertex_dense, vertex_prefix, NULL);
-            for (int64_t k = 0; k < n_front; k++)
-                if (front_index[k] == 0) {
-                    int64_t out = rank_of(vertex_bits, vertex_prefix, sorted[k].vertex);
-                    front_index[k] = (int32_t)out;
-                    ids[out] = sorted[k].vertex;
-                    memcpy(vertex_positions + 3 * out, sorted[k].position, 3 * sizeof(float));
+            for (int64_t i = 0; i < n_front; i++)
+                if (front_index[front_rank[i]] == 0) {
+                    int64_t out = rank_of(vertex_bits, vertex_prefix, front[i].vertex);
+                    front_index[front_rank[i]] = (int32_t)out;
+                    ids[out] = front[i].vertex;
+                    memcpy(vertex_positions + 3 * out, front[i].position, 3 * sizeof(float));
                     n_id_count++;
                 }
         }

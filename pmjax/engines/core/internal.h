@@ -113,9 +113,9 @@ struct PmxScratch {
     int32_t *set_unsure;
     /* front mesh, for n_original vertices and n_faces faces */
     int64_t n_original, n_faces;
-    int32_t *not_run_at, *start_prefix, *face_prefix, *vertex_prefix, *start_block, *front_index;
+    int32_t *not_run_at, *start_prefix, *face_prefix, *vertex_prefix, *start_block, *front_index, *front_rank;
     uint64_t *start_bits, *face_bits, *vertex_bits, *start_sum, *face_sum, *vertex_sum;
-    PmxFrontVertex *front, *sorted;
+    PmxFrontVertex *front;
     PmxFaceRecord *drawn;
     IdSlot *pairs[2]; /* [max(n_faces, n_original + 1)] each: ranks by sorting */
     int32_t *sort_counts; /* [RANK_COUNTS] the sorts' digit counts */

@@ -33,7 +33,7 @@ static void free_parts(PmxScratch *s)
     void *parts[] = {s->ids, s->kid, s->kill, s->pcols, s->unsure, s->parent, s->chain, s->state, s->ran, s->mark,
                      s->visit, s->whole, s->yes, s->ran_frames, s->unsure_lanes, s->not_run_at, s->start_prefix,
                      s->face_prefix, s->vertex_prefix, s->start_block, s->front_index, s->start_bits, s->face_bits,
-                     s->vertex_bits, s->start_sum, s->face_sum, s->vertex_sum, s->front, s->sorted, s->drawn,
+                     s->vertex_bits, s->start_sum, s->face_sum, s->vertex_sum, s->front, s->front_rank, s->drawn,
                      s->pairs[0], s->pairs[1]};
     for (size_t i = 0; i < sizeof parts / sizeof parts[0]; i++)
         free(parts[i]);
@@ -44,12 +44,13 @@ static void free_mesh(PmxScratch *s)
 {
     void *parts[] = {s->not_run_at, s->start_prefix, s->face_prefix, s->vertex_prefix, s->start_block,
                      s->front_index, s->start_bits, s->face_bits, s->vertex_bits, s->start_sum, s->face_sum,
-                     s->vertex_sum, s->front, s->sorted, s->drawn, s->pairs[0], s->pairs[1], s->sort_counts};
+                     s->vertex_sum, s->front, s->front_rank, s->drawn, s->pairs[0], s->pairs[1], s->sort_counts};
     for (size_t i = 0; i < sizeof parts / sizeof parts[0]; i++)
         free(parts[i]);
     s->not_run_at = s->start_prefix = s->face_prefix = s->vertex_prefix = s->start_block = s->front_index = NULL;
+    s->front_rank = NULL;
     s->start_bits = s->face_bits = s->vertex_bits = s->start_sum = s->face_sum = s->vertex_sum = NULL;
-    s->front = s->sorted = NULL;
+    s->front = NULL;
     s->drawn = NULL;
     s->pairs[0] = s->pairs[1] = NULL;
     s->sort_counts = NULL;
@@ -141,7 +142,7 @@ int scratch_mesh(PmxScratch *s, int64_t n_original, int64_t n_faces)
     s->face_prefix = zeros(face_words, sizeof(int32_t));
     s->vertex_prefix = zeros(vertex_words, sizeof(int32_t));
     s->start_block = zeros(start_words / 64 + 1, sizeof(int32_t));
-    s->sorted = zeros(V0, sizeof(PmxFrontVertex));
+    s->front_rank = zeros(V0, sizeof(int32_t));
     s->drawn = zeros(n_faces, sizeof(PmxFaceRecord));
     s->front_index = zeros(V0, sizeof(int32_t));
     s->front = zeros(V0 + 1, sizeof(PmxFrontVertex)); /* one slot past the front */
@@ -150,7 +151,7 @@ int scratch_mesh(PmxScratch *s, int64_t n_original, int64_t n_faces)
     s->pairs[1] = zeros(pairs, sizeof(IdSlot));
     s->sort_counts = zeros(RANK_COUNTS, sizeof(int32_t));
     if (!(s->not_run_at && s->start_bits && s->face_bits && s->vertex_bits && s->start_sum && s->face_sum &&
-          s->vertex_sum && s->start_prefix && s->face_prefix && s->vertex_prefix && s->start_block && s->sorted &&
+          s->vertex_sum && s->start_prefix && s->face_prefix && s->vertex_prefix && s->start_block && s->front_rank &&
           s->drawn && s->front_index && s->front && s->pairs[0] && s->pairs[1] && s->sort_counts)) {
         free_mesh(s);
         return 0;
