@@ -937,6 +937,11 @@ def _word_calls(K: int):
     A repeated frame gets the same results as the frame itself."""
     F = _core.FRAMES
     words = -(-K // F)
+    # The padding repeats frame K - 1 with its own budgets and tolerance
+    # (never a budget below every mesh, as a call of one-camera guesses
+    # pads): the callers scatter the results by these indices, the last
+    # write to frame K - 1 winning, so the padding's results must be that
+    # frame's own.
     order = np.minimum(np.arange(words * F), K - 1)
     for start, n in _core.word_spans(words, _core.WORDS_PER_CALL):
         yield order[start * F:(start + n) * F]
@@ -1018,6 +1023,8 @@ def _word_guesses(d, counts_of, host, start, budgets, tests):
     for lanes in _word_calls(K):
         got = _core_guesses(d.core_words, rows[lanes], budgets[lanes].astype(np.int32), tests, host.orthographic,
                             counts_of.base_faces, words=True)
+        # lanes repeats frame K - 1 in the padding (last write wins): the
+        # padding's guesses are that frame's own, as its budgets are.
         guess[lanes], alt[lanes] = (np.asarray(x) for x in got)
     return guess, alt
 

@@ -177,12 +177,13 @@ def test_guesses_are_the_same_at_every_simd_level(built):
         assert all(np.array_equal(a, b) for a, b in zip(got[0], other))
 
 
-def test_padded_guesses_are_the_guesses_of_their_cameras(built):
+def test_padded_guesses_are_the_guesses_of_their_cameras(built, monkeypatch):
     """A call padded past its cameras (repeats of its last camera, with no
     budget to meet) guesses each camera as a call of exactly its cameras
-    does, and the padding makes no guess of its own: inf, with no
-    traversal (with the first tolerances given, so that no thread's order
-    enters)."""
+    does: the core is given each camera's own budgets and -1 (below every
+    mesh) on every padding row, and a row with no budget to meet makes no
+    guess of its own: inf, with no traversal (with the first tolerances
+    given, so that no thread's order enters)."""
     from pmjax.engines import _core
     from pmjax.engines._tables import derived
 
@@ -196,7 +197,19 @@ def test_padded_guesses_are_the_guesses_of_their_cameras(built):
     budgets = np.stack([np.full(K, base), np.full(K, base + 40), np.full(K, 900), np.full(K, pm.n_faces)], 1)
     start = np.full(K, 0.7, np.float32)
     frames = np.arange(K - 3)
+    # The budgets each call hands the core, recorded on the way through.
+    given, core_guesses = [], _refine._core_guesses
+
+    def recording(tables, rows, want, *rest, **named):
+        given.append(np.array(want))
+        return core_guesses(tables, rows, want, *rest, **named)
+
+    monkeypatch.setattr(_refine, "_core_guesses", recording)
     padded = _refine._guesses(d, counts_of, host, frames, start, budgets, pmjax.ALL_TESTS, 32)
+    monkeypatch.undo()
+    assert len(given) == 1 and given[0].shape == (32, budgets.shape[1])
+    assert np.array_equal(given[0][:len(frames)], budgets[frames])
+    assert (given[0][len(frames):] == -1).all()
     rows = _core.host_camera_rows(host, start, d.exponent)[frames]
     exact = [np.asarray(g) for g in _refine._core_guesses(d.core, rows, budgets[frames].astype(np.int32),
                                                           pmjax.ALL_TESTS, False, base)]

@@ -167,9 +167,13 @@ PMX_INLINE int32_t own_switch(const float *mu2, const float *normal2, const floa
     return open;
 }
 
-/* own_tolerance of the pcols at positions pos[0..n) (n <= LANES) into out,
- * each under its view view[j] with one pixel unit[j]: the terms, then
- * own_switch; a pcol whose switch lies farther takes the scalar steps. */
+/* The switch points (the largest float32 tau at which a pcol is not small
+ * on screen, +inf when it never is) of the pcols at positions pos[0..n)
+ * (n <= LANES) into out, each under its view view[j] with one pixel
+ * unit[j]: the screen test's terms, then own_switch, whose settled pairs
+ * get the exact float32 switch from the closed form and the float32 test
+ * around it; only a pcol whose switch lies farther falls back to
+ * own_tolerance (its scalar steps). */
 PMX_INLINE void own_block_body(const float *rows, const int32_t *pos, int64_t n, const float *const *view,
                                const float *unit, int ortho, float *out)
 {
@@ -217,9 +221,21 @@ typedef struct {
     const float *views;
 } WordViews;
 
-/* own_tolerance of k <= LANES / FRAMES pcols (rows at positions pos[0..k))
- * under each of a word's FRAMES frames into out (pcol q's frame l at
- * q * FRAMES + l): own_block's values, each row read once for its frames. */
+/* screen_terms of one pcol row under each of a word's FRAMES frames into
+ * m, nn, sq (frame l at l), in one vector: called with a literal ortho so
+ * that the projection's branch folds away. */
+PMX_INLINE void frame_screen_terms(const float *row, const WordViews *w, int ortho, float *m, float *nn, float *sq)
+{
+#pragma omp simd
+    for (int l = 0; l < FRAMES; l++)
+        screen_terms(row, w->ex[l], w->ey[l], w->ez[l], w->fx[l], w->fy[l], w->fz[l], ortho, &m[l], &nn[l], &sq[l]);
+}
+
+/* The switch points of k <= LANES / FRAMES pcols (rows at positions
+ * pos[0..k)) under each of a word's FRAMES frames into out (pcol q's frame
+ * l at q * FRAMES + l), as own_block computes them (own_switch's exact
+ * float32 switch where it settles, own_tolerance's scalar steps only
+ * where it does not), each row read once for its frames. */
 PMX_INLINE void own_slots_body(const float *rows, const int32_t *pos, int64_t k, const WordViews *w, int ortho,
                                float *out)
 {
@@ -228,19 +244,13 @@ PMX_INLINE void own_slots_body(const float *rows, const int32_t *pos, int64_t k,
     for (int64_t q = 0; q < k; q++) {
         const float *row = rows + (int64_t)pos[q] * ROW;
         float *m = mu2 + q * FRAMES, *nn = normal2 + q * FRAMES, *sq = s + q * FRAMES;
-        /* The projection's branch outside the frames' loop, which then
-         * takes all FRAMES frames in one vector. */
-        if (ortho) {
-#pragma omp simd
-            for (int l = 0; l < FRAMES; l++)
-                screen_terms(row, w->ex[l], w->ey[l], w->ez[l], w->fx[l], w->fy[l], w->fz[l], 1, &m[l], &nn[l],
-                             &sq[l]);
-        } else {
-#pragma omp simd
-            for (int l = 0; l < FRAMES; l++)
-                screen_terms(row, w->ex[l], w->ey[l], w->ez[l], w->fx[l], w->fy[l], w->fz[l], 0, &m[l], &nn[l],
-                             &sq[l]);
-        }
+        /* The projection's branch outside the frames' loop (a literal 1
+         * or 0 into the helper), which then takes all FRAMES frames in
+         * one vector. */
+        if (ortho)
+            frame_screen_terms(row, w, 1, m, nn, sq);
+        else
+            frame_screen_terms(row, w, 0, m, nn, sq);
     }
     if (!own_switch(mu2, normal2, s, w->unit, k * FRAMES, out, settled))
         return;
@@ -349,6 +359,17 @@ static float crossing(float *val, int32_t *wt, int64_t n, int64_t over)
 static int64_t bucket_of(float v, int32_t lo_bits)
 {
     const int64_t q = ((int64_t)bits_of(v) - lo_bits) >> 16;
+    return q < BUCKETS - 1 ? q : BUCKETS - 1;
+}
+
+/* bucket_of in 32 unsigned bits, for the frames' vector loops: the same
+ * bucket for v >= lo (lo_bits: lo's bits), another for v below lo, which
+ * its callers do not take. */
+PMX_INLINE uint32_t bucket_u32(float v, int32_t lo_bits)
+{
+    uint32_t x;
+    memcpy(&x, &v, sizeof x);
+    const uint32_t q = (x - (uint32_t)lo_bits) >> 16;
     return q < BUCKETS - 1 ? q : BUCKETS - 1;
 }
 
@@ -1011,10 +1032,7 @@ PMX_INLINE void tally_body(const float *eps, const int32_t *kill, int64_t n, con
             const int32_t at = in & asked[l];
             total[l] += at ? w : 0;
             total2[l] += (in & (e[l] >= twice[l])) ? w : 0; /* as tally: within lo first */
-            uint32_t x;
-            memcpy(&x, &e[l], sizeof x);
-            uint32_t q = (x - (uint32_t)lo_bits[l]) >> 16;
-            q = q < BUCKETS - 1 ? q : BUCKETS - 1;
+            const uint32_t q = bucket_u32(e[l], lo_bits[l]);
             at_entry[l] = l * (BUCKETS + SPREAD) + (at ? (int32_t)q : spare);
             add[l] = at ? w : 0;
         }
@@ -1097,10 +1115,7 @@ PMX_INLINE void hits_body(const float *eps, int64_t n, const float *lo, const in
         int32_t hv[FRAMES], any = 0;
 #pragma omp simd reduction(| : any)
         for (int l = 0; l < FRAMES; l++) {
-            uint32_t x;
-            memcpy(&x, &e[l], sizeof x);
-            uint32_t q = (x - (uint32_t)lo_bits[l]) >> 16;
-            q = q < BUCKETS - 1 ? q : BUCKETS - 1;
+            const uint32_t q = bucket_u32(e[l], lo_bits[l]);
             int h = 0;
             for (int g = 0; g < GROUP; g++)
                 h |= q == q_of[g][l];
