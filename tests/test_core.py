@@ -749,8 +749,19 @@ def test_the_eager_mesh_entry_checks_its_arrays(built):
             counts[0], counts[2] = P, m.n_faces - n_base
             if m is bunny:
                 assert 2 * (P - 2) + n_base > m.n_faces  # past the room for faces
+            # A pcol's slot given twice with the counts of what it then
+            # draws (no face count to tell): its front vertices' starts
+            # twice, refused before any rank is written.
+            drawing = np.flatnonzero(pcols[:, 1] > 0)[:2]
+            twice = drawing[[0, 1, 1]].astype(np.int32)
+            twice_counts = counts.copy()
+            twice_counts[0], twice_counts[2] = 3, int(pcols[drawing, 1] @ np.array([1, 2]))
             for way in ("bitmaps", "sorts"):
                 engines.mesh_ranks(way)
+                with pytest.raises(ValueError, match="faces drawn do not match"):
+                    _core.front_mesh_eager(held, np.zeros(3, np.uint8), twice, twice_counts, 0, m.n_original,
+                                           m.n_faces, np.empty((m.n_faces, 3), np.int32),
+                                           np.empty(m.n_original, np.int32), np.empty((m.n_original, 3), np.float32))
                 for positions in (again, children) if m is bunny or way == "bitmaps" else (again,):
                     with pytest.raises(ValueError, match="faces drawn do not match"):
                         _core.front_mesh_eager(held, np.zeros(P, np.uint8), positions, counts, 0, m.n_original,

@@ -312,6 +312,14 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
         for (int64_t i = 0; i < n_front; i++)
             set_marked(start_bits, start_sum, front[i].start, 1, start_dense);
         prefix_marked(start_bits, start_sum, start_words, start_dense, start_prefix, start_block);
+        /* A refinement's front has distinct starts, at most V0 of them: a
+         * start given twice (or a front past V0) is no refinement's, and
+         * the ranks below (front_rank and front_index hold V0) are not
+         * written for it. */
+        if (marked_count(start_bits, start_sum, start_prefix, start_words, start_dense) != n_front)
+            status = PMX_FACES_DIFFER;
+    }
+    if (status == PMX_OK) {
         for (int64_t i = 0; i < n_front; i++)
             front_rank[i] = (int32_t)rank_of(start_bits, start_prefix, front[i].start);
         /* A front that tiles [0, V0) starts at 0, so every corner has a

@@ -28,18 +28,6 @@ static void free_sets(PmxScratch *s)
     s->sets = 0;
 }
 
-static void free_parts(PmxScratch *s)
-{
-    void *parts[] = {s->ids, s->kid, s->kill, s->pcols, s->unsure, s->parent, s->chain, s->state, s->ran, s->mark,
-                     s->visit, s->whole, s->yes, s->ran_frames, s->unsure_lanes, s->not_run_at, s->start_prefix,
-                     s->face_prefix, s->vertex_prefix, s->start_block, s->front_index, s->start_bits, s->face_bits,
-                     s->vertex_bits, s->start_sum, s->face_sum, s->vertex_sum, s->front, s->front_rank, s->drawn,
-                     s->pairs[0], s->pairs[1]};
-    for (size_t i = 0; i < sizeof parts / sizeof parts[0]; i++)
-        free(parts[i]);
-    free_sets(s);
-}
-
 static void free_mesh(PmxScratch *s)
 {
     void *parts[] = {s->not_run_at, s->start_prefix, s->face_prefix, s->vertex_prefix, s->start_block,
@@ -54,6 +42,18 @@ static void free_mesh(PmxScratch *s)
     s->drawn = NULL;
     s->pairs[0] = s->pairs[1] = NULL;
     s->sort_counts = NULL;
+}
+
+/* Everything a scratch holds: the slot parts here, the mesh parts and the
+ * word sets through their own lists (one list per group, so none is left out). */
+static void free_parts(PmxScratch *s)
+{
+    void *parts[] = {s->ids, s->kid, s->kill, s->pcols, s->unsure, s->parent, s->chain, s->state, s->ran, s->mark,
+                     s->visit, s->whole, s->yes, s->ran_frames, s->unsure_lanes};
+    for (size_t i = 0; i < sizeof parts / sizeof parts[0]; i++)
+        free(parts[i]);
+    free_mesh(s);
+    free_sets(s);
 }
 
 int scratch_slots(PmxScratch *s)
