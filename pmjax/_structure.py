@@ -29,11 +29,11 @@ different pcols of one batch touching the face, unless it is the killer.
 from __future__ import annotations
 
 import os
-import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from ._atomic import atomic_path
 from ._pmdata import PMData, PMFormatError
 
 # Bumped whenever check_structure checks more: older records of passed files
@@ -120,19 +120,16 @@ def remember_decoding(key: str, fingerprint: str) -> None:
     folder = known_structures_dir()
     if folder is None:
         return
-    path = os.path.join(folder, f"{key}.decoded")
-    # Written beside, then renamed: a reader sees no record or a whole one.
-    tmp = f"{path}.{os.getpid()}.{threading.get_ident()}.tmp"
+    # Written beside, then renamed (pmjax._atomic): a reader sees no record
+    # or a whole one; a writer killed meanwhile leaves a temporary file that
+    # the next write of the record removes.
     try:
         os.makedirs(folder, exist_ok=True)
-        with open(tmp, "w", encoding="ascii") as fh:
-            fh.write(fingerprint)
-        os.replace(tmp, path)
+        with atomic_path(os.path.join(folder, f"{key}.decoded")) as tmp:
+            with open(tmp, "w", encoding="ascii") as fh:
+                fh.write(fingerprint)
     except OSError:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
+        pass
 
 
 def check_structure(pm: PMData, *, source: str = "<memory>", threads: int = 2, nesting: bool = True) -> None:

@@ -351,6 +351,7 @@ def test_without_a_reader_identity_no_decoding_is_recorded_or_used(cow, tmp_path
     monkeypatch.setenv("PMJAX_KNOWN_STRUCTURES", str(known))
     read_arrays(path)
     assert len(list(known.glob("*.decoded"))) == 1
+    assert not [p.name for p in known.iterdir() if "tmp" in p.name]  # written whole, then renamed
     monkeypatch.setattr(pmjax._pmfile, "READER_IDENTITY", None)
     hashed = []
     sha256 = pmjax._pmfile._sha256
