@@ -26,8 +26,8 @@ int pmx_mesh_ranks(int mode)
 /* Whether n items are ranked by sorting them rather than in a bitmap of
  * that many words. A bitmap costs a pass to count and one to clear over
  * every word, and a scattered store and load per item in an array that may
- * not fit the caches; a sort, two or three passes over the items (ids up to
- * 2^24 or 2^32, digits of SORT_DIGIT_MOST bits) in arrays of their size:
+ * not fit the caches; a sort, one or two passes over the items (digits of
+ * up to RANK_DIGIT_MOST bits, sort_plan) in arrays of their size:
  * the sort wins once the words outnumber the items RANKS_SORTED times, as
  * where a model far larger than the caches draws few of its faces. The
  * front's starts stay in a bitmap either way (below). */
