@@ -33,7 +33,8 @@ orbit frames at tau = 1 px, alternating the models frame by frame (refine of
 A, its ``mesh()``, refine of B, its ``mesh()``), after two warm-up frames of
 each. Per model the median over each round's frames, the median over
 ``--rounds`` rounds, and the ratio B / A of those medians, so that both run
-under the same load and caches.
+under the same load and caches: of refine (counts only), of ``mesh()``, and
+of the two together per frame (a drawable mesh from a camera).
 
 Usage::
 
@@ -219,26 +220,30 @@ def time_frame(mesh, cam) -> tuple[float, int, float]:
 def alternate(paths: list[str], rounds: int) -> list[dict]:
     """Refine and ``mesh()`` of the models in ``paths`` alternated frame by
     frame in this process: per model the median over rounds of each round's
-    median over the 24 frames (milliseconds), and the faces drawn."""
+    median over the 24 frames (milliseconds) of refine, of ``mesh()`` and of
+    the two together (a drawable mesh from a camera), and the faces drawn."""
     import pmjax
 
     models = []
     for path in paths:
         mesh = pmjax.load(path)
-        models.append(dict(mesh=mesh, frames=orbit_frames(mesh), refine=[], mesh_ms=[], faces=[]))
+        models.append(dict(mesh=mesh, frames=orbit_frames(mesh), refine=[], mesh_ms=[], both=[], faces=[]))
     for _ in range(rounds):
-        per = [dict(refine=[], mesh=[]) for _ in models]
+        per = [dict(refine=[], mesh=[], both=[]) for _ in models]
         for i in range(24):
             for m, p in zip(models, per):
                 refine_s, n, mesh_s = time_frame(m["mesh"], m["frames"][i])
                 p["refine"].append(refine_s)
                 p["mesh"].append(mesh_s)
+                p["both"].append(refine_s + mesh_s)
                 m["faces"].append(n)
         for m, p in zip(models, per):
             m["refine"].append(1e3 * statistics.median(p["refine"]))
             m["mesh_ms"].append(1e3 * statistics.median(p["mesh"]))
+            m["both"].append(1e3 * statistics.median(p["both"]))
     return [dict(model=path, refine_ms=statistics.median(m["refine"]), mesh_ms=statistics.median(m["mesh_ms"]),
-                 refine_rounds=m["refine"], mesh_rounds=m["mesh_ms"], faces=int(statistics.median(m["faces"])))
+                 refine_mesh_ms=statistics.median(m["both"]), refine_rounds=m["refine"], mesh_rounds=m["mesh_ms"],
+                 faces=int(statistics.median(m["faces"])))
             for path, m in zip(paths, models)]
 
 
@@ -345,11 +350,12 @@ def main(argv=None) -> int:
         rows = alternate(paths, rounds)
         for spec, row in zip(specs, rows):
             print(f"{spec:12s} {row['faces']:>7,d} faces drawn  refine {row['refine_ms']:.3f} ms  "
-                  f"mesh() {row['mesh_ms']:.3f} ms  (rounds: "
+                  f"mesh() {row['mesh_ms']:.3f} ms  refine + mesh() {row['refine_mesh_ms']:.3f} ms  (rounds: "
                   + ", ".join(f"{a:.3f}/{b:.3f}" for a, b in zip(row["refine_rounds"], row["mesh_rounds"])) + ")")
         a, b = rows
         print(f"{specs[1]} / {specs[0]}: faces {b['faces'] / a['faces']:.2f}x  refine "
               f"{b['refine_ms'] / a['refine_ms']:.2f}x  mesh() {b['mesh_ms'] / a['mesh_ms']:.2f}x  "
+              f"refine + mesh() {b['refine_mesh_ms'] / a['refine_mesh_ms']:.2f}x  "
               f"(medians over {rounds} rounds of 24 frames, alternated in one process)")
         if args.json:
             write_json(args.json, dict(machine=machine(), rows=rows, specs=specs, rounds=rounds))

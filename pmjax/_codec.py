@@ -77,9 +77,9 @@ def _load_native():
     lib.pmz_float_from_residual.restype = None
     lib.pmz_float_from_residual.argtypes = [_i64, _p, _p, _p]
     lib.pmz_read_batch.restype = _i64
-    lib.pmz_read_batch.argtypes = [_p, _i64, _i64, _i64, _i64, _i64, _i64] + [_p] * 15
+    lib.pmz_read_batch.argtypes = [_p, _i64, _i64, _i64, _i64, _i64, _i64] + [_p] * 12
     lib.pmz_batch_faces.restype = _i64
-    lib.pmz_batch_faces.argtypes = [_p, _i64, _i64, _i64, _i64, _p, _p, _p, _p, _p]
+    lib.pmz_batch_faces.argtypes = [_p, _i64, _i64, _i64, _i64, _p, _p, _p, _p]
     lib.pmz_unit_from_residual.restype = None
     lib.pmz_unit_from_residual.argtypes = [_i64, _p, _p, _p]
     lib.pmz_float_from_planed.restype = None
@@ -566,6 +566,14 @@ class _Cursor:
             raise ValueError(f"{len(self.raw) - self.at} bytes are left over after its arrays")
 
 
+# A vertex's record in the reader's state (the C loops' Range): its leaf
+# range, its parent (-1 for roots), and whether it is a vertex of the mesh
+# read so far; one record per vertex, so that the C loops' scattered reads
+# and writes of a child touch one line. Stream's start, count, parent and
+# seen are views of these fields.
+RANGE_DTYPE = np.dtype([("start", np.int32), ("count", np.int32), ("parent", np.int32), ("seen", np.int32)])
+
+
 @dataclass
 class Stream:
     """What a reader knows after the chunks read so far (full hierarchy ids)."""
@@ -575,9 +583,9 @@ class Stream:
     offsets: np.ndarray
     vertices: np.ndarray
     normals: np.ndarray
-    start: np.ndarray
-    count: np.ndarray
-    seen: np.ndarray  # bool[V]: the vertex appeared (a root or a read pcol's child)
+    start: np.ndarray  # int[V]: each vertex's first leaf rank
+    count: np.ndarray  # int[V]: its leaves
+    seen: np.ndarray  # bool or int32 [V]: the vertex appeared (a root or a read pcol's child) and is not split
     v1: np.ndarray
     v2: np.ndarray
     radius: np.ndarray
@@ -590,16 +598,19 @@ class Stream:
     killers: list  # per group read: int32[n]
     encoding: int = 1  # the chunks' array encoding (ENCODINGS)
     parent: np.ndarray | None = None  # int32[V]: each read vertex's parent, -1 for roots
+    ranges: np.ndarray | None = None  # RANGE_DTYPE[V] holding start, count, parent and seen (the C decoder's)
     owner: np.ndarray | None = None  # int32[V0]: the C decoder's rank -> pcol stamps
     pointers: tuple | None = None  # the C decoder's addresses of the arrays above (fixed for a read)
 
 
 def new_stream(V0: int, P: int, offsets: np.ndarray, encoding: int = 1) -> Stream:
     V = V0 + P
+    ranges = np.zeros(V, RANGE_DTYPE)
+    ranges["parent"] = -1
     return Stream(V0, P, offsets, np.zeros((V, 3), np.float32), np.zeros((V, 3), np.float32),
-                  np.zeros(V, np.int64), np.zeros(V, np.int64), np.zeros(V, bool),
+                  ranges["start"], ranges["count"], ranges["seen"],
                   *(np.zeros(P, np.int32) for _ in range(2)), *(np.zeros(P, np.float32) for _ in range(4)),
-                  np.zeros(P, np.float64), np.zeros(P, np.uint8), [], [], encoding, np.full(V, -1, np.int32))
+                  np.zeros(P, np.float64), np.zeros(P, np.uint8), [], [], encoding, ranges["parent"], ranges)
 
 
 def read_base(s: Stream, raw: bytes, R: int, n_faces: int) -> None:
@@ -732,8 +743,8 @@ def _read_batch_native(s: Stream, raw, lo: int, hi: int, n_faces: int, pool=None
     info = np.zeros(1, np.int64)
     if s.pointers is None:
         s.owner = np.full(V0, -1, np.int32)
-        s.pointers = tuple(_ptr(a) for a in (s.seen, s.count, s.start, s.vertices, s.normals, s.parent, s.v1, s.v2,
-                                             s.radius, s.alpha, s.delta, s.mu, s.cost, s.metric))
+        s.pointers = tuple(_ptr(a) for a in (s.ranges, s.vertices, s.normals, s.v1, s.v2, s.radius, s.alpha, s.delta,
+                                             s.mu, s.cost, s.metric))
     code = native.pmz_read_batch(_ptr(buf), len(buf), V0, lo, hi, n_faces, s.encoding, *s.pointers, _ptr(info))
     if code == 1:
         raise ValueError(f"its arrays need more than its {len(buf)} bytes")
@@ -744,8 +755,8 @@ def _read_batch_native(s: Stream, raw, lo: int, hi: int, n_faces: int, pool=None
 
     def faces():
         # buf, ranks and killer stay referenced by this closure until it returns.
-        if native.pmz_batch_faces(_ptr(buf) + len(buf) - 12 * n_faces, n_faces, V0, lo, hi, _ptr(s.start),
-                                  _ptr(s.count), _ptr(ranks), _ptr(killer), _ptr(s.owner)):
+        if native.pmz_batch_faces(_ptr(buf) + len(buf) - 12 * n_faces, n_faces, V0, lo, hi, _ptr(s.ranges),
+                                  _ptr(ranks), _ptr(killer), _ptr(s.owner)):
             raise ValueError(f"a face corner's rank is outside [0, {V0})")
         return killer
 

@@ -146,19 +146,29 @@ static uint64_t get64(const uint8_t *src, int64_t n, int64_t i) {
     return u;
 }
 
+/* What the reader knows of a vertex's place in the collapse forest
+ * (_codec.RANGE_DTYPE): its leaf range, its parent (-1 for roots) and
+ * whether it is a vertex of the mesh read so far. One record per vertex, so
+ * that the first pass touches one scattered line per child, not four. */
+typedef struct {
+    int32_t start, count, parent, seen;
+} Range;
+
 /* Batch chunk of pcols lo .. hi-1 (ids V0+lo .. V0+hi-1) into the reader's
- * state (_codec.read_batch), arrays stored in encoding 1 or 2: seen
- * uint8[V], count and start int64[V], vertices and normals float32[V, 3],
- * parent int32[V] (-1 for roots), v1 .. metric at [lo, hi); the chunk's
- * size is checked whole, its face ranks left to pmz_batch_faces. */
+ * state (_codec.read_batch), arrays stored in encoding 1 or 2: range[V]
+ * (Range), vertices and normals float32[V, 3], v1 .. metric at [lo, hi);
+ * the chunk's size is checked whole, its face ranks left to
+ * pmz_batch_faces. */
 int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, int64_t hi, int64_t n_faces,
-                       int64_t encoding, uint8_t *seen, int64_t *count, int64_t *start, float *vertices,
-                       float *normals, int32_t *parent, int32_t *v1, int32_t *v2, float *radius, float *alpha,
-                       float *delta, float *mu, double *cost, uint8_t *metric, int64_t *info) {
+                       int64_t encoding, Range *range, float *vertices, float *normals, int32_t *v1, int32_t *v2,
+                       float *radius, float *alpha, float *delta, float *mu, double *cost, uint8_t *metric,
+                       int64_t *info) {
     const int64_t n = hi - lo, first = V0 + lo;
     int32_t *a = v1 + lo, *d = v2 + lo;
-    /* The children and the count under v1, then the checks on them before
-     * any state changes. */
+    /* The children and the count under v1, checked in the NumPy reader's
+     * order. A failed check abandons the read, so the children's ranges may
+     * be written while their marks are checked: the checks after that read
+     * only the parents' records (ids of this batch, above every child). */
     if (len < 12 * n) return SHORT;
     unplane(raw, n, 4, (uint8_t *)a);
     unplane(raw + 4 * n, n, 4, (uint8_t *)d);
@@ -168,18 +178,31 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
     for (int64_t i = 0; i < n; i++)
         if (d[i] < 0 || d[i] >= first) return info[0] = lo + i, BAD_V2;
     /* A child seen before, or twice in this batch (marked seen while
-     * checking, in one pass), is an error. */
+     * checking, in one pass), is an error; the children split their
+     * parent's leaf range (counts checked below). */
     for (int64_t i = 0; i < n; i++) {
-        if (seen[a[i]]) return CHILD_SEEN;
-        seen[a[i]] = 1;
-        if (seen[d[i]]) return CHILD_SEEN;
-        seen[d[i]] = 1;
+        if (i + AHEAD < n) {
+            PREFETCH(range + a[i + AHEAD]);
+            PREFETCH(range + d[i + AHEAD]);
+        }
+        const Range *ru = range + first + i;
+        Range *ra = range + a[i], *rd = range + d[i];
+        if (ra->seen) return CHILD_SEEN;
+        ra->seen = 1;
+        if (rd->seen) return CHILD_SEEN;
+        rd->seen = 1;
+        const int32_t c1 = (int32_t)get32(c1_planes, n, i);
+        ra->count = c1;
+        rd->count = (int32_t)((uint32_t)ru->count - (uint32_t)c1);
+        ra->start = ru->start;
+        rd->start = (int32_t)((uint32_t)ru->start + (uint32_t)c1);
+        ra->parent = rd->parent = (int32_t)(first + i);
     }
     for (int64_t i = 0; i < n; i++)
-        if (!seen[first + i]) return PARENT_UNSEEN;
+        if (!range[first + i].seen) return PARENT_UNSEEN;
     int64_t made = 0;
     for (int64_t i = 0; i < n; i++) {
-        int64_t c1 = (int32_t)get32(c1_planes, n, i), c2 = count[first + i] - c1;
+        int64_t c1 = (int32_t)get32(c1_planes, n, i), c2 = range[first + i].count - c1;
         if (c1 < 1 || c2 < 1 || (a[i] < V0 && c1 != 1) || (d[i] < V0 && c2 != 1)) return BAD_COUNTS;
         made += (a[i] >= V0) + (d[i] >= V0);
     }
@@ -187,25 +210,8 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
     const int64_t need = n * (12 + 16 + 8 + 1 + 24) + made * 12 + n_faces * 12;
     if (len < need) return SHORT;
     if (len > need) return info[0] = len - need, LEFT_OVER;
-
-    /* Leaf ranges: the children split their parent's. */
-    for (int64_t i = 0; i < n; i++) {
-        int64_t u = first + i, c1 = (int32_t)get32(c1_planes, n, i);
-        if (i + AHEAD < n) {
-            PREFETCH(count + a[i + AHEAD]);
-            PREFETCH(count + d[i + AHEAD]);
-            PREFETCH(start + a[i + AHEAD]);
-            PREFETCH(start + d[i + AHEAD]);
-            PREFETCH(parent + a[i + AHEAD]);
-            PREFETCH(parent + d[i + AHEAD]);
-        }
-        seen[u] = 0;
-        count[a[i]] = c1;
-        count[d[i]] = count[u] - c1;
-        start[a[i]] = start[u];
-        start[d[i]] = start[u] + c1;
-        parent[a[i]] = parent[d[i]] = (int32_t)u;
-    }
+    /* The parents are split: no longer vertices of the mesh read. */
+    for (int64_t i = 0; i < n; i++) range[first + i].seen = 0;
     /* The attributes: as stored (encoding 1), or the radius and half-angle
      * against their parent's less the distance and angle between them, and
      * the costs against the previous pcol's (_codec.cost_decode). */
@@ -217,9 +223,9 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
     } else {
         /* _codec.radius_prediction and _codec.alpha_prediction. */
         for (int64_t i = 0; i < n; i++) {
-            int64_t u = first + i, w = parent[u];
-            if (i + AHEAD < n && parent[u + AHEAD] >= 0) {
-                int64_t ahead = parent[u + AHEAD];
+            int64_t u = first + i, w = range[u].parent;
+            if (i + AHEAD < n && range[u + AHEAD].parent >= 0) {
+                int64_t ahead = range[u + AHEAD].parent;
                 PREFETCH(vertices + 3 * ahead);
                 PREFETCH(normals + 3 * ahead);
                 PREFETCH(radius + ahead - V0);
@@ -294,8 +300,8 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
  * finer batch changes, so it may run beside the decoding of the next
  * chunks; owner int32[V0] is scratch kept across the batches of a read (no
  * entry in [lo, hi) before the call), so one batch's call at a time. */
-int64_t pmz_batch_faces(const uint8_t *at, int64_t n_faces, int64_t V0, int64_t lo, int64_t hi, const int64_t *start,
-                        const int64_t *count, int32_t *ranks, int32_t *killer, int32_t *owner) {
+int64_t pmz_batch_faces(const uint8_t *at, int64_t n_faces, int64_t V0, int64_t lo, int64_t hi, const Range *range,
+                        int32_t *ranks, int32_t *killer, int32_t *owner) {
     const int64_t n = hi - lo, first = V0 + lo;
     /* Face code -> corner ranks, each within [0, V0) (so int32). */
     int64_t r0 = 0;
@@ -313,7 +319,8 @@ int64_t pmz_batch_faces(const uint8_t *at, int64_t n_faces, int64_t V0, int64_t 
      * entry of another batch is no pcol of this one), then the pcol holding
      * two corners, else -1. */
     for (int64_t i = 0; i < n; i++)
-        for (int64_t r = start[first + i], end = r + count[first + i]; r < end; r++) owner[r] = (int32_t)(lo + i);
+        for (int64_t r = range[first + i].start, end = r + range[first + i].count; r < end; r++)
+            owner[r] = (int32_t)(lo + i);
     for (int64_t f = 0; f < n_faces; f++) {
         int64_t cand[3];
         if (f + AHEAD < n_faces)
