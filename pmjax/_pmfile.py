@@ -408,8 +408,8 @@ def _read_v2(fh, path: str, batches: int | None, by_position: bool = False) -> t
     # place meanwhile (a copy over it) could have chunk bytes hashed, then
     # other bytes read.
     opened = _file_state(fh)
-    source = _Positional(fh) if by_position and opened is not None else None
-    read = fh.read if source is None else source.read
+    positional = _Positional(fh) if by_position and opened is not None and hasattr(os, "pread") else None
+    read = fh.read if positional is None else positional.read
     size = _read_full(read, 4)
     length = int.from_bytes(size, "little")
     if len(size) < 4:
@@ -441,7 +441,7 @@ def _read_v2(fh, path: str, batches: int | None, by_position: bool = False) -> t
                              f"{ends}): {held}")
 
     at = 12 + length
-    if source is not None:
+    if positional is not None:
         # The chunks the read needs must lie in the file before the arrays
         # their counts give are allocated: a few bytes of forged header
         # must not claim gigabytes.
@@ -475,7 +475,7 @@ def _read_v2(fh, path: str, batches: int | None, by_position: bool = False) -> t
     def read_expand(where: str, at: int, n: int, raw: int):
         # The chunk's bytes read on the same thread (the file held them as
         # the read started: fewer now means it was cut meanwhile).
-        payload = source.read_at(at, n)
+        payload = positional.read_at(at, n)
         if len(payload) < n:
             raise _changed(path)
         return expand(where, payload, raw)
@@ -522,7 +522,7 @@ def _read_v2(fh, path: str, batches: int | None, by_position: bool = False) -> t
                 n = _codec.SHA_BYTES + nbytes
                 where = f"{path}: chunk {name!r} (bytes {at} to {at + n})"
                 run = pool.submit if nbytes >= PIPELINE_BYTES else _codec.finished
-                if source is not None:
+                if positional is not None:
                     job = run(read_expand, where, at, n, raw)
                 else:
                     payload = _read_full(read, n)
