@@ -192,11 +192,14 @@ def _mesh_kind(path: str) -> str:
 def read_arrays(path, *, batches: int | None = None) -> tuple[PMData, str]:
     """Read a ``.pmz`` file with every check but the structure check.
 
-    Nothing is read beyond what the header's counts allow. Version 2: each
-    chunk's SHA-256 is checked before it is expanded, and it expands to at
-    most the size its header entry gives; a file that ends inside a chunk
+    Nothing is read beyond what the header's counts allow. Version 2: the
+    counts must fit the bytes the chunks declare (and, for a path, the
+    chunks the read needs the file's size) before the arrays are allocated;
+    each chunk's SHA-256 is checked before it is expanded, and it expands to
+    at most the size its header entry gives; a file that ends inside a chunk
     the read needs is refused, naming the chunk and how many batches its
-    whole chunks hold. Version 1: every array's ``.npy`` header (dtype,
+    whole chunks hold, and one cut or written over while it is read is
+    refused as changed. Version 1: every array's ``.npy`` header (dtype,
     shape) is read first and checked against the counts, and each zip
     entry's declared size against its ``.npy`` header, before any array data
     is read; data is then read with that bound, so an entry that expands past
