@@ -515,8 +515,9 @@ def _read_v2(fh, path: str, batches: int | None, by_position: bool = False) -> t
             tail = (where, raw_bytes)
 
     # Chunk i+1 is read and expanded (on the pool when it is large) while
-    # chunk i is decoded; every failure is still raised in file order (chunk
-    # i's before chunk i+1's truncation).
+    # chunk i is decoded; every failure is still raised in file order (a
+    # stream's chunk i's before chunk i+1's truncation; a file's truncation
+    # is found from its size before any chunk is read).
     # One pool for reading, expanding and hashing: its threads start once.
     with ThreadPoolExecutor(max_workers=max(2, os.cpu_count() or 1)) as pool:
         try:
