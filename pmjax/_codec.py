@@ -138,12 +138,20 @@ def decompress(data, codec: str, size: int) -> bytes:
         except ImportError as exc:
             raise ValueError("the file is zstd-compressed and the zstandard package is not installed "
                              "(pip install zstandard)") from exc
-        # Read in place (bytes, or a memoryview of a chunk in a mapped file).
-        with zstandard.ZstdDecompressor().stream_reader(data, read_across_frames=False) as r:
-            out = r.read(size + 1)
+        # Read in place (bytes, or a memoryview of a chunk's bytes). The
+        # decompressors' own errors are not ValueError: worded as one, so
+        # that the reader names the chunk.
+        try:
+            with zstandard.ZstdDecompressor().stream_reader(data, read_across_frames=False) as r:
+                out = r.read(size + 1)
+        except zstandard.ZstdError as exc:
+            raise ValueError(f"its zstd stream is damaged ({exc})") from exc
     elif codec == "zlib":
         d = zlib.decompressobj()
-        out = d.decompress(data, size + 1)
+        try:
+            out = d.decompress(data, size + 1)
+        except zlib.error as exc:
+            raise ValueError(f"its zlib stream is damaged ({exc})") from exc
         if not d.eof and len(out) == size:
             raise ValueError("the compressed stream ends early")
     else:
@@ -403,6 +411,8 @@ def face_killers(ranks: np.ndarray, starts: np.ndarray, counts: np.ndarray, firs
     """Per face (corner ranks ``int64[n, 3]``), the pcol among ``first ..
     first + len(starts) - 1`` (one batch: disjoint ranges) whose range holds
     two of its corners, or -1 where none does."""
+    if not len(starts):  # a batch without pcols kills no face (as the C loop finds)
+        return np.full(len(ranks), -1, np.int32)
     order = np.argsort(starts, kind="stable")
     s = starts[order]
     i = np.searchsorted(s, ranks, side="right") - 1
@@ -515,6 +525,20 @@ def chunk_arrays(pm: PMData, encoding: int = ENCODING) -> tuple[dict, list]:
     if encoding != 1:
         fields["encoding"] = encoding
     return fields, table
+
+
+# Bytes per pcol of a batch chunk, whatever its children: v1, v2 and the
+# count under v1 (int32 each), radius, alpha, delta, mu (4 each), cost (8),
+# metric (1) and both children's positions (12 each).
+PCOL_BYTES = 12 + 16 + 8 + 1 + 24
+
+
+def batch_bytes(n: int, made: int, n_faces: int) -> int:
+    """Raw bytes of a batch chunk of ``n`` pcols whose children include
+    ``made`` made vertices (each with its normal, 12 bytes) and that stores
+    ``n_faces`` faces (12 bytes each); the C loops' ``pmz_read_batch``
+    computes the same."""
+    return PCOL_BYTES * n + 12 * made + 12 * n_faces
 
 
 def group_dtype(B: int):
@@ -650,27 +674,35 @@ def read_batch(s: Stream, raw: bytes, b: int, n_faces: int, pool=None) -> None:
     # The C loops need the arrays' room for the face counts the header gives;
     # a chunk without it fails either way, and the NumPy steps name the
     # failure without allocating for those counts.
-    if native is not None and len(raw) >= 61 * n + 12 * n_faces:
+    if native is not None and len(raw) >= batch_bytes(n, 0, n_faces):
         _read_batch_native(s, raw, lo, hi, n_faces, pool if n_faces >= FACES_BESIDE else None)
         return
     c = _Cursor(raw)
     a, d = c.take(np.int32, (n,)), c.take(np.int32, (n,))
     c1 = c.take(np.int32, (n,)).astype(np.int64)
-    for name, idx in (("v1", a), ("v2", d)):
+    for code, idx in ((2, a), (3, d)):
         bad = (idx < 0) | (idx >= V0 + lo)
         if bad.any():
-            raise ValueError(f"{name} of pcol {lo + int(np.flatnonzero(bad)[0])} is not a vertex made before its batch")
+            raise ValueError(_BATCH_ERRORS[code].format(lo + int(np.flatnonzero(bad)[0])))
+    # Each failure names its first pcol as the C loop's does: the children
+    # taken in the order v1, v2 of pcol lo, then of lo + 1, ...; a child is
+    # bad where it was seen before or earlier in that order.
     both = np.concatenate([a, d])
-    ordered_ids = np.sort(both)
-    if s.seen[both].any() or np.any(ordered_ids[1:] == ordered_ids[:-1]):
-        raise ValueError("a pcol's child is already a vertex of the coarser mesh")
+    order = np.stack([a, d], axis=1).reshape(-1)
+    repeat = np.ones(len(order), bool)
+    repeat[np.unique(order, return_index=True)[1]] = False
+    bad = s.seen[order].astype(bool) | repeat
+    if bad.any():
+        raise ValueError(_BATCH_ERRORS[4].format(lo + int(np.flatnonzero(bad)[0]) // 2))
     u = np.arange(V0 + lo, V0 + hi)
-    if not s.seen[u].all():
-        raise ValueError("a pcol splits a vertex the coarser chunks did not make")
+    bad = ~s.seen[u].astype(bool)
+    if bad.any():
+        raise ValueError(_BATCH_ERRORS[5].format(lo + int(np.flatnonzero(bad)[0])))
     total = s.count[u]
     c2 = total - c1
-    if np.any(c1 < 1) or np.any(c2 < 1) or np.any((a < V0) & (c1 != 1)) or np.any((d < V0) & (c2 != 1)):
-        raise ValueError("a pcol's leaf counts do not split its vertex's")
+    bad = (c1 < 1) | (c2 < 1) | ((a < V0) & (c1 != 1)) | ((d < V0) & (c2 != 1))
+    if bad.any():
+        raise ValueError(_BATCH_ERRORS[6].format(lo + int(np.flatnonzero(bad)[0])))
     s.v1[lo:hi], s.v2[lo:hi] = a, d
     s.parent[a], s.parent[d] = u, u
     s.seen[both] = True
@@ -711,13 +743,15 @@ def read_batch(s: Stream, raw: bytes, b: int, n_faces: int, pool=None) -> None:
     s.killers.append(pool.submit(*job) if pool is not None else job[0](*job[1:]))
 
 
-# pmz_read_batch's outcomes (pmjax/_pmz_native.c), worded as read_batch words them.
-_NATIVE_ERRORS = {
+# A batch chunk's failures by pmz_read_batch's outcome codes
+# (pmjax/_pmz_native.c), each with the offending pcol (or the bytes left
+# over): the NumPy steps of read_batch word theirs from the same table.
+_BATCH_ERRORS = {
     2: "v1 of pcol {} is not a vertex made before its batch",
     3: "v2 of pcol {} is not a vertex made before its batch",
-    4: "a pcol's child is already a vertex of the coarser mesh",
-    5: "a pcol splits a vertex the coarser chunks did not make",
-    6: "a pcol's leaf counts do not split its vertex's",
+    4: "a pcol's child is already a vertex of the coarser mesh (pcol {})",
+    5: "a pcol splits a vertex the coarser chunks did not make (pcol {})",
+    6: "a pcol's leaf counts do not split its vertex's (pcol {})",
     7: "{} bytes are left over after its arrays",
 }
 
@@ -749,7 +783,7 @@ def _read_batch_native(s: Stream, raw, lo: int, hi: int, n_faces: int, pool=None
     if code == 1:
         raise ValueError(f"its arrays need more than its {len(buf)} bytes")
     if code:
-        raise ValueError(_NATIVE_ERRORS[code].format(int(info[0])))
+        raise ValueError(_BATCH_ERRORS[code].format(int(info[0])))
     ranks = np.empty((n_faces, 3), np.int32)
     killer = np.empty(n_faces, np.int32)
 

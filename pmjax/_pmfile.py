@@ -17,7 +17,6 @@ import hashlib
 import io
 import json
 import math
-import mmap
 import os
 import stat
 import zipfile
@@ -193,11 +192,14 @@ def _mesh_kind(path: str) -> str:
 def read_arrays(path, *, batches: int | None = None) -> tuple[PMData, str]:
     """Read a ``.pmz`` file with every check but the structure check.
 
-    Nothing is read beyond what the header's counts allow. Version 2: each
-    chunk's SHA-256 is checked before it is expanded, and it expands to at
-    most the size its header entry gives; a file that ends inside a chunk
+    Nothing is read beyond what the header's counts allow. Version 2: the
+    counts must fit the bytes the chunks declare (and, for a path, the
+    chunks the read needs the file's size) before the arrays are allocated;
+    each chunk's SHA-256 is checked before it is expanded, and it expands to
+    at most the size its header entry gives; a file that ends inside a chunk
     the read needs is refused, naming the chunk and how many batches its
-    whole chunks hold. Version 1: every array's ``.npy`` header (dtype,
+    whole chunks hold, and one cut or written over while it is read is
+    refused as changed. Version 1: every array's ``.npy`` header (dtype,
     shape) is read first and checked against the counts, and each zip
     entry's declared size against its ``.npy`` header, before any array data
     is read; data is then read with that bound, so an entry that expands past
@@ -216,7 +218,7 @@ def read_arrays(path, *, batches: int | None = None) -> tuple[PMData, str]:
         raise ValueError(f"read_arrays: batches must be a whole number >= 0 or None, got {batches!r}")
     if hasattr(path, "read"):
         source = _source_name(path)
-        head = path.read(len(_codec.MAGIC2))
+        head = _read_full(path.read, len(_codec.MAGIC2))
         if head == _codec.MAGIC2:
             return _read_v2(path, source, batches)
         path = io.BytesIO(head + path.read())
@@ -226,12 +228,8 @@ def read_arrays(path, *, batches: int | None = None) -> tuple[PMData, str]:
         if not os.path.exists(path):
             raise PMFormatError(f"{path}: no such file")
         with open(path, "rb") as fh:
-            if fh.read(len(_codec.MAGIC2)) == _codec.MAGIC2:
-                try:
-                    reader = _Mapped(fh)
-                except (OSError, ValueError):  # a file that cannot be mapped is read
-                    reader = fh
-                return _read_v2(reader, source, batches)
+            if _read_full(fh.read, len(_codec.MAGIC2)) == _codec.MAGIC2:
+                return _read_v2(fh, source, batches, by_position=True)
     pm, fingerprint = _read_v1(path, source)
     if batches is None:
         return pm, fingerprint
@@ -249,6 +247,9 @@ def _check_batches(source: str, batches: int, B: int, group_faces) -> None:
     if batches > B:
         raise PMFormatError(f"{source}: batches={batches}, but the file has {B} batches")
     total = np.cumsum(group_faces)
+    if total[-1] == 0:
+        raise PMFormatError(f"{source}: the file holds no faces (F=0): no prefix of it is a mesh; the file is "
+                            "damaged or forged")
     if total[batches] == 0:
         first = int(np.argmax(total > 0))
         raise PMFormatError(f"{source}: batches={batches} gives a mesh with no faces (the base mesh has none); "
@@ -269,19 +270,45 @@ def _prefix_pm(arrays: dict, header: dict, k: int, B: int, source: str) -> tuple
     return pm, content_fingerprint(digests)
 
 
-class _Mapped:
-    """A file opened for reading, read as slices of a read-only map of it:
-    version 2's chunks are hashed and expanded where the map holds them,
-    without the copy of the compressed bytes that ``read`` makes (the map
-    closes when the last slice is dropped)."""
+def _read_full(read, n: int) -> bytes:
+    """``n`` bytes from ``read(k)`` (a file object's ``read``), fewer only at
+    the end of the file: a pipe or socket returns what has arrived, so one
+    call may return fewer bytes than remain."""
+    out = read(n) or b""
+    if len(out) == n:
+        return out
+    parts, got = [out], len(out)
+    while got < n:
+        part = read(n - got)
+        if not part:
+            break
+        parts.append(part)
+        got += len(part)
+    return b"".join(parts)
+
+
+class _Positional:
+    """A regular file read by position (``os.pread``), from any thread: each
+    read copies its bytes, so a file cut or rewritten meanwhile gives fewer or
+    other bytes (refused by the size and SHA-256 checks and the file's
+    state), never a fault as the pages of a map cut short give."""
 
     def __init__(self, fh):
+        self.fd = fh.fileno()
         self.at = fh.tell()
-        self.fileno = fh.fileno
-        self.view = memoryview(mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ))
 
-    def read(self, n: int) -> memoryview:
-        out = self.view[self.at:self.at + n]
+    def read_at(self, at: int, n: int) -> bytes:
+        """``n`` bytes from byte ``at``, fewer only at the end of the file."""
+        def read(k: int) -> bytes:
+            nonlocal at
+            out = os.pread(self.fd, k, at)
+            at += len(out)
+            return out
+
+        return _read_full(read, n)
+
+    def read(self, n: int) -> bytes:
+        out = self.read_at(self.at, n)
         self.at += len(out)
         return out
 
@@ -368,21 +395,32 @@ def _file_state(fh) -> tuple | None:
     return (st.st_size, st.st_mtime_ns, st.st_ino, st.st_dev) if stat.S_ISREG(st.st_mode) else None
 
 
-def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
+def _changed(path: str) -> PMFormatError:
+    return PMFormatError(f"{path}: the file changed while it was read (another program wrote it); "
+                         "read it again once it is whole")
+
+
+def _read_v2(fh, path: str, batches: int | None, by_position: bool = False) -> tuple[PMData, str]:
     """Version 2 after its magic bytes: the header, then the chunks the read
-    needs, each checked (SHA-256, size, content) before it is used."""
+    needs, each checked (SHA-256, size, content) before it is used.
+
+    ``by_position``: ``fh`` is a file this reader opened; where it is a
+    regular file, its size is known before any array is allocated and each
+    chunk is read by position on the pool's thread that expands it."""
     # The file's size, times and inode as the read starts: a file changed in
     # place meanwhile (a copy over it) could have chunk bytes hashed, then
-    # other bytes expanded from the map.
+    # other bytes read.
     opened = _file_state(fh)
-    size = fh.read(4)
+    positional = _Positional(fh) if by_position and opened is not None and hasattr(os, "pread") else None
+    read = fh.read if positional is None else positional.read
+    size = _read_full(read, 4)
     length = int.from_bytes(size, "little")
     if len(size) < 4:
         raise PMFormatError(f"{path}: truncated in its header (the file ends after {8 + len(size)} bytes)")
     if length > HEADER_LIMIT:
         raise PMFormatError(f"{path}: header declares {length} bytes, more than the {HEADER_LIMIT} a header can "
                             "need; the file is damaged or forged")
-    text = bytes(fh.read(length))
+    text = bytes(_read_full(read, length))
     if len(text) < length:
         raise PMFormatError(f"{path}: truncated in its header ({len(text)} of {length} bytes)")
     try:
@@ -396,9 +434,30 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
     layout = _v2_layout(header, path, V0, F, P, B)
     k = B if batches is None else int(batches)
     _check_batches(path, k, B, header["group_faces"])
-    offsets = np.asarray(header["batch_offsets"], np.int64)
-    stream = _codec.new_stream(V0, P, offsets, header.get("encoding", 1))
+    # The chunks read: the base, k batches, and the tail for a full read.
+    last = k + (1 if batches is None else 0)
+
+    def truncated(i: int, name: str, at: int, end: int, ends: int) -> PMFormatError:
+        held = (f"its base mesh and {i - 1} coarsest batches are whole; pmjax.load(path, batches={i - 1}) "
+                "reads them") if i else "not even its base mesh is whole"
+        return PMFormatError(f"{path}: truncated in chunk {name!r} (bytes {at} to {end}; the file ends at byte "
+                             f"{ends}): {held}")
+
     at = 12 + length
+    if positional is not None:
+        # The chunks the read needs must lie in the file before the arrays
+        # their counts give are allocated: a few bytes of forged header
+        # must not claim gigabytes.
+        end = at
+        for i, (name, nbytes, _) in enumerate(layout[:last + 1]):
+            if end + _codec.SHA_BYTES + nbytes > opened[0]:
+                raise truncated(i, name, end, end + _codec.SHA_BYTES + nbytes, opened[0])
+            end += _codec.SHA_BYTES + nbytes
+    offsets = np.asarray(header["batch_offsets"], np.int64)
+    try:
+        stream = _codec.new_stream(V0, P, offsets, header.get("encoding", 1))
+    except MemoryError as exc:
+        raise MemoryError(f"{path}: its counts V0={V0}, P={P} need more memory than is free here") from exc
     names = [name for name, _, _ in layout]
     codec = header["codec"]
     tail = None
@@ -408,14 +467,23 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
     def expand(where: str, payload, raw: int):
         # On the pool's thread: hashlib and the decompressors release the GIL.
         data = memoryview(payload)[_codec.SHA_BYTES:]
-        if _codec.chunk_sha(data) != bytes(payload[:_codec.SHA_BYTES]):
+        digest = bytes(payload[:_codec.SHA_BYTES])
+        if _codec.chunk_sha(data) != digest:
             raise PMFormatError(f"{where} fails its SHA-256: the file is damaged")
         try:
-            return _codec.decompress(data, codec, raw)
+            return digest, _codec.decompress(data, codec, raw)
         except ValueError as exc:
             raise PMFormatError(f"{where} is damaged: {exc}") from exc
 
-    def settle(i: int) -> None:
+    def read_expand(where: str, at: int, n: int, raw: int):
+        # The chunk's bytes read on the same thread (the file held them as
+        # the read started: fewer now means it was cut meanwhile).
+        payload = positional.read_at(at, n)
+        if len(payload) < n:
+            raise _changed(path)
+        return expand(where, payload, raw)
+
+    def settle_group(i: int) -> None:
         # Batch chunk i's face ranks and killers, found beside the next
         # chunk's decoding: a bad rank there is chunk i's failure.
         if 1 <= i <= B:
@@ -429,7 +497,8 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
         wheres[i] = where
         failure = None
         try:
-            raw_bytes = job.result()
+            digest, raw_bytes = job.result()
+            digests.append(digest)
             if i == 0:
                 _codec.read_base(stream, raw_bytes, header["roots"], header["group_faces"][0])
             elif i <= B:
@@ -439,47 +508,51 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
         except ValueError as exc:
             failure = PMFormatError(f"{where} is damaged: {exc}")
             failure.__cause__ = exc
-        settle(i - 1)  # the previous chunk's failures come first
+        settle_group(i - 1)  # the previous chunk's failures come first
         if failure is not None:
             raise failure
         if i == B + 1:
             tail = (where, raw_bytes)
 
     # Chunk i+1 is read and expanded (on the pool when it is large) while
-    # chunk i is decoded; every failure is still raised in file order (chunk
-    # i's before chunk i+1's truncation).
-    # One pool for expanding and for hashing: its threads start once.
+    # chunk i is decoded; every failure is still raised in file order (a
+    # stream's chunk i's before chunk i+1's truncation; a file's truncation
+    # is found from its size before any chunk is read).
+    # One pool for reading, expanding and hashing: its threads start once.
     with ThreadPoolExecutor(max_workers=max(2, os.cpu_count() or 1)) as pool:
-        pending = None
-        for i, (name, nbytes, raw) in enumerate(layout):
-            if i > k + (1 if batches is None else 0):
-                break
-            payload = fh.read(_codec.SHA_BYTES + nbytes)
-            if len(payload) < _codec.SHA_BYTES + nbytes:
+        try:
+            pending = None
+            for i, (name, nbytes, raw) in enumerate(layout[:last + 1]):
+                n = _codec.SHA_BYTES + nbytes
+                where = f"{path}: chunk {name!r} (bytes {at} to {at + n})"
+                run = pool.submit if nbytes >= PIPELINE_BYTES else _codec.finished
+                if positional is not None:
+                    job = run(read_expand, where, at, n, raw)
+                else:
+                    payload = _read_full(read, n)
+                    if len(payload) < n:
+                        if pending is not None:
+                            decode(*pending)
+                            settle_group(pending[0])
+                        raise truncated(i, name, at, at + n, at + len(payload))
+                    job = run(expand, where, payload, raw)
                 if pending is not None:
                     decode(*pending)
-                    settle(pending[0])
-                end = at + _codec.SHA_BYTES + nbytes
-                held = (f"its base mesh and {i - 1} coarsest batches are whole; pmjax.load(path, batches={i - 1}) "
-                        "reads them") if i else "not even its base mesh is whole"
-                raise PMFormatError(f"{path}: truncated in chunk {name!r} (bytes {at} to {end}; the file ends at byte "
-                                    f"{at + len(payload)}): {held}")
-            where = f"{path}: chunk {name!r} (bytes {at} to {at + len(payload)})"
-            digests.append(bytes(payload[:_codec.SHA_BYTES]))
-            job = (i, where, pool.submit(expand, where, payload, raw) if nbytes >= PIPELINE_BYTES
-                   else _codec.finished(expand, where, payload, raw))
+                pending = (i, where, job)
+                at += n
             if pending is not None:
                 decode(*pending)
-            pending = job
-            at += len(payload)
-        if pending is not None:
-            decode(*pending)
-            settle(pending[0])
+                settle_group(pending[0])
+        except PMFormatError as exc:
+            # A file changed meanwhile fails for that reason, whatever check
+            # its new bytes failed.
+            if opened is not None and _file_state(fh) != opened:
+                raise _changed(path) from exc
+            raise
         # Every chunk the read needs is expanded: the bytes expanded are the
         # bytes hashed only if the file did not change since it was opened.
         if _file_state(fh) != opened:
-            raise PMFormatError(f"{path}: the file changed while it was read (another program wrote it); "
-                                "read it again once it is whole")
+            raise _changed(path)
         try:
             _codec.killers_of(stream, names)
         except ValueError as exc:
@@ -499,7 +572,7 @@ def _read_v2(fh, path: str, batches: int | None) -> tuple[PMData, str]:
         ready = None if known else lambda name, a: hashing.setdefault(name, pool.submit(_sha256, a))
         where, raw_bytes = tail
         try:
-            arrays = _codec.finish_full(stream, raw_bytes, B, F, bool(header["shading_normals"]), ready, pool)
+            arrays = _codec.finish_full(stream, raw_bytes, B, F, header["shading_normals"], ready, pool)
         except ValueError as exc:
             raise PMFormatError(f"{where} is damaged: {exc}") from exc
         for name, shape in shapes.items():
@@ -554,14 +627,18 @@ def _v2_layout(header: dict, path: str, V0: int, F: int, P: int, B: int) -> list
     if header.get("codec") not in ("zstd", "zlib"):
         bad(f"codec {header.get('codec')!r} is not zstd or zlib")
     encoding = header.get("encoding", 1)
-    if isinstance(encoding, bool) or encoding not in _codec.ENCODINGS:
+    if isinstance(encoding, bool) or not isinstance(encoding, int) or encoding not in _codec.ENCODINGS:
         raise PMFormatError(f"{path}: header encoding={encoding!r} is not one this pmjax reads "
                             f"({', '.join(map(str, _codec.ENCODINGS))}); a newer pmjax wrote it, or it is damaged")
+    shading = header.get("shading_normals")
+    if not isinstance(shading, bool):
+        bad(f"shading_normals={shading!r} is not true or false")
     R = header.get("roots")
     if isinstance(R, bool) or not isinstance(R, int) or not 0 <= R <= V0 + P:
         bad(f"roots={R!r} is not a vertex count")
     offsets = header.get("batch_offsets")
-    if not (isinstance(offsets, list) and len(offsets) == B + 1 and all(isinstance(o, int) for o in offsets)
+    if not (isinstance(offsets, list) and len(offsets) == B + 1 and all(
+            isinstance(o, int) and not isinstance(o, bool) for o in offsets)
             and offsets and offsets[0] == 0 and offsets[-1] == P and all(a <= b for a, b in zip(offsets, offsets[1:]))):
         bad(f"batch_offsets is not {B + 1} rising whole numbers from 0 to P={P}")
     groups = header.get("group_faces")
@@ -576,7 +653,7 @@ def _v2_layout(header: dict, path: str, V0: int, F: int, P: int, B: int) -> list
     limits = [R * 24 + R * 12 + groups[0] * 12]
     for i, b in enumerate(range(B - 1, -1, -1)):
         n = offsets[b + 1] - offsets[b]
-        limits.append(n * (12 + 16 + 9 + 24 + 24) + groups[i + 1] * 12)
+        limits.append(_codec.batch_bytes(n, 2 * n, groups[i + 1]))
     limits.append(F * 4 + V0 * 12 + (V0 + P) * 12)
     for (name, limit), entry in zip(zip(names, limits), table):
         if not (isinstance(entry, list) and len(entry) == 3 and entry[0] == name
@@ -584,6 +661,15 @@ def _v2_layout(header: dict, path: str, V0: int, F: int, P: int, B: int) -> list
             bad(f"chunk entry {entry!r} is not [{name!r}, bytes, raw bytes]")
         if entry[2] > limit:
             bad(f"chunk {name!r} declares {entry[2]} bytes expanded, more than the {limit} its counts allow")
+    # The counts give the reader's arrays, allocated before any chunk is
+    # read: the chunks together must declare at least the bytes those counts
+    # store (each pcol's fields, each face's ranks, each original vertex's
+    # normal residual), so that a few bytes of header cannot claim gigabytes.
+    need = _codec.batch_bytes(P, 0, F) + 12 * V0
+    declared = sum(entry[2] for entry in table)
+    if declared < need:
+        bad(f"chunks declare {declared} bytes expanded, fewer than the {need} its counts V0={V0}, F={F}, P={P} "
+            "store")
     return table
 
 
@@ -796,7 +882,7 @@ def validate_pm(pm: PMData, *, source: str = "<memory>") -> None:
         idx = getattr(pm, name)
         first_bad((idx < 0) | (idx >= limit), f"{name} refers to a vertex not created before its batch")
     first_bad(pm.v1 == pm.v2, "pcol with v1 == v2")
-    # A counting pass, not np.unique: it is O(V) and ~100x faster on the dragon.
+    # A counting pass, not np.unique: O(V), without a sort.
     counts = np.bincount(np.concatenate([pm.v1, pm.v2]), minlength=V)
     if counts.max(initial=0) > 1:
         raise PMFormatError(

@@ -178,8 +178,9 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
     for (int64_t i = 0; i < n; i++)
         if (d[i] < 0 || d[i] >= first) return info[0] = lo + i, BAD_V2;
     /* A child seen before, or twice in this batch (marked seen while
-     * checking, in one pass), is an error; the children split their
-     * parent's leaf range (counts checked below). */
+     * checking, in one pass: v1 then v2 of each pcol in order), is an error
+     * naming that pcol; the children split their parent's leaf range
+     * (counts checked below). */
     for (int64_t i = 0; i < n; i++) {
         if (i + AHEAD < n) {
             PREFETCH(range + a[i + AHEAD]);
@@ -187,9 +188,9 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
         }
         const Range *ru = range + first + i;
         Range *ra = range + a[i], *rd = range + d[i];
-        if (ra->seen) return CHILD_SEEN;
+        if (ra->seen) return info[0] = lo + i, CHILD_SEEN;
         ra->seen = 1;
-        if (rd->seen) return CHILD_SEEN;
+        if (rd->seen) return info[0] = lo + i, CHILD_SEEN;
         rd->seen = 1;
         const int32_t c1 = (int32_t)get32(c1_planes, n, i);
         ra->count = c1;
@@ -199,14 +200,16 @@ int64_t pmz_read_batch(const uint8_t *raw, int64_t len, int64_t V0, int64_t lo, 
         ra->parent = rd->parent = (int32_t)(first + i);
     }
     for (int64_t i = 0; i < n; i++)
-        if (!range[first + i].seen) return PARENT_UNSEEN;
+        if (!range[first + i].seen) return info[0] = lo + i, PARENT_UNSEEN;
     int64_t made = 0;
     for (int64_t i = 0; i < n; i++) {
         int64_t c1 = (int32_t)get32(c1_planes, n, i), c2 = range[first + i].count - c1;
-        if (c1 < 1 || c2 < 1 || (a[i] < V0 && c1 != 1) || (d[i] < V0 && c2 != 1)) return BAD_COUNTS;
+        if (c1 < 1 || c2 < 1 || (a[i] < V0 && c1 != 1) || (d[i] < V0 && c2 != 1))
+            return info[0] = lo + i, BAD_COUNTS;
         made += (a[i] >= V0) + (d[i] >= V0);
     }
-    /* The chunk holds exactly the arrays these counts give. */
+    /* The chunk holds exactly the arrays these counts give (as
+     * _codec.batch_bytes computes them). */
     const int64_t need = n * (12 + 16 + 8 + 1 + 24) + made * 12 + n_faces * 12;
     if (len < need) return SHORT;
     if (len > need) return info[0] = len - need, LEFT_OVER;

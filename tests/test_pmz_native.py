@@ -167,13 +167,18 @@ def damage_cases(pm):
     n = hi - lo
     late = V0 + hi  # made by a later (finer) batch
     seen_root = int(np.flatnonzero(np.bincount(np.concatenate([pm.v1, pm.v2]), minlength=V0 + pm.n_pcols) == 0)[0])
-    faces_at = n * (12 + 16 + 9 + 24) + 12 * int((pm.v1[lo:hi] >= V0).sum() + (pm.v2[lo:hi] >= V0).sum())
+    faces_at = _codec.batch_bytes(n, int((pm.v1[lo:hi] >= V0).sum() + (pm.v2[lo:hi] >= V0).sum()), 0)
     return [
         (B - b, lambda r: put32(r, 0, n, 1, late), f"v1 of pcol {lo + 1} is not a vertex made before its batch"),
         (B - b, lambda r: put32(r, 4 * n, n, 2, -1), f"v2 of pcol {lo + 2} is not a vertex made before its batch"),
-        (B - b, lambda r: put32(r, 0, n, 0, seen_root), "a pcol's child is already a vertex of the coarser mesh"),
-        (B - b, lambda r: put32(r, 0, n, 1, get32(r, 4 * n, n, 1)), "a pcol's child is already a vertex"),
-        (B - b, lambda r: put32(r, 8 * n, n, 0, 0), "a pcol's leaf counts do not split its vertex's"),
+        (B - b, lambda r: put32(r, 0, n, 2, seen_root),
+         f"a pcol's child is already a vertex of the coarser mesh (pcol {lo + 2})"),
+        # v1 of pcol 3 repeats v2 of pcol 1: pcol 3 is named, not pcol 1.
+        (B - b, lambda r: put32(r, 0, n, 3, get32(r, 4 * n, n, 1)), f"a pcol's child is already a vertex of the "
+                                                                     f"coarser mesh (pcol {lo + 3})"),
+        # v2 of pcol 1 repeats v1 of pcol 1.
+        (B - b, lambda r: put32(r, 4 * n, n, 1, get32(r, 0, n, 1)), f"(pcol {lo + 1})"),
+        (B - b, lambda r: put32(r, 8 * n, n, 4, 0), f"a pcol's leaf counts do not split its vertex's (pcol {lo + 4})"),
         (B, lambda r: r + b"\0\0\0\0", "4 bytes are left over after its arrays"),
         (B - b, lambda r: r[:-1], "its arrays need more than its"),
         (B - b, lambda r: r[:12 * n + 5], "its arrays need more than its"),
@@ -211,6 +216,71 @@ def test_damaged_batch_chunks_are_refused_in_the_same_words(cow_file, tmp_path, 
         native, plain = both_ways(numpy_decoder, lambda: read_arrays(bad))
         assert native == plain, words
         assert native[0] is PMFormatError and words in native[1], (words, native)
+
+
+@needs_native
+@needs_native
+def test_a_pcol_splitting_a_vertex_not_made_is_named_in_the_same_words(cow_file, monkeypatch, numpy_decoder):
+    # A chunk cannot split a vertex the coarser chunks did not make unless
+    # the state is damaged: the reader's mark of one of the batch's vertices
+    # is cleared as its chunk is decoded.
+    pm, path = cow_file
+    B, V0 = pm.n_batches, pm.n_original_vertices
+    b = int(np.flatnonzero(np.diff(pm.batch_offsets) >= 20)[-1])
+    lo = int(pm.batch_offsets[b])
+    read_batch = _codec.read_batch
+
+    def unmark(s, raw, at, n_faces, pool=None):
+        if at == b:
+            s.seen[V0 + lo + 5] = 0
+        return read_batch(s, raw, at, n_faces, pool)
+
+    monkeypatch.setattr(_codec, "read_batch", unmark)
+    native, plain = both_ways(numpy_decoder, lambda: read_arrays(path))
+    assert native == plain
+    assert native[0] is PMFormatError
+    assert f"chunk 'batch {b}' (bytes " in native[1], native
+    assert f"a pcol splits a vertex the coarser chunks did not make (pcol {lo + 5})" in native[1], native
+
+
+@needs_native
+def test_a_batch_without_pcols_holding_a_face_is_refused_in_the_same_words(cow_file, tmp_path, numpy_decoder):
+    # The coarsest batch is empty and one base face is moved into its chunk:
+    # no pcol of it kills that face.
+    from pmjax._pmdata import PMData
+    from pmjax._pmfile import LAYOUT_FIELDS
+
+    pm, _ = cow_file
+    arrays = pm.arrays()
+    arrays["batch_offsets"] = np.append(pm.batch_offsets, pm.n_pcols).astype(np.int64)
+    empty = PMData(**arrays, header=dict(pm.header))
+    B = empty.n_batches
+    fields, table = _codec.chunk_arrays(empty, _codec.ENCODING)
+    (_, base), (name, coarsest) = table[0], table[1]
+    assert name == f"batch {B - 1}" and fields["group_faces"][1] == 0
+    ranks = _codec.ranks_decode(base[-1][1])
+    base[-1] = ("faces", _codec.ranks_code(ranks[:-1]))
+    coarsest[-1] = ("faces", _codec.ranks_code(ranks[-1:]))
+    fields["group_faces"][0] -= 1
+    fields["group_faces"][1] += 1
+    chunks = []
+    for chunk_name, parts in table:
+        raw = b"".join(_codec.planes(a) for _, a in parts)
+        chunks.append((chunk_name, _codec.compress(raw, "zlib"), len(raw)))
+    header = {k: v for k, v in pm.header.items() if k not in LAYOUT_FIELDS}
+    header.update(magic="pmjax.progressive-mesh", version=2, array_sha256={}, codec="zlib",
+                  counts=dict(V0=empty.n_original_vertices, F=len(empty.faces), P=empty.n_pcols, B=B),
+                  chunks=[[n, len(d), r] for n, d, r in chunks], **fields)
+    text = json.dumps(header).encode()
+    bad = tmp_path / "empty.pmz"
+    bad.write_bytes(_codec.MAGIC2 + len(text).to_bytes(4, "little") + text
+                    + b"".join(_codec.chunk_sha(d) + d for _, d, _ in chunks))
+    native, plain = both_ways(numpy_decoder, lambda: read_arrays(bad))
+    assert native == plain
+    assert native[0] is PMFormatError
+    assert f"chunk 'batch {B - 1}': face 0 of the chunk has no two corners under one of its batch's pcols" in native[1]
+    empty_batch = np.empty(0, np.int64)
+    assert np.array_equal(_codec.face_killers(np.array([[0, 1, 2]]), empty_batch, empty_batch, 5), [-1])
 
 
 @needs_native
@@ -315,7 +385,7 @@ def test_an_unknown_encoding_is_refused(cow_file, tmp_path):
     data = path.read_bytes()
     length = int.from_bytes(data[8:12], "little")
     header = json.loads(data[12:12 + length])
-    for value in (3, "2", True):
+    for value in (3, "2", True, 2.0):
         header["encoding"] = value
         text = json.dumps(header).encode()
         bad = tmp_path / "bad.pmz"

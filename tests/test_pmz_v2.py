@@ -206,20 +206,157 @@ def test_a_prefix_without_faces_is_refused_with_the_first_that_has_some(tmp_path
     assert read_pm(path, batches=first).n_batches == first
 
 
-def test_a_file_that_cannot_be_mapped_is_read(cow, monkeypatch, assert_same_pm):
-    # A path is read through a memory map where one can be made, else with read().
-    import mmap
+class Trickle(io.RawIOBase):
+    """A stream that returns at most ``step`` bytes a read, as a pipe or a
+    socket returns what has arrived."""
 
+    def __init__(self, data, step):
+        self.data, self.at, self.step = data, 0, step
+
+    def readable(self):
+        return True
+
+    def readinto(self, out):
+        n = min(len(out), self.step, len(self.data) - self.at)
+        out[:n] = self.data[self.at:self.at + n]
+        self.at += n
+        return n
+
+
+def test_a_stream_returning_short_reads_is_read_whole(cow, assert_same_pm):
+    # Each read of the header and of the chunks is repeated until it has
+    # its bytes or the stream ends: a short read is not a truncation.
     pm, path = cow
+    data = path.read_bytes()
+    assert_same_pm(read_pm(Trickle(data, 1000)), pm)
+    assert_same_pm(read_pm(Trickle(data, 7), batches=2), read_pm(path, batches=2))
+    table = chunk_table(path)
+    name, start, end = table[3]
+    with pytest.raises(PMFormatError, match=rf"truncated in chunk '{name}' \(bytes {start} to {end}; the file ends at "
+                                            rf"byte {start + 40}\)"):
+        read_pm(Trickle(data[:start + 40], 1000))
 
-    def refuse(*args, **kwargs):
-        raise OSError("no map here")
 
-    mapped = read_pm(path)
-    monkeypatch.setattr(mmap, "mmap", refuse)
-    assert_same_pm(read_pm(path), mapped)
+def test_a_path_and_its_file_object_read_the_same(cow, assert_same_pm):
+    # A path is read by position (each chunk on the thread that expands it),
+    # a file object by its read(): the same arrays.
+    pm, path = cow
+    assert_same_pm(read_pm(path), pm)
+    with open(path, "rb") as fh:
+        assert_same_pm(read_pm(fh), pm)
     assert_same_pm(read_pm(path, batches=2), read_pm(io.BytesIO(path.read_bytes()), batches=2))
-    assert_same_pm(mapped, pm)
+
+
+def _forge_chunk(path, out, index, payload):
+    """A copy of version 2 file ``path`` at ``out`` with chunk ``index``'s
+    compressed bytes replaced by ``payload`` (its SHA-256 and size updated)."""
+    data = path.read_bytes()
+    length = int.from_bytes(data[8:12], "little")
+    header = json.loads(data[12:12 + length])
+    at, chunks = 12 + length, []
+    for _, size, _ in header["chunks"]:
+        chunks.append(data[at + 32:at + 32 + size])
+        at += 32 + size
+    chunks[index] = payload
+    header["chunks"][index][1] = len(payload)
+    text = json.dumps(header).encode()
+    out.write_bytes(data[:8] + len(text).to_bytes(4, "little") + text
+                    + b"".join(pmjax._codec.chunk_sha(c) + c for c in chunks))
+    return header
+
+
+@pytest.mark.parametrize("codec", ["zstd", "zlib"])
+def test_a_chunk_the_decompressor_refuses_is_named(cow, tmp_path, codec):
+    # Bytes with a right SHA-256 that the decompressor cannot expand (a zstd
+    # frame asking for a dictionary, a zlib stream with a bad header check).
+    if codec == "zstd":
+        pytest.importorskip("zstandard")
+    pm, path = cow
+    own = tmp_path / "own.pmz"
+    save_pm(pm, own, codec=codec)
+    garbage = b"\x28\xb5\x2f\xfd" + b"garbage-garbage" if codec == "zstd" else b"\x78\x9d" + b"garbage-garbage"
+    bad = tmp_path / "forged.pmz"
+    header = _forge_chunk(own, bad, 1, garbage)
+    name = header["chunks"][1][0]
+    with pytest.raises(PMFormatError, match=rf"forged.pmz: chunk '{name}' \(bytes \d+ to \d+\) is damaged: its "
+                                            rf"{codec} stream is damaged"):
+        read_pm(bad)
+
+
+@pytest.mark.parametrize("field, value, words", [
+    ("encoding", 2.0, "header encoding=2.0 is not one this pmjax reads"),
+    ("shading_normals", None, "header shading_normals=None is not true or false"),
+    ("shading_normals", 1, "header shading_normals=1 is not true or false"),
+    ("codec", ["zstd"], "header codec \\['zstd'\\] is not zstd or zlib"),
+    ("roots", 3.0, "header roots=3.0 is not a vertex count"),
+    ("group_faces", "many", "header group_faces is not"),
+    ("batch_offsets", None, "header batch_offsets is not"),
+])
+def test_a_header_field_of_the_wrong_type_is_named(cow, tmp_path, field, value, words):
+    _, path = cow
+    bad = tmp_path / "field.pmz"
+    if value is None:
+        data = path.read_bytes()
+        length = int.from_bytes(data[8:12], "little")
+        header = json.loads(data[12:12 + length])
+        del header[field]
+        text = json.dumps(header).encode()
+        bad.write_bytes(data[:8] + len(text).to_bytes(4, "little") + text + data[12 + length:])
+    else:
+        _with_header(path, bad, **{field: value})
+    for batches in (None, 1):
+        with pytest.raises(PMFormatError, match=f"field.pmz: {words}"):
+            read_pm(bad, batches=batches)
+
+
+def _huge_header(V0, chunks):
+    header = dict(magic="pmjax.progressive-mesh", version=2, counts=dict(V0=V0, F=1, P=0, B=0), array_sha256={},
+                  codec="zlib", encoding=2, roots=V0, batch_offsets=[0], group_faces=[1], shading_normals=False,
+                  chunks=chunks)
+    text = json.dumps(header).encode()
+    return pmjax._codec.MAGIC2 + len(text).to_bytes(4, "little") + text
+
+
+def test_counts_the_file_cannot_hold_are_refused_before_allocating(tmp_path, monkeypatch):
+    # A header of a few hundred bytes claiming 2**36 original vertices: its
+    # arrays would take a terabyte.
+    def allocate(*args, **kwargs):
+        raise AssertionError("allocated the arrays of a forged header's counts")
+
+    monkeypatch.setattr(pmjax._codec, "new_stream", allocate)
+    V0 = 1 << 36
+    bad = tmp_path / "huge.pmz"
+    # The chunks declare too few bytes for the counts: refused from a file or a stream.
+    bad.write_bytes(_huge_header(V0, [["base", 10, 100], ["tail", 10, 100]]))
+    for source in (bad, io.BytesIO(bad.read_bytes())):
+        with pytest.raises(PMFormatError, match=r"header chunks declare 200 bytes expanded, fewer than the "
+                                                rf"{12 + 12 * V0} its counts V0={V0}, F=1, P=0 store"):
+            read_pm(source)
+    # Sizes consistent with the counts, but the file lacks the chunks.
+    head = _huge_header(V0, [["base", 10, 20 * V0 + 12], ["tail", 10, 13 * V0 + 1]])
+    bad.write_bytes(head + bytes(50))
+    with pytest.raises(PMFormatError, match=rf"huge.pmz: truncated in chunk 'tail' \(bytes {len(head) + 42} to "
+                                            rf"{len(head) + 84}; the file ends at byte {len(head) + 50}\)"):
+        read_pm(bad)
+
+
+def test_counts_beyond_the_memory_free_name_the_file(cow, monkeypatch):
+    _, path = cow
+
+    def allocate(*args, **kwargs):
+        raise MemoryError("Unable to allocate")
+
+    monkeypatch.setattr(pmjax._codec, "new_stream", allocate)
+    with pytest.raises(MemoryError, match=r"cow.pmz: its counts V0=\d+, P=\d+ need more memory than is free here"):
+        read_pm(path)
+
+
+def test_a_file_without_faces_is_refused_in_plain_words():
+    from pmjax._pmfile import _check_batches
+
+    for batches, B, groups in ((0, 0, [0]), (1, 2, [0, 0, 0])):
+        with pytest.raises(PMFormatError, match=r"x.pmz: the file holds no faces \(F=0\): no prefix of it is a mesh"):
+            _check_batches("x.pmz", batches, B, groups)
 
 
 def _with_header(path, out, **changes):
@@ -399,7 +536,8 @@ def test_the_decoding_key_frames_its_parts():
     assert key(identity, b"a", []) == key(bytes(32), b"a", []) and key(None, b"a", []) is None
 
 
-def test_a_file_changed_in_place_while_it_is_read_is_refused(cow, tmp_path, monkeypatch):
+@pytest.mark.parametrize("how", ["rewritten", "cut"])
+def test_a_file_changed_in_place_while_it_is_read_is_refused(cow, tmp_path, monkeypatch, how):
     pm, path = cow
     known = tmp_path / "known"
     monkeypatch.setenv("PMJAX_KNOWN_STRUCTURES", str(known))
@@ -411,13 +549,19 @@ def test_a_file_changed_in_place_while_it_is_read_is_refused(cow, tmp_path, monk
     writes = []
 
     def rewrite_after_hashing(chunk):
-        # The first chunk is hashed, then the file is written over in place
-        # (same inode, same size, another modification time), as ``cp`` does.
+        # The first chunk is hashed, then the file is written over in place:
+        # "rewritten": the same bytes (same inode, same size, another
+        # modification time); "cut": as ``cp`` does, opened with O_TRUNC and
+        # written up to the second chunk (whose bytes are then gone).
         digest = chunk_sha(chunk)
         if not writes:
-            with open(target, "r+b") as fh:
-                fh.seek(first)
-                fh.write(data[first:first + 64])
+            if how == "cut":
+                with open(target, "wb") as fh:
+                    fh.write(data[:first])
+            else:
+                with open(target, "r+b") as fh:
+                    fh.seek(first)
+                    fh.write(data[first:first + 64])
             os.utime(target, ns=(os.stat(target).st_atime_ns, os.stat(target).st_mtime_ns + 10**9))
             writes.append(first)
         return digest
@@ -425,12 +569,14 @@ def test_a_file_changed_in_place_while_it_is_read_is_refused(cow, tmp_path, monk
     monkeypatch.setattr(pmjax._codec, "chunk_sha", rewrite_after_hashing)
     for batches in (None, 1):
         writes.clear()
+        target.write_bytes(data)
         with pytest.raises(PMFormatError, match=r"changing.pmz: the file changed while it was read"):
             read_arrays(target, batches=batches)
         assert writes
     # Nothing was recorded; unchanged, the same file reads and is recorded.
     assert not list(known.glob("*.decoded"))
     monkeypatch.setattr(pmjax._codec, "chunk_sha", chunk_sha)
+    target.write_bytes(data)
     assert read_arrays(target)[1] == read_arrays(path)[1]
     assert len(list(known.glob("*.decoded"))) == 1
 
