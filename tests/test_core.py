@@ -804,13 +804,19 @@ def small_mesh_tables():
     return pcols, kill_data, np.zeros(0, FACE_RECORD), tops, np.array([-1, 0], np.int32)
 
 
-def small_mesh(tables, positions, n_faces_drawn, n_original=5, n_faces=4):
-    """The mesh of the small tables' slots (none ran): (n_ids, faces, ids)."""
+def int32_tables(tables):
+    """Record tables as the core takes them: int32 [n, fields]."""
     width = {PCOL_RECORD: 14, FACE_RECORD: 4, TOP_RECORD: 5}
-    held = tuple(t.view(np.int32).reshape(-1, width[t.dtype]) if t.dtype in width else t for t in tables)
+    return tuple(t.view(np.int32).reshape(-1, width[t.dtype]) if t.dtype in width else t for t in tables)
+
+
+def small_mesh(tables, positions, n_faces_drawn, n_original=5, n_faces=4, rows=4):
+    """The mesh of the small tables' slots (none ran; room for `rows`
+    faces): (n_ids, faces, ids)."""
+    held = int32_tables(tables)
     positions = np.asarray(positions, np.int32)
     counts = np.array([len(positions), len(positions), n_faces_drawn, 0], np.int32)
-    faces, ids = np.full((n_faces, 3), -7, np.int32), np.full(n_original, -7, np.int32)
+    faces, ids = np.full((rows, 3), -7, np.int32), np.full(n_original, -7, np.int32)
     k = _core.front_mesh_eager(held, np.zeros(len(positions), np.uint8), positions, counts, 0, n_original, n_faces,
                                faces, ids, np.zeros((n_original, 3), np.float32))
     return k, faces[:n_faces_drawn].tolist(), ids[:k].tolist()
@@ -849,5 +855,23 @@ def test_the_mesh_refuses_slots_and_tables_that_are_not_a_refinements():
             forged[4] = np.array([-1, 4], np.int32)
             with pytest.raises(ValueError, match=r"tops\[1\]: .* outside"):
                 small_mesh(forged, [0, 1, 2], 3)
+            # A face's corners are numbered in int32: more faces than
+            # INT32_MAX / 3 are refused by both entries.
+            with pytest.raises(ValueError, match="faces are more than"):
+                small_mesh(tables, [0, 1, 2], 3, n_faces=2**31 // 3 + 1)
+            P = len(tables[0])
+
+            def stream(tables, n_faces=4):
+                return _core._pmx.mesh_stream_new(*int32_tables(tables), np.zeros(P, np.int32), np.zeros(P, np.int32),
+                                                  np.zeros((P, 3), np.float32), np.full(P + 5, -1, np.int32),
+                                                  np.zeros((4, 3), np.int32), 5, n_faces)
+
+            with pytest.raises(ValueError, match="faces are more than"):
+                stream(tables, 2**31 // 3 + 1)
+            # The stream's tables are checked whole by the same checks.
+            forged = list(small_mesh_tables())
+            forged[1][1]["start"] = (0, 0, 5)
+            with pytest.raises(ValueError, match=r"kill_data\[1\]: .* outside"):
+                stream(forged)
     finally:
         engines.mesh_ranks(was)
