@@ -287,7 +287,8 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
             found = PMX_BAD_PCOL_RECORD, bad_at = not_run_at[i];
             break;
         }
-        /* More faces than F: one of them drawn twice. */
+        /* Past the room: a front past V0, or more faces than F (one of
+         * them drawn twice). */
         if (n_front >= V0 || n_drawn + r->kill_count > n_faces_total) {
             found = n_front >= V0 ? PMX_FRONT_PAST : PMX_FACE_TWICE;
             break;
@@ -303,7 +304,7 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
             memcpy(f->position, r->position[j], sizeof f->position);
             n_front += kept;
         }
-        for (int32_t j = 0; j < r->kill_count && found == PMX_OK; j++) {
+        for (int32_t j = 0; j < r->kill_count; j++) {
             drawn[n_drawn] = kill_data[r->kill_first + j];
             if (!pmx_face_record_fits(drawn + n_drawn, n_faces_total, V0)) {
                 found = PMX_BAD_KILL_RECORD, bad_at = r->kill_first + j;
