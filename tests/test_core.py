@@ -733,7 +733,7 @@ def test_the_eager_mesh_entry_checks_its_arrays(built):
     # (more front vertices than the model has), or a pcol whose children are
     # split there and itself in every other slot (its kill list more often
     # than the model with boundaries has faces; as often as the closed cow
-    # has faces, where a face in two rows of the bitmap's ranks is refused).
+    # has faces, where a face in two rows of either mode's ranks is refused).
     # The mesh is refused, with nothing written past a buffer.
     bunny = derived(pmjax.ProgressiveMesh.from_data(built("bunny.ply"))).core_mesh
     was = engines.mesh_ranks()
@@ -758,12 +758,15 @@ def test_the_eager_mesh_entry_checks_its_arrays(built):
             twice_counts[0], twice_counts[2] = 3, int(pcols[drawing, 1] @ np.array([1, 2]))
             for way in ("bitmaps", "sorts"):
                 engines.mesh_ranks(way)
-                with pytest.raises(ValueError, match="faces drawn do not match"):
+                with pytest.raises(ValueError, match="start at one original vertex"):
                     _core.front_mesh_eager(held, np.zeros(3, np.uint8), twice, twice_counts, 0, m.n_original,
                                            m.n_faces, np.empty((m.n_faces, 3), np.int32),
                                            np.empty(m.n_original, np.int32), np.empty((m.n_original, 3), np.float32))
-                for positions in (again, children) if m is bunny or way == "bitmaps" else (again,):
-                    with pytest.raises(ValueError, match="faces drawn do not match"):
+                # Every rank mode refuses both: the front past the model's
+                # vertices, and (past the room, or in the ranks of either
+                # mode) a face drawn twice.
+                for positions, match in ((again, "front holds more vertices"), (children, "face is drawn twice")):
+                    with pytest.raises(ValueError, match=match):
                         _core.front_mesh_eager(held, np.zeros(P, np.uint8), positions, counts, 0, m.n_original,
                                                m.n_faces, np.empty((m.n_faces, 3), np.int32),
                                                np.empty(m.n_original, np.int32),
@@ -776,3 +779,99 @@ def test_the_eager_mesh_entry_checks_its_arrays(built):
     assert faces.shape == (n_faces, 3) and len(ids) == k == len(vertices)
     assert np.array_equal(faces, whole[0][:n_faces]) and np.array_equal(ids, whole[1][:k])
     assert np.array_equal(vertices, whole[2][:k])
+
+
+# The mesh tables' records (pmx.h), as structured dtypes over int32 rows.
+PCOL_RECORD = np.dtype([("kill_first", "<i4"), ("kill_count", "<i4"), ("vertex", "<i4", 2), ("start", "<i4", 2),
+                        ("made_at", "<i4", 2), ("position", "<f4", (2, 3))])
+FACE_RECORD = np.dtype([("face", "<i4"), ("start", "<i4", 3)])
+TOP_RECORD = np.dtype([("start", "<i4"), ("vertex", "<i4"), ("position", "<f4", 3)])
+
+
+def small_mesh_tables():
+    """Mesh tables of five original vertices (starts 0..4), four faces and
+    four pcols by position: 0 splits vertex 7 into 5 and 6 (made at
+    positions 1 and 2, starts 1 and 3), 1 splits 5 into originals 0 and 1,
+    2 splits 6 into 2 and 3, 3 (in no refinement's slots) 4 into itself;
+    each kills one face; the tops are original 4 (start 0) and 7."""
+    pcols = np.zeros(4, PCOL_RECORD)
+    pcols[0] = (0, 1, (5, 6), (1, 3), (1, 2), 0)
+    pcols[1] = (1, 1, (0, 1), (1, 2), (-1, -1), 0)
+    pcols[2] = (2, 1, (2, 3), (3, 4), (-1, -1), 0)
+    pcols[3] = (3, 1, (4, 4), (0, 0), (-1, -1), 0)
+    kill_data = np.array([(0, (1, 3, 0)), (1, (1, 2, 0)), (2, (3, 4, 0)), (3, (0, 1, 3))], FACE_RECORD)
+    tops = np.array([(0, 4, 0), (1, 7, 0)], TOP_RECORD)
+    return pcols, kill_data, np.zeros(0, FACE_RECORD), tops, np.array([-1, 0], np.int32)
+
+
+def int32_tables(tables):
+    """Record tables as the core takes them: int32 [n, fields]."""
+    width = {PCOL_RECORD: 14, FACE_RECORD: 4, TOP_RECORD: 5}
+    return tuple(t.view(np.int32).reshape(-1, width[t.dtype]) if t.dtype in width else t for t in tables)
+
+
+def small_mesh(tables, positions, n_faces_drawn, n_original=5, n_faces=4, rows=4):
+    """The mesh of the small tables' slots (none ran; room for `rows`
+    faces): (n_ids, faces, ids)."""
+    held = int32_tables(tables)
+    positions = np.asarray(positions, np.int32)
+    counts = np.array([len(positions), len(positions), n_faces_drawn, 0], np.int32)
+    faces, ids = np.full((rows, 3), -7, np.int32), np.full(n_original, -7, np.int32)
+    k = _core.front_mesh_eager(held, np.zeros(len(positions), np.uint8), positions, counts, 0, n_original, n_faces,
+                               faces, ids, np.zeros((n_original, 3), np.float32))
+    return k, faces[:n_faces_drawn].tolist(), ids[:k].tolist()
+
+
+def test_the_mesh_refuses_slots_and_tables_that_are_not_a_refinements():
+    """In both rank modes the core gives a small refinement's mesh, and
+    refuses (a ValueError saying why, naming a bad record) a face drawn
+    twice, a vertex id used twice, a front not starting at vertex 0, a face
+    count that differs and records pointing outside the tables."""
+    was = engines.mesh_ranks()
+    try:
+        for way in ("bitmaps", "sorts"):
+            engines.mesh_ranks(way)
+            tables = small_mesh_tables()
+            assert small_mesh(tables, [0, 1, 2], 3) == (5, [[0, 2, 4], [0, 1, 4], [2, 3, 4]], [0, 1, 2, 3, 4])
+            with pytest.raises(ValueError, match="face is drawn twice"):
+                small_mesh(tables, [0, 0, 1, 2], 4)
+            with pytest.raises(ValueError, match="faces drawn do not match"):
+                small_mesh(tables, [0, 1, 2], 2)
+            pcols, kill_data, base, tops, top_at = small_mesh_tables()
+            pcols[2]["vertex"] = (2, 2)
+            with pytest.raises(ValueError, match="vertex id is used by two"):
+                small_mesh((pcols, kill_data, base, tops, top_at), [0, 1, 2], 3)
+            with pytest.raises(ValueError, match="does not start at original vertex 0"):
+                small_mesh((*tables[:3], tops[1:], top_at[1:]), [0, 1, 2], 3)
+            for table, index, field, value in ((0, 1, "kill_first", 10**9), (0, 2, "made_at", 1), (0, 1, "start", 5),
+                                               (1, 1, "face", 4), (1, 1, "start", -1), (3, 0, "start", 5),
+                                               (3, 1, "vertex", 9)):
+                forged = list(small_mesh_tables())
+                forged[table][index][field] = value
+                name = ("pcol_records", "kill_data", "base", "tops")[table]
+                with pytest.raises(ValueError, match=rf"{name}\[{index}\]: .* outside"):
+                    small_mesh(forged, [0, 1, 2], 3)
+            forged = list(small_mesh_tables())
+            forged[4] = np.array([-1, 4], np.int32)
+            with pytest.raises(ValueError, match=r"tops\[1\]: .* outside"):
+                small_mesh(forged, [0, 1, 2], 3)
+            # A face's corners are numbered in int32: more faces than
+            # INT32_MAX / 3 are refused by both entries.
+            with pytest.raises(ValueError, match="faces are more than"):
+                small_mesh(tables, [0, 1, 2], 3, n_faces=2**31 // 3 + 1)
+            P = len(tables[0])
+
+            def stream(tables, n_faces=4):
+                return _core._pmx.mesh_stream_new(*int32_tables(tables), np.zeros(P, np.int32), np.zeros(P, np.int32),
+                                                  np.zeros((P, 3), np.float32), np.full(P + 5, -1, np.int32),
+                                                  np.zeros((4, 3), np.int32), 5, n_faces)
+
+            with pytest.raises(ValueError, match="faces are more than"):
+                stream(tables, 2**31 // 3 + 1)
+            # The stream's tables are checked whole by the same checks.
+            forged = list(small_mesh_tables())
+            forged[1][1]["start"] = (0, 0, 5)
+            with pytest.raises(ValueError, match=r"kill_data\[1\]: .* outside"):
+                stream(forged)
+    finally:
+        engines.mesh_ranks(was)

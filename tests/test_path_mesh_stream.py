@@ -435,6 +435,28 @@ def test_core_stream_refuses_lists_out_of_order(built):
                                     len(positions), -1)
 
 
+@pytest.mark.skipif(not _core.built(), reason="the C core is not built")
+def test_core_stream_checks_other_lists_under_a_key_it_has_seen(built):
+    """A key names a word's lists only with the arrays it came with: lists
+    given again under that key but in other arrays (here with a position
+    outside the hierarchy) are checked, and refused before anything
+    changes."""
+    data, pm = model(built, "cow.ply")
+    stream = pmjax.MeshStream(pm)
+    r = pmjax.refine(pm, index_camera(pmjax.standard_orbit(originals(data), 2), 0), 1.0)
+    positions = np.asarray(r.front_positions).copy()
+    n = len(positions)
+    ran = np.asarray(r.core_ran)[:n].astype(np.uint16)
+    _core._pmx.mesh_stream_step(stream._stream, positions, ran, 0, n, 5)
+    before = _core._pmx.mesh_stream_step(stream._stream, positions, ran, 0, n, 5)[:8]
+    other, other_ran = positions.copy(), ran.copy()
+    other[-1] = 1 << 30
+    other_ran[-1] ^= 2
+    with pytest.raises(ValueError, match="do not increase"):
+        _core._pmx.mesh_stream_step(stream._stream, other, other_ran, 1, n, 5)
+    assert _core._pmx.mesh_stream_step(stream._stream, positions, ran, 0, n, 5)[4:7] == before[4:7]
+
+
 @pytest.mark.slow
 def test_change_stream_on_the_dragon(built):
     data, pm = model(built, "dragon.ply")

@@ -471,6 +471,10 @@ ffi::Error FrontMeshOf(const MeshOperands& a, int64_t* n_ids) {
   PMX_CHECK(Expect("top_at", a.top_at.dims, {td[0]}));
   if (V0 < 0 || F < 0 || kd[0] + bd[0] > F)
     return ffi::Error::InvalidArgument("the mesh's records do not fit its faces");
+  // A face's corners are numbered 3 * face + c in int32.
+  if (F > INT32_MAX / 3)
+    return ffi::Error::InvalidArgument("the mesh's " + std::to_string(F) + " faces are more than " +
+                                       std::to_string(INT32_MAX / 3));
   // The outputs' rows: room for the refinement's faces (checked below) and
   // for the vertices it uses (the core checks), at most the whole mesh.
   auto fd = a.faces.dims, id = a.ids.dims;
@@ -492,7 +496,9 @@ ffi::Error FrontMeshOf(const MeshOperands& a, int64_t* n_ids) {
   if (item < 0 || item >= items || row >= rows) return ffi::Error::InvalidArgument("item outside the counts or lists");
   const int32_t* c = a.counts.data + cd.back() * item;
   const int64_t n = c[0], nf = bd[0] + c[2];
-  if (n < 0 || n > L || n > P) return ffi::Error::InvalidArgument("counts: the slots do not fit the lists");
+  if (n < 0 || n > L || n > P)
+    return ffi::Error::InvalidArgument("counts: the " + std::to_string(n) + " slots do not fit the lists of " +
+                                       std::to_string(L) + " slots and " + std::to_string(P) + " pcols");
   if (nf < 0 || nf > fd[0])
     return ffi::Error::InvalidArgument("counts: the refinement's " + std::to_string(nf) + " faces do not fit " +
                                        std::to_string(fd[0]) + " rows");
@@ -501,7 +507,9 @@ ffi::Error FrontMeshOf(const MeshOperands& a, int64_t* n_ids) {
   const int frame = a.words ? static_cast<int>(item % PMX_FRAMES) : -1;
   const int32_t* at = a.positions.data + row * L;
   for (int64_t i = 0; i < n; ++i)
-    if (at[i] < 0 || at[i] >= P) return ffi::Error::InvalidArgument("positions outside the hierarchy");
+    if (at[i] < 0 || at[i] >= P)
+      return ffi::Error::InvalidArgument("positions[" + std::to_string(i) + "] = " + std::to_string(at[i]) +
+                                         " is outside the hierarchy's " + std::to_string(P) + " positions");
   PmxMeshTables m{reinterpret_cast<const PmxPcolRecord*>(a.pcol_records.data),
                   reinterpret_cast<const PmxFaceRecord*>(a.kill_data.data),
                   reinterpret_cast<const PmxFaceRecord*>(a.base.data),
@@ -515,9 +523,14 @@ ffi::Error FrontMeshOf(const MeshOperands& a, int64_t* n_ids) {
                   F};
   Scratch s(P);
   if (!s.s) return Status(PMX_NO_MEMORY, "mesh");
-  return Status(pmx_front_mesh(&m, ran8, ran16, frame, at, n, nf, a.faces.data, a.ids.data,
-                               a.vertex_positions.data, id[0], n_ids, s.s),
-                "mesh");
+  const PmxStatus status = pmx_front_mesh(&m, ran8, ran16, frame, at, n, nf, a.faces.data, a.ids.data,
+                                          a.vertex_positions.data, id[0], n_ids, s.s);
+  // A record that points outside the tables, named with its index.
+  static const char* tables[] = {"pcol_records", "kill_data", "base", "tops"};
+  if (status >= PMX_BAD_PCOL_RECORD && status <= PMX_BAD_TOP_RECORD)
+    return ffi::Error::InvalidArgument(std::string("mesh: ") + tables[status - PMX_BAD_PCOL_RECORD] + "[" +
+                                       std::to_string(*n_ids) + "]: " + pmx_status_text(status));
+  return Status(status, "mesh");
 }
 
 template <ffi::DataType T>
@@ -1094,22 +1107,23 @@ PyObject* MeshStreamNew(PyObject*, PyObject* args) {
     PyErr_SetString(PyExc_ValueError, "mesh_stream_new: kill_data, base [n, 4] and tops [n, 5] must fit the faces");
     return nullptr;
   }
+  // A face's corners are numbered 3 * slot + c in int32.
+  if (F > INT32_MAX / 3) {
+    PyErr_Format(PyExc_ValueError, "mesh_stream_new: %lld faces are more than %d", (long long)F, INT32_MAX / 3);
+    return nullptr;
+  }
   if (!Raise(Expect("top_at", t[4].shape(), {T})) || !Raise(Expect("own_vertex", t[5].shape(), {P})) ||
       !Raise(Expect("own_end", t[6].shape(), {P})) || !Raise(Expect("own_position", t[7].shape(), {P, 3})) ||
       !Raise(Expect("up", t[8].shape(), {P + V0})) || !Raise(Expect("corners", t[9].shape(), {F, 3})))
     return nullptr;
   // Every index the stream follows stays inside its table.
   const PmxPcolRecord* records = reinterpret_cast<const PmxPcolRecord*>(t[0].data<int32_t>());
-  for (int64_t q = 0; q < P; ++q) {
-    const PmxPcolRecord& r = records[q];
-    bool ok = r.kill_first >= 0 && r.kill_count >= 0 && r.kill_first + (int64_t)r.kill_count <= K;
-    for (int j = 0; j < 2; ++j)
-      ok = ok && (r.made_at[j] >= 0 ? r.made_at[j] > q && r.made_at[j] < P : r.vertex[j] >= 0 && r.vertex[j] < V0);
-    if (!ok) {
-      PyErr_Format(PyExc_ValueError, "mesh_stream_new: pcol_records[%lld] points outside the tables", (long long)q);
+  for (int64_t q = 0; q < P; ++q)
+    if (!pmx_pcol_record_fits(records + q, q, K, V0, P)) {
+      PyErr_Format(PyExc_ValueError, "mesh_stream_new: pcol_records[%lld]: %s", (long long)q,
+                   pmx_status_text(PMX_BAD_PCOL_RECORD));
       return nullptr;
     }
-  }
   const int32_t* up = t[8].data<int32_t>();
   for (int64_t i = 0; i < P + V0; ++i)
     if (up[i] < -1 || up[i] >= P || (i < P && up[i] >= i)) {
@@ -1127,15 +1141,17 @@ PyObject* MeshStreamNew(PyObject*, PyObject* args) {
                                    reinterpret_cast<const PmxFaceRecord*>(t[2].data<int32_t>())};
   for (int k = 0; k < 2; ++k)
     for (int64_t i = 0; i < (k ? B : K); ++i)
-      if (faces[k][i].face < 0 || faces[k][i].face >= F) {
-        PyErr_Format(PyExc_ValueError, "mesh_stream_new: %s[%lld] is not a face", names[1 + k], (long long)i);
+      if (!pmx_face_record_fits(faces[k] + i, F, V0)) {
+        PyErr_Format(PyExc_ValueError, "mesh_stream_new: %s[%lld]: %s", names[1 + k], (long long)i,
+                     pmx_status_text(k ? PMX_BAD_BASE_RECORD : PMX_BAD_KILL_RECORD));
         return nullptr;
       }
   const PmxFrontVertex* tops = reinterpret_cast<const PmxFrontVertex*>(t[3].data<int32_t>());
   const int32_t* top_at = t[4].data<int32_t>();
   for (int64_t i = 0; i < T; ++i)
-    if (top_at[i] < -1 || top_at[i] >= P || tops[i].vertex < 0 || tops[i].vertex >= V0 + P) {
-      PyErr_Format(PyExc_ValueError, "mesh_stream_new: tops[%lld] is not a root or an original", (long long)i);
+    if (!pmx_top_fits(tops + i, top_at[i], V0, P)) {
+      PyErr_Format(PyExc_ValueError, "mesh_stream_new: tops[%lld]: %s", (long long)i,
+                   pmx_status_text(PMX_BAD_TOP_RECORD));
       return nullptr;
     }
   PmxStreamTables tables{records, faces[0], faces[1], tops, top_at, t[5].data<int32_t>(), t[6].data<int32_t>(),

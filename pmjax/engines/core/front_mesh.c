@@ -88,14 +88,17 @@ PMX_INLINE void count_digits(const int32_t *id_of, int64_t n, int32_t *count, So
             count[((int64_t)p << plan.digit) + id_digit(id_of[i], plan, p)]++;
 }
 
-/* Each item's row, its place in increasing id order (items of one id in
- * the order they came): a stable radix sort of the ids id_of [n] (gathered
- * while the items are read), with every pass's digit counts taken in one
- * read (count: pass p's table at p << digit, zero on entry and on return),
- * the first pass reading the ids themselves and the last writing each
- * item's row rather than the sorted entries. Returns the rows, int32 [n]
- * by item, over a's or b's room (two buffers of n entries; id_of may lie
- * in b: only the first pass reads it). */
+/* Each item's row, its place in increasing id order: a stable radix sort
+ * of the ids id_of [n] (gathered while the items are read), with every
+ * pass's digit counts taken in one read (count: pass p's table at
+ * p << digit, zero on entry and on return), the first pass reading the ids
+ * themselves and the last writing each item's row rather than the sorted
+ * entries, and each id at its row in the rows' buffer past them (its free
+ * half: a buffer of n IdSlot holds 2 n int32), so that one read in order
+ * finds an id given twice. Returns the rows, int32 [n] by item, over a's
+ * or b's room (two buffers of n entries; id_of may lie in b: only the
+ * first pass reads it); NULL (the rows not all written) where an id comes
+ * twice: the items must all differ. */
 static int32_t *rows_by_id(const int32_t *id_of, int64_t n, int32_t *count, SortPlan plan, IdSlot *a, IdSlot *b)
 {
     const int32_t buckets = (int32_t)1 << plan.digit;
@@ -121,8 +124,11 @@ static int32_t *rows_by_id(const int32_t *id_of, int64_t n, int32_t *count, Sort
     if (last == 0) {
         /* One pass: each item straight to its row. */
         row = (int32_t *)a;
-        for (int64_t i = 0; i < n; i++)
-            row[i] = count[id_digit(id_of[i], plan, 0)]++;
+        for (int64_t i = 0; i < n; i++) {
+            const int32_t r = count[id_digit(id_of[i], plan, 0)]++;
+            row[i] = r;
+            row[n + r] = id_of[i];
+        }
     } else {
         /* The first pass from the ids, the middle ones between the
          * buffers, the last to the rows. */
@@ -139,11 +145,20 @@ static int32_t *rows_by_id(const int32_t *id_of, int64_t n, int32_t *count, Sort
         }
         row = (int32_t *)to;
         int32_t *at = count + ((int64_t)last << plan.digit);
-        for (int64_t k = 0; k < n; k++)
-            row[from[k].slot] = at[id_digit(from[k].id, plan, last)]++;
+        for (int64_t k = 0; k < n; k++) {
+            const int32_t r = at[id_digit(from[k].id, plan, last)]++;
+            row[from[k].slot] = r;
+            row[n + r] = from[k].id;
+        }
     }
     memset(count, 0, sizeof(int32_t) * ((size_t)plan.passes << plan.digit));
-    return row;
+    /* The ids in sorted order increase strictly unless one comes twice (a
+     * reduction without branches). */
+    const int32_t *const sorted = row + n;
+    int twice = 0;
+    for (int64_t k = 1; k < n; k++)
+        twice |= sorted[k] <= sorted[k - 1];
+    return twice ? NULL : row;
 }
 
 /* The refined mesh from the pcols that did not run:
@@ -165,9 +180,12 @@ static int32_t *rows_by_id(const int32_t *id_of, int64_t n, int32_t *count, Sort
  * increasing order). Writes faces [n_faces_drawn, 3] (indices into ids and
  * vertex_positions, faces in increasing order), ids and vertex_positions
  * (the vertices used, by increasing id; *n_ids of them, room for
- * id_capacity). PMX_FACES_DIFFER (and no mesh) if the faces found are not
- * n_faces_drawn; PMX_BAD_SIZE (ids and vertex_positions not written) if
- * more vertices are used than id_capacity.
+ * id_capacity). Slots that are not a refinement's give no mesh and a
+ * status saying how (pmx_front_mesh), PMX_FACES_DIFFER where the faces
+ * found are not n_faces_drawn; a record read that points outside the
+ * tables, PMX_BAD_*_RECORD and its index in *n_ids; PMX_BAD_SIZE (ids and
+ * vertex_positions not written) if more vertices are used than
+ * id_capacity.
  *
  * Scratch (scratch_mesh): mark [P] bytes (by breadth-first position),
  * start_bits [V0/64+1], face_bits [F/64+1], vertex_bits [(V0+P)/64+1] words
@@ -191,7 +209,7 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
     const PmxFaceRecord *const kill_data = m->kill_data, *const base = m->base;
     const PmxFrontVertex *const tops = m->tops;
     const int32_t *const top_at = m->top_at;
-    const int64_t n_tops = m->n_tops, n_base = m->n_base;
+    const int64_t n_tops = m->n_tops, n_base = m->n_base, n_kill = m->n_kill_data;
     int32_t *const not_run_at = s->not_run_at, *const start_prefix = s->start_prefix;
     int32_t *const face_prefix = s->face_prefix, *const vertex_prefix = s->vertex_prefix;
     int32_t *const front_index = s->front_index;
@@ -245,8 +263,12 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
      * come: before it the front is below V0.
      * Slots that are not a refinement's (a position twice, ran that does
      * not match) can find more: the reading stops there and the mesh is
-     * refused as faces that differ, with nothing written past the room. */
-    int over = 0;
+     * refused (found: why), with nothing written past the room. Each
+     * record is checked as it is read (pmx_*_fits; bad_at: the first that
+     * points outside the tables), so that every index it gives stays
+     * inside the scratch and the tables. */
+    PmxStatus found = PMX_OK;
+    int64_t bad_at = 0;
     for (int64_t i = 0; i < n_not_run; i++) {
         if (i + MESH_AHEAD < n_not_run) {
             const char *ahead = (const char *)(records + not_run_at[i + MESH_AHEAD]);
@@ -261,8 +283,14 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
             __builtin_prefetch(mark + (q->made_at[1] < 0 ? 0 : q->made_at[1]));
         }
         const PmxPcolRecord *r = records + not_run_at[i];
+        if (!pmx_pcol_record_fits(r, not_run_at[i], n_kill, V0, n_pcols)) {
+            found = PMX_BAD_PCOL_RECORD, bad_at = not_run_at[i];
+            break;
+        }
+        /* Past the room: a front past V0, or more faces than F (one of
+         * them drawn twice). */
         if (n_front >= V0 || n_drawn + r->kill_count > n_faces_total) {
-            over = 1;
+            found = n_front >= V0 ? PMX_FRONT_PAST : PMX_FACE_TWICE;
             break;
         }
         for (int j = 0; j < 2; j++) {
@@ -278,24 +306,36 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
         }
         for (int32_t j = 0; j < r->kill_count; j++) {
             drawn[n_drawn] = kill_data[r->kill_first + j];
+            if (!pmx_face_record_fits(drawn + n_drawn, n_faces_total, V0)) {
+                found = PMX_BAD_KILL_RECORD, bad_at = r->kill_first + j;
+                break;
+            }
             if (face_sorted)
                 face_of[n_drawn] = drawn[n_drawn].face;
             else
                 set_marked(face_bits, face_sum, drawn[n_drawn].face, 1, face_dense);
             n_drawn++;
         }
+        if (found != PMX_OK)
+            break;
     }
     /* The tops: the roots that ran (top_at >= 0) and the lone originals. */
-    for (int64_t i = 0; i < n_tops && !over; i++)
-        if (top_at[i] < 0 || !mark[top_at[i]]) {
+    for (int64_t i = 0; i < n_tops && found == PMX_OK; i++) {
+        if (!pmx_top_fits(tops + i, top_at[i], V0, n_pcols))
+            found = PMX_BAD_TOP_RECORD, bad_at = i;
+        else if (top_at[i] < 0 || !mark[top_at[i]]) {
             if (n_front >= V0)
-                over = 1;
+                found = PMX_FRONT_PAST;
             else
                 front[n_front++] = tops[i];
         }
-    over |= n_drawn + n_base > n_faces_total;
-    for (int64_t i = 0; i < n_base && !over; i++)
-        if (face_sorted)
+    }
+    if (found == PMX_OK && n_drawn + n_base > n_faces_total)
+        found = PMX_FACE_TWICE;
+    for (int64_t i = 0; i < n_base && found == PMX_OK; i++)
+        if (!pmx_face_record_fits(base + i, n_faces_total, V0))
+            found = PMX_BAD_BASE_RECORD, bad_at = i;
+        else if (face_sorted)
             face_of[n_drawn + i] = base[i].face;
         else
             set_marked(face_bits, face_sum, base[i].face, 1, face_dense);
@@ -307,17 +347,16 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
      * stay in a bitmap: a corner's front vertex is then two independent
      * loads, where a search among sorted starts is a chain of them.) */
     const int start_dense = marked_dense(n_front, start_words);
-    PmxStatus status = !over && total == n_faces_drawn ? PMX_OK : PMX_FACES_DIFFER;
+    PmxStatus status = found != PMX_OK ? found : total == n_faces_drawn ? PMX_OK : PMX_FACES_DIFFER;
     if (status == PMX_OK) {
         for (int64_t i = 0; i < n_front; i++)
             set_marked(start_bits, start_sum, front[i].start, 1, start_dense);
         prefix_marked(start_bits, start_sum, start_words, start_dense, start_prefix, start_block);
         /* A refinement's front has distinct starts, at most V0 of them: a
-         * start given twice (or a front past V0) is no refinement's, and
-         * the ranks below (front_rank and front_index hold V0) are not
-         * written for it. */
+         * start given twice is no refinement's, and the ranks below
+         * (front_rank and front_index hold V0) are not written for it. */
         if (marked_count(start_bits, start_sum, start_prefix, start_words, start_dense) != n_front)
-            status = PMX_FACES_DIFFER;
+            status = PMX_START_TWICE;
     }
     if (status == PMX_OK) {
         for (int64_t i = 0; i < n_front; i++)
@@ -326,7 +365,7 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
          * front vertex at or before its position (a rank in [0, n_front));
          * one that does not is no refinement's front. */
         if (V0 > 0 && !(start_bits[0] & 1))
-            status = PMX_FACES_DIFFER;
+            status = PMX_FRONT_NOT_AT_0;
     }
     const int vertex_sorted = ranks_sorted(mode, n_front, vertex_words);
     const int vertex_dense = marked_dense(n_front, vertex_words);
@@ -344,12 +383,14 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
          * read at random would hold up its corners' look-ups). */
         if (face_sorted) {
             row_at = rows_by_id(face_of, total, sort_counts, face_plan, pairs, pairs_to);
+            if (!row_at)
+                status = PMX_FACE_TWICE;
         } else {
             prefix_marked(face_bits, face_sum, face_words, face_dense, face_prefix, NULL);
             /* Each face's row is its rank: a face drawn twice would leave
              * a row unwritten, so the faces must all differ. */
             if (marked_count(face_bits, face_sum, face_prefix, face_words, face_dense) != total)
-                status = PMX_FACES_DIFFER;
+                status = PMX_FACE_TWICE;
         }
     }
     if (status == PMX_OK) {
@@ -363,7 +404,7 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
                 }
             }
             const PmxFaceRecord *f = i < n_drawn ? drawn + i : base + (i - n_drawn);
-            int32_t *row = faces + 3 * (face_sorted ? row_at[i] : rank_of(face_bits, face_prefix, f->face));
+            int32_t *row = faces + 3 * (face_sorted ? (int64_t)row_at[i] : rank_of(face_bits, face_prefix, f->face));
             for (int c = 0; c < 3; c++) {
                 int32_t k = (int32_t)(start_dense ? rank_of(start_bits, start_prefix, f->start[c])
                                                   : rank_at_or_before(start_bits, start_sum, start_prefix,
@@ -391,21 +432,28 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
             status = PMX_BAD_SIZE;
         } else if (vertex_sorted) {
             /* Each used vertex's output index is its row among their ids
-             * sorted, the used ones met in the same order as above. */
+             * sorted, the used ones met in the same order as above (the
+             * ids must all differ). */
             const int32_t *out_of = rows_by_id(id_of, n_used, sort_counts,
                                                sort_plan(n_used, V0 + n_pcols - 1), pairs, pairs_to);
             int64_t u = 0;
-            for (int64_t i = 0; i < n_front; i++)
+            if (!out_of)
+                status = PMX_VERTEX_TWICE;
+            for (int64_t i = 0; i < n_front && out_of; i++)
                 if (front_index[front_rank[i]] == 0) {
                     const int32_t out = out_of[u++];
                     front_index[front_rank[i]] = out;
                     ids[out] = front[i].vertex;
                     memcpy(vertex_positions + 3 * (int64_t)out, front[i].position, 3 * sizeof(float));
                 }
-            n_id_count = n_used;
+            n_id_count = out_of ? n_used : 0;
         } else {
             prefix_marked(vertex_bits, vertex_sum, vertex_words, vertex_dense, vertex_prefix, NULL);
-            for (int64_t i = 0; i < n_front; i++)
+            /* Each used vertex's output index is its rank: the ids must
+             * all differ (an id twice would leave an output unwritten). */
+            if (marked_count(vertex_bits, vertex_sum, vertex_prefix, vertex_words, vertex_dense) != n_used)
+                status = PMX_VERTEX_TWICE;
+            for (int64_t i = 0; i < n_front && status == PMX_OK; i++)
                 if (front_index[front_rank[i]] == 0) {
                     int64_t out = rank_of(vertex_bits, vertex_prefix, front[i].vertex);
                     front_index[front_rank[i]] = (int32_t)out;
@@ -426,7 +474,8 @@ PMX_INLINE PmxStatus front_mesh_body(const PmxMeshTables *m, const uint8_t *ran,
         clear_marked(face_bits, face_sum, face_words, face_dense);
     if (!vertex_sorted)
         clear_marked(vertex_bits, vertex_sum, vertex_words, vertex_dense);
-    *n_ids = n_id_count;
+    /* The PMX_BAD_*_RECORD statuses come last (pmx.h). */
+    *n_ids = status >= PMX_BAD_PCOL_RECORD ? bad_at : n_id_count;
     return status;
 }
 

@@ -151,6 +151,24 @@ const char *pmx_status_text(PmxStatus status)
         return "out of memory for the scratch";
     case PMX_FACES_DIFFER:
         return "the faces drawn do not match the refinement's face count";
+    case PMX_FRONT_PAST:
+        return "the slots' front holds more vertices than the original vertices (not a refinement's slots)";
+    case PMX_START_TWICE:
+        return "two vertices of the slots' front start at one original vertex (not a refinement's slots)";
+    case PMX_FRONT_NOT_AT_0:
+        return "the slots' front does not start at original vertex 0 (not a refinement's slots)";
+    case PMX_FACE_TWICE:
+        return "a face is drawn twice (not a refinement's slots)";
+    case PMX_VERTEX_TWICE:
+        return "a vertex id is used by two vertices of the front (not a refinement's slots)";
+    case PMX_BAD_PCOL_RECORD:
+        return "a pcol record points outside the tables";
+    case PMX_BAD_KILL_RECORD:
+        return "a kill_data record is outside the faces or original vertices";
+    case PMX_BAD_BASE_RECORD:
+        return "a base record is outside the faces or original vertices";
+    case PMX_BAD_TOP_RECORD:
+        return "a top is outside the positions or vertices";
     }
     return "unknown status";
 }

@@ -75,6 +75,22 @@ typedef struct {
     uint32_t stamp;
 } VertexLinks;
 
+/* The lists a key names: the key with the arrays and length it came with. */
+typedef struct {
+    int64_t key, n;
+    const int32_t *positions;
+    const uint16_t *ran16;
+} ListsSeen;
+
+PMX_INLINE ListsSeen lists_of(const PmxStreamFrame *f) { return (ListsSeen){f->key, f->n, f->positions, f->ran16}; }
+
+/* Whether two frames' lists are one word's: a key >= 0 given with the same
+ * arrays and length (a key given again with other lists names other lists). */
+PMX_INLINE int same_lists(ListsSeen a, ListsSeen b)
+{
+    return a.key >= 0 && a.key == b.key && a.n == b.n && a.positions == b.positions && a.ran16 == b.ran16;
+}
+
 struct PmxMeshStream {
     PmxStreamTables t;
     /* Face slots: vertex slots per corner (-1 free), face id (-1 free), each
@@ -107,11 +123,13 @@ struct PmxMeshStream {
     int32_t *collapse, *split;
     int64_t step_cap;
     /* The last frame (its arrays held by the caller) and the flips of the
-     * word whose key is events_key, frame by frame. */
+     * word events_of, frame by frame. */
     PmxStreamFrame last;
     int has_last, broken;
-    int64_t events_key, events_first[FRAMES + 1], events_cap, flipped_cap;
-    int64_t checked_key; /* the key of the last lists whose positions were checked */
+    int64_t events_first[FRAMES + 1], events_cap, flipped_cap;
+    /* The lists whose positions were checked last (same_lists: a key
+     * given with other lists is checked again). */
+    ListsSeen checked_lists, events_of;
     int32_t *events, *flipped;
     /* A bit per position: the pcols not executed in the mesh held (split),
      * and those of the next frame's lists while its flips are found. */
@@ -283,7 +301,7 @@ PMX_INLINE void set_vertex(PmxMeshStream *s, int32_t slot, int32_t id, const flo
     s->vertex_id[slot] = id;
     s->links[slot].lo = lo;
     s->links[slot].hi = hi;
-    memcpy(s->vertex_position + 3 * slot, position, 3 * sizeof(float));
+    memcpy(s->vertex_position + 3 * (int64_t)slot, position, 3 * sizeof(float));
     touch_vertex(s, slot);
 }
 
@@ -312,7 +330,7 @@ static void free_vertex(PmxMeshStream *s, int32_t slot)
 {
     s->vertex_id[slot] = -1;
     s->links[slot].lo = s->links[slot].hi = 0;
-    memset(s->vertex_position + 3 * slot, 0, 3 * sizeof(float));
+    memset(s->vertex_position + 3 * (int64_t)slot, 0, 3 * sizeof(float));
     s->vertex_free[s->n_vertex_free++] = slot;
     touch_vertex(s, slot);
     s->n_vertices_live--;
@@ -394,7 +412,7 @@ PMX_INLINE int32_t corner_slot(PmxMeshStream *s, int32_t start, int64_t face, in
         const int32_t around[2] = {v, w};
         for (int k = 0; k < 2; k++)
             for (int32_t c = s->links[around[k]].head; c >= 0; c = s->corner[c].next) {
-                const int32_t *face = s->face_vertex + 3 * (c / 3);
+                const int32_t *face = s->face_vertex + 3 * (int64_t)(c / 3);
                 for (int j = 0; j < 3; j++) /* -1: a corner of the face being drawn, not linked yet */
                     if (face[j] >= 0 && start >= s->links[face[j]].lo && start < s->links[face[j]].hi) {
                         s->searches[PMX_SEARCH_AROUND]++;
@@ -403,7 +421,7 @@ PMX_INLINE int32_t corner_slot(PmxMeshStream *s, int32_t start, int64_t face, in
             }
     }
     s->searches[PMX_SEARCH_UP]++;
-    return front_slot(s, s->t.corners[3 * face + c]);
+    return front_slot(s, s->t.corners[3 * (int64_t)face + c]);
 }
 
 /* Draws face record f: a face slot (a freed one first, written to its
@@ -417,16 +435,23 @@ static PmxStatus add_face(PmxMeshStream *s, const PmxFaceRecord *f, KillEntry *a
     if (s->n_face_free)
         slot = s->face_free[--s->n_face_free];
     else {
+        /* A refinement draws at most n_faces faces at once, so its slots
+         * (freed ones taken first) stay below n_faces: the corners'
+         * indices 3 * slot + c then fit int32 (the entries refuse
+         * n_faces > INT32_MAX / 3). */
+        if (s->n_face_slots >= s->t.n_faces)
+            return PMX_BAD_TABLE;
         if (!grow_faces(s, s->n_face_slots + 1))
             return PMX_NO_MEMORY;
         slot = (int32_t)s->n_face_slots++;
     }
-    s->face_vertex[3 * slot] = s->face_vertex[3 * slot + 1] = s->face_vertex[3 * slot + 2] = -1;
+    int32_t *const rows = s->face_vertex + 3 * (int64_t)slot;
+    rows[0] = rows[1] = rows[2] = -1;
     for (int c = 0; c < 3; c++) {
         const int32_t u = corner_slot(s, f->start[c], f->face, c, v, w, at ? at->index : -1);
         if (u < 0)
             return PMX_BAD_TABLE;
-        s->corner[3 * slot + c].start = f->start[c];
+        s->corner[3 * (int64_t)slot + c].start = f->start[c];
         link(s, 3 * slot + c, u);
     }
     s->face_id[slot] = f->face;
@@ -450,11 +475,11 @@ static PmxStatus remove_face(PmxMeshStream *s, KillEntry *at, int32_t v, int32_t
     at->slot = -1;
     at->index = -1;
     for (int c = 0; c < 3; c++) {
-        const int32_t u = s->face_vertex[3 * slot + c];
+        const int32_t u = s->face_vertex[3 * (int64_t)slot + c];
         if (u != v && u != w)
             at->index = s->vertex_index[u];
         unlink(s, 3 * slot + c);
-        s->face_vertex[3 * slot + c] = -1;
+        s->face_vertex[3 * (int64_t)slot + c] = -1;
     }
     flip_bit(s->face_bits, s->face_id[slot]);
     log_face(s, s->face_id[slot], -1);
@@ -597,8 +622,8 @@ PmxMeshStream *pmx_mesh_stream_new(const PmxStreamTables *t, PmxStatus *status)
         return NULL;
     s->t = *t;
     s->stamp = 1;
-    s->events_key = -1;
-    s->checked_key = -1;
+    s->events_of.key = -1;
+    s->checked_lists.key = -1;
     const int64_t P = t->n_pcols, V0 = t->n_original;
     s->slot_at = malloc(sizeof(int32_t) * (size_t)(P + V0 + 1));
     s->kill = malloc(sizeof(KillEntry) * (size_t)(t->n_kill_data + 1));
@@ -665,11 +690,11 @@ static int increasing(const int32_t *positions, int64_t n, int64_t P)
  * their lists. */
 static int checked(PmxMeshStream *s, const PmxStreamFrame *f)
 {
-    if (f->key >= 0 && f->key == s->checked_key)
+    if (same_lists(lists_of(f), s->checked_lists))
         return 1;
     if (!increasing(f->positions, f->n, s->t.n_pcols))
         return 0;
-    s->checked_key = f->key;
+    s->checked_lists = lists_of(f);
     return 1;
 }
 
@@ -716,7 +741,7 @@ static PmxStatus word_events(PmxMeshStream *s, const PmxStreamFrame *f)
     for (int64_t k = 0; k < n_flipped; k++)
         for (uint32_t d = s->flipped_bits[k]; d; d &= d - 1)
             s->events[at[__builtin_ctz(d)]++] = s->flipped[k];
-    s->events_key = f->key;
+    s->events_of = lists_of(f);
     return PMX_OK;
 }
 
@@ -727,10 +752,10 @@ static PmxStatus flips(PmxMeshStream *s, const PmxStreamFrame *last, const PmxSt
 {
     int32_t *const collapses = s->collapse, *const splits = s->split;
     int64_t nc = 0, ns = 0;
-    if (last && next->key >= 0 && next->key == last->key && next->ran16 && last->ran16) {
+    if (last && next->ran16 && same_lists(lists_of(next), lists_of(last))) {
         /* The same word: its flips once for all its frames; the next frame
          * reads its own. Frames further apart compare their bits. */
-        if (s->events_key != next->key) {
+        if (!same_lists(lists_of(next), s->events_of)) {
             PmxStatus status = word_events(s, next);
             if (status != PMX_OK)
                 return status;

@@ -49,7 +49,16 @@ typedef enum {
     PMX_BAD_SIZE,      /* a size or capacity that does not fit the hierarchy */
     PMX_BAD_TABLE,     /* a row's children outside the table */
     PMX_NO_MEMORY,     /* scratch could not be allocated */
-    PMX_FACES_DIFFER   /* a mesh whose faces are not the refinement's count */
+    PMX_FACES_DIFFER,  /* a mesh whose faces are not the refinement's count */
+    PMX_FRONT_PAST,    /* a front of more vertices than the original ones */
+    PMX_START_TWICE,   /* two front vertices at one depth-first start */
+    PMX_FRONT_NOT_AT_0, /* a front that does not start at original vertex 0 */
+    PMX_FACE_TWICE,    /* a face drawn twice */
+    PMX_VERTEX_TWICE,  /* a vertex id used by two front vertices */
+    PMX_BAD_PCOL_RECORD, /* a pcol record pointing outside the tables */
+    PMX_BAD_KILL_RECORD, /* a kill_data record outside the faces or original vertices */
+    PMX_BAD_BASE_RECORD, /* a base record outside the faces or original vertices */
+    PMX_BAD_TOP_RECORD   /* a top (or its top_at) outside the positions or vertices */
 } PmxStatus;
 
 const char *pmx_status_text(PmxStatus status);
@@ -237,10 +246,50 @@ typedef struct {
     int64_t n_kill_data, n_base, n_tops, n_original, n_pcols, n_faces;
 } PmxMeshTables;
 
+/* Whether a record of the mesh's tables points inside them: pmx_front_mesh
+ * checks each record it reads, mesh_stream_new every record. A value v is
+ * inside [0, n) when (uint64_t)(int64_t)v < n (a negative one wraps past). */
+#define PMX_INSIDE(v, n) ((uint64_t)(int64_t)(v) < (uint64_t)(n))
+
+/* The pcol at position q: its kill list inside kill_data [n_kill], each
+ * vertex's start an original vertex, its id an original one where it is
+ * original (made_at < 0), else below n_original + n_pcols and made at a
+ * later position (children follow their parent breadth first). */
+static inline int pmx_pcol_record_fits(const PmxPcolRecord *r, int64_t q, int64_t n_kill, int64_t n_original,
+                                       int64_t n_pcols)
+{
+    int ok = r->kill_first >= 0 && r->kill_count >= 0 && r->kill_first + (int64_t)r->kill_count <= n_kill;
+    for (int j = 0; j < 2; j++)
+        ok &= PMX_INSIDE(r->start[j], n_original) &
+              (r->made_at[j] < 0 ? PMX_INSIDE(r->vertex[j], n_original)
+                                 : r->made_at[j] > q && r->made_at[j] < n_pcols &&
+                                       PMX_INSIDE(r->vertex[j], n_original + n_pcols));
+    return ok;
+}
+
+/* A face record (kill_data's or base's): a face, its corners' starts
+ * original vertices. */
+static inline int pmx_face_record_fits(const PmxFaceRecord *f, int64_t n_faces, int64_t n_original)
+{
+    return PMX_INSIDE(f->face, n_faces) & PMX_INSIDE(f->start[0], n_original) &
+           PMX_INSIDE(f->start[1], n_original) & PMX_INSIDE(f->start[2], n_original);
+}
+
+/* A top: a position or -1 (top_at), a start among the original vertices
+ * and an id below n_original + n_pcols. */
+static inline int pmx_top_fits(const PmxFrontVertex *t, int32_t top_at, int64_t n_original, int64_t n_pcols)
+{
+    return (top_at >= -1) & (top_at < n_pcols) & PMX_INSIDE(t->start, n_original) &
+           PMX_INSIDE(t->vertex, n_original + n_pcols);
+}
+
 /* The refined mesh of a refinement's visited slots (ran, positions: n of
  * them): faces [n_faces_drawn, 3] as indices into ids/positions (the
  * vertices used, increasing id; room for id_capacity). *n_ids: their number.
- * PMX_BAD_SIZE (nothing written to ids/positions) when more are used. */
+ * PMX_BAD_SIZE (nothing written to ids/positions) when more are used; a
+ * status of its own for each way the slots are not a refinement's, and
+ * PMX_BAD_*_RECORD with *n_ids the index of a record it read that points
+ * outside the tables (pcol records by position). */
 PmxStatus pmx_front_mesh(const PmxMeshTables *m, const uint8_t *ran, const uint16_t *ran_frames, int frame,
                          const int32_t *positions, int64_t n, int64_t n_faces_drawn, int32_t *faces,
                          int32_t *ids, float *vertex_positions, int64_t id_capacity, int64_t *n_ids,

@@ -44,14 +44,31 @@ static void free_mesh(PmxScratch *s)
     s->sort_counts = NULL;
 }
 
-/* Everything a scratch holds: the slot parts here, the mesh parts and the
- * word sets through their own lists (one list per group, so none is left out). */
-static void free_parts(PmxScratch *s)
+/* The slot parts (scratch_slots), freed and cleared. */
+static void free_slots(PmxScratch *s)
 {
-    void *parts[] = {s->ids, s->kid, s->kill, s->pcols, s->unsure, s->parent, s->chain, s->state, s->ran, s->mark,
-                     s->visit, s->whole, s->yes, s->ran_frames, s->unsure_lanes};
+    void *parts[] = {s->ids, s->kid, s->kill, s->pcols, s->unsure, s->parent, s->chain, s->state, s->ran, s->mark};
     for (size_t i = 0; i < sizeof parts / sizeof parts[0]; i++)
         free(parts[i]);
+    s->ids = s->kid = s->kill = s->pcols = s->unsure = s->parent = s->chain = NULL;
+    s->state = s->ran = s->mark = NULL;
+}
+
+/* The word parts (scratch_words), freed and cleared. */
+static void free_words(PmxScratch *s)
+{
+    void *parts[] = {s->visit, s->whole, s->yes, s->ran_frames, s->unsure_lanes};
+    for (size_t i = 0; i < sizeof parts / sizeof parts[0]; i++)
+        free(parts[i]);
+    s->visit = s->whole = s->yes = s->ran_frames = s->unsure_lanes = NULL;
+}
+
+/* Everything a scratch holds, through each group's own list (the one its
+ * allocation frees on failure, so none is left out). */
+static void free_parts(PmxScratch *s)
+{
+    free_slots(s);
+    free_words(s);
     free_mesh(s);
     free_sets(s);
 }
@@ -73,11 +90,7 @@ int scratch_slots(PmxScratch *s)
     s->mark = zeros(room, 1);
     if (!(s->ids && s->kid && s->kill && s->pcols && s->unsure && s->parent && s->chain && s->state && s->ran &&
           s->mark)) {
-        void *parts[] = {s->ids, s->kid, s->kill, s->pcols, s->unsure, s->parent, s->chain, s->state, s->ran, s->mark};
-        for (size_t i = 0; i < sizeof parts / sizeof parts[0]; i++)
-            free(parts[i]);
-        s->ids = s->kid = s->kill = s->pcols = s->unsure = s->parent = s->chain = NULL;
-        s->state = s->ran = s->mark = NULL;
+        free_slots(s);
         return 0;
     }
     return 1;
@@ -94,10 +107,7 @@ int scratch_words(PmxScratch *s)
     s->unsure_lanes = zeros(room, sizeof(Lanes));
     s->visit = zeros(room, sizeof(Lanes));
     if (!(s->whole && s->yes && s->ran_frames && s->unsure_lanes && s->visit)) {
-        void *parts[] = {s->visit, s->whole, s->yes, s->ran_frames, s->unsure_lanes};
-        for (size_t i = 0; i < sizeof parts / sizeof parts[0]; i++)
-            free(parts[i]);
-        s->visit = s->whole = s->yes = s->ran_frames = s->unsure_lanes = NULL;
+        free_words(s);
         return 0;
     }
     return 1;
