@@ -27,7 +27,7 @@ from ._camera import Camera, camera_count
 from ._model import ProgressiveMesh
 from ._predicate import ALL_TESTS, Tests, UserPredicate
 from .engines import _core, _dense, _front_jax
-from .engines._choose import BUDGET_SEARCH_FROM_PCOLS, is_traced, select
+from .engines._choose import FRONT_FROM_PCOLS, is_traced, select
 from .engines._dense import DenseRefinement, critical_tolerances, propagate, representatives
 from .engines._front_mesh import numpy_mesh
 from .engines._tables import derived
@@ -571,7 +571,7 @@ def faces_for_budget(pm: ProgressiveMesh, camera: Camera, budget: int, tests: Te
         budget: faces, a whole number >= 0 (under ``jit``: an integer array).
         tests: :class:`Tests`.
         method: ``"front"`` (the C core's search), ``"dense"`` or ``"auto"``
-            (the search from ``BUDGET_SEARCH_FROM_PCOLS`` pcols on, else the sort).
+            (the search from ``FRONT_FROM_PCOLS`` pcols on, else the sort).
 
     Returns:
         ``(tau, faces)``: ``tau`` (pixels, float32) and the face count there,
@@ -590,8 +590,8 @@ def faces_for_budget(pm: ProgressiveMesh, camera: Camera, budget: int, tests: Te
         budget = check_budget(budget)
     engine = select(pm, method, traced=traced)
     # The search pays about 24 refines: faster than the sort from about
-    # BUDGET_SEARCH_FROM_PCOLS pcols on (measured in docs/front.md).
-    if engine == "core" and (method == "front" or pm.n_pcols >= BUDGET_SEARCH_FROM_PCOLS):
+    # FRONT_FROM_PCOLS pcols on (measured in docs/front.md).
+    if engine == "core" and (method == "front" or pm.n_pcols >= FRONT_FROM_PCOLS):
         counts_of = _Counts.of(pm)
         tau, faces = _core_budget(derived(pm).core, _core.camera_rows(camera, jnp.float32(1.0), derived(pm).exponent),
                                   jnp.asarray(budget, jnp.int32), tests, camera.orthographic, counts_of.base_faces)

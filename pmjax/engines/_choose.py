@@ -35,11 +35,6 @@ METHODS = ("auto", "front", "dense")
 # batches.
 FRONT_FROM_PCOLS = 100_000
 FRONT_BATCH_FROM_PCOLS = 30_000
-# A face budget with the core: its search on counts (about 24 output-
-# sensitive refines) from BUDGET_SEARCH_FROM_PCOLS pcols on, else the sort of
-# every pcol's critical tolerance, which is faster while P is small (the cow;
-# the search wins from the bunny up, docs/front.md).
-BUDGET_SEARCH_FROM_PCOLS = 30_000
 
 def platform_of(pm) -> str:
     """Where ``pm``'s arrays live (the default backend for traced ones)."""
