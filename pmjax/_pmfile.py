@@ -58,6 +58,13 @@ def _sha256(a: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(a).ravel().view(np.uint8)).hexdigest()
 
 
+def _array_digests(arrays: dict) -> dict:
+    """Each array's SHA-256 by name, the arrays hashed in parallel (hashlib
+    releases the GIL on large buffers)."""
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        return dict(zip(arrays, pool.map(_sha256, arrays.values())))
+
+
 def save_pm(pm: PMData, path: str | os.PathLike, *, version: int = VERSION, codec: str | None = None) -> None:
     """Write ``pm`` to ``path`` atomically (temporary file, then rename).
 
@@ -265,9 +272,7 @@ def _prefix_pm(arrays: dict, header: dict, k: int, B: int, source: str) -> tuple
                 prefix=dict(batches=k, of=B, full_counts=header.get("counts")))
     pm = PMData(**arrays, header=meta)
     validate_pm(pm, source=source)
-    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
-        digests = dict(zip(pm.arrays(), pool.map(_sha256, pm.arrays().values())))
-    return pm, content_fingerprint(digests)
+    return pm, content_fingerprint(_array_digests(pm.arrays()))
 
 
 def _read_full(read, n: int) -> bytes:
@@ -709,9 +714,7 @@ def _read_v1(path, source: str) -> tuple[PMData, str]:
         arrays: dict[str, Any] = {}
         for name, (offset, shape, fortran, dtype) in layout.items():
             arrays[name] = _read_npy(zf, path, name, offset, shape, fortran, dtype)
-    # hashlib releases the GIL on large buffers: hash the arrays in parallel.
-    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
-        digests = dict(zip(arrays, pool.map(_sha256, arrays.values())))
+    digests = _array_digests(arrays)
     for name, digest in digests.items():
         if digest != sums.get(name):
             raise PMFormatError(f"{path}: checksum mismatch in array {name!r}")
