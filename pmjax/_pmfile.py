@@ -89,7 +89,7 @@ def save_pm(pm: PMData, path: str | os.PathLike, *, version: int = VERSION, code
         raise ValueError(f"save_pm: codec must be 'zstd' or 'zlib', got {codec!r}")
     validate_pm(pm, source=path)
     check_structure(pm, source=path)
-    sums = {name: _sha256(a) for name, a in pm.arrays().items()}
+    sums = _array_digests(pm.arrays())
     header = {k: v for k, v in pm.header.items() if k not in LAYOUT_FIELDS}
     header.update(
         magic=MAGIC,
