@@ -629,8 +629,10 @@ class Stream:
 
 def new_stream(V0: int, P: int, offsets: np.ndarray, encoding: int = 1) -> Stream:
     V = V0 + P
+    # Zero pages until written (a forged header's counts must not cost a
+    # write over all V records): a root's parent is set to -1 as the base is
+    # read, every other vertex's as its batch is, before anything reads it.
     ranges = np.zeros(V, RANGE_DTYPE)
-    ranges["parent"] = -1
     return Stream(V0, P, offsets, np.zeros((V, 3), np.float32), np.zeros((V, 3), np.float32),
                   ranges["start"], ranges["count"], ranges["seen"],
                   *(np.zeros(P, np.int32) for _ in range(2)), *(np.zeros(P, np.float32) for _ in range(4)),
@@ -648,6 +650,7 @@ def read_base(s: Stream, raw: bytes, R: int, n_faces: int) -> None:
     if np.any(count < 1) or (R and np.any(count[roots < s.V0] != 1)) or int(count.sum()) != s.V0:
         raise ValueError(f"its roots' leaf counts do not cover the {s.V0} original vertices")
     s.seen[roots] = True
+    s.parent[roots] = -1
     s.count[roots] = count
     s.start[roots] = np.cumsum(count) - count
     s.vertices[roots] = unordered(c.take(np.uint32, (R, 3)))

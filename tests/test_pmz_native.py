@@ -219,7 +219,6 @@ def test_damaged_batch_chunks_are_refused_in_the_same_words(cow_file, tmp_path, 
 
 
 @needs_native
-@needs_native
 def test_a_pcol_splitting_a_vertex_not_made_is_named_in_the_same_words(cow_file, monkeypatch, numpy_decoder):
     # A chunk cannot split a vertex the coarser chunks did not make unless
     # the state is damaged: the reader's mark of one of the batch's vertices

@@ -158,7 +158,7 @@ const char *pmx_status_text(PmxStatus status)
     case PMX_FRONT_NOT_AT_0:
         return "the slots' front does not start at original vertex 0 (not a refinement's slots)";
     case PMX_FACE_TWICE:
-        return "a face is drawn twice (not a refinement's slots)";
+        return "a face is drawn twice (slots or tables that are not a refinement's)";
     case PMX_VERTEX_TWICE:
         return "a vertex id is used by two vertices of the front (not a refinement's slots)";
     case PMX_BAD_PCOL_RECORD:
