@@ -916,10 +916,9 @@ def _path_budgets(pm, host, budgets, tests, chunk):
     def probes_along_path(cams, bits):
         frame = cams % K
         order = np.lexsort((bits, frame, cams // K))
-        at = rows[frame[order]]
-        at[:, -1] = bits[order].astype(np.int32).view(np.float32)
         counted = np.empty((len(cams), 3), np.int64)
-        counted[order] = _word_counts(d, counts_of, at, tests, host.orthographic)
+        counted[order] = _word_set_counts(d, counts_of, rows[frame[order]], bits[order][None], tests,
+                                          host.orthographic)[0]
         return counted
 
     tau, cols = _exact_from_guess(d.core, np.tile(rows, (B, 1)), budgets.T.ravel(), guess.T.ravel(),
@@ -945,17 +944,6 @@ def _word_calls(K: int):
     order = np.minimum(np.arange(words * F), K - 1)
     for start, n in _core.word_spans(words, _core.WORDS_PER_CALL):
         yield order[start * F:(start + n) * F]
-
-
-def _word_counts(d, counts_of, rows, tests, orthographic):
-    """Exact ``(faces, vertices, executed)`` (``int64 [K, 3]``) of the frames
-    ``rows`` (``float32 [K, CAMERA]``, a path in order, each with its own
-    tolerance) through the core's words (:func:`_word_calls`)."""
-    out = np.empty((len(rows), 3), np.int64)
-    for lanes in _word_calls(len(rows)):
-        counts = np.asarray(_core_word_counts(d.core_words, d.core, rows[lanes], tests, orthographic))
-        out[lanes] = np.stack(counts_of(counts[:, 1], counts[:, 2], np), 1)
-    return out
 
 
 @functools.partial(jax.jit, static_argnames=("tests", "orthographic", "sets"))

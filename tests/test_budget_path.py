@@ -455,7 +455,8 @@ def test_two_tolerances_per_frame_in_one_pass_count_each_frame_alone(built, kind
     below = np.where(np.isfinite(tau) & (tau > 0), (tau.view(np.int32) - 1).view(np.float32), tau)
     rows = np.repeat(_core.host_camera_rows(host, np.zeros(K, np.float32), d.exponent), 2, axis=0)
     rows[0::2, -1], rows[1::2, -1] = tau, below
-    counted = _refine._word_counts(d, counts_of, rows, ALL_TESTS, host.orthographic)
+    counted = _refine._word_set_counts(d, counts_of, rows, rows[None, :, -1].view(np.int32), ALL_TESTS,
+                                       host.orthographic)[0]
     for k in range(2 * K):
         r = pmjax.refine(pm, index_camera(cams, k // 2), float(rows[k, -1]), method="front")
         assert tuple(counted[k]) == (int(r.n_faces), int(r.n_vertices), int(r.n_executed)), k
@@ -567,7 +568,8 @@ def test_path_budgets_confirm_through_word_sets(built, monkeypatch):
     monkeypatch.setattr(_refine, "_word_set_counts",
                         lambda d, c, rows, bits, *a: shapes.append(bits.shape) or original(d, c, rows, bits, *a))
     got = pmjax.faces_for_budget_batch(pm, cams, budgets, path=True, method="front")
-    assert shapes == [(2, K)] * 3, shapes
+    # One set of both patterns per budget; then any probes, one tolerance each.
+    assert shapes[:3] == [(2, K)] * 3 and all(t == 1 for t, _ in shapes[3:]), shapes
     want = pmjax.faces_for_budget_batch(pm, cams, budgets, method="front")
     for key in want:
         np.testing.assert_array_equal(got[key], want[key], err_msg=key)
