@@ -98,7 +98,7 @@ def cmd_build(args) -> int:
     )
     pm = build_pm(vertices, faces, options, progress=not args.quiet, source_sha256=file_sha256(args.mesh))
     pm.header["source"] = os.path.basename(args.mesh)
-    save_pm(pm, args.output)
+    save_pm(pm, args.output, version=args.file_version)
     b = pm.header["build"]
     print(
         f"{args.output}: {len(faces)} faces -> base {b['base_faces']} faces, "
@@ -510,6 +510,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--linear", action="store_true", help="one collapse per batch, strict cost order (slow reference)")
     p.add_argument("--allow-topology-change", action="store_true", help="skip the link test for edges")
     p.add_argument("--boundary-weight", type=_real(0.0), default=1.0, help="weight of border-preserving planes")
+    p.add_argument("--file-version", type=int, choices=(1, 2), default=2,
+                   help="2: compressed, coarse to fine, readable a prefix at a time (default); "
+                        "1: uncompressed zip, 2-3x larger, faster to read again once its content is known")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_build)
 

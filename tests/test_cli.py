@@ -31,6 +31,21 @@ def test_build_info_lod(tmp_path, data_path, capsys):
     assert np.allclose(np.sort(mesh.vertices, axis=0), np.sort(v, axis=0))
 
 
+def test_build_file_version(tmp_path, data_path):
+    """--file-version 1 writes the zip of version 1, the default version 2;
+    both hold the same arrays."""
+    paths = {v: tmp_path / f"cow{v}.pmz" for v in (1, 2)}
+    assert main(["build", data_path("cow.ply"), "-o", str(paths[1]), "-q", "--file-version", "1"]) == 0
+    assert main(["build", data_path("cow.ply"), "-o", str(paths[2]), "-q"]) == 0
+    assert paths[1].read_bytes()[:2] == b"PK" and paths[2].read_bytes()[:4] == b"\x89PMZ"
+    one, two = pmjax.read_pm(paths[1]), pmjax.read_pm(paths[2])
+    assert one.header["version"] == 1 and two.header["version"] == 2
+    a, b = one.arrays(), two.arrays()
+    assert a.keys() == b.keys() and "shading_normals" in a
+    for name in a:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
+
+
 def test_errors_are_clear_and_leave_no_output(tmp_path, capsys):
     bad = tmp_path / "bad.obj"
     bad.write_text("v 0 0 0\nv 1 0 0\nf 1 2 2\n")
