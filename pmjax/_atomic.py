@@ -162,12 +162,24 @@ def atomic_path(path, suffix: str = ""):
     except OSError as exc:  # a read-only or full file system, no permission
         raise _naming(exc, path) from None
     os.close(fd)
-    # mkstemp creates 0600; give the result the permissions a plain open() would.
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)
+    # mkstemp creates 0600: a file written over keeps its permissions, a new
+    # one gets those a plain open() would.
+    try:
+        mode = stat.S_IMODE(os.stat(path).st_mode)
+    except OSError:
+        umask = os.umask(0)
+        os.umask(umask)
+        mode = 0o666 & ~umask
+    os.chmod(tmp, mode)
     try:
         yield tmp
+        # On disk before the rename: a crash must leave the old file or the
+        # whole new one, never an empty file under the target's name.
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
         os.replace(tmp, path)
     except OSError as exc:
         # Errors of the temporary file, and a full disk, name the user's path.
@@ -188,26 +200,43 @@ def _naming(exc: OSError, path: str) -> OSError:
 
 @contextlib.contextmanager
 def atomic_folder(folder):
-    """Yield a temporary folder beside ``folder``; on success its files are
-    moved into ``folder`` (created if missing, other files kept), on any
-    error (or SIGTERM, see :func:`pmjax._cli.main`) it is removed, so
-    ``folder`` never holds part of a set of files (a killed render's frames).
+    """Yield a temporary folder inside ``folder`` (created if missing); on
+    success its files are moved into ``folder`` (other files kept), on any
+    error (or SIGTERM, see :func:`pmjax._cli.main`) it is removed, and
+    ``folder`` too where this call created it, so ``folder`` never holds part
+    of a set of files (a killed render's frames). The temporary lies inside
+    ``folder``, not beside it: the moves stay renames within one file system
+    where ``folder`` is a mount point, and its parent need not be writable.
     """
     folder = check_output_path(folder, folder=True)
-    remove_stale_temporaries(folder)
+    created = not os.path.isdir(folder)
+    # Names the temporaries inside the folder: .files.pmjax-tmp-<pid>-<random>.
+    inner = os.path.join(folder, "files")
+    moved = False
     try:
-        tmp = tempfile.mkdtemp(prefix=f"{temporary_prefix(folder)}{os.getpid()}-",
-                               dir=os.path.dirname(os.path.abspath(folder)))
+        os.makedirs(folder, exist_ok=True)
+        remove_stale_temporaries(inner)
+        tmp = tempfile.mkdtemp(prefix=f"{temporary_prefix(inner)}{os.getpid()}-", dir=folder)
     except OSError as exc:
+        _remove_if_created(folder, created)
         raise _naming(exc, folder) from None
     try:
         yield tmp
-        os.makedirs(folder, exist_ok=True)
         for name in sorted(os.listdir(tmp)):
             os.replace(os.path.join(tmp, name), os.path.join(folder, name))
+        moved = True
     except OSError as exc:
         if tmp in (exc.filename, exc.filename2) or tmp in str(exc) or exc.errno in _WRITE_ERRORS:
             raise _naming(exc, folder) from exc
         raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+        if not moved:
+            _remove_if_created(folder, created)
+
+
+def _remove_if_created(folder: str, created: bool) -> None:
+    """Remove ``folder`` if this write created it and it is still empty."""
+    if created:
+        with contextlib.suppress(OSError):
+            os.rmdir(folder)

@@ -47,7 +47,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ._atomic import TEMP_MARK, atomic_path
+from ._atomic import TEMP_MARK, atomic_path, remove_stale_temporaries
 from ._bitsets import WORD
 from ._camera import camera_count, index_camera
 from ._camera_table import CameraTable, _bounds, fly_rows, orbit_rows, random_rows, read_camera_table
@@ -768,6 +768,7 @@ def evaluate(
         raise EvalError(f"two models are named {twice!r} (the file name without .pmz names a model's rows)")
     if len({s.name for s in sets}) < len(sets):
         raise EvalError("two camera sets have the same name; give each file set a distinct file name")
+    _check_dataset_folder(folder)
     kind = "taus" if len(taus) else "budgets"
     twice = next((x for i, x in enumerate(values) if x in values[:i]), None)
     if twice is not None:
@@ -960,6 +961,8 @@ def compact(folder, *, rows_per_file: int = COMPACT_ROWS, row_group_rows: int = 
             raise EvalError(f"{name} must be a whole number >= 1, not {value!r}")
     if not os.path.isdir(folder):
         raise EvalError(f"{folder}: no such folder")
+    if not os.path.exists(os.path.join(folder, JOB_FILE)):
+        read_job(folder)  # raises: not a dataset folder (checked before the lock file is made)
     start = time.perf_counter()
     with _lock_folder(folder):
         job = read_job(folder)
@@ -1060,10 +1063,29 @@ def _part_files(folder) -> set:
 
 
 def _remove_temporaries(folder) -> None:
-    """Temporary files of a killed run are debris: no part is half-written."""
+    """Temporary files and folders of killed writers in the dataset folder
+    are debris (no part is half-written); a live writer's are left alone."""
     for name in os.listdir(folder):
-        if TEMP_MARK in name:
-            os.unlink(os.path.join(folder, name))
+        at = name.find(TEMP_MARK)
+        if name.startswith(".") and at > 1:
+            remove_stale_temporaries(os.path.join(folder, name[1:at]))
+
+
+def _check_dataset_folder(folder) -> None:
+    """Refuse an existing folder that holds files but no job description:
+    eval moves the files it cannot verify aside, and another program's
+    files are not its to move.
+
+    Raises:
+        EvalError: naming the folder and some of its files.
+    """
+    if not os.path.isdir(folder) or any(os.path.exists(os.path.join(folder, n)) for n in (JOB_FILE, OLD_JOB_FILE)):
+        return
+    foreign = sorted(n for n in os.listdir(folder) if n != ".lock" and TEMP_MARK not in n)
+    if foreign:
+        shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+        raise EvalError(f"{folder}: holds {len(foreign)} file(s) ({shown}) but no {JOB_FILE}, so it is not a pmjax "
+                        "eval dataset folder: give a new or empty folder")
 
 
 def _model_parts(m, sets, values, counts, chunk, chunk_major=False):

@@ -117,8 +117,6 @@ def save_pm(pm: PMData, path: str | os.PathLike, *, version: int = VERSION, code
                 for _, data, _ in chunks:
                     fh.write(_codec.chunk_sha(data))
                     fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
     # Checked above: a later load of these bytes need not check again.
     remember_structure(content_fingerprint(sums))
 

@@ -14,7 +14,7 @@ import pytest
 import trimesh
 
 import pmjax
-from pmjax._atomic import TEMP_MARK, atomic_path, remove_stale_temporaries
+from pmjax._atomic import TEMP_MARK, atomic_folder, atomic_path, remove_stale_temporaries
 from pmjax._cli import main
 from pmjax.builders import BuildOptions, build_pm
 
@@ -232,6 +232,49 @@ def test_a_killed_write_leaves_a_recognised_temporary_that_the_next_write_remove
         assert os.path.exists(mine) and not os.path.exists(tmp)
         open(mine, "w").write("whole")
     assert target.read_text() == "whole" and leftovers(tmp_path) == []
+
+
+def test_a_file_written_over_keeps_its_permissions_and_reaches_the_disk_before_the_rename(tmp_path, monkeypatch):
+    target = tmp_path / "out.txt"
+    target.write_text("old")
+    os.chmod(target, 0o600)
+    events = []
+    real_fsync, real_replace = os.fsync, os.replace
+    monkeypatch.setattr(os, "fsync", lambda fd: events.append("fsync") or real_fsync(fd))
+    monkeypatch.setattr(os, "replace", lambda a, b: events.append("replace") or real_replace(a, b))
+    with atomic_path(target) as tmp:
+        open(tmp, "w").write("new")
+    assert target.read_text() == "new" and events == ["fsync", "replace"]
+    assert (os.stat(target).st_mode & 0o777) == 0o600
+    # A new file gets the permissions a plain open() gives.
+    umask = os.umask(0o022)
+    try:
+        with atomic_path(tmp_path / "fresh.txt") as tmp:
+            open(tmp, "w").write("x")
+    finally:
+        os.umask(umask)
+    assert (os.stat(tmp_path / "fresh.txt").st_mode & 0o777) == 0o644
+
+
+def test_a_folder_of_files_is_assembled_inside_the_folder(tmp_path):
+    """The temporary folder lies inside the target (one file system, the
+    parent untouched); on an error a folder the write created goes again,
+    one that existed stays with its files."""
+    out = tmp_path / "frames"
+    with atomic_folder(out) as tmp:
+        assert os.path.dirname(tmp) == str(out) and os.listdir(tmp_path) == ["frames"]
+        open(os.path.join(tmp, "a.png"), "w").write("a")
+    assert sorted(os.listdir(out)) == ["a.png"] and os.listdir(tmp_path) == ["frames"]
+    with pytest.raises(RuntimeError):
+        with atomic_folder(tmp_path / "new") as tmp:
+            open(os.path.join(tmp, "b.png"), "w").write("b")
+            raise RuntimeError("stop")
+    assert os.listdir(tmp_path) == ["frames"]
+    with pytest.raises(RuntimeError):
+        with atomic_folder(out) as tmp:
+            open(os.path.join(tmp, "b.png"), "w").write("b")
+            raise RuntimeError("stop")
+    assert sorted(os.listdir(out)) == ["a.png"]
 
 
 @pytest.mark.slow

@@ -208,6 +208,36 @@ def test_a_bad_model_stops_the_job_and_keeps_earlier_parts(cow, tmp_path):
             evaluate([cow], ["orbit:20"], out, taus=[1.0], chunk=8, compile_cache=None, progress=False)
 
 
+def test_a_folder_of_other_files_is_refused_and_left_as_it_was(cow, tmp_path):
+    """eval moves files it cannot verify aside: a folder that is not a
+    dataset (no _job.parquet) but holds files is refused before any work,
+    and --compact of it writes nothing there."""
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "part-00000-1b2c.snappy.parquet").write_bytes(b"someone else's")
+    (out / "notes.txt").write_text("keep")
+    before = sorted(os.listdir(out))
+    with pytest.raises(EvalError, match="not a pmjax eval dataset folder"):
+        evaluate([cow], ["orbit:4"], str(out), taus=[1.0], chunk=4, compile_cache=None, progress=False)
+    with pytest.raises(EvalError, match="not a pmjax eval dataset folder"):
+        pmjax._eval.compact(str(out))
+    assert sorted(os.listdir(out)) == before and not os.path.exists(str(out) + ".damaged")
+
+
+def test_a_killed_writers_temporaries_in_the_dataset_go_a_live_ones_stay(cow, tmp_path):
+    out = str(tmp_path / "out")
+    evaluate([cow], ["orbit:4"], out, taus=[1.0], chunk=4, compile_cache=None, progress=False)
+    # A killed render's temporary folder (its process gone) and a live writer's file.
+    dead = os.path.join(out, f".frames{TEMP_MARK}999999999-abc")
+    os.mkdir(dead)
+    open(os.path.join(dead, "frame_00000.png"), "w").write("x")
+    live = os.path.join(out, f".cams.parquet{TEMP_MARK}{os.getpid()}-def.parquet")
+    open(live, "w").write("being written")
+    evaluate([cow], ["orbit:4"], out, taus=[1.0, 2.0], chunk=4, compile_cache=None, progress=False)
+    assert not os.path.exists(dead) and os.path.exists(live)
+    assert sorted(rows(out)["tau"].tolist()) == [1.0] * 4 + [2.0] * 4
+
+
 def _run_cli(args, **kw):
     return subprocess.Popen([sys.executable, "-m", "pmjax", "eval", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, **kw)

@@ -102,14 +102,15 @@ def _until(predicate, seconds):
 
 
 def test_sigterm_during_a_frames_render_leaves_nothing(workspace, tmp_path):
-    """A PNG-frames render is written into a temporary folder and moved in at
-    the end; SIGTERM mid-render removes the temporary and leaves no frames."""
+    """A PNG-frames render is written into a temporary folder inside the
+    frames folder and moved in at the end; SIGTERM mid-render removes the
+    temporary, and the folder the render made, and leaves no frames."""
     out = tmp_path / "frames"
     proc = subprocess.Popen([sys.executable, "-m", "pmjax", "render", str(workspace / "spot.pmz"), "--orbit", "400",
                              "-o", str(out), "-q"], stderr=subprocess.PIPE, text=True)
     try:
         # The temporary folder exists as soon as frames are being written.
-        started = _until(lambda: any(TEMP_MARK in p.name for p in tmp_path.iterdir()), 120)
+        started = _until(lambda: out.is_dir() and any(TEMP_MARK in p.name for p in out.iterdir()), 120)
         if not started:
             pytest.skip(f"the render did not start writing: {proc.stderr.read()[-500:] if proc.poll() is not None else ''}")
         proc.send_signal(signal.SIGTERM)
