@@ -165,7 +165,9 @@ def clean_mesh(
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
     tri = v[f]
     cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    diag = np.linalg.norm(np.ptp(v[finite], axis=0)) if finite.any() else 0.0
+    # The area threshold is relative to the surface's own size: the faces'
+    # corners, not stray points no face uses (scans often hold some).
+    diag = np.linalg.norm(np.ptp(v[np.unique(f)], axis=0)) if len(f) else 0.0
     zero_area = np.linalg.norm(cross, axis=1) <= (1e-14 * diag * diag)
     degenerate = repeated | zero_area
     f = f[~degenerate]

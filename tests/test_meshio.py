@@ -38,6 +38,22 @@ def test_out_of_range_degenerate_duplicate_and_unreferenced():
     assert len(report.messages()) == 4
 
 
+@pytest.mark.parametrize("scale", [1e-6, 1.0, 1e6])
+def test_a_stray_point_far_away_does_not_make_small_faces_degenerate(scale):
+    """The zero-area threshold follows the faces' extent, not that of
+    points no face uses: a 50 x 50 grid with one unreferenced vertex a
+    million grid sizes away keeps every face, at any scale."""
+    n = 50
+    x, y = np.meshgrid(np.arange(n + 1), np.arange(n + 1))
+    grid = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], 1) * scale
+    ids = np.arange((n + 1) * (n + 1)).reshape(n + 1, n + 1)
+    a, b, c, d = ids[:-1, :-1].ravel(), ids[:-1, 1:].ravel(), ids[1:, 1:].ravel(), ids[1:, :-1].ravel()
+    f = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    v = np.vstack([grid, [[1e6 * n * scale, 0, 0]]])
+    _, cf, _, report = clean_mesh(v, f)
+    assert len(cf) == len(f) and report.degenerate_faces == 0 and report.unreferenced_vertices == 1
+
+
 def test_single_triangle_is_kept():
     v, f, _, _ = clean_mesh(SQUARE_V[:3], SQUARE_F[:1])
     assert f.shape == (1, 3)
