@@ -13,6 +13,7 @@ import math
 import os
 import re
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -206,7 +207,14 @@ def _camera_of(path: str, label: str, it: dict, meta: dict) -> Camera:
                 raise CameraError("rotation is not a 3×3 rotation matrix (orthonormal columns)")
             if np.linalg.det(rot) < 0:
                 raise CameraError("rotation is a reflection (determinant -1)")
-            return look_at(eye, eye - rot[:, 2], rot[:, 1], **common)
+            if common["near"] is None or common["far"] is None:
+                raise CameraError("a camera given by 'rotation' needs 'near' and 'far' (model units): without a "
+                                  "target there is no distance to scale their defaults by")
+            # look_at checks every value; the rotation is then the one stored,
+            # as a camera table's is (rebuilt from its axes it could differ in
+            # the last bits).
+            camera = look_at(eye, eye - rot[:, 2], rot[:, 1], **common)
+            return eqx.tree_at(lambda c: c.rotation, camera, jnp.asarray(rot, camera.rotation.dtype))
         return look_at(eye, it["target"], it.get("up", (0, 1, 0)), **common)
     except (KeyError, ValueError, TypeError) as exc:
         raise CameraError(f"{path}: {label}: {str(exc).removeprefix('look_at: ')}") from exc

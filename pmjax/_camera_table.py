@@ -400,7 +400,10 @@ def read_camera_table(path, *, limit: Optional[int] = None) -> CameraTable:
         gram = np.einsum("nji,njk->nik", rotation, rotation)
         _first(path, np.abs(gram - np.eye(3)).max(axis=(1, 2)) > 1e-4, "r00..r22 is not orthonormal")
         _first(path, np.linalg.det(rotation) < 0, "r00..r22 is a reflection (determinant -1)")
-        dist = np.ones(n)
+        if "near" not in cols or "far" not in cols:
+            raise CameraError(f"{path}: columns r00..r22 need columns 'near' and 'far' (model units): without a "
+                              "target there is no distance to scale their defaults by")
+        dist = None
     fov = num("fov_y_deg", 45.0)
     ortho = _flags(path, cols, "orthographic", n)
     ortho_height = num("ortho_height", 1.0)

@@ -23,6 +23,27 @@ def test_camera_files_round_trip(tmp_path, ext):
         assert np.allclose(np.asarray(getattr(back, name)), np.asarray(getattr(cams, name)), atol=1e-5), name
 
 
+def test_a_rotation_camera_reads_back_as_stored_and_needs_near_and_far(tmp_path):
+    """A JSON camera given by its rotation keeps that rotation bit for bit,
+    as a camera table does; without near and far (no target, so nothing to
+    scale their defaults by) it is refused, in JSON and in a table."""
+    cams = pmjax.random_views(np.random.default_rng(0).normal(size=(50, 3)) * 1e3, 40, seed=2)
+    pmjax.save_cameras(cams, tmp_path / "c.json")
+    pmjax.write_camera_table(pmjax.table_from_cameras(cams), tmp_path / "c.parquet")
+    text, table = pmjax.load_cameras(tmp_path / "c.json"), pmjax.load_cameras(tmp_path / "c.parquet")
+    for name in ("eye", "rotation", "near", "far"):
+        assert np.array_equal(np.asarray(getattr(text, name)), np.asarray(getattr(table, name))), name
+    p = tmp_path / "r.json"
+    p.write_text(json.dumps({"cameras": [{"eye": [0, 0, 1], "rotation": np.eye(3).tolist(), "near": 0.1}]}))
+    with pytest.raises(pmjax.CameraError, match="camera 0: a camera given by 'rotation' needs 'near' and 'far'"):
+        pmjax.load_cameras(p)
+    cols = {"eye_x": [0.0], "eye_y": [0.0], "eye_z": [1.0]}
+    cols.update({f"r{i}{j}": [float(i == j)] for i in range(3) for j in range(3)})
+    np.savez(tmp_path / "r.npz", **{k: np.asarray(v) for k, v in cols.items()})
+    with pytest.raises(pmjax.CameraError, match="r.npz: columns r00..r22 need columns 'near' and 'far'"):
+        pmjax.load_cameras(tmp_path / "r.npz")
+
+
 def test_bad_camera_files_name_the_camera(tmp_path):
     p = tmp_path / "c.json"
     p.write_text(json.dumps({"cameras": [{"eye": [0, 0, 1], "target": [0, 0, 0]}, {"eye": [1, 2]}]}))
