@@ -356,13 +356,13 @@ def cmd_eval(args) -> int:
 
 def _model_vertices(path: str) -> np.ndarray:
     """The original vertices of a ``.pmz``, or of a mesh file once cleaned
-    (the vertices a hierarchy built from it would have)."""
+    (the vertices a hierarchy built from it would have: float32, as stored)."""
     import pmjax
 
     if path.endswith(".pmz"):
         pm = pmjax.read_pm(path)
         return pm.vertices[: pm.n_original_vertices]
-    return pmjax.load_clean_mesh(path)[0]
+    return pmjax.load_clean_mesh(path)[0].astype(np.float32)
 
 
 def cmd_camera(args) -> int:

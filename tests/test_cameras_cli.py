@@ -44,6 +44,26 @@ def test_a_rotation_camera_reads_back_as_stored_and_needs_near_and_far(tmp_path)
         pmjax.load_cameras(tmp_path / "r.npz")
 
 
+def test_orbit_of_a_mesh_file_and_of_its_pmz_are_the_same_cameras(tmp_path, data_path):
+    """A mesh file's cameras come from the float32 vertices its hierarchy
+    stores, also where its coordinates are not float32 numbers."""
+    import trimesh
+
+    mesh = trimesh.load(data_path("cow.ply"), process=False)
+    v = np.asarray(mesh.vertices, np.float64) / 3.0 + 0.1
+    src = tmp_path / "third.off"  # written by hand: every digit of the float64 values
+    src.write_text(f"OFF\n{len(v)} {len(mesh.faces)} 0\n" + "".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in v.tolist())
+                   + "".join(f"3 {a} {b} {c}\n" for a, b, c in mesh.faces))
+    assert not np.array_equal(pmjax.load_clean_mesh(str(src))[0], v.astype(np.float32))
+    assert main(["build", str(src), "-o", str(tmp_path / "third.pmz"), "-q"]) == 0
+    got = []
+    for model, out in ((src, "a.npz"), (tmp_path / "third.pmz", "b.npz")):
+        assert main(["camera", "orbit", str(model), "-n", "16", "-o", str(tmp_path / out)]) == 0
+        got.append(pmjax.read_camera_table(tmp_path / out))
+    for name in ("eye", "rotation", "near", "far"):
+        assert np.array_equal(getattr(got[0], name), getattr(got[1], name)), name
+
+
 def test_bad_camera_files_name_the_camera(tmp_path):
     p = tmp_path / "c.json"
     p.write_text(json.dumps({"cameras": [{"eye": [0, 0, 1], "target": [0, 0, 0]}, {"eye": [1, 2]}]}))
