@@ -1037,7 +1037,9 @@ def write_mesh(path, vertices, faces) -> None:
 
     Args:
         path: output file (:data:`MESH_OUTPUTS`; no extension: PLY).
-        vertices: ``(V, 3)`` coordinates.
+        vertices: ``(V, 3)`` coordinates: float32 ones are written exactly in
+            every format, float64 ones in OBJ and OFF (PLY, STL and GLB store
+            float32).
         faces: ``(F, 3)`` integer indices into ``vertices``.
 
     Raises:
@@ -1060,8 +1062,27 @@ def write_mesh(path, vertices, faces) -> None:
     if f.size and (f.min() < 0 or f.max() >= len(v)):
         raise ValueError(f"{name}: face indices run from {f.min()} to {f.max()} but there are {len(v)} vertices")
     # Exported in memory, so a failing export leaves no file behind.
-    data = export_mesh(trimesh.Trimesh(v, f, process=False), None, file_type=file_type)
+    if file_type in ("obj", "off"):
+        data = _text_mesh(v, f, file_type)
+    else:
+        data = export_mesh(trimesh.Trimesh(v, f, process=False), None, file_type=file_type)
     if isinstance(data, str):
         data = data.encode("utf-8")
     with atomic_path(path, "." + file_type) as tmp, open(tmp, "wb") as fh:
         fh.write(data)
+
+
+def _text_mesh(v: np.ndarray, f: np.ndarray, file_type: str) -> bytes:
+    """An OBJ or OFF file of the mesh whose numbers read back exactly: each
+    coordinate with the significant digits its float needs (9 for float32,
+    17 otherwise), not a fixed count of decimals, which would flatten a model
+    measured in micrometres and round any model's last bits."""
+    digits = 9 if v.dtype == np.float32 else 17
+    coords = "\n".join(" ".join(f"{x:.{digits}g}" for x in row) for row in v.tolist())
+    if file_type == "obj":
+        lines = ["v " + line for line in coords.split("\n")] if len(v) else []
+        lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in f.tolist()]
+    else:
+        lines = ["OFF", f"{len(v)} {len(f)} 0"] + (coords.split("\n") if len(v) else [])
+        lines += [f"3 {a} {b} {c}" for a, b, c in f.tolist()]
+    return ("\n".join(lines) + "\n").encode("ascii")

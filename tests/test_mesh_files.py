@@ -340,6 +340,21 @@ def test_mesh_outputs_are_written_in_the_format_of_their_extension(tmp_path):
     assert sorted(os.listdir(tmp_path)) == sorted(f"square{e}" for e in MESH_OUTPUTS + ("",))
 
 
+@pytest.mark.parametrize("scale", [1e-9, 1.0 / 3.0, 1e30])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_mesh_outputs_keep_every_bit_of_the_coordinates_at_any_scale(tmp_path, scale, dtype):
+    """Every format gives back the coordinates written, bit for bit, also
+    those of a model measured in nanometres or in light years (text
+    formats write each number's significant digits, not fixed decimals)."""
+    v = (np.asarray(V, np.float64) * scale + scale / 7).astype(dtype)
+    for ext in MESH_OUTPUTS:
+        if dtype == np.float64 and ext in (".ply", ".stl", ".glb"):
+            continue  # float32 in the file
+        write_mesh(tmp_path / f"s{ext}", v, F)
+        got, f, _, _ = pmjax.load_clean_mesh(tmp_path / f"s{ext}")
+        assert np.array_equal(got.astype(dtype), v) and np.array_equal(f, F), ext
+
+
 @pytest.fixture(scope="module")
 def square_pm(tmp_path_factory):
     path = tmp_path_factory.mktemp("square") / "square.pmz"
