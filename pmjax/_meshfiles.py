@@ -492,6 +492,13 @@ def _check_binary_ply(fh, head: bytes, size: int, name: str) -> None:
                 raise MeshError(f"{name}: 'face' element 0 (header line {element.line}) lists {n} vertices at byte "
                                 f"{pos + offset}; a face needs 3 or more: the header's counts"
                                 f"{f' (before it: {before})' if before else ''} are wrong or the file is damaged")
+            # The first row's list must end inside the file (a forged length
+            # would otherwise make a row type of any size).
+            end = pos + offset + count_dtype.itemsize + max(n, 0) * np.dtype(prop.dtype).itemsize
+            if element.count and end > size:
+                raise MeshError(f"{name}: '{element.name}' element 0 (header line {element.line}) starts with a list "
+                                f"of {n} entries at byte {pos + offset}, which would end at byte {end}, past the "
+                                f"file's end at byte {size}: the file is damaged or truncated")
             fields += [(f"n{k}", count_dtype), (f"p{k}", order + prop.dtype, (max(n, 0),))]
             offset += count_dtype.itemsize + max(n, 0) * np.dtype(prop.dtype).itemsize
             has_list = True

@@ -203,6 +203,17 @@ def test_binary_ply_lists_are_checked_to_the_last_row(tmp_path):
         "pmjax reads binary PLY lists of one length only (or the file is damaged); triangulate the mesh first")
 
 
+def test_a_forged_binary_ply_list_length_is_refused_by_element_and_byte(tmp_path):
+    data = binary_ply().replace(b"list uchar int", b"list uint int")
+    start = data.index(b"end_header\n") + len(b"end_header\n") + V.astype("<f4").nbytes
+    body = struct.pack("<I", 600_000_000) + b"\0" * 12 + struct.pack("<I3i", 3, 0, 2, 3)
+    path = write(tmp_path, "forged.ply", data[:start] + body)
+    assert message(path) == (
+        f"{path}: 'face' element 0 (header line 7) starts with a list of 600000000 entries at byte {start}, which "
+        f"would end at byte {start + 4 + 2_400_000_000}, past the file's end at byte {start + len(body)}: the file "
+        "is damaged or truncated")
+
+
 # -- face indices -------------------------------------------------------------------
 
 
