@@ -316,9 +316,17 @@ def _numeric(path, cols, name, n, default=None, integer=False):
     if a.dtype.kind not in "iuf":
         raise CameraError(f"{path}: column {name!r} has dtype {a.dtype}, expected numbers")
     if integer:
-        bad = np.flatnonzero(a != np.round(a)) if a.dtype.kind == "f" else np.array([], int)
+        # Whole numbers that int64 holds: a float's NaN, inf or fraction, or
+        # a value past int64 (float or uint64), would change in the cast.
+        if a.dtype.kind == "f":
+            bad = np.flatnonzero(~((a == np.round(a)) & (np.abs(a) < 2.0 ** 63)))
+        elif a.dtype.kind == "u":
+            bad = np.flatnonzero(a > np.iinfo(np.int64).max)
+        else:
+            bad = np.array([], int)
         if len(bad):
-            raise CameraError(f"{path}: row {bad[0]}: column {name!r} is {a[bad[0]]}, expected an integer")
+            raise CameraError(f"{path}: row {bad[0]}: column {name!r} is {a[bad[0]]}, expected an integer within "
+                              "int64")
         return a.astype(np.int64)
     a = a.astype(np.float64)
     bad = np.flatnonzero(~np.isfinite(a))

@@ -93,6 +93,11 @@ def test_bad_camera_tables_are_refused_by_row_and_column(tmp_path, suffix):
         (dict(near=np.full(4, 2.0), far=np.array([10.0, 10.0, 1.0, 10.0])), "row 2: column 'far'"),
         (dict(eye_z=np.array([5.0, 0.0, 5.0, 5.0])), "row 1: eye and target coincide"),
         (dict(orthographic=np.array([0, 2, 0, 0])), "row 1: column 'orthographic'"),
+        (dict(width=np.array([800.0, 800.0, np.inf, 800.0])), "row 2: column 'width' is inf, expected an integer"),
+        (dict(path_id=np.zeros(4), frame=np.array([0.0, 1e30, 2.0, 3.0])),
+         "row 1: column 'frame' is 1e+30, expected an integer within int64"),
+        (dict(path_id=np.array([0, 0, 2 ** 64 - 1, 0], np.uint64), frame=np.arange(4)),
+         "row 2: column 'path_id' is 18446744073709551615, expected an integer within int64"),
     ]
     for change, message in cases:
         cols = {k: v for k, v in {**good, **change}.items() if v is not None}
