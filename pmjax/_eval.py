@@ -191,6 +191,8 @@ def camera_set(spec: str, *, width: int = 800, height: int = 600, fov_y_deg: flo
         if count < 1 or (head != "random" and len(fields) > 1) or len(fields) > 2:
             raise EvalError(f"camera set {spec!r}: expected {head}:N with N >= 1"
                             + ("[:SEED]" if head == "random" else ""))
+        if seed < 0:
+            raise EvalError(f"camera set {spec!r}: the seed must be a whole number >= 0, not {seed}")
         return CameraSet(head, count, seed=seed, width=width, height=height, fov_y_deg=fov_y_deg)
     if not spec.endswith((".npz", ".parquet")):
         raise EvalError(f"camera set {spec!r}: expected orbit:N, fly:N, random:N[:SEED] or a .npz/.parquet file")

@@ -60,6 +60,18 @@ def test_generated_sets_do_not_depend_on_chunking():
     assert np.array_equal(np.asarray(orbit.eye), np.asarray(orbit_rows(v, 40, 0, 40).camera().eye))
 
 
+@pytest.mark.parametrize("spec, message", [
+    ("random:5:-1", "camera set 'random:5:-1': the seed must be a whole number >= 0, not -1"),
+    ("orbit:0", "camera set 'orbit:0': expected orbit:N with N >= 1"),
+    ("fly:3:1", "camera set 'fly:3:1': expected fly:N with N >= 1"),
+    ("random:x", "camera set 'random:x': expected random:N[:SEED]"),
+])
+def test_bad_camera_set_specs_are_refused_naming_the_spec(spec, message):
+    with pytest.raises(EvalError) as info:
+        pmjax.camera_set(spec)
+    assert str(info.value) == message
+
+
 @pytest.mark.parametrize("suffix", [".npz", ".parquet"])
 def test_camera_table_round_trip(tmp_path, suffix):
     v = np.random.default_rng(1).normal(size=(30, 3))
