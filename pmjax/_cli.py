@@ -62,6 +62,9 @@ COUNT = _whole(1)
 MAX_FRAMES = 1_000_000
 FRAMES = _whole(1, MAX_FRAMES, "; pmjax eval streams larger camera sets in parts (--orbit N, --random N)")
 SIZE = _whole(1, 65536)
+# A camera's defaults (vertical field of view in degrees, image size in
+# pixels, up direction).
+DEFAULT_FOV, DEFAULT_SIZE, DEFAULT_UP = 45.0, (800, 600), (0.0, 1.0, 0.0)
 
 
 def _write_mesh(path: str, vertices, faces) -> None:
@@ -239,9 +242,14 @@ def cmd_refine(args) -> int:
     if args.camera:
         from pmjax._camera_files import load_first_camera
 
+        given = [f"--{k}" for k in ("target", "up", "fov", "size") if getattr(args, k) is not None]
+        if given:
+            raise ValueError(f"--camera gives the whole camera; {', '.join(given)} only go with --eye")
         cam = load_first_camera(args.camera)
     else:
-        cam = _look_at(args, width=args.size[0], height=args.size[1], fov_y_deg=args.fov)
+        args.up = DEFAULT_UP if args.up is None else args.up
+        size = DEFAULT_SIZE if args.size is None else args.size
+        cam = _look_at(args, width=size[0], height=size[1], fov_y_deg=DEFAULT_FOV if args.fov is None else args.fov)
     pm = pmjax.load(args.pm)
     r = pmjax.refine(pm, cam, args.tau, tests=_tests(args), method=args.method)
     jax.block_until_ready(r)
@@ -562,10 +570,13 @@ def build_parser() -> argparse.ArgumentParser:
                        help=f"refinement engine{note}, same results: front (output-sensitive), dense (every pcol), "
                             "auto (front where it is faster; docs/front.md)")
 
-    def add_image_args(p, note=""):
-        p.add_argument("--fov", type=_real(0.0, 180.0, open_low=True, open_high=True), default=45.0,
+    def add_image_args(p, note="", defaults=True):
+        # defaults=False: unset flags stay None, so that a command can tell
+        # them from given ones (and fill in the defaults itself).
+        p.add_argument("--fov", type=_real(0.0, 180.0, open_low=True, open_high=True),
+                       default=DEFAULT_FOV if defaults else None,
                        help=f"vertical field of view, degrees{note} (default 45)")
-        p.add_argument("--size", type=SIZE, nargs=2, default=(800, 600), metavar=("W", "H"),
+        p.add_argument("--size", type=SIZE, nargs=2, default=DEFAULT_SIZE if defaults else None, metavar=("W", "H"),
                        help=f"image size in pixels{note} (default 800 600)")
 
     def add_look_at_args(p, required):
@@ -573,7 +584,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="camera position (model units)")
         p.add_argument("--target", type=FINITE, nargs=3, metavar=("X", "Y", "Z"), required=required,
                        help="the point looked at")
-        p.add_argument("--up", type=FINITE, nargs=3, metavar=("X", "Y", "Z"), default=(0.0, 1.0, 0.0),
+        p.add_argument("--up", type=FINITE, nargs=3, metavar=("X", "Y", "Z"), default=DEFAULT_UP,
                        help="up direction (default 0 1 0)")
 
     p = sub.add_parser("refine", help="refine for one camera and write the mesh",
@@ -585,9 +596,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--eye", type=FINITE, nargs=3, metavar=("X", "Y", "Z"),
                    help="camera position, with --target (model units)")
     p.add_argument("--target", type=FINITE, nargs=3, metavar=("X", "Y", "Z"), help="the point looked at, with --eye")
-    p.add_argument("--up", type=FINITE, nargs=3, metavar=("X", "Y", "Z"), default=(0.0, 1.0, 0.0),
+    p.add_argument("--up", type=FINITE, nargs=3, metavar=("X", "Y", "Z"),
                    help="up direction with --eye (default 0 1 0)")
-    add_image_args(p, note=" with --eye")
+    add_image_args(p, note=" with --eye", defaults=False)
     p.add_argument("-o", "--output", required=True, help="output mesh (.ply, .obj, .off, .stl or .glb)")
     p.add_argument("--stats-json", help="write counts and timing as JSON")
     add_view_args(p)
@@ -658,9 +669,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a fly-through of N frames past each model (repeatable)")
     p.add_argument("--random", type=COUNT, action="append", metavar="N", help="N random views of each model (repeatable)")
     p.add_argument("--seed", type=_whole(0), default=0, help="seed of the random views (default 0)")
-    p.add_argument("--size", type=SIZE, nargs=2, default=(800, 600), metavar=("W", "H"),
+    p.add_argument("--size", type=SIZE, nargs=2, default=DEFAULT_SIZE, metavar=("W", "H"),
                    help="image size of generated cameras (default 800 600)")
-    p.add_argument("--fov", type=_real(0.0, 180.0, open_low=True, open_high=True), default=45.0, help="vertical field of view of generated cameras, degrees")
+    p.add_argument("--fov", type=_real(0.0, 180.0, open_low=True, open_high=True), default=DEFAULT_FOV,
+                   help="vertical field of view of generated cameras, degrees")
     p.add_argument("--tau", type=TAU, action="append", help="tolerance in pixels (repeatable; default 1)")
     p.add_argument("--budget", type=_whole(0), action="append",
                    help="face budget instead of tau (repeatable): the tolerance found is in the tau column")

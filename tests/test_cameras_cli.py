@@ -205,6 +205,10 @@ def test_camera_command_writes_every_kind(tmp_path, built, data_path, capsys):
     assert main(["refine", str(pm_path), "--eye", "0", "1.5", "12", "--target", "0", "0.1", "0", "--size", "640",
                  "480", "--fov", "30", "-o", str(b)]) == 0
     assert a.read_bytes() == b.read_bytes()
+    # A camera file gives the whole camera: look-at flags beside it are refused, not ignored.
+    capsys.readouterr()
+    assert main(["refine", str(pm_path), "--camera", str(cam), "--fov", "60", "--size", "64", "64", "-o", str(a)]) == 2
+    assert "--camera gives the whole camera; --fov, --size only go with --eye" in capsys.readouterr().err
     # orbit round a mesh file or its .pmz: the standard orbit
     want = pmjax.standard_orbit(v, 24, width=400, height=300)
     for src, out in ((model, "orbit.json"), (str(pm_path), "orbit.csv")):
