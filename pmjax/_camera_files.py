@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._atomic import atomic_path
+from ._camera_table import CAMERA_LISTS, camera_file_kind, check_camera_output
 from ._camera import (ROTATION_TOLERANCE, Camera, CameraError, _flag, _numbers, _vector, camera_count, index_camera,
                       look_at, stack_cameras)
 
@@ -27,8 +28,14 @@ _FIELDS = ("eye", "rotation", "fov_y", "near", "far", "ortho_height")
 
 
 def save_cameras(camera: Camera, path) -> None:
-    """Write cameras to JSON (``.json``) or CSV (``.csv``), atomically."""
+    """Write cameras to JSON (``.json``) or CSV (``.csv``), atomically.
+
+    Raises:
+        CameraError: another extension (camera tables:
+            :func:`pmjax.write_camera_table`), before anything is written.
+    """
     path = os.fspath(path)
+    kind = check_camera_output(path, CAMERA_LISTS)
     K = camera_count(camera)
     cams = [camera] if K == 0 else [index_camera(camera, i) for i in range(K)]
     rows = [
@@ -43,7 +50,7 @@ def save_cameras(camera: Camera, path) -> None:
         for r in rows:
             del r["width"], r["height"]
     with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
-        if path.endswith(".csv"):
+        if kind == "csv":
             w = csv.writer(fh)
             w.writerow(["ex", "ey", "ez"] + [f"r{i}{j}" for i in range(3) for j in range(3)]
                        + ["fov_y_deg", "near", "far", "ortho_height", "width", "height", "orthographic"])
@@ -256,10 +263,10 @@ def load_cameras(path) -> Camera:
             the row) and the value.
     """
     path = os.fspath(path)
-    if path.endswith((".npz", ".parquet")):
+    if camera_file_kind(path) in ("npz", "parquet"):
         return _table_camera(path)
     try:
-        if path.endswith(".csv"):
+        if camera_file_kind(path) == "csv":
             items, meta = _csv_cameras(path), _FILE_DEFAULTS
         else:
             items, meta = _json_cameras(path)
@@ -295,10 +302,10 @@ def load_first_camera(path) -> Camera:
         CameraError: as :func:`load_cameras`; a JSON file over 64 MiB.
     """
     path = os.fspath(path)
-    if path.endswith((".npz", ".parquet")):
+    if camera_file_kind(path) in ("npz", "parquet"):
         return index_camera(_table_camera(path, limit=1), 0)
     try:
-        if path.endswith(".csv"):
+        if camera_file_kind(path) == "csv":
             items, meta = _csv_cameras(path, limit=1), _FILE_DEFAULTS
         else:
             items, meta = _json_cameras(path, max_bytes=MAX_JSON_BYTES)

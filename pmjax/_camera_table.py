@@ -208,22 +208,49 @@ def fly_rows(vertices, n_frames: int, lo: int, hi: int, *, width=800, height=600
 # ---------------------------------------------------------------- files
 
 
+# Camera files by extension (any case): camera lists, then camera tables.
+CAMERA_LISTS, CAMERA_TABLES = (".json", ".csv"), (".npz", ".parquet")
+
+
+def camera_file_kind(path) -> str:
+    """The format of a camera file by its extension, in any case: ``"json"``
+    or ``"csv"`` (camera lists, :func:`pmjax.save_cameras`), ``"npz"`` or
+    ``"parquet"`` (camera tables, :func:`pmjax.write_camera_table`); a name
+    with another extension (or none) reads as JSON, ``""``."""
+    ext = os.path.splitext(os.fspath(path))[1].lower()
+    return ext[1:] if ext in CAMERA_LISTS + CAMERA_TABLES else ""
+
+
+def check_camera_output(path, formats=CAMERA_LISTS + CAMERA_TABLES) -> str:
+    """The format a camera output is written in (:func:`camera_file_kind`),
+    or an error before any work for an extension not among ``formats``.
+
+    Raises:
+        CameraError: naming the path and the extensions written.
+    """
+    kind = camera_file_kind(path)
+    if "." + kind not in formats:
+        ext = os.path.splitext(os.fspath(path))[1]
+        raise CameraError(f"{path}: cameras are written as {', '.join(formats)} (by extension), not "
+                          f"{ext or 'a name without an extension'}")
+    return kind
+
+
 def write_camera_table(table: CameraTable, path) -> None:
     """Write ``table`` to ``.npz`` or ``.parquet`` (atomically), in the
     rotation form of the schema."""
     path = os.fspath(path)
+    kind = check_camera_output(path, CAMERA_TABLES)
     cols = table.columns()
-    if path.endswith(".npz"):
+    if kind == "npz":
         with atomic_path(path, suffix=".npz") as tmp:
             np.savez(tmp, **cols)
-    elif path.endswith(".parquet"):
+    else:
         import pyarrow as pa
         import pyarrow.parquet as pq
 
         with atomic_path(path) as tmp:
             pq.write_table(pa.table(cols), tmp)
-    else:
-        raise CameraError(f"{path}: camera tables are .npz or .parquet files")
 
 
 def _parquet_columns(path: str, limit) -> dict:
@@ -288,12 +315,12 @@ def _npz_columns(path: str, limit: int) -> dict:
 
 def _read_columns(path: str, limit=None) -> dict:
     try:
-        if path.endswith(".npz"):
+        if camera_file_kind(path) == "npz":
             if limit is not None:
                 return _npz_columns(path, limit)
             with np.load(path, allow_pickle=False) as z:
                 return {k: z[k] for k in z.files}
-        if path.endswith(".parquet"):
+        if camera_file_kind(path) == "parquet":
             return _parquet_columns(path, limit)
     except CameraError:
         raise

@@ -375,7 +375,7 @@ def _model_vertices(path: str) -> np.ndarray:
 
 def cmd_camera(args) -> int:
     import pmjax
-    from pmjax._camera_table import fly_rows, orbit_rows, random_rows, table_from_cameras
+    from pmjax._camera_table import camera_file_kind, fly_rows, orbit_rows, random_rows, table_from_cameras
 
     image = dict(width=args.size[0], height=args.size[1], fov_y_deg=args.fov)
     if args.kind == "look-at":
@@ -389,8 +389,7 @@ def cmd_camera(args) -> int:
             table = fly_rows(v, args.n, 0, args.n, **image)
         else:
             table = random_rows(v, args.seed, 0, args.n, **image)
-    ext = os.path.splitext(args.output)[1].lower()
-    if ext in (".npz", ".parquet"):
+    if camera_file_kind(args.output) in ("npz", "parquet"):
         pmjax.write_camera_table(table, args.output)
     else:
         pmjax.save_cameras(table.camera(np.float64), args.output)
@@ -805,6 +804,10 @@ def check_outputs(args) -> None:
         path = getattr(args, name, None)
         if path is not None:
             check_output_path(path, folder=folder)
+    if args.command == "camera":  # a camera file format, before any model is read
+        from pmjax._camera_table import check_camera_output
+
+        check_camera_output(args.output)
     if args.command in ("lod", "refine"):  # a mesh format pmjax writes, before any work
         from pmjax._meshfiles import check_mesh_output
 

@@ -50,7 +50,8 @@ import numpy as np
 from ._atomic import TEMP_MARK, atomic_path, remove_stale_temporaries
 from ._bitsets import WORD
 from ._camera import camera_count, index_camera
-from ._camera_table import CameraTable, _bounds, fly_rows, orbit_rows, random_rows, read_camera_table
+from ._camera_table import (CameraTable, _bounds, camera_file_kind, fly_rows, orbit_rows, random_rows,
+                            read_camera_table)
 from ._pmfile import file_sha256
 from ._predicate import ALL_TESTS, Tests
 
@@ -194,7 +195,7 @@ def camera_set(spec: str, *, width: int = 800, height: int = 600, fov_y_deg: flo
         if seed < 0:
             raise EvalError(f"camera set {spec!r}: the seed must be a whole number >= 0, not {seed}")
         return CameraSet(head, count, seed=seed, width=width, height=height, fov_y_deg=fov_y_deg)
-    if not spec.endswith((".npz", ".parquet")):
+    if camera_file_kind(spec) not in ("npz", "parquet"):
         raise EvalError(f"camera set {spec!r}: expected orbit:N, fly:N, random:N[:SEED] or a .npz/.parquet file")
     if not os.path.exists(spec):
         raise EvalError(f"camera set {spec!r}: no such file")

@@ -64,6 +64,24 @@ def test_orbit_of_a_mesh_file_and_of_its_pmz_are_the_same_cameras(tmp_path, data
         assert np.array_equal(getattr(got[0], name), getattr(got[1], name)), name
 
 
+def test_camera_outputs_are_written_by_their_extension_in_any_case(tmp_path, data_path, capsys):
+    model = data_path("cow.ply")
+    for name, read in (("o.CSV", lambda p: p.read_text().startswith("ex,ey,ez,r00")),
+                       ("o.Json", lambda p: p.read_text().lstrip().startswith("{")),
+                       ("o.NPZ", lambda p: p.read_bytes()[:2] == b"PK"),
+                       ("o.Parquet", lambda p: p.read_bytes()[:4] == b"PAR1")):
+        assert main(["camera", "orbit", model, "-n", "3", "-o", str(tmp_path / name)]) == 0
+        assert read(tmp_path / name), name
+        assert camera_count(pmjax.load_cameras(tmp_path / name)) == 3
+    capsys.readouterr()
+    assert main(["camera", "orbit", model, "-n", "3", "-o", str(tmp_path / "o.txt")]) == 2
+    err = capsys.readouterr().err
+    assert "o.txt: cameras are written as .json, .csv, .npz, .parquet (by extension), not .txt" in err
+    assert not (tmp_path / "o.txt").exists()
+    with pytest.raises(pmjax.CameraError, match="cameras are written as .json, .csv"):
+        pmjax.save_cameras(pmjax.load_cameras(tmp_path / "o.CSV"), tmp_path / "x.npz")
+
+
 def test_bad_camera_files_name_the_camera(tmp_path):
     p = tmp_path / "c.json"
     p.write_text(json.dumps({"cameras": [{"eye": [0, 0, 1], "target": [0, 0, 0]}, {"eye": [1, 2]}]}))
