@@ -3,7 +3,6 @@
 import csv
 import json
 
-import equinox as eqx
 import numpy as np
 import pytest
 
@@ -150,13 +149,29 @@ def test_refine_and_path_commands(tmp_path, built, capsys):
     assert "cannot read cameras" in capsys.readouterr().err
 
 
-def test_failed_camera_write_leaves_nothing(tmp_path):
+@pytest.mark.parametrize("ext", ["json", "csv"])
+def test_failed_camera_write_leaves_the_old_file(tmp_path, monkeypatch, ext):
+    """A write that fails halfway (after its first bytes) leaves the file
+    that was there, whole, and no temporary."""
     cams = pmjax.random_views(np.random.default_rng(0).normal(size=(20, 3)), 2)
-    # A field that cannot be written, set as a pytree function would (Camera(...) refuses it).
-    bad = eqx.tree_at(lambda c: c.ortho_height, cams, None)
-    with pytest.raises(TypeError):
-        pmjax.save_cameras(bad, tmp_path / "c.json")
-    assert list(tmp_path.iterdir()) == []
+    path = tmp_path / f"c.{ext}"
+    pmjax.save_cameras(cams, path)
+    before = path.read_bytes()
+
+    def fail_midway(*args, **kw):
+        fh = args[1] if len(args) > 1 else kw["fp"]
+        fh.write("{partial")
+        raise OSError("disk gone")
+
+    def fail_row(self, row):
+        raise OSError("disk gone")
+
+    monkeypatch.setattr(json, "dump", fail_midway)
+    monkeypatch.setattr(pmjax._camera_files.csv, "writer", lambda fh: type("W", (), {
+        "writerow": lambda self, row: fh.write("ex,") and fail_row(self, row)})())
+    with pytest.raises(OSError, match="disk gone"):
+        pmjax.save_cameras(cams, path)
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == [path.name]
 
 
 @pytest.mark.parametrize("kw, message", [
