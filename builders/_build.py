@@ -218,6 +218,7 @@ def build_pm(
         qd.vertex_quadrics(v0, f0, V0, options.boundary_weight, first_edges, out=quadric[:V0])
         invalid_share = 0.0  # of the last validity checks
         known_invalid = KnownInvalid()
+        last_metric = None
         # Buffers of the C loops, once for the whole build.
         scratch = native.Scratch(cap, F) if native.available() else None
         for batch in range(options.max_batches):
@@ -230,6 +231,11 @@ def build_pm(
             if n_faces == 0 or n_faces <= options.target_faces or enough_vertices:
                 break
             metric = options.metric_for_batch(batch)
+            # A verdict holds for one metric's placements only: where the
+            # schedule moves on, every pair is placed anew.
+            if metric != last_metric:
+                known_invalid = KnownInvalid()
+                last_metric = metric
 
             # Candidates: every edge, plus close vertex pairs that share no edge.
             # Last batch's candidates go before the edges are recounted (the

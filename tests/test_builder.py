@@ -318,6 +318,24 @@ def test_validity_shortcuts_change_nothing(monkeypatch, data_path):
             assert np.array_equal(getattr(other, key), value), key
 
 
+@pytest.mark.parametrize("on", [True, False])
+@pytest.mark.parametrize("metric", ["quadric:12,edge", "edge:14,quadric"])
+def test_known_invalid_verdicts_do_not_outlive_their_metric(monkeypatch, data_path, assert_same_pm, metric, on):
+    """A verdict remembered under one metric's placement says nothing about
+    another's: a schedule that moves on builds what checking every
+    candidate afresh builds (on the motor, verdicts carried over refused
+    collapses valid under the next metric)."""
+    from pmjax.builders import _build, _native, _validity
+
+    v, f, _, _ = pmjax.load_clean_mesh(data_path("motor.ply"))
+    with _native.use_native(on):
+        reference = build_pm(v, f, BuildOptions(metric=metric))
+        monkeypatch.setattr(_validity.KnownInvalid, "of", lambda self, keys: np.zeros(len(keys), bool))
+        afresh = build_pm(v, f, BuildOptions(metric=metric))
+    assert_same_pm(afresh, reference)
+    assert set(np.unique(reference.metric)) == {pmjax.METRICS.index("quadric"), pmjax.METRICS.index("edge")}
+
+
 def test_an_error_on_the_attribute_thread_reaches_the_caller(monkeypatch, data_path):
     """Normals and attributes are computed on a second thread; a failure there
     must surface from build_pm, not be lost or hang the build."""
