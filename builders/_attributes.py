@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pmjax._distance import point_triangle_distance
+from pmjax._distance import dot_rows, point_triangle_distance
 
 from . import _native as native
 from . import _quadrics as quadrics
@@ -129,7 +129,7 @@ def uncovered_distance(vertices, normals, leaves, owner, ring, lo: int, hi: int,
 
     def flat(points):
         rel = points - origin
-        return rel - np.einsum("ij,ij->i", rel, n)[:, None] * n
+        return rel - dot_rows(rel, n)[:, None] * n
 
     dist = point_triangle_distance(flat(vertices[leaves[pair_leaf]]),
                                    *(flat(vertices[ring[pair_face, j]]) for j in range(3)))
@@ -202,11 +202,8 @@ class HierarchyAttributes:
             moving = np.flatnonzero(up >= lo)
             self.top[moving] = up[moving]
             owner = self.top[moving]
-            # The dot product in the order einsum sums it (the first and
-            # third terms, then the second), spelled out so that the C pass
-            # can match it on any NumPy.
-            term = normals[owner] * (vertices[moving] - vertices[owner])
-            height = np.abs((term[:, 0] + term[:, 2]) + term[:, 1])
+            # The dot product in the C pass's order, on any NumPy.
+            height = np.abs(dot_rows(normals[owner], vertices[moving] - vertices[owner]))
             d = np.zeros(hi - lo)
             np.maximum.at(d, owner - lo, height)
         delta[ids] = np.maximum(d, np.maximum(delta[c1], delta[c2]))
