@@ -28,7 +28,7 @@ from . import _native as native
 from . import _quadrics as quadrics
 from ._quadrics import face_cross
 from ._threads import split_rows
-from ._topology import unique_edges
+from ._topology import border_vertices, unique_edges
 
 
 def _angle(n1: np.ndarray, n2: np.ndarray) -> np.ndarray:
@@ -166,9 +166,7 @@ class HierarchyAttributes:
         self.top = np.arange(V0)
         # Original vertices on an open border (an edge of one face).
         ea, eb, count, _ = edges if edges is not None else unique_edges(np.asarray(faces))
-        self.on_border = np.zeros(V0, bool)
-        self.on_border[ea[count == 1]] = True
-        self.on_border[eb[count == 1]] = True
+        self.on_border = border_vertices(ea, eb, count, V0)
 
     def add_batch(self, lo: int, c1: np.ndarray, c2: np.ndarray, ring: np.ndarray, maybe_border: np.ndarray) -> None:
         """Attributes of vertex ids ``lo .. lo+len(c1)-1``, made from ``c1[i]``

@@ -22,7 +22,7 @@ from ._independent import domain_of_independent, select_independent
 from ._metrics import CACHEABLE, METRIC_NAMES, evaluate_metric
 from ._rows import any3, unit
 from ._threads import split_pairs
-from ._topology import VertexFaces, contains_edge, edge_keys, unique_edges
+from ._topology import VertexFaces, border_vertices, contains_edge, edge_keys, unique_edges
 from ._validity import KnownInvalid, collapse_is_valid
 
 
@@ -30,8 +30,8 @@ from ._validity import KnownInvalid, collapse_is_valid
 # lazily for the greedy winners, when there are at most this many of them and
 # at least this share of the last batch's checks failed. Late batches full of
 # permanently invalid candidates (closed fragments, pinches) then cost no
-# greedy rounds, while mostly valid sets (96 % on the bunny) are not checked
-# twice over.
+# greedy rounds, while the mostly valid sets of early batches are not checked
+# twice over (the greedy checks its winners anyway).
 EAGER_VALIDITY = 20_000
 EAGER_INVALID_SHARE = 0.1
 
@@ -266,9 +266,7 @@ def build_pm(
             cache = None  # last batch's rows go before this batch's are sorted
             cache = [metric, *_sorted_by_key(keys, x, cost)] if metric in CACHEABLE else None
 
-            boundary_vertex = np.zeros(next_id, bool)
-            boundary_vertex[ea[ecount == 1]] = True
-            boundary_vertex[eb[ecount == 1]] = True
+            boundary_vertex = border_vertices(ea, eb, ecount, next_id)
             link_test = is_edge & (not options.allow_topology_change)
             within = None  # all of them
             if not (no_limit and not np.isnan(cost).any()):
@@ -278,7 +276,8 @@ def build_pm(
             n_within = len(cost) if within is None else len(within)
             # A batch takes from the cheapest share. When none of those is valid,
             # the dearer rest may still hold valid collapses: try all of them
-            # before giving up (stopping there left the dragon at 2,891 faces).
+            # before giving up, so that the share limits a batch's size and
+            # never where the build stops.
             shares = [1.0] if options.linear else sorted({options.batch_share, 1.0})
             # The C loops read the faces around each vertex, built once a batch.
             mesh = native.Mesh(cur, next_id, pos, scratch) if scratch is not None and not options.linear else None
@@ -588,9 +587,9 @@ def _cheapest(cost: np.ndarray, k: int) -> np.ndarray:
 
 
 def _stable_argsort(x: np.ndarray) -> np.ndarray:
-    """``np.argsort(x, kind="stable")`` for floats, faster: NumPy's SIMD
-    quicksort (several times faster than its merge sort), then each
-    run of equal values put back in index order."""
+    """``np.argsort(x, kind="stable")`` for floats, faster: NumPy's
+    quicksort, which has SIMD kernels where its stable merge sort has none,
+    then each run of equal values put back in index order."""
     order = np.argsort(x, kind="quicksort")
     if len(order) < 2:
         return order
