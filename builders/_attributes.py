@@ -22,13 +22,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from pmjax._distance import point_triangle_distance
+from pmjax._distance import dot_rows, point_triangle_distance
 
 from . import _native as native
 from . import _quadrics as quadrics
 from ._quadrics import face_cross
 from ._threads import split_rows
-from ._topology import unique_edges
+from ._topology import border_vertices, unique_edges
 
 
 def _angle(n1: np.ndarray, n2: np.ndarray) -> np.ndarray:
@@ -129,7 +129,7 @@ def uncovered_distance(vertices, normals, leaves, owner, ring, lo: int, hi: int,
 
     def flat(points):
         rel = points - origin
-        return rel - np.einsum("ij,ij->i", rel, n)[:, None] * n
+        return rel - dot_rows(rel, n)[:, None] * n
 
     dist = point_triangle_distance(flat(vertices[leaves[pair_leaf]]),
                                    *(flat(vertices[ring[pair_face, j]]) for j in range(3)))
@@ -166,9 +166,7 @@ class HierarchyAttributes:
         self.top = np.arange(V0)
         # Original vertices on an open border (an edge of one face).
         ea, eb, count, _ = edges if edges is not None else unique_edges(np.asarray(faces))
-        self.on_border = np.zeros(V0, bool)
-        self.on_border[ea[count == 1]] = True
-        self.on_border[eb[count == 1]] = True
+        self.on_border = border_vertices(ea, eb, count, V0)
 
     def add_batch(self, lo: int, c1: np.ndarray, c2: np.ndarray, ring: np.ndarray, maybe_border: np.ndarray) -> None:
         """Attributes of vertex ids ``lo .. lo+len(c1)-1``, made from ``c1[i]``
@@ -202,11 +200,8 @@ class HierarchyAttributes:
             moving = np.flatnonzero(up >= lo)
             self.top[moving] = up[moving]
             owner = self.top[moving]
-            # The dot product in the order einsum sums it (the first and
-            # third terms, then the second), spelled out so that the C pass
-            # can match it on any NumPy.
-            term = normals[owner] * (vertices[moving] - vertices[owner])
-            height = np.abs((term[:, 0] + term[:, 2]) + term[:, 1])
+            # The dot product in the C pass's order, on any NumPy.
+            height = np.abs(dot_rows(normals[owner], vertices[moving] - vertices[owner]))
             d = np.zeros(hi - lo)
             np.maximum.at(d, owner - lo, height)
         delta[ids] = np.maximum(d, np.maximum(delta[c1], delta[c2]))

@@ -22,7 +22,7 @@ from ._independent import domain_of_independent, select_independent
 from ._metrics import CACHEABLE, METRIC_NAMES, evaluate_metric
 from ._rows import any3, unit
 from ._threads import split_pairs
-from ._topology import VertexFaces, contains_edge, edge_keys, unique_edges
+from ._topology import VertexFaces, border_vertices, contains_edge, edge_keys, unique_edges
 from ._validity import KnownInvalid, collapse_is_valid
 
 
@@ -30,8 +30,8 @@ from ._validity import KnownInvalid, collapse_is_valid
 # lazily for the greedy winners, when there are at most this many of them and
 # at least this share of the last batch's checks failed. Late batches full of
 # permanently invalid candidates (closed fragments, pinches) then cost no
-# greedy rounds, while mostly valid sets (96 % on the bunny) are not checked
-# twice over.
+# greedy rounds, while the mostly valid sets of early batches are not checked
+# twice over (the greedy checks its winners anyway).
 EAGER_VALIDITY = 20_000
 EAGER_INVALID_SHARE = 0.1
 
@@ -72,6 +72,15 @@ class BuildOptions:
     boundary_weight: float = 1.0
     max_batches: int = 100_000
 
+    def __post_init__(self):
+        # NumPy scalars become Python numbers: the header that stores the
+        # options is JSON, and the build's arithmetic then does not depend on
+        # a NumPy type's precision (a float32 distance, say).
+        for field in dataclasses.fields(self):
+            value = getattr(self, field.name)
+            if isinstance(value, np.generic):
+                object.__setattr__(self, field.name, value.item())
+
     def schedule(self) -> list[tuple[str, int | None]]:
         """Parsed metric schedule: ``[(name, batches or None for the rest)]``."""
         out = []
@@ -81,8 +90,10 @@ class BuildOptions:
             if name not in METRIC_NAMES:
                 raise ValueError(f"unknown metric {name!r}; choose from {', '.join(METRIC_NAMES)}")
             if count:
-                if not count.isdigit() or int(count) < 1:
-                    raise ValueError(f"metric schedule {part!r}: batch count must be a positive integer")
+                # isdecimal, not isdigit: int() refuses superscripts such as "²".
+                if not count.isdecimal() or int(count) < 1:
+                    raise ValueError(f"metric schedule {self.metric!r}: batch count {count!r} of {name!r} must be a "
+                                     "positive integer")
                 out.append((name, int(count)))
             elif i != len(parts) - 1:
                 raise ValueError(f"metric schedule {self.metric!r}: only the last entry may omit ':N'")
@@ -162,22 +173,9 @@ def build_pm(
     options.validate()
     t0 = time.perf_counter()
     v0 = np.asarray(vertices, np.float64)
+    f0 = _checked_input(v0, np.asarray(faces))
     check_float32_precision(v0)
-    f0 = np.asarray(faces)
-    # The arrays should come from clean_mesh; say so rather than fail deep inside.
-    if v0.ndim != 2 or v0.shape[1] != 3 or f0.ndim != 2 or f0.shape[1] != 3 or len(f0) == 0:
-        raise ValueError(f"build_pm needs vertices (V, 3) and at least one face (F, 3), got {v0.shape} and "
-                         f"{f0.shape}; clean the mesh with pmjax.clean_mesh first")
     V0, F = len(v0), len(f0)
-    # Vertex ids up to 2 V0 must fit int32 (every step reads int32 faces).
-    if not np.issubdtype(f0.dtype, np.integer) or 2 * V0 >= 2**31:
-        raise ValueError(f"build_pm needs integer faces and fewer than 2**30 vertices, got {f0.dtype} faces and "
-                         f"{V0} vertices")
-    if f0.dtype != np.int32:
-        if f0.min() < 0 or f0.max() >= V0:
-            raise ValueError(f"build_pm: a face vertex id is outside 0 .. {V0 - 1}; clean the mesh with "
-                             "pmjax.clean_mesh first")
-        f0 = f0.astype(np.int32)
     cap = 2 * V0  # every pcol consumes two vertices and makes one: P < V0
     pos = np.zeros((cap, 3))
     pos[:V0] = v0
@@ -218,6 +216,7 @@ def build_pm(
         qd.vertex_quadrics(v0, f0, V0, options.boundary_weight, first_edges, out=quadric[:V0])
         invalid_share = 0.0  # of the last validity checks
         known_invalid = KnownInvalid()
+        last_metric = None
         # Buffers of the C loops, once for the whole build.
         scratch = native.Scratch(cap, F) if native.available() else None
         for batch in range(options.max_batches):
@@ -230,6 +229,11 @@ def build_pm(
             if n_faces == 0 or n_faces <= options.target_faces or enough_vertices:
                 break
             metric = options.metric_for_batch(batch)
+            # A verdict holds for one metric's placements only: where the
+            # schedule moves on, every pair is placed anew.
+            if metric != last_metric:
+                known_invalid = KnownInvalid()
+                last_metric = metric
 
             # Candidates: every edge, plus close vertex pairs that share no edge.
             # Last batch's candidates go before the edges are recounted (the
@@ -262,9 +266,7 @@ def build_pm(
             cache = None  # last batch's rows go before this batch's are sorted
             cache = [metric, *_sorted_by_key(keys, x, cost)] if metric in CACHEABLE else None
 
-            boundary_vertex = np.zeros(next_id, bool)
-            boundary_vertex[ea[ecount == 1]] = True
-            boundary_vertex[eb[ecount == 1]] = True
+            boundary_vertex = border_vertices(ea, eb, ecount, next_id)
             link_test = is_edge & (not options.allow_topology_change)
             within = None  # all of them
             if not (no_limit and not np.isnan(cost).any()):
@@ -274,7 +276,8 @@ def build_pm(
             n_within = len(cost) if within is None else len(within)
             # A batch takes from the cheapest share. When none of those is valid,
             # the dearer rest may still hold valid collapses: try all of them
-            # before giving up (stopping there left the dragon at 2,891 faces).
+            # before giving up, so that the share limits a batch's size and
+            # never where the build stops.
             shares = [1.0] if options.linear else sorted({options.batch_share, 1.0})
             # The C loops read the faces around each vertex, built once a batch.
             mesh = native.Mesh(cur, next_id, pos, scratch) if scratch is not None and not options.linear else None
@@ -401,6 +404,50 @@ def build_pm(
     # The build's time, as the header reports it, includes that fit.
     header["build"]["seconds"] = round(time.perf_counter() - t0, 3)
     return dataclasses.replace(data, shading_normals=shading_normals)
+
+
+def _checked_input(v0: np.ndarray, f0: np.ndarray) -> np.ndarray:
+    """The input checks of :func:`build_pm`, before any work: shapes, sizes the
+    int32 steps can address, finite float32 positions and face ids in range.
+
+    Args:
+        v0: ``float64[V0, 3]`` vertices; f0: ``(F, 3)`` faces, any integer type.
+
+    Returns:
+        ``int32[F, 3]`` faces (``f0`` itself if it is int32 already).
+
+    Raises:
+        ValueError: naming the first bad vertex or face and its value.
+    """
+    # The arrays should come from clean_mesh; say so rather than fail deep inside.
+    if v0.ndim != 2 or v0.shape[1] != 3 or f0.ndim != 2 or f0.shape[1] != 3 or len(f0) == 0:
+        raise ValueError(f"build_pm needs vertices (V, 3) and at least one face (F, 3), got {v0.shape} and "
+                         f"{f0.shape}; clean the mesh with pmjax.clean_mesh first")
+    V0, F = len(v0), len(f0)
+    if not np.issubdtype(f0.dtype, np.integer):
+        raise ValueError(f"build_pm needs integer faces, got {f0.dtype} faces")
+    # Vertex ids up to 2 V0 and face slots up to 3 F must fit int32: every
+    # step reads int32 faces, and the C loops index their slots in int32.
+    if 2 * V0 >= 2**31:
+        raise ValueError(f"build_pm takes fewer than 2**30 vertices (new vertex ids reach twice their count and "
+                         f"must fit int32), got {V0} vertices")
+    if 3 * F >= 2**31:
+        raise ValueError(f"build_pm takes fewer than 2**31 / 3 faces (their corner slots must fit int32), got {F} "
+                         "faces")
+    # Positions are stored as float32: beyond its largest value (or NaN) a
+    # position is lost, and the build would only fail late, or not at all.
+    # Min and max first: NaN carries through both, and no temporary is made.
+    largest = float(np.finfo(np.float32).max)
+    if len(v0) and not (-largest <= v0.min() and v0.max() <= largest):
+        bad = int(np.flatnonzero(~np.all(np.abs(v0) <= largest, axis=1))[0])
+        raise ValueError(f"build_pm: vertex {bad} has a coordinate that is not finite or beyond float32's range "
+                         f"(|x| <= {largest:.8g}), which pmjax stores: {v0[bad].tolist()}")
+    if int(f0.min()) < 0 or int(f0.max()) >= V0:
+        out = (f0 < 0) | (f0 >= V0)
+        bad = int(np.flatnonzero(np.any(out, axis=1))[0])
+        raise ValueError(f"build_pm: face {bad} holds vertex id {int(f0[bad][out[bad]][0])}, outside 0 .. {V0 - 1}; "
+                         "clean the mesh with pmjax.clean_mesh first")
+    return f0 if f0.dtype == np.int32 else f0.astype(np.int32)
 
 
 def _select_batch(a, b, x, link_test, elig, cur, n_vertices, pos, min_area2, boundary_vertex, linear, eager_skip,
@@ -540,9 +587,9 @@ def _cheapest(cost: np.ndarray, k: int) -> np.ndarray:
 
 
 def _stable_argsort(x: np.ndarray) -> np.ndarray:
-    """``np.argsort(x, kind="stable")`` for floats, faster: NumPy's SIMD
-    quicksort (several times faster than its merge sort), then each
-    run of equal values put back in index order."""
+    """``np.argsort(x, kind="stable")`` for floats, faster: NumPy's
+    quicksort, which has SIMD kernels where its stable merge sort has none,
+    then each run of equal values put back in index order."""
     order = np.argsort(x, kind="quicksort")
     if len(order) < 2:
         return order

@@ -150,8 +150,9 @@ static void cross(const double u[3], const double v[3], double out[3]) {
 
 static double dot(const double u[3], const double v[3]) { return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]; }
 
-/* np.einsum("ij,ij->i")'s dot product of rows of three: the first and third
- * terms, then the second. */
+/* A dot product of rows of three in pmjax/_distance.py dot_rows's order (the
+ * order of np.einsum("ij,ij->i") here): the first and third terms, then the
+ * second. */
 static double einsum_dot(const double u[3], const double v[3]) { return (u[0] * v[0] + u[2] * v[2]) + u[1] * v[1]; }
 
 static int has(const int32_t *t, int32_t v) { return t[0] == v || t[1] == v || t[2] == v; }
@@ -680,7 +681,7 @@ int64_t pmx_apply_batch(int64_t n_faces, const int32_t *faces, const int64_t *fi
 /* ---- how far leaves lie off the coarse surface, sideways ---------------- */
 
 /* builders/_attributes.py uncovered_distance, bit for bit: the same
- * operations in NumPy's order (np.cross's products as cross, einsum's dot as
+ * operations in NumPy's order (np.cross's products as cross, dot_rows as
  * einsum_dot, np.linalg.norm's (s0 + s1) + s2 as norm3). */
 static void sub3(const double *x, const double *y, double *out)
 {

@@ -149,9 +149,10 @@ def scatter_add(values: np.ndarray, index: np.ndarray, n: int, repeat: int = 1,
                 out: np.ndarray | None = None) -> np.ndarray:
     """``out[index[i]] += values[i // repeat]`` for ``(N, k)`` values.
 
-    bincount per column is much faster than np.add.at for wide arrays;
-    columns are made contiguous and repeated one at a time (a 2-D repeat and
-    strided column reads cost several times more), same sums bit for bit.
+    bincount per column rather than np.add.at, which is unbuffered and
+    slow for wide arrays; columns are made contiguous and repeated one at a
+    time (a 2-D repeat and strided column reads touch every row's whole
+    cache line per column), same sums bit for bit.
 
     Args:
         out: contiguous ``float64[n, k]`` to add to (``None``: zeros). The
@@ -238,7 +239,7 @@ def optimal_placement(q: np.ndarray, a: np.ndarray, b: np.ndarray):
         ``(position (N, 3), cost (N,))`` with cost ``>= 0``.
     """
     # Coefficient columns made contiguous first: every line below reads them,
-    # and strided reads of a row-major (N, 10) would be several times slower.
+    # and a strided column of a row-major (N, 10) loads a cache line per row.
     q = np.asfortranarray(q)
     a00, a01, a02, b0, a11, a12, b1, a22, b2 = (q[:, k] for k in (0, 1, 2, 3, 4, 5, 6, 7, 8))
     c00 = a11 * a22 - a12 * a12

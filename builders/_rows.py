@@ -1,8 +1,9 @@
 """Row-wise helpers for ``(N, 3)`` arrays (triangles, vectors).
 
-NumPy reduces over a length-3 axis through its generic reduction loop, which
-costs several times three elementwise operations on the columns; the builder
-does these per face and per candidate every batch, so they are spelled out.
+NumPy reduces over a length-3 axis through its generic reduction loop, whose
+per-row overhead outweighs three elementwise operations on the columns; the
+builder does these per face and per candidate every batch, so they are
+spelled out.
 """
 
 from __future__ import annotations

@@ -80,6 +80,16 @@ def unique_edges(faces: np.ndarray):
     return lo.astype(faces.dtype), hi.astype(faces.dtype), counts, keys
 
 
+def border_vertices(a: np.ndarray, b: np.ndarray, face_count: np.ndarray, n_vertices: int) -> np.ndarray:
+    """``bool[n_vertices]``: the vertices on an open border, that is on an
+    edge of one face (``a, b, face_count`` as :func:`unique_edges` gives them)."""
+    border = face_count == 1
+    out = np.zeros(n_vertices, bool)
+    out[a[border]] = True
+    out[b[border]] = True
+    return out
+
+
 def contains_edge(edge_keys_sorted: np.ndarray, keys: np.ndarray) -> np.ndarray:
     """Whether each key of ``keys`` is among ``edge_keys_sorted`` (ascending,
     as :func:`unique_edges` gives them)."""

@@ -92,10 +92,12 @@ class KnownInvalid:
 
     A collapse's validity depends only on its domain faces, their vertices'
     positions, the placement and the endpoints' border flags. Pair keys name
-    vertex ids, and an id's position and quadric (hence the placement) never
-    change, so a verdict holds until a collapse touches a face around an
-    endpoint. Late batches of the dragon re-check the same few thousand stuck
-    candidates otherwise.
+    vertex ids, and an id's position and quadric never change; under one
+    metric the placement depends on those and on the faces around the
+    endpoints alone, so a verdict holds until a collapse touches a face
+    around an endpoint. Another metric places the pair elsewhere: the builder
+    starts a fresh set where its metric schedule moves on. Without the set,
+    late batches re-check the same stuck candidates batch after batch.
     Keys are :func:`edge_keys`.
     """
 

@@ -85,9 +85,6 @@ def cmd_build(args) -> int:
     from pmjax import load_clean_mesh, save_pm
     from pmjax.builders import BuildOptions, build_pm, file_sha256
 
-    vertices, faces, _, report = load_clean_mesh(args.mesh)
-    for line in report.messages():
-        print(f"{args.mesh}: {line}", file=sys.stderr)
     options = BuildOptions(
         metric=args.metric,
         pair_distance=args.pair_distance,
@@ -99,6 +96,11 @@ def cmd_build(args) -> int:
         allow_topology_change=args.allow_topology_change,
         boundary_weight=args.boundary_weight,
     )
+    # A mistyped option is refused before the mesh is read.
+    options.validate()
+    vertices, faces, _, report = load_clean_mesh(args.mesh)
+    for line in report.messages():
+        print(f"{args.mesh}: {line}", file=sys.stderr)
     pm = build_pm(vertices, faces, options, progress=not args.quiet, source_sha256=file_sha256(args.mesh))
     pm.header["source"] = os.path.basename(args.mesh)
     save_pm(pm, args.output, version=args.file_version)

@@ -36,25 +36,29 @@ def point_triangle_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.n
     """
     ab, ac, ap = b - a, c - a, p - a
     n = np.cross(ab, ac)
-    nn = _dot(n, n)
+    nn = dot_rows(n, n)
     safe = np.where(nn > 0, nn, 1.0)
     # Barycentric weights of the projection, from signed sub-areas.
-    w_b = _dot(np.cross(ap, ac), n) / safe
-    w_c = _dot(np.cross(ab, ap), n) / safe
+    w_b = dot_rows(np.cross(ap, ac), n) / safe
+    w_c = dot_rows(np.cross(ab, ap), n) / safe
     inside = (nn > 0) & (w_b >= 0) & (w_c >= 0) & (w_b + w_c <= 1)
-    plane = np.abs(_dot(ap, n)) / np.sqrt(safe)
+    plane = np.abs(dot_rows(ap, n)) / np.sqrt(safe)
     border = np.minimum(np.minimum(_seg_dist(p, a, b), _seg_dist(p, a, c)), _seg_dist(p, b, c))
     return np.where(inside, plane, border)
 
 
-def _dot(x, y):
-    return np.einsum("ij,ij->i", x, y)
+def dot_rows(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Row-wise dot product of ``[N, 3]`` arrays summed as ``(x0 y0 + x2 y2) +
+    x1 y1``: the order the builder's C loops use (their ``einsum_dot``),
+    written out so that NumPy's path gives their bits whatever order its
+    einsum kernel would take."""
+    return (x[:, 0] * y[:, 0] + x[:, 2] * y[:, 2]) + x[:, 1] * y[:, 1]
 
 
 def _on_segment(p, a, b):
     ab = b - a
-    ll = _dot(ab, ab)
-    t = np.clip(_dot(p - a, ab) / np.where(ll > 0, ll, 1.0), 0.0, 1.0)
+    ll = dot_rows(ab, ab)
+    t = np.clip(dot_rows(p - a, ab) / np.where(ll > 0, ll, 1.0), 0.0, 1.0)
     return a + ab * t[:, None]
 
 

@@ -348,6 +348,20 @@ def test_uncovered_distance_is_the_numpy_distance():
     assert empty.shape == (0,)
 
 
+def test_numpy_distances_do_not_depend_on_the_memory_layout():
+    """The NumPy distances sum their dot products in the C loops' order
+    written out: the same bits for row-major and column-major inputs (an
+    einsum takes another order over column-major rows)."""
+    from pmjax._distance import dot_rows, point_triangle_distance
+
+    rng = np.random.default_rng(3)
+    p, a, b, c = (rng.normal(size=(5000, 3)) * 10.0 ** rng.integers(-3, 4, (5000, 1)) for _ in range(4))
+    rows = point_triangle_distance(p, a, b, c)
+    columns = point_triangle_distance(*(np.asfortranarray(x) for x in (p, a, b, c)))
+    assert rows.tobytes() == columns.tobytes()
+    assert dot_rows(p, a).tobytes() == dot_rows(np.asfortranarray(p), np.asfortranarray(a)).tobytes()
+
+
 def test_edges_are_the_numpy_edges(first_batch):
     """Keys made, sorted and counted in C: unique_edges' arrays, dtypes
     included, on a real mesh and on an open fan with repeated edges."""

@@ -107,6 +107,81 @@ def test_metric_schedule_switches_between_batches(data_path):
         BuildOptions(metric="edge,quadric").validate()
 
 
+def test_a_schedule_count_must_be_decimal_digits():
+    """A superscript is a digit to str.isdigit but not to int(): refused,
+    naming the schedule, like any other bad count."""
+    for schedule in ("edge:\u00b2,quadric", "edge:0,quadric", "edge:x,quadric", "edge:-1,quadric"):
+        with pytest.raises(ValueError, match=f"metric schedule '{schedule}': batch count"):
+            BuildOptions(metric=schedule).validate()
+    assert BuildOptions(metric="edge:12,quadric").schedule() == [("edge", 12), ("quadric", None)]
+
+
+def test_numpy_scalar_options_build_and_save(tmp_path, data_path):
+    """Options given as NumPy scalars are kept as Python numbers: the header
+    that stores them is JSON, and the build is the one of the same numbers."""
+    v, f, _, _ = pmjax.load_clean_mesh(data_path("motor.ply"))
+    plain = BuildOptions(target_faces=1000, pair_distance=0.015625, batch_share=0.25, linear=False)
+    numpy = BuildOptions(target_faces=np.int64(1000), pair_distance=np.float32(0.015625),
+                         batch_share=np.float64(0.25), linear=np.bool_(False))
+    assert numpy == plain and type(numpy.target_faces) is int and type(numpy.pair_distance) is float
+    pm = build_pm(v, f, numpy)
+    pmjax.save_pm(pm, tmp_path / "motor.pmz")
+    back = pmjax.read_pm(tmp_path / "motor.pmz")
+    assert back.header["build"]["target_faces"] == 1000 and back.header["build"]["pair_distance"] == 0.015625
+    for key, value in build_pm(v, f, plain).arrays().items():
+        assert np.array_equal(getattr(back, key), value), key
+
+
+@pytest.mark.parametrize("on", [True, False])
+def test_bad_input_is_refused_before_any_work(monkeypatch, on):
+    """Non-finite or float32-overflowing positions and face ids outside the
+    vertices, of any integer type, are refused up front, naming the first
+    bad vertex or face and its value."""
+    from pmjax.builders import _build, _native
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the build started")
+
+    monkeypatch.setattr(_build, "unique_edges", no_work)
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.1]], float)
+    f = np.array([[0, 1, 2], [1, 3, 2]], np.int32)
+    with _native.use_native(on):
+        for bad in (np.nan, np.inf, -np.inf, 1e39, -1e100):
+            vb = v.copy()
+            vb[3, 2] = bad
+            with pytest.raises(ValueError, match=r"vertex 3 has a coordinate that is not finite or beyond float32.*"
+                                                 r"\[1\.0, 1\.0, "):
+                build_pm(vb, f)
+        for dtype in (np.int32, np.int64, np.uint32):
+            for bad_id in (4, -1):
+                if bad_id < 0 and dtype == np.uint32:
+                    continue
+                fb = f.astype(dtype)
+                fb[1, 1] = bad_id
+                with pytest.raises(ValueError, match=rf"face 1 holds vertex id {bad_id}, outside 0 \.\. 3"):
+                    build_pm(v, fb)
+
+
+def test_sizes_the_int32_steps_cannot_address_are_refused(monkeypatch):
+    """Vertex ids reach twice the vertex count and face slots three times the
+    face count, both in int32: larger inputs are refused by their size alone
+    (views of one row, so nothing is allocated; a build that started anyway
+    stops at its first step)."""
+    from pmjax.builders import _build
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the build started")
+
+    monkeypatch.setattr(_build, "unique_edges", no_work)
+    strided = np.lib.stride_tricks.as_strided
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], float)
+    f = np.array([0, 1, 2], np.int32)
+    with pytest.raises(ValueError, match=r"fewer than 2\*\*31 / 3 faces .* got 715827883 faces"):
+        build_pm(v, strided(f, shape=(2**31 // 3 + 1, 3), strides=(0, 4)))
+    with pytest.raises(ValueError, match=r"fewer than 2\*\*30 vertices .* got 1073741824 vertices"):
+        build_pm(strided(v, shape=(2**30, 3), strides=(0, 8)), f[None])
+
+
 def test_subset_metrics_place_at_an_endpoint(data_path):
     v, f, _, _ = pmjax.load_clean_mesh(data_path("cow.ply"))
     for metric in ("pm", "hybrid"):
@@ -316,6 +391,24 @@ def test_validity_shortcuts_change_nothing(monkeypatch, data_path):
     for other in (eager, lazy):
         for key, value in reference.arrays().items():
             assert np.array_equal(getattr(other, key), value), key
+
+
+@pytest.mark.parametrize("on", [True, False])
+@pytest.mark.parametrize("metric", ["quadric:12,edge", "edge:14,quadric"])
+def test_known_invalid_verdicts_do_not_outlive_their_metric(monkeypatch, data_path, assert_same_pm, metric, on):
+    """A verdict remembered under one metric's placement says nothing about
+    another's: a schedule that moves on builds what checking every
+    candidate afresh builds (on the motor, verdicts carried over refused
+    collapses valid under the next metric)."""
+    from pmjax.builders import _build, _native, _validity
+
+    v, f, _, _ = pmjax.load_clean_mesh(data_path("motor.ply"))
+    with _native.use_native(on):
+        reference = build_pm(v, f, BuildOptions(metric=metric))
+        monkeypatch.setattr(_validity.KnownInvalid, "of", lambda self, keys: np.zeros(len(keys), bool))
+        afresh = build_pm(v, f, BuildOptions(metric=metric))
+    assert_same_pm(afresh, reference)
+    assert set(np.unique(reference.metric)) == {pmjax.METRICS.index("quadric"), pmjax.METRICS.index("edge")}
 
 
 def test_an_error_on_the_attribute_thread_reaches_the_caller(monkeypatch, data_path):

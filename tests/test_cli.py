@@ -58,6 +58,25 @@ def test_errors_are_clear_and_leave_no_output(tmp_path, capsys):
     assert "no such file" in capsys.readouterr().err
 
 
+def test_build_refuses_bad_options_before_reading_and_huge_coordinates_clearly(tmp_path, capsys):
+    """A mistyped metric is refused before the mesh is read (here: before a
+    missing file is noticed); a coordinate beyond float32's range is an error
+    naming the vertex, not a traceback."""
+    out = tmp_path / "o.pmz"
+    assert main(["build", str(tmp_path / "missing.ply"), "-o", str(out), "-q", "--metric", "quadirc"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown metric 'quadirc'" in err and "no such file" not in err
+    huge = tmp_path / "huge.ply"
+    header = ("ply\nformat ascii 1.0\nelement vertex 4\nproperty double x\nproperty double y\nproperty double z\n"
+              "element face 2\nproperty list uchar int vertex_indices\nend_header\n")
+    huge.write_text(header + "0 0 0\n1e100 0 0\n0 1e100 0\n1e100 1e100 1e99\n3 0 1 2\n3 1 3 2\n")
+    assert main(["build", str(huge), "-o", str(out), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "error: build_pm: vertex 1 has a coordinate" in err and "[1e+100, 0.0, 0.0]" in err
+    assert "Traceback" not in err
+    assert not out.exists()
+
+
 def test_lod_batch_out_of_range(tmp_path, capsys):
     out = tmp_path / "spot.pmz"
     assert main(["build", pmjax.default_model_path(), "-o", str(out), "-q"]) == 0
