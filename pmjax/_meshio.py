@@ -161,6 +161,19 @@ def clean_mesh(
     on_bad = ~np.all(finite[f], axis=1)
     f = f[~on_bad]
 
+    # pmjax stores float32 positions: a coordinate a face uses past float32's
+    # range cannot be kept; refused (naming the vertex) before any arithmetic
+    # on it.
+    used = np.zeros(nv, bool)
+    used[f.ravel()] = True
+    past = np.flatnonzero(used & finite & (np.abs(np.where(finite[:, None], v, 0)).max(axis=1, initial=0)
+                                           > np.finfo(np.float32).max))
+    if len(past):
+        i = int(past[0])
+        raise MeshError(f"{source}: vertex {int(original_ids[i])} is at {v[i].tolist()}, beyond float32's largest "
+                        f"value ({float(np.finfo(np.float32).max):.4g}), in which pmjax stores positions: scale the "
+                        "model down first")
+
     # Degenerate faces: repeated corners or (numerically) zero area.
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
     tri = v[f]
