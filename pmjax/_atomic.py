@@ -222,6 +222,9 @@ def atomic_folder(folder):
         raise _naming(exc, folder) from None
     try:
         yield tmp
+        # On disk before they are moved in (one sync for the whole set, not a
+        # flush per file).
+        os.sync()
         for name in sorted(os.listdir(tmp)):
             os.replace(os.path.join(tmp, name), os.path.join(folder, name))
         moved = True

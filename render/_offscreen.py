@@ -542,10 +542,13 @@ def write_frames(frames, path: str, fps: int = 30) -> None:
             images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], loop=0,
                            duration=10 * max(1, round(100 / fps)))
         return
-    # The frames appear in the folder together, when all are written.
+    # The frames appear in the folder together, when all are written; the
+    # temporary folder is private, so each frame goes straight into it.
+    import imageio.v2 as imageio
+
     with atomic_folder(path if ext == "" else os.path.dirname(path) or ".") as tmp:
         for i, frame in enumerate(frames):
-            write_png(os.path.join(tmp, f"frame_{i:05d}.png"), frame)
+            imageio.imwrite(os.path.join(tmp, f"frame_{i:05d}.png"), np.asarray(frame), format="PNG")
 
 
 def write_png(path: str, image) -> None:
