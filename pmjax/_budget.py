@@ -11,9 +11,10 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
-from ._arguments import check_camera, check_mesh
+from ._arguments import check_camera, check_mesh, host_number, host_scalar
 from ._camera import Camera, index_camera
 from ._model import ProgressiveMesh
 from ._predicate import ALL_TESTS, Tests, _in_rows
@@ -111,6 +112,7 @@ def soft_tau_for_budget(
     K = check_camera(cameras, "soft_tau_for_budget", batch=True)
     if cameras.orthographic:
         raise ValueError("soft_tau_for_budget supports perspective cameras only")
+    _check_arguments(budget, temperature, tau_range, K)
     dtype = pm.attributes.radius.dtype
     budget = jnp.broadcast_to(jnp.asarray(budget, dtype), (K,))
     if chunk is None:
@@ -120,8 +122,50 @@ def soft_tau_for_budget(
                          max_steps, rtol, tests, chunk)
 
 
+def _check_arguments(budget, temperature, tau_range, K: int) -> None:
+    """The budget, temperature and searched range, checked on the host where
+    they are known (``ValueError`` naming the argument); traced values are
+    checked inside the compiled solve (:func:`_checked_traced`)."""
+    call = "soft_tau_for_budget"
+    host_number(temperature, "temperature", call, lambda t: 0 < t < np.inf, "> 0 and finite (a fraction of tau)")
+    if np.ndim(budget) not in (0, 1) or (np.ndim(budget) == 1 and np.shape(budget)[0] != K):
+        raise ValueError(f"{call}: budget must be one number or one per camera ([{K}]), "
+                         f"got shape {list(np.shape(budget))}")
+    if not isinstance(budget, jax.core.Tracer):
+        faces = np.asarray(budget)
+        if faces.dtype.kind not in "iuf":
+            raise TypeError(f"{call}: budget must be numbers of faces, got {faces.dtype} {faces!r}"[:200])
+        bad = np.flatnonzero(~(np.isfinite(faces) & (faces >= 0)))
+        if bad.size:
+            raise ValueError(f"{call}: budget must be >= 0 faces and finite, got {np.ravel(faces)[bad[0]]}"
+                             + (f" for camera {bad[0]}" if faces.ndim else ""))
+    shape = (len(tau_range),) if isinstance(tau_range, (tuple, list)) else np.shape(tau_range)
+    if shape != (2,):
+        raise ValueError(f"{call}: tau_range must be (lowest, highest) pixels, got shape {list(shape)}")
+    if not any(isinstance(t, jax.core.Tracer) for t in tau_range):
+        lo, hi = (host_scalar(np.asarray(t) if isinstance(t, jax.Array) else t, "tau_range", call) for t in tau_range)
+        if not 0 < lo < hi < np.inf:
+            raise ValueError(f"{call}: tau_range must be (lowest, highest) with 0 < lowest < highest, finite "
+                             f"pixels, got ({lo}, {hi})")
+
+
+def _checked_traced(budget, temperature, tau_range):
+    """:func:`_check_arguments`'s value rules inside the compiled solve, for
+    traced arguments (``eqx.error_if``; values the host checked pass)."""
+    budget = eqx.error_if(budget, ~jnp.all(jnp.isfinite(budget) & (budget >= 0)),
+                          "soft_tau_for_budget: budget must be >= 0 faces and finite")
+    temperature = eqx.error_if(temperature, ~((temperature > 0) & jnp.isfinite(temperature)),
+                               "soft_tau_for_budget: temperature must be > 0 and finite")
+    lo, hi = tau_range[0], tau_range[1]
+    tau_range = eqx.error_if(tau_range, ~((lo > 0) & (lo < hi) & jnp.isfinite(hi)),
+                             "soft_tau_for_budget: tau_range must be (lowest, highest) with 0 < lowest < highest, "
+                             "finite pixels")
+    return budget, temperature, tau_range
+
+
 @eqx.filter_jit
 def _solve_chunks(pm, cameras, budget, temperature, tau_range, max_steps, rtol, tests, chunk):
+    budget, temperature, tau_range = _checked_traced(budget, temperature, tau_range)
     # One program for all chunks, solved one after the other (lax.map): the
     # last chunk is padded with its last camera, and the padding dropped.
     K = budget.shape[0]

@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from ._arguments import check_camera, checked_tau
 from ._camera import Camera
 from ._model import PcolAttributes
 from ._units import in_model_units
@@ -91,7 +92,16 @@ def outside_frustum(attrs: PcolAttributes, camera: Camera) -> Bool[Array, " P"]:
     Tested in camera coordinates (:meth:`Camera.frustum_frame`): a third fewer
     operations per pcol than six general plane tests (the batched predicate
     is bound by this test).
+
+    Args:
+        attrs: :class:`PcolAttributes` of the pcols (``center [3, P]``,
+            ``radius [P]``, world units).
+        camera: one :class:`Camera` (eye ``[3]``).
+
+    Returns:
+        ``bool[P]``: True where the pcol's bounding sphere is outside the view.
     """
+    check_camera(camera, "outside_frustum", batch=False)
     attrs, camera = in_model_units(attrs, camera)
     return _outside_frustum(attrs, View.of(camera, 0.0))
 
@@ -120,7 +130,17 @@ def oriented_away(attrs: PcolAttributes, camera: Camera) -> Bool[Array, " P"]:
     compared squared, with their signs, so no root is taken either: the
     square root would be the costliest operation of the batched predicate.
     Orthographic views are the limit ``d = 1, r = 0`` along the view direction.
+
+    Args:
+        attrs: :class:`PcolAttributes` of the pcols (``center``, ``axis``
+            ``[3, P]``; ``radius`` ``[P]`` world units; ``sin_alpha``,
+            ``cos_alpha`` ``[P]`` of the normal cone's half angle).
+        camera: one :class:`Camera` (eye ``[3]``).
+
+    Returns:
+        ``bool[P]``: True where the whole normal cone faces away from the eye.
     """
+    check_camera(camera, "oriented_away", batch=False)
     attrs, camera = in_model_units(attrs, camera)
     return _oriented_away(attrs, View.of(camera, 0.0))
 
@@ -174,6 +194,8 @@ def view_screen_tolerance(attrs: PcolAttributes, view: View, sqrt=jnp.sqrt) -> F
 
 def small_on_screen(attrs: PcolAttributes, camera: Camera, tau) -> Bool[Array, " P"]:
     """Screen-space deviation below ``tau`` pixels (Hoppe 1997's test, docs/design.md)."""
+    check_camera(camera, "small_on_screen", batch=False)
+    tau = checked_tau(tau, "small_on_screen")
     attrs, camera = in_model_units(attrs, camera)
     view = View.of(camera, tau)
     return _small(*_screen_terms(attrs, view), view.kappa2)
@@ -202,7 +224,10 @@ def collapse_mask(
     Returns:
         ``bool[P]``.
     """
+    check_camera(camera, "collapse_mask", batch=False)
+    tau = checked_tau(tau, "collapse_mask")
     return _collapse_mask(attrs, camera, jnp.asarray(tau, jnp.float32), tests, predicate, context, combine)
+
 
 
 # Compiled even when called eagerly: XLA's CPU code contracts a·b + c into one
@@ -258,7 +283,18 @@ def critical_tau(attrs: PcolAttributes, camera: Camera, tests: Tests = ALL_TESTS
 
     ``-1`` where the frustum or orientation test already collapses it (any
     ``tau >= 0``), ``+inf`` where nothing can (screen test off, or never small).
+
+    Args:
+        attrs: :class:`PcolAttributes` of the pcols (rows ``[3, P]``, ``[P]``;
+            world units).
+        camera: one :class:`Camera` (eye ``[3]``).
+        tests: which of the three tests apply.
+
+    Returns:
+        ``float32[P]``: the tolerance of each pcol in pixels of the image
+        height, ``-1`` or ``+inf`` as above.
     """
+    check_camera(camera, "critical_tau", batch=False)
     return _critical_tau(attrs, camera, tests)
 
 

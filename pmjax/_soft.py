@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._arguments import check_camera, check_mesh, host_scalar
+from ._arguments import check_camera, check_mesh, host_number, host_tau
 from ._camera import Camera
 from ._model import PcolAttributes, ProgressiveMesh
 from ._predicate import (ALL_TESTS, Tests, _eye_offset, frustum_margins, in_row_parts, join_row_parts, safe_sqrt,
@@ -202,16 +202,34 @@ def soft_refine(
     check_camera(camera, "soft_refine", batch=False)
     if camera.orthographic:
         raise ValueError("soft_refine supports perspective cameras only")
-    tau = host_scalar(tau, "tau", "soft_refine")
-    temperature = host_scalar(temperature, "temperature", "soft_refine")
-    if isinstance(tau, np.floating) and not tau >= 0:
-        raise ValueError(f"soft_refine: tau must be >= 0 pixels (not NaN), got {tau}")
-    if isinstance(temperature, np.floating) and not temperature > 0:
-        raise ValueError(f"soft_refine: temperature must be > 0 pixels (not NaN), got {temperature}")
+    tau = host_tau(tau, "soft_refine")
+    temperature = host_number(temperature, "temperature", "soft_refine", lambda t: t > 0, "> 0 pixels (not NaN)")
+    scale = _checked_scale(pm, scale)
     # Arrays, not Python floats, so a new value does not recompile.
     dtype = pm.attributes.radius.dtype
     tau, temperature = jnp.asarray(tau, dtype), jnp.asarray(temperature, dtype)
     return _soft_refine_checked(pm, camera, tau, temperature, scale, tests)
+
+
+def _checked_scale(pm, scale):
+    """``scale`` is None or ``[P]`` finite numbers: checked on the host, or,
+    traced, inside the compiled call (``eqx.error_if``)."""
+    if scale is None:
+        return None
+    P = pm.n_pcols
+    if np.shape(scale) != (P,):
+        raise ValueError(f"soft_refine: scale must be [P] = [{P}] factors on tau, one per pcol, "
+                         f"got shape {list(np.shape(scale))}")
+    if isinstance(scale, jax.core.Tracer):
+        return eqx.error_if(scale, ~jnp.all(jnp.isfinite(scale)), "soft_refine: scale must be finite")
+    host = np.asarray(scale)
+    if host.dtype.kind not in "iuf":
+        raise TypeError(f"soft_refine: scale must be numbers, got dtype {host.dtype}")
+    bad = np.flatnonzero(~np.isfinite(host))
+    if bad.size:
+        raise ValueError(f"soft_refine: scale must be finite, got {host[bad[0]]} at pcol {bad[0]} "
+                         f"({bad.size} of {P} not finite)")
+    return scale
 
 
 def _soft_refine_checked(pm, camera, tau, temperature, scale, tests):

@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._arguments import check_camera_type, checked_tau
 from ._camera import Camera
 
 # Layout of View.values: eye, the rows right/up/forward, the frustum constants
@@ -35,8 +36,18 @@ def one_pixel(camera: Camera) -> Float[Array, "*K"]:
 def kappa(camera: Camera, tau) -> Float[Array, "*K"]:
     """Screen-space tolerance ``tau`` pixels as an angle (or a world size):
     ``one_pixel(camera) * tau``, a single rounding, so it is monotone in ``tau``
-    (:func:`pmjax.critical_tau` relies on it)."""
-    return one_pixel(camera) * tau
+    (:func:`pmjax.critical_tau` relies on it).
+
+    Args:
+        camera: one :class:`Camera` or a batch (leading axis K).
+        tau: tolerance, pixels of the image height (one number >= 0).
+
+    Returns:
+        radians per unit distance (perspective) or world units
+        (orthographic), shaped like ``camera.fov_y`` (``[]`` or ``[K]``).
+    """
+    check_camera_type(camera, "kappa")
+    return one_pixel(camera) * checked_tau(tau, "kappa")
 
 
 def kappa_squared(unit, tau):
