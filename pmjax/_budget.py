@@ -107,6 +107,12 @@ def soft_tau_for_budget(
 
     Returns:
         :class:`BudgetSolution` (device arrays, shape ``[K]``).
+
+    Raises:
+        ValueError: a temperature that is not > 0 and finite, a budget that is
+            negative, NaN or of another shape than one number or ``[K]``, a
+            ``tau_range`` that is not ``0 < lowest < highest``, finite (traced
+            values: inside the compiled solve, ``eqx.error_if``).
     """
     check_mesh(pm, "soft_tau_for_budget")
     K = check_camera(cameras, "soft_tau_for_budget", batch=True)

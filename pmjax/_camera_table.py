@@ -114,7 +114,20 @@ class CameraTable:
 
 
 def table_from_cameras(camera: Camera, path_id=None, frame=None) -> CameraTable:
-    """A :class:`CameraTable` holding a Camera batch (or one camera)."""
+    """A :class:`CameraTable` holding a Camera batch (or one camera).
+
+    Args:
+        camera: a :class:`Camera` batch (eye ``[N, 3]``) or one camera (one row).
+        path_id: which path each camera belongs to: one integer for all rows
+            or ``[N]`` integers; None (default) when the set has no paths.
+        frame: each camera's position along its path: one integer or ``[N]``
+            integers (frame numbers from 0); None with ``path_id`` None (a
+            camera file holds both columns or neither).
+
+    Returns:
+        :class:`CameraTable` of N rows (float64 eye, rotation, radians,
+        world units; ``int64[N]`` path ids and frames or None).
+    """
     n = int(camera.eye.shape[0]) if np.ndim(camera.eye) == 2 else 1
     flat = lambda a: np.asarray(a, np.float64).reshape(n)  # noqa: E731
     return CameraTable(

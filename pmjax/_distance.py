@@ -15,7 +15,18 @@ from scipy.spatial import cKDTree
 
 
 def sample_surface(vertices, faces, n: int, seed: int = 0) -> np.ndarray:
-    """``float64[n, 3]`` points uniform by area on the triangles."""
+    """``float64[n, 3]`` points uniform by area on the triangles.
+
+    Args:
+        vertices: ``[V, 3]`` vertex positions (world units).
+        faces: ``int[F, 3]`` vertex indices of the triangles (F >= 1, total
+            area > 0).
+        n: number of points.
+        seed: seed of NumPy's ``default_rng``: the same seed, the same points.
+
+    Returns:
+        ``float64[n, 3]`` points on the surface, in the units of ``vertices``.
+    """
     rng = np.random.default_rng(seed)
     tri = np.asarray(vertices, np.float64)[faces]
     area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)

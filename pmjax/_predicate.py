@@ -215,7 +215,8 @@ def collapse_mask(
     Args:
         attrs: :class:`PcolAttributes` of the pcols.
         camera: one :class:`Camera`.
-        tau: screen-space tolerance, pixels of the image height.
+        tau: screen-space tolerance, pixels of the image height: one number
+            >= 0 (``inf``: every pcol the screen test can collapse; NaN refused).
         tests: which of the three tests apply.
         predicate: optional user test ``predicate(attrs, context) -> bool[P]``.
         context: passed to ``predicate`` (any pytree).

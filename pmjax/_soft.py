@@ -124,7 +124,19 @@ def soft_tests_in_model_units(attrs, camera, tau, temperature, scale, tests):
 
 
 def soft_weights(pm: ProgressiveMesh, collapse: Float[Array, " P"]) -> Float[Array, " P"]:
-    """Soft executed: each pcol's collapse times its children's weights."""
+    """Soft executed: each pcol's collapse times its children's weights.
+
+    Args:
+        pm: :class:`ProgressiveMesh`.
+        collapse: ``[P]`` soft collapse decision of each pcol's own tests in
+            [0, 1] (:class:`SoftRefinement`'s ``collapse``); ``[P, K]`` for
+            K cameras on the trailing axis.
+
+    Returns:
+        ``[P]`` (or ``[P, K]``) soft executed weights in [0, 1]: the product
+        of the collapse values of the pcol and of every pcol below it in the
+        hierarchy.
+    """
     return up_the_batches(pm, collapse, 1.0, lambda own, a, b: own * a * b)
 
 
@@ -169,7 +181,17 @@ def geomorph_blend(pm: ProgressiveMesh, weight: Float[Array, " P"], values: Floa
 def geomorph_positions(pm: ProgressiveMesh, weight: Float[Array, " P"]) -> Float[Array, "V0 3"]:
     """Blended positions of the original vertices (:func:`geomorph_blend` of
     the vertex positions): with the 0/1 weights of an executed set, the
-    position of each vertex's representative."""
+    position of each vertex's representative.
+
+    Args:
+        pm: :class:`ProgressiveMesh`.
+        weight: ``[P]`` per-pcol weights in [0, 1] (:class:`SoftRefinement`'s
+            ``weight``, or an executed set as 0/1 values).
+
+    Returns:
+        ``[V0, 3]`` positions of the original vertices, world units (the
+        dtype of ``pm.vertices``).
+    """
     return geomorph_blend(pm, weight, pm.vertices)[: pm.n_original_vertices]
 
 
@@ -191,8 +213,8 @@ def soft_refine(
         camera: one perspective :class:`Camera`.
         tau: tolerance, pixels of the image height.
         temperature: softness ``T`` in pixels (``→ 0``: the hard refinement).
-        scale: optional ``[P]`` factors on ``tau`` per pcol (per region: gather
-            a per-region array by each pcol's region id).
+        scale: optional ``[P]`` finite factors on ``tau`` per pcol (per region:
+            gather a per-region array by each pcol's region id).
         tests: :class:`Tests` (ablations).
 
     Returns:

@@ -1,6 +1,8 @@
 """Wrong arguments to the public refinement calls: a TypeError or ValueError
 that names the call and the argument, before any work."""
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -89,3 +91,137 @@ def test_soft_refine_refuses_a_bad_temperature(models, cameras):
     for bad in (0.0, -1.0, float("nan")):
         with pytest.raises(ValueError, match=r"^soft_refine: temperature must be > 0"):
             pmjax.soft_refine(pm, one, 1.0, temperature=bad)
+
+
+# -- the soft calls' other arguments -------------------------------------------------
+
+SOFT_BUDGET_BAD = [
+    (dict(temperature=-1.0), ValueError, r"temperature must be > 0 and finite"),
+    (dict(temperature=0.0), ValueError, r"temperature must be > 0 and finite"),
+    (dict(temperature=float("nan")), ValueError, r"temperature must be > 0 and finite"),
+    (dict(temperature=float("inf")), ValueError, r"temperature must be > 0 and finite"),
+    (dict(temperature=[0.1, 0.2]), TypeError, r"temperature must be a number"),
+    (dict(budget=float("nan")), ValueError, r"budget must be >= 0 faces and finite, got nan"),
+    (dict(budget=[100, -1]), ValueError, r"budget must be >= 0 faces and finite, got -1 for camera 1"),
+    (dict(budget=[100, 200, 300]), ValueError, r"budget must be one number or one per camera \(\[2\]\), got shape \[3\]"),
+    (dict(budget=np.ones((2, 1))), ValueError, r"budget must be one number or one per camera"),
+    (dict(budget="100"), TypeError, r"budget must be numbers of faces"),
+    (dict(tau_range=(1e4, 1e-3)), ValueError, r"tau_range must be \(lowest, highest\) with 0 < lowest < highest"),
+    (dict(tau_range=(0.0, 1e3)), ValueError, r"tau_range must be \(lowest, highest\) with 0 < lowest < highest"),
+    (dict(tau_range=(1e-3, float("inf"))), ValueError, r"tau_range must be .* finite"),
+    (dict(tau_range=(1e-3, 1.0, 1e3)), ValueError, r"tau_range must be \(lowest, highest\) pixels, got shape \[3\]"),
+]
+
+
+@pytest.mark.parametrize("bad,error,message", SOFT_BUDGET_BAD)
+def test_soft_tau_for_budget_refuses_bad_arguments(models, cameras, bad, error, message):
+    _, pm = models
+    _, many = cameras
+    args = dict(budget=1000, temperature=0.05, tau_range=(1e-3, 1e4)) | bad
+    with pytest.raises(error, match=rf"^soft_tau_for_budget: {message}"):
+        pmjax.soft_tau_for_budget(pm, many, **args)
+
+
+def test_soft_tau_for_budget_refuses_bad_traced_arguments(models, cameras):
+    _, pm = models
+    _, many = cameras
+    solve = jax.jit(lambda b, t, r: pmjax.soft_tau_for_budget(pm, many, b, t, tau_range=(r[0], r[1])).tau)
+    good = (jnp.array([1000.0, 2000.0]), jnp.float32(0.05), jnp.array([1e-3, 1e4], jnp.float32))
+    assert np.asarray(solve(*good)).shape == (2,)
+    for i, bad, message in [(0, jnp.array([1000.0, jnp.nan]), "budget must be >= 0 faces and finite"),
+                            (1, jnp.float32(-1.0), "temperature must be > 0 and finite"),
+                            (2, jnp.array([1e4, 1e-3], jnp.float32), "tau_range must be"),]:
+        args = list(good)
+        args[i] = bad
+        with pytest.raises(Exception, match=rf"soft_tau_for_budget: {message}"):
+            jax.block_until_ready(solve(*args))
+    with pytest.raises(ValueError, match=r"^soft_tau_for_budget: budget must be one number or one per camera"):
+        solve(jnp.ones(3), *good[1:])
+
+
+def test_soft_refine_checks_scale(models, cameras):
+    _, pm = models
+    one, _ = cameras
+    P = pm.n_pcols
+    with pytest.raises(ValueError, match=rf"^soft_refine: scale must be \[P\] = \[{P}\] .*got shape \[3\]"):
+        pmjax.soft_refine(pm, one, 1.0, scale=jnp.ones(3))
+    with pytest.raises(ValueError, match=rf"^soft_refine: scale must be finite, got nan at pcol 5 \(1 of {P}"):
+        pmjax.soft_refine(pm, one, 1.0, scale=_with_nan(P, 5))
+    with pytest.raises(TypeError, match=r"^soft_refine: scale must be numbers"):
+        pmjax.soft_refine(pm, one, 1.0, scale=np.array(["1"] * P))
+    soft = jax.jit(lambda s: pmjax.soft_refine(pm, one, 1.0, scale=s).faces)
+    assert np.isfinite(float(soft(jnp.ones(P))))
+    with pytest.raises(Exception, match=r"soft_refine: scale must be finite"):
+        jax.block_until_ready(soft(jnp.asarray(_with_nan(P, 5))))
+    with pytest.raises(ValueError, match=r"^soft_refine: scale must be \[P\]"):
+        soft(jnp.ones(P + 1))
+
+
+def _with_nan(n, i):
+    out = np.ones(n, np.float32)
+    out[i] = np.nan
+    return out
+
+
+def test_soft_refine_takes_one_tolerance_as_a_jax_array_too(models, cameras):
+    _, pm = models
+    one, _ = cameras
+    with pytest.raises(ValueError, match=r"^soft_refine: tau must be one number, .*shape \[3\]"):
+        pmjax.soft_refine(pm, one, jnp.ones(3))
+    with pytest.raises(ValueError, match=r"^soft_refine: tau must be >= 0 pixels \(not NaN\), got nan"):
+        pmjax.soft_refine(pm, one, jnp.float32(jnp.nan))
+    with pytest.raises(ValueError, match=r"^soft_refine: tau must be one number, got an array of shape \[3\]"):
+        jax.jit(lambda t: pmjax.soft_refine(pm, one, t).faces)(jnp.ones(3))
+    with pytest.raises(ValueError, match=r"^soft_refine: temperature must be one number"):
+        jax.jit(lambda t: pmjax.soft_refine(pm, one, 1.0, t).faces)(jnp.ones(3))
+    # A concrete JAX tolerance is the same refinement as the number.
+    assert float(pmjax.soft_refine(pm, one, jnp.float32(2.0)).faces) == float(pmjax.soft_refine(pm, one, 2.0).faces)
+
+
+# -- the predicates -------------------------------------------------------------------
+
+PREDICATES = {
+    "collapse_mask": lambda A, camera, tau: pmjax.collapse_mask(A, camera, tau),
+    "small_on_screen": lambda A, camera, tau: pmjax.small_on_screen(A, camera, tau),
+    "critical_tau": lambda A, camera, tau: pmjax.critical_tau(A, camera),
+    "outside_frustum": lambda A, camera, tau: pmjax.outside_frustum(A, camera),
+    "oriented_away": lambda A, camera, tau: pmjax.oriented_away(A, camera),
+}
+
+
+@pytest.mark.parametrize("call", sorted(PREDICATES))
+def test_predicates_take_one_camera(models, cameras, call):
+    _, pm = models
+    one, many = cameras
+    assert PREDICATES[call](pm.attributes, one, 1.0).shape == (pm.n_pcols,)
+    with pytest.raises(ValueError, match=rf"^{call}: takes one camera .*a batch of 2 cameras"):
+        PREDICATES[call](pm.attributes, many, 1.0)
+    with pytest.raises(TypeError, match=rf"^{call}: camera must be a pmjax\.Camera.*got ndarray"):
+        PREDICATES[call](pm.attributes, np.zeros(3), 1.0)
+
+
+@pytest.mark.parametrize("tau,error", [(float("nan"), ValueError), (-1.0, ValueError), (None, TypeError),
+                                       (np.array([1.0, 2.0]), ValueError), (jnp.float32(-1.0), ValueError)])
+@pytest.mark.parametrize("call", ["collapse_mask", "small_on_screen", "kappa"])
+def test_predicates_refuse_a_bad_tolerance(models, cameras, call, tau, error):
+    _, pm = models
+    one, _ = cameras
+    f = (lambda camera, t: pmjax.kappa(camera, t)) if call == "kappa" else \
+        (lambda camera, t: PREDICATES[call](pm.attributes, camera, t))
+    with pytest.raises(error, match=rf"^{call}: tau must be"):
+        f(one, tau)
+    # Traced, the same rule inside the compiled call.
+    if isinstance(tau, float):
+        with pytest.raises(Exception, match=rf"{call}: tau must be >= 0 \(and not NaN\)"):
+            jax.block_until_ready(jax.jit(lambda t: f(one, t))(tau))
+
+
+def test_predicates_take_every_tolerance_refine_takes(models, cameras):
+    _, pm = models
+    one, many = cameras
+    # inf: every pcol the screen test can collapse; 0: none; kappa of a batch.
+    assert bool(np.all(np.asarray(pmjax.collapse_mask(pm.attributes, one, float("inf")))))
+    assert not np.any(np.asarray(pmjax.small_on_screen(pm.attributes, one, 0.0)))
+    assert np.asarray(pmjax.kappa(many, 1.0)).shape == (2,)
+    with pytest.raises(TypeError, match=r"^kappa: camera must be a pmjax\.Camera"):
+        pmjax.kappa(np.zeros(3), 1.0)
