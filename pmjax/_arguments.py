@@ -82,6 +82,7 @@ def _short(value) -> str:
 _KILLS_CHECKED: collections.OrderedDict = collections.OrderedDict()
 _KILLS_CHECKED_SIZE = 64
 _KILLS_LOCK = threading.Lock()
+_last_checked = None
 
 
 def check_kills(pm: ProgressiveMesh, call: str) -> None:
@@ -97,12 +98,24 @@ def check_kills(pm: ProgressiveMesh, call: str) -> None:
     """
     from .engines._content import digest, is_traced
 
-    if any(is_traced(x) for x in (pm.kills, pm.killer, pm.uncommon)):
+    global _last_checked
+    # Read from the instance's fields directly: a Module's attribute lookup
+    # costs several times more, and this runs on every call.
+    f = vars(pm)
+    arrays = (f["kills"], f["killer"], f["uncommon"])
+    static = (f["max_kills"], f["min_kills"], f["common_kills"])
+    # The mesh last checked, by the identity of its (immutable) arrays: the
+    # hot path of a call repeated on one mesh.
+    last = _last_checked
+    if last is not None and last[1] == static and all(r() is a for r, a in zip(last[0], arrays)):
         return
-    key = (digest(pm.kills), digest(pm.killer), digest(pm.uncommon), pm.max_kills, pm.min_kills, pm.common_kills)
+    if any(is_traced(x) for x in arrays):
+        return
+    key = (*(digest(a) for a in arrays), *static)
     with _KILLS_LOCK:
         if key in _KILLS_CHECKED:
             _KILLS_CHECKED.move_to_end(key)
+            _last_checked = _identity(arrays, static)
             return
     kills, killer = np.asarray(pm.kills), np.asarray(pm.killer)
     counted = np.bincount(killer[killer >= 0], minlength=len(kills))
@@ -120,3 +133,14 @@ def check_kills(pm: ProgressiveMesh, call: str) -> None:
         _KILLS_CHECKED[key] = True
         while len(_KILLS_CHECKED) > _KILLS_CHECKED_SIZE:
             _KILLS_CHECKED.popitem(last=False)
+    _last_checked = _identity(arrays, static)
+
+
+def _identity(arrays, static):
+    """Weak references to a checked mesh's kill arrays (JAX arrays; a NumPy
+    array, mutable, is never remembered by identity), and its statics."""
+    import weakref
+
+    if not all(isinstance(a, jax.Array) for a in arrays):
+        return None
+    return tuple(weakref.ref(a) for a in arrays), static
