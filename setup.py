@@ -37,6 +37,16 @@ SANITIZE = [s for s in os.environ.get("PMJAX_SANITIZE", "").split(",") if s]
 SANITIZE_FLAGS = [f"-fsanitize={','.join(SANITIZE)}", "-fno-omit-frame-pointer", "-g"] if SANITIZE else []
 
 
+def source_digest(path: str) -> list:
+    """The macro that names the text a ctypes extension is built from: pmjax
+    compares it with the source beside the library when it loads one, and
+    falls back to its NumPy steps on a stale build (pmjax/_clib.py)."""
+    import hashlib
+
+    with open(path, "rb") as fh:
+        return [("PMJAX_SOURCE_DIGEST", '"%s"' % hashlib.sha256(fh.read()).hexdigest())]
+
+
 def ffi_include() -> str:
     """XLA's FFI headers, shipped with jaxlib (a build requirement)."""
     import jax.ffi
@@ -82,6 +92,7 @@ def main():
             Extension(
                 "pmjax.builders._build_native",
                 sources=["builders/_build_native.c"],
+                define_macros=source_digest("builders/_build_native.c"),
                 extra_compile_args=["-O3", "-std=c99", "-ffp-contract=off"] + SANITIZE_FLAGS,
                 extra_link_args=SANITIZE_FLAGS,
                 optional=True,
@@ -91,6 +102,7 @@ def main():
             Extension(
                 "pmjax._pmz_native",
                 sources=["pmjax/_pmz_native.c"],
+                define_macros=source_digest("pmjax/_pmz_native.c"),
                 extra_compile_args=["-O3", "-std=c99", "-ffp-contract=off", "-Wall"] + SANITIZE_FLAGS,
                 extra_link_args=SANITIZE_FLAGS,
                 optional=True,
@@ -102,6 +114,7 @@ def main():
             Extension(
                 "pmjax._normals_native",
                 sources=["pmjax/_normals_native.c"],
+                define_macros=source_digest("pmjax/_normals_native.c"),
                 extra_compile_args=["-O3", "-std=c99", "-ffp-contract=off", "-fno-trapping-math", "-fno-math-errno",
                                     "-Wall", "-pthread"] + SANITIZE_FLAGS,
                 extra_link_args=["-pthread"] + SANITIZE_FLAGS,

@@ -33,6 +33,15 @@
 #include <stdlib.h>
 #include <string.h>
 
+/* The digest of the text this library was built from (setup.py defines it),
+ * which pmjax compares with the source beside the library to catch a stale
+ * build (pmjax/_clib.py). */
+#ifndef PMJAX_SOURCE_DIGEST
+#define PMJAX_SOURCE_DIGEST ""
+#endif
+const char *pmjax_source_digest(void);
+const char *pmjax_source_digest(void) { return PMJAX_SOURCE_DIGEST; }
+
 /* What a candidate became (builders/_native.py). */
 enum { DEAD = 0, TAKEN = 1, INVALID = 2, UNCHECKED = 3 };
 

@@ -219,6 +219,7 @@ __all__ = [
     "EvalSummary",
     "camera_set",
     "evaluate",
+    "slurm_cluster",
     "standard_orbit",
     "PcolAttributes",
     "ProgressiveMesh",

@@ -8,18 +8,23 @@ a millisecond). Camera values are checked when a :class:`pmjax.Camera` is made.
 
 from __future__ import annotations
 
+import collections
+import threading
+
 import equinox as eqx
 import jax
 import numpy as np
 
 from ._camera import Camera
-from ._model import ProgressiveMesh
+from ._model import ProgressiveMesh, kill_summary
 from ._pmdata import PMData
 
 
 def check_mesh(pm, call: str) -> None:
-    """``pm`` is a :class:`ProgressiveMesh` (``TypeError`` otherwise, with the remedy)."""
+    """``pm`` is a :class:`ProgressiveMesh` (``TypeError`` otherwise, with the
+    remedy) whose face-kill counts agree (:func:`check_kills`)."""
     if isinstance(pm, ProgressiveMesh):
+        check_kills(pm, call)
         return
     if isinstance(pm, PMData):
         raise TypeError(f"{call}: pm is a PMData (host arrays, as read_pm gives); the refinement needs a "
@@ -103,3 +108,72 @@ def checked_tau(tau, call: str):
 def _short(value) -> str:
     text = repr(value)
     return text if len(text) <= 60 else text[:57] + "..."
+
+
+# Content keys of meshes whose kill counts were found consistent (a few: the
+# meshes a study refines at once).
+_KILLS_CHECKED: collections.OrderedDict = collections.OrderedDict()
+_KILLS_CHECKED_SIZE = 64
+_KILLS_LOCK = threading.Lock()
+_last_checked = None
+
+
+def check_kills(pm: ProgressiveMesh, call: str) -> None:
+    """``pm.kills`` counts the faces each pcol kills in ``pm.killer``, and the
+    static summary the face counts use (``uncommon``, ``max_kills``,
+    ``min_kills``, ``common_kills``) is that of ``pm.kills``: an
+    ``eqx.tree_at`` of one without the others would make the engines count
+    faces differently. Checked once per content (the arrays' digests); a mesh
+    being traced (its arrays abstract) cannot be checked.
+
+    Raises:
+        ValueError: naming the call, what disagrees and the remedy.
+    """
+    from .engines._content import digest, is_traced
+
+    global _last_checked
+    # Read from the instance's fields directly: a Module's attribute lookup
+    # costs several times more, and this runs on every call.
+    f = vars(pm)
+    arrays = (f["kills"], f["killer"], f["uncommon"])
+    static = (f["max_kills"], f["min_kills"], f["common_kills"])
+    # The mesh last checked, by the identity of its (immutable) arrays: the
+    # hot path of a call repeated on one mesh.
+    last = _last_checked
+    if last is not None and last[1] == static and all(r() is a for r, a in zip(last[0], arrays)):
+        return
+    if any(is_traced(x) for x in arrays):
+        return
+    key = (*(digest(a) for a in arrays), *static)
+    with _KILLS_LOCK:
+        if key in _KILLS_CHECKED:
+            _KILLS_CHECKED.move_to_end(key)
+            _last_checked = _identity(arrays, static)
+            return
+    kills, killer = np.asarray(pm.kills), np.asarray(pm.killer)
+    counted = np.bincount(killer[killer >= 0], minlength=len(kills))
+    if len(counted) != len(kills) or not np.array_equal(counted, kills):
+        p = int(np.flatnonzero(counted[:len(kills)] != kills)[0]) if len(counted) == len(kills) else len(kills)
+        raise ValueError(f"{call}: pm.kills is not the count of faces each pcol kills in pm.killer (pcol {p}); "
+                         "update both together (and the summary, with pm.with_kills), or rebuild the mesh with "
+                         "pmjax.ProgressiveMesh.from_data")
+    want = kill_summary(kills, pm.common_kills)
+    have = dict(uncommon=np.asarray(pm.uncommon), max_kills=pm.max_kills, min_kills=pm.min_kills)
+    if not all(np.array_equal(np.asarray(want[k]), v) for k, v in have.items()):
+        raise ValueError(f"{call}: the mesh's kill summary (uncommon, max_kills, min_kills, common_kills) is not "
+                         "that of pm.kills: update kills with pm.with_kills(kills), not eqx.tree_at")
+    with _KILLS_LOCK:
+        _KILLS_CHECKED[key] = True
+        while len(_KILLS_CHECKED) > _KILLS_CHECKED_SIZE:
+            _KILLS_CHECKED.popitem(last=False)
+    _last_checked = _identity(arrays, static)
+
+
+def _identity(arrays, static):
+    """Weak references to a checked mesh's kill arrays (JAX arrays; a NumPy
+    array, mutable, is never remembered by identity), and its statics."""
+    import weakref
+
+    if not all(isinstance(a, jax.Array) for a in arrays):
+        return None
+    return tuple(weakref.ref(a) for a in arrays), static

@@ -26,7 +26,7 @@ def load(path, *, batches: int | None = None) -> ProgressiveMesh:
     Raises:
         PMFormatError: see :func:`pmjax.read_pm`.
     """
-    data, fingerprint = read_arrays(path, batches=batches)
+    data, fingerprint = read_arrays(path, batches=batches, call="load")
     pm = ProgressiveMesh.from_data(data)
     if structure_known(fingerprint):
         return pm

@@ -22,7 +22,9 @@ class PcolAttributes(eqx.Module):
         center: ``[3, P]`` the pcol vertex (sphere and cone centre), rows x, y, z.
         axis: ``[3, P]`` unit cone axis.
         radius: ``[P]`` bounding-sphere radius, model units.
-        alpha: ``[P]`` cone half-angle, radians.
+        alpha: ``[P]`` cone half-angle, radians (kept for reference: the
+            tests read its sine and cosine only, so an update of the
+            orientation test's cones goes to ``sin_alpha`` and ``cos_alpha``).
         sin_alpha, cos_alpha: ``[P]`` its sine and cosine.
         delta: ``[P]`` deviation along the normal, model units.
         mu: ``[P]`` uniform deviation, model units.
@@ -80,7 +82,10 @@ class ProgressiveMesh(eqx.Module):
         child1, child2: ``[P]`` int32, pcol making each endpoint, -1 if original.
         parent: ``[V0 + P]`` int32, pcol consuming each vertex, -1 if none.
         killer: ``[F]`` int32, pcol removing each face, -1 if none.
-        kills: ``[P]`` int32, faces each pcol removes.
+        kills: ``[P]`` int32, faces each pcol removes (the faces whose
+            ``killer`` it is); update it with :meth:`with_kills`, which
+            updates its summary below too (a public call refuses a mesh whose
+            ``kills``, summary and ``killer`` disagree).
         attributes: :class:`PcolAttributes`.
         batch_offsets: static tuple ``(0, ..., P)``.
         n_original_vertices: static V0.
@@ -129,6 +134,15 @@ class ProgressiveMesh(eqx.Module):
         """``[N]`` faces each ``uncommon`` pcol kills beyond ``common_kills``
         (may be negative): the correction of every face count."""
         return self.kills[self.uncommon] - self.common_kills
+
+    def with_kills(self, kills) -> "ProgressiveMesh":
+        """The same mesh with ``kills`` (``[P]`` faces each pcol removes, host
+        values) and the static summary that describes them
+        (:func:`kill_summary`): ``eqx.tree_at`` would leave the summary of the
+        old counts, which the engines' face counts read."""
+        import dataclasses
+
+        return dataclasses.replace(self, **kill_summary(np.asarray(kills, np.int32)))
 
     def astype(self, dtype) -> "ProgressiveMesh":
         """The same mesh with positions and pcol attributes in ``dtype``

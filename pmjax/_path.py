@@ -44,7 +44,8 @@ from ._bitsets import WORD
 from ._camera import Camera, check_camera_values
 from ._model import ProgressiveMesh
 from ._predicate import ALL_TESTS, Tests
-from ._refine import Refinement, _checked_tau, _Counts, check_budget, check_tau, faces_for_budget, refine
+from ._refine import (Refinement, _checked_tau, _Counts, check_budget, check_tau, faces_for_budget,
+                      kernel_budgets, refine)
 from .engines import _core, _front_jax
 from .engines._choose import is_traced, select
 from .engines._core import WORDS_PER_CALL
@@ -526,7 +527,7 @@ def _traced_taus(pm, cameras, tau, budget, tests, shape):
     """Per-frame tolerances of a traced path (``shape`` its leading axes)."""
     if budget is not None:
         flat = jax.tree.map(lambda a: a.reshape((-1,) + a.shape[len(shape):]), cameras)
-        budgets = jnp.broadcast_to(jnp.asarray(budget, jnp.int32), shape).reshape(-1)
+        budgets = jnp.broadcast_to(kernel_budgets(pm, budget, "the path's budget"), shape).reshape(-1)
         return _budget_taus_traced(pm, flat, budgets, tests).reshape(shape)
     return jnp.broadcast_to(_checked_tau(tau), shape)
 

@@ -162,7 +162,7 @@ def read_pm(path, *, batches: int | None = None) -> PMData:
             missing array, a dtype or shape, an index range, a checksum, a
             truncated or damaged chunk, the structure).
     """
-    pm, fingerprint = read_arrays(path, batches=batches)
+    pm, fingerprint = read_arrays(path, batches=batches, call="read_pm")
     if not structure_known(fingerprint):
         check_structure(pm, source=_source_name(path))
         remember_structure(fingerprint)
@@ -194,7 +194,7 @@ def _mesh_kind(path: str) -> str:
     return _MESH_EXTENSIONS.get(os.path.splitext(path)[1].lower(), "")
 
 
-def read_arrays(path, *, batches: int | None = None) -> tuple[PMData, str]:
+def read_arrays(path, *, batches: int | None = None, call: str = "read_arrays") -> tuple[PMData, str]:
     """Read a ``.pmz`` file with every check but the structure check.
 
     Nothing is read beyond what the header's counts allow. Version 2: the
@@ -213,6 +213,7 @@ def read_arrays(path, *, batches: int | None = None) -> tuple[PMData, str]:
     Args:
         path: a ``.pmz`` file, or a binary file object reading one.
         batches: as :func:`read_pm`.
+        call: the public call an argument error names.
 
     Returns:
         ``(pm, fingerprint)``: the fingerprint is a SHA-256 over the arrays'
@@ -220,7 +221,7 @@ def read_arrays(path, *, batches: int | None = None) -> tuple[PMData, str]:
     """
     if batches is not None and (isinstance(batches, bool) or not isinstance(batches, (int, np.integer))
                                 or batches < 0):
-        raise ValueError(f"read_arrays: batches must be a whole number >= 0 or None, got {batches!r}")
+        raise ValueError(f"{call}: batches must be a whole number >= 0 or None, got {batches!r}")
     if hasattr(path, "read"):
         source = _source_name(path)
         head = _read_full(path.read, len(_codec.MAGIC2))

@@ -21,6 +21,15 @@
 #include <stdint.h>
 #include <string.h>
 
+/* The digest of the text this library was built from (setup.py defines it),
+ * which pmjax compares with the source beside the library to catch a stale
+ * build (pmjax/_clib.py). */
+#ifndef PMJAX_SOURCE_DIGEST
+#define PMJAX_SOURCE_DIGEST ""
+#endif
+const char *pmjax_source_digest(void);
+const char *pmjax_source_digest(void) { return PMJAX_SOURCE_DIGEST; }
+
 /* Rows that the loops below read or write by a child's, parent's or rank's
  * id are scattered over arrays larger than the caches: each loop asks for
  * the rows of the element AHEAD places on while it works on this one. */

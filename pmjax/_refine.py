@@ -426,9 +426,14 @@ def refine_batch(
         pm: :class:`ProgressiveMesh`.
         cameras: a camera batch (leading axis K).
         tau: tolerance in pixels (shared by all cameras).
+        tests: :class:`Tests` (which of the three tests to apply).
+        predicate, context, combine: optional user test, as :func:`refine`
+            (:func:`pmjax.collapse_mask`); a user test runs on the dense
+            engine.
         chunk: cameras per call, rounded up to a multiple of 32 (one bitset
             word); the last chunk is padded.
         return_masks: also return ``executed`` masks ``bool[K, P]``.
+        progress: a progress bar over the chunks.
         method: ``"dense"``, ``"front"`` (each camera traversed by the C core,
             the cameras shared by its threads; as JAX kernels where the core
             is not built, per group of 32 cameras the union of their fronts)
@@ -444,6 +449,8 @@ def refine_batch(
     K = check_camera(cameras, "refine_batch", batch=True)
     traced = is_traced(cameras, tau)
     if not traced:
+        if isinstance(tau, jax.Array):
+            tau = np.asarray(tau)  # concrete: checked here as a host value
         tau = check_tau(host_scalar(tau, "tau (one for all cameras)", "refine_batch"))
     engine = select(pm, method, predicate=predicate, batch=True, traced=traced)
     if traced:
@@ -550,6 +557,28 @@ def check_budget(budget) -> int:
     return int(budget)
 
 
+def kernel_budgets(pm: ProgressiveMesh, budget, call: str):
+    """Face budgets as the kernels take them (``int32``, any shape): host
+    values checked (:func:`check_budget`) and capped at the mesh's face count
+    (a larger budget has the same answer, every face fitting, and may not fit
+    int32); traced ones must be integers, and a negative one raises inside
+    the traced computation (``eqx.error_if``).
+
+    Raises:
+        ValueError: a host budget that is negative, fractional, NaN or not a
+            number; TypeError: a traced budget of a non-integer dtype.
+    """
+    if is_traced(budget):
+        budget = jnp.asarray(budget)
+        if not jnp.issubdtype(budget.dtype, jnp.integer):
+            raise TypeError(f"{call}: a traced face budget must be an integer array, got {budget.dtype}")
+        budget = eqx.error_if(budget, budget < 0, f"{call}: a face budget must be >= 0")
+        return jnp.minimum(budget, pm.n_faces).astype(jnp.int32)
+    values = np.asarray(budget, dtype=object) if not isinstance(budget, np.ndarray) else budget
+    checked = [check_budget(b.item() if isinstance(b, np.generic) else b) for b in np.ravel(values)]
+    return jnp.asarray(np.minimum(np.array(checked, np.int64), pm.n_faces).reshape(np.shape(values)), jnp.int32)
+
+
 def faces_for_budget(pm: ProgressiveMesh, camera: Camera, budget: int, tests: Tests = ALL_TESTS,
                      method: str = "auto"):
     """The smallest ``tau`` whose face count is the largest not above ``budget``.
@@ -587,7 +616,10 @@ def faces_for_budget(pm: ProgressiveMesh, camera: Camera, budget: int, tests: Te
     check_camera(camera, "faces_for_budget", batch=False)
     traced = is_traced(camera, budget)
     if not traced:
-        budget = check_budget(budget)
+        # Any budget from F on has the answer of F (every face fits).
+        budget = min(check_budget(budget), pm.n_faces)
+    else:
+        budget = kernel_budgets(pm, budget, "faces_for_budget")
     engine = select(pm, method, traced=traced)
     # The search pays about 24 refines: faster than the sort from about
     # FRONT_FROM_PCOLS pcols on (measured in docs/front.md).
@@ -749,7 +781,7 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
     K = check_camera(cameras, "faces_for_budget_batch", batch=True)
     traced = is_traced(cameras, budget)
     if traced:
-        budgets = jnp.asarray(budget, jnp.int32)
+        budgets = kernel_budgets(pm, budget, "faces_for_budget_batch")
         if budgets.ndim > 2 or (budgets.ndim >= 1 and budgets.shape[0] != K) or (budgets.ndim == 2 and
                                                                                     budgets.shape[1] < 1):
             raise ValueError(f"faces_for_budget_batch: budget must be one number, [{K}] or [{K}, B], "

@@ -83,6 +83,12 @@ def test_refine_batch_takes_one_tolerance(models, cameras):
     _, many = cameras
     with pytest.raises(TypeError, match=r"^refine_batch: tau \(one for all cameras\) must be a number, got list"):
         pmjax.refine_batch(pm, many, [1.0, 2.0])
+    import jax.numpy as jnp
+
+    with pytest.raises(ValueError, match=r"^refine_batch: tau \(one for all cameras\) must be one number, got"):
+        pmjax.refine_batch(pm, many, jnp.ones(8))
+    assert np.array_equal(pmjax.refine_batch(pm, many, jnp.float32(2.0))["faces"],
+                          pmjax.refine_batch(pm, many, 2.0)["faces"])
 
 
 def test_soft_refine_refuses_a_bad_temperature(models, cameras):

@@ -141,6 +141,30 @@ def test_bad_budgets_are_refused(built):
             pmjax.faces_for_budget_batch(pm, cams, bad)
 
 
+def test_budgets_past_int32_are_every_face_and_traced_budgets_are_checked(built):
+    """A budget of F or more means every face fits, whatever its size (2**31
+    and up do not fit the kernels' int32: capped at F first); a traced budget
+    must be an integer, and a negative one raises inside the computation."""
+    data = built("cow.ply")
+    pm = pmjax.ProgressiveMesh.from_data(data)
+    cams = _views(data, 4, seed=3)
+    cam = index_camera(cams, 0)
+    F = pm.n_faces
+    for method in ("front", "dense"):
+        assert pmjax.faces_for_budget(pm, cam, 2 ** 40, method=method) == pmjax.faces_for_budget(pm, cam, F,
+                                                                                                 method=method)
+        got = jax.jit(lambda c: pmjax.faces_for_budget(pm, c, 2 ** 31, method=method))(cam)
+        assert (float(got[0]), int(got[1])) == pmjax.faces_for_budget(pm, cam, F, method=method)
+    want = pmjax.faces_for_budget_batch(pm, cams, F)["faces"]
+    assert np.array_equal(np.asarray(jax.jit(lambda c: pmjax.faces_for_budget_batch(pm, c, 2 ** 31))(cams)["faces"]),
+                          want)
+    assert np.array_equal(pmjax.path_counts(pm, cams, budget=2 ** 31)["faces"], want)
+    with pytest.raises(Exception, match="faces_for_budget: a face budget must be >= 0"):
+        jax.block_until_ready(jax.jit(lambda b: pmjax.faces_for_budget(pm, cam, b))(jax.numpy.int32(-5)))
+    with pytest.raises(TypeError, match="faces_for_budget: a traced face budget must be an integer array"):
+        jax.jit(lambda b: pmjax.faces_for_budget(pm, cam, b))(jax.numpy.float32(2500.9))
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["bunny.ply", "terrain_gcanyon.ply"])
 def test_batch_equals_faces_for_budget(built, name):

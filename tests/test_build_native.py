@@ -400,3 +400,30 @@ def test_key_sort_is_numpys(bits):
         with pytest.raises(ValueError, match="not an edge key"):
             native.sort_keys(bad)
         assert bad.tobytes() == kept.tobytes()
+
+
+@pytest.mark.parametrize("module", ["pmjax._pmz_native", "pmjax.builders._build_native", "pmjax._normals_native"])
+def test_a_library_built_from_another_text_of_its_source_is_not_used(tmp_path, monkeypatch, module):
+    """Each ctypes library carries the SHA-256 of the source it was built
+    from; beside another text of that source (an edit not yet rebuilt) it is
+    not loaded, with a warning, and the NumPy steps run."""
+    import importlib.util
+    import shutil
+    import sys
+
+    from pmjax._clib import built_from, open_library
+
+    built = importlib.util.find_spec(module).origin
+    name = module.rsplit(".", 1)[-1]
+    real = built.rsplit("/", 1)[0] + f"/{name}.c"
+    assert open_library(module) is not None and built_from(open_library(module), real)
+    # The same library beside an edited copy of its source, as another package.
+    pkg = tmp_path / "stalepkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    shutil.copy(built, pkg / built.rsplit("/", 1)[-1])
+    (pkg / f"{name}.c").write_text(open(real).read() + "\n/* an edit */\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    sys.modules.pop("stalepkg", None)
+    with pytest.warns(RuntimeWarning, match=f"was built from another version of .*{name}.c: rebuild it"):
+        assert open_library(f"stalepkg.{name}") is None

@@ -207,6 +207,44 @@ def test_no_table_survives_an_update(cow, engine, field):
             assert np.array_equal(batch["faces"], pmjax.refine_batch(pm2, cams, 1.0, method="dense")["faces"])
 
 
+def test_kill_counts_that_disagree_are_refused_by_every_engine(cow):
+    """The face counts read ``kills`` and its static summary: an
+    ``eqx.tree_at`` of ``kills`` alone (or a summary of other counts) is
+    refused by every public call instead of counted differently by each
+    engine; ``with_kills`` updates both."""
+    import dataclasses
+
+    data, pm = cow
+    cam = index_camera(views(data, 1), 0)
+    stale = eqx.tree_at(lambda m: m.kills, pm, jnp.ones_like(pm.kills))
+    wrong_summary = dataclasses.replace(pm, max_kills=0, min_kills=0, common_kills=0)
+    for mesh, message in ((stale, "pm.kills is not the count of faces each pcol kills in pm.killer"),
+                          (wrong_summary, r"kill summary \(uncommon, max_kills, min_kills, common_kills\) is not")):
+        for method in ("dense", "front"):
+            with pytest.raises(ValueError, match=message):
+                pmjax.refine(mesh, cam, 1.0, method=method)
+        with pytest.raises(ValueError, match=message):
+            pmjax.refine_batch(mesh, stack_cameras([cam, cam]), 1.0)
+    same = pm.with_kills(np.asarray(pm.kills))
+    for method in ("dense", "front"):
+        assert int(pmjax.refine(same, cam, 1.0, method=method).n_faces) == int(pmjax.refine(pm, cam, 1.0).n_faces)
+
+
+def test_remembered_digests_keep_no_array_alive():
+    import gc
+    import weakref
+
+    from pmjax.engines import _content
+
+    x = jnp.arange(1000.0)
+    d = _content.digest(x)
+    ref = weakref.ref(x)
+    del x
+    gc.collect()
+    assert ref() is None
+    assert _content.digest(jnp.arange(1000.0) + 1) != d  # a new array, whatever its identity
+
+
 def test_tables_are_keyed_by_content(cow):
     """The same contents in new arrays find the same tables; a NumPy array
     updated in place (mutable) is digested again and finds new ones."""

@@ -182,8 +182,10 @@ def test_forged_header_sizes_are_refused_before_reading(cow, tmp_path):
 def test_bad_arguments():
     with pytest.raises(ValueError, match="save_pm: version must be one of"):
         save_pm(None, "x.pmz", version=3)
-    with pytest.raises(ValueError, match="batches must be a whole number >= 0"):
+    with pytest.raises(ValueError, match="^read_pm: batches must be a whole number >= 0"):
         read_pm(V1_FIXTURE, batches=-1)
+    with pytest.raises(ValueError, match="^load: batches must be a whole number >= 0"):
+        pmjax.load(V1_FIXTURE, batches=-1)
 
 
 def test_a_prefix_without_faces_is_refused_with_the_first_that_has_some(tmp_path):

@@ -5,8 +5,10 @@ engine's breadth-first layout and bounds, the front mesh's records) is kept
 under a digest of the arrays it was derived from, so an updated mesh (an
 ``eqx.tree_at`` of its attributes, new positions) finds no stale table: it
 has other contents, hence another key. A JAX array is immutable, so its
-digest is computed once per array object and remembered by identity (the
-memo holds the array, so an identity is never reused while remembered); a
+digest is computed once per array object and remembered by identity, beside a
+weak reference to the array: the memo keeps no array alive (a study that
+updates a mesh's arrays thousands of times holds no old copies), and an
+identity reused by a new array after the old one is gone is seen as new. A
 NumPy array can change in place and is digested at every call.
 """
 
@@ -15,12 +17,13 @@ from __future__ import annotations
 import collections
 import hashlib
 import threading
+import weakref
 
 import jax
 import numpy as np
 
-# Array objects whose digests are remembered (each digest is 16 bytes; the
-# memo also holds the array itself).
+# Array objects whose digests are remembered (a 16-byte digest and a weak
+# reference each).
 MEMO_SIZE = 256
 
 _memo: collections.OrderedDict = collections.OrderedDict()
@@ -49,12 +52,12 @@ def digest(x) -> bytes:
         return _hash(x)
     with _lock:
         hit = _memo.get(id(x))
-        if hit is not None and hit[0] is x:
+        if hit is not None and hit[0]() is x:
             _memo.move_to_end(id(x))
             return hit[1]
     d = _hash(x)
     with _lock:
-        _memo[id(x)] = (x, d)
+        _memo[id(x)] = (weakref.ref(x), d)
         while len(_memo) > MEMO_SIZE:
             _memo.popitem(last=False)
     return d
