@@ -193,7 +193,17 @@ def view_screen_tolerance(attrs: PcolAttributes, view: View, sqrt=jnp.sqrt) -> F
 
 
 def small_on_screen(attrs: PcolAttributes, camera: Camera, tau) -> Bool[Array, " P"]:
-    """Screen-space deviation below ``tau`` pixels (Hoppe 1997's test, docs/design.md)."""
+    """Screen-space deviation below ``tau`` pixels (Hoppe 1997's test, docs/design.md).
+
+    Args:
+        attrs: :class:`PcolAttributes` of the pcols (rows ``[3, P]``, ``[P]``;
+            world units).
+        camera: one :class:`Camera` (eye ``[3]``).
+        tau: tolerance, pixels of the image height: one number >= 0.
+
+    Returns:
+        ``bool[P]``.
+    """
     check_camera(camera, "small_on_screen", batch=False)
     tau = checked_tau(tau, "small_on_screen")
     attrs, camera = in_model_units(attrs, camera)
