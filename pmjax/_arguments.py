@@ -3,7 +3,8 @@
 Each says which call and which argument is wrong and what was expected, before
 any work, so a wrong type never surfaces as an error from deep inside JAX.
 They cost a few attribute reads (the calls are hot: a refine is a fraction of
-a millisecond). Camera values are checked when a :class:`pmjax.Camera` is made.
+a millisecond). Camera values are checked when a :class:`pmjax.Camera` is made;
+a camera's type and scalar arguments by :mod:`pmjax._scalars`.
 """
 
 from __future__ import annotations
@@ -11,13 +12,12 @@ from __future__ import annotations
 import collections
 import threading
 
-import equinox as eqx
 import jax
 import numpy as np
 
-from ._camera import Camera
 from ._model import ProgressiveMesh, kill_summary
 from ._pmdata import PMData
+from ._scalars import check_camera_type, host_scalar  # noqa: F401 (host_scalar: the calls' own checks import it here)
 
 
 def check_mesh(pm, call: str) -> None:
@@ -30,13 +30,6 @@ def check_mesh(pm, call: str) -> None:
         raise TypeError(f"{call}: pm is a PMData (host arrays, as read_pm gives); the refinement needs a "
                         "ProgressiveMesh: pmjax.load(path), or pmjax.ProgressiveMesh.from_data(data)")
     raise TypeError(f"{call}: pm must be a ProgressiveMesh (pmjax.load(path)), got {type(pm).__name__}")
-
-
-def check_camera_type(camera, call: str, what: str = "camera") -> None:
-    """``camera`` is a :class:`Camera` (``TypeError`` naming ``what`` otherwise)."""
-    if not isinstance(camera, Camera):
-        raise TypeError(f"{call}: {what} must be a pmjax.Camera (pmjax.look_at, pmjax.standard_orbit, "
-                        f"pmjax.load_cameras, ...), got {type(camera).__name__}")
 
 
 def check_camera(camera, call: str, *, batch: bool) -> int:
@@ -58,56 +51,6 @@ def check_camera(camera, call: str, *, batch: bool) -> int:
     return 0
 
 
-def host_scalar(value, name: str, call: str):
-    """A tolerance-like argument: a JAX tracer or array is returned as it is;
-    anything else must be one real number (``TypeError`` or ``ValueError``
-    naming the argument otherwise), returned as float32."""
-    if isinstance(value, jax.Array):
-        return value
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating,
-                                                                     np.ndarray)):
-        raise TypeError(f"{call}: {name} must be a number, got {type(value).__name__} {_short(value)}")
-    value = np.asarray(value)
-    if value.shape != () or value.dtype.kind not in "iuf":
-        raise ValueError(f"{call}: {name} must be one number, got {_short(value)} (shape {list(value.shape)})")
-    return np.float32(value)
-
-
-def host_number(value, name: str, call: str, ok, rule: str):
-    """A scalar argument, checked where it is known: a tracer (shape checked,
-    its value left to the compiled call's ``eqx.error_if``) and a concrete JAX
-    array (value checked here) are returned as they are; anything else as
-    :func:`host_scalar`'s float32. ``ok(value) -> bool`` is the rule,
-    ``rule`` its words in the ``ValueError``."""
-    if isinstance(value, jax.core.Tracer):
-        if np.shape(value) != ():
-            raise ValueError(f"{call}: {name} must be one number, got an array of shape {list(np.shape(value))}")
-        return value
-    host = host_scalar(np.asarray(value) if isinstance(value, jax.Array) else value, name, call)
-    if not ok(host):
-        raise ValueError(f"{call}: {name} must be {rule}, got {host}")
-    return value if isinstance(value, jax.Array) else host
-
-
-def host_tau(tau, call: str):
-    """:func:`host_number` for a tolerance: >= 0 pixels, ``inf`` allowed
-    (every collapsible pcol), NaN refused."""
-    return host_number(tau, "tau", call, lambda t: t >= 0, ">= 0 pixels (not NaN)")
-
-
-def checked_tau(tau, call: str):
-    """A tolerance for a call that passes it on as given: :func:`host_tau` on
-    the host; traced, refused where it is used if NaN or negative
-    (``eqx.error_if``). Returns the caller's value (a traced one wrapped)."""
-    host_tau(tau, call)
-    if isinstance(tau, jax.core.Tracer):
-        return eqx.error_if(tau, ~(tau >= 0), f"{call}: tau must be >= 0 (and not NaN)")
-    return tau
-
-
-def _short(value) -> str:
-    text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
 
 
 # Content keys of meshes whose kill counts were found consistent (a few: the

@@ -14,10 +14,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from ._arguments import check_camera, check_mesh, host_number, host_scalar
+from ._arguments import check_camera, check_mesh
 from ._camera import Camera, index_camera
 from ._model import ProgressiveMesh
 from ._predicate import ALL_TESTS, Tests, _in_rows
+from ._scalars import host_number, host_scalar
 from ._soft import soft_face_count, soft_tests_in_model_units, soft_weights
 from ._units import attributes_in_model_units, camera_in_model_units
 

@@ -17,9 +17,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from ._arguments import check_camera, checked_tau
+from ._arguments import check_camera
 from ._camera import Camera
 from ._model import PcolAttributes
+from ._scalars import checked_tau
 from ._units import in_model_units
 from ._view import View, kappa_squared
 

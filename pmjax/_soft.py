@@ -20,11 +20,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._arguments import check_camera, check_mesh, host_number, host_tau
+from ._arguments import check_camera, check_mesh
 from ._camera import Camera
 from ._model import PcolAttributes, ProgressiveMesh
 from ._predicate import (ALL_TESTS, Tests, _eye_offset, frustum_margins, in_row_parts, join_row_parts, safe_sqrt,
                          view_screen_tolerance)
+from ._scalars import host_number, host_tau
 from ._units import in_model_units
 from ._view import View
 from .engines._dense import down_the_batches, up_the_batches

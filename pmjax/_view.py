@@ -16,8 +16,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._arguments import check_camera_type, checked_tau
 from ._camera import Camera
+from ._scalars import check_camera_type, checked_tau
 
 # Layout of View.values: eye, the rows right/up/forward, the frustum constants
 # of Camera.frustum_frame, one pixel, kappa squared.
