@@ -153,7 +153,7 @@ def _check_arguments(budget, temperature, tau_range, K: int) -> None:
         lo, hi = (host_scalar(np.asarray(t) if isinstance(t, jax.Array) else t, "tau_range", call) for t in tau_range)
         if not 0 < lo < hi < np.inf:
             raise ValueError(f"{call}: tau_range must be (lowest, highest) with 0 < lowest < highest, finite "
-                             f"pixels, got ({lo}, {hi})")
+                             f"pixels, got ({lo:g}, {hi:g})")
 
 
 def _checked_traced(budget, temperature, tau_range):

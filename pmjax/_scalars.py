@@ -49,7 +49,7 @@ def host_number(value, name: str, call: str, ok, rule: str):
         return value
     host = host_scalar(np.asarray(value) if isinstance(value, jax.Array) else value, name, call)
     if not ok(host):
-        raise ValueError(f"{call}: {name} must be {rule}, got {host}")
+        raise ValueError(f"{call}: {name} must be {rule}, got {host:g}")
     return value if isinstance(value, jax.Array) else host
 
 
