@@ -17,7 +17,7 @@ import numpy as np
 
 from ._model import ProgressiveMesh, kill_summary
 from ._pmdata import PMData
-from ._scalars import check_camera_type, host_scalar  # noqa: F401 (host_scalar: the calls' own checks import it here)
+from ._scalars import check_camera_type
 
 
 def check_mesh(pm, call: str) -> None:
@@ -49,8 +49,6 @@ def check_camera(camera, call: str, *, batch: bool) -> int:
         raise ValueError(f"{call}: takes one camera (eye of shape [3]), got {what}; use refine_batch or "
                          "path_counts for many, or pmjax.index_camera(cameras, i) for one of them")
     return 0
-
-
 
 
 # Content keys of meshes whose kill counts were found consistent (a few: the

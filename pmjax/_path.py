@@ -39,7 +39,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._arguments import check_camera_type, check_mesh
+from ._arguments import check_mesh
+from ._scalars import check_camera_type
 from ._bitsets import WORD
 from ._camera import Camera, check_camera_values
 from ._model import ProgressiveMesh

@@ -21,7 +21,8 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Bool, Int
 
-from ._arguments import check_camera, check_mesh, host_scalar
+from ._arguments import check_camera, check_mesh
+from ._scalars import host_scalar
 from ._bitsets import WORD
 from ._camera import Camera, camera_count
 from ._model import ProgressiveMesh
