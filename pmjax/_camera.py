@@ -587,7 +587,23 @@ def index_camera(camera: Camera, i) -> Camera:
 
 
 def fly_through(keyframes: list[tuple], n_frames: int, **kw) -> Camera:
-    """Cameras interpolated linearly between keyframes ``(eye, target)``."""
+    """Cameras interpolated linearly between keyframes ``(eye, target)``.
+
+    Args:
+        keyframes: two or more ``(eye, target)`` pairs of 3 numbers each
+            (model units), passed through in order.
+        n_frames: cameras in all, the first at the first keyframe and the
+            last at the last, evenly spaced in keyframe steps between.
+        **kw: :func:`look_at`'s keywords for every camera (``up``,
+            ``fov_y_deg``, ``width``, ``height``, ``near``, ``far``, ...).
+
+    Returns:
+        A camera batch (eye ``[n_frames, 3]``).
+
+    Raises:
+        ValueError: fewer than two keyframes; CameraError: a value
+            :func:`look_at` refuses.
+    """
     if len(keyframes) < 2:
         raise ValueError("a fly-through needs at least two keyframes")
     keys = np.asarray([[np.asarray(e, float), np.asarray(t, float)] for e, t in keyframes])
