@@ -78,7 +78,17 @@ def soft_tests(attrs: PcolAttributes, camera: Camera, tau, temperature, scale=No
 
     Returns:
         ``(collapse, visible, t_p)``, each shaped like ``attrs.radius``.
+
+    Raises:
+        TypeError, ValueError: a camera that is not one perspective camera,
+            a ``tau`` or ``temperature`` that is not one number (``tau >= 0``,
+            ``temperature > 0``; traced values: their shapes).
     """
+    check_camera(camera, "soft_tests", batch=False)
+    if camera.orthographic:
+        raise ValueError("soft_tests supports perspective cameras only")
+    tau = host_tau(tau, "soft_tests")
+    temperature = host_number(temperature, "temperature", "soft_tests", lambda t: t > 0, "> 0 pixels (not NaN)")
     attrs, camera = in_model_units(attrs, camera)
     return soft_tests_in_model_units(attrs, camera, tau, temperature, scale, tests)
 

@@ -231,3 +231,17 @@ def test_predicates_take_every_tolerance_refine_takes(models, cameras):
     assert np.asarray(pmjax.kappa(many, 1.0)).shape == (2,)
     with pytest.raises(TypeError, match=r"^kappa: camera must be a pmjax\.Camera"):
         pmjax.kappa(np.zeros(3), 1.0)
+
+
+def test_soft_tests_checks_its_camera_tau_and_temperature(models, cameras):
+    _, pm = models
+    one, many = cameras
+    with pytest.raises(ValueError, match=r"^soft_tests: takes one camera"):
+        pmjax.soft_tests(pm.attributes, many, 1.0, 0.1)
+    with pytest.raises(ValueError, match=r"^soft_tests: tau must be >= 0"):
+        pmjax.soft_tests(pm.attributes, one, -1.0, 0.1)
+    with pytest.raises(ValueError, match=r"^soft_tests: temperature must be > 0"):
+        pmjax.soft_tests(pm.attributes, one, 1.0, 0.0)
+    collapse, visible, t = pmjax.soft_tests(pm.attributes, one, 1.0, 0.1)
+    assert collapse.shape == visible.shape == t.shape == pm.attributes.radius.shape
+
