@@ -12,7 +12,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pmjax._pmfile import METRICS, PMData, file_sha256  # noqa: F401 (re-exported)
-from pmjax._meshio import check_float32_precision
+from pmjax._meshio import FLOAT32_MAX, check_float32_precision, rows_outside_float32
 from pmjax._normals import fitted_normals
 
 from . import _native as native
@@ -437,11 +437,10 @@ def _checked_input(v0: np.ndarray, f0: np.ndarray) -> np.ndarray:
     # Positions are stored as float32: beyond its largest value (or NaN) a
     # position is lost, and the build would only fail late, or not at all.
     # Min and max first: NaN carries through both, and no temporary is made.
-    largest = float(np.finfo(np.float32).max)
-    if len(v0) and not (-largest <= v0.min() and v0.max() <= largest):
-        bad = int(np.flatnonzero(~np.all(np.abs(v0) <= largest, axis=1))[0])
+    if len(v0) and not (-FLOAT32_MAX <= v0.min() and v0.max() <= FLOAT32_MAX):
+        bad = int(np.flatnonzero(rows_outside_float32(v0))[0])
         raise ValueError(f"build_pm: vertex {bad} has a coordinate that is not finite or beyond float32's range "
-                         f"(|x| <= {largest:.8g}), which pmjax stores: {v0[bad].tolist()}")
+                         f"(|x| <= {FLOAT32_MAX:.8g}), which pmjax stores: {v0[bad].tolist()}")
     if int(f0.min()) < 0 or int(f0.max()) >= V0:
         out = (f0 < 0) | (f0 >= V0)
         bad = int(np.flatnonzero(np.any(out, axis=1))[0])

@@ -494,13 +494,14 @@ def _check_binary_ply(fh, head: bytes, size: int, name: str) -> None:
                                 f"{f' (before it: {before})' if before else ''} are wrong or the file is damaged")
             # The first row's list must end inside the file (a forged length
             # would otherwise make a row type of any size).
-            end = pos + offset + count_dtype.itemsize + max(n, 0) * np.dtype(prop.dtype).itemsize
-            if element.count and end > size:
+            list_bytes = count_dtype.itemsize + max(n, 0) * np.dtype(prop.dtype).itemsize
+            if element.count and pos + offset + list_bytes > size:
                 raise MeshError(f"{name}: '{element.name}' element 0 (header line {element.line}) starts with a list "
-                                f"of {n} entries at byte {pos + offset}, which would end at byte {end}, past the "
-                                f"file's end at byte {size}: the file is damaged or truncated")
+                                f"of {n} entries at byte {pos + offset}, which would end at byte "
+                                f"{pos + offset + list_bytes}, past the file's end at byte {size}: the file is damaged "
+                                "or truncated")
             fields += [(f"n{k}", count_dtype), (f"p{k}", order + prop.dtype, (max(n, 0),))]
-            offset += count_dtype.itemsize + max(n, 0) * np.dtype(prop.dtype).itemsize
+            offset += list_bytes
             has_list = True
         # Rows the bytes left can hold (all, for an element without properties).
         row = np.dtype(fields).itemsize if fields else 0
@@ -1085,11 +1086,9 @@ def _text_mesh(v: np.ndarray, f: np.ndarray, file_type: str) -> bytes:
     17 otherwise), not a fixed count of decimals, which would flatten a model
     measured in micrometres and round any model's last bits."""
     digits = 9 if v.dtype == np.float32 else 17
-    coords = "\n".join(" ".join(f"{x:.{digits}g}" for x in row) for row in v.tolist())
+    coords = [" ".join(f"{x:.{digits}g}" for x in row) for row in v.tolist()]
     if file_type == "obj":
-        lines = ["v " + line for line in coords.split("\n")] if len(v) else []
-        lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in f.tolist()]
+        lines = ["v " + row for row in coords] + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in f.tolist()]
     else:
-        lines = ["OFF", f"{len(v)} {len(f)} 0"] + (coords.split("\n") if len(v) else [])
-        lines += [f"3 {a} {b} {c}" for a, b, c in f.tolist()]
+        lines = ["OFF", f"{len(v)} {len(f)} 0", *coords] + [f"3 {a} {b} {c}" for a, b, c in f.tolist()]
     return ("\n".join(lines) + "\n").encode("ascii")

@@ -69,6 +69,17 @@ def weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarra
 PRECISION_LIMIT = 2.0 ** -16
 
 
+# The largest float32: pmjax stores positions in float32, so every coordinate
+# must lie within it.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def rows_outside_float32(v: np.ndarray) -> np.ndarray:
+    """``bool[V]``: the rows of ``v`` (``[V, 3]``) with a coordinate that is
+    not finite or beyond float32's range, a position pmjax cannot store."""
+    return ~np.all(np.abs(v) <= FLOAT32_MAX, axis=1)
+
+
 def check_float32_precision(vertices: np.ndarray, *, source: str = "<array>") -> None:
     """Refuse a model that float32 positions, which pmjax stores, would damage.
 
@@ -164,15 +175,14 @@ def clean_mesh(
     # pmjax stores float32 positions: a coordinate a face uses past float32's
     # range cannot be kept; refused (naming the vertex) before any arithmetic
     # on it.
+    # (The faces left use finite vertices only.)
     used = np.zeros(nv, bool)
     used[f.ravel()] = True
-    past = np.flatnonzero(used & finite & (np.abs(np.where(finite[:, None], v, 0)).max(axis=1, initial=0)
-                                           > np.finfo(np.float32).max))
+    past = np.flatnonzero(used & rows_outside_float32(v))
     if len(past):
         i = int(past[0])
         raise MeshError(f"{source}: vertex {int(original_ids[i])} is at {v[i].tolist()}, beyond float32's largest "
-                        f"value ({float(np.finfo(np.float32).max):.4g}), in which pmjax stores positions: scale the "
-                        "model down first")
+                        f"value ({FLOAT32_MAX:.4g}), in which pmjax stores positions: scale the model down first")
 
     # Degenerate faces: repeated corners or (numerically) zero area.
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
@@ -180,7 +190,7 @@ def clean_mesh(
     cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     # The area threshold is relative to the surface's own size: the faces'
     # corners, not stray points no face uses (scans often hold some).
-    diag = np.linalg.norm(np.ptp(v[np.unique(f)], axis=0)) if len(f) else 0.0
+    diag = np.linalg.norm(np.ptp(v[used], axis=0)) if len(f) else 0.0
     zero_area = np.linalg.norm(cross, axis=1) <= (1e-14 * diag * diag)
     degenerate = repeated | zero_area
     f = f[~degenerate]
