@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import collections
 import threading
+import weakref
 
 import jax
 import numpy as np
@@ -91,15 +92,15 @@ def check_kills(pm: ProgressiveMesh, call: str) -> None:
             _KILLS_CHECKED.move_to_end(key)
             _last_checked = _identity(arrays, static)
             return
-    kills, killer = np.asarray(pm.kills), np.asarray(pm.killer)
+    kills, killer, uncommon = (np.asarray(a) for a in arrays)
     counted = np.bincount(killer[killer >= 0], minlength=len(kills))
     if len(counted) != len(kills) or not np.array_equal(counted, kills):
         p = int(np.flatnonzero(counted[:len(kills)] != kills)[0]) if len(counted) == len(kills) else len(kills)
         raise ValueError(f"{call}: pm.kills is not the count of faces each pcol kills in pm.killer (pcol {p}); "
                          "update both together (and the summary, with pm.with_kills), or rebuild the mesh with "
                          "pmjax.ProgressiveMesh.from_data")
-    want = kill_summary(kills, pm.common_kills)
-    have = dict(uncommon=np.asarray(pm.uncommon), max_kills=pm.max_kills, min_kills=pm.min_kills)
+    want = kill_summary(kills, static[2])
+    have = dict(uncommon=uncommon, max_kills=static[0], min_kills=static[1])
     if not all(np.array_equal(np.asarray(want[k]), v) for k, v in have.items()):
         raise ValueError(f"{call}: the mesh's kill summary (uncommon, max_kills, min_kills, common_kills) is not "
                          "that of pm.kills: update kills with pm.with_kills(kills), not eqx.tree_at")
@@ -113,8 +114,6 @@ def check_kills(pm: ProgressiveMesh, call: str) -> None:
 def _identity(arrays, static):
     """Weak references to a checked mesh's kill arrays (JAX arrays; a NumPy
     array, mutable, is never remembered by identity), and its statics."""
-    import weakref
-
     if not all(isinstance(a, jax.Array) for a in arrays):
         return None
     return tuple(weakref.ref(a) for a in arrays), static

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -140,8 +142,6 @@ class ProgressiveMesh(eqx.Module):
         values) and the static summary that describes them
         (:func:`kill_summary`): ``eqx.tree_at`` would leave the summary of the
         old counts, which the engines' face counts read."""
-        import dataclasses
-
         return dataclasses.replace(self, **kill_summary(np.asarray(kills, np.int32)))
 
     def astype(self, dtype) -> "ProgressiveMesh":

@@ -575,9 +575,15 @@ def kernel_budgets(pm: ProgressiveMesh, budget, call: str):
             raise TypeError(f"{call}: a traced face budget must be an integer array, got {budget.dtype}")
         budget = eqx.error_if(budget, budget < 0, f"{call}: a face budget must be >= 0")
         return jnp.minimum(budget, pm.n_faces).astype(jnp.int32)
+    return jnp.asarray(np.minimum(host_budgets(budget), pm.n_faces), jnp.int32)
+
+
+def host_budgets(budget) -> np.ndarray:
+    """Host face budgets (one or an array of any shape) as ``int64`` of the
+    same shape, each checked by :func:`check_budget` (``ValueError``)."""
     values = np.asarray(budget, dtype=object) if not isinstance(budget, np.ndarray) else budget
     checked = [check_budget(b.item() if isinstance(b, np.generic) else b) for b in np.ravel(values)]
-    return jnp.asarray(np.minimum(np.array(checked, np.int64), pm.n_faces).reshape(np.shape(values)), jnp.int32)
+    return np.array(checked, np.int64).reshape(np.shape(values))
 
 
 def faces_for_budget(pm: ProgressiveMesh, camera: Camera, budget: int, tests: Tests = ALL_TESTS,
@@ -807,8 +813,7 @@ def faces_for_budget_batch(pm: ProgressiveMesh, cameras: Camera, budget, *, test
             raise ValueError(f"faces_for_budget_batch: budget must be one number, one per camera ([{K}]) or B per "
                              f"camera ([{K}, B]), got shape {list(shape)}")
         columns = len(shape) == 2
-        budgets = np.array([check_budget(b.item() if isinstance(b, np.generic) else b)
-                            for b in np.ravel(budgets)], np.int64).reshape(K, -1)
+        budgets = host_budgets(budgets).reshape(K, -1)
     B = budgets.shape[1]
     shaped = lambda out: out if columns else {k: v[:, 0] for k, v in out.items()}
     engine = select(pm, method, batch=True)

@@ -84,13 +84,20 @@ def soft_tests(attrs: PcolAttributes, camera: Camera, tau, temperature, scale=No
             a ``tau`` or ``temperature`` that is not one number (``tau >= 0``,
             ``temperature > 0``; traced values: their shapes).
     """
-    check_camera(camera, "soft_tests", batch=False)
-    if camera.orthographic:
-        raise ValueError("soft_tests supports perspective cameras only")
-    tau = host_tau(tau, "soft_tests")
-    temperature = host_number(temperature, "temperature", "soft_tests", lambda t: t > 0, "> 0 pixels (not NaN)")
+    tau, temperature = _checked_view(camera, tau, temperature, "soft_tests")
     attrs, camera = in_model_units(attrs, camera)
     return soft_tests_in_model_units(attrs, camera, tau, temperature, scale, tests)
+
+
+def _checked_view(camera, tau, temperature, call: str):
+    """The view arguments of a soft call: one perspective camera, ``tau >= 0``
+    and ``temperature > 0`` pixels (host values checked and returned as
+    float32, traced ones shape-checked and passed on)."""
+    check_camera(camera, call, batch=False)
+    if camera.orthographic:
+        raise ValueError(f"{call} supports perspective cameras only")
+    tau = host_tau(tau, call)
+    return tau, host_number(temperature, "temperature", call, lambda t: t > 0, "> 0 pixels (not NaN)")
 
 
 def soft_tests_in_model_units(attrs, camera, tau, temperature, scale, tests):
@@ -232,11 +239,7 @@ def soft_refine(
         :class:`SoftRefinement`.
     """
     check_mesh(pm, "soft_refine")
-    check_camera(camera, "soft_refine", batch=False)
-    if camera.orthographic:
-        raise ValueError("soft_refine supports perspective cameras only")
-    tau = host_tau(tau, "soft_refine")
-    temperature = host_number(temperature, "temperature", "soft_refine", lambda t: t > 0, "> 0 pixels (not NaN)")
+    tau, temperature = _checked_view(camera, tau, temperature, "soft_refine")
     scale = _checked_scale(pm, scale)
     # Arrays, not Python floats, so a new value does not recompile.
     dtype = pm.attributes.radius.dtype
